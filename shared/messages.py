@@ -1,0 +1,786 @@
+"""Versioned, frozen message models for everything on the bus that is not sensor data.
+
+Conventions: world frame ENU, body frame FLU, SI units, yaw in radians (ENU, counter-clockwise from +x),
+times in integer nanoseconds since the epoch. Every model has a `kind` literal (the discriminator), a
+`schema_version`, and a docstring per field; its JSON schema is the MCAP schema of its channel.
+"""
+
+from __future__ import annotations
+
+import time
+import uuid
+from enum import StrEnum
+from typing import Annotated, Any, ClassVar, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+SCHEMA_VERSION = 1
+MAX_COMMAND_CHARS = 500
+MAX_QUERY_CHARS = 200
+
+
+def now_ns() -> int:
+    """Wall-clock time in integer nanoseconds since the epoch."""
+    return time.time_ns()
+
+
+def new_id(prefix: str = "") -> str:
+    return f"{prefix}{uuid.uuid4().hex[:12]}"
+
+
+class Message(BaseModel):
+    """Base of every bus message: frozen, strict about unknown fields, versioned."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid", use_attribute_docstrings=True)
+    schema_name: ClassVar[str] = ""
+
+    schema_version: int = SCHEMA_VERSION
+    """Schema version of this message; bumped on incompatible changes."""
+
+    @classmethod
+    def full_schema_name(cls) -> str:
+        """Name used for the Zenoh encoding schema and the MCAP schema, e.g. `aermani.VehicleState`."""
+        return f"aermani.{cls.__name__}"
+
+
+class Part(BaseModel):
+    """Base of nested value objects (not published on their own)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid", use_attribute_docstrings=True)
+
+
+# --------------------------------------------------------------------------- geometry
+
+
+class Vec3(Part):
+    x: float = 0.0
+    """x in metres (world ENU: east/forward at start; body FLU: forward)."""
+    y: float = 0.0
+    """y in metres (world ENU: north/left at start; body FLU: left)."""
+    z: float = 0.0
+    """z in metres (up)."""
+
+    def as_tuple(self) -> tuple[float, float, float]:
+        return (self.x, self.y, self.z)
+
+
+class Pose(Part):
+    position: Vec3 = Vec3()
+    """Position in the world frame (ENU), metres."""
+    yaw: float = 0.0
+    """Heading in radians, ENU, counter-clockwise from world +x."""
+
+
+class BBox2D(Part):
+    x0: int
+    """Left pixel column (inclusive)."""
+    y0: int
+    """Top pixel row (inclusive)."""
+    x1: int
+    """Right pixel column (exclusive)."""
+    y1: int
+    """Bottom pixel row (exclusive)."""
+
+
+# --------------------------------------------------------------------------- autopilot
+
+
+class LandedState(StrEnum):
+    UNKNOWN = "unknown"
+    ON_GROUND = "on_ground"
+    IN_AIR = "in_air"
+    TAKEOFF = "takeoff"
+    LANDING = "landing"
+
+
+class GripperState(StrEnum):
+    UNKNOWN = "unknown"
+    OPEN = "open"
+    CLOSED = "closed"
+
+
+class VehicleState(Message):
+    kind: Literal["vehicle_state"] = "vehicle_state"
+    stamp_ns: int = Field(default_factory=now_ns)
+    """When the bridge produced this state (ns since epoch)."""
+    vehicle_id: str = "am1"
+    """Vehicle this state belongs to."""
+    position: Vec3 = Vec3()
+    """Body origin in the world frame (ENU), metres."""
+    velocity: Vec3 = Vec3()
+    """Velocity in the world frame (ENU), m/s."""
+    yaw: float = 0.0
+    """Heading, radians, ENU."""
+    roll: float = 0.0
+    """Roll, radians (FLU)."""
+    pitch: float = 0.0
+    """Pitch, radians (FLU, positive nose up)."""
+    armed: bool = False
+    """Whether the motors are armed."""
+    mode: str = "UNKNOWN"
+    """PX4 flight mode name, e.g. OFFBOARD, POSCTL, AUTO.TAKEOFF, AUTO.LOITER, AUTO.LAND."""
+    landed_state: LandedState = LandedState.UNKNOWN
+    """Landed state from EXTENDED_SYS_STATE."""
+    battery_voltage: float | None = None
+    """Battery voltage in volts, if reported."""
+    battery_remaining: float | None = None
+    """Battery remaining in percent (0-100), if reported."""
+    gripper: GripperState = GripperState.UNKNOWN
+    """Last commanded/acknowledged gripper state."""
+    link_ok: bool = False
+    """True while heartbeats arrive (none for 2 s means link lost)."""
+    offboard_ok: bool = False
+    """True while in OFFBOARD with the setpoint stream running."""
+    last_heartbeat_ns: int = 0
+    """Receive time of the last autopilot HEARTBEAT."""
+    message: str = ""
+    """Latest human-readable status (STATUSTEXT, link loss...)."""
+
+
+class ArmCommand(Message):
+    kind: Literal["arm"] = "arm"
+
+
+class DisarmCommand(Message):
+    kind: Literal["disarm"] = "disarm"
+    force: bool = False
+    """Force disarm even in the air (emergency only)."""
+
+
+class TakeoffCommand(Message):
+    kind: Literal["takeoff"] = "takeoff"
+    altitude: float = Field(1.5, gt=0.0, le=50.0)
+    """Target altitude above the home position, metres."""
+
+
+class GotoCommand(Message):
+    kind: Literal["goto"] = "goto"
+    position: Vec3
+    """Target position, world ENU, metres."""
+    yaw: float
+    """Target heading, radians ENU."""
+    max_speed: float | None = Field(None, gt=0.0)
+    """Optional speed limit for this motion, m/s (the bridge ramps the setpoint)."""
+
+
+class HoldCommand(Message):
+    kind: Literal["hold"] = "hold"
+
+
+class LandCommand(Message):
+    kind: Literal["land"] = "land"
+
+
+class GripperCommand(Message):
+    kind: Literal["gripper"] = "gripper"
+    action: Literal["open", "close"]
+    """Open (release) or close (grab)."""
+
+
+AutopilotCommand = Annotated[
+    ArmCommand | DisarmCommand | TakeoffCommand | GotoCommand | HoldCommand | LandCommand | GripperCommand,
+    Field(discriminator="kind"),
+]
+
+
+class AutopilotResult(Message):
+    kind: Literal["autopilot_result"] = "autopilot_result"
+    ok: bool
+    """Whether the command was accepted and carried out."""
+    command: str
+    """Which command this answers (arm, takeoff, goto...)."""
+    ack_code: int | None = None
+    """PX4 COMMAND_ACK result code (0 accepted, 1 temporarily rejected, 2 denied, 3 unsupported, 4 failed,
+    5 in progress), when a COMMAND_LONG was involved."""
+    ack_name: str = ""
+    """MAV_RESULT name of ack_code."""
+    message: str = ""
+    """Human-readable explanation."""
+
+
+# --------------------------------------------------------------------------- perception
+
+
+class LocalizeRequest(Message):
+    kind: Literal["localize_request"] = "localize_request"
+    query: str = Field(..., max_length=10_000)
+    """Free-text query: an object ("red cup", "the larger box") or a surface ("round table")."""
+    object_size: Vec3 | None = None
+    """For placement: size of the held object, for clearance."""
+    max_frame_age_s: float = 1.0
+    """Refuse frames older than this (seconds)."""
+
+
+LocalizeReason = Literal[
+    "ok", "not_visible", "too_few_points", "depth_invalid", "ambiguous", "bad_query", "no_frame", "stale_frame",
+    "no_free_spot", "error",
+]
+
+
+class ObjectEstimate(Message):
+    kind: Literal["object_estimate"] = "object_estimate"
+    query: str
+    """The query this answers (truncated to 200 characters)."""
+    found: bool
+    """Whether the object was localized."""
+    reason: LocalizeReason = "ok"
+    """Why not, when not found."""
+    message: str = ""
+    """Human-readable explanation."""
+    label: str = ""
+    """Label of the matched object."""
+    pose: Pose | None = None
+    """Object centroid (world ENU) and grasp yaw from its oriented box."""
+    size: Vec3 | None = None
+    """Object extent along its box axes (x along grasp yaw), metres."""
+    top_z: float | None = None
+    """Height of the object's top, world z, metres."""
+    support_z: float | None = None
+    """Height of the surface under it, world z, metres."""
+    confidence: float = 0.0
+    """0..1."""
+    n_points: int = 0
+    """Number of 3D points supporting the estimate."""
+    bbox: BBox2D | None = None
+    """2D box in the image used."""
+    frame_stamp_ns: int = 0
+    """Timestamp of the colour/depth pair used."""
+
+
+class PlacementEstimate(Message):
+    kind: Literal["placement_estimate"] = "placement_estimate"
+    query: str
+    """The surface query this answers (truncated to 200 characters)."""
+    found: bool
+    """Whether a placement pose was found."""
+    reason: LocalizeReason = "ok"
+    """Why not, when not found."""
+    message: str = ""
+    """Human-readable explanation."""
+    label: str = ""
+    """Label of the matched surface."""
+    pose: Pose | None = None
+    """Placement pose: where the held object's bottom should be released (world ENU), plus vertical offset."""
+    surface_z: float | None = None
+    """Height of the surface plane, world z, metres."""
+    plane: tuple[float, float, float, float] | None = None
+    """Plane (a, b, c, d) in the world frame, normal up."""
+    vertical_offset: float = 0.0
+    """Offset above the surface included in pose.position.z, metres."""
+    clearance: float = 0.0
+    """Distance from the spot to the nearest clutter or edge, metres."""
+    confidence: float = 0.0
+    """0..1."""
+    n_points: int = 0
+    """Number of plane inlier points."""
+    bbox: BBox2D | None = None
+    """2D box of the surface in the image used."""
+    frame_stamp_ns: int = 0
+    """Timestamp of the colour/depth pair used."""
+
+
+class Detection(Part):
+    label: str
+    """Label of the detected thing (object or surface name)."""
+    category: Literal["object", "surface", "furniture", "other"] = "object"
+    """What kind of thing it is."""
+    bbox: BBox2D | None = None
+    """2D box in the image."""
+    centroid: Vec3 | None = None
+    """3D centroid in the world frame."""
+    size: Vec3 | None = None
+    """3D extent, metres."""
+    confidence: float = 0.0
+    """0..1."""
+    n_points: int = 0
+    """Supporting 3D points."""
+
+
+class Detections(Message):
+    kind: Literal["detections"] = "detections"
+    stamp_ns: int = Field(default_factory=now_ns)
+    """Publish time."""
+    frame_stamp_ns: int = 0
+    """Timestamp of the frame these come from."""
+    segmenter: str = ""
+    """Segmenter that produced them (sim, color, sam3)."""
+    items: tuple[Detection, ...] = ()
+    """What is visible now."""
+
+
+# --------------------------------------------------------------------------- executor
+
+
+class SkillState(StrEnum):
+    RUNNING = "running"
+    SUCCEEDED = "succeeded"
+    FAILED = "failed"
+    TIMEOUT = "timeout"
+    REJECTED = "rejected"
+    ABORTED = "aborted"
+
+    @property
+    def terminal(self) -> bool:
+        return self is not SkillState.RUNNING
+
+
+class SkillParameter(Part):
+    name: str
+    """Parameter name."""
+    value: float | str | bool
+    """Fixed value (from settings)."""
+    unit: str = ""
+    """Unit, e.g. m or deg."""
+
+
+class SkillSpec(Part):
+    name: str
+    """Skill name the policy uses, e.g. `forward`, `obj_localization`."""
+    category: Literal["motion", "perception", "manipulation", "operator", "control"]
+    """Family of the skill."""
+    description: str
+    """Text shown to the model in the Skill Library."""
+    argument: str | None = None
+    """What the argument is (e.g. "object query"), or None when the skill takes no argument."""
+    argument_required: bool = False
+    """Whether the argument must be given."""
+    parameters: tuple[SkillParameter, ...] = ()
+    """Fixed parameters of the routine."""
+    policy_visible: bool = True
+    """False for operator-only skills (takeoff, land, hold) that are not offered to the model."""
+
+
+class SkillLibrary(Message):
+    kind: Literal["skill_library"] = "skill_library"
+    skills: tuple[SkillSpec, ...]
+    """Every registered skill."""
+
+
+class SkillRequest(Message):
+    kind: Literal["skill_request"] = "skill_request"
+    skill: str = Field(..., max_length=64)
+    """Registered skill name."""
+    argument: str | None = Field(None, max_length=MAX_QUERY_CHARS)
+    """Argument (object or surface query) for skills that take one."""
+    task_id: str = ""
+    """Task this belongs to (empty for operator commands)."""
+    step: int = 0
+    """Reasoning step index within the task."""
+    request_id: str = Field(default_factory=lambda: new_id("req-"))
+    """Caller's id, echoed in the status."""
+
+
+class SkillAccept(Message):
+    kind: Literal["skill_accept"] = "skill_accept"
+    accepted: bool
+    """Whether the executor started the skill."""
+    goal_id: str = ""
+    """Id to follow the skill's status (when accepted)."""
+    reason: str = ""
+    """Why it was rejected, written for the model to read."""
+
+
+class MemoryObject(Part):
+    label: str
+    """Object or surface label."""
+    query: str = ""
+    """The query that found it."""
+    position: Vec3
+    """World position (object centroid or placement spot)."""
+    yaw: float = 0.0
+    """Grasp or placement yaw."""
+    size: Vec3 | None = None
+    """Extent, metres."""
+    top_z: float | None = None
+    """Top of the object (objects)."""
+    last_seen_ns: int = 0
+    """When it was last localized."""
+    confidence: float = 0.0
+    """0..1."""
+
+
+class WorkingMemory(Message):
+    kind: Literal["working_memory"] = "working_memory"
+    stamp_ns: int = Field(default_factory=now_ns)
+    """Publish time."""
+    objects: tuple[MemoryObject, ...] = ()
+    """Localized objects (latest estimate per label)."""
+    placements: tuple[MemoryObject, ...] = ()
+    """Localized placement spots (latest per surface)."""
+    held_object: str | None = None
+    """Label of the object in the gripper, if any."""
+    visible: tuple[str, ...] = ()
+    """Labels visible in the latest detections."""
+    executed: tuple[str, ...] = ()
+    """Skills executed so far in this task ("forward", "obj_localization(red cup)"...)."""
+
+    def summary(self) -> str:
+        """One compact paragraph for the prompt."""
+        parts = []
+        if self.objects:
+            parts.append("localized objects: " + "; ".join(
+                f"{o.label} at ({o.position.x:.2f}, {o.position.y:.2f}, {o.position.z:.2f})" for o in self.objects))
+        if self.placements:
+            parts.append("placement spots: " + "; ".join(
+                f"{p.label} at ({p.position.x:.2f}, {p.position.y:.2f}, {p.position.z:.2f})" for p in self.placements))
+        parts.append(f"holding: {self.held_object or 'nothing'}")
+        if self.visible:
+            parts.append("visible now: " + ", ".join(self.visible))
+        return ". ".join(parts) + "."
+
+
+class SkillOutcome(Part):
+    start_pose: Pose | None = None
+    """Vehicle pose when the skill started."""
+    end_pose: Pose | None = None
+    """Vehicle pose when the skill ended."""
+    perceived: str = ""
+    """What perception reported (e.g. "red cup at (1.20, 0.30, 0.80)")."""
+    held_object: str | None = None
+    """What the gripper holds after the skill."""
+    estimate: ObjectEstimate | PlacementEstimate | None = None
+    """The perception estimate produced, for localization skills."""
+
+
+class SkillStatus(Message):
+    kind: Literal["skill_status"] = "skill_status"
+    stamp_ns: int = Field(default_factory=now_ns)
+    """Publish time."""
+    goal_id: str
+    """Goal id returned by run_skill."""
+    request_id: str = ""
+    """Caller's request id."""
+    task_id: str = ""
+    """Task id from the request."""
+    step: int = 0
+    """Step index from the request."""
+    skill: str
+    """Skill name."""
+    argument: str | None = None
+    """Skill argument."""
+    state: SkillState
+    """running, succeeded, failed, timeout, rejected, aborted."""
+    message: str = ""
+    """Explanation, written for the model to read."""
+    outcome: SkillOutcome = SkillOutcome()
+    """What changed and what was perceived."""
+    started_ns: int = 0
+    """When the skill started."""
+    ended_ns: int = 0
+    """When it ended (0 while running)."""
+
+
+class Abort(Message):
+    kind: Literal["abort"] = "abort"
+    stamp_ns: int = Field(default_factory=now_ns)
+    """When the abort was requested."""
+    reason: str = "operator abort"
+    """Why."""
+    source: str = "operator"
+    """Who asked (gateway, operator, reasoner...)."""
+    task_id: str | None = None
+    """Task to abort, or None for whatever runs."""
+
+
+class AbortAck(Message):
+    kind: Literal["abort_ack"] = "abort_ack"
+    stamp_ns: int = Field(default_factory=now_ns)
+    """When the executor had commanded hold."""
+    abort_stamp_ns: int
+    """stamp_ns of the Abort this acknowledges."""
+    goal_id: str | None = None
+    """The skill that was stopped, if any."""
+    message: str = ""
+    """What was done."""
+
+
+# --------------------------------------------------------------------------- reasoner
+
+
+class DescriptiveReasoningTrace(Part):
+    """The paper's DRT; fields are None when the prompt variant does not ask for them."""
+
+    image_description: str | None = None
+    """Visible objects, their spatial arrangement and cues in the current image."""
+    summary: str | None = None
+    """Short recap of previous observations and executed skills."""
+    action_predictions: dict[str, str] | None = None
+    """For every available skill, the predicted outcome of executing it now."""
+    reasoning: str | None = None
+    """Justification of the chosen skill from observation, history and predictions."""
+
+
+class SkillToExecute(Part):
+    """The paper's STE: one skill of the library plus its argument."""
+
+    skill: str
+    """Skill name, exactly as in the Skill Library."""
+    argument: str | None = None
+    """Object or surface query for localization skills; None otherwise."""
+
+
+Variant = Literal["unstructured", "no_drt", "drt_v1", "drt_v2", "drt_v3", "full", "react"]
+VARIANTS: tuple[str, ...] = ("unstructured", "no_drt", "drt_v1", "drt_v2", "drt_v3", "full", "react")
+
+
+class ModelCall(Part):
+    raw_answer: str
+    """The model's answer, verbatim."""
+    valid: bool
+    """Whether it parsed into a valid DRT/STE."""
+    error: str = ""
+    """Why it was invalid (sent back to the model on re-prompt)."""
+    latency_s: float = 0.0
+    """Model response time, seconds."""
+    tokens_in: int | None = None
+    """Prompt tokens, when the backend reports them."""
+    tokens_out: int | None = None
+    """Answer tokens, when the backend reports them."""
+
+
+class ReasoningStep(Message):
+    kind: Literal["reasoning_step"] = "reasoning_step"
+    stamp_ns: int = Field(default_factory=now_ns)
+    """Publish time."""
+    vehicle_id: str = "am1"
+    """Vehicle the task runs on."""
+    task_id: str
+    """Task id."""
+    step: int
+    """Step index, from 1."""
+    backend: str = ""
+    """Backend (rules, openai:<model>, anthropic:<model>, replay)."""
+    variant: str = "full"
+    """Prompt variant."""
+    prompt: dict[str, str] = {}
+    """Prompt parts by name (command, preamble, history, skill_library, rules)."""
+    image_stamp_ns: int = 0
+    """Timestamp of the colour frame sent with the prompt (0 if none)."""
+    calls: tuple[ModelCall, ...] = ()
+    """Every model call of this step, invalid ones first, so IAR = invalid / calls."""
+    drt: DescriptiveReasoningTrace | None = None
+    """Parsed DRT of the accepted answer."""
+    ste: SkillToExecute | None = None
+    """Parsed STE of the accepted answer (None when the step failed)."""
+    valid: bool = False
+    """Whether a valid answer was obtained within the re-prompt budget."""
+    retries: int = 0
+    """Re-prompts used."""
+    skill_state: SkillState | None = None
+    """Termination status of the executed skill."""
+    skill_message: str = ""
+    """Executor message."""
+    outcome: SkillOutcome | None = None
+    """Executor outcome."""
+    overhead_s: float = 0.0
+    """Framework time of the step excluding model calls and skill execution."""
+    skill_duration_s: float = 0.0
+    """Wall time of the skill."""
+
+
+class TaskState(StrEnum):
+    PENDING = "pending"
+    RUNNING = "running"
+    SUCCEEDED = "succeeded"
+    FAILED = "failed"
+    ABORTED = "aborted"
+    TIMEOUT = "timeout"
+
+    @property
+    def terminal(self) -> bool:
+        return self not in (TaskState.PENDING, TaskState.RUNNING)
+
+
+class TaskRequest(Message):
+    kind: Literal["task_request"] = "task_request"
+    command: str = Field(..., min_length=1, max_length=MAX_COMMAND_CHARS)
+    """Natural-language command L."""
+    task_id: str = Field(default_factory=lambda: new_id("task-"))
+    """Task id (generated when omitted)."""
+    backend: str | None = None
+    """Override of the reasoner's backend (rules, openai, anthropic, replay)."""
+    variant: Variant | None = None
+    """Override of the prompt variant."""
+    t_max_s: float | None = Field(None, gt=0, le=3600)
+    """Override of T_max, seconds."""
+    takeoff: bool = True
+    """Take off first when the vehicle is on the ground."""
+
+    @field_validator("command")
+    @classmethod
+    def _printable(cls, v: str) -> str:
+        v = v.strip()
+        if not v:
+            raise ValueError("command is empty")
+        bad = [c for c in v if (ord(c) < 32 and c not in "\t") or ord(c) == 127]
+        if bad:
+            raise ValueError("command contains control characters")
+        return v
+
+
+class TaskAccept(Message):
+    kind: Literal["task_accept"] = "task_accept"
+    accepted: bool
+    """Whether the task was started."""
+    task_id: str = ""
+    """The task id."""
+    reason: str = ""
+    """Why not (e.g. a task already runs on this vehicle)."""
+
+
+class TaskStatus(Message):
+    kind: Literal["task_status"] = "task_status"
+    stamp_ns: int = Field(default_factory=now_ns)
+    """Publish time."""
+    vehicle_id: str = "am1"
+    """Vehicle."""
+    task_id: str
+    """Task id."""
+    command: str
+    """The command L."""
+    state: TaskState
+    """pending, running, succeeded, failed, aborted, timeout."""
+    message: str = ""
+    """Explanation (why it failed, who aborted)."""
+    steps: int = 0
+    """Reasoning steps so far."""
+    model_calls: int = 0
+    """Model queries so far."""
+    invalid_answers: int = 0
+    """Invalid answers so far."""
+    backend: str = ""
+    """Backend in use."""
+    variant: str = "full"
+    """Prompt variant in use."""
+    started_ns: int = 0
+    """Start time."""
+    ended_ns: int = 0
+    """End time (0 while running)."""
+
+
+# --------------------------------------------------------------------------- health
+
+
+class Health(Message):
+    kind: Literal["health"] = "health"
+    stamp_ns: int = Field(default_factory=now_ns)
+    """Publish time."""
+    service: str
+    """Service name."""
+    ok: bool
+    """Whether the service works as it should."""
+    message: str = ""
+    """What is wrong, when not ok."""
+    details: dict[str, Any] = {}
+    """Service-specific figures (fps, queue drops, file path...)."""
+
+
+# --------------------------------------------------------------------------- simulator (evaluation only)
+
+
+class Scenario(Message):
+    kind: Literal["scenario"] = "scenario"
+    seed: int = 0
+    """Layout seed."""
+    target_object: str | None = None
+    """Canonical name of the object the task is about (e.g. "red cup")."""
+    destination: str | None = None
+    """Canonical name of the destination surface (e.g. "table", "round table", "sink")."""
+    distractors: tuple[str, ...] | None = None
+    """Other objects to place; None lets the seed choose."""
+    target_out_of_view: bool = False
+    """Put the target outside the initial camera view (search tasks)."""
+    extra_objects: tuple[str, ...] = ()
+    """Objects that must be present besides target and distractors (e.g. both "orange" and "banana")."""
+    start: Pose | None = None
+    """Vehicle start pose on the ground; None lets the seed choose."""
+
+
+class SimLabel(Part):
+    id: int
+    """Instance id in the segmentation image."""
+    name: str
+    """Canonical name (e.g. "red cup", "round table")."""
+    category: Literal["object", "surface", "furniture", "structure"]
+    """Graspable object, support surface, other furniture, or walls/floor."""
+    color: str = ""
+    """Dominant colour name."""
+    size: Vec3 | None = None
+    """Extent, metres."""
+
+
+class SimLabels(Message):
+    kind: Literal["sim_labels"] = "sim_labels"
+    stamp_ns: int = Field(default_factory=now_ns)
+    """Publish time."""
+    labels: tuple[SimLabel, ...] = ()
+    """Instance id table of the current layout."""
+
+
+class SimObjectTruth(Part):
+    name: str
+    """Canonical name."""
+    category: str
+    """object, surface, furniture."""
+    position: Vec3
+    """Centre of the bounding box, world ENU."""
+    yaw: float = 0.0
+    """Yaw, radians."""
+    size: Vec3
+    """Extent, metres."""
+    top_z: float = 0.0
+    """Top height."""
+    attached: bool = False
+    """In the gripper."""
+    support: str | None = None
+    """Surface it rests on, if any."""
+
+
+class JudgeRequest(Message):
+    kind: Literal["judge_request"] = "judge_request"
+    op: Literal["world", "on_surface", "held"] = "world"
+    """world: everything; on_surface: is `object` on `surface`; held: what the gripper holds."""
+    object: str | None = None
+    """Object name for on_surface."""
+    surface: str | None = None
+    """Surface name for on_surface."""
+    tolerance: float = 0.05
+    """Tolerance in metres."""
+
+
+class JudgeResult(Message):
+    kind: Literal["judge_result"] = "judge_result"
+    ok: bool = True
+    """Answer to the question (on_surface: whether it is)."""
+    message: str = ""
+    """Explanation."""
+    objects: tuple[SimObjectTruth, ...] = ()
+    """Ground truth of every object and surface (op=world)."""
+    held: str | None = None
+    """Object in the gripper."""
+    vehicle: Pose | None = None
+    """Vehicle pose (ground truth)."""
+    collisions: tuple[str, ...] = ()
+    """Collisions since the last reset, e.g. "vehicle-shelf"."""
+    scenario: Scenario | None = None
+    """Scenario in force."""
+
+
+class SimResetResult(Message):
+    kind: Literal["sim_reset_result"] = "sim_reset_result"
+    ok: bool
+    """Whether the world was reset."""
+    message: str = ""
+    """Explanation."""
+    scenario: Scenario | None = None
+    """Scenario now in force (with everything the seed chose)."""
+
+
+# Every publishable message type, for tests and the recorder.
+MESSAGE_TYPES: tuple[type[Message], ...] = (
+    VehicleState, ArmCommand, DisarmCommand, TakeoffCommand, GotoCommand, HoldCommand, LandCommand,
+    GripperCommand, AutopilotResult, LocalizeRequest, ObjectEstimate, PlacementEstimate, Detections,
+    SkillLibrary, SkillRequest, SkillAccept, WorkingMemory, SkillStatus, Abort, AbortAck, ReasoningStep,
+    TaskRequest, TaskAccept, TaskStatus, Health, Scenario, SimLabels, JudgeRequest, JudgeResult, SimResetResult,
+)
+MESSAGES_BY_SCHEMA: dict[str, type[Message]] = {m.full_schema_name(): m for m in MESSAGE_TYPES}

@@ -1,0 +1,218 @@
+"""Sensor data in Foxglove's protobuf schemas: encode/decode colour, depth, calibration and transforms.
+
+Colour frames travel as foxglove.CompressedImage (JPEG), depth as foxglove.RawImage 16UC1 in millimetres
+with the same timestamp as its colour frame, calibration as foxglove.CameraCalibration, transforms as
+foxglove.FrameTransforms. A recording opens in Foxglove without conversion.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
+from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
+from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
+from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
+from google.protobuf.message import DecodeError as _PbDecodeError
+from google.protobuf.timestamp_pb2 import Timestamp
+
+from shared.errors import DecodeError
+
+# Protobuf message classes by full schema name (used by the bus encoding and the recorder).
+PROTO_TYPES = {
+    "foxglove.CompressedImage": CompressedImage,
+    "foxglove.RawImage": RawImage,
+    "foxglove.CameraCalibration": CameraCalibration,
+    "foxglove.FrameTransforms": FrameTransforms,
+    "foxglove.FrameTransform": FrameTransform,
+}
+
+WORLD_FRAME = "world"
+BODY_FRAME = "base_link"
+CAMERA_FRAME = "camera"  # optical frame: x right, y down, z forward
+GRIPPER_FRAME = "gripper"
+
+
+def stamp_to_ns(ts: Timestamp) -> int:
+    return int(ts.seconds) * 1_000_000_000 + int(ts.nanos)
+
+
+def ns_to_stamp(ns: int) -> Timestamp:
+    return Timestamp(seconds=ns // 1_000_000_000, nanos=ns % 1_000_000_000)
+
+
+def decode_proto(cls, data: bytes):
+    msg = cls()
+    try:
+        msg.ParseFromString(bytes(data))
+    except _PbDecodeError as exc:
+        raise DecodeError(f"payload is not a valid {cls.DESCRIPTOR.full_name}: {exc}") from exc
+    return msg
+
+
+# --------------------------------------------------------------------------- images
+
+
+def encode_jpeg(rgb: np.ndarray, quality: int = 85) -> bytes:
+    import cv2
+
+    ok, buf = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, quality])
+    if not ok:
+        raise DecodeError("JPEG encoding failed")
+    return buf.tobytes()
+
+
+def decode_jpeg(data: bytes) -> np.ndarray:
+    """JPEG/PNG bytes -> HxWx3 uint8 RGB."""
+    import cv2
+
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    if img is None:
+        raise DecodeError("image bytes could not be decoded")
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def color_message(rgb: np.ndarray, stamp_ns: int, frame_id: str = CAMERA_FRAME, quality: int = 85,
+                  jpeg: bytes | None = None) -> bytes:
+    """HxWx3 RGB uint8 -> serialized foxglove.CompressedImage (JPEG)."""
+    data = jpeg if jpeg is not None else encode_jpeg(rgb, quality)
+    return CompressedImage(timestamp=ns_to_stamp(stamp_ns), frame_id=frame_id, format="jpeg",
+                           data=data).SerializeToString()
+
+
+def parse_color(payload: bytes) -> tuple[int, np.ndarray]:
+    """Serialized CompressedImage -> (stamp_ns, HxWx3 RGB)."""
+    msg = decode_proto(CompressedImage, payload)
+    return stamp_to_ns(msg.timestamp), decode_jpeg(msg.data)
+
+
+def raw16_message(img: np.ndarray, stamp_ns: int, frame_id: str = CAMERA_FRAME) -> bytes:
+    """HxW uint16 (depth mm, or instance ids) -> serialized foxglove.RawImage 16UC1 (little-endian)."""
+    if img.dtype != np.uint16 or img.ndim != 2:
+        raise ValueError(f"expected HxW uint16, got {img.dtype} {img.shape}")
+    h, w = img.shape
+    return RawImage(timestamp=ns_to_stamp(stamp_ns), frame_id=frame_id, width=w, height=h, encoding="16UC1",
+                    step=w * 2, data=np.ascontiguousarray(img, dtype="<u2").tobytes()).SerializeToString()
+
+
+def parse_raw16(payload: bytes) -> tuple[int, np.ndarray]:
+    """Serialized RawImage 16UC1 -> (stamp_ns, HxW uint16)."""
+    msg = decode_proto(RawImage, payload)
+    if msg.encoding != "16UC1":
+        raise DecodeError(f"expected 16UC1 image, got encoding {msg.encoding!r}")
+    if msg.step != msg.width * 2 or len(msg.data) != msg.height * msg.step:
+        raise DecodeError(f"RawImage size mismatch: {msg.width}x{msg.height} step {msg.step}, {len(msg.data)} bytes")
+    img = np.frombuffer(msg.data, dtype="<u2").reshape(msg.height, msg.width)
+    return stamp_to_ns(msg.timestamp), img
+
+
+# --------------------------------------------------------------------------- calibration
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+
+    @property
+    def K(self) -> np.ndarray:  # noqa: N802 - the usual name
+        return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1]], dtype=np.float64)
+
+
+def calibration_message(intr: Intrinsics, stamp_ns: int, frame_id: str = CAMERA_FRAME) -> bytes:
+    k = [intr.fx, 0.0, intr.cx, 0.0, intr.fy, intr.cy, 0.0, 0.0, 1.0]
+    p = [intr.fx, 0.0, intr.cx, 0.0, 0.0, intr.fy, intr.cy, 0.0, 0.0, 0.0, 1.0, 0.0]
+    r = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
+    return CameraCalibration(timestamp=ns_to_stamp(stamp_ns), frame_id=frame_id, width=intr.width,
+                             height=intr.height, distortion_model="plumb_bob", D=[0.0] * 5, K=k, R=r,
+                             P=p).SerializeToString()
+
+
+def parse_calibration(payload: bytes) -> Intrinsics:
+    msg = decode_proto(CameraCalibration, payload)
+    if len(msg.K) != 9 or msg.width <= 0 or msg.height <= 0:
+        raise DecodeError("CameraCalibration without a 3x3 K or image size")
+    return Intrinsics(msg.width, msg.height, msg.K[0], msg.K[4], msg.K[2], msg.K[5])
+
+
+# --------------------------------------------------------------------------- transforms
+
+
+def quat_from_rpy(roll: float, pitch: float, yaw: float) -> tuple[float, float, float, float]:
+    """Roll/pitch/yaw (intrinsic z-y-x) -> quaternion (x, y, z, w)."""
+    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
+    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
+    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
+    return (sr * cp * cy - cr * sp * sy, cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy,
+            cr * cp * cy + sr * sp * sy)
+
+
+def quat_to_matrix(q: tuple[float, float, float, float]) -> np.ndarray:
+    x, y, z, w = q
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def matrix_to_quat(m: np.ndarray) -> tuple[float, float, float, float]:
+    tr = m[0, 0] + m[1, 1] + m[2, 2]
+    if tr > 0:
+        s = math.sqrt(tr + 1.0) * 2
+        return ((m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s)
+    if m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
+        s = math.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2]) * 2
+        return (0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s)
+    if m[1, 1] > m[2, 2]:
+        s = math.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2]) * 2
+        return ((m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s)
+    s = math.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1]) * 2
+    return ((m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s)
+
+
+def make_transform(parent: str, child: str, T: np.ndarray, stamp_ns: int) -> FrameTransform:  # noqa: N803
+    """4x4 homogeneous transform (child -> parent, i.e. pose of child in parent) -> FrameTransform."""
+    q = matrix_to_quat(T[:3, :3])
+    ft = FrameTransform(timestamp=ns_to_stamp(stamp_ns), parent_frame_id=parent, child_frame_id=child)
+    ft.translation.x, ft.translation.y, ft.translation.z = (float(v) for v in T[:3, 3])
+    ft.rotation.x, ft.rotation.y, ft.rotation.z, ft.rotation.w = (float(v) for v in q)
+    return ft
+
+
+def transforms_message(items: list[tuple[str, str, np.ndarray]], stamp_ns: int) -> bytes:
+    return FrameTransforms(transforms=[make_transform(p, c, T, stamp_ns) for p, c, T in items]).SerializeToString()
+
+
+def parse_transforms(payload: bytes) -> dict[tuple[str, str], tuple[int, np.ndarray]]:
+    """Serialized FrameTransforms -> {(parent, child): (stamp_ns, 4x4)}."""
+    msg = decode_proto(FrameTransforms, payload)
+    out: dict[tuple[str, str], tuple[int, np.ndarray]] = {}
+    for ft in msg.transforms:
+        T = np.eye(4)  # noqa: N806
+        T[:3, :3] = quat_to_matrix((ft.rotation.x, ft.rotation.y, ft.rotation.z, ft.rotation.w))
+        T[:3, 3] = (ft.translation.x, ft.translation.y, ft.translation.z)
+        out[(ft.parent_frame_id, ft.child_frame_id)] = (stamp_to_ns(ft.timestamp), T)
+    return out
+
+
+def pose_matrix(x: float, y: float, z: float, yaw: float, roll: float = 0.0, pitch: float = 0.0) -> np.ndarray:
+    """Body pose in the world (ENU/FLU) as a 4x4 transform body -> world."""
+    T = np.eye(4)  # noqa: N806
+    T[:3, :3] = quat_to_matrix(quat_from_rpy(roll, pitch, yaw))
+    T[:3, 3] = (x, y, z)
+    return T
+
+
+def backproject(u: np.ndarray, v: np.ndarray, depth_m: np.ndarray, intr: Intrinsics) -> np.ndarray:
+    """Pixels + z-depth (metres) -> Nx3 points in the camera optical frame (x right, y down, z forward)."""
+    x = (u - intr.cx) * depth_m / intr.fx
+    y = (v - intr.cy) * depth_m / intr.fy
+    return np.stack([x, y, depth_m], axis=-1)

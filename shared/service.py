@@ -1,0 +1,53 @@
+"""Service lifecycle: signals set a stop event, the bus opens, a liveliness token announces the service,
+`run(bus, settings, stop)` does the work, and everything is released in `finally`."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import signal
+from collections.abc import Awaitable, Callable
+from typing import TypeVar
+
+from shared.bus import Bus
+from shared.settings import ServiceSettings, setup_logging
+
+S = TypeVar("S", bound=ServiceSettings)
+RunFn = Callable[[Bus, S, asyncio.Event], Awaitable[None]]
+
+log = logging.getLogger("aermani.service")
+
+
+async def serve_forever(name: str, run: RunFn, settings: S, stop: asyncio.Event | None = None) -> None:
+    """Open the bus, declare `alive/<name>`, run the service until `stop` is set or `run` returns."""
+    stop = stop or asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
+            loop.add_signal_handler(sig, stop.set)
+    bus = await Bus.open(connect=settings.zenoh_connect, mode=settings.zenoh_mode)
+    try:
+        bus.declare_token(settings.keys.alive(name))
+        log.info("%s up (vehicle %s, zenoh %s)", name, settings.vehicle_id, settings.zenoh_connect)
+        runner = asyncio.create_task(run(bus, settings, stop), name=f"{name}.run")
+        stopper = asyncio.create_task(stop.wait(), name=f"{name}.stop")
+        done, _ = await asyncio.wait({runner, stopper}, return_when=asyncio.FIRST_COMPLETED)
+        if runner in done:
+            stopper.cancel()
+            runner.result()  # re-raise a crash so the launcher sees a non-zero exit
+        else:
+            runner.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await asyncio.wait_for(runner, 10.0)
+    finally:
+        await bus.close()
+        log.info("%s stopped", name)
+
+
+def main_for(name: str, run: RunFn, settings_cls: type[S]) -> None:
+    """Body of every `services/<name>/__main__.py`."""
+    settings = settings_cls()
+    setup_logging(settings.log_level, name)
+    with contextlib.suppress(KeyboardInterrupt):
+        asyncio.run(serve_forever(name, run, settings))

@@ -1,0 +1,62 @@
+"""Base settings shared by every service: vehicle id, Zenoh endpoints, logging. Read from the environment."""
+
+from __future__ import annotations
+
+import logging
+import os
+
+from typing import Annotated
+
+from pydantic import AliasChoices, Field, field_validator
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
+
+from shared.keys import DEFAULT_VEHICLE_ID, Keys
+
+DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
+
+
+class ServiceSettings(BaseSettings):
+    """Fields common to all services come from AERMANI_* variables; subclasses set their own env_prefix
+    (AERMANI_<NAME>_) for their fields. Built in `main()` and passed down, never read at import time."""
+
+    model_config = SettingsConfigDict(env_prefix="AERMANI_", extra="ignore", populate_by_name=True,
+                                      use_attribute_docstrings=True)
+
+    vehicle_id: str = Field(DEFAULT_VEHICLE_ID, validation_alias=AliasChoices("vehicle_id", "AERMANI_VEHICLE_ID"),
+                            pattern=r"^[A-Za-z0-9_-]{1,32}$")
+    """Vehicle id; the key prefix is aermani/v1/<vehicle_id>/."""
+    zenoh_connect: Annotated[list[str], NoDecode] = Field([DEFAULT_ROUTER],
+                                     validation_alias=AliasChoices("zenoh_connect", "AERMANI_ZENOH_CONNECT"))
+    """Zenoh endpoints to connect to (JSON list or comma-separated), e.g. tcp/127.0.0.1:7447."""
+    zenoh_mode: str = Field("client", validation_alias=AliasChoices("zenoh_mode", "AERMANI_ZENOH_MODE"))
+    """Zenoh session mode: client (to a router), peer or router."""
+    log_level: str = Field("INFO", validation_alias=AliasChoices("log_level", "AERMANI_LOG_LEVEL"))
+    """Python log level."""
+
+    @field_validator("zenoh_connect", mode="before")
+    @classmethod
+    def _endpoints(cls, v: object) -> object:
+        return parse_endpoints(v) if isinstance(v, str) else v
+
+    @property
+    def keys(self) -> Keys:
+        return Keys(self.vehicle_id)
+
+
+def parse_endpoints(value: str) -> list[str]:
+    value = value.strip()
+    if value.startswith("["):
+        import json
+
+        return list(json.loads(value))
+    return [v.strip() for v in value.split(",") if v.strip()]
+
+
+def setup_logging(level: str = "INFO", name: str = "") -> None:
+    fmt = f"%(asctime)s %(levelname)s {name + ' ' if name else ''}%(name)s: %(message)s"
+    logging.basicConfig(level=getattr(logging, level.upper(), logging.INFO), format=fmt, force=True)
+
+
+def env_endpoints() -> list[str]:
+    raw = os.environ.get("AERMANI_ZENOH_CONNECT")
+    return parse_endpoints(raw) if raw else [DEFAULT_ROUTER]
