@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import logging
 import os
-
 from typing import Annotated
 
 from pydantic import AliasChoices, Field, field_validator

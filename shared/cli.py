@@ -1,0 +1,134 @@
+"""The `aermani` command: `up`, `health`, and the sub-commands each service registers from its `cli.py`."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import importlib
+import signal
+import sys
+import time
+from typing import Annotated
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from shared.launcher import SERVICE_ORDER, Stack, available_services
+
+app = typer.Typer(help="aermani: language-driven aerial manipulation (AERMANI-VLM) on PX4.", no_args_is_help=True,
+                  pretty_exceptions_enable=False)
+console = Console()
+
+
+@app.command()
+def up(
+    services: Annotated[str | None, typer.Option(help="Comma-separated services to start (default: all that exist).")]
+    = None,
+    without: Annotated[str, typer.Option(help="Comma-separated services to leave out, e.g. sim for a real drone.")] = "",
+    port: Annotated[int, typer.Option(help="Port of the embedded Zenoh router on 127.0.0.1.")] = 7447,
+    vehicle: Annotated[str, typer.Option(help="Vehicle id.")] = "am1",
+    log_dir: Annotated[str | None, typer.Option(help="Where service logs go (default runs/<time>/logs).")] = None,
+    foxglove: Annotated[bool, typer.Option(help="Also serve Foxglove's live WebSocket (needs the recorder).")]
+    = False,
+) -> None:
+    """Start the embedded stack: a Zenoh router on loopback and every service as a supervised process."""
+    names = [s.strip() for s in services.split(",")] if services else available_services()
+    skip = {s.strip() for s in without.split(",") if s.strip()}
+    names = [n for n in names if n not in skip]
+    unknown = [n for n in names if n not in available_services()]
+    if unknown:
+        console.print(f"[red]unknown services: {unknown}; available: {available_services()}[/red]")
+        raise typer.Exit(2)
+    env = {"AERMANI_RECORDER_FOXGLOVE": "1"} if foxglove else {}
+    stack = Stack(names, port=port, vehicle_id=vehicle, log_dir=log_dir, env=env)
+    stopping = False
+
+    def on_signal(signum: int, _frame: object) -> None:
+        nonlocal stopping
+        stopping = True
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    console.print(f"router on tcp/127.0.0.1:{port}; starting {', '.join(names)}; logs in {stack.log_dir}")
+    stack.start(wait=False)
+    shown: dict[str, bool] = {}
+    seen_events = 0
+    try:
+        while not stopping:
+            alive = stack.alive()
+            for p in stack.procs:
+                now = (p.vehicle_id, p.name) in alive
+                if shown.get(p.label) != now:
+                    shown[p.label] = now
+                    console.print(f"  {'[green]alive[/green]' if now else '[red]dead [/red]'}  {p.label}")
+            for ev in stack.events[seen_events:]:
+                if "exited" in ev or "restarted" in ev:
+                    console.print(f"  [yellow]{ev}[/yellow]")
+            seen_events = len(stack.events)
+            time.sleep(0.5)
+    finally:
+        console.print("stopping...")
+        stack.stop()
+        console.print("all services stopped")
+
+
+@app.command()
+def health(
+    connect: Annotated[str, typer.Option(help="Zenoh endpoint of the router.")] = "tcp/127.0.0.1:7447",
+    vehicle: Annotated[str | None, typer.Option(help="Only this vehicle id.")] = None,
+    timeout: Annotated[float, typer.Option(help="Seconds to wait for answers.")] = 2.0,
+) -> None:
+    """List the live services (from their liveliness tokens)."""
+    from shared.bus import Bus
+    from shared.keys import alive_pattern, parse_alive_key
+
+    async def run() -> list[str]:
+        bus = await Bus.open(connect=[connect])
+        try:
+            return await bus.alive(alive_pattern(vehicle), timeout=timeout)
+        finally:
+            await bus.close()
+
+    try:
+        keys = asyncio.run(asyncio.wait_for(run(), timeout + 10))
+    except Exception as exc:
+        console.print(f"[red]cannot reach the router at {connect}: {exc}[/red]")
+        raise typer.Exit(1)
+    table = Table("vehicle", "service", "state")
+    live = {parse_alive_key(k) for k in keys}
+    for vid, name in sorted(live):
+        table.add_row(vid, name, "[green]alive[/green]")
+    vehicles = {v for v, _ in live} or {vehicle or "am1"}
+    for vid in sorted(vehicles):
+        for name in available_services():
+            if (vid, name) not in live and not any(n == name for _, n in live if name in ("recorder", "gateway")):
+                table.add_row(vid, name, "[red]not running[/red]")
+    console.print(table)
+    if not live:
+        raise typer.Exit(1)
+
+
+def _register_service_commands() -> None:
+    """Each service may add sub-commands with `services/<name>/cli.py: register(app)`."""
+    for name in [*SERVICE_ORDER, "evaluation"]:
+        try:
+            mod = importlib.import_module(f"services.{name}.cli")
+        except ModuleNotFoundError as exc:
+            if exc.name in (f"services.{name}", f"services.{name}.cli"):
+                continue
+            raise
+        register = getattr(mod, "register", None)
+        if register is not None:
+            register(app)
+
+
+def main() -> None:
+    _register_service_commands()
+    with contextlib.suppress(BrokenPipeError):
+        app()
+    sys.stdout.flush()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,267 @@
+"""The embedded launcher: a Zenoh router in this process, every service as its own process, supervision.
+
+`Stack` is used by `aermani up`, `aermani demo`, the evaluation harness and the integration tests, so they
+all start the system the same way: router on loopback (zenoh-python in router mode, no zenohd), services as
+`python -m services.<name>` clients of it, restart with backoff when one crashes, stop with SIGTERM then
+SIGKILL. Children get PR_SET_PDEATHSIG so that even a SIGKILLed launcher leaves no process behind.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import importlib.util
+import json
+import logging
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import zenoh
+
+from shared.bus import _init_zenoh_log, zenoh_config
+from shared.keys import DEFAULT_VEHICLE_ID, alive_pattern, parse_alive_key
+
+log = logging.getLogger("aermani.launcher")
+
+# Start order: the world and the link first, the decision makers last.
+SERVICE_ORDER = ("sim", "autopilot_bridge", "perception", "executor", "reasoner", "recorder", "gateway")
+# Services that exist once per vehicle (the rest serve a whole ground station).
+PER_VEHICLE = ("sim", "autopilot_bridge", "perception", "executor", "reasoner")
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def available_services() -> list[str]:
+    """Services that exist in this checkout (have a `services/<name>/__main__.py`), in start order."""
+    found = []
+    root = Path(__file__).resolve().parent.parent / "services"
+    names = [p.parent.name for p in root.glob("*/__main__.py")]
+    for name in [*SERVICE_ORDER, *sorted(set(names) - set(SERVICE_ORDER))]:
+        if name in names and importlib.util.find_spec(f"services.{name}") is not None:
+            found.append(name)
+    return found
+
+
+def _set_pdeathsig() -> None:  # runs in the child between fork and exec
+    with contextlib.suppress(Exception):
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+
+
+def open_router(port: int, host: str = "127.0.0.1") -> zenoh.Session:
+    """A Zenoh session in router mode listening on tcp/<host>:<port>, multicast scouting off."""
+    _init_zenoh_log()
+    return zenoh.open(zenoh_config(mode="router", listen=[f"tcp/{host}:{port}"]))
+
+
+@dataclass
+class ServiceProcess:
+    name: str
+    vehicle_id: str
+    env: dict[str, str]
+    log_path: Path
+    proc: subprocess.Popen | None = None
+    restarts: int = 0
+    started_at: float = 0.0
+    next_start: float = 0.0
+    exit_codes: list[int] = field(default_factory=list)
+
+    @property
+    def label(self) -> str:
+        return f"{self.vehicle_id}/{self.name}" if self.name in PER_VEHICLE else self.name
+
+    def start(self) -> None:
+        self.log_path.parent.mkdir(parents=True, exist_ok=True)
+        logf = open(self.log_path, "ab")  # noqa: SIM115 - handed to the child
+        logf.write(f"\n--- start {time.strftime('%H:%M:%S')} ---\n".encode())
+        logf.flush()
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", f"services.{self.name}"], env=self.env, stdout=logf, stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL, preexec_fn=_set_pdeathsig, start_new_session=True,
+        )
+        logf.close()
+        self.started_at = time.monotonic()
+
+    @property
+    def running(self) -> bool:
+        return self.proc is not None and self.proc.poll() is None
+
+    def tail(self, lines: int = 15) -> str:
+        try:
+            return "\n".join(self.log_path.read_text(errors="replace").splitlines()[-lines:])
+        except OSError:
+            return ""
+
+
+class Stack:
+    """Router + service processes. Use as a context manager or call start()/stop()."""
+
+    def __init__(self, services: list[str] | None = None, *, port: int | None = None, vehicle_id: str =
+                 DEFAULT_VEHICLE_ID, env: dict[str, str] | None = None, log_dir: str | Path | None = None,
+                 supervise: bool = True, host: str = "127.0.0.1", router: bool = True) -> None:
+        self.port = port or free_port()
+        self.host = host
+        self.endpoint = f"tcp/{host}:{self.port}"
+        self.log_dir = Path(log_dir) if log_dir else Path("runs") / time.strftime("%Y%m%d-%H%M%S") / "logs"
+        self.supervise = supervise
+        self.with_router = router
+        self.router: zenoh.Session | None = None
+        self.procs: list[ServiceProcess] = []
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.events: list[str] = []
+        if services is None:
+            services = available_services()
+        self.add_vehicle(vehicle_id, services, env or {})
+
+    # ---- composition
+
+    def add_vehicle(self, vehicle_id: str, services: list[str], env: dict[str, str] | None = None) -> None:
+        """Add services for one vehicle id; ground-station services (recorder, gateway) are added once."""
+        have = {(p.name, p.vehicle_id) for p in self.procs}
+        for name in services:
+            if name not in PER_VEHICLE and any(p.name == name for p in self.procs):
+                continue
+            if (name, vehicle_id) in have:
+                continue
+            child_env = {**os.environ, "AERMANI_ZENOH_CONNECT": self.endpoint, "AERMANI_VEHICLE_ID": vehicle_id,
+                         "PYTHONUNBUFFERED": "1", **(env or {})}
+            suffix = f"-{vehicle_id}" if name in PER_VEHICLE else ""
+            self.procs.append(ServiceProcess(name, vehicle_id, child_env, self.log_dir / f"{name}{suffix}.log"))
+
+    def find(self, name: str, vehicle_id: str | None = None) -> ServiceProcess:
+        for p in self.procs:
+            if p.name == name and (vehicle_id is None or p.vehicle_id == vehicle_id):
+                return p
+        raise KeyError(f"no service {name!r} (vehicle {vehicle_id}) in this stack")
+
+    # ---- lifecycle
+
+    def start(self, wait: bool = True, timeout: float = 90.0) -> Stack:
+        if self.with_router and self.router is None:
+            self.router = open_router(self.port, self.host)
+        for p in self.procs:
+            p.start()
+            self._event(f"started {p.label} (pid {p.proc.pid})")
+        if self.supervise:
+            self._thread = threading.Thread(target=self._supervise, name="aermani-supervisor", daemon=True)
+            self._thread.start()
+        if wait:
+            self.wait_alive(timeout=timeout)
+        return self
+
+    def wait_alive(self, names: list[str] | None = None, timeout: float = 90.0) -> None:
+        """Block until every (or the named) service has declared its liveliness token."""
+        want = {(p.vehicle_id, p.name) for p in self.procs if names is None or p.name in names}
+        deadline = time.monotonic() + timeout
+        while True:
+            alive = self.alive()
+            if want <= alive:
+                return
+            for p in self.procs:
+                if not self.supervise and p.proc is not None and p.proc.poll() is not None:
+                    raise RuntimeError(f"{p.label} exited with {p.proc.returncode}:\n{p.tail()}")
+            if time.monotonic() > deadline:
+                missing = sorted(f"{v}/{n}" for v, n in want - alive)
+                tails = "\n".join(f"--- {p.label}:\n{p.tail()}" for p in self.procs
+                                  if (p.vehicle_id, p.name) in want - alive)
+                raise TimeoutError(f"services not alive after {timeout:.0f} s: {missing}\n{tails}")
+            time.sleep(0.2)
+
+    def alive(self) -> set[tuple[str, str]]:
+        """(vehicle_id, service) pairs whose liveliness token is present now."""
+        if self.router is None:
+            return set()
+        out = set()
+        with contextlib.suppress(Exception):
+            for reply in self.router.liveliness().get(alive_pattern(), timeout=2.0):
+                if reply.ok is not None:
+                    with contextlib.suppress(ValueError):
+                        out.add(parse_alive_key(str(reply.ok.key_expr)))
+        return out
+
+    def kill(self, name: str, sig: int = signal.SIGKILL, vehicle_id: str | None = None) -> None:
+        p = self.find(name, vehicle_id)
+        if p.proc is not None and p.proc.poll() is None:
+            p.proc.send_signal(sig)
+
+    def _supervise(self) -> None:
+        while not self._stop.wait(0.2):
+            now = time.monotonic()
+            for p in self.procs:
+                if p.proc is None or p.proc.poll() is None:
+                    continue
+                if p.next_start == 0.0:
+                    code = p.proc.returncode
+                    p.exit_codes.append(code)
+                    # Backoff doubles per crash (0.5 s .. 30 s); a long healthy run resets it.
+                    if now - p.started_at > 60:
+                        p.restarts = 0
+                    delay = min(30.0, 0.5 * 2 ** p.restarts)
+                    p.next_start = now + delay
+                    self._event(f"{p.label} exited with {code}; restarting in {delay:.1f} s")
+                elif now >= p.next_start and not self._stop.is_set():
+                    p.restarts += 1
+                    p.next_start = 0.0
+                    p.start()
+                    self._event(f"restarted {p.label} (pid {p.proc.pid}, restart #{p.restarts})")
+
+    def _event(self, text: str) -> None:
+        self.events.append(text)
+        log.info("%s", text)
+
+    def stop(self, timeout: float = 10.0) -> None:
+        """SIGTERM every service (reverse start order), wait, SIGKILL stragglers, close the router."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+        for p in reversed(self.procs):
+            if p.running:
+                with contextlib.suppress(ProcessLookupError):
+                    p.proc.send_signal(signal.SIGTERM)
+        deadline = time.monotonic() + timeout
+        for p in reversed(self.procs):
+            if p.proc is None:
+                continue
+            try:
+                p.proc.wait(timeout=max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                self._event(f"{p.label} did not stop in {timeout:.0f} s; killing")
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(p.proc.pid, signal.SIGKILL)
+                p.proc.wait(timeout=5)
+        if self.router is not None:
+            with contextlib.suppress(Exception):
+                self.router.close()
+            self.router = None
+
+    def __enter__(self) -> Stack:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def status(self) -> list[dict]:
+        alive = self.alive()
+        return [{"service": p.label, "pid": p.proc.pid if p.proc else None, "running": p.running,
+                 "alive": (p.vehicle_id, p.name) in alive, "restarts": p.restarts, "log": str(p.log_path)}
+                for p in self.procs]
+
+    def status_json(self) -> str:
+        return json.dumps(self.status())

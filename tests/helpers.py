@@ -1,0 +1,66 @@
+"""Test helpers shared by every test package: free ports, a running stack, async helpers."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+from shared.bus import Bus
+from shared.launcher import Stack, free_port, free_udp_port
+
+__all__ = ["Stack", "free_port", "free_udp_port", "run_stack", "bus_for", "wait_until", "arun"]
+
+
+@contextlib.contextmanager
+def run_stack(services: list[str], tmp_path: Path, *, vehicle_id: str = "am1", env: dict[str, str] | None = None,
+              timeout: float = 120.0, supervise: bool = False) -> Iterator[Stack]:
+    """Router on a free port + the named services as real processes; stopped with SIGTERM at exit.
+
+    Services get free UDP ports for MAVLink (AERMANI_SIM_API_PORT / AERMANI_AUTOPILOT_BRIDGE_CONNECTION) so
+    parallel test runs never collide. Logs go to tmp_path/logs; a failure prints their tails."""
+    api = free_udp_port()
+    gcs = free_udp_port()
+    base_env = {
+        "AERMANI_SIM_API_PORT": str(api),
+        "AERMANI_SIM_API_LOCAL_PORT": str(free_udp_port()),
+        "AERMANI_SIM_GCS_PORT": str(gcs),
+        "AERMANI_SIM_GCS_LOCAL_PORT": str(free_udp_port()),
+        "AERMANI_AUTOPILOT_BRIDGE_CONNECTION": f"udpin:127.0.0.1:{api}",
+        **(env or {}),
+    }
+    stack = Stack(services, vehicle_id=vehicle_id, env=base_env, log_dir=tmp_path / "logs", supervise=supervise)
+    try:
+        stack.start(wait=True, timeout=timeout)
+        yield stack
+    except BaseException:
+        for p in stack.procs:
+            print(f"--- log of {p.label} ---\n{p.tail(40)}")
+        raise
+    finally:
+        stack.stop()
+
+
+@contextlib.asynccontextmanager
+async def bus_for(stack: Stack):
+    """A client Bus connected to the stack's router."""
+    bus = await Bus.open(connect=[stack.endpoint])
+    try:
+        yield bus
+    finally:
+        await bus.close()
+
+
+async def wait_until(pred: Callable[[], bool], timeout: float = 30.0, interval: float = 0.05, what: str = "") -> None:
+    deadline = time.monotonic() + timeout
+    while not pred():
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"condition not met in {timeout} s: {what}")
+        await asyncio.sleep(interval)
+
+
+def arun(coro, timeout: float = 240.0):
+    """Run a coroutine to completion from a sync test, with an overall timeout."""
+    return asyncio.run(asyncio.wait_for(coro, timeout))
