@@ -1,0 +1,49 @@
+"""One valid instance of every bus message type, for round-trip tests."""
+
+from __future__ import annotations
+
+from shared import messages as m
+
+
+def sample_messages() -> list[m.Message]:
+    pose = m.Pose(position=m.Vec3(x=1.0, y=-0.5, z=1.5), yaw=0.3)
+    est = m.ObjectEstimate(query="red cup", found=True, label="red cup", pose=pose, size=m.Vec3(x=0.08, y=0.08, z=0.11),
+                           top_z=0.86, support_z=0.75, confidence=0.9, n_points=420,
+                           bbox=m.BBox2D(x0=10, y0=20, x1=50, y1=80), frame_stamp_ns=123)
+    place = m.PlacementEstimate(query="table", found=True, label="table", pose=pose, surface_z=0.75,
+                                plane=(0.0, 0.0, 1.0, -0.75), vertical_offset=0.02, clearance=0.2)
+    drt = m.DescriptiveReasoningTrace(image_description="a red cup on a table", summary="took off",
+                                      action_predictions={"forward": "closer"}, reasoning="localize first")
+    out = m.SkillOutcome(start_pose=pose, end_pose=pose, perceived="red cup at (1, 0, 0.8)", estimate=est)
+    return [
+        m.VehicleState(position=m.Vec3(x=1, y=2, z=3), armed=True, mode="OFFBOARD", landed_state=m.LandedState.IN_AIR,
+                       gripper=m.GripperState.CLOSED, link_ok=True, offboard_ok=True, battery_remaining=87.5),
+        m.ArmCommand(), m.DisarmCommand(force=True), m.TakeoffCommand(altitude=1.5),
+        m.GotoCommand(position=m.Vec3(x=1, y=1, z=1.5), yaw=1.0, max_speed=0.5), m.HoldCommand(), m.LandCommand(),
+        m.GripperCommand(action="close"),
+        m.AutopilotResult(ok=False, command="arm", ack_code=2, ack_name="MAV_RESULT_DENIED", message="denied"),
+        m.LocalizeRequest(query="red cup", object_size=m.Vec3(x=0.1, y=0.1, z=0.1)), est, place,
+        m.Detections(frame_stamp_ns=5, segmenter="sim", items=(m.Detection(label="red cup", centroid=m.Vec3()),)),
+        m.SkillLibrary(skills=(m.SkillSpec(name="forward", category="motion", description="move 0.5 m",
+                                           parameters=(m.SkillParameter(name="distance", value=0.5, unit="m"),)),)),
+        m.SkillRequest(skill="obj_localization", argument="red cup", task_id="t1", step=2),
+        m.SkillAccept(accepted=True, goal_id="g1"),
+        m.WorkingMemory(objects=(m.MemoryObject(label="red cup", position=m.Vec3(x=1)),), held_object="red cup"),
+        m.SkillStatus(goal_id="g1", skill="grasp", state=m.SkillState.SUCCEEDED, outcome=out),
+        m.Abort(reason="test", task_id="t1"), m.AbortAck(abort_stamp_ns=1, goal_id="g1"),
+        m.ReasoningStep(task_id="t1", step=1, prompt={"command": "pick"}, drt=drt,
+                        ste=m.SkillToExecute(skill="obj_localization", argument="red cup"),
+                        calls=(m.ModelCall(raw_answer="{}", valid=False, error="no skill"),
+                               m.ModelCall(raw_answer="{...}", valid=True, latency_s=0.9, tokens_in=10)),
+                        valid=True, retries=1, skill_state=m.SkillState.SUCCEEDED, outcome=out),
+        m.TaskRequest(command="pick up the red cup and place it on the table", variant="drt_v2"),
+        m.TaskAccept(accepted=False, reason="busy"),
+        m.TaskStatus(task_id="t1", command="pick", state=m.TaskState.RUNNING),
+        m.Health(service="sim", ok=True, details={"fps": 15.2}),
+        m.Scenario(seed=3, target_object="red cup", destination="table", target_out_of_view=True),
+        m.SimLabels(labels=(m.SimLabel(id=1, name="red cup", category="object", color="red"),)),
+        m.JudgeRequest(op="on_surface", object="red cup", surface="table"),
+        m.JudgeResult(objects=(m.SimObjectTruth(name="red cup", category="object", position=m.Vec3(),
+                                                size=m.Vec3(x=0.08, y=0.08, z=0.11)),), collisions=("vehicle-shelf",)),
+        m.SimResetResult(ok=True, scenario=m.Scenario(seed=1)),
+    ]

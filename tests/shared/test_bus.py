@@ -1,0 +1,218 @@
+"""The bus over real Zenoh sessions on loopback (a router and two or more clients, multicast scouting off)."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+from shared import messages as m
+from shared.bus import Bus, zenoh_config
+from shared.errors import NoResponder, QueryTimeout, RemoteError
+from shared.launcher import free_port, open_router
+from tests.helpers import arun, wait_until
+from tests.shared.samples import sample_messages
+
+
+@pytest.fixture()
+def router():
+    port = free_port()
+    session = open_router(port)
+    yield f"tcp/127.0.0.1:{port}"
+    session.close()
+
+
+async def _pair(endpoint: str) -> tuple[Bus, Bus]:
+    return await Bus.open(connect=[endpoint]), await Bus.open(connect=[endpoint])
+
+
+def test_config_turns_multicast_off():
+    cfg = zenoh_config(mode="client", connect=["tcp/127.0.0.1:1"])
+    assert json.loads(cfg.get_json("scouting/multicast/enabled")) is False
+
+
+def test_every_message_type_round_trips(router):
+    async def main():
+        a, b = await _pair(router)
+        try:
+            samples = sample_messages()
+            subs = {i: b.subscribe(f"test/rt/{i}", type(s)) for i, s in enumerate(samples)}
+            await asyncio.sleep(0.3)
+            for i, s in enumerate(samples):
+                a.publish(f"test/rt/{i}", s)
+            for i, s in enumerate(samples):
+                rec = await subs[i].recv_sample(timeout=5)
+                assert rec.value == s
+                assert rec.encoding.endswith(s.full_schema_name())
+        finally:
+            await a.close()
+            await b.close()
+
+    arun(main())
+
+
+def test_union_and_raw_bytes_subscriptions(router):
+    async def main():
+        a, b = await _pair(router)
+        try:
+            cmds = b.subscribe("test/cmd", m.AutopilotCommand)
+            raw = b.subscribe("test/raw")
+            await asyncio.sleep(0.3)
+            a.publish("test/cmd", m.TakeoffCommand(altitude=2.0))
+            a.publish("test/raw", b"\x00\x01binary", schema="foxglove.RawImage")
+            got = await cmds.recv(timeout=5)
+            assert isinstance(got, m.TakeoffCommand) and got.altitude == 2.0
+            rec = await raw.recv_sample(timeout=5)
+            assert rec.value == b"\x00\x01binary" and "foxglove.RawImage" in rec.encoding
+        finally:
+            await a.close()
+            await b.close()
+
+    arun(main())
+
+
+def test_malformed_payload_is_dropped_and_subscriber_keeps_working(router):
+    async def main():
+        a, b = await _pair(router)
+        try:
+            sub = b.subscribe("test/state", m.VehicleState)
+            await asyncio.sleep(0.3)
+            a.publish("test/state", b"\xff\xfenot json", schema="aermani.VehicleState")
+            a.publish("test/state", {"kind": "vehicle_state", "armed": "maybe"})
+            a.publish("test/state", m.VehicleState(armed=True))
+            got = await sub.recv(timeout=5)
+            assert got.armed is True
+            assert sub.malformed == 2
+        finally:
+            await a.close()
+            await b.close()
+
+    arun(main())
+
+
+def test_query_reply_errors_and_timeout(router):
+    async def main():
+        a, b = await _pair(router)
+        try:
+            async def accept(req: m.SkillRequest) -> m.SkillAccept:
+                if req.skill == "slow":
+                    await asyncio.sleep(3)
+                if req.skill == "boom":
+                    raise RuntimeError("handler failed")
+                return m.SkillAccept(accepted=True, goal_id=f"g-{req.skill}")
+
+            a.serve("test/q", accept, m.SkillRequest)
+            await asyncio.sleep(0.3)
+            ok = await b.query("test/q", m.SkillRequest(skill="forward"), m.SkillAccept, timeout=5)
+            assert ok.goal_id == "g-forward"
+            with pytest.raises(RemoteError, match="skill"):
+                await b.query("test/q", {"kind": "skill_request"}, m.SkillAccept, timeout=5)
+            with pytest.raises(RemoteError, match="handler failed"):
+                await b.query("test/q", m.SkillRequest(skill="boom"), m.SkillAccept, timeout=5)
+            with pytest.raises(QueryTimeout):
+                await b.query("test/q", m.SkillRequest(skill="slow"), m.SkillAccept, timeout=0.5)
+            with pytest.raises(NoResponder):
+                await b.query("test/nobody", m.SkillRequest(skill="x"), m.SkillAccept, timeout=1)
+            # The queryable survives all of that.
+            ok = await b.query("test/q", m.SkillRequest(skill="left"), m.SkillAccept, timeout=5)
+            assert ok.goal_id == "g-left"
+        finally:
+            await a.close()
+            await b.close()
+
+    arun(main())
+
+
+def test_burst_of_1000_arrives_in_order_or_is_counted(router):
+    async def main():
+        a, b = await _pair(router)
+        try:
+            small = b.subscribe("test/burst", m.Health, maxsize=100)  # will overflow: drop_oldest
+            big = b.subscribe("test/burst", m.Health, maxsize=2000)  # will not
+            await asyncio.sleep(0.3)
+            for i in range(1000):
+                a.publish("test/burst", m.Health(service="s", ok=True, details={"i": i}))
+            await wait_until(lambda: big.received == 1000, 20, what="1000 samples received")
+            got = [(await big.recv(timeout=5)).details["i"] for _ in range(1000)]
+            assert got == list(range(1000))
+            assert big.dropped == 0
+            kept = []
+            while small.qsize():
+                kept.append((await small.recv(timeout=1)).details["i"])
+            assert small.received == 1000
+            assert len(kept) + small.dropped == 1000
+            assert kept == sorted(kept) and kept[-1] == 999  # newest kept, order preserved
+        finally:
+            await a.close()
+            await b.close()
+
+    arun(main())
+
+
+def test_drop_newest_policy_keeps_the_first(router):
+    async def main():
+        a, b = await _pair(router)
+        try:
+            sub = b.subscribe("test/dn", m.Health, maxsize=10, overflow="drop_newest")
+            await asyncio.sleep(0.3)
+            for i in range(50):
+                a.publish("test/dn", m.Health(service="s", ok=True, details={"i": i}))
+            await wait_until(lambda: sub.received == 50, 10)
+            kept = [(await sub.recv(timeout=1)).details["i"] for _ in range(sub.qsize())]
+            assert kept == list(range(10)) and sub.dropped == 40
+        finally:
+            await a.close()
+            await b.close()
+
+    arun(main())
+
+
+OWNER = textwrap.dedent("""
+    import asyncio, sys
+    from shared.bus import Bus
+    async def main():
+        bus = await Bus.open(connect=[sys.argv[1]])
+        bus.declare_token("aermani/v1/t1/alive/owner")
+        print("ready", flush=True)
+        await asyncio.sleep(600)
+    asyncio.run(main())
+""")
+
+
+def test_liveliness_appears_and_disappears_after_sigkill(router):
+    async def main():
+        watcher = await Bus.open(connect=[router])
+        proc = subprocess.Popen([sys.executable, "-c", OWNER, router], stdout=subprocess.PIPE, text=True,
+                                env={**os.environ})
+        try:
+            events = watcher.watch_liveliness("aermani/v1/*/alive/*")
+            assert (await asyncio.to_thread(proc.stdout.readline)).strip() == "ready"
+            key, alive = await asyncio.wait_for(events.get(), 10)
+            assert key == "aermani/v1/t1/alive/owner" and alive
+            assert await watcher.alive("aermani/v1/*/alive/*") == [key]
+            proc.send_signal(signal.SIGKILL)
+            key, alive = await asyncio.wait_for(events.get(), 15)
+            assert key == "aermani/v1/t1/alive/owner" and not alive
+            assert await watcher.alive("aermani/v1/*/alive/*") == []
+        finally:
+            proc.kill()
+            proc.wait()
+            await watcher.close()
+
+    arun(main())
+
+
+def test_publish_after_close_is_an_error(router):
+    async def main():
+        a = await Bus.open(connect=[router])
+        await a.close()
+        with pytest.raises(Exception, match="closed"):
+            a.publish("test/x", m.Health(service="s", ok=True))
+
+    arun(main())
