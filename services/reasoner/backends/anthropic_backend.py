@@ -1,0 +1,55 @@
+"""`anthropic`: Claude through the official `anthropic` SDK (Messages API); the image as a base64 JPEG block."""
+
+from __future__ import annotations
+
+import base64
+import time
+
+import anthropic
+
+from services.reasoner.backends.base import Backend, ModelReply, ModelRequest
+from services.reasoner.prompt import reprompt_text
+from shared.errors import ModelError
+
+
+class AnthropicBackend(Backend):
+    def __init__(self, *, model: str, api_key: str, base_url: str | None, timeout_s: float, retries: int,
+                 max_tokens: int, temperature: float) -> None:
+        self.model = model
+        self.name = f"anthropic:{model}"
+        self.max_tokens = max_tokens
+        self.temperature = temperature
+        # Like the OpenAI SDK: bounded retries with backoff on 408/409/429/5xx, connection errors, timeouts.
+        self.client = anthropic.AsyncAnthropic(api_key=api_key, base_url=base_url, timeout=timeout_s,
+                                               max_retries=retries)
+
+    def messages(self, request: ModelRequest) -> list[dict]:
+        content: list[dict] = []
+        if request.prompt.image_jpeg is not None:
+            content.append({"type": "image", "source": {"type": "base64", "media_type": "image/jpeg",
+                                                         "data": base64.b64encode(request.prompt.image_jpeg).decode()}})
+        content.append({"type": "text", "text": request.prompt.text})
+        msgs: list[dict] = [{"role": "user", "content": content}]
+        for raw, error in request.feedback:
+            msgs.append({"role": "assistant", "content": raw or "(empty)"})
+            msgs.append({"role": "user", "content": reprompt_text(request.prompt.variant, error)})
+        return msgs
+
+    async def complete(self, request: ModelRequest) -> ModelReply:
+        t0 = time.perf_counter()
+        try:
+            resp = await self.client.messages.create(model=self.model, max_tokens=self.max_tokens,
+                                                     temperature=self.temperature, messages=self.messages(request))
+        except anthropic.APIStatusError as exc:
+            raise ModelError(f"Anthropic endpoint answered HTTP {exc.status_code} for model {self.model} after the "
+                             f"retry budget: {str(exc)[:200]}") from exc
+        except anthropic.APIError as exc:
+            raise ModelError(f"Anthropic endpoint unreachable for model {self.model} after the retry budget: "
+                             f"{type(exc).__name__}: {str(exc)[:200]}") from exc
+        latency = time.perf_counter() - t0
+        text = "".join(getattr(b, "text", "") for b in resp.content)
+        return ModelReply(text=text, latency_s=latency, tokens_in=resp.usage.input_tokens,
+                          tokens_out=resp.usage.output_tokens)
+
+    async def aclose(self) -> None:
+        await self.client.close()

@@ -1,0 +1,413 @@
+"""`rules`: the deterministic non-VLM baseline policy, answering in the same DRT/STE JSON as a VLM.
+
+It reads the same context the prompt is built from (command, history, working memory, perception's
+detections), never the pixels, and re-derives its plan from that context at every step, so it is
+stateless and also works from the prompt text alone (`context_from_prompt`, used by the fake VLM
+servers in tests). It handles the paper's four suites:
+
+- localization: "pick up the X and place it on the Y", "get the X and put it in the Y";
+- clutter/ambiguity: "of the two boxes, pick up the larger one" (compares detected sizes), "ignore the
+  tools and pick up the green bottle", "bring me a snack" (apple, banana, cracker box...);
+- sequential: "move forward twice, turn right, and pick up the tissue box" (motions first, in order),
+  and conditionals "approach the counter. if you see an orange, pick it up; otherwise grab the banana";
+- search: yaw in place to scan until the target is detected, then localize, grasp, search the surface...
+
+Without a destination ("pick up the tissue box", "bring it here", "bring me a snack") the task ends
+with `done` after a successful grasp, holding the object: "here" is where the operator is, and the
+operator takes it from the hovering vehicle (a landing with a held object is the operator's call).
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import time
+from dataclasses import dataclass, field
+
+from services.reasoner.backends.base import Backend, ModelReply, ModelRequest, PastStep, PolicyContext, Seen
+from services.reasoner.prompt import DRT_FIELDS
+from shared import skills as S  # noqa: N812 - reads like the paper tables
+
+SNACKS = ("apple", "banana", "orange", "cracker", "chips", "cookie", "granola", "candy", "snack", "chocolate",
+          "biscuit", "pear")
+CATEGORY_WORDS = {
+    "snack": SNACKS,
+    "tool": ("hammer", "screwdriver", "wrench", "pliers", "drill", "scissors", "saw", "tool"),
+    "fruit": ("apple", "banana", "orange", "pear", "lemon", "fruit"),
+    "drink": ("can", "bottle", "soda", "coke", "juice", "cup", "drink"),
+}
+NUMBERS = {"once": 1, "twice": 2, "thrice": 3, "one": 1, "two": 2, "three": 3, "four": 4, "five": 5}
+SCAN_LIMIT = 8  # consecutive yaw steps (one full turn at 45 deg) before trying something else
+_ACTION_WORDS = ("pick", "grab", "get", "take", "fetch", "find", "locate", "search", "bring", "place", "put",
+                 "drop", "look for", "if ", "otherwise")
+_ART = r"(?:the|a|an|some|me|my)\s+"
+
+
+@dataclass
+class Plan:
+    motions: list[str] = field(default_factory=list)
+    target: str | None = None
+    choices: list[str] = field(default_factory=list)
+    selector: str | None = None  # "larger" or "smaller"
+    group: str | None = None  # "box" in "of the two boxes"
+    category: str | None = None  # "snack" in "bring me a snack"
+    excluded: list[str] = field(default_factory=list)
+    destination: str | None = None
+
+
+def _singular(word: str) -> str:
+    word = word.strip()
+    if word.endswith("xes") or word.endswith("ches") or word.endswith("shes"):
+        return word[:-2]
+    if word.endswith("ies"):
+        return word[:-3] + "y"
+    if word.endswith("s") and not word.endswith("ss"):
+        return word[:-1]
+    return word
+
+
+def _clean_query(text: str) -> str:
+    text = re.sub(r"^\s*(?:up\s+)?", "", text.strip().lower())
+    text = re.sub(r"^" + _ART, "", text)
+    text = re.sub(r"^" + _ART, "", text)
+    # "the soda can on the table", "the purple cup next to the coffee machine": keep the object only.
+    text = re.split(r"\s+(?:on|in|inside|from|next to|near|beside|behind|under|at|by|to)\s+", text)[0]
+    return re.sub(r"[^a-z0-9 \-]", "", text).strip()
+
+
+def _motions(clause: str) -> list[str]:
+    out: list[str] = []
+    for m in re.finditer(r"\b(?:(turn|rotate|yaw)\s+(left|right)|(?:move|go|fly|step)?\s*(forward|ahead|backward|"
+                         r"backwards|back|left|right|up|down|closer|higher|lower)|(approach))"
+                         r"(?:\s+\S+){0,3}?\s*(once|twice|thrice|(?:\d+|one|two|three|four|five)\s+times)?\b",
+                         clause):
+        turn, turn_dir, move, approach, count = m.groups()
+        if turn:
+            skill = S.YAW_LEFT if turn_dir == "left" else S.YAW_RIGHT
+        elif approach or move in ("forward", "ahead", "closer"):
+            skill = S.FORWARD
+        elif move in ("backward", "backwards", "back"):
+            skill = S.BACKWARD
+        elif move in ("up", "higher"):
+            skill = S.UP
+        elif move in ("down", "lower"):
+            skill = S.DOWN
+        else:
+            skill = S.LEFT if move == "left" else S.RIGHT
+        n = 1
+        if count:
+            word = count.split()[0]
+            n = NUMBERS.get(word, int(word) if word.isdigit() else 1)
+        out.extend([skill] * max(1, min(n, 10)))
+    return out
+
+
+def parse_command(command: str) -> Plan:
+    """Read the plan out of a command in the paper's four suites."""
+    plan = Plan()
+    c = " ".join(command.lower().replace("’", "'").split())
+    cond = re.search(r"if you (?:see|find|spot) (?:an?\s+|the\s+|any\s+)?([a-z0-9 \-]+?)\s*[,;]?\s*(?:then\s+)?"
+                     r"(?:pick|grab|get|take|fetch) (?:it|that|one)(?: up)?\s*[;,.]?\s*(?:otherwise|else|if not),?\s*"
+                     r"(?:pick up|grab|get|take|fetch)\s+([a-z0-9 \-]+)", c)
+    if cond:
+        plan.choices = [_clean_query(cond.group(1)), _clean_query(cond.group(2))]
+        c = c[: cond.start()] + " " + c[cond.end():]
+    dest = re.search(r"\b(?:place|put|drop|set|leave|bring|take|carry|move)\s+(?:it|them|that)\s+(?:down\s+)?"
+                     r"(?:on|onto|in|into|inside|to|at|on top of)\s+(?:the\s+)?([a-z0-9 \-]+)", c)
+    if dest and not re.match(r"(?:me|here|us)\b", dest.group(1)):
+        plan.destination = _clean_query(dest.group(1))
+        c = c[: dest.start()] + " " + c[dest.end():]
+    ignore = re.search(r"\bignor(?:e|ing)\s+(?:the\s+|all\s+|any\s+)?([a-z ]+?)(?:\s+and\b|[,.;]|$)", c)
+    if ignore:
+        plan.excluded = [_singular(w) for w in ignore.group(1).split() if w not in ("the", "all", "any")]
+        c = c[: ignore.start()] + " " + c[ignore.end():]
+    sel = re.search(r"\b(larger|largest|bigger|biggest|smaller|smallest|tiny|big)\b", c)
+    if sel:
+        plan.selector = "larger" if sel.group(1) in ("larger", "largest", "bigger", "biggest", "big") else "smaller"
+        grp = (re.search(r"\bof (?:the |these |those )?(?:two |three |\d+ )?([a-z]+)", c)
+               or re.search(r"\b(?:larger|largest|bigger|biggest|smaller|smallest)\s+([a-z]+)", c))
+        if grp and grp.group(1) not in ("one", "of"):
+            plan.group = _singular(grp.group(1))
+    clauses = [x.strip() for x in re.split(r"[,.;]|\band then\b|\bthen\b|\band\b", c) if x.strip()]
+    for clause in clauses:
+        is_action = any(w in clause for w in _ACTION_WORDS)
+        if not is_action:
+            plan.motions.extend(_motions(clause))
+            continue
+        if plan.target or plan.choices or plan.selector:
+            continue
+        m = re.search(r"\b(?:pick up|pick|grab|get|take|fetch|find|locate|look for|search for|bring me|bring)\s+(.+)",
+                      clause)
+        if m:
+            q = _clean_query(m.group(1))
+            if q in ("it", "one", "the one", ""):
+                continue
+            for cat, _words in CATEGORY_WORDS.items():
+                if q in (cat, cat + "s", "something to eat" if cat == "snack" else "-"):
+                    plan.category = cat
+                    break
+            else:
+                plan.target = q
+    if plan.choices:
+        plan.target = None
+    return plan
+
+
+def _matches(label: str, query: str) -> bool:
+    label, query = label.lower(), query.lower()
+    if label == query or query in label or label in query:
+        return True
+    words = [_singular(w) for w in query.split() if w not in ("the", "a", "an")]
+    lwords = {_singular(w) for w in label.split()}
+    return bool(words) and all(w in lwords for w in words)
+
+
+def _excluded(label: str, plan: Plan) -> bool:
+    for ex in plan.excluded:
+        words = CATEGORY_WORDS.get(ex, (ex,))
+        if any(w in label.lower() for w in words):
+            return True
+    return False
+
+
+class RulesPolicy:
+    """Decides the next skill from a PolicyContext. Pure: the same context gives the same answer."""
+
+    def decide(self, ctx: PolicyContext) -> tuple[str, str | None, str]:
+        """(skill, argument, reasoning)."""
+        plan = parse_command(ctx.command)
+        steps = ctx.steps
+        # 1. The motions the command spells out, in order (a motion that fails twice is skipped).
+        done_motions, fails, first_free = 0, 0, 0
+        for i, s in enumerate(steps):
+            if done_motions >= len(plan.motions):
+                break
+            if s.skill == plan.motions[done_motions]:
+                if s.state == "succeeded":
+                    done_motions, fails = done_motions + 1, 0
+                else:
+                    fails += 1
+                    if fails >= 2:
+                        done_motions, fails = done_motions + 1, 0
+            first_free = i + 1
+        if done_motions < len(plan.motions):
+            return plan.motions[done_motions], None, (
+                f"The command asks for these motions first: {', '.join(plan.motions)}; "
+                f"{done_motions} done, so next is {plan.motions[done_motions]}.")
+        rest = steps[first_free:]
+        if any(s.skill == S.PLACE and s.state == "succeeded" for s in rest):
+            return S.DONE, None, "The object has been placed on the destination: the command is complete."
+        holding = ctx.held
+        if holding is None:
+            for s in reversed(rest):
+                if s.skill in (S.GRASP, S.PLACE) and s.state == "succeeded":
+                    holding = "object" if s.skill == S.GRASP else None
+                    break
+        if not holding:
+            return self._pick(ctx, plan, rest)
+        if plan.destination is None:
+            return S.DONE, None, (f"Holding the {holding} and the command names no destination: the task ends "
+                                  "with the object held for the operator.")
+        return self._place(ctx, plan, rest, holding)
+
+    # ---- phases
+
+    def _target(self, ctx: PolicyContext, plan: Plan, rest: list[PastStep]) -> tuple[str | None, str]:
+        """(label or query to localize, why); label None when nothing fits yet."""
+        visible = [v for v in ctx.visible if v.category == "object" and not _excluded(v.label, plan)]
+        if plan.choices:
+            for s in rest:  # the conditional is decided once, by the first localization
+                if s.skill == S.OBJ_LOCALIZATION and s.argument in plan.choices:
+                    return s.argument, f"I already chose the {s.argument} for the conditional."
+            first, other = plan.choices
+            if any(_matches(v.label, first) for v in visible) or first in ctx.known_objects:
+                return first, f"I see a {first}, so the condition holds: pick the {first}."
+            return other, f"I do not see a {first}, so the command says to grab the {other}."
+        if plan.selector:
+            group = plan.group or ""
+            cands = [v for v in visible if not group or _matches(v.label, group) or group in v.label]
+            sized = [v for v in cands if v.volume is not None]
+            if len(sized) >= 1:
+                pick = (max if plan.selector == "larger" else min)(sized, key=lambda v: v.volume or 0.0)
+                return pick.label, (f"Of the {len(sized)} {group or 'object'} candidates I compare sizes: the "
+                                    f"{plan.selector} is the {pick.label}.")
+            return None, f"No {group or 'candidate'} is detected yet to compare sizes."
+        if plan.category:
+            words = CATEGORY_WORDS[plan.category]
+            cands = [v for v in visible if any(w in v.label.lower() for w in words)]
+            if cands:
+                pick = min(cands, key=lambda v: v.distance if v.distance is not None else 1e9)
+                return pick.label, f"The {pick.label} is a {plan.category}, and the nearest one I detect."
+            known = [k for k in ctx.known_objects if any(w in k.lower() for w in words)]
+            if known:
+                return known[0], f"The {known[0]} in working memory is a {plan.category}."
+            return None, f"No {plan.category} is detected yet."
+        if plan.target:
+            for v in visible:
+                if _matches(v.label, plan.target):
+                    return v.label, f"The {v.label} matches '{plan.target}' and is detected."
+            for k in ctx.known_objects:
+                if _matches(k, plan.target):
+                    return k, f"The {k} is in working memory."
+            return None, f"The {plan.target} is not detected yet."
+        return None, "The command names no object I can identify."
+
+    def _pick(self, ctx: PolicyContext, plan: Plan, rest: list[PastStep]) -> tuple[str, str | None, str]:
+        target, why = self._target(ctx, plan, rest)
+        query = target or plan.target or (plan.choices[-1] if plan.choices else None)
+        if target is None:
+            return self._search(rest, query, S.OBJ_LOCALIZATION, why)
+        last = rest[-1] if rest else None
+        if last and last.skill == S.OBJ_LOCALIZATION and last.state == "succeeded":
+            return S.GRASP, target, f"{why} It was just localized, so grasp it."
+        if last and last.skill == S.OBJ_LOCALIZATION and last.state != "succeeded":
+            fails = _trailing_failures(rest, S.OBJ_LOCALIZATION)
+            if fails % 2 == 1:
+                return S.FORWARD, None, f"{why} Localization failed ({last.message or last.state}); move closer."
+            return S.YAW_LEFT, None, f"{why} Localization failed again; re-align the view."
+        return S.OBJ_LOCALIZATION, target, f"{why} Localize it before grasping."
+
+    def _place(self, ctx: PolicyContext, plan: Plan, rest: list[PastStep], holding: str) -> tuple[str, str | None, str]:
+        dest = plan.destination or ""
+        seen = any(_matches(v.label, dest) for v in ctx.visible) or any(_matches(k, dest) for k in ctx.known_placements)
+        last = rest[-1] if rest else None
+        if last and last.skill == S.PLACEMENT_LOCALIZATION and last.state == "succeeded":
+            return S.PLACE, None, f"Holding the {holding}; the {dest} placement pose is localized, so place it."
+        if last and last.skill == S.PLACEMENT_LOCALIZATION and last.state != "succeeded":
+            fails = _trailing_failures(rest, S.PLACEMENT_LOCALIZATION)
+            if fails % 2 == 1:
+                return S.FORWARD, None, f"Placement localization failed ({last.message or last.state}); move closer."
+            return S.YAW_LEFT, None, "Placement localization failed again; re-align the view."
+        if not seen:
+            return self._search(rest, dest, S.PLACEMENT_LOCALIZATION, f"Holding the {holding}; the {dest} is not "
+                                                                      "detected yet.")
+        return S.PLACEMENT_LOCALIZATION, dest, f"Holding the {holding} and the {dest} is detected: localize the " \
+                                               "placement spot."
+
+    def _search(self, rest: list[PastStep], query: str | None, localize: str, why: str) -> tuple[str, str | None, str]:
+        yaws = 0
+        for s in reversed(rest):
+            if s.skill not in (S.YAW_LEFT, S.YAW_RIGHT):
+                break
+            yaws += 1
+        if yaws < SCAN_LIMIT or not query:
+            return S.YAW_LEFT, None, f"{why} Rotate to scan for it ({yaws + 1}/{SCAN_LIMIT})."
+        return localize, query, f"{why} A full scan did not detect it; ask perception directly."
+
+
+def _trailing_failures(rest: list[PastStep], skill: str) -> int:
+    n = 0
+    for s in reversed(rest):
+        if s.skill == skill:
+            if s.state == "succeeded":
+                break
+            n += 1
+    return n
+
+
+_PREDICT = {
+    S.YAW_LEFT: "the view turns left; new objects may come into view",
+    S.YAW_RIGHT: "the view turns right; new objects may come into view",
+    S.FORWARD: "moves closer to what is ahead",
+    S.BACKWARD: "retreats and widens the view",
+    S.LEFT: "shifts left",
+    S.RIGHT: "shifts right",
+    S.UP: "climbs; more of the scene is visible",
+    S.DOWN: "descends toward manipulation height",
+    S.OBJ_LOCALIZATION: "estimates the 3D pose of the queried object if it is visible",
+    S.GRASP: "grasps the localized object if one is in working memory",
+    S.PLACEMENT_LOCALIZATION: "finds a free placement spot on the queried surface if visible",
+    S.PLACE: "releases the held object at the localized placement pose",
+    S.DONE: "ends the task",
+}
+
+
+def render_answer(ctx: PolicyContext, skill: str, argument: str | None, reasoning: str) -> str:
+    """The decision as the variant's answer text: JSON DRT/STE, `Thought:`+JSON (react), or a bare skill."""
+    if ctx.variant == "unstructured":
+        return f"{skill}({argument})" if argument else skill
+    ste = {"skill": skill, "argument": argument}
+    if ctx.variant == "react":
+        return f"Thought: {reasoning}\nAction: {json.dumps(ste)}"
+    seen = ", ".join(v.label for v in ctx.visible) or "nothing recognised"
+    last = ctx.steps[-1] if ctx.steps else None
+    full = {
+        "image_description": f"Perception reports: {seen}.",
+        "summary": (f"{len(ctx.steps)} skills executed; last {last.skill} -> {last.state}. "
+                    if last else "No skill executed yet. ") + f"Holding: {ctx.held or 'nothing'}.",
+        "action_predictions": {n: _PREDICT.get(n, "runs the skill") for n in ctx.skills},
+        "reasoning": reasoning,
+    }
+    out: dict = {}
+    fields = DRT_FIELDS.get(ctx.variant, ())
+    if fields:
+        out["drt"] = {f: full[f] for f in fields}
+    out["ste"] = ste
+    return json.dumps(out)
+
+
+class RulesBackend(Backend):
+    name = "rules"
+
+    def __init__(self) -> None:
+        self.policy = RulesPolicy()
+
+    async def complete(self, request: ModelRequest) -> ModelReply:
+        t0 = time.perf_counter()
+        skill, arg, why = self.policy.decide(request.context)
+        text = render_answer(request.context, skill, arg, why)
+        return ModelReply(text=text, latency_s=time.perf_counter() - t0)
+
+
+# --------------------------------------------------------------------------- from the prompt text alone
+
+_STEP_LINE = re.compile(r"^\s*#(\d+) ([a-z_]+)(?:\((.*)\))? -> ([a-z]+)(?::\s*(.*))?$", re.M)
+_SEEN_ITEM = re.compile(r"^(.+?) \[([a-z]+)(?:, ([\d.]+) x ([\d.]+) x ([\d.]+) m)?(?:, ([\d.]+) m away)?\]$")
+
+
+def context_from_prompt(text: str) -> PolicyContext:
+    """Rebuild the PolicyContext from a compiled prompt's text (what an HTTP fake VLM receives)."""
+    sections = dict(re.findall(r"^# (Task command|Preamble|History|Skill Library|Rules)\n(.*?)(?=^# |\Z)", text,
+                               re.M | re.S))
+    if sections:
+        command = sections.get("Task command", "").strip()
+        lib = sections.get("Skill Library", "")
+        rules = sections.get("Rules", "")
+        history = sections.get("History", "")
+        if "Thought:" in rules:
+            variant = "react"
+        else:
+            present = tuple(f for f in DRT_FIELDS["full"] if f'"{f}"' in rules)
+            variant = next((v for v, fs in DRT_FIELDS.items() if fs == present and v not in ("unstructured", "react")),
+                           "full")
+    else:
+        command, _, lib = text.partition("\n\nSkills:\n")
+        command, rules, history, variant = command.strip(), "", "", "unstructured"
+    skills = re.findall(r"^- ([a-z_]+)", lib, re.M)
+    steps = [PastStep(m.group(2), m.group(3), m.group(4), m.group(5) or "") for m in _STEP_LINE.finditer(history)]
+    held_m = re.search(r"holding: ([^.\n]+)\.", history)
+    held = held_m.group(1).strip() if held_m and held_m.group(1).strip() != "nothing" else None
+    visible: list[Seen] = []
+    seen_m = re.search(r"^Perception sees now: (.*)\.$", history, re.M)
+    if seen_m and seen_m.group(1) != "nothing recognised":
+        for item in seen_m.group(1).split("; "):
+            m = _SEEN_ITEM.match(item.strip())
+            if not m:
+                continue
+            vol = float(m.group(3)) * float(m.group(4)) * float(m.group(5)) if m.group(3) else None
+            visible.append(Seen(m.group(1), m.group(2), vol, float(m.group(6)) if m.group(6) else None))
+    objs = re.search(r"localized objects: (.*?)(?:\. |\.$|$)", history, re.M)
+    places = re.search(r"placement spots: (.*?)(?:\. |\.$|$)", history, re.M)
+
+    def labels(m: re.Match | None) -> list[str]:
+        return [x.split(" at (")[0].strip() for x in m.group(1).split("; ")] if m else []
+
+    return PolicyContext(command=command, variant=variant, skills=skills, steps=steps, held=held, visible=visible,
+                         known_objects=labels(objs), known_placements=labels(places))
+
+
+def answer_for_prompt(text: str) -> str:
+    """The rules policy's answer to a compiled prompt, as a VLM would send it."""
+    ctx = context_from_prompt(text)
+    skill, arg, why = RulesPolicy().decide(ctx)
+    return render_answer(ctx, skill, arg, why)

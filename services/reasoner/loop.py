@@ -1,0 +1,271 @@
+"""Algorithm 1: observe, compile P_t, query the policy, validate (re-prompt), execute, update History.
+
+The loop talks to the rest of the stack only through `World` (observation, skill registry, run a skill,
+wait for its status), so it runs unchanged against the bus (service.py) and against test doubles.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import math
+import time
+from abc import ABC, abstractmethod
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from services.reasoner.backends import Backend, ModelRequest, PastStep, PolicyContext, Seen
+from services.reasoner.library import policy_skills
+from services.reasoner.parse import ParsedAnswer, parse_answer
+from services.reasoner.prompt import (
+    CompiledPrompt,
+    History,
+    HistoryEntry,
+    Observation,
+    PromptCompiler,
+)
+from services.reasoner.settings import ReasonerSettings
+from shared import skills as S  # noqa: N812
+from shared.errors import AermaniError, InvalidAnswer, ModelError
+from shared.messages import (
+    LandedState,
+    ModelCall,
+    ReasoningStep,
+    SkillAccept,
+    SkillLibrary,
+    SkillRequest,
+    SkillState,
+    SkillStatus,
+    TaskRequest,
+    TaskState,
+    TaskStatus,
+    now_ns,
+)
+
+log = logging.getLogger("aermani.reasoner.loop")
+
+
+class World(ABC):
+    """What the loop needs from the stack."""
+
+    @abstractmethod
+    async def skill_library(self) -> SkillLibrary: ...
+
+    @abstractmethod
+    async def observe(self, newer_than_ns: int) -> Observation: ...
+
+    @abstractmethod
+    async def run_skill(self, request: SkillRequest) -> SkillAccept: ...
+
+    @abstractmethod
+    async def wait_status(self, goal_id: str, timeout: float) -> SkillStatus | None:
+        """Terminal status of a goal, or None after `timeout`."""
+
+    async def hold(self, task_id: str, reason: str) -> None:
+        """Command a hold (best effort): the failure path of a step."""
+        with contextlib.suppress(Exception):
+            await self.run_skill(SkillRequest(skill=S.HOLD, task_id=task_id))
+
+
+def policy_context(command: str, variant: str, library: SkillLibrary, history: History,
+                   obs: Observation) -> PolicyContext:
+    pos = obs.state.position if obs.state else None
+    seen = []
+    for d in obs.detections:
+        vol = d.size.x * d.size.y * d.size.z if d.size is not None else None
+        dist = (math.dist((d.centroid.x, d.centroid.y, d.centroid.z), (pos.x, pos.y, pos.z))
+                if d.centroid is not None and pos is not None else None)
+        seen.append(Seen(d.label, d.category, vol, dist))
+    mem = obs.memory
+    return PolicyContext(
+        command=command, variant=variant, skills=[s.name for s in policy_skills(library)],
+        steps=[PastStep(e.skill, e.argument, e.state, e.message) for e in history.entries],
+        held=mem.held_object if mem else None, visible=seen,
+        known_objects=[o.label for o in mem.objects] if mem else [],
+        known_placements=[p.label for p in mem.placements] if mem else [])
+
+
+@dataclass
+class StepResult:
+    record: ReasoningStep
+    parsed: ParsedAnswer | None
+
+
+class TaskRunner:
+    """Runs one task to a terminal TaskStatus; publishes every step and status through the callbacks."""
+
+    def __init__(self, request: TaskRequest, settings: ReasonerSettings, backend: Backend, world: World, *,
+                 publish_step: Callable[[ReasoningStep], None], publish_status: Callable[[TaskStatus], None]) -> None:
+        self.req = request
+        self.settings = settings
+        self.backend = backend
+        self.world = world
+        self.variant = request.variant or settings.variant
+        self.t_max = request.t_max_s or settings.t_max_s
+        self.publish_step = publish_step
+        self.publish_status = publish_status
+        self.history = History(settings.history_full_steps, settings.history_max_chars)
+        self.steps = 0
+        self.calls = 0
+        self.invalid = 0
+        self.started_ns = now_ns()
+        self.records: list[ReasoningStep] = []
+
+    def status(self, state: TaskState, message: str = "") -> TaskStatus:
+        return TaskStatus(vehicle_id=self.settings.vehicle_id, task_id=self.req.task_id, command=self.req.command,
+                          state=state, message=message, steps=self.steps, model_calls=self.calls,
+                          invalid_answers=self.invalid, backend=self.backend.name, variant=self.variant,
+                          started_ns=self.started_ns, ended_ns=0 if not state.terminal else now_ns())
+
+    async def run(self, abort: asyncio.Event) -> TaskStatus:
+        """Run until done/failure/abort/T_max; always returns (and publishes) the terminal status."""
+        self.publish_status(self.status(TaskState.RUNNING, "task started"))
+        body = asyncio.create_task(self._run())
+        aborter = asyncio.create_task(abort.wait())
+        try:
+            done, _ = await asyncio.wait({body, aborter}, timeout=self.t_max, return_when=asyncio.FIRST_COMPLETED)
+            if body in done:
+                final = body.result()
+            else:
+                body.cancel()
+                with contextlib.suppress(asyncio.CancelledError, Exception):
+                    await body
+                if aborter in done:
+                    # The executor holds the vehicle itself on safety/abort.
+                    final = self.status(TaskState.ABORTED, "aborted: " + (getattr(abort, "reason", "") or "abort"))
+                else:
+                    await self.world.hold(self.req.task_id, "T_max")
+                    final = self.status(TaskState.TIMEOUT, f"T_max of {self.t_max:.0f} s passed; vehicle held")
+        except Exception as exc:  # a bug or a bus failure must still end the task visibly
+            log.exception("task %s crashed", self.req.task_id)
+            await self.world.hold(self.req.task_id, "crash")
+            final = self.status(TaskState.FAILED, f"reasoner error: {type(exc).__name__}: {exc}")
+        finally:
+            aborter.cancel()
+        self.publish_status(final)
+        return final
+
+    async def _run(self) -> TaskStatus:
+        try:
+            library = await self.world.skill_library()
+        except AermaniError as exc:
+            return self.status(TaskState.FAILED, f"no skill library from the executor: {exc}")
+        compiler = PromptCompiler(self.variant, library)
+        obs = await self.world.observe(0)
+        if self.req.takeoff and obs.state is not None and obs.state.landed_state in (
+                LandedState.ON_GROUND, LandedState.UNKNOWN) and not obs.state.armed:
+            st = await self._execute(SkillRequest(skill=S.TAKEOFF, task_id=self.req.task_id, step=0),
+                                     self.settings.takeoff_timeout_s)
+            if st.state is not SkillState.SUCCEEDED:
+                return self.status(TaskState.FAILED, f"takeoff {st.state.value}: {st.message}")
+        failed_in_row = 0
+        last_end_ns = 0
+        while True:
+            if self.steps >= self.settings.max_steps:
+                await self.world.hold(self.req.task_id, "max steps")
+                return self.status(TaskState.FAILED, f"no completion within {self.settings.max_steps} steps; "
+                                                     "vehicle held")
+            self.steps += 1
+            t_step = time.perf_counter()
+            obs = await self.world.observe(last_end_ns)
+            try:
+                result, model_time = await self._decide(compiler, library, obs)
+            except ModelError as exc:
+                await self.world.hold(self.req.task_id, "model outage")
+                rec = ReasoningStep(vehicle_id=self.settings.vehicle_id, task_id=self.req.task_id, step=self.steps,
+                                    backend=self.backend.name, variant=self.variant, skill_message=str(exc))
+                self._publish(rec)
+                return self.status(TaskState.FAILED, f"model unavailable, vehicle held: {exc}")
+            rec, parsed = result.record, result.parsed
+            if parsed is None:
+                failed_in_row += 1
+                await self.world.hold(self.req.task_id, "invalid answer")
+                err = rec.calls[-1].error if rec.calls else "no answer"
+                self.history.append(HistoryEntry(self.steps, "(invalid answer)", None, "failed",
+                                                 f"no valid skill after {rec.retries} re-prompts: {err}; held"))
+                rec = rec.model_copy(update={"overhead_s": time.perf_counter() - t_step - model_time})
+                self._publish(rec)
+                if failed_in_row >= self.settings.max_failed_steps:
+                    return self.status(TaskState.FAILED, f"{failed_in_row} steps without a valid answer "
+                                                         f"(last error: {err}); vehicle held")
+                continue
+            failed_in_row = 0
+            overhead = time.perf_counter() - t_step - model_time
+            ste = parsed.ste
+            t_skill = time.perf_counter()
+            st = await self._execute(SkillRequest(skill=ste.skill, argument=ste.argument, task_id=self.req.task_id,
+                                                  step=self.steps), self.settings.skill_timeout_s)
+            skill_s = time.perf_counter() - t_skill
+            t_upd = time.perf_counter()
+            last_end_ns = now_ns()  # local clock: the next frame must arrive after this
+            self.history.append(HistoryEntry(
+                self.steps, ste.skill, ste.argument, st.state.value, st.message, st.outcome.perceived,
+                parsed.drt.summary or "", parsed.drt.reasoning or ""))
+            overhead += time.perf_counter() - t_upd
+            rec = rec.model_copy(update={"skill_state": st.state, "skill_message": st.message, "outcome": st.outcome,
+                                         "overhead_s": overhead, "skill_duration_s": skill_s})
+            self._publish(rec)
+            if ste.skill == S.DONE:
+                if st.state is SkillState.SUCCEEDED:
+                    return self.status(TaskState.SUCCEEDED, "the policy declared the task complete")
+                log.warning("done was %s: %s", st.state.value, st.message)
+            if st.state is SkillState.ABORTED:
+                return self.status(TaskState.ABORTED, f"skill {ste.skill} aborted: {st.message}")
+
+    def _publish(self, rec: ReasoningStep) -> None:
+        self.records.append(rec)
+        self.publish_step(rec)
+
+    async def _decide(self, compiler: PromptCompiler, library: SkillLibrary,
+                      obs: Observation) -> tuple[StepResult, float]:
+        """Query the policy, re-prompting with the error up to N times. Returns (result, model seconds)."""
+        prompt: CompiledPrompt = compiler.compile(self.req.command, self.history, obs)
+        ctx = policy_context(self.req.command, self.variant, library, self.history, obs)
+        feedback: list[tuple[str, str]] = []
+        calls: list[ModelCall] = []
+        parsed: ParsedAnswer | None = None
+        model_time = 0.0
+        for _attempt in range(self.settings.max_reprompts + 1):
+            t0 = time.perf_counter()
+            reply = await self.backend.complete(ModelRequest(prompt, ctx, list(feedback)))
+            model_time += time.perf_counter() - t0
+            self.calls += 1
+            try:
+                parsed = parse_answer(reply.text, self.variant, library, coverage=self.settings.prediction_coverage)
+                calls.append(ModelCall(raw_answer=reply.text, valid=True, latency_s=reply.latency_s,
+                                       tokens_in=reply.tokens_in, tokens_out=reply.tokens_out))
+                break
+            except InvalidAnswer as exc:
+                self.invalid += 1
+                calls.append(ModelCall(raw_answer=reply.text, valid=False, error=str(exc), latency_s=reply.latency_s,
+                                       tokens_in=reply.tokens_in, tokens_out=reply.tokens_out))
+                feedback.append((reply.text, str(exc)))
+                log.info("invalid answer (step %d): %s", self.steps, exc)
+        rec = ReasoningStep(
+            vehicle_id=self.settings.vehicle_id, task_id=self.req.task_id, step=self.steps, backend=self.backend.name,
+            variant=self.variant, prompt=prompt.parts, image_stamp_ns=obs.image_stamp_ns if prompt.has_image else 0,
+            calls=tuple(calls), drt=parsed.drt if parsed else None, ste=parsed.ste if parsed else None,
+            valid=parsed is not None, retries=len(calls) - 1)
+        return StepResult(rec, parsed), model_time
+
+    async def _execute(self, req: SkillRequest, timeout: float) -> SkillStatus:
+        """Run one skill on the executor and wait for its terminal status (never raises)."""
+        started = now_ns()
+        try:
+            accept = await self.world.run_skill(req)
+        except AermaniError as exc:
+            return SkillStatus(goal_id="", skill=req.skill, argument=req.argument, state=SkillState.REJECTED,
+                               message=f"executor unreachable: {exc}", task_id=req.task_id, step=req.step,
+                               started_ns=started, ended_ns=now_ns())
+        if not accept.accepted:
+            return SkillStatus(goal_id="", skill=req.skill, argument=req.argument, state=SkillState.REJECTED,
+                               message=accept.reason, task_id=req.task_id, step=req.step, started_ns=started,
+                               ended_ns=now_ns())
+        st = await self.world.wait_status(accept.goal_id, timeout)
+        if st is None:
+            await self.world.hold(req.task_id, "skill timeout")
+            return SkillStatus(goal_id=accept.goal_id, skill=req.skill, argument=req.argument,
+                               state=SkillState.TIMEOUT, message=f"no terminal status within {timeout:.0f} s; held",
+                               task_id=req.task_id, step=req.step, started_ns=started, ended_ns=now_ns())
+        return st

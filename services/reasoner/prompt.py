@@ -1,0 +1,280 @@
+"""The prompt compiler: P_t = {L, Preamble, History, Skill Library, Rules} for each paper variant.
+
+Parts are plain text with fixed section headers so that every backend (and the fake VLM used in tests)
+sees exactly the same prompt; `CompiledPrompt.parts` is what the reasoning step records.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+
+from services.reasoner.library import library_text, policy_skills
+from shared.messages import Detection, SkillLibrary, VehicleState, WorkingMemory
+
+# Which prompt parts and DRT fields each variant has (paper Table IV; react is the ReAct baseline).
+PROMPT_PARTS: dict[str, tuple[str, ...]] = {
+    "unstructured": ("command", "skill_library"),
+    "no_drt": ("command", "preamble", "history", "skill_library", "rules"),
+    "drt_v1": ("command", "preamble", "history", "skill_library", "rules"),
+    "drt_v2": ("command", "preamble", "history", "skill_library", "rules"),
+    "drt_v3": ("command", "preamble", "history", "skill_library", "rules"),
+    "full": ("command", "preamble", "history", "skill_library", "rules"),
+    "react": ("command", "preamble", "history", "skill_library", "rules"),
+}
+DRT_FIELDS: dict[str, tuple[str, ...]] = {
+    "unstructured": (),
+    "no_drt": (),
+    "drt_v1": ("image_description",),
+    "drt_v2": ("image_description", "summary"),
+    "drt_v3": ("image_description", "summary", "action_predictions"),
+    "full": ("image_description", "summary", "action_predictions", "reasoning"),
+    "react": (),
+}
+SECTION_TITLES = {
+    "command": "Task command",
+    "preamble": "Preamble",
+    "history": "History",
+    "skill_library": "Skill Library",
+    "rules": "Rules",
+}
+
+PREAMBLE = (
+    "You are the high-level policy of an aerial manipulator: a multirotor running PX4 with a two-finger gripper "
+    "under its body and an RGB-D camera looking forward and 35 degrees down. At each step you receive the "
+    "current camera image and this prompt, and you choose exactly ONE skill from the Skill Library. The skill "
+    "runs as a predefined, flight-safe routine until it terminates (succeeded, failed, timeout or rejected); "
+    "its outcome is then added to the History and you are asked again. You never control the motors directly. "
+    "To pick an object: localize it with obj_localization, then grasp. To place it: localize the surface with "
+    "placement_localization, then place. Use motion skills to search when the target is not visible or to "
+    "approach it. Answer done when the command is complete."
+)
+
+FIELD_HELP = {
+    "image_description": "what is visible in the current image: objects, their spatial arrangement, cues",
+    "summary": "a short recap of previous observations and executed skills",
+    "action_predictions": "an object with one entry per available skill name, each the predicted outcome of "
+                          "executing that skill now",
+    "reasoning": "why the chosen skill is the right next step, from the observation, history and predictions",
+}
+
+
+@dataclass
+class HistoryEntry:
+    """One executed step as the History remembers it."""
+
+    step: int
+    skill: str
+    argument: str | None
+    state: str
+    message: str = ""
+    perceived: str = ""
+    summary: str = ""
+    reasoning: str = ""
+
+    def call(self) -> str:
+        return f"{self.skill}({self.argument})" if self.argument else self.skill
+
+    def condensed(self) -> str:
+        msg = f": {_clip(self.message, 60)}" if self.message and self.state != "succeeded" else ""
+        return f"#{self.step} {self.call()} -> {self.state}{msg}"
+
+    def full(self) -> str:
+        lines = [f"#{self.step} {self.call()} -> {self.state}"]
+        if self.message:
+            lines.append(f"   executor: {_clip(self.message, 200)}")
+        if self.perceived:
+            lines.append(f"   perceived: {_clip(self.perceived, 200)}")
+        if self.summary:
+            lines.append(f"   your summary: {_clip(self.summary, 160)}")
+        if self.reasoning:
+            lines.append(f"   your reasoning: {_clip(self.reasoning, 160)}")
+        return "\n".join(lines)
+
+
+def _clip(text: str, n: int) -> str:
+    text = " ".join(text.split())
+    return text if len(text) <= n else text[: n - 3] + "..."
+
+
+@dataclass
+class Observation:
+    """o_t: the current image and vehicle state, plus what perception and the executor know now."""
+
+    image_jpeg: bytes | None = None
+    image_stamp_ns: int = 0
+    state: VehicleState | None = None
+    detections: tuple[Detection, ...] = ()
+    memory: WorkingMemory | None = None
+
+
+@dataclass
+class CompiledPrompt:
+    variant: str
+    parts: dict[str, str]
+    text: str
+    image_jpeg: bytes | None = None
+
+    @property
+    def has_image(self) -> bool:
+        return self.image_jpeg is not None
+
+
+def describe_state(obs: Observation) -> str:
+    st = obs.state
+    held = (obs.memory.held_object if obs.memory else None) or "nothing"
+    if st is None:
+        return f"Now: vehicle pose unknown, holding: {held}."
+    p = st.position
+    return (f"Now: position ({p.x:.2f}, {p.y:.2f}, {p.z:.2f}) m, yaw {math.degrees(st.yaw):.0f} deg, "
+            f"{st.landed_state.value}, holding: {held}.")
+
+
+def describe_detections(obs: Observation) -> str:
+    if not obs.detections:
+        return "Perception sees now: nothing recognised."
+    items = []
+    pos = obs.state.position if obs.state else None
+    for d in obs.detections[:20]:
+        extra = [d.category]
+        if d.size is not None:
+            extra.append(f"{d.size.x:.2f} x {d.size.y:.2f} x {d.size.z:.2f} m")
+        if d.centroid is not None and pos is not None:
+            dist = math.dist((d.centroid.x, d.centroid.y, d.centroid.z), (pos.x, pos.y, pos.z))
+            extra.append(f"{dist:.1f} m away")
+        items.append(f"{d.label} [{', '.join(extra)}]")
+    return "Perception sees now: " + "; ".join(items) + "."
+
+
+class History:
+    """The bounded History buffer H: last K steps in full, older ones condensed, character budget enforced."""
+
+    def __init__(self, full_steps: int = 6, max_chars: int = 6000) -> None:
+        self.full_steps = full_steps
+        self.max_chars = max_chars
+        self.entries: list[HistoryEntry] = []
+
+    def append(self, entry: HistoryEntry) -> None:
+        self.entries.append(entry)
+
+    def __len__(self) -> int:
+        return len(self.entries)
+
+    def render(self, obs: Observation) -> str:
+        head = [describe_state(obs), describe_detections(obs)]
+        if obs.memory is not None:
+            head.append("Working memory: " + obs.memory.summary())
+        if not self.entries:
+            return _fit("\n".join([*head, "No skill executed yet."]), self.max_chars)
+        n_full = min(self.full_steps, len(self.entries))
+        # Only the tail can matter for the budget: entries beyond what could fit even condensed are omitted.
+        max_lines = self.max_chars // 12
+        tail = self.entries[-max_lines:] if len(self.entries) > max_lines else self.entries
+        omitted = len(self.entries) - len(tail)
+        while True:
+            condensed = tail[: len(tail) - n_full] if n_full < len(tail) else []
+            full = tail[len(condensed):]
+            body = []
+            if omitted:
+                body.append(f"({omitted} earlier steps omitted)")
+            if condensed:
+                body.append("Earlier steps:")
+                body.extend("  " + e.condensed() for e in condensed)
+            body.append("Recent steps:")
+            body.extend(e.full() for e in full)
+            text = "\n".join([*head, *body])
+            if len(text) <= self.max_chars:
+                return text
+            if n_full > 1:
+                n_full -= 1  # condense the oldest full entry first
+            elif len(tail) > 1:
+                tail = tail[1:]  # then drop the oldest condensed line
+                omitted += 1
+            else:
+                return _fit(text, self.max_chars)
+
+
+def _fit(text: str, n: int) -> str:
+    return text if len(text) <= n else text[: n - 3] + "..."
+
+
+def rules_text(variant: str, library: SkillLibrary) -> str:
+    names = [s.name for s in policy_skills(library)]
+    if variant == "react":
+        return (
+            "Think step by step first: write your reasoning as lines starting with 'Thought:'. Then write one line "
+            "'Action:' followed by exactly one JSON object {\"skill\": <skill name>, \"argument\": <string or null>}.\n"
+            f"- skill must be one of: {', '.join(names)}.\n"
+            "- argument is the object or surface query for obj_localization / placement_localization, "
+            "optionally the object label for grasp, and null for every other skill.\n"
+            "- Choose exactly one skill. Answer done only when the command is complete."
+        )
+    fields = DRT_FIELDS[variant]
+    example: dict = {}
+    if fields:
+        drt = {}
+        for f in fields:
+            drt[f] = dict.fromkeys(names, "<predicted outcome>") if f == "action_predictions" else f"<{FIELD_HELP[f]}>"
+        example["drt"] = drt
+    example["ste"] = {"skill": "<one skill name>", "argument": "<string or null>"}
+    lines = [
+        "Answer with exactly one JSON object and nothing else (no markdown, no comments), in this format:",
+        json.dumps(example, indent=1),
+    ]
+    if fields:
+        lines.append("The \"drt\" object is your Descriptive Reasoning Trace; fill every field:")
+        lines.extend(f"- {f}: {FIELD_HELP[f]}." for f in fields)
+        if "action_predictions" in fields:
+            lines.append("- action_predictions must have an entry for EVERY skill: " + ", ".join(names) + ".")
+    lines += [
+        "The \"ste\" object is the Skill To Execute:",
+        f"- skill must be exactly one of: {', '.join(names)}.",
+        "- argument is the object query for obj_localization (e.g. \"red cup\"), the surface query for "
+        "placement_localization (e.g. \"table\"), optionally the object label for grasp, and null otherwise.",
+        "- Choose one skill per answer. Do not repeat a skill that just failed without a reason to expect a "
+        "different result. Answer done only when the command is complete.",
+    ]
+    return "\n".join(lines)
+
+
+class PromptCompiler:
+    """Builds P_t for one variant from the command, the History, the observation and the skill registry."""
+
+    def __init__(self, variant: str, library: SkillLibrary) -> None:
+        if variant not in PROMPT_PARTS:
+            raise ValueError(f"unknown prompt variant {variant!r}; use one of {', '.join(PROMPT_PARTS)}")
+        self.variant = variant
+        self.library = library
+        # The fixed parts depend only on the variant and the registry: compile them once.
+        self._library_text = library_text(library)
+        self._rules = rules_text(variant, library)
+
+    def compile(self, command: str, history: History, obs: Observation) -> CompiledPrompt:
+        wanted = PROMPT_PARTS[self.variant]
+        parts: dict[str, str] = {}
+        for name in wanted:
+            if name == "command":
+                parts[name] = command
+            elif name == "preamble":
+                parts[name] = PREAMBLE
+            elif name == "history":
+                parts[name] = history.render(obs)
+            elif name == "skill_library":
+                parts[name] = self._library_text
+            elif name == "rules":
+                parts[name] = self._rules
+        if self.variant == "unstructured":
+            text = f"{command}\n\nSkills:\n{self._library_text}"
+        else:
+            text = "\n\n".join(f"# {SECTION_TITLES[k]}\n{v}" for k, v in parts.items())
+        return CompiledPrompt(self.variant, parts, text, obs.image_jpeg)
+
+
+REPROMPT = ("Your previous answer was invalid: {error} Answer again with one valid skill, following the Rules "
+            "exactly.")
+REPROMPT_UNSTRUCTURED = "Your previous answer was invalid: {error} Answer again with one skill from the list."
+
+
+def reprompt_text(variant: str, error: str) -> str:
+    return (REPROMPT_UNSTRUCTURED if variant == "unstructured" else REPROMPT).format(error=error)

@@ -1,0 +1,62 @@
+"""Settings of the reasoner (env AERMANI_REASONER_*)."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field, SecretStr
+from pydantic_settings import SettingsConfigDict
+
+from shared.messages import Variant
+from shared.settings import ServiceSettings
+
+BackendName = Literal["rules", "openai", "anthropic", "replay"]
+
+
+class ReasonerSettings(ServiceSettings):
+    model_config = SettingsConfigDict(env_prefix="AERMANI_REASONER_", extra="ignore", populate_by_name=True,
+                                      use_attribute_docstrings=True)
+
+    backend: BackendName = "rules"
+    """Policy backend: rules (deterministic non-VLM baseline), openai (any OpenAI-compatible endpoint),
+    anthropic (Messages API) or replay (answers from a recorded log)."""
+    variant: Variant = "full"
+    """Prompt variant (paper Table IV + ReAct): unstructured, no_drt, drt_v1, drt_v2, drt_v3, full, react."""
+    model: str = ""
+    """Model name; empty picks gpt-4o for openai and claude-3-5-sonnet-latest for anthropic."""
+    base_url: str | None = None
+    """Endpoint base URL, e.g. http://127.0.0.1:8000/v1 for vLLM/Ollama/llama.cpp, or the Anthropic URL."""
+    api_key: SecretStr | None = None
+    """API key; when unset, OPENAI_API_KEY or ANTHROPIC_API_KEY is used. Never logged."""
+    request_timeout_s: float = Field(30.0, gt=0)
+    """Timeout of one model HTTP request, seconds."""
+    transport_retries: int = Field(3, ge=0, le=10)
+    """Retries with exponential backoff on transport errors (5xx, 429, connection, timeout) per model call."""
+    max_tokens: int = Field(1024, ge=16)
+    """Answer token limit per model call."""
+    temperature: float = Field(0.0, ge=0.0, le=2.0)
+    """Sampling temperature."""
+    replay_path: str = ""
+    """JSONL file of recorded ReasoningStep records or raw answers, for backend=replay."""
+    t_max_s: float = Field(600.0, gt=0)
+    """T_max: a task that has not finished after this many seconds ends as timeout (paper: 10 min)."""
+    max_reprompts: int = Field(2, ge=0, le=10)
+    """N: re-prompts with the specific error after an invalid answer, before the step fails safely (hold)."""
+    max_steps: int = Field(80, ge=1)
+    """Reasoning steps after which the task fails."""
+    max_failed_steps: int = Field(2, ge=1)
+    """Consecutive steps without a valid answer after which the task fails."""
+    history_full_steps: int = Field(6, ge=0)
+    """K: the last K steps appear in full in the History; older ones are condensed to one line each."""
+    history_max_chars: int = Field(6000, ge=500)
+    """Character budget of the History part; the oldest entries are condensed, then dropped, to stay under."""
+    prediction_coverage: float = Field(1.0, ge=0.0, le=1.0)
+    """Fraction of the available skills the DRT's action predictions must cover (paper: every skill)."""
+    skill_timeout_s: float = Field(180.0, gt=0)
+    """Longest wait for one skill's terminal status before the reasoner holds and records a timeout."""
+    frame_wait_s: float = Field(1.0, ge=0)
+    """How long to wait for a colour frame newer than the last skill's end before using the latest one."""
+    library_timeout_s: float = Field(10.0, gt=0)
+    """How long to wait for the executor's skill library at task start."""
+    takeoff_timeout_s: float = Field(60.0, gt=0)
+    """Longest wait for the takeoff skill."""
