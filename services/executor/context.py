@@ -1,0 +1,189 @@
+"""What a running skill may use: vehicle state with a safety monitor, autopilot commands, perception, memory."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import time
+from collections.abc import Callable
+
+from services.executor.envelope import (
+    DepthClearance,
+    altitude_problem,
+    geofence_problem,
+    outside_geofence,
+    state_problem,
+    wrap,
+)
+from services.executor.memory import Memory
+from services.executor.settings import ExecutorSettings
+from shared.bus import Bus
+from shared.errors import BusError, SkillError
+from shared.keys import Keys
+from shared.messages import (
+    AutopilotResult,
+    GotoCommand,
+    GripperCommand,
+    GripperState,
+    LocalizeRequest,
+    Message,
+    ObjectEstimate,
+    PlacementEstimate,
+    Pose,
+    Vec3,
+    VehicleState,
+)
+
+
+class SkillFailed(SkillError):
+    """A skill could not reach its termination condition; the message is for the policy."""
+
+
+class StateTracker:
+    """Newest VehicleState with its receive time, and a way to wait for the next one."""
+
+    def __init__(self) -> None:
+        self.value: VehicleState | None = None
+        self.receive_ns = 0
+        self._event = asyncio.Event()
+
+    def update(self, state: VehicleState, receive_ns: int | None = None) -> None:
+        self.value = state
+        self.receive_ns = receive_ns or time.time_ns()
+        ev, self._event = self._event, asyncio.Event()
+        ev.set()
+
+    @property
+    def age_s(self) -> float:
+        return float("inf") if not self.receive_ns else (time.time_ns() - self.receive_ns) / 1e9
+
+    async def next(self, timeout: float) -> bool:
+        """Wait for a newer sample; False on timeout."""
+        try:
+            await asyncio.wait_for(self._event.wait(), timeout)
+            return True
+        except TimeoutError:
+            return False
+
+
+def pose_of(state: VehicleState | None) -> Pose | None:
+    return None if state is None else Pose(position=state.position, yaw=state.yaw)
+
+
+class SkillContext:
+    """Shared by all skills; one instance lives as long as the executor."""
+
+    def __init__(self, bus: Bus, settings: ExecutorSettings, memory: Memory, state: StateTracker,
+                 clearance: DepthClearance) -> None:
+        self.bus = bus
+        self.settings = settings
+        self.keys = Keys(settings.vehicle_id)
+        self.memory = memory
+        self.state = state
+        self.clearance = clearance
+        self.perceived: list[str] = []  # filled by the running skill, reported in its outcome
+        self.estimate: ObjectEstimate | PlacementEstimate | None = None
+
+    def reset_outcome(self) -> None:
+        self.perceived = []
+        self.estimate = None
+
+    # ---- state
+
+    def current(self) -> VehicleState:
+        """The newest state, or SkillFailed when it breaks a health rule."""
+        problem = state_problem(self.state.value, self.state.age_s, self.settings)
+        if problem:
+            raise SkillFailed(problem.replace("nothing was moved", "the skill stopped and holds"))
+        assert self.state.value is not None
+        return self.state.value
+
+    def _monitor(self, st: VehicleState) -> None:
+        """Envelope rules checked on every state sample while a skill waits on the vehicle."""
+        s = self.settings
+        if outside_geofence(st.position, s, s.geofence_exit_margin):
+            p = st.position
+            raise SkillFailed(f"vehicle left the geofence at ({p.x:.2f}, {p.y:.2f}, {p.z:.2f}); holding")
+        speed = math.sqrt(st.velocity.x ** 2 + st.velocity.y ** 2 + st.velocity.z ** 2)
+        if speed > s.max_speed + s.overspeed_margin:
+            raise SkillFailed(f"vehicle speed {speed:.2f} m/s exceeds the limit {s.max_speed:.2f} m/s; holding")
+
+    async def wait_for(self, pred: Callable[[VehicleState], bool], timeout: float, what: str) -> VehicleState:
+        """Wait until `pred(state)`, checking health and the envelope on every sample."""
+        deadline = time.monotonic() + timeout
+        while True:
+            st = self.current()
+            self._monitor(st)
+            if pred(st):
+                return st
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                raise TimeoutError(f"{what} not reached within {timeout:.1f} s")
+            await self.state.next(min(remaining, self.settings.state_max_age_s / 2))
+
+    # ---- autopilot
+
+    async def command(self, cmd: Message, timeout: float | None = None) -> AutopilotResult:
+        t = timeout or self.settings.command_timeout_s
+        try:
+            res = await self.bus.query(self.keys.autopilot_command, cmd, AutopilotResult, timeout=t)
+        except BusError as exc:
+            raise SkillFailed(f"autopilot did not take the {cmd.kind} command: {exc}") from exc
+        if not res.ok:
+            raise SkillFailed(f"autopilot refused {cmd.kind}: {res.message or res.ack_name or 'no reason given'}")
+        return res
+
+    async def goto(self, target: Vec3, yaw: float, speed: float, *, low: float | None = None,
+                   what: str = "target", timeout: float | None = None) -> VehicleState:
+        """Fly to `target` and wait for arrival. The envelope is checked first: a violating target raises
+        SkillFailed before any setpoint is sent."""
+        s = self.settings
+        problem = geofence_problem(target, s, what) or altitude_problem(target.z, s, low, what)
+        if problem:
+            raise SkillFailed(problem.replace("nothing was moved", "the routine stopped before that leg"))
+        speed = min(speed, s.max_speed)
+        start = self.current()
+        dist = math.dist(start.position.as_tuple(), target.as_tuple())
+        turn = abs(wrap(yaw - start.yaw))
+        await self.command(GotoCommand(position=target, yaw=wrap(yaw), max_speed=speed))
+        tol, ytol = s.position_tolerance, math.radians(s.yaw_tolerance_deg)
+
+        def arrived(st: VehicleState) -> bool:
+            v = st.velocity
+            return (math.dist(st.position.as_tuple(), target.as_tuple()) <= tol and abs(wrap(st.yaw - yaw)) <= ytol
+                    and math.sqrt(v.x ** 2 + v.y ** 2 + v.z ** 2) <= s.settle_speed)
+
+        budget = timeout or (dist / speed + turn / math.radians(45.0) + s.motion_slack_s)
+        return await self.wait_for(arrived, budget, what)
+
+    async def gripper(self, action: str) -> None:
+        await self.command(GripperCommand(action=action))  # type: ignore[arg-type]
+        want = GripperState.CLOSED if action == "close" else GripperState.OPEN
+        try:
+            await self.wait_for(lambda st: st.gripper == want, self.settings.gripper_timeout_s, f"gripper {action}")
+        except TimeoutError as exc:
+            raise SkillFailed(f"gripper did not report {want.value} after the {action} command") from exc
+
+    # ---- perception
+
+    async def localize_object(self, query: str) -> ObjectEstimate:
+        try:
+            est = await self.bus.query(self.keys.localize_object, LocalizeRequest(query=query), ObjectEstimate,
+                                       timeout=self.settings.localize_timeout_s)
+        except BusError as exc:
+            raise SkillFailed(f"perception did not answer the localization of {query!r}: {exc}") from exc
+        self.estimate = est
+        return est
+
+    async def localize_placement(self, query: str, object_size: Vec3 | None) -> PlacementEstimate:
+        try:
+            est = await self.bus.query(self.keys.localize_placement,
+                                       LocalizeRequest(query=query, object_size=object_size), PlacementEstimate,
+                                       timeout=self.settings.localize_timeout_s)
+        except BusError as exc:
+            raise SkillFailed(f"perception did not answer the placement query {query!r}: {exc}") from exc
+        self.estimate = est
+        return est
+
+    def note(self, text: str) -> None:
+        self.perceived.append(text)

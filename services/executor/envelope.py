@@ -1,0 +1,129 @@
+"""The safety envelope: geofence, altitude band, vehicle health and forward clearance from the depth image.
+
+Each check returns None when the rule holds, or a sentence written for the policy to read. The rules are
+applied before a skill is accepted (nothing moves on a violation) and, for the vehicle-state rules, on
+every state sample while a skill runs (see SkillContext.monitor)."""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from services.executor.settings import ExecutorSettings
+from shared.frames import base_to_camera
+from shared.messages import LandedState, Vec3, VehicleState
+from shared.sensors import Intrinsics, backproject
+
+
+def airborne(state: VehicleState | None) -> bool:
+    if state is None or not state.armed:
+        return False
+    return state.landed_state in (LandedState.IN_AIR, LandedState.LANDING) or (
+        state.landed_state == LandedState.UNKNOWN and state.position.z > 0.15)
+
+
+def state_problem(state: VehicleState | None, age_s: float, s: ExecutorSettings) -> str | None:
+    """Health rules for anything that moves the vehicle."""
+    if state is None:
+        return "no vehicle state received yet: the autopilot bridge is not publishing; nothing was moved"
+    if age_s > s.state_max_age_s:
+        return (f"vehicle state is stale ({age_s:.2f} s old, limit {s.state_max_age_s:.2f} s): cannot fly "
+                "safely; nothing was moved")
+    if not state.link_ok:
+        return "autopilot link is down (no heartbeats): nothing was moved"
+    return None
+
+
+def offboard_problem(state: VehicleState) -> str | None:
+    if not state.offboard_ok:
+        return (f"autopilot is not in healthy OFFBOARD control (mode {state.mode}): cannot send setpoints; "
+                "nothing was moved")
+    return None
+
+
+def geofence_problem(p: Vec3, s: ExecutorSettings, what: str = "target") -> str | None:
+    lo, hi = s.geofence_min, s.geofence_max
+    for axis, v, a, b in (("x", p.x, lo[0], hi[0]), ("y", p.y, lo[1], hi[1]), ("z", p.z, lo[2], hi[2])):
+        if not a <= v <= b:
+            return (f"{what} ({p.x:.2f}, {p.y:.2f}, {p.z:.2f}) is outside the geofence ({axis} must stay in "
+                    f"[{a:.2f}, {b:.2f}]); nothing was moved, choose another direction")
+    return None
+
+
+def altitude_problem(z: float, s: ExecutorSettings, low: float | None = None, what: str = "target") -> str | None:
+    low = s.min_altitude if low is None else low
+    if z < low - 1e-6:
+        return (f"{what} altitude {z:.2f} m is below the minimum {low:.2f} m; nothing was moved, "
+                "do not descend further")
+    if z > s.max_altitude + 1e-6:
+        return (f"{what} altitude {z:.2f} m is above the maximum {s.max_altitude:.2f} m; nothing was moved, "
+                "do not climb further")
+    return None
+
+
+def outside_geofence(p: Vec3, s: ExecutorSettings, margin: float) -> bool:
+    lo, hi = s.geofence_min, s.geofence_max
+    return any(v < a - margin or v > b + margin for v, a, b in
+               ((p.x, lo[0], hi[0]), (p.y, lo[1], hi[1]), (p.z, lo[2], hi[2])))
+
+
+class DepthClearance:
+    """Forward clearance from the latest depth frame: points inside the corridor the airframe would sweep."""
+
+    def __init__(self, intr: Intrinsics, stride: int = 4) -> None:
+        self.intr = intr
+        self.stride = stride
+        self.base_from_camera = base_to_camera()
+        self.depth: np.ndarray | None = None
+        self.stamp_ns = 0
+        self.receive_ns = 0
+
+    def update(self, stamp_ns: int, depth_mm: np.ndarray) -> None:
+        self.depth = depth_mm
+        self.stamp_ns = stamp_ns
+        self.receive_ns = time.time_ns()
+
+    @property
+    def age_s(self) -> float:
+        return float("inf") if not self.receive_ns else (time.time_ns() - self.receive_ns) / 1e9
+
+    def nearest_ahead(self, altitude: float, s: ExecutorSettings, length: float) -> tuple[float | None, int]:
+        """Nearest forward distance (body x) of an obstacle within `length` in the corridor, and the count of
+        corridor points. None when the corridor is free. Points near the floor are ignored: the floor is not
+        an obstacle to a level translation."""
+        assert self.depth is not None
+        d = self.depth[:: self.stride, :: self.stride].astype(np.float64) / 1000.0
+        h, w = d.shape
+        v, u = np.mgrid[0:h, 0:w]
+        u = u * self.stride
+        v = v * self.stride
+        valid = (d > 0.05) & (d < 60.0)
+        if not valid.any():
+            return None, 0
+        pts = backproject(u[valid].astype(np.float64), v[valid].astype(np.float64), d[valid], self.intr)
+        body = pts @ self.base_from_camera[:3, :3].T + self.base_from_camera[:3, 3]
+        floor_body_z = -altitude + 0.05
+        lower = max(-s.clearance_below, floor_body_z)
+        inside = ((body[:, 0] > 0.0) & (body[:, 0] <= length) & (np.abs(body[:, 1]) <= s.clearance_half_width)
+                  & (body[:, 2] >= lower) & (body[:, 2] <= s.clearance_above))
+        n = int(inside.sum())
+        if n < s.clearance_min_points:
+            return None, n
+        return float(np.min(body[inside, 0])), n
+
+    def forward_problem(self, altitude: float, step: float, s: ExecutorSettings) -> str | None:
+        if self.depth is None or self.age_s > s.depth_max_age_s:
+            age = "never received" if self.depth is None else f"{self.age_s:.1f} s old"
+            return (f"no fresh depth image ({age}): forward clearance cannot be verified; nothing was moved")
+        need = step + s.clearance_margin
+        dist, _n = self.nearest_ahead(altitude, s, need)
+        if dist is not None:
+            return (f"obstacle {dist:.2f} m ahead (a forward step of {step:.2f} m needs {need:.2f} m free); "
+                    "nothing was moved: yaw, climb or move sideways first")
+        return None
+
+
+def wrap(a: float) -> float:
+    return (a + math.pi) % (2 * math.pi) - math.pi

@@ -1,0 +1,123 @@
+"""Working memory: localized objects and placement spots in the world frame, the held object, history."""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+
+from shared.messages import Detections, MemoryObject, ObjectEstimate, PlacementEstimate, Vec3, WorkingMemory
+
+
+def _norm(label: str) -> str:
+    return " ".join(label.strip().lower().split())
+
+
+class Memory:
+    """Mutable store behind the published WorkingMemory. Entries are world-frame, so they survive motion;
+    `last_seen_ns` lets skills judge freshness. `on_change` fires after every mutation."""
+
+    def __init__(self, on_change: Callable[[], None] | None = None, max_executed: int = 200) -> None:
+        self.objects: dict[str, MemoryObject] = {}
+        self.placements: dict[str, MemoryObject] = {}
+        self.held: str | None = None
+        self.held_size: Vec3 | None = None
+        self.visible: tuple[str, ...] = ()
+        self.executed: list[str] = []
+        self.task_id = ""
+        self.last_object: str | None = None
+        self.last_placement: str | None = None
+        self._on_change = on_change
+        self._max_executed = max_executed
+
+    def _changed(self) -> None:
+        if self._on_change is not None:
+            self._on_change()
+
+    # ---- updates
+
+    def begin_task(self, task_id: str) -> None:
+        """A new task starts a new history; what was seen stays (the world did not change)."""
+        if task_id and task_id != self.task_id:
+            self.task_id = task_id
+            self.executed.clear()
+            self._changed()
+
+    def record_executed(self, entry: str) -> None:
+        self.executed.append(entry)
+        del self.executed[:-self._max_executed]
+        self._changed()
+
+    def store_object(self, est: ObjectEstimate, query: str) -> MemoryObject:
+        assert est.found and est.pose is not None
+        label = _norm(est.label or query)
+        size = est.size
+        top = est.top_z if est.top_z is not None else (
+            est.pose.position.z + size.z / 2 if size is not None else None)
+        mo = MemoryObject(label=label, query=query, position=est.pose.position, yaw=est.pose.yaw, size=size,
+                          top_z=top, last_seen_ns=est.frame_stamp_ns or time.time_ns(), confidence=est.confidence)
+        self.objects[label] = mo
+        self.last_object = label
+        self._changed()
+        return mo
+
+    def store_placement(self, est: PlacementEstimate, query: str) -> MemoryObject:
+        assert est.found and est.pose is not None
+        label = _norm(est.label or query)
+        mo = MemoryObject(label=label, query=query, position=est.pose.position, yaw=est.pose.yaw,
+                          top_z=est.surface_z, last_seen_ns=est.frame_stamp_ns or time.time_ns(),
+                          confidence=est.confidence)
+        self.placements[label] = mo
+        self.last_placement = label
+        self._changed()
+        return mo
+
+    def forget_object(self, label: str) -> None:
+        if self.objects.pop(_norm(label), None) is not None:
+            if self.last_object == _norm(label):
+                self.last_object = None
+            self._changed()
+
+    def set_held(self, label: str | None, size: Vec3 | None = None) -> None:
+        self.held = label
+        self.held_size = size if label else None
+        self._changed()
+
+    def set_visible(self, det: Detections) -> None:
+        labels = tuple(dict.fromkeys(d.label for d in det.items))
+        if labels != self.visible:
+            self.visible = labels
+            self._changed()
+
+    # ---- lookups
+
+    def find_object(self, label: str | None) -> MemoryObject | None:
+        """The object named `label` (exact, then substring match), or the last localized one."""
+        if not label:
+            return self.objects.get(self.last_object) if self.last_object else None
+        key = _norm(label)
+        if key in self.objects:
+            return self.objects[key]
+        matches = [o for k, o in self.objects.items() if key in k or k in key or key in _norm(o.query)]
+        return max(matches, key=lambda o: o.last_seen_ns) if matches else None
+
+    def find_placement(self, label: str | None) -> MemoryObject | None:
+        if not label:
+            return self.placements.get(self.last_placement) if self.last_placement else None
+        key = _norm(label)
+        if key in self.placements:
+            return self.placements[key]
+        matches = [p for k, p in self.placements.items() if key in k or k in key or key in _norm(p.query)]
+        return max(matches, key=lambda p: p.last_seen_ns) if matches else None
+
+    def snapshot(self) -> WorkingMemory:
+        return WorkingMemory(objects=tuple(self.objects.values()), placements=tuple(self.placements.values()),
+                             held_object=self.held, visible=self.visible, executed=tuple(self.executed))
+
+
+def age_s(obj: MemoryObject, now_ns: int | None = None) -> float:
+    return ((now_ns or time.time_ns()) - obj.last_seen_ns) / 1e9
+
+
+def horizontal_distance(a: Vec3, b: Vec3) -> float:
+    return math.hypot(a.x - b.x, a.y - b.y)

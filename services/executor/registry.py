@@ -1,0 +1,82 @@
+"""The skill registry: one class per skill, registered with `@register`; its spec is the Skill Library text."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar, Literal
+
+from services.executor.context import SkillContext
+from services.executor.settings import ExecutorSettings
+from shared.messages import SkillParameter, SkillSpec
+
+Category = Literal["motion", "perception", "manipulation", "operator", "control"]
+
+
+@dataclass
+class SkillResult:
+    """What a successful run reports (the executor adds poses and the held object)."""
+
+    message: str = ""
+
+
+class Skill:
+    """Base of every skill. Subclasses set the class attributes and implement `run`; the executor applies
+    the generic preconditions (state health, airborne, offboard) from the flags, then `check`."""
+
+    name: ClassVar[str]
+    category: ClassVar[Category]
+    description: ClassVar[str]
+    """Skill Library text; `{s.<setting>}` placeholders are filled from ExecutorSettings."""
+    argument: ClassVar[str | None] = None
+    argument_required: ClassVar[bool] = False
+    policy_visible: ClassVar[bool] = True
+    moves: ClassVar[bool] = True
+    """Commands the autopilot: needs fresh state and a healthy link."""
+    needs_airborne: ClassVar[bool] = True
+    needs_offboard: ClassVar[bool] = True
+    """Sends position setpoints: needs OFFBOARD with a running setpoint stream."""
+
+    def __init__(self, settings: ExecutorSettings) -> None:
+        self.settings = settings
+
+    def parameters(self) -> tuple[SkillParameter, ...]:
+        return ()
+
+    def spec(self) -> SkillSpec:
+        return SkillSpec(name=self.name, category=self.category, description=self.description.format(s=self.settings),
+                         argument=self.argument, argument_required=self.argument_required,
+                         parameters=self.parameters(), policy_visible=self.policy_visible)
+
+    def check(self, ctx: SkillContext, argument: str | None) -> str | None:
+        """Skill-specific preconditions: None when the skill may start, else why not (for the model)."""
+        return None
+
+    def timeout_s(self, ctx: SkillContext, argument: str | None) -> float:
+        return 30.0
+
+    async def run(self, ctx: SkillContext, argument: str | None) -> SkillResult:
+        raise NotImplementedError
+
+
+REGISTRY: dict[str, type[Skill]] = {}
+
+
+def register(cls: type[Skill]) -> type[Skill]:
+    """Class decorator: add a skill to the library (names are unique)."""
+    if not getattr(cls, "name", ""):
+        raise ValueError(f"{cls.__name__} has no skill name")
+    if cls.name in REGISTRY and REGISTRY[cls.name] is not cls:
+        raise ValueError(f"skill {cls.name!r} is registered twice ({REGISTRY[cls.name].__name__}, {cls.__name__})")
+    REGISTRY[cls.name] = cls
+    return cls
+
+
+def build_library(settings: ExecutorSettings, names: list[str] | None = None) -> dict[str, Skill]:
+    """Instances of the registered skills (all, or `names` in that order)."""
+    import services.executor.skills  # noqa: F401 - registers the built-in skills
+
+    chosen = names or list(REGISTRY)
+    unknown = [n for n in chosen if n not in REGISTRY]
+    if unknown:
+        raise ValueError(f"unknown skills {unknown}; registered: {sorted(REGISTRY)}")
+    return {n: REGISTRY[n](settings) for n in chosen}

@@ -1,0 +1,130 @@
+"""Settings of the executor: fixed skill parameters, the safety envelope, timeouts (AERMANI_EXECUTOR_*)."""
+
+from __future__ import annotations
+
+from pydantic import model_validator
+from pydantic_settings import SettingsConfigDict
+
+from shared.settings import ServiceSettings
+
+
+class ExecutorSettings(ServiceSettings):
+    model_config = SettingsConfigDict(env_prefix="AERMANI_EXECUTOR_", extra="ignore", populate_by_name=True,
+                                      use_attribute_docstrings=True)
+
+    # ---- motion primitives (fixed parameters, paper Table II)
+    yaw_step_deg: float = 30.0
+    """Rotation of yaw_left / yaw_right, degrees."""
+    horizontal_step: float = 0.5
+    """Translation of forward / backward / left / right, metres."""
+    vertical_step: float = 0.3
+    """Translation of up / down, metres."""
+    translation_speed: float = 0.5
+    """Speed of motion primitives, m/s."""
+    approach_speed: float = 0.6
+    """Speed of grasp/place approach legs, m/s."""
+    descent_speed: float = 0.25
+    """Speed of the controlled descent and ascent of grasp and place, m/s."""
+
+    # ---- safety envelope
+    geofence_min: tuple[float, float, float] = (-3.8, -3.8, 0.0)
+    """Geofence box lower corner (world ENU x, y, z), metres. Every target and the vehicle stay inside."""
+    geofence_max: tuple[float, float, float] = (3.8, 3.8, 2.5)
+    """Geofence box upper corner (world ENU x, y, z), metres."""
+    min_altitude: float = 0.3
+    """Lowest altitude of motion primitives and transit legs, metres."""
+    max_altitude: float = 2.4
+    """Highest altitude allowed, metres."""
+    manipulation_min_altitude: float = 0.2
+    """Lowest body altitude of the grasp/place descent (the gripper hangs 0.22 m below), metres."""
+    max_speed: float = 1.0
+    """Speed limit sent with every setpoint, m/s; a measured speed above max_speed + overspeed_margin aborts."""
+    overspeed_margin: float = 0.6
+    """Tolerance above max_speed before the monitor declares an overspeed, m/s."""
+    state_max_age_s: float = 0.5
+    """Vehicle state older than this is stale: no motion starts, a running skill holds and fails."""
+    geofence_exit_margin: float = 0.2
+    """The monitor stops a skill when the vehicle is this far outside the geofence, metres."""
+    clearance_margin: float = 0.3
+    """Extra free distance required beyond a forward step, metres."""
+    clearance_half_width: float = 0.35
+    """Half-width of the swept corridor checked in the depth image (airframe radius + margin), metres."""
+    clearance_above: float = 0.2
+    """Corridor extends this far above the body origin, metres."""
+    clearance_below: float = 0.35
+    """Corridor extends this far below the body origin (gripper and a held object), metres."""
+    clearance_min_points: int = 30
+    """Depth points inside the corridor needed to call it an obstacle (rejects speckle)."""
+    depth_max_age_s: float = 1.0
+    """Depth image older than this cannot vouch for forward clearance."""
+
+    # ---- termination
+    position_tolerance: float = 0.08
+    """Arrival: distance to the target, metres."""
+    yaw_tolerance_deg: float = 5.0
+    """Arrival: heading error, degrees."""
+    settle_speed: float = 0.15
+    """Arrival: speed below this, m/s."""
+    motion_slack_s: float = 8.0
+    """Added to the nominal duration of a motion for its timeout, seconds."""
+    takeoff_timeout_s: float = 60.0
+    """Timeout of takeoff, seconds."""
+    land_timeout_s: float = 60.0
+    """Timeout of land, seconds."""
+    localize_timeout_s: float = 10.0
+    """Timeout of a perception query, seconds."""
+    grasp_timeout_s: float = 120.0
+    """Timeout of the whole grasp routine, seconds."""
+    place_timeout_s: float = 120.0
+    """Timeout of the whole place routine, seconds."""
+    command_timeout_s: float = 5.0
+    """Timeout of an autopilot command reply (takeoff excepted), seconds."""
+    gripper_timeout_s: float = 3.0
+    """Time for the gripper state to follow a command, seconds."""
+
+    # ---- routines
+    flight_altitude: float = 1.5
+    """Takeoff and transit altitude; grasp and place retreat to it, metres."""
+    standoff_distance: float = 0.75
+    """Horizontal distance from the object at which grasp/place re-localize, facing it, metres."""
+    reach: float = 3.0
+    """Grasp/place refuse targets farther than this horizontally, metres."""
+    localization_max_age_s: float = 120.0
+    """A grasp needs a localization of the object younger than this, seconds (memory is in world frame)."""
+    relocalize_iterations: int = 3
+    """Maximum re-localizations at the standoff during grasp."""
+    relocalize_converged: float = 0.05
+    """Re-localization stops when the estimate moves less than this, metres."""
+    max_object_shift: float = 0.3
+    """An object re-localized farther than this from memory has moved: grasp fails, re-localize first."""
+    grasp_depth_fraction: float = 0.25
+    """Gripper point target below the object's top, as a fraction of its height."""
+    gripper_offset_z: float = -0.22
+    """Gripper capture point below the body origin, metres (shared.frames.GRIPPER_OFFSET_BODY)."""
+    camera_pitch_deg: float = 35.0
+    """Camera pitch below the horizon, degrees: sets the standoff height that keeps a target in view."""
+    place_vertical_offset: float = 0.03
+    """Release height of the object's bottom above the surface, metres."""
+    verify_tolerance: float = 0.12
+    """A localization within this of the pre-grasp position means the object was not picked, metres."""
+    place_tolerance: float = 0.2
+    """After place, the object must be seen within this of the placement spot, metres."""
+
+    memory_period_s: float = 1.0
+    """Working memory is republished at this period besides every change, seconds."""
+
+    @model_validator(mode="after")
+    def _sane(self) -> ExecutorSettings:
+        # Refuse unsafe combinations instead of flying them.
+        if any(lo >= hi for lo, hi in zip(self.geofence_min, self.geofence_max, strict=True)):
+            raise ValueError("geofence_min must be below geofence_max on every axis")
+        if not 0 < self.min_altitude < self.max_altitude:
+            raise ValueError("need 0 < min_altitude < max_altitude")
+        if self.max_altitude > self.geofence_max[2]:
+            raise ValueError("max_altitude is above the geofence ceiling")
+        if not self.min_altitude <= self.flight_altitude <= self.max_altitude:
+            raise ValueError("flight_altitude must lie in the altitude band")
+        for name in ("translation_speed", "approach_speed", "descent_speed"):
+            if not 0 < getattr(self, name) <= self.max_speed:
+                raise ValueError(f"{name} must be in (0, max_speed]")
+        return self

@@ -1,0 +1,499 @@
+"""The built-in skills: motion primitives (paper Table II), perception-driven routines (Table III), control."""
+
+from __future__ import annotations
+
+import math
+
+from services.executor.context import SkillContext, SkillFailed
+from services.executor.envelope import airborne, altitude_problem, geofence_problem, wrap
+from services.executor.memory import age_s, horizontal_distance
+from services.executor.registry import Category, Skill, SkillResult, register
+from shared import skills as names
+from shared.messages import (
+    ArmCommand,
+    GripperState,
+    HoldCommand,
+    LandCommand,
+    MemoryObject,
+    ObjectEstimate,
+    SkillParameter,
+    TakeoffCommand,
+    Vec3,
+    VehicleState,
+)
+
+
+def fmt(p: Vec3) -> str:
+    return f"({p.x:.2f}, {p.y:.2f}, {p.z:.2f})"
+
+
+# --------------------------------------------------------------------------- motion primitives
+
+
+class _Step(Skill):
+    """A fixed body-frame step: translation (fx, fy, fz) times the step size, or a yaw turn."""
+
+    category: Category = "motion"
+    body: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    turn: float = 0.0  # +1 left (counter-clockwise), -1 right
+
+    def _distance(self) -> float:
+        return self.settings.vertical_step if self.body[2] else self.settings.horizontal_step
+
+    def parameters(self) -> tuple[SkillParameter, ...]:
+        s = self.settings
+        if self.turn:
+            return (SkillParameter(name="angle", value=s.yaw_step_deg, unit="deg"),)
+        return (SkillParameter(name="distance", value=self._distance(), unit="m"),
+                SkillParameter(name="speed", value=s.translation_speed, unit="m/s"))
+
+    def target(self, st: VehicleState) -> tuple[Vec3, float]:
+        if self.turn:
+            return st.position, wrap(st.yaw + self.turn * math.radians(self.settings.yaw_step_deg))
+        d = self._distance()
+        c, sn = math.cos(st.yaw), math.sin(st.yaw)
+        fx, fy, fz = self.body
+        p = st.position
+        return Vec3(x=p.x + d * (c * fx - sn * fy), y=p.y + d * (sn * fx + c * fy), z=p.z + d * fz), st.yaw
+
+    def check(self, ctx: SkillContext, argument: str | None) -> str | None:
+        st = ctx.state.value
+        assert st is not None
+        if self.turn:
+            return None
+        target, _ = self.target(st)
+        problem = geofence_problem(target, self.settings, f"{self.name} target") or altitude_problem(
+            target.z, self.settings, what=f"{self.name} target")
+        if problem:
+            return problem
+        if self.body[0] > 0:
+            # Only the forward direction is seen by the camera; other directions rely on the geofence.
+            return ctx.clearance.forward_problem(st.position.z, self._distance(), self.settings)
+        return None
+
+    def timeout_s(self, ctx: SkillContext, argument: str | None) -> float:
+        s = self.settings
+        if self.turn:
+            return math.radians(s.yaw_step_deg) / math.radians(30.0) + s.motion_slack_s
+        return self._distance() / s.translation_speed + s.motion_slack_s
+
+    async def run(self, ctx: SkillContext, argument: str | None) -> SkillResult:
+        st = ctx.current()
+        target, yaw = self.target(st)
+        end = await ctx.goto(target, yaw, self.settings.translation_speed, what=f"{self.name} target",
+                             timeout=self.timeout_s(ctx, argument))
+        return SkillResult(f"{self.name} done: now at {fmt(end.position)}, yaw {math.degrees(end.yaw):.0f} deg")
+
+
+@register
+class YawLeft(_Step):
+    name = names.YAW_LEFT
+    description = "Rotate left (counter-clockwise) about the body z-axis by {s.yaw_step_deg:g} deg, to look around."
+    turn = 1.0
+
+
+@register
+class YawRight(_Step):
+    name = names.YAW_RIGHT
+    description = "Rotate right (clockwise) about the body z-axis by {s.yaw_step_deg:g} deg, to look around."
+    turn = -1.0
+
+
+@register
+class Forward(_Step):
+    name = names.FORWARD
+    description = ("Translate forward along the body x-axis by {s.horizontal_step:g} m, to approach a target "
+                   "(refused when the depth image shows an obstacle in the way).")
+    body = (1.0, 0.0, 0.0)
+
+
+@register
+class Backward(_Step):
+    name = names.BACKWARD
+    description = "Translate backward along the body x-axis by {s.horizontal_step:g} m, to retreat."
+    body = (-1.0, 0.0, 0.0)
+
+
+@register
+class Left(_Step):
+    name = names.LEFT
+    description = "Translate left along the body y-axis by {s.horizontal_step:g} m, to correct lateral misalignment."
+    body = (0.0, 1.0, 0.0)
+
+
+@register
+class Right(_Step):
+    name = names.RIGHT
+    description = "Translate right along the body y-axis by {s.horizontal_step:g} m, to correct lateral misalignment."
+    body = (0.0, -1.0, 0.0)
+
+
+@register
+class Up(_Step):
+    name = names.UP
+    description = "Climb by {s.vertical_step:g} m, to gain clearance or see more of the scene."
+    body = (0.0, 0.0, 1.0)
+
+
+@register
+class Down(_Step):
+    name = names.DOWN
+    description = "Descend by {s.vertical_step:g} m, to reach manipulation height or see closer."
+    body = (0.0, 0.0, -1.0)
+
+
+# --------------------------------------------------------------------------- perception routines
+
+
+def _not_found(query: str, est) -> str:
+    why = {"not_visible": "not visible", "ambiguous": "ambiguous (several matches)",
+           "too_few_points": "seen but with too few depth points", "no_free_spot": "without a free spot"}
+    return f"{query} {why.get(est.reason, est.reason)}" + (f": {est.message}" if est.message else "")
+
+
+@register
+class ObjLocalization(Skill):
+    name = names.OBJ_LOCALIZATION
+    category: Category = "perception"
+    description = ("Estimate the 3D pose of the queried object (open-vocabulary segmentation fused with depth) "
+                   "and store it in working memory. Fails when the object is not in view.")
+    argument = "object query"
+    argument_required = True
+    moves = False
+    needs_airborne = False
+    needs_offboard = False
+
+    def timeout_s(self, ctx: SkillContext, argument: str | None) -> float:
+        return self.settings.localize_timeout_s + 2.0
+
+    async def run(self, ctx: SkillContext, argument: str | None) -> SkillResult:
+        assert argument
+        est = await ctx.localize_object(argument)
+        if not est.found or est.pose is None:
+            raise SkillFailed(_not_found(argument, est))
+        mo = ctx.memory.store_object(est, argument)
+        text = f"{mo.label} at {fmt(mo.position)}"
+        st = ctx.state.value
+        if st is not None:
+            text += f", {horizontal_distance(mo.position, st.position):.2f} m away horizontally"
+        ctx.note(text)
+        return SkillResult(f"localized {text} (confidence {est.confidence:.2f})")
+
+
+@register
+class PlacementLocalization(Skill):
+    name = names.PLACEMENT_LOCALIZATION
+    category: Category = "perception"
+    description = ("Find the queried support surface in the point cloud and compute a collision-free placement "
+                   "pose with a vertical offset for the held object; store it in working memory.")
+    argument = "surface query"
+    argument_required = True
+    moves = False
+    needs_airborne = False
+    needs_offboard = False
+
+    def timeout_s(self, ctx: SkillContext, argument: str | None) -> float:
+        return self.settings.localize_timeout_s + 2.0
+
+    async def run(self, ctx: SkillContext, argument: str | None) -> SkillResult:
+        assert argument
+        est = await ctx.localize_placement(argument, ctx.memory.held_size)
+        if not est.found or est.pose is None:
+            raise SkillFailed(_not_found(argument, est))
+        mo = ctx.memory.store_placement(est, argument)
+        text = f"placement spot on the {mo.label} at {fmt(mo.position)}"
+        ctx.note(text)
+        return SkillResult(f"found {text} (surface z {est.surface_z if est.surface_z is not None else 0:.2f})")
+
+
+# --------------------------------------------------------------------------- manipulation routines
+
+
+class _Manipulation(Skill):
+    category: Category = "manipulation"
+
+    def view_height(self, target_z: float) -> float:
+        """Body altitude at the standoff that puts a target at `target_z` near the image centre."""
+        s = self.settings
+        cam_dist = max(s.standoff_distance - 0.12, 0.2)
+        z = target_z + cam_dist * math.tan(math.radians(s.camera_pitch_deg)) + 0.05
+        return min(max(z, s.min_altitude, target_z + 0.35), s.max_altitude)
+
+    def standoff(self, ctx: SkillContext, target: Vec3, st: VehicleState) -> tuple[Vec3, float]:
+        """A point `standoff_distance` from the target on the vehicle's side, facing it, inside the geofence."""
+        s = self.settings
+        dx, dy = st.position.x - target.x, st.position.y - target.y
+        base = math.atan2(dy, dx) if math.hypot(dx, dy) > 0.05 else wrap(st.yaw + math.pi)
+        z = self.view_height(target.z)
+        for k in (0, 1, -1, 2, -2, 3, -3, 4, -4, 5, -5, 6):
+            ang = base + k * math.radians(30.0)
+            p = Vec3(x=target.x + s.standoff_distance * math.cos(ang), y=target.y + s.standoff_distance * math.sin(ang),
+                     z=z)
+            if geofence_problem(p, s) is None:
+                return p, wrap(ang + math.pi)
+        raise SkillFailed(f"no standoff point inside the geofence around {fmt(target)}")
+
+    async def travel(self, ctx: SkillContext, target: Vec3, yaw: float, what: str) -> VehicleState:
+        """Climb first when below the target height, cross at constant height, then settle vertically: the
+        horizontal leg never runs lower than either end."""
+        s = self.settings
+        st = ctx.current()
+        cross_z = max(st.position.z, target.z)
+        if st.position.z < cross_z - s.position_tolerance:
+            st = await ctx.goto(Vec3(x=st.position.x, y=st.position.y, z=cross_z), st.yaw, s.descent_speed,
+                                what=f"{what} (climb)")
+        st = await ctx.goto(Vec3(x=target.x, y=target.y, z=cross_z), yaw, s.approach_speed, what=what)
+        if abs(st.position.z - target.z) > s.position_tolerance:
+            st = await ctx.goto(target, yaw, s.descent_speed, what=f"{what} (height)")
+        return st
+
+    def timeout_s(self, ctx: SkillContext, argument: str | None) -> float:
+        return self.settings.grasp_timeout_s
+
+
+def _top(o: MemoryObject | ObjectEstimate) -> float:
+    if o.top_z is not None:
+        return o.top_z
+    pos = o.position if isinstance(o, MemoryObject) else o.pose.position  # type: ignore[union-attr]
+    return pos.z + (o.size.z / 2 if o.size is not None else 0.05)
+
+
+@register
+class Grasp(_Manipulation):
+    name = names.GRASP
+    description = ("Pick up the localized object: approach a standoff {s.standoff_distance:g} m from it facing it, "
+                   "re-localize with yaw alignment, move above it, descend, close the gripper, verify it is held, "
+                   "and retreat to {s.flight_altitude:g} m. Needs a recent obj_localization of the object.")
+    argument = "object label (optional; defaults to the last localized object)"
+
+    def parameters(self) -> tuple[SkillParameter, ...]:
+        s = self.settings
+        return (SkillParameter(name="standoff", value=s.standoff_distance, unit="m"),
+                SkillParameter(name="reach", value=s.reach, unit="m"),
+                SkillParameter(name="max_localization_age", value=s.localization_max_age_s, unit="s"),
+                SkillParameter(name="descent_speed", value=s.descent_speed, unit="m/s"))
+
+    def check(self, ctx: SkillContext, argument: str | None) -> str | None:
+        s, mem = self.settings, ctx.memory
+        if mem.held:
+            return f"already holding the {mem.held}: place it before grasping something else"
+        obj = mem.find_object(argument)
+        if obj is None:
+            what = f"the {argument}" if argument else "any object"
+            return f"no localization of {what} in working memory: run obj_localization first"
+        a = age_s(obj)
+        if a > s.localization_max_age_s:
+            return (f"the {obj.label} was last localized {a:.0f} s ago (limit {s.localization_max_age_s:.0f} s): "
+                    "run obj_localization again")
+        st = ctx.state.value
+        assert st is not None
+        d = horizontal_distance(obj.position, st.position)
+        if d > s.reach:
+            return f"the {obj.label} is {d:.2f} m away (reach {s.reach:.2f} m): move closer first"
+        return None
+
+    async def run(self, ctx: SkillContext, argument: str | None) -> SkillResult:
+        s, mem = self.settings, ctx.memory
+        obj = mem.find_object(argument)
+        if obj is None:
+            raise SkillFailed("the object disappeared from working memory")
+        label, query = obj.label, obj.query or obj.label
+        st = ctx.current()
+        if st.gripper != GripperState.OPEN:
+            await ctx.gripper("open")
+
+        # Iterative re-localization from a standoff, facing the object (it is invisible from right above).
+        remembered = obj.position
+        est_pos, est_top, size, yaw = obj.position, _top(obj), obj.size, 0.0
+        for _ in range(max(1, s.relocalize_iterations)):
+            sp, yaw = self.standoff(ctx, est_pos, ctx.current())
+            await self.travel(ctx, sp, yaw, f"standoff facing the {label}")
+            est = await ctx.localize_object(query)
+            if not est.found or est.pose is None:
+                mem.forget_object(label)
+                raise SkillFailed(f"grasp aborted before contact: {_not_found(label, est)} from the standoff at its "
+                                  f"remembered position {fmt(remembered)}; it may have moved: localize it again")
+            shift = horizontal_distance(est.pose.position, remembered)
+            if shift > s.max_object_shift:
+                mo = mem.store_object(est, query)
+                raise SkillFailed(f"grasp aborted before contact: the {label} moved since it was localized "
+                                  f"(remembered {fmt(remembered)}, now {fmt(mo.position)}, {shift:.2f} m); memory "
+                                  "updated, grasp again or re-localize")
+            step = horizontal_distance(est.pose.position, est_pos)
+            mo = mem.store_object(est, query)
+            est_pos, est_top, size = mo.position, _top(mo), mo.size or size
+            if step < s.relocalize_converged:
+                break
+        ctx.note(f"{label} re-localized at {fmt(est_pos)}")
+
+        # Above the object, then a controlled descent to put the gripper point inside the object's top part.
+        height = size.z if size is not None else 0.1
+        grip_z = est_top - s.grasp_depth_fraction * height
+        body_z = grip_z - s.gripper_offset_z
+        hover = Vec3(x=est_pos.x, y=est_pos.y, z=ctx.current().position.z)
+        await ctx.goto(hover, yaw, s.approach_speed, what=f"above the {label}")
+        await ctx.goto(Vec3(x=est_pos.x, y=est_pos.y, z=body_z), yaw, s.descent_speed,
+                       low=s.manipulation_min_altitude, what=f"grasp height over the {label}")
+        await ctx.gripper("close")
+        up = max(s.flight_altitude, hover.z)
+        await ctx.goto(Vec3(x=est_pos.x, y=est_pos.y, z=up), yaw, s.descent_speed, what="retreat height")
+
+        # Verify without ground truth: from the standoff, the old spot must now be empty.
+        sp, yaw = self.standoff(ctx, est_pos, ctx.current())
+        await self.travel(ctx, Vec3(x=sp.x, y=sp.y, z=max(sp.z, ctx.current().position.z)), yaw, "verification view")
+        check = await ctx.localize_object(query)
+        if check.found and check.pose is not None and horizontal_distance(check.pose.position, est_pos) <= \
+                s.verify_tolerance:
+            mem.store_object(check, query)
+            await ctx.gripper("open")
+            raise SkillFailed(f"grasp missed: the {label} is still at {fmt(check.pose.position)} after closing the "
+                              "gripper; gripper reopened, try grasp again")
+        mem.forget_object(label)
+        mem.set_held(label, size)
+        ctx.note(f"{label} no longer at {fmt(est_pos)}: held")
+        end = ctx.current()
+        return SkillResult(f"grasped the {label}; holding it at {fmt(end.position)}")
+
+
+@register
+class Place(_Manipulation):
+    name = names.PLACE
+    description = ("Place the held object at the localized placement spot: approach above it, controlled descent "
+                   "until the object's bottom is {s.place_vertical_offset:g} m above the surface, open the gripper, "
+                   "retreat to {s.flight_altitude:g} m and verify the object rests there. Needs a held object and "
+                   "a placement_localization.")
+    argument = "surface label (optional; defaults to the last placement spot)"
+
+    def timeout_s(self, ctx: SkillContext, argument: str | None) -> float:
+        return self.settings.place_timeout_s
+
+    def check(self, ctx: SkillContext, argument: str | None) -> str | None:
+        s, mem = self.settings, ctx.memory
+        if not mem.held:
+            return "not holding any object: grasp one first"
+        pl = mem.find_placement(argument)
+        if pl is None:
+            what = f"on the {argument}" if argument else ""
+            return f"no placement spot {what} in working memory: run placement_localization first".replace("  ", " ")
+        st = ctx.state.value
+        assert st is not None
+        d = horizontal_distance(pl.position, st.position)
+        if d > s.reach:
+            return f"the placement spot on the {pl.label} is {d:.2f} m away (reach {s.reach:.2f} m): move closer"
+        return None
+
+    async def run(self, ctx: SkillContext, argument: str | None) -> SkillResult:
+        s, mem = self.settings, ctx.memory
+        pl = mem.find_placement(argument)
+        held = mem.held
+        if pl is None or held is None:
+            raise SkillFailed("placement spot or held object vanished from working memory")
+        height = mem.held_size.z if mem.held_size is not None else 0.1
+        surface_z = pl.top_z if pl.top_z is not None else pl.position.z
+        bottom = max(pl.position.z, surface_z + s.place_vertical_offset)
+        body_z = bottom + height - s.gripper_offset_z
+        st = ctx.current()
+        transit = max(st.position.z, s.flight_altitude, body_z)
+        yaw = st.yaw
+        spot = Vec3(x=pl.position.x, y=pl.position.y, z=transit)
+        await self.travel(ctx, spot, yaw, f"above the {pl.label} spot")
+        await ctx.goto(Vec3(x=spot.x, y=spot.y, z=body_z), yaw, s.descent_speed, low=s.manipulation_min_altitude,
+                       what=f"release height over the {pl.label}")
+        await ctx.gripper("open")
+        mem.set_held(None)
+        await ctx.goto(Vec3(x=spot.x, y=spot.y, z=max(s.flight_altitude, body_z)), yaw, s.descent_speed,
+                       what="retreat height")
+
+        # Verify: back off, look at the spot, the object must rest there.
+        target = Vec3(x=pl.position.x, y=pl.position.y, z=bottom + height / 2)
+        sp, vyaw = self.standoff(ctx, target, ctx.current())
+        await self.travel(ctx, Vec3(x=sp.x, y=sp.y, z=max(sp.z, s.min_altitude)), vyaw, "verification view")
+        est = await ctx.localize_object(held)
+        if not est.found or est.pose is None:
+            raise SkillFailed(f"released the {held} over the {pl.label} but could not see it there afterwards: "
+                              f"{_not_found(held, est)}")
+        off = horizontal_distance(est.pose.position, pl.position)
+        bottom_seen = est.pose.position.z - (est.size.z / 2 if est.size is not None else height / 2)
+        mo = mem.store_object(est, held)
+        if off > s.place_tolerance or abs(bottom_seen - surface_z) > 0.1:
+            raise SkillFailed(f"released the {held} but it lies at {fmt(mo.position)}, {off:.2f} m from the "
+                              f"placement spot on the {pl.label}")
+        ctx.note(f"{held} rests on the {pl.label} at {fmt(mo.position)}")
+        return SkillResult(f"placed the {held} on the {pl.label} at {fmt(mo.position)}")
+
+
+# --------------------------------------------------------------------------- control and operator skills
+
+
+@register
+class Done(Skill):
+    name = names.DONE
+    category: Category = "control"
+    description = "Declare the task complete; the episode ends."
+    moves = False
+    needs_airborne = False
+    needs_offboard = False
+
+    async def run(self, ctx: SkillContext, argument: str | None) -> SkillResult:
+        return SkillResult("task declared complete")
+
+
+@register
+class Takeoff(Skill):
+    name = names.TAKEOFF
+    category: Category = "operator"
+    description = "Arm and take off to {s.flight_altitude:g} m."
+    policy_visible = False
+    needs_airborne = False
+    needs_offboard = False
+
+    def parameters(self) -> tuple[SkillParameter, ...]:
+        return (SkillParameter(name="altitude", value=self.settings.flight_altitude, unit="m"),)
+
+    def check(self, ctx: SkillContext, argument: str | None) -> str | None:
+        if airborne(ctx.state.value):
+            return "already airborne: takeoff is only possible from the ground"
+        return None
+
+    def timeout_s(self, ctx: SkillContext, argument: str | None) -> float:
+        return self.settings.takeoff_timeout_s
+
+    async def run(self, ctx: SkillContext, argument: str | None) -> SkillResult:
+        s = self.settings
+        if not ctx.current().armed:
+            await ctx.command(ArmCommand())
+        await ctx.command(TakeoffCommand(altitude=s.flight_altitude), timeout=s.takeoff_timeout_s)
+        st = await ctx.wait_for(lambda st: st.position.z >= s.flight_altitude - 0.2 and st.offboard_ok,
+                                s.takeoff_timeout_s, "takeoff altitude")
+        return SkillResult(f"airborne at {fmt(st.position)}")
+
+
+@register
+class Land(Skill):
+    name = names.LAND
+    category: Category = "operator"
+    description = "Land at the current position."
+    policy_visible = False
+    needs_offboard = False
+
+    def timeout_s(self, ctx: SkillContext, argument: str | None) -> float:
+        return self.settings.land_timeout_s
+
+    async def run(self, ctx: SkillContext, argument: str | None) -> SkillResult:
+        await ctx.command(LandCommand())
+        st = await ctx.wait_for(lambda st: not airborne(st), self.settings.land_timeout_s, "touchdown")
+        return SkillResult(f"landed at {fmt(st.position)}")
+
+
+@register
+class Hold(Skill):
+    name = names.HOLD
+    category: Category = "operator"
+    description = "Hold the current position."
+    policy_visible = False
+    needs_airborne = False
+    needs_offboard = False
+
+    async def run(self, ctx: SkillContext, argument: str | None) -> SkillResult:
+        await ctx.command(HoldCommand())
+        return SkillResult(f"holding at {fmt(ctx.current().position)}")
