@@ -291,6 +291,14 @@ class Bus:
         data, enc = encode(obj, schema)
         self._publisher(key, reliable).put(data, encoding=enc, attachment=attachment)
 
+    def publish_raw(self, key: str, data: bytes, encoding: str, *, reliable: bool = True,
+                    attachment: bytes | None = None) -> None:
+        """Publish bytes with an exact Zenoh encoding string (e.g. `application/json;aermani.ReasoningStep`),
+        as recorded: replay republishes samples verbatim, which `publish` cannot do for every encoding."""
+        if self._closed:
+            raise BusError(f"publish on {key} after the bus was closed")
+        self._publisher(key, reliable).put(bytes(data), encoding=zenoh.Encoding(encoding), attachment=attachment)
+
     def subscribe(self, key: str, model: type[T] | Any | None = None, *, maxsize: int = 100,
                   overflow: Overflow = "drop_oldest") -> Subscription[T]:
         """Subscribe `key` (a key expression) into a bounded queue; values decode to `model`

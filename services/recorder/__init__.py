@@ -1,0 +1,1 @@
+"""The recorder: every sample on aermani/** into MCAP, replay, timelines and offline re-reasoning."""

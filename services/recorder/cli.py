@@ -1,0 +1,128 @@
+"""`aermani replay`, `aermani rereason` and `aermani log show|export|recover`."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.console import Console
+
+console = Console()
+err = Console(stderr=True)
+
+LogArg = Annotated[Path, typer.Argument(help="An MCAP log written by the recorder.", exists=True, dir_okay=False)]
+
+
+def register(app: typer.Typer) -> None:
+    log_app = typer.Typer(help="Inspect, report on and repair MCAP logs.", no_args_is_help=True)
+    app.add_typer(log_app, name="log")
+    app.command("replay")(replay_cmd)
+    app.command("rereason")(rereason_cmd)
+    log_app.command("show")(show_cmd)
+    log_app.command("export")(export_cmd)
+    log_app.command("recover")(recover_cmd)
+
+
+def replay_cmd(
+    log: LogArg,
+    speed: Annotated[float, typer.Option(help="1 = original timing, 2 = twice as fast, 0 = as fast as possible.")]
+    = 1.0,
+    keys: Annotated[str | None, typer.Option(help="Only keys matching this key expression, "
+                                                   "e.g. 'aermani/*/am1/reasoner/**'.")] = None,
+    start: Annotated[float | None, typer.Option(help="Start this many seconds into the log.")] = None,
+    end: Annotated[float | None, typer.Option(help="Stop this many seconds into the log.")] = None,
+    connect: Annotated[str, typer.Option(help="Zenoh endpoint of the router.")] = "tcp/127.0.0.1:7447",
+) -> None:
+    """Republish a log on Zenoh verbatim (same keys, bytes, encodings) so the web page, Foxglove and any
+    service see the flight again."""
+    from services.recorder.replay import replay
+    from shared.bus import Bus
+
+    async def run() -> None:
+        bus = await Bus.open(connect=[connect])
+        try:
+            res = await replay(bus, log, speed=speed, keys=keys, start_s=start, end_s=end)
+            # Let the last samples leave the session before it closes.
+            await asyncio.sleep(0.5)
+        finally:
+            await bus.close()
+        console.print(f"replayed {res.published} samples from {log} in {res.wall_s:.1f} s "
+                      f"({(res.last_log_ns - res.first_log_ns) / 1e9:.1f} s of log)")
+
+    try:
+        asyncio.run(run())
+    except KeyboardInterrupt:
+        raise typer.Exit(130)
+
+
+def show_cmd(
+    log: LogArg,
+    as_json: Annotated[bool, typer.Option("--json", help="Machine-readable output.")] = False,
+    vehicle: Annotated[str | None, typer.Option(help="Only this vehicle id.")] = None,
+) -> None:
+    """A readable timeline of each task: command, every step's STE, reasoning, skill result and timing,
+    final metrics."""
+    from services.recorder.timeline import render_text, to_json
+
+    if as_json:
+        typer.echo(to_json(log, vehicle))
+    else:
+        typer.echo(render_text(log, vehicle))
+
+
+def export_cmd(
+    log: LogArg,
+    out: Annotated[Path, typer.Option(help="Directory for index.html and the frames.")],
+    vehicle: Annotated[str | None, typer.Option(help="Only this vehicle id.")] = None,
+) -> None:
+    """An HTML report: the camera frame of each step beside its DRT."""
+    from services.recorder.timeline import export_html
+
+    index = export_html(log, out, vehicle)
+    console.print(f"wrote {index}")
+
+
+def recover_cmd(
+    log: Annotated[Path, typer.Argument(help="A log that was not finished (recorder killed, power lost).",
+                                        exists=True, dir_okay=False)],
+    out: Annotated[Path | None, typer.Option(help="Where the repaired log goes (default <LOG>.recovered.mcap).")]
+    = None,
+) -> None:
+    """Salvage every complete chunk of an unfinished log into a finished, indexed one."""
+    from services.recorder.mcaplog import recover
+
+    dst = out or log.with_suffix(".recovered.mcap")
+    if dst.resolve() == log.resolve():
+        err.print("[red]--out must differ from the broken log[/red]")
+        raise typer.Exit(2)
+    res = recover(log, dst)
+    state = "the log was complete" if res.complete else f"stopped at: {res.error or 'end of file'}"
+    typer.echo(f"recovered {len(res.samples)} messages in {len(res.channels)} channels from {res.chunks} "
+               f"complete chunks into {dst} ({state})")
+
+
+def rereason_cmd(
+    log: LogArg,
+    backend: Annotated[str, typer.Option(help="Backend to re-run the decisions with (rules, openai, anthropic, "
+                                              "replay...).")] = "rules",
+    variant: Annotated[str | None, typer.Option(help="Prompt variant (default: the recorded one).")] = None,
+    model: Annotated[str | None, typer.Option(help="Model name for openai/anthropic backends.")] = None,
+    task: Annotated[str | None, typer.Option(help="Only this task id.")] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="Machine-readable output.")] = False,
+) -> None:
+    """Re-run the reasoner's decision step offline on the recorded observations (same frames, same history)
+    with another backend or variant; report agreement with the recorded decisions. No vehicle moves."""
+    from services.recorder.rereason import RereasonError, rereason_log
+
+    try:
+        res = asyncio.run(rereason_log(log, backend=backend, variant=variant, model=model, task_id=task))
+    except RereasonError as exc:
+        err.print(f"[red]{exc}[/red]")
+        raise typer.Exit(2)
+    if as_json:
+        typer.echo(json.dumps(res.as_dict(), indent=2, default=str))
+    else:
+        typer.echo(res.render())

@@ -1,0 +1,84 @@
+"""The recorder service: subscribe the key space, hand every raw sample to the writer thread, report health."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import re
+import socket
+import time
+from importlib.metadata import PackageNotFoundError, version
+
+from services.recorder.settings import RecorderSettings
+from services.recorder.writer import RecordWriter
+from shared.bus import Bus
+from shared.messages import Health
+
+log = logging.getLogger("aermani.recorder")
+
+# Names like api_key, gateway_token, tls_key_password; `key_expr` is not a secret.
+_SECRET = re.compile(r"(^|_)(key|token|secret|password|passwd|credentials?|auth)(_|$)")
+
+
+def aermani_version() -> str:
+    try:
+        return version("aermani")
+    except PackageNotFoundError:
+        return "unknown"
+
+
+def public_settings(settings: RecorderSettings) -> dict[str, str]:
+    """Settings for the metadata record, without anything that looks like a secret."""
+    out = {}
+    for name, value in settings.model_dump().items():
+        if _SECRET.search(name.lower()) and name != "key_expr":
+            continue
+        out[f"setting.{name}"] = str(value)
+    return out
+
+
+def static_metadata(settings: RecorderSettings) -> dict[str, str]:
+    return {"aermani_version": aermani_version(), "host": socket.gethostname(), "key_expr": settings.key_expr,
+            "started_ns": str(time.time_ns()), **public_settings(settings)}
+
+
+async def run(bus: Bus, settings: RecorderSettings, stop: asyncio.Event) -> None:
+    writer = RecordWriter(settings, static_metadata(settings))
+    writer.start()
+    sub = bus.subscribe(settings.key_expr, None, maxsize=settings.queue_size, overflow="drop_newest")
+    health_key = settings.keys.health("recorder")
+
+    def health() -> Health:
+        details = {**writer.stats(), "bus_dropped": sub.dropped}
+        details["dropped"] = writer.dropped_backlog + sub.dropped
+        ok = writer.ok
+        message = writer.error if not ok else ""
+        if ok and details["dropped"]:
+            message = f"{details['dropped']} samples dropped (writer too slow)"
+        return Health(service="recorder", ok=ok, message=message, details=details)
+
+    async def report() -> None:
+        while True:
+            with contextlib.suppress(Exception):
+                bus.publish(health_key, health())
+            await asyncio.sleep(settings.health_period_s)
+
+    reporter = asyncio.create_task(report(), name="recorder.health")
+    try:
+        while not stop.is_set():
+            rec = await sub.recv_sample()
+            writer.submit(rec.key, rec.payload, rec.encoding, rec.receive_ns)
+    finally:
+        reporter.cancel()
+        # Whatever the bus already delivered belongs in the file too.
+        while sub.qsize():
+            try:
+                rec = await sub.recv_sample(timeout=1.0)
+            except (TimeoutError, asyncio.CancelledError):
+                break
+            writer.submit(rec.key, rec.payload, rec.encoding, rec.receive_ns)
+        sub.close()
+        # The writer thread finishes the file; never cancelled, so a SIGTERM always leaves a valid MCAP.
+        await asyncio.shield(asyncio.to_thread(writer.stop))
+        log.info("recording finished: %s", writer.stats())

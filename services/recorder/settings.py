@@ -1,0 +1,44 @@
+"""Settings of the recorder (env AERMANI_RECORDER_*)."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field
+from pydantic_settings import SettingsConfigDict
+
+from shared.settings import ServiceSettings
+
+
+class RecorderSettings(ServiceSettings):
+    model_config = SettingsConfigDict(env_prefix="AERMANI_RECORDER_", extra="ignore", populate_by_name=True,
+                                      use_attribute_docstrings=True)
+
+    key_expr: str = "aermani/**"
+    """Key expression to record. The recorder is a ground-station service: the default takes every vehicle."""
+    out_dir: str = "runs/recordings"
+    """Directory the MCAP files go to (created when missing)."""
+    file_prefix: str = "aermani"
+    """File names are <prefix>-<YYYYmmdd-HHMMSS>-<index>.mcap."""
+    chunk_size: int = Field(1 << 20, ge=4096)
+    """MCAP chunk size in bytes. A crash loses at most the chunk in progress, so keep it modest."""
+    compression: Literal["zstd", "lz4", "none"] = "zstd"
+    """Chunk compression."""
+    rotate_mb: float = Field(2048.0, ge=0)
+    """Start a new file when the current one reaches this size in MiB (0: never by size)."""
+    rotate_s: float = Field(0.0, ge=0)
+    """Start a new file after this many seconds (0: never by time)."""
+    queue_size: int = Field(20000, ge=10)
+    """Samples the bus subscription may hold before it drops (counted in health)."""
+    max_backlog_mb: float = Field(1024.0, gt=0)
+    """Bytes waiting for the writer thread before new samples are dropped (counted), MiB."""
+    health_period_s: float = Field(1.0, gt=0)
+    """How often health/recorder is published, seconds."""
+    retry_s: float = Field(5.0, gt=0)
+    """After a write error (disk full, unwritable path), wait this long before opening a new file."""
+    foxglove: bool = False
+    """Also serve the live stream to the Foxglove app over foxglove-sdk's WebSocket server."""
+    foxglove_host: str = "127.0.0.1"
+    """Address of the Foxglove WebSocket server."""
+    foxglove_port: int = Field(8765, ge=0, le=65535)
+    """Port of the Foxglove WebSocket server."""

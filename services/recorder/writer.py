@@ -1,0 +1,326 @@
+"""The MCAP writer thread: takes samples from a queue, writes them into rotating, crash-recoverable files.
+
+Writing (zstd, disk I/O) happens on this thread so the event loop never blocks. The file is opened
+unbuffered: every finished chunk goes straight to the OS, so a SIGKILL loses only the chunk in progress
+(`durable` counts the messages already in finished chunks). Write errors (disk full, unwritable path)
+never raise out of here: they are reported in `stats()` and the writer retries a new file later.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import queue
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, BinaryIO
+
+from mcap.writer import Writer
+
+from services.recorder.mcaplog import (
+    ChannelTable,
+    channel_spec,
+    compression_type,
+    publish_time_ns,
+    vehicle_of,
+)
+from services.recorder.settings import RecorderSettings
+
+log = logging.getLogger("aermani.recorder")
+
+_STOP = object()
+_ROTATE = object()
+
+
+class _File:
+    """Unbuffered binary file that always writes everything it is given and knows its size."""
+
+    def __init__(self, raw: BinaryIO) -> None:
+        self.raw = raw
+        self.pos = 0
+
+    def write(self, data: bytes | memoryview) -> int:
+        view = memoryview(data)
+        while view:
+            n = self.raw.write(view)
+            if n is None or n <= 0:
+                raise OSError("short write")
+            view = view[n:]
+        self.pos += len(data)
+        return len(data)
+
+    def tell(self) -> int:
+        return self.pos
+
+    def flush(self) -> None:
+        with contextlib.suppress(AttributeError):
+            self.raw.flush()
+
+    def close(self) -> None:
+        self.raw.close()
+
+
+def default_opener(path: Path) -> BinaryIO:
+    return open(path, "wb", buffering=0)  # noqa: SIM115 - owned by the writer thread
+
+
+class RecordWriter:
+    """Thread that owns the MCAP files. `submit()` is safe from any thread and never blocks."""
+
+    def __init__(self, settings: RecorderSettings, static_meta: dict[str, str] | None = None,
+                 opener: Callable[[Path], BinaryIO] = default_opener) -> None:
+        self.settings = settings
+        self.static_meta = dict(static_meta or {})
+        self.opener = opener
+        self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._lock = threading.Lock()
+        self._backlog_bytes = 0
+        self._max_backlog = int(settings.max_backlog_mb * (1 << 20))
+        self._thread = threading.Thread(target=self._main, name="recorder-writer", daemon=False)
+        # State of the current file (writer thread only).
+        self._writer: Writer | None = None
+        self._file: _File | None = None
+        self._table: ChannelTable | None = None
+        self._opened_at = 0.0
+        self._file_index = 0
+        self._retry_at = 0.0
+        self._pending = 0
+        self._fox: Any = None
+        self._fox_server: Any = None
+        self._fox_channels: dict[tuple[str, str], Any] = {}
+        # Figures for health (read from any thread; ints are updated atomically enough for reporting).
+        self.submitted = 0
+        self.written = 0
+        self.durable = 0
+        self.dropped_backlog = 0
+        self.lost_on_error = 0
+        self.bytes_written = 0
+        self.path: str = ""
+        self.files: list[str] = []
+        self.vehicles: set[str] = set()
+        self.channels = 0
+        self.error = ""
+        self.errors = 0
+        self.file_messages = 0
+
+    # ---- any thread
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def submit(self, key: str, payload: bytes, encoding: str, receive_ns: int) -> bool:
+        """Queue one sample; False (counted) when the backlog is over its limit."""
+        n = len(payload)
+        with self._lock:
+            if self._backlog_bytes + n > self._max_backlog:
+                self.dropped_backlog += 1
+                return False
+            self._backlog_bytes += n
+            self.submitted += 1
+        self._queue.put((key, payload, encoding, receive_ns))
+        return True
+
+    def rotate(self) -> None:
+        """Ask for a new file now."""
+        self._queue.put(_ROTATE)
+
+    def stop(self, timeout: float | None = 60.0) -> None:
+        """Write what is queued, finish the file, end the thread."""
+        if self._thread.is_alive():
+            self._queue.put(_STOP)
+            self._thread.join(timeout)
+
+    @property
+    def backlog_bytes(self) -> int:
+        return self._backlog_bytes
+
+    @property
+    def ok(self) -> bool:
+        return not self.error
+
+    def stats(self) -> dict[str, Any]:
+        return {
+            "path": self.path, "files": list(self.files), "received": self.submitted, "written": self.written,
+            "durable": self.durable, "file_messages": self.file_messages, "dropped": self.dropped_backlog,
+            "lost_on_error": self.lost_on_error, "bytes": self.bytes_written, "channels": self.channels,
+            "vehicles": sorted(self.vehicles), "backlog_bytes": self._backlog_bytes, "error": self.error,
+            "errors": self.errors,
+        }
+
+    # ---- writer thread
+
+    def _main(self) -> None:
+        if self.settings.foxglove:
+            self._start_foxglove()
+        self._open()
+        while True:
+            try:
+                item = self._queue.get(timeout=0.2)
+            except queue.Empty:
+                item = None
+            if item is _STOP:
+                break
+            if item is _ROTATE:
+                self._rotate("requested")
+                continue
+            if item is not None:
+                key, payload, encoding, receive_ns = item
+                with self._lock:
+                    self._backlog_bytes -= len(payload)
+                self._write(key, payload, encoding, receive_ns)
+            self._maybe_rotate()
+        self._close(final=True)
+        if self._fox_server is not None:
+            with contextlib.suppress(Exception):
+                self._fox_server.stop()
+
+    def _next_path(self) -> Path:
+        out = Path(self.settings.out_dir)
+        stamp = time.strftime("%Y%m%d-%H%M%S")
+        while True:
+            self._file_index += 1
+            path = out / f"{self.settings.file_prefix}-{stamp}-{self._file_index:03d}.mcap"
+            if not path.exists():
+                return path
+
+    def _open(self) -> bool:
+        try:
+            out = Path(self.settings.out_dir)
+            out.mkdir(parents=True, exist_ok=True)
+            path = self._next_path()
+            self._file = _File(self.opener(path))
+            self._writer = Writer(self._file, chunk_size=self.settings.chunk_size,
+                                  compression=compression_type(self.settings.compression))
+            self._writer.start(profile="", library="aermani-recorder")
+            self._writer.add_metadata("aermani", {**self.static_meta, "file_index": str(self._file_index),
+                                                  "opened_ns": str(time.time_ns())})
+            self._table = ChannelTable(self._writer)
+            self.path = str(path)
+            self.files.append(str(path))
+            self._opened_at = time.monotonic()
+            self._pending = 0
+            self.file_messages = 0
+            self.channels = 0
+            if self.error:
+                log.info("recording again into %s after: %s", path, self.error)
+            self.error = ""
+            log.info("recording into %s", path)
+            return True
+        except Exception as exc:
+            self._fail(exc, "cannot open a recording in " + self.settings.out_dir)
+            return False
+
+    def _fail(self, exc: BaseException, what: str) -> None:
+        self.errors += 1
+        self.error = f"{what}: {type(exc).__name__}: {exc}"
+        log.error("%s; retrying in %.0f s", self.error, self.settings.retry_s)
+        # Messages of the chunk in progress are gone with the broken file.
+        self.lost_on_error += self._pending
+        self._pending = 0
+        if self._file is not None:
+            with contextlib.suppress(Exception):
+                self._file.close()
+        self._file = None
+        self._writer = None
+        self._table = None
+        self._retry_at = time.monotonic() + self.settings.retry_s
+
+    def _write(self, key: str, payload: bytes, encoding: str, receive_ns: int) -> None:
+        vid = vehicle_of(key)
+        if vid:
+            self.vehicles.add(vid)
+        self._live(key, payload, encoding, receive_ns)
+        if self._writer is None and (time.monotonic() < self._retry_at or not self._open()):
+            self.lost_on_error += 1
+            return
+        assert self._writer is not None and self._table is not None and self._file is not None
+        try:
+            cid = self._table.channel_id(key, encoding)
+            self.channels = len(self._table.channels)
+            before = self._file.tell()
+            self._writer.add_message(cid, receive_ns, payload, publish_time_ns(encoding, payload, receive_ns),
+                                     self._table.next_sequence(cid))
+            self.written += 1
+            self.file_messages += 1
+            self._pending += 1
+            after = self._file.tell()
+            if after != before:  # a chunk was finished: everything added so far is on disk
+                self.durable += self._pending
+                self._pending = 0
+                self.bytes_written += after - before
+        except Exception as exc:
+            self._fail(exc, f"cannot write to {self.path}")
+
+    def _maybe_rotate(self) -> None:
+        if self._writer is None:
+            if self._retry_at and time.monotonic() >= self._retry_at and self._queue.empty():
+                self._retry_at = 0.0
+                self._open()
+            return
+        s = self.settings
+        if s.rotate_mb and self._file is not None and self._file.tell() >= s.rotate_mb * (1 << 20):
+            self._rotate("size")
+        elif s.rotate_s and time.monotonic() - self._opened_at >= s.rotate_s:
+            self._rotate("time")
+
+    def _rotate(self, reason: str) -> None:
+        log.info("rotating %s (%s)", self.path, reason)
+        self._close(final=False)
+        self._open()
+
+    def _close(self, final: bool) -> None:
+        if self._writer is None or self._file is None:
+            return
+        try:
+            self._writer.add_metadata("aermani.session", {
+                "vehicles": ",".join(sorted(self.vehicles)), "messages": str(self.file_messages),
+                "dropped": str(self.dropped_backlog), "lost_on_error": str(self.lost_on_error),
+                "closed_ns": str(time.time_ns()), "final": str(final).lower(),
+            })
+            before = self._file.tell()
+            self._writer.finish()
+            self.bytes_written += self._file.tell() - before
+            self.durable += self._pending
+            self._pending = 0
+            with contextlib.suppress(Exception):
+                os.fsync(self._file.raw.fileno())
+            self._file.close()
+            log.info("finished %s (%d messages)", self.path, self.file_messages)
+        except Exception as exc:
+            self._fail(exc, f"cannot finish {self.path}")
+        finally:
+            self._writer = None
+            self._file = None
+            self._table = None
+
+    # ---- optional live view in the Foxglove app
+
+    def _start_foxglove(self) -> None:
+        try:
+            import foxglove
+
+            self._fox = foxglove
+            self._fox_server = foxglove.start_server(host=self.settings.foxglove_host, port=self.settings.foxglove_port)
+            log.info("Foxglove live server on ws://%s:%d", self.settings.foxglove_host, self._fox_server.port)
+        except Exception as exc:
+            log.error("Foxglove live server not started: %s", exc)
+            self._fox = None
+
+    def _live(self, key: str, payload: bytes, encoding: str, receive_ns: int) -> None:
+        if self._fox is None:
+            return
+        try:
+            ch = self._fox_channels.get((key, encoding))
+            if ch is None:
+                spec = channel_spec(encoding)
+                schema = (self._fox.Schema(name=spec.schema_name, encoding=spec.schema_encoding, data=spec.schema_data)
+                          if spec.has_schema else None)
+                ch = self._fox.Channel(key, schema=schema, message_encoding=spec.message_encoding)
+                self._fox_channels[(key, encoding)] = ch
+            ch.log(payload, log_time=receive_ns)
+        except Exception as exc:  # the live view must never stop the recording
+            log.warning("Foxglove live view disabled: %s", exc)
+            self._fox = None
