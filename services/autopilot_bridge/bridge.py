@@ -1,0 +1,559 @@
+"""The bridge proper: PX4 telemetry -> VehicleState, AutopilotCommand -> MAVLink commands and offboard setpoints."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import math
+import time
+from collections import defaultdict
+from collections.abc import Callable
+from typing import Any
+
+from services.autopilot_bridge import px4
+from services.autopilot_bridge.link import MavlinkLink
+from services.autopilot_bridge.settings import BridgeSettings
+from services.autopilot_bridge.stream import SetpointStream, Target
+from shared.bus import Bus
+from shared.messages import (
+    ArmCommand,
+    AutopilotCommand,
+    AutopilotResult,
+    DisarmCommand,
+    GotoCommand,
+    GripperCommand,
+    GripperState,
+    Health,
+    HoldCommand,
+    LandCommand,
+    LandedState,
+    TakeoffCommand,
+    Vec3,
+    VehicleState,
+    now_ns,
+)
+from shared.sensors import BODY_FRAME, WORLD_FRAME, pose_matrix, transforms_message
+
+log = logging.getLogger("aermani.autopilot_bridge")
+
+SERVICE = "autopilot_bridge"
+UINT16_MAX = 65535
+
+
+class RateLimitedLog:
+    """Log a recurring problem at most once per `period` seconds, with the count of suppressed repeats."""
+
+    def __init__(self, period: float = 5.0) -> None:
+        self.period = period
+        self._last: dict[str, float] = {}
+        self._suppressed: dict[str, int] = defaultdict(int)
+
+    def __call__(self, key: str, text: str, *args: Any) -> None:
+        now = time.monotonic()
+        if now - self._last.get(key, -1e9) >= self.period:
+            extra = self._suppressed.pop(key, 0)
+            log.warning(text + (f" ({extra} more since the last report)" if extra else ""), *args)
+            self._last[key] = now
+        else:
+            self._suppressed[key] += 1
+
+
+class Bridge:
+    """All state lives on the event loop; the reader thread only hands messages over and the stream thread
+    only reads `stream.target`."""
+
+    def __init__(self, bus: Bus | None, settings: BridgeSettings, link: MavlinkLink) -> None:
+        self.bus = bus
+        self.s = settings
+        self.link = link
+        self.keys = settings.keys
+        self.loop: asyncio.AbstractEventLoop | None = None
+        self.t0 = time.monotonic()
+        self.stream = SetpointStream(self._send_setpoint, settings.stream_rate_hz)
+        # autopilot identity, learned from the first PX4 HEARTBEAT
+        self.target_system: int | None = None
+        self.target_component = px4.MAV_COMP_ID_AUTOPILOT1
+        # telemetry
+        self.last_hb_mono = 0.0
+        self.last_hb_ns = 0
+        self.armed = False
+        self.mode = "UNKNOWN"
+        self.landed_state = LandedState.UNKNOWN
+        self.have_position = False
+        self.position = (0.0, 0.0, 0.0)
+        self.velocity = (0.0, 0.0, 0.0)
+        self.yaw = 0.0
+        self.roll = 0.0
+        self.pitch = 0.0
+        self.battery_voltage: float | None = None
+        self.battery_remaining: float | None = None
+        self.gripper = GripperState.UNKNOWN
+        self.message = ""
+        self.last_statustext = ""
+        self.last_statustext_mono = 0.0
+        # control
+        self.offboard_expected = False  # we put PX4 in OFFBOARD and have not asked it to leave
+        self.link_was_ok = False
+        self.epoch = 0  # bumped by every motion command so a running takeoff knows it was superseded
+        self._pending: dict[int, asyncio.Future[int]] = {}
+        self._cmd_locks: dict[int, asyncio.Lock] = defaultdict(asyncio.Lock)
+        self._flight_lock = asyncio.Lock()
+        self._changed = asyncio.Event()
+        self.counters: dict[str, int] = defaultdict(int)
+        self.warn = RateLimitedLog()
+        self._tasks: set[asyncio.Task] = set()
+
+    # ------------------------------------------------------------------ helpers
+
+    @property
+    def link_ok(self) -> bool:
+        return self.last_hb_mono > 0 and time.monotonic() - self.last_hb_mono <= self.s.heartbeat_timeout_s
+
+    @property
+    def offboard_ok(self) -> bool:
+        fresh = time.monotonic() - self.stream.last_sent_at <= 3 * self.stream.period
+        return self.link_ok and self.mode == "OFFBOARD" and self.stream.running and fresh
+
+    @property
+    def airborne(self) -> bool:
+        return self.armed and self.landed_state in (LandedState.IN_AIR, LandedState.TAKEOFF, LandedState.LANDING)
+
+    def time_boot_ms(self) -> int:
+        return int((time.monotonic() - self.t0) * 1000)
+
+    def _notify(self) -> None:
+        ev, self._changed = self._changed, asyncio.Event()
+        ev.set()
+
+    async def wait_for(self, pred: Callable[[], bool], timeout: float) -> bool:
+        """Wait until `pred()` holds, re-checking whenever a message arrives (and at least every 0.2 s)."""
+        deadline = time.monotonic() + timeout
+        while not pred():
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                return False
+            ev = self._changed
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(ev.wait(), min(remaining, 0.2))
+        return True
+
+    def _send_setpoint(self, sp: px4.SetpointNED) -> bool:  # runs on the stream thread
+        if self.target_system is None:
+            return False
+        return self.link.send(self.link.mav.set_position_target_local_ned_encode(
+            *sp.fields(self.time_boot_ms(), self.target_system, self.target_component)))
+
+    def current_target(self) -> Target:
+        x, y, z = self.position
+        return Target(x, y, z, self.yaw)
+
+    def _status_hint(self) -> str:
+        if self.last_statustext and time.monotonic() - self.last_statustext_mono < 3.0:
+            return f"; PX4 says: {self.last_statustext}"
+        return ""
+
+    # ------------------------------------------------------------------ MAVLink input (on the loop)
+
+    def on_message(self, msg: Any, addr: tuple[str, int] | None, _t: float) -> None:
+        mtype = msg.get_type()
+        self.counters["mavlink_received"] += 1
+        if mtype == "BAD_DATA":
+            self.counters["bad_data"] += 1
+            self.warn("bad", "ignored undecodable MAVLink bytes from %s", addr)
+            return
+        src = msg.get_srcSystem()
+        if self.target_system is None:
+            if mtype == "HEARTBEAT" and self._is_px4(msg) and self.s.target_system in (0, src):
+                self._learn(msg, addr)
+            else:
+                self.counters["ignored_before_heartbeat"] += 1
+                return
+        if src != self.target_system:
+            self.counters["wrong_system"] += 1
+            self.warn("sysid", "ignored %s from system %d (we talk to system %d)", mtype, src, self.target_system)
+            return
+        peer = self.link.peer
+        if addr is not None and peer is not None and tuple(addr) != peer:
+            if mtype == "HEARTBEAT" and not self.link_ok and self._is_px4(msg):
+                log.warning("autopilot system %d came back from %s (was %s)", src, addr, peer)
+                self.link.lock_peer(tuple(addr))
+            else:
+                self.counters["wrong_address"] += 1
+                self.warn("addr", "ignored %s from %s: the autopilot is at %s", mtype, addr, peer)
+                return
+        handler = getattr(self, f"_on_{mtype.lower()}", None)
+        if handler is None:
+            self.counters["unhandled"] += 1
+            return
+        handler(msg)
+        self._notify()
+
+    @staticmethod
+    def _is_px4(msg: Any) -> bool:
+        return msg.autopilot == px4.MAV_AUTOPILOT_PX4 and msg.type not in (px4.MAV_TYPE_GCS,
+                                                                           px4.MAV_TYPE_ONBOARD_CONTROLLER)
+
+    def _learn(self, msg: Any, addr: tuple[str, int] | None) -> None:
+        self.target_system = msg.get_srcSystem()
+        self.target_component = msg.get_srcComponent()
+        if addr is not None:
+            self.link.lock_peer(tuple(addr))
+        log.info("talking to PX4 system %d component %d at %s", self.target_system, self.target_component,
+                 addr or self.s.connection)
+
+    def _on_heartbeat(self, msg: Any) -> None:
+        if msg.get_srcComponent() != self.target_component:
+            return  # a camera or gimbal of the same vehicle: not the autopilot's state
+        if not self.link_ok:
+            was_lost = self.link_was_ok
+            self.last_hb_mono = time.monotonic()
+            self.message = "link restored" if was_lost else "link up"
+            log.info("autopilot heartbeat %s", "restored" if was_lost else "received")
+            self.link_was_ok = True
+            self._spawn(self.request_rates())
+        self.last_hb_mono = time.monotonic()
+        self.last_hb_ns = now_ns()
+        self.armed = bool(msg.base_mode & px4.MAV_MODE_FLAG_SAFETY_ARMED)
+        if msg.base_mode & px4.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
+            mode = px4.decode_custom_mode(msg.custom_mode)
+        else:
+            mode = "UNKNOWN"
+        if mode != self.mode:
+            log.info("mode %s -> %s", self.mode, mode)
+        self.mode = mode
+        if self.offboard_expected and mode != "OFFBOARD":
+            self.offboard_expected = False
+            self.message = f"offboard lost: PX4 switched to {mode}{self._status_hint()}"
+            log.warning("%s", self.message)
+
+    def _on_local_position_ned(self, msg: Any) -> None:
+        self.position = px4.ned_to_enu(msg.x, msg.y, msg.z)
+        self.velocity = px4.ned_to_enu(msg.vx, msg.vy, msg.vz)
+        self.have_position = True
+
+    def _on_attitude(self, msg: Any) -> None:
+        # PX4 FRD roll and pitch keep their sign in our convention (roll right-wing-down, pitch nose-up).
+        self.roll, self.pitch, self.yaw = msg.roll, msg.pitch, px4.yaw_ned_to_enu(msg.yaw)
+
+    def _on_extended_sys_state(self, msg: Any) -> None:
+        self.landed_state = LandedState(px4.LANDED_STATE_NAMES.get(msg.landed_state, "unknown"))
+
+    def _on_sys_status(self, msg: Any) -> None:
+        self.battery_voltage = None if msg.voltage_battery in (0, UINT16_MAX) else msg.voltage_battery / 1000.0
+        self.battery_remaining = None if msg.battery_remaining < 0 else float(msg.battery_remaining)
+
+    def _on_statustext(self, msg: Any) -> None:
+        text = msg.text.rstrip("\x00") if isinstance(msg.text, str) else str(msg.text)
+        self.last_statustext = text
+        self.last_statustext_mono = time.monotonic()
+        self.message = text
+        log.info("PX4: %s", text)
+
+    def _on_command_ack(self, msg: Any) -> None:
+        if getattr(msg, "target_system", 0) not in (0, self.s.source_system):
+            return  # an answer to another ground station on the same link
+        fut = self._pending.get(msg.command)
+        if fut is None or fut.done():
+            self.counters["unexpected_acks"] += 1
+            self.warn("ack", "ignored COMMAND_ACK for command %d (result %d) that we are not waiting for",
+                      msg.command, msg.result)
+            return
+        if msg.result == px4.MAV_RESULT_IN_PROGRESS:
+            return  # the final ACK follows
+        fut.set_result(int(msg.result))
+
+    # ------------------------------------------------------------------ MAVLink output
+
+    def send_heartbeat(self) -> None:
+        self.link.send(self.link.mav.heartbeat_encode(px4.MAV_TYPE_ONBOARD_CONTROLLER, px4.MAV_AUTOPILOT_INVALID,
+                                                      0, 0, px4.MAV_STATE_ACTIVE))
+
+    async def command_long(self, command: int, *params: float) -> int | None:
+        """Send a COMMAND_LONG and wait for its final COMMAND_ACK result; None if PX4 never answered.
+
+        Resends with an incremented `confirmation` on timeout, as the MAVLink command protocol asks."""
+        if self.target_system is None:
+            return None
+        p = [float(v) for v in params] + [0.0] * (7 - len(params))
+        async with self._cmd_locks[command]:
+            fut: asyncio.Future[int] = asyncio.get_running_loop().create_future()
+            self._pending[command] = fut
+            try:
+                for confirmation in range(self.s.command_attempts):
+                    self.link.send(self.link.mav.command_long_encode(self.target_system, self.target_component,
+                                                                     command, confirmation, *p))
+                    with contextlib.suppress(TimeoutError):
+                        return await asyncio.wait_for(asyncio.shield(fut), self.s.command_timeout_s)
+                return None
+            finally:
+                self._pending.pop(command, None)
+
+    async def request_rates(self) -> None:
+        """Ask PX4 for the telemetry we publish, at the rates we need (applies to this link only)."""
+        fast = 1e6 / self.s.telemetry_rate_hz
+        for msg_id, interval_us in ((px4.MSG_LOCAL_POSITION_NED, fast), (px4.MSG_ATTITUDE, fast),
+                                    (px4.MSG_EXTENDED_SYS_STATE, 200_000), (px4.MSG_SYS_STATUS, 500_000)):
+            code = await self.command_long(px4.MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, interval_us)
+            if code != px4.MAV_RESULT_ACCEPTED:
+                log.warning("SET_MESSAGE_INTERVAL for message %d: %s", msg_id,
+                            "no answer" if code is None else px4.result_name(code))
+
+    def _spawn(self, coro: Any) -> None:
+        task = asyncio.get_running_loop().create_task(coro)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    # ------------------------------------------------------------------ commands
+
+    def _result(self, command: str, ok: bool, message: str, code: int | None = None) -> AutopilotResult:
+        (log.info if ok else log.warning)("%s -> %s: %s", command, "ok" if ok else "failed", message)
+        return AutopilotResult(ok=ok, command=command, ack_code=code, ack_name=px4.result_name(code),
+                               message=message)
+
+    def _ack_result(self, command: str, code: int | None, what: str, done: str) -> AutopilotResult:
+        if code is None:
+            return self._result(command, False, f"{what}: no COMMAND_ACK from PX4 after "
+                                f"{self.s.command_attempts} tries")
+        if code == px4.MAV_RESULT_ACCEPTED:
+            return self._result(command, True, done, code)
+        return self._result(command, False, f"{what} {px4.result_words(code)} by PX4 ({px4.result_name(code)})"
+                            f"{self._status_hint()}", code)
+
+    async def handle(self, cmd: Any) -> AutopilotResult:
+        """Serve one AutopilotCommand; never raises for a bad command, answers ok=False instead."""
+        kind = getattr(cmd, "kind", type(cmd).__name__)
+        self.counters["commands"] += 1
+        if not self.link_ok:
+            age = time.monotonic() - self.last_hb_mono if self.last_hb_mono else None
+            why = "no HEARTBEAT received yet" if age is None else f"no HEARTBEAT for {age:.1f} s"
+            return self._result(kind, False, f"no link to PX4 ({why}) on {self.s.connection}")
+        handlers = {ArmCommand: self.arm, DisarmCommand: self.disarm, TakeoffCommand: self.takeoff,
+                    GotoCommand: self.goto, HoldCommand: self.hold, LandCommand: self.land,
+                    GripperCommand: self.gripper_cmd}
+        handler = handlers.get(type(cmd))
+        if handler is None:
+            return self._result(str(kind), False, f"unknown autopilot command {kind!r}")
+        return await handler(cmd)
+
+    async def arm(self, _cmd: ArmCommand) -> AutopilotResult:
+        code = await self.command_long(px4.MAV_CMD_COMPONENT_ARM_DISARM, 1)
+        return self._ack_result("arm", code, "arm", "armed")
+
+    async def disarm(self, cmd: DisarmCommand) -> AutopilotResult:
+        self.epoch += 1
+        code = await self.command_long(px4.MAV_CMD_COMPONENT_ARM_DISARM, 0,
+                                       px4.FORCE_ARM_MAGIC if cmd.force else 0)
+        if code == px4.MAV_RESULT_ACCEPTED:
+            self.offboard_expected = False
+            self.stream.stop()
+        return self._ack_result("disarm", code, "disarm", "disarmed")
+
+    async def set_mode(self, name: str) -> int | None:
+        return await self.command_long(px4.MAV_CMD_DO_SET_MODE, *px4.set_mode_params(name))
+
+    async def enter_offboard(self, target: Target) -> AutopilotResult | None:
+        """Stream `target`, and once the stream has run long enough, switch to OFFBOARD. None on success."""
+        self.stream.start(target)
+        warm = await self.wait_for(lambda: self.stream.running_for() >= self.s.offboard_warmup_s,
+                                   self.s.offboard_warmup_s + 2.0)
+        if not warm:
+            return self._result("offboard", False, "OFFBOARD not requested: the setpoint stream did not start")
+        if self.mode != "OFFBOARD":
+            code = await self.set_mode("OFFBOARD")
+            if code != px4.MAV_RESULT_ACCEPTED:
+                res = self._ack_result("offboard", code, "OFFBOARD", "")
+                self.stream.stop()
+                return res
+        if not await self.wait_for(lambda: self.mode == "OFFBOARD", self.s.mode_timeout_s):
+            self.stream.stop()
+            return self._result("offboard", False, f"OFFBOARD accepted but PX4 still reports {self.mode} after "
+                                f"{self.s.mode_timeout_s:.0f} s", px4.MAV_RESULT_ACCEPTED)
+        self.offboard_expected = True
+        return None
+
+    async def takeoff(self, cmd: TakeoffCommand) -> AutopilotResult:
+        if not self.have_position:
+            return self._result("takeoff", False, "no LOCAL_POSITION_NED from PX4 yet: cannot take off without "
+                                "a position estimate")
+        async with self._flight_lock:
+            self.epoch += 1
+            epoch = self.epoch
+            x, y, z = self.position
+            yaw = self.yaw
+            code: int | None = None
+            if not (self.offboard_ok and self.offboard_expected):
+                if not self.armed:
+                    # Stream first so PX4 sees setpoints while it arms (it auto-disarms if idle too long).
+                    self.stream.start(Target(x, y, z, yaw))
+                    code = await self.command_long(px4.MAV_CMD_COMPONENT_ARM_DISARM, 1)
+                    if code != px4.MAV_RESULT_ACCEPTED:
+                        self.stream.stop()
+                        return self._ack_result("takeoff", code, "arm", "")
+                failed = await self.enter_offboard(Target(x, y, z, yaw))
+                if failed is not None:
+                    return failed.model_copy(update={"command": "takeoff"})
+                code = px4.MAV_RESULT_ACCEPTED
+            alt = cmd.altitude
+            self.stream.set_target(Target(x, y, alt, yaw))
+            tol = self.s.arrival_tolerance_m
+
+            def settled() -> bool:
+                px, py, pz = self.position
+                there = math.dist((px, py, pz), (x, y, alt)) <= tol and self.landed_state == LandedState.IN_AIR
+                return there or epoch != self.epoch or not self.offboard_expected or not self.armed
+
+            reached = await self.wait_for(settled, self.s.takeoff_timeout_s)
+            if epoch != self.epoch:
+                return self._result("takeoff", False, "takeoff superseded by a newer command", code)
+            if not self.armed:
+                return self._result("takeoff", False, f"vehicle disarmed during takeoff{self._status_hint()}", code)
+            if not self.offboard_expected:
+                return self._result("takeoff", False, f"offboard lost during takeoff: PX4 switched to {self.mode}"
+                                    f"{self._status_hint()}", code)
+            if not reached:
+                return self._result("takeoff", False, f"altitude {alt:.2f} m not reached within "
+                                    f"{self.s.takeoff_timeout_s:.0f} s (z = {self.position[2]:.2f} m, "
+                                    f"landed_state={self.landed_state.value})", code)
+            return self._result("takeoff", True, f"airborne at {self.position[2]:.2f} m, holding in OFFBOARD", code)
+
+    async def goto(self, cmd: GotoCommand) -> AutopilotResult:
+        p = cmd.position
+        if not px4.all_finite(p.x, p.y, p.z, cmd.yaw) or (cmd.max_speed is not None
+                                                           and not math.isfinite(cmd.max_speed)):
+            return self._result("goto", False, f"goto rejected: non-finite value in position ({p.x}, {p.y}, {p.z})"
+                                f", yaw {cmd.yaw} or max_speed {cmd.max_speed}")
+        # PX4's land detector lags a climb by a second or two, so our own offboard takeoff also counts.
+        if not (self.armed and (self.airborne or (self.offboard_expected and self.stream.running))):
+            return self._result("goto", False, f"goto rejected: the vehicle is not airborne (armed={self.armed}, "
+                                f"landed_state={self.landed_state.value}); take off first")
+        self.epoch += 1
+        if not (self.offboard_ok and self.offboard_expected):
+            failed = await self.enter_offboard(self.current_target())
+            if failed is not None:
+                return failed.model_copy(update={"command": "goto"})
+        speed = None if cmd.max_speed is None else min(cmd.max_speed, self.s.max_speed)
+        start = None
+        if speed is not None:
+            # Ramp from where the setpoint is now (not the measured position) so the setpoint never jumps.
+            prev = self.stream.target
+            start = prev.at(time.monotonic())[:3] if prev is not None else self.position
+        self.stream.set_target(Target(p.x, p.y, p.z, px4.wrap_pi(cmd.yaw), start=start, speed=speed,
+                                      t0=time.monotonic()))
+        how = f" at {speed:.2f} m/s" if speed is not None else ""
+        return self._result("goto", True, f"target set to ({p.x:.2f}, {p.y:.2f}, {p.z:.2f}) yaw {cmd.yaw:.2f}{how}",
+                            px4.MAV_RESULT_ACCEPTED)
+
+    async def hold(self, _cmd: HoldCommand) -> AutopilotResult:
+        self.epoch += 1
+        if self.offboard_expected and self.stream.running:
+            t = self.current_target()
+            self.stream.set_target(t)
+            return self._result("hold", True, f"holding at ({t.x:.2f}, {t.y:.2f}, {t.z:.2f}) in OFFBOARD")
+        if self.airborne:
+            code = await self.set_mode("AUTO.LOITER")
+            return self._ack_result("hold", code, "AUTO.LOITER", "holding in AUTO.LOITER")
+        return self._result("hold", True, f"on the ground (landed_state={self.landed_state.value}): nothing to hold")
+
+    async def land(self, _cmd: LandCommand) -> AutopilotResult:
+        self.epoch += 1
+        was_expected = self.offboard_expected
+        self.offboard_expected = False  # leaving OFFBOARD on purpose is not an offboard loss
+        code = await self.set_mode("AUTO.LAND")
+        if code == px4.MAV_RESULT_ACCEPTED:
+            self.stream.stop()
+        else:
+            self.offboard_expected = was_expected
+        return self._ack_result("land", code, "AUTO.LAND", "landing (AUTO.LAND)")
+
+    async def gripper_cmd(self, cmd: GripperCommand) -> AutopilotResult:
+        grab = cmd.action == "close"
+        code = await self.command_long(px4.MAV_CMD_DO_GRIPPER, self.s.gripper_id, 1 if grab else 0)
+        if code == px4.MAV_RESULT_ACCEPTED:
+            self.gripper = GripperState.CLOSED if grab else GripperState.OPEN
+        return self._ack_result("gripper", code, f"gripper {cmd.action}",
+                                "gripper closed (grab)" if grab else "gripper opened (release)")
+
+    # ------------------------------------------------------------------ outputs on the bus
+
+    def state(self) -> VehicleState:
+        link_ok = self.link_ok
+        if self.link_was_ok and not link_ok and not self.message.startswith("link lost"):
+            self.message = (f"link lost: no HEARTBEAT from system {self.target_system} for "
+                            f"{self.s.heartbeat_timeout_s:.1f} s")
+            log.warning("%s", self.message)
+        return VehicleState(
+            vehicle_id=self.s.vehicle_id, position=Vec3(x=self.position[0], y=self.position[1], z=self.position[2]),
+            velocity=Vec3(x=self.velocity[0], y=self.velocity[1], z=self.velocity[2]), yaw=self.yaw,
+            roll=self.roll, pitch=self.pitch, armed=self.armed, mode=self.mode, landed_state=self.landed_state,
+            battery_voltage=self.battery_voltage, battery_remaining=self.battery_remaining, gripper=self.gripper,
+            link_ok=link_ok, offboard_ok=self.offboard_ok and self.offboard_expected,
+            last_heartbeat_ns=self.last_hb_ns, message=self.message,
+        )
+
+    def health(self) -> Health:
+        details: dict[str, Any] = {**self.stream.stats(), **self.counters, "mavlink_sent": self.link.sent,
+                                   "target_system": self.target_system, "mode": self.mode,
+                                   "peer": f"{self.link.peer[0]}:{self.link.peer[1]}" if self.link.peer else None,
+                                   "connection": self.s.connection}
+        ok = self.link_ok
+        return Health(service=SERVICE, ok=ok, message="" if ok else (self.message or "no autopilot link"),
+                      details=details)
+
+    async def publish_state_loop(self, stop: asyncio.Event) -> None:
+        period = 1.0 / self.s.state_rate_hz
+        next_t = time.monotonic()
+        while not stop.is_set():
+            st = self.state()
+            assert self.bus is not None
+            self.bus.publish(self.keys.autopilot_state, st, reliable=False)
+            if self.s.publish_tf and self.have_position:
+                # The message's pitch is nose-up positive; FLU's rotation about +y (left) is nose-down.
+                T = pose_matrix(*self.position, self.yaw, self.roll, -self.pitch)  # noqa: N806
+                self.bus.publish(self.keys.tf, transforms_message([(WORLD_FRAME, BODY_FRAME, T)], st.stamp_ns),
+                                 schema="foxglove.FrameTransforms", reliable=False)
+            next_t += period
+            delay = next_t - time.monotonic()
+            if delay < -period:
+                next_t = time.monotonic()
+            await asyncio.sleep(max(0.0, delay))
+
+    async def heartbeat_loop(self, stop: asyncio.Event) -> None:
+        while not stop.is_set():
+            self.send_heartbeat()
+            await asyncio.sleep(1.0)
+
+    async def health_loop(self, stop: asyncio.Event) -> None:
+        while not stop.is_set():
+            assert self.bus is not None
+            self.bus.publish(self.keys.health(SERVICE), self.health())
+            await asyncio.sleep(self.s.health_period_s)
+
+    async def serve_command(self, cmd: Any) -> AutopilotResult:
+        return await self.handle(cmd)
+
+    async def run(self, stop: asyncio.Event) -> None:
+        assert self.bus is not None
+        self.loop = asyncio.get_running_loop()
+        self.link.start(self.loop, self.on_message)
+        self.bus.serve(self.keys.autopilot_command, self.serve_command, AutopilotCommand)
+        log.info("bridge on %s; serving %s", self.s.connection, self.keys.autopilot_command)
+        loops = [asyncio.create_task(c) for c in (self.publish_state_loop(stop), self.heartbeat_loop(stop),
+                                                  self.health_loop(stop))]
+        stopper = asyncio.create_task(stop.wait())
+        try:
+            done, _ = await asyncio.wait([*loops, stopper], return_when=asyncio.FIRST_COMPLETED)
+            for t in done:
+                if t is not stopper:
+                    t.result()  # a crashed loop ends the service with its error
+        finally:
+            for t in [*loops, stopper, *self._tasks]:
+                t.cancel()
+            await asyncio.gather(*loops, stopper, return_exceptions=True)
+            self.stream.stop()
+            self.link.close()
+
+
+async def run(bus: Bus, settings: BridgeSettings, stop: asyncio.Event) -> None:
+    link = MavlinkLink(settings.connection, baud=settings.baud, source_system=settings.source_system)
+    await Bridge(bus, settings, link).run(stop)

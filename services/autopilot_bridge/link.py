@@ -1,0 +1,161 @@
+"""The MAVLink link: a pymavlink connection, a reader thread that hands messages to asyncio, locked writes."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import os
+import select
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+# PX4 speaks MAVLink 2; pymavlink picks the v2 dialect modules only when this is set before the import.
+os.environ.setdefault("MAVLINK20", "1")
+
+from pymavlink import mavutil  # noqa: E402
+
+from services.autopilot_bridge import px4  # noqa: E402
+from shared.errors import MavlinkError  # noqa: E402
+
+log = logging.getLogger("aermani.autopilot_bridge.link")
+
+mavutil.set_dialect("common")
+mavlink = mavutil.mavlink
+
+
+class _PeerWriter:
+    """Stands in for `mav.file`: on UDP server links, send only to the peer we locked onto.
+
+    pymavlink's udpin replies to whoever sent the last datagram, so one stray packet would redirect our
+    setpoints; once the autopilot's address is known, nothing else can."""
+
+    def __init__(self, conn: Any) -> None:
+        self.conn = conn
+        self.peer: tuple[str, int] | None = None
+
+    def write(self, buf: bytes) -> None:
+        port = getattr(self.conn, "port", None)
+        if self.peer is not None and hasattr(port, "sendto"):
+            port.sendto(buf, self.peer)
+        else:
+            self.conn.write(buf)
+
+
+class MavlinkLink:
+    """Owns the pymavlink connection. `start(loop, on_message)` runs the reader thread; `send(...)` is safe
+    from any thread."""
+
+    def __init__(self, connection: str, *, baud: int = 921600, source_system: int = 255,
+                 source_component: int = px4.MAV_COMP_ID_ONBOARD_COMPUTER) -> None:
+        self.connection = connection
+        try:
+            self.conn = mavutil.mavlink_connection(connection, baud=baud, source_system=source_system,
+                                                   source_component=source_component, autoreconnect=True)
+        except Exception as exc:
+            raise MavlinkError(f"could not open MAVLink connection {connection!r}: {exc}. Check the port is "
+                               "free (UDP) or the device exists and is readable (serial).") from exc
+        self._writer = _PeerWriter(self.conn)
+        self.conn.mav.file = self._writer
+        self.conn.mav.robust_parsing = True  # garbage becomes BAD_DATA instead of an exception
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.sent = 0
+        self.send_errors = 0
+
+    @property
+    def mav(self) -> Any:
+        return self.conn.mav
+
+    @property
+    def peer(self) -> tuple[str, int] | None:
+        return self._writer.peer
+
+    def lock_peer(self, addr: tuple[str, int] | None) -> None:
+        """Send only to `addr` from now on (UDP); None restores pymavlink's behaviour."""
+        self._writer.peer = addr
+
+    @property
+    def is_udp(self) -> bool:
+        return isinstance(self.conn, mavutil.mavudp)
+
+    def start(self, loop: asyncio.AbstractEventLoop,
+              on_message: Callable[[Any, tuple[str, int] | None, float], None]) -> None:
+        """Run the reader thread; `on_message(msg, source_address, monotonic_time)` is called on `loop`."""
+
+        def deliver(msg: Any, addr: tuple[str, int] | None) -> bool:
+            try:
+                loop.call_soon_threadsafe(on_message, msg, addr, time.monotonic())
+                return True
+            except RuntimeError:  # loop closed: we are shutting down
+                return False
+
+        def read_udp() -> None:
+            # Datagram by datagram so every message carries the address it really came from (pymavlink's
+            # own reader forgets it), with a fresh parser state so garbage cannot bleed into the next one.
+            parser = mavlink.MAVLink(None)
+            parser.robust_parsing = True
+            sock = self.conn.port
+            while not self._stop.is_set():
+                try:
+                    ready, _, _ = select.select([sock], [], [], 0.1)
+                    if not ready:
+                        continue
+                    data, addr = sock.recvfrom(65535)
+                except (BlockingIOError, InterruptedError):
+                    continue
+                except OSError as exc:
+                    if self._stop.is_set():
+                        return
+                    log.warning("UDP read error on %s: %s", self.connection, exc)
+                    time.sleep(0.1)
+                    continue
+                parser.buf, parser.buf_index = bytearray(), 0
+                parser.expected_length, parser.have_prefix_error = mavlink.HEADER_LEN_V1 + 2, False
+                try:
+                    msgs = parser.parse_buffer(data) or []
+                except Exception as exc:  # the parser must never kill the link
+                    msgs = [mavlink.MAVLink_bad_data(bytearray(data), f"parser error: {exc}")]
+                if parser.buf_len() > 0:  # a truncated frame at the end of the datagram
+                    msgs.append(mavlink.MAVLink_bad_data(bytearray(parser.buf[parser.buf_index:]), "truncated"))
+                for m in msgs:
+                    if not deliver(m, addr):
+                        return
+
+        def read_stream() -> None:
+            while not self._stop.is_set():
+                try:
+                    msg = self.conn.recv_match(blocking=True, timeout=0.1)
+                except Exception as exc:  # a broken serial port or a parser bug must not kill the thread
+                    log.warning("MAVLink read error on %s: %s", self.connection, exc)
+                    time.sleep(0.1)
+                    continue
+                if msg is not None and not deliver(msg, None):
+                    return
+
+        target = read_udp if self.is_udp else read_stream
+        self._thread = threading.Thread(target=target, name="mavlink-reader", daemon=True)
+        self._thread.start()
+
+    def send(self, msg: Any) -> bool:
+        """Send one MAVLink message; False (and logged by the caller) when the OS refused it."""
+        try:
+            with self._lock:
+                self.conn.mav.send(msg)
+            self.sent += 1
+            return True
+        except OSError as exc:
+            self.send_errors += 1
+            if self.send_errors in (1, 10, 100) or self.send_errors % 1000 == 0:
+                log.warning("MAVLink send failed (%d so far): %s", self.send_errors, exc)
+            return False
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+        with contextlib.suppress(Exception):
+            self.conn.close()

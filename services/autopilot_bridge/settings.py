@@ -1,0 +1,52 @@
+"""Settings of the autopilot bridge (env prefix AERMANI_AUTOPILOT_BRIDGE_)."""
+
+from __future__ import annotations
+
+from pydantic import Field
+from pydantic_settings import SettingsConfigDict
+
+from shared.settings import ServiceSettings
+
+
+class BridgeSettings(ServiceSettings):
+    model_config = SettingsConfigDict(env_prefix="AERMANI_AUTOPILOT_BRIDGE_", extra="ignore", populate_by_name=True,
+                                      use_attribute_docstrings=True)
+
+    connection: str = "udpin:0.0.0.0:14540"
+    """pymavlink connection string: udpin:0.0.0.0:14540 for PX4 SITL's offboard link, a serial device such as
+    /dev/ttyACM0 (or /dev/serial/by-id/...) for hardware."""
+    baud: int = Field(921600, gt=0)
+    """Serial baud rate (ignored for UDP)."""
+    target_system: int = Field(0, ge=0, le=255)
+    """PX4 system id to talk to; 0 = learn it from the first PX4 HEARTBEAT (others are then ignored)."""
+    source_system: int = Field(255, ge=1, le=255)
+    """Our MAVLink system id (255 is the usual ground/companion id PX4 accepts)."""
+    heartbeat_timeout_s: float = Field(2.0, gt=0.0)
+    """No autopilot HEARTBEAT for this long means the link is lost."""
+    stream_rate_hz: float = Field(20.0, ge=2.0, le=100.0)
+    """Offboard setpoint stream rate; PX4 needs > 2 Hz, 20 Hz is the norm."""
+    offboard_warmup_s: float = Field(1.1, ge=0.0)
+    """How long the setpoint stream runs before we ask for OFFBOARD (PX4 wants > 1 s)."""
+    state_rate_hz: float = Field(30.0, ge=1.0, le=100.0)
+    """Rate of autopilot/state (and tf when enabled)."""
+    telemetry_rate_hz: float = Field(50.0, gt=0.0, le=250.0)
+    """Rate requested from PX4 for LOCAL_POSITION_NED and ATTITUDE."""
+    takeoff_timeout_s: float = Field(40.0, gt=0.0)
+    """Takeoff fails when the altitude is not reached within this time."""
+    arrival_tolerance_m: float = Field(0.1, gt=0.0)
+    """Takeoff counts as done within this distance of the target altitude."""
+    max_speed: float = Field(3.0, gt=0.0)
+    """Upper bound of a goto's max_speed ramp, m/s."""
+    command_timeout_s: float = Field(1.5, gt=0.0)
+    """Time to wait for a COMMAND_ACK before resending (MAVLink command protocol)."""
+    command_attempts: int = Field(3, ge=1, le=10)
+    """Sends of one COMMAND_LONG before giving up."""
+    mode_timeout_s: float = Field(3.0, gt=0.0)
+    """After an accepted mode change, time to see the new mode in HEARTBEAT."""
+    gripper_id: int = Field(1, ge=1, le=6)
+    """Gripper instance for MAV_CMD_DO_GRIPPER param 1."""
+    publish_tf: bool = False
+    """Publish tf world->base_link from LOCAL_POSITION_NED/ATTITUDE. Off by default because the simulator
+    publishes tf itself; turn it on for real hardware and PX4 SITL."""
+    health_period_s: float = Field(1.0, gt=0.0)
+    """Period of health/autopilot_bridge."""

@@ -1,0 +1,226 @@
+"""The bridge against a tiny raw-pymavlink PX4 over real UDP: handshake, commands, NED setpoints, bad input,
+link and offboard loss. No Zenoh here (see test_bus.py and the integration tests)."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import math
+import socket
+
+import pytest
+
+from services.autopilot_bridge import px4
+from services.autopilot_bridge.bridge import Bridge
+from services.autopilot_bridge.link import MavlinkLink
+from services.autopilot_bridge.settings import BridgeSettings
+from shared.messages import (
+    ArmCommand,
+    GotoCommand,
+    GripperCommand,
+    HoldCommand,
+    LandCommand,
+    TakeoffCommand,
+    Vec3,
+)
+from tests.autopilot_bridge.fake_px4 import FakePX4, mavlink
+from tests.helpers import arun, free_udp_port, wait_until
+
+
+@contextlib.asynccontextmanager
+async def bridge_and_fake(**overrides):
+    port = free_udp_port()
+    s = BridgeSettings(connection=f"udpin:127.0.0.1:{port}", command_timeout_s=0.5, offboard_warmup_s=0.3,
+                       heartbeat_timeout_s=1.0, takeoff_timeout_s=20.0, **overrides)
+    link = MavlinkLink(s.connection, source_system=s.source_system)
+    bridge = Bridge(None, s, link)
+    stop = asyncio.Event()
+    link.start(asyncio.get_running_loop(), bridge.on_message)
+    hb = asyncio.create_task(bridge.heartbeat_loop(stop))
+    fake = FakePX4(port).start()
+    try:
+        await wait_until(lambda: bridge.link_ok and bridge.have_position, 20, what="bridge sees the fake PX4")
+        yield bridge, fake
+    finally:
+        stop.set()
+        hb.cancel()
+        for t in list(bridge._tasks):
+            t.cancel()
+        bridge.stream.stop()
+        link.close()
+        fake.stop()
+
+
+def test_handshake_heartbeat_and_message_rates() -> None:
+    async def body():
+        async with bridge_and_fake() as (bridge, fake):
+            assert bridge.target_system == 1 and bridge.target_component == 1
+            assert bridge.link.peer == ("127.0.0.1", fake.port)
+            await wait_until(lambda: "HEARTBEAT" in fake.names(), 10, what="our heartbeat")
+            hb = next(m for m in fake.received if m.get_type() == "HEARTBEAT")
+            assert (hb.type, hb.autopilot) == (px4.MAV_TYPE_ONBOARD_CONTROLLER, px4.MAV_AUTOPILOT_INVALID)
+            assert (hb.get_srcSystem(), hb.get_srcComponent()) == (255, px4.MAV_COMP_ID_ONBOARD_COMPUTER)
+
+            def intervals() -> dict[int, float]:
+                return {int(c.param1): c.param2 for c in list(fake.commands)
+                        if c.command == px4.MAV_CMD_SET_MESSAGE_INTERVAL}
+
+            await wait_until(lambda: len(intervals()) >= 4, 10, what="rate requests")
+            assert intervals()[px4.MSG_LOCAL_POSITION_NED] == 20000.0
+            assert intervals()[px4.MSG_ATTITUDE] == 20000.0
+            st = bridge.state()
+            assert st.link_ok and st.mode == "POSCTL" and not st.armed and st.landed_state == "on_ground"
+
+    arun(body(), 60)
+
+
+def test_arm_ack_accepted_and_denied() -> None:
+    async def body():
+        async with bridge_and_fake() as (bridge, fake):
+            fake.deny_arm = True
+            res = await bridge.handle(ArmCommand())
+            assert not res.ok and res.ack_code == 2 and res.ack_name == "MAV_RESULT_DENIED"
+            assert "denied" in res.message
+            fake.deny_arm = False
+            res = await bridge.handle(ArmCommand())
+            assert res.ok and res.ack_code == 0 and res.ack_name == "MAV_RESULT_ACCEPTED"
+            await wait_until(lambda: bridge.state().armed, 10, what="armed in HEARTBEAT")
+
+    arun(body(), 60)
+
+
+def test_no_ack_gives_clear_failure_after_retries() -> None:
+    async def body():
+        async with bridge_and_fake(command_attempts=2) as (bridge, fake):
+            fake.ack_commands = False
+            res = await bridge.handle(GripperCommand(action="close"))
+            assert not res.ok and res.ack_code is None and "no COMMAND_ACK" in res.message
+            sent = [c for c in fake.commands if c.command == px4.MAV_CMD_DO_GRIPPER]
+            assert [c.confirmation for c in sent] == [0, 1]
+
+    arun(body(), 60)
+
+
+def test_takeoff_goto_hold_gripper_land_in_ned() -> None:
+    async def body():
+        async with bridge_and_fake() as (bridge, fake):
+            res = await bridge.handle(TakeoffCommand(altitude=1.5))
+            assert res.ok, res.message
+            assert fake.mode == "OFFBOARD" and fake.armed
+            # OFFBOARD was requested only after setpoints had been streaming.
+            mode_cmd = next(c for c in fake.commands if c.command == px4.MAV_CMD_DO_SET_MODE)
+            assert mode_cmd is not None and fake.setpoints
+            sp = fake.setpoints[-1]
+            assert (sp.coordinate_frame, sp.type_mask) == (px4.MAV_FRAME_LOCAL_NED, 2552)
+            assert math.isclose(sp.z, -1.5)
+            st = bridge.state()
+            assert st.offboard_ok and st.mode == "OFFBOARD" and math.isclose(st.position.z, 1.5)
+
+            res = await bridge.handle(GotoCommand(position=Vec3(x=1.0, y=2.0, z=1.2), yaw=0.0))
+            assert res.ok, res.message
+            await wait_until(lambda: math.dist(bridge.position, (1.0, 2.0, 1.2)) < 1e-5, 10, what="fake follows the goto")
+            sp = fake.setpoints[-1]
+            assert (sp.x, sp.y, sp.z) == pytest.approx((2.0, 1.0, -1.2))  # north, east, down (float32)
+            assert sp.yaw == pytest.approx(math.pi / 2)
+            await wait_until(lambda: math.isclose(bridge.state().yaw, 0.0, abs_tol=1e-6), 10, what="yaw ENU")
+
+            res = await bridge.handle(GotoCommand(position=Vec3(x=3.0, y=2.0, z=1.2), yaw=1.0, max_speed=100.0))
+            assert res.ok and "3.00 m/s" in res.message  # clamped to settings.max_speed
+
+            res = await bridge.handle(HoldCommand())
+            assert res.ok and "OFFBOARD" in res.message
+
+            res = await bridge.handle(GripperCommand(action="close"))
+            assert res.ok and res.ack_name == "MAV_RESULT_ACCEPTED" and bridge.state().gripper == "closed"
+            grip = [c for c in fake.commands if c.command == px4.MAV_CMD_DO_GRIPPER][-1]
+            assert (grip.param1, grip.param2) == (1.0, 1.0)
+
+            res = await bridge.handle(LandCommand())
+            assert res.ok and fake.mode == "AUTO.LAND"
+            assert not bridge.stream.running
+            await asyncio.sleep(0.3)
+            assert "offboard lost" not in bridge.state().message
+
+    arun(body(), 90)
+
+
+def test_bad_commands_change_nothing() -> None:
+    async def body():
+        async with bridge_and_fake() as (bridge, fake):
+            res = await bridge.handle(GotoCommand(position=Vec3(x=1.0, y=0.0, z=1.0), yaw=0.0))
+            assert not res.ok and "not airborne" in res.message
+            res = await bridge.handle(TakeoffCommand(altitude=1.0))
+            assert res.ok
+            before = list(fake.setpoints)[-1]
+            for bad in (GotoCommand(position=Vec3(x=float("nan"), y=0.0, z=1.0), yaw=0.0),
+                        GotoCommand(position=Vec3(x=1.0, y=0.0, z=1.0), yaw=float("inf"))):
+                res = await bridge.handle(bad)
+                assert not res.ok and "non-finite" in res.message
+            await asyncio.sleep(0.2)
+            after = fake.setpoints[-1]
+            assert (after.x, after.y, after.z, after.yaw) == (before.x, before.y, before.z, before.yaw)
+
+    arun(body(), 60)
+
+
+def test_bad_mavlink_input_changes_nothing() -> None:
+    async def body():
+        async with bridge_and_fake() as (bridge, fake):
+            peer = bridge.link.peer
+            port = int(bridge.s.connection.rsplit(":", 1)[1])
+            st0 = bridge.state()
+            intruder = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            other = mavlink.MAVLink(None, srcSystem=42, srcComponent=1)
+            try:
+                for _ in range(20):
+                    intruder.sendto(b"\xfd\x09garbage\x00\xff" * 5, ("127.0.0.1", port))
+                # Another system claiming to be armed in OFFBOARD somewhere else.
+                intruder.sendto(other.heartbeat_encode(2, px4.MAV_AUTOPILOT_PX4, 129,
+                                                       px4.encode_custom_mode("OFFBOARD"), 4).pack(other),
+                                ("127.0.0.1", port))
+                intruder.sendto(other.local_position_ned_encode(0, 9.0, 9.0, -9.0, 0, 0, 0).pack(other),
+                                ("127.0.0.1", port))
+                # Our system id but from a stranger's address.
+                spoof = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+                intruder.sendto(spoof.local_position_ned_encode(0, 7.0, 7.0, -7.0, 0, 0, 0).pack(spoof),
+                                ("127.0.0.1", port))
+                # From the real autopilot: an ACK for a command we never sent, and a message we do not use.
+                fake.send(fake.mav.command_ack_encode(px4.MAV_CMD_DO_GRIPPER, 0, 0, 0, 255, 191))
+                fake.send(fake.mav.vibration_encode(0, 0.1, 0.1, 0.1, 0, 0, 0))
+                await wait_until(lambda: bridge.counters["unexpected_acks"] >= 1 and bridge.counters["bad_data"] >= 1
+                                 and bridge.counters["wrong_system"] >= 2 and bridge.counters["wrong_address"] >= 1,
+                                 10, what=f"bad input counted: {dict(bridge.counters)}")
+            finally:
+                intruder.close()
+            await asyncio.sleep(0.2)
+            st = bridge.state()
+            assert bridge.link.peer == peer and bridge.target_system == 1
+            assert (st.armed, st.mode, st.position, st.gripper) == (st0.armed, st0.mode, st0.position, st0.gripper)
+            assert st.link_ok
+            # Our writes still go to the autopilot, not to the intruder.
+            res = await bridge.handle(ArmCommand())
+            assert res.ok, res.message
+
+    arun(body(), 60)
+
+
+def test_link_loss_and_offboard_loss_are_reported() -> None:
+    async def body():
+        async with bridge_and_fake() as (bridge, fake):
+            assert (await bridge.handle(TakeoffCommand(altitude=1.0))).ok
+            fake.mode = "AUTO.LOITER"  # e.g. an RC override or a failsafe
+            await wait_until(lambda: "offboard lost" in bridge.state().message, 10, what="offboard loss")
+            st = bridge.state()
+            assert not st.offboard_ok and "AUTO.LOITER" in st.message
+            res = await bridge.handle(HoldCommand())
+            assert res.ok and "AUTO.LOITER" in res.message
+            fake.heartbeats = False
+            await wait_until(lambda: not bridge.state().link_ok, 10, what="link loss")
+            st = bridge.state()
+            assert "link lost" in st.message and not st.offboard_ok
+            res = await bridge.handle(ArmCommand())
+            assert not res.ok and "no link" in res.message
+            fake.heartbeats = True
+            await wait_until(lambda: bridge.state().link_ok, 10, what="link restored")
+
+    arun(body(), 60)
