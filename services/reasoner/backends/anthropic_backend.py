@@ -38,8 +38,11 @@ class AnthropicBackend(Backend):
     async def complete(self, request: ModelRequest) -> ModelReply:
         t0 = time.perf_counter()
         try:
+            # This SDK's create() has no temperature parameter (recent Claude models fix sampling); a non-zero
+            # setting still reaches endpoints that accept it through the request body.
+            extra = {"temperature": self.temperature} if self.temperature else None
             resp = await self.client.messages.create(model=self.model, max_tokens=self.max_tokens,
-                                                     temperature=self.temperature, messages=self.messages(request))
+                                                     messages=self.messages(request), extra_body=extra)
         except anthropic.APIStatusError as exc:
             raise ModelError(f"Anthropic endpoint answered HTTP {exc.status_code} for model {self.model} after the "
                              f"retry budget: {str(exc)[:200]}") from exc

@@ -1,0 +1,139 @@
+"""OpenAI-compatible and Anthropic backends against local fake VLM servers, through the real loop."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+
+import pytest
+
+from services.reasoner.backends import make_backend
+from services.reasoner.backends.replay import ListReplaySource, ReplayBackend
+from services.reasoner.loop import TaskRunner
+from services.reasoner.settings import ReasonerSettings
+from shared.errors import ConfigError
+from shared.messages import TaskRequest, TaskState
+from tests.reasoner.fake_vlm import FakeVLMServer
+from tests.reasoner.fake_world import MiniWorld, MiniWorldPort, Thing
+
+CMD = "Pick up the red cup and place it on the table"
+
+
+def world() -> MiniWorld:
+    return MiniWorld([Thing("red cup"), Thing("table", "surface", size=(1.2, 0.8, 0.75))])
+
+
+@pytest.fixture(scope="module")
+def vlm():
+    with FakeVLMServer(timeout_delay=3.0) as srv:
+        yield srv
+
+
+def settings_for(kind: str, vlm: FakeVLMServer, **kw: object) -> ReasonerSettings:
+    base = vlm.openai_base_url if kind == "openai" else vlm.anthropic_base_url
+    return ReasonerSettings(backend=kind, base_url=base, api_key="none", model="fake-vlm", request_timeout_s=1.0,
+                            transport_retries=3, max_steps=20, **kw)
+
+
+def run(settings: ReasonerSettings, w: MiniWorld):
+    backend = make_backend(settings)
+    steps, statuses = [], []
+
+    async def go():
+        try:
+            return await TaskRunner(TaskRequest(command=CMD), settings, backend, MiniWorldPort(w),
+                                    publish_step=steps.append, publish_status=statuses.append).run(asyncio.Event())
+        finally:
+            await backend.aclose()
+
+    return asyncio.run(asyncio.wait_for(go(), 120)), steps
+
+
+@pytest.mark.parametrize("kind", ["openai", "anthropic"])
+def test_clean_run_sends_image_and_counts_tokens(kind: str, vlm: FakeVLMServer) -> None:
+    vlm.faults.clear()
+    n0 = len(vlm.requests)
+    w = world()
+    final, steps = run(settings_for(kind, vlm), w)
+    assert final.state is TaskState.SUCCEEDED, final.message
+    assert final.backend == f"{kind}:fake-vlm" and w.placed_on == {"red cup": "table"}
+    assert all(vlm.images[n0:]) and len(vlm.requests) - n0 == final.model_calls == len(steps)
+    assert all(c.tokens_in and c.tokens_out and c.latency_s > 0 for s in steps for c in s.calls)
+    body = vlm.requests[n0]
+    if kind == "openai":
+        assert body["messages"][0]["content"][1]["image_url"]["url"].startswith("data:image/jpeg;base64,")
+    else:
+        assert body["messages"][0]["content"][0]["source"]["media_type"] == "image/jpeg"
+
+
+@pytest.mark.parametrize("kind", ["openai", "anthropic"])
+def test_injected_faults_show_as_reprompts_and_iar(kind: str, vlm: FakeVLMServer) -> None:
+    vlm.faults.clear()
+    n0 = len(vlm.requests)
+    # step 1: two invalid answers then a valid one; step 2: missing DRT then valid; step 3: fenced (valid);
+    # step 4: a 500 and a timeout, retried by the transport, then valid; step 5: missing argument then valid.
+    vlm.faults.extend(["invalid_json", "unknown_skill", None, "missing_fields", None, "fences", "500", "timeout",
+                       None, "missing_arg", None])
+    w = world()
+    final, steps = run(settings_for(kind, vlm), w)
+    assert final.state is TaskState.SUCCEEDED, final.message
+    assert [s.retries for s in steps[:5]] == [2, 1, 0, 0, 1]
+    assert [c.valid for c in steps[0].calls] == [False, False, True]
+    assert "No JSON object" in steps[0].calls[0].error and "Unknown skill 'fly_to_target'" in steps[0].calls[1].error
+    assert "Missing DRT field(s)" in steps[1].calls[0].error
+    assert steps[2].calls[0].raw_answer.startswith("```json") and steps[2].valid
+    assert "needs an argument" in steps[4].calls[0].error
+    assert final.invalid_answers == 4 and final.model_calls == sum(len(s.calls) for s in steps)
+    # 4 invalid out of the model calls: IAR as the paper defines it
+    assert final.invalid_answers / final.model_calls == pytest.approx(4 / final.model_calls)
+    # the re-prompt carried the specific error back to the model
+    second = vlm.requests[n0 + 1]
+    last_user = second["messages"][-1]["content"]
+    assert "Your previous answer was invalid: No JSON object" in (last_user if isinstance(last_user, str)
+                                                                   else json.dumps(last_user))
+    assert len(vlm.requests) - n0 == final.model_calls + 2  # the 500 and the timeout were transport retries
+
+
+def test_invalid_beyond_budget_fails_step_and_holds(vlm: FakeVLMServer) -> None:
+    vlm.faults.clear()
+    vlm.faults.extend(["invalid_json"] * 6)
+    w = world()
+    final, steps = run(settings_for("openai", vlm, max_reprompts=2, max_failed_steps=2), w)
+    assert final.state is TaskState.FAILED and "2 steps without a valid answer" in final.message
+    assert [len(s.calls) for s in steps] == [3, 3] and not any(s.valid for s in steps)
+    assert w.executed.count("hold") == 2 and final.invalid_answers == 6
+
+
+def test_outage_fails_task_with_clear_message() -> None:
+    with FakeVLMServer(outage=True) as down:
+        s = ReasonerSettings(backend="openai", base_url=down.openai_base_url, api_key="none", model="m",
+                             request_timeout_s=1.0, transport_retries=1)
+        w = world()
+        final, steps = run(s, w)
+    assert final.state is TaskState.FAILED and "model unavailable" in final.message and "503" in final.message
+    assert len(down.requests) == 2 and w.executed[-1] == "hold"
+
+
+def test_missing_key_is_a_config_error(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("OPENAI_API_KEY", raising=False)
+    with pytest.raises(ConfigError, match="AERMANI_REASONER_API_KEY"):
+        make_backend(ReasonerSettings(backend="openai"))
+
+
+def test_replay_backend_reproduces_a_run(tmp_path) -> None:
+    w = world()
+    final, steps = run(ReasonerSettings(backend="rules"), w)
+    log = tmp_path / "steps.jsonl"
+    log.write_text("".join(s.model_dump_json() + "\n" for s in steps))
+    w2 = world()
+    s2 = ReasonerSettings(backend="replay", replay_path=str(log))
+    final2, steps2 = run(s2, w2)
+    assert final2.state is TaskState.SUCCEEDED and w2.executed == w.executed
+    assert [s.ste for s in steps2] == [s.ste for s in steps]
+    # exhausted log: the task fails safely
+    w3 = MiniWorld([Thing("red cup")])
+    backend = ReplayBackend(ListReplaySource(['{"ste": {"skill": "yaw_left"}}']))
+    out = []
+    final3 = asyncio.run(TaskRunner(TaskRequest(command=CMD), ReasonerSettings(), backend, MiniWorldPort(w3),
+                                    publish_step=out.append, publish_status=lambda s: None).run(asyncio.Event()))
+    assert final3.state is TaskState.FAILED and "no more answers" in final3.message

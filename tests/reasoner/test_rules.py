@@ -1,0 +1,153 @@
+"""The rules policy on scripted worlds for each of the paper's four suites, through the real loop and parser."""
+
+from __future__ import annotations
+
+import asyncio
+
+import pytest
+
+from services.reasoner.backends.rules import RulesBackend, answer_for_prompt, parse_command, render_answer
+from services.reasoner.loop import TaskRunner, policy_context
+from services.reasoner.parse import parse_answer
+from services.reasoner.prompt import History, PromptCompiler
+from services.reasoner.settings import ReasonerSettings
+from shared.messages import VARIANTS, TaskRequest, TaskState
+from tests.reasoner.fake_world import MiniWorld, MiniWorldPort, Thing
+
+TABLE = Thing("table", "surface", headings=(0, 1, 7), size=(1.2, 0.8, 0.75))
+
+
+def run_task(command: str, world: MiniWorld, variant: str = "full", **settings: object):
+    s = ReasonerSettings(variant=variant, max_steps=40, **settings)
+    steps, statuses = [], []
+    runner = TaskRunner(TaskRequest(command=command), s, RulesBackend(), MiniWorldPort(world),
+                        publish_step=steps.append, publish_status=statuses.append)
+    final = asyncio.run(runner.run(asyncio.Event()))
+    return final, steps, statuses
+
+
+def skills_of(world: MiniWorld) -> list[str]:
+    return world.executed
+
+
+def test_localization_pick_and_place() -> None:
+    w = MiniWorld([Thing("red cup"), TABLE])
+    final, steps, statuses = run_task("Pick up the red cup and place it on the table", w)
+    assert final.state is TaskState.SUCCEEDED, final.message
+    assert w.executed == ["takeoff", "obj_localization(red cup)", "grasp(red cup)", "placement_localization(table)",
+                          "place", "done"]
+    assert w.placed_on == {"red cup": "table"}
+    assert statuses[0].state is TaskState.RUNNING and statuses[-1] is final
+    assert all(s.valid and s.retries == 0 and s.drt.reasoning for s in steps)
+    assert final.model_calls == len(steps) and final.invalid_answers == 0
+
+
+def test_get_and_put_in() -> None:
+    w = MiniWorld([Thing("coke can"), Thing("sink", "surface", headings=(2,))])
+    final, *_ = run_task("Get the coke can and put it in the sink", w)
+    assert final.state is TaskState.SUCCEEDED and w.placed_on == {"coke can": "sink"}
+    assert w.executed.count("yaw_left") == 2  # searched for the sink after the grasp
+
+
+def test_clutter_larger_box() -> None:
+    w = MiniWorld([Thing("tissue box", size=(0.2, 0.1, 0.1)), Thing("cracker box", size=(0.3, 0.2, 0.1)),
+                   Thing("red cup")])
+    final, *_ = run_task("Of the two boxes, pick up the larger one.", w)
+    assert final.state is TaskState.SUCCEEDED
+    assert "obj_localization(cracker box)" in w.executed and w.held == "cracker box" and w.executed[-1] == "done"
+
+
+def test_clutter_smaller_and_ignore_tools() -> None:
+    w = MiniWorld([Thing("tissue box", size=(0.2, 0.1, 0.1)), Thing("cracker box", size=(0.3, 0.2, 0.1))])
+    run_task("of the two boxes pick up the smaller one", w)
+    assert w.held == "tissue box"
+    w = MiniWorld([Thing("hammer"), Thing("green bottle"), Thing("screwdriver")])
+    final, *_ = run_task("Ignore the tools and pick up the green bottle.", w)
+    assert final.state is TaskState.SUCCEEDED and w.held == "green bottle"
+    assert not any("hammer" in e or "screwdriver" in e for e in w.executed)
+
+
+def test_bring_me_a_snack() -> None:
+    w = MiniWorld([Thing("hammer"), Thing("apple")])
+    final, *_ = run_task("Bring me a snack", w)
+    assert final.state is TaskState.SUCCEEDED and w.held == "apple"
+
+
+def test_sequential_motions_then_pick() -> None:
+    w = MiniWorld([Thing("tissue box", headings=(7,), needs_forward=2)])
+    final, *_ = run_task("Move forward twice, turn right, and pick up the tissue box.", w)
+    assert final.state is TaskState.SUCCEEDED
+    assert w.executed[:4] == ["takeoff", "forward", "forward", "yaw_right"]
+    assert w.executed[4:] == ["obj_localization(tissue box)", "grasp(tissue box)", "done"]
+
+
+@pytest.mark.parametrize(("present", "expected"), [(("orange", "banana"), "orange"), (("banana",), "banana")])
+def test_conditional(present: tuple[str, ...], expected: str) -> None:
+    w = MiniWorld([Thing(p, needs_forward=1) for p in present] + [Thing("counter", "surface")])
+    final, *_ = run_task("Approach the counter. If you see an orange, pick it up; otherwise grab the banana.", w)
+    assert final.state is TaskState.SUCCEEDED and w.held == expected
+    assert w.executed[1] == "forward"
+
+
+def test_search_out_of_view_then_place() -> None:
+    w = MiniWorld([Thing("purple cup", headings=(3,)), Thing("round table", "surface", headings=(5,))])
+    final, *_ = run_task("Find the purple cup and place it on the round table.", w)
+    assert final.state is TaskState.SUCCEEDED and w.placed_on == {"purple cup": "round table"}
+    assert w.executed[1:4] == ["yaw_left"] * 3
+
+
+def test_failed_grasp_relocalizes() -> None:
+    w = MiniWorld([Thing("red cup"), TABLE], fail_next={"grasp": 1})
+    final, steps, _ = run_task("pick up the red cup and place it on the table", w)
+    assert final.state is TaskState.SUCCEEDED
+    assert w.executed[1:5] == ["obj_localization(red cup)", "grasp(red cup)", "obj_localization(red cup)",
+                               "grasp(red cup)"]
+    assert steps[1].skill_state.value == "failed"
+
+
+def test_never_found_fails_after_step_budget() -> None:
+    w = MiniWorld([TABLE])
+    final, steps, _ = run_task("pick up the unicorn", w)
+    assert final.state is TaskState.FAILED and "40 steps" in final.message and len(steps) == 40
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_every_variant_answer_passes_the_validator(variant: str) -> None:
+    w = MiniWorld([Thing("red cup"), TABLE])
+    final, steps, _ = run_task("Pick up the red cup and place it on the table", w, variant=variant)
+    assert final.state is TaskState.SUCCEEDED and final.invalid_answers == 0
+    assert all(s.variant == variant for s in steps)
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_policy_from_prompt_text_matches_direct_context(variant: str) -> None:
+    """The fake VLM servers answer from the prompt text alone; they must agree with the in-process policy."""
+    w = MiniWorld([Thing("cracker box", size=(0.3, 0.2, 0.1)), Thing("tissue box", size=(0.2, 0.1, 0.1)), TABLE])
+    port = MiniWorldPort(w)
+    lib = port.library
+    h = History()
+    from services.reasoner.prompt import HistoryEntry
+
+    h.append(HistoryEntry(1, "yaw_left", None, "succeeded"))
+    h.append(HistoryEntry(2, "obj_localization", "cracker box", "failed", "not visible"))
+    obs = asyncio.run(port.observe(0))
+    cmd = "of the two boxes pick up the larger one and place it on the table"
+    prompt = PromptCompiler(variant, lib).compile(cmd, h, obs)
+    ctx = policy_context(cmd, variant, lib, h, obs)
+    from services.reasoner.backends.rules import RulesPolicy
+
+    direct = render_answer(ctx, *RulesPolicy().decide(ctx))
+    via_text = answer_for_prompt(prompt.text)
+    if variant == "unstructured":  # no History in that prompt: only the decision's form is comparable
+        assert parse_answer(via_text, variant, lib).ste.skill
+    else:
+        assert parse_answer(via_text, variant, lib).ste == parse_answer(direct, variant, lib).ste
+
+
+def test_parse_command_suites() -> None:
+    p = parse_command("Find the soda can on the table and bring it here")
+    assert p.target == "soda can" and p.destination is None
+    p = parse_command("Locate the cardboard box and bring it to the sink.")
+    assert p.target == "cardboard box" and p.destination == "sink"
+    p = parse_command("Move closer to the table, turn left, and pick up the cup")
+    assert p.motions == ["forward", "yaw_left"] and p.target == "cup"
