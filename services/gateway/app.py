@@ -1,0 +1,70 @@
+"""FastAPI app factory of the gateway: routers under /api/v1, the ground-station page at /, bus + SQLite
+in the lifespan."""
+
+from __future__ import annotations
+
+import logging
+from contextlib import asynccontextmanager
+from pathlib import Path
+
+from fastapi import FastAPI
+from fastapi.middleware.cors import CORSMiddleware
+from fastapi.responses import FileResponse
+from fastapi.staticfiles import StaticFiles
+
+from services.gateway import errors
+from services.gateway.fleet import Fleet
+from services.gateway.routes import abort, health, tasks, vehicles
+from services.gateway.settings import GatewaySettings, check_safe
+from services.gateway.store import Store
+from shared.bus import Bus
+
+log = logging.getLogger("aermani.gateway")
+
+STATIC = Path(__file__).parent / "static"
+API = "/api/v1"
+
+DESCRIPTION = """Start language-driven aerial manipulation tasks, follow the drone's reasoning (DRT/STE) step by
+step, watch its camera, and stop it.
+
+**Auth:** every mutating endpoint and the event and camera streams need `Authorization: Bearer <token>`
+(the token is AERMANI_GATEWAY_TOKEN). Errors are JSON: `{"error", "detail", "status"}`."""
+
+
+def create_app(settings: GatewaySettings, bus: Bus | None = None) -> FastAPI:
+    """The gateway app. With `bus`, the app uses that session (the service's); without, it opens its own."""
+    check_safe(settings)
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        own_bus = bus is None
+        the_bus = bus or await Bus.open(connect=settings.zenoh_connect, mode=settings.zenoh_mode)
+        store = Store(settings.db_path)
+        await store.open()
+        fleet = Fleet(the_bus, store)
+        try:
+            await fleet.start()
+            app.state.settings, app.state.store, app.state.fleet = settings, store, fleet
+            yield
+        finally:
+            await fleet.stop()
+            await store.close()
+            if own_bus:
+                await the_bus.close()
+
+    app = FastAPI(title="aermani gateway", version="1.0.0", description=DESCRIPTION, lifespan=lifespan,
+                  openapi_url=f"{API}/openapi.json", docs_url="/docs", redoc_url=None)
+    app.state.settings = settings
+    errors.install(app)
+    if settings.cors_origins:
+        app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins, allow_methods=["GET", "POST"],
+                           allow_headers=["Authorization", "Content-Type", "Last-Event-ID"])
+    for r in (tasks.router, abort.router, health.router, vehicles.router):
+        app.include_router(r, prefix=API)
+    app.mount("/static", StaticFiles(directory=STATIC), name="static")
+
+    @app.get("/", include_in_schema=False)
+    async def index() -> FileResponse:
+        return FileResponse(STATIC / "index.html", headers={"Cache-Control": "no-cache"})
+
+    return app

@@ -1,0 +1,233 @@
+"""The gateway's view of the fleet: bus watchers that persist task events and keep the latest state,
+camera frame and liveliness of every vehicle (`aermani/v1/*/...`)."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from services.gateway.store import Store
+from shared.bus import Bus, Subscription
+from shared.keys import (
+    ALIVE,
+    AUTOPILOT_STATE,
+    CAMERA_COLOR,
+    EXECUTOR_SKILL_STATUS,
+    REASONER_STEP,
+    REASONER_TASK_STATUS,
+    ROOT,
+    SAFETY_ABORT_ACK,
+    Keys,
+    parse_alive_key,
+)
+from shared.messages import AbortAck, ReasoningStep, SkillStatus, TaskState, TaskStatus, VehicleState, now_ns
+from shared.sensors import CompressedImage, decode_proto
+
+log = logging.getLogger("aermani.gateway.fleet")
+
+
+def fleet_key(topic: str) -> str:
+    return f"{ROOT}/*/{topic}"
+
+
+def vehicle_of(key: str) -> str:
+    return str(key).split("/")[2]
+
+
+@dataclass
+class Frame:
+    payload: bytes
+    """The foxglove CompressedImage protobuf, undecoded until someone asks (most frames nobody watches)."""
+    receive_ns: int
+    seq: int
+
+    def jpeg(self) -> tuple[int, bytes]:
+        msg = decode_proto(CompressedImage, self.payload)
+        return msg.timestamp.seconds * 1_000_000_000 + msg.timestamp.nanos, bytes(msg.data)
+
+
+@dataclass
+class VehicleView:
+    vehicle_id: str
+    services: dict[str, bool] = field(default_factory=dict)
+    state: VehicleState | None = None
+    state_ns: int = 0
+    frame: Frame | None = None
+    acks: list[AbortAck] = field(default_factory=list)
+
+    @property
+    def reasoner_alive(self) -> bool:
+        return self.services.get("reasoner", False)
+
+
+class Fleet:
+    """Consumes the bus for every vehicle, writes task events to the store and wakes the streams."""
+
+    def __init__(self, bus: Bus, store: Store) -> None:
+        self.bus = bus
+        self.store = store
+        self.vehicles: dict[str, VehicleView] = {}
+        self.version = 0  # bumped on every stored event; streams wait for a change
+        self.frame_seq = 0
+        self.changed = asyncio.Condition()
+        self.closing = asyncio.Event()
+        self._tasks: list[asyncio.Task] = []
+        self._subs: list[Subscription] = []
+
+    def view(self, vehicle_id: str) -> VehicleView:
+        v = self.vehicles.get(vehicle_id)
+        if v is None:
+            v = self.vehicles[vehicle_id] = VehicleView(vehicle_id)
+        return v
+
+    def reasoner_vehicles(self) -> list[str]:
+        return sorted(v.vehicle_id for v in self.vehicles.values() if v.reasoner_alive)
+
+    # ---- lifecycle
+
+    async def start(self) -> None:
+        # Snapshot liveliness first so requests right after start see the fleet, then reconcile tasks
+        # that were left running while the gateway was down and whose reasoner is gone.
+        for key in await self.bus.alive(f"{ROOT}/*/{ALIVE}/*", timeout=2.0):
+            with contextlib.suppress(ValueError):
+                vid, svc = parse_alive_key(key)
+                self.view(vid).services[svc] = True
+        for task in await self.store.running_tasks():
+            if not self.view(task["vehicle_id"]).reasoner_alive:
+                await self._end_orphan(task, "the reasoner was not running when the gateway started")
+
+        def sub(topic: str, model: Any, handler: Callable[[str, Any], Awaitable[None]], maxsize: int = 1000):
+            s = self.bus.subscribe(fleet_key(topic), model, maxsize=maxsize)
+            self._subs.append(s)
+            self._tasks.append(asyncio.create_task(self._consume(s, handler), name=f"gateway.{topic}"))
+
+        sub(REASONER_TASK_STATUS, TaskStatus, self._on_status)
+        sub(REASONER_STEP, ReasoningStep, self._on_step)
+        sub(EXECUTOR_SKILL_STATUS, SkillStatus, self._on_skill)
+        sub(AUTOPILOT_STATE, VehicleState, self._on_state, maxsize=10)
+        sub(CAMERA_COLOR, None, self._on_frame, maxsize=2)
+        sub(SAFETY_ABORT_ACK, AbortAck, self._on_ack, maxsize=100)
+        queue = self.bus.watch_liveliness(f"{ROOT}/*/{ALIVE}/*", history=True)
+        self._tasks.append(asyncio.create_task(self._liveliness(queue), name="gateway.liveliness"))
+
+    async def stop(self) -> None:
+        self.closing.set()
+        await self._notify()
+        for t in self._tasks:
+            t.cancel()
+        for t in self._tasks:
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await t
+        for s in self._subs:
+            s.close()
+
+    async def _consume(self, sub: Subscription, handler: Callable[[str, Any], Awaitable[None]]) -> None:
+        while True:
+            rec = await sub.recv_sample()
+            try:
+                await handler(rec.key, rec.value)
+            except asyncio.CancelledError:
+                raise
+            except Exception:
+                # One bad sample must not stop the history of every other task.
+                log.exception("could not handle a sample on %s", rec.key)
+
+    async def _notify(self) -> None:
+        async with self.changed:
+            self.version += 1
+            self.changed.notify_all()
+
+    async def wait_change(self, since: int, timeout: float) -> None:
+        """Return when `version` differs from `since`, the gateway closes, or `timeout` passes."""
+        async with self.changed:
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(
+                    self.changed.wait_for(lambda: self.version != since or self.closing.is_set()), timeout)
+
+    # ---- handlers
+
+    async def _on_status(self, key: str, st: TaskStatus) -> None:
+        await self.store.record_status(vehicle_of(key), st.model_dump(mode="json"))
+        await self._notify()
+
+    async def _on_step(self, key: str, step: ReasoningStep) -> None:
+        await self.store.add_event(step.task_id, "step", step.stamp_ns, step.model_dump(mode="json"))
+        await self._notify()
+
+    async def _on_skill(self, key: str, st: SkillStatus) -> None:
+        if not st.task_id:  # operator commands outside any task have no timeline to join
+            return
+        await self.store.add_event(st.task_id, "skill_status", st.stamp_ns, st.model_dump(mode="json"))
+        await self._notify()
+
+    async def _on_state(self, key: str, st: VehicleState) -> None:
+        v = self.view(vehicle_of(key))
+        v.state, v.state_ns = st, time.time_ns()
+
+    async def _on_frame(self, key: str, payload: bytes) -> None:
+        self.frame_seq += 1
+        self.view(vehicle_of(key)).frame = Frame(payload, time.time_ns(), self.frame_seq)
+        async with self.changed:
+            self.changed.notify_all()
+
+    async def _on_ack(self, key: str, ack: AbortAck) -> None:
+        v = self.view(vehicle_of(key))
+        v.acks = [*v.acks[-19:], ack]
+        async with self.changed:
+            self.changed.notify_all()
+
+    async def _liveliness(self, queue: asyncio.Queue[tuple[str, bool]]) -> None:
+        while True:
+            key, alive = await queue.get()
+            try:
+                vid, svc = parse_alive_key(key)
+            except ValueError:
+                continue
+            view = self.view(vid)
+            was = view.services.get(svc, False)
+            view.services[svc] = alive
+            if svc == "reasoner" and was and not alive:
+                for task in await self.store.running_tasks(vid):
+                    await self._end_orphan(task, f"the reasoner of {vid} stopped while the task was running")
+
+    async def _end_orphan(self, task: dict[str, Any], why: str) -> None:
+        """No reasoner will ever finish this task: end it so it stops blocking its vehicle and its streams end."""
+        prev = task.get("status") or {}
+        st = TaskStatus(vehicle_id=task["vehicle_id"], task_id=task["task_id"], command=task["command"],
+                        state=TaskState.FAILED, message=why, steps=prev.get("steps", 0),
+                        model_calls=prev.get("model_calls", 0), invalid_answers=prev.get("invalid_answers", 0),
+                        started_ns=prev.get("started_ns", 0), ended_ns=now_ns())
+        log.warning("task %s on %s: %s", task["task_id"], task["vehicle_id"], why)
+        await self.store.record_status(task["vehicle_id"], st.model_dump(mode="json"))
+        await self._notify()
+
+    # ---- commands
+
+    async def abort(self, vehicles: list[str], reason: str, task_id: str | None, wait_s: float) -> list[str]:
+        """Publish an Abort to each vehicle; return those whose executor acknowledged within `wait_s`."""
+        from shared.messages import Abort
+
+        stamps: dict[str, int] = {}
+        for vid in vehicles:
+            msg = Abort(reason=reason, source="gateway", task_id=task_id)
+            stamps[vid] = msg.stamp_ns
+            self.bus.publish(Keys(vid).abort, msg)
+
+        def acked() -> list[str]:
+            return [vid for vid in vehicles
+                    if any(a.abort_stamp_ns == stamps[vid] for a in self.view(vid).acks)]
+
+        deadline = time.monotonic() + wait_s
+        async with self.changed:
+            while len(acked()) < len(vehicles) and not self.closing.is_set():
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    break
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(self.changed.wait(), remaining)
+        return acked()

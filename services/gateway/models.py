@@ -1,0 +1,240 @@
+"""Input and output models of the gateway's HTTP API (bus messages stay in shared.messages)."""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from shared.messages import MAX_COMMAND_CHARS, SkillStatus, TaskState, Variant, VehicleState
+
+VEHICLE_ID_PATTERN = r"^[A-Za-z0-9_-]{1,32}$"
+
+
+class ApiModel(BaseModel):
+    model_config = ConfigDict(use_attribute_docstrings=True, extra="forbid")
+
+
+# --------------------------------------------------------------------------- errors
+
+
+class ErrorBody(ApiModel):
+    """Every 4xx/5xx answer has this body."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"error": "conflict", "detail": "task task-1a2b3c4d5e6f is still running on am1; abort it first",
+         "status": 409}]})
+
+    error: str
+    """Short machine-readable error name (not_found, conflict, unauthorized, validation_error...)."""
+    detail: str
+    """What was wrong, and what to do about it."""
+    status: int
+    """The HTTP status code, repeated for clients that lose it."""
+    fields: list[dict[str, Any]] | None = None
+    """For validation errors: each offending field with its location and message."""
+
+
+# --------------------------------------------------------------------------- tasks
+
+
+class TaskCreate(ApiModel):
+    """A command for one vehicle."""
+
+    model_config = ConfigDict(extra="forbid", use_attribute_docstrings=True, json_schema_extra={"examples": [
+        {"command": "pick up the red cup and place it on the table", "vehicle_id": "am1"},
+        {"command": "put the banana in the bowl", "variant": "drt_v2", "t_max_s": 300}]})
+
+    command: str = Field(..., min_length=1, max_length=MAX_COMMAND_CHARS)
+    """Natural-language command (printable text, at most 500 characters)."""
+    vehicle_id: str | None = Field(None, pattern=VEHICLE_ID_PATTERN)
+    """Target vehicle; omitted picks the gateway's default vehicle, or the only one whose reasoner is alive."""
+    backend: Literal["rules", "openai", "anthropic", "replay"] | None = None
+    """Override of the reasoner's policy backend."""
+    variant: Variant | None = None
+    """Override of the prompt variant."""
+    t_max_s: float | None = Field(None, gt=0, le=3600)
+    """Override of T_max, seconds."""
+    takeoff: bool = True
+    """Take off first when the vehicle is on the ground."""
+
+    @field_validator("command")
+    @classmethod
+    def _printable(cls, v: str) -> str:
+        bad = sorted({f"U+{ord(c):04X}" for c in v if (ord(c) < 32 and c != "\t") or 127 <= ord(c) < 160
+                      or c in "\u2028\u2029\ufeff"})
+        if bad:
+            raise ValueError(f"command contains control characters ({', '.join(bad)}); send plain text")
+        v = v.strip()
+        if not v:
+            raise ValueError("command is empty or only whitespace")
+        return v
+
+
+class TaskLinks(ApiModel):
+    self: str
+    """URL of the task."""
+    events: str
+    """URL of its Server-Sent Events stream."""
+    abort: str
+    """URL to abort it (POST)."""
+
+
+class TaskCreated(ApiModel):
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"task_id": "task-1a2b3c4d5e6f", "vehicle_id": "am1", "state": "pending",
+         "links": {"self": "/api/v1/tasks/task-1a2b3c4d5e6f", "events": "/api/v1/tasks/task-1a2b3c4d5e6f/events",
+                   "abort": "/api/v1/tasks/task-1a2b3c4d5e6f/abort"}}]})
+
+    task_id: str
+    """Id of the accepted task."""
+    vehicle_id: str
+    """Vehicle it runs on."""
+    state: TaskState
+    """State right after acceptance (pending or running)."""
+    links: TaskLinks
+    """Where to follow it."""
+
+
+class TaskSummary(ApiModel):
+    task_id: str
+    """Task id."""
+    vehicle_id: str
+    """Vehicle."""
+    command: str
+    """The command L."""
+    state: TaskState
+    """pending, running, succeeded, failed, aborted, timeout."""
+    message: str = ""
+    """Why it ended the way it did."""
+    created_ns: int
+    """When the gateway accepted (or first saw) it, ns since the epoch."""
+    updated_ns: int
+    """Last change, ns since the epoch."""
+    steps: int = 0
+    """Reasoning steps so far."""
+
+
+class TaskPage(ApiModel):
+    items: list[TaskSummary]
+    """Tasks, newest first."""
+    total: int
+    """Tasks matching the filter."""
+    offset: int
+    """Offset of the first item."""
+    limit: int
+    """Page size used."""
+
+
+class StepOut(ApiModel):
+    """One reasoning step: the DRT, the STE and how the skill ended (see shared.messages.ReasoningStep)."""
+
+    event_id: int
+    """Id of the event that last updated this step."""
+    step: dict[str, Any]
+    """The ReasoningStep as published by the reasoner (task_id, step, drt, ste, calls, skill_state...)."""
+
+
+class Metrics(ApiModel):
+    steps: int = 0
+    """Reasoning steps recorded."""
+    model_calls: int = 0
+    """Model queries, valid and invalid."""
+    invalid_answers: int = 0
+    """Answers that did not parse into a valid DRT/STE."""
+    iar: float | None = None
+    """Invalid Answer Ratio = invalid answers / model calls (None before the first call)."""
+    latency_p50_s: float | None = None
+    """Median model latency, seconds."""
+    latency_p95_s: float | None = None
+    """95th-percentile model latency, seconds."""
+    skills: dict[str, int] = {}
+    """Terminal skill results by state (succeeded, failed...)."""
+    skill_time_s: float = 0.0
+    """Total wall time of the executed skills."""
+    duration_s: float | None = None
+    """Task wall time so far (or in total once ended)."""
+
+
+class TaskDetail(TaskSummary):
+    request: dict[str, Any] = {}
+    """The request as posted (overrides included)."""
+    status: dict[str, Any] | None = None
+    """Latest TaskStatus from the reasoner."""
+    reasoning_steps: list[StepOut] = []
+    """Every reasoning step, in order, with DRT and STE."""
+    skill_results: list[dict[str, Any]] = []
+    """Final SkillStatus of every skill the executor ran for this task."""
+    metrics: Metrics = Metrics()
+    """Figures so far."""
+    last_event_id: int = 0
+    """Id of the newest event of this task (for resuming the stream)."""
+
+
+# --------------------------------------------------------------------------- abort
+
+
+class AbortIn(ApiModel):
+    model_config = ConfigDict(extra="forbid", use_attribute_docstrings=True,
+                              json_schema_extra={"examples": [{"reason": "person entered the area"}]})
+
+    reason: str = Field("operator abort via gateway", min_length=1, max_length=200)
+    """Why (recorded by the executor and the reasoner)."""
+
+
+class AbortOut(ApiModel):
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"vehicles": ["am1"], "acknowledged": ["am1"], "task_id": "task-1a2b3c4d5e6f"}]})
+
+    vehicles: list[str]
+    """Vehicles the abort was sent to."""
+    acknowledged: list[str]
+    """Vehicles whose executor acknowledged the hold in time."""
+    task_id: str | None = None
+    """Task aborted, when one was named."""
+
+
+# --------------------------------------------------------------------------- health
+
+
+class VehicleHealth(ApiModel):
+    vehicle_id: str
+    """Vehicle id."""
+    services: dict[str, bool]
+    """Liveliness of each service seen for this vehicle."""
+    link_ok: bool | None = None
+    """Autopilot heartbeats arrive (None: no state received yet)."""
+    offboard_ok: bool | None = None
+    """OFFBOARD with setpoints streaming."""
+    armed: bool | None = None
+    """Motors armed."""
+    mode: str | None = None
+    """Flight mode."""
+    battery_remaining: float | None = None
+    """Battery, percent."""
+    battery_voltage: float | None = None
+    """Battery, volts."""
+    state_age_s: float | None = None
+    """Age of the newest vehicle state, seconds."""
+    state: VehicleState | None = None
+    """Newest vehicle state (pose, velocity, gripper...)."""
+    camera_age_s: float | None = None
+    """Age of the newest camera frame, seconds."""
+    running_task: str | None = None
+    """Id of the task running on it, if any."""
+
+
+class HealthOut(ApiModel):
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"ok": True, "database": True, "vehicles": [{"vehicle_id": "am1", "services": {"reasoner": True,
+         "executor": True}, "link_ok": True, "offboard_ok": False, "battery_remaining": 87.0}]}]})
+
+    ok: bool
+    """Gateway and its database work; at least one vehicle is reachable."""
+    database: bool
+    """The SQLite store answers."""
+    vehicles: list[VehicleHealth]
+    """Every vehicle seen on the bus."""
+
+
+SkillStatusOut = SkillStatus

@@ -1,0 +1,23 @@
+"""/abort: stop every vehicle at once."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter
+
+from services.gateway.deps import Authorized, FleetDep, SettingsDep
+from services.gateway.errors import ApiError, responses
+from services.gateway.models import AbortIn, AbortOut
+
+router = APIRouter(tags=["abort"])
+
+
+@router.post("/abort", status_code=202, response_model=AbortOut, dependencies=[Authorized],
+             summary="Abort on every vehicle", responses=responses(401, 422, 503))
+async def abort_all(fleet: FleetDep, settings: SettingsDep, body: AbortIn | None = None) -> AbortOut:
+    """Publish an abort to every vehicle seen on the bus: executors hold, reasoners end their tasks."""
+    vehicles = sorted(v.vehicle_id for v in fleet.vehicles.values() if any(v.services.values()) or v.state)
+    if not vehicles:
+        raise ApiError(503, "no vehicle is on the bus: nothing to abort")
+    reason = (body or AbortIn()).reason
+    acked = await fleet.abort(vehicles, reason, None, settings.abort_ack_timeout_s)
+    return AbortOut(vehicles=vehicles, acknowledged=acked)
