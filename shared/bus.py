@@ -50,8 +50,12 @@ def _init_zenoh_log() -> None:
 
 
 def zenoh_config(mode: str = "client", connect: list[str] | tuple[str, ...] = (),
-                 listen: list[str] | tuple[str, ...] = (), multicast: bool = False) -> zenoh.Config:
-    """A Zenoh config with explicit endpoints and multicast scouting off by default."""
+                 listen: list[str] | tuple[str, ...] = (), multicast: bool = False,
+                 connect_timeout_s: float | None = None) -> zenoh.Config:
+    """A Zenoh config with explicit endpoints and multicast scouting off by default.
+
+    Clients wait for their router forever by default (services may start before it); a command-line tool
+    passes `connect_timeout_s` to fail with a clear message instead."""
     cfg = zenoh.Config()
     cfg.insert_json5("mode", json.dumps(mode))
     cfg.insert_json5("scouting/multicast/enabled", json.dumps(multicast))
@@ -60,8 +64,8 @@ def zenoh_config(mode: str = "client", connect: list[str] | tuple[str, ...] = ()
     if listen:
         cfg.insert_json5("listen/endpoints", json.dumps(list(listen)))
     if mode == "client":
-        # Keep retrying the router at start instead of failing: services may start before the router.
-        cfg.insert_json5("connect/timeout_ms", json.dumps(-1))
+        timeout_ms = -1 if connect_timeout_s is None else int(connect_timeout_s * 1000)
+        cfg.insert_json5("connect/timeout_ms", json.dumps(timeout_ms))
     return cfg
 
 
@@ -220,9 +224,10 @@ class Bus:
 
     @classmethod
     async def open(cls, connect: list[str] | tuple[str, ...] = ("tcp/127.0.0.1:7447",), mode: str = "client",
-                   listen: list[str] | tuple[str, ...] = (), config: zenoh.Config | None = None) -> Bus:
+                   listen: list[str] | tuple[str, ...] = (), config: zenoh.Config | None = None,
+                   connect_timeout_s: float | None = None) -> Bus:
         _init_zenoh_log()
-        cfg = config or zenoh_config(mode=mode, connect=connect, listen=listen)
+        cfg = config or zenoh_config(mode=mode, connect=connect, listen=listen, connect_timeout_s=connect_timeout_s)
         try:
             session = await asyncio.to_thread(zenoh.open, cfg)
         except Exception as exc:  # zenoh raises ZError

@@ -52,16 +52,16 @@ def up(
     signal.signal(signal.SIGTERM, on_signal)
     console.print(f"router on tcp/127.0.0.1:{port}; starting {', '.join(names)}; logs in {stack.log_dir}")
     stack.start(wait=False)
-    shown: dict[str, bool] = {}
+    shown: dict[str, bool] = {p.label: False for p in stack.procs}
     seen_events = 0
     try:
         while not stopping:
             alive = stack.alive()
             for p in stack.procs:
                 now = (p.vehicle_id, p.name) in alive
-                if shown.get(p.label) != now:
+                if shown[p.label] != now:
                     shown[p.label] = now
-                    console.print(f"  {'[green]alive[/green]' if now else '[red]dead [/red]'}  {p.label}")
+                    console.print(f"  {'[green]alive[/green]' if now else '[red]dead [/red]'}  {p.label}", highlight=False)
             for ev in stack.events[seen_events:]:
                 if "exited" in ev or "restarted" in ev:
                     console.print(f"  [yellow]{ev}[/yellow]")
@@ -84,7 +84,7 @@ def health(
     from shared.keys import alive_pattern, parse_alive_key
 
     async def run() -> list[str]:
-        bus = await Bus.open(connect=[connect])
+        bus = await Bus.open(connect=[connect], connect_timeout_s=timeout + 1)
         try:
             return await bus.alive(alive_pattern(vehicle), timeout=timeout)
         finally:

@@ -1,0 +1,86 @@
+"""`aermani up` / `aermani health` as a user runs them: real processes, signals, liveliness."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from shared.launcher import free_port
+
+pytestmark = pytest.mark.integration
+AERMANI = [sys.executable, "-m", "shared.cli"]
+
+
+def _health(port: int) -> str:
+    out = subprocess.run([*AERMANI, "health", "--connect", f"tcp/127.0.0.1:{port}"], capture_output=True, text=True,
+                         timeout=60)
+    return out.stdout
+
+
+def _children(pid: int) -> set[int]:
+    out = subprocess.run(["ps", "-o", "pid=", "--ppid", str(pid)], capture_output=True, text=True)
+    return {int(x) for x in out.stdout.split()}
+
+
+def _wait(pred, timeout: float, what: str):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        val = pred()
+        if val:
+            return val
+        time.sleep(0.3)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+def _alive_pids(pids: set[int]) -> set[int]:
+    alive = set()
+    for p in pids:
+        try:
+            os.kill(p, 0)
+            alive.add(p)
+        except ProcessLookupError:
+            pass
+    return alive
+
+
+def test_up_health_restart_and_clean_stop(tmp_path: Path):
+    port = free_port()
+    services = "reasoner,recorder"
+    env = {**os.environ, "AERMANI_RECORDER_DIRECTORY": str(tmp_path / "rec")}
+    up = subprocess.Popen([*AERMANI, "up", "--services", services, "--port", str(port), "--log-dir",
+                           str(tmp_path / "logs")], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                          env=env)
+    try:
+        table = _wait(lambda: (h := _health(port)).count("alive") >= 2 and h, 90, "both services alive")
+        assert "reasoner" in table and "recorder" in table
+        children = _wait(lambda: _children(up.pid) if len(_children(up.pid)) >= 2 else None, 10, "children")
+        # SIGKILL one service: the launcher sees it die and restarts it.
+        victim = next(iter(children))
+        os.kill(victim, signal.SIGKILL)
+        _wait(lambda: _health(port).count("alive") < 2, 30, "killed service to disappear")
+        _wait(lambda: _health(port).count("alive") >= 2, 90, "killed service restarted and alive")
+        new_children = _children(up.pid)
+        assert victim not in new_children and len(new_children) == 2
+        all_pids = children | new_children
+        # Ctrl-C: everything stops, nothing is left behind.
+        up.send_signal(signal.SIGINT)
+        out, _ = up.communicate(timeout=60)
+        assert up.returncode == 0, out
+        assert "restarting" in out and "all services stopped" in out
+        assert _alive_pids(all_pids) == set()
+    finally:
+        if up.poll() is None:
+            up.kill()
+            up.wait()
+
+
+def test_health_reports_unreachable_router():
+    out = subprocess.run([*AERMANI, "health", "--connect", f"tcp/127.0.0.1:{free_port()}", "--timeout", "1"],
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode != 0
