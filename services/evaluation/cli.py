@@ -1,0 +1,86 @@
+"""`aermani eval`: run the paper's task suites (or a user's tasks) on the real stack and write the report."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.console import Console
+
+from shared.errors import ConfigError
+from shared.messages import VARIANTS
+
+console = Console()
+
+
+def _split(value: str | None) -> list[str] | None:
+    if not value:
+        return None
+    return [v.strip() for v in value.split(",") if v.strip()]
+
+
+def eval_command(
+    backend: Annotated[str, typer.Option(help="Reasoner backend: rules, openai, anthropic, replay.")] = "rules",
+    variant: Annotated[str, typer.Option(help="Prompt variant, or a comma list for a sweep, or 'all' "
+                                              f"({', '.join(VARIANTS)}).")] = "full",
+    episodes: Annotated[int | None, typer.Option(help="Episodes per suite (cycling through its tasks); "
+                                                      "default 10, or each task of --tasks once.")] = None,
+    suites: Annotated[str | None, typer.Option(help="Comma list of suites (localization, clutter, sequential, "
+                                                    "search); default all four.")] = None,
+    tasks: Annotated[Path | None, typer.Option(help="JSON Lines file of your own tasks: {command, suite, "
+                                                    "target_object, destination, seed} per line.")] = None,
+    seed: Annotated[int, typer.Option(help="Base seed for layouts of tasks without their own seed.")] = 0,
+    parallel: Annotated[int, typer.Option(min=1, max=16, help="Simulated vehicles run at once (ev1..evK).")] = 1,
+    out: Annotated[Path, typer.Option(help="Output directory (episodes.jsonl, report.md, report.json, plots/); "
+                                           "rerunning with the same directory resumes.")] = Path("runs/eval"),
+    speed_factor: Annotated[float, typer.Option(help="Simulator speed versus wall clock.")] = 4.0,
+    t_max: Annotated[float, typer.Option(help="T_max per episode, seconds (paper: 600).")] = 600.0,
+    tolerance: Annotated[float, typer.Option(help="Placement tolerance for the ground-truth judge, m.")] = 0.05,
+    model: Annotated[str, typer.Option(help="Model name for openai/anthropic backends.")] = "",
+    base_url: Annotated[str | None, typer.Option(help="Base URL of an OpenAI-compatible endpoint.")] = None,
+    connect: Annotated[str | None, typer.Option(help="Use vehicles already running behind this Zenoh router "
+                                                     "instead of launching a stack (with --vehicles).")] = None,
+    vehicles: Annotated[str | None, typer.Option(help="Comma list of vehicle ids to use with --connect.")] = None,
+    note: Annotated[str, typer.Option(help="Sentence put at the top of the report (what the backend is).")] = "",
+    report_only: Annotated[bool, typer.Option(help="Rebuild the report from OUT/episodes.jsonl, run nothing.")]
+    = False,
+    progress: Annotated[bool, typer.Option(help="Show the progress bar.")] = True,
+) -> None:
+    """Evaluate a backend and prompt variants on the paper's task suites: SR, ARR, RS, IAR, RT, TT."""
+    from services.evaluation.report import write_report
+    from services.evaluation.runner import RunConfig, run
+
+    if report_only:
+        paths = write_report(out)
+        console.print(f"report: {paths['markdown']}")
+        return
+    variants = list(VARIANTS) if variant.strip() == "all" else (_split(variant) or ["full"])
+    bad = [v for v in variants if v not in VARIANTS]
+    if bad:
+        console.print(f"[red]unknown variants {bad}; known: {', '.join(VARIANTS)}[/red]")
+        raise typer.Exit(2)
+    if connect and not vehicles:
+        console.print("[red]--connect needs --vehicles (the ids of the simulated vehicles to use)[/red]")
+        raise typer.Exit(2)
+    api_key = os.environ.get("AERMANI_REASONER_API_KEY")
+    cfg = RunConfig(out=out, backend=backend, variants=variants, model=model, base_url=base_url, api_key=api_key,
+                    episodes=episodes if episodes is not None else (None if tasks else 10),
+                    suites=_split(suites), tasks_file=tasks, seed=seed, parallel=parallel,
+                    speed_factor=speed_factor, t_max_s=t_max, tolerance=tolerance, connect=connect,
+                    vehicles=_split(vehicles), progress=progress, note=note)
+    try:
+        summary = run(cfg)
+    except ConfigError as exc:
+        console.print(f"[red]{exc}[/red]")
+        raise typer.Exit(2)
+    console.print(f"{summary.ran} episodes run, {summary.skipped} already finished (resumed), "
+                  f"{summary.wall_s:.0f} s; report: {out / 'report.md'}")
+    if summary.interrupted:
+        console.print("[yellow]interrupted: rerun the same command to resume[/yellow]")
+        raise typer.Exit(130)
+
+
+def register(app: typer.Typer) -> None:
+    app.command("eval")(eval_command)

@@ -1,0 +1,226 @@
+"""The paper's metrics (Section IV-C): SR, ARR, RS, IAR, RT (median, p95) and TT, from episode records.
+
+Definitions, exactly as computed here (docs/evaluation.md repeats them):
+
+- SR = successful episodes / episodes x 100. Success is the ground-truth verdict of the simulator.
+- Actions of an episode: the skills the policy chose and the executor ran (a step with an STE and a skill
+  state), except `done`, which moves nothing. n_total = number of actions.
+- An action is redundant (counted once even if several rules match) when it is
+  1. an oscillatory correction: a motion primitive whose OPPOSITE (shared/skills.py) is among the next two
+     motion primitives of the episode; both the motion and the one that undoes it are redundant;
+  2. part of a zero-net-displacement sequence: two or more consecutive motion primitives (no other action
+     between) that bring the vehicle back to where it started, position within `pos_tol` metres and yaw
+     within `yaw_tol` radians. Poses come from the skills' outcomes (the trajectory log); when a pose is
+     missing, the sequence is dead-reckoned with generic, incommensurate step sizes, so it counts only if it
+     cancels whatever the primitives' step sizes are;
+  3. a repeated localization with no motion between: obj_localization or placement_localization with the
+     same (case- and space-normalized) argument as an earlier one of the same kind, with no motion
+     primitive, grasp or place in between (the view did not change, so the answer cannot).
+- ARR = mean over successful episodes of n_redundant / n_total, x 100 (the paper's tables are in percent).
+- RS = mean number of reasoning cycles (reasoning steps) per episode over all episodes.
+- IAR = invalid answers / all model queries x 100 (every call of every step, re-prompts included).
+- RT = median and 95th percentile (linear interpolation) of the model latency per query, seconds.
+- TT = mean end-to-end time of successful episodes, seconds (reasoner start to terminal status).
+
+Episodes the harness could not run (harness_error) are left out of every metric and counted in `not_run`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+
+from pydantic import BaseModel, ConfigDict
+
+from services.evaluation.records import EpisodeRecord
+from shared.messages import Pose, ReasoningStep
+from shared.skills import (
+    DONE,
+    GRASP,
+    MOTION_PRIMITIVES,
+    OBJ_LOCALIZATION,
+    OPPOSITE,
+    PLACE,
+    PLACEMENT_LOCALIZATION,
+)
+
+LOCALIZATIONS = (OBJ_LOCALIZATION, PLACEMENT_LOCALIZATION)
+# Actions that change the view or the scene, so a localization after them is not a repeat.
+VIEW_CHANGING = (*MOTION_PRIMITIVES, GRASP, PLACE)
+OSCILLATION_WINDOW = 2
+POS_TOL = 0.10
+YAW_TOL = 0.15
+# Generic, pairwise incommensurate step sizes for dead reckoning: a sequence that cancels with these
+# cancels for any step sizes (coincidental cancellation would need an algebraic relation between them).
+_GENERIC_STEP = {"forward": math.sqrt(2), "left": math.sqrt(3), "up": math.sqrt(5), "yaw": 1.0 / math.e}
+
+
+@dataclass(frozen=True)
+class Action:
+    """One executed skill, as ARR sees it."""
+
+    skill: str
+    argument: str | None = None
+    start_pose: Pose | None = None
+    end_pose: Pose | None = None
+
+
+def actions_of(steps: Iterable[ReasoningStep]) -> list[Action]:
+    """The executed actions of an episode (see the module docstring)."""
+    out = []
+    for s in steps:
+        if s.ste is None or s.skill_state is None or s.ste.skill == DONE:
+            continue
+        o = s.outcome
+        out.append(Action(s.ste.skill, s.ste.argument, o.start_pose if o else None, o.end_pose if o else None))
+    return out
+
+
+def _norm(arg: str | None) -> str:
+    return " ".join((arg or "").lower().split())
+
+
+def _wrap(a: float) -> float:
+    return (a + math.pi) % (2 * math.pi) - math.pi
+
+
+def oscillations(actions: Sequence[Action]) -> set[int]:
+    """Rule 1: motions undone by their opposite within the next two motions (both are marked)."""
+    motions = [i for i, a in enumerate(actions) if a.skill in MOTION_PRIMITIVES]
+    out: set[int] = set()
+    for k, i in enumerate(motions):
+        for j in motions[k + 1:k + 1 + OSCILLATION_WINDOW]:
+            if actions[j].skill == OPPOSITE[actions[i].skill]:
+                out.update((i, j))
+                break
+    return out
+
+
+def _dead_reckon(window: Sequence[Action]) -> tuple[float, float, float, float]:
+    x = y = z = yaw = 0.0
+    for a in window:
+        s = a.skill
+        if s in ("yaw_left", "yaw_right"):
+            yaw += _GENERIC_STEP["yaw"] * (1 if s == "yaw_left" else -1)
+            continue
+        fwd = {"forward": 1, "backward": -1}.get(s, 0) * _GENERIC_STEP["forward"]
+        lat = {"left": 1, "right": -1}.get(s, 0) * _GENERIC_STEP["left"]
+        z += {"up": 1, "down": -1}.get(s, 0) * _GENERIC_STEP["up"]
+        x += fwd * math.cos(yaw) - lat * math.sin(yaw)
+        y += fwd * math.sin(yaw) + lat * math.cos(yaw)
+    return x, y, z, yaw
+
+
+def _returns_to_start(window: Sequence[Action], pos_tol: float, yaw_tol: float) -> bool:
+    first, last = window[0], window[-1]
+    if all(a.start_pose is not None and a.end_pose is not None for a in window):
+        p0, p1 = first.start_pose.position, last.end_pose.position
+        dist = math.dist(p0.as_tuple(), p1.as_tuple())
+        return dist <= pos_tol and abs(_wrap(last.end_pose.yaw - first.start_pose.yaw)) <= yaw_tol
+    x, y, z, yaw = _dead_reckon(window)
+    return math.hypot(x, y, z) < 1e-9 and abs(yaw) < 1e-9
+
+
+def zero_net_sequences(actions: Sequence[Action], pos_tol: float = POS_TOL, yaw_tol: float = YAW_TOL) -> set[int]:
+    """Rule 2: every action inside a run of >= 2 consecutive motions that returns to its start pose."""
+    out: set[int] = set()
+    n = len(actions)
+    i = 0
+    while i < n:
+        if actions[i].skill not in MOTION_PRIMITIVES:
+            i += 1
+            continue
+        j = i
+        while j + 1 < n and actions[j + 1].skill in MOTION_PRIMITIVES:
+            j += 1
+        for a in range(i, j + 1):  # run is actions[i..j]
+            for b in range(a + 1, j + 1):
+                if _returns_to_start(actions[a:b + 1], pos_tol, yaw_tol):
+                    out.update(range(a, b + 1))
+        i = j + 1
+    return out
+
+
+def repeated_localizations(actions: Sequence[Action]) -> set[int]:
+    """Rule 3: a localization repeating an earlier one (same kind, same argument) with no view change between."""
+    out: set[int] = set()
+    seen: set[tuple[str, str]] = set()
+    for i, a in enumerate(actions):
+        if a.skill in VIEW_CHANGING:
+            seen.clear()
+        elif a.skill in LOCALIZATIONS:
+            key = (a.skill, _norm(a.argument))
+            if key in seen:
+                out.add(i)
+            seen.add(key)
+    return out
+
+
+def redundant_actions(actions: Sequence[Action], pos_tol: float = POS_TOL, yaw_tol: float = YAW_TOL) -> set[int]:
+    """Indices of redundant actions (union of the three rules)."""
+    return oscillations(actions) | zero_net_sequences(actions, pos_tol, yaw_tol) | repeated_localizations(actions)
+
+
+def redundancy_ratio(actions: Sequence[Action]) -> float:
+    """n_redundant / n_total for one episode (0 when there is no action)."""
+    return len(redundant_actions(actions)) / len(actions) if actions else 0.0
+
+
+def percentile(values: Sequence[float], q: float) -> float:
+    """q-th percentile with linear interpolation between closest ranks (numpy's default)."""
+    if not values:
+        raise ValueError("percentile of no values")
+    xs = sorted(values)
+    pos = (len(xs) - 1) * q / 100.0
+    lo, hi = math.floor(pos), math.ceil(pos)
+    return xs[lo] + (xs[hi] - xs[lo]) * (pos - lo)
+
+
+def reasoning_steps(rec: EpisodeRecord) -> int:
+    """Reasoning cycles of an episode: the step records, or the terminal status's count if more were announced
+    than recorded (a lost sample must not make a policy look better)."""
+    return max(len(rec.steps), rec.status.steps if rec.status else 0)
+
+
+class Metrics(BaseModel):
+    """The paper's metrics for one group of episodes (None where undefined, e.g. ARR with no success)."""
+
+    model_config = ConfigDict(frozen=True)
+
+    episodes: int
+    successes: int
+    not_run: int = 0
+    sr: float | None = None
+    arr: float | None = None
+    rs: float | None = None
+    iar: float | None = None
+    rt_median: float | None = None
+    rt_p95: float | None = None
+    tt: float | None = None
+    queries: int = 0
+    invalid: int = 0
+
+
+def compute(records: Iterable[EpisodeRecord]) -> Metrics:
+    records = list(records)
+    ran = [r for r in records if not r.harness_error]
+    ok = [r for r in ran if r.success]
+    calls = [c for r in ran for s in r.steps for c in s.calls]
+    latencies = [c.latency_s for c in calls]
+    invalid = sum(1 for c in calls if not c.valid)
+    n = len(ran)
+    return Metrics(
+        episodes=n,
+        successes=len(ok),
+        not_run=len(records) - n,
+        sr=100.0 * len(ok) / n if n else None,
+        arr=100.0 * sum(redundancy_ratio(actions_of(r.steps)) for r in ok) / len(ok) if ok else None,
+        rs=sum(reasoning_steps(r) for r in ran) / n if n else None,
+        iar=100.0 * invalid / len(calls) if calls else None,
+        rt_median=percentile(latencies, 50) if latencies else None,
+        rt_p95=percentile(latencies, 95) if latencies else None,
+        tt=sum(r.duration_s for r in ok) / len(ok) if ok else None,
+        queries=len(calls),
+        invalid=invalid,
+    )

@@ -1,0 +1,120 @@
+"""The per-episode record written to episodes.jsonl: the task, the verdict and every reasoning step."""
+
+from __future__ import annotations
+
+import json
+import threading
+from pathlib import Path
+
+from pydantic import BaseModel, ConfigDict
+
+from services.evaluation.tasks import EvalTask
+from shared.messages import JudgeResult, ReasoningStep, TaskStatus
+
+RESULTS_FILE = "episodes.jsonl"
+
+
+class EpisodeRecord(BaseModel):
+    """Everything about one finished episode; the report and the metrics are computed from these only."""
+
+    model_config = ConfigDict(extra="ignore", use_attribute_docstrings=True)
+
+    episode_id: str
+    """Stable id: <backend>/<variant>/<suite>/<index>-s<seed>."""
+    suite: str
+    """Task category."""
+    backend: str
+    """Reasoner backend (rules, openai, anthropic, replay)."""
+    variant: str
+    """Prompt variant."""
+    model: str = ""
+    """Model name for model backends."""
+    task: EvalTask
+    """The task."""
+    seed: int
+    """Layout seed."""
+    vehicle_id: str = ""
+    """Simulated vehicle that ran it."""
+    task_id: str = ""
+    """Reasoner task id."""
+    state: str = "error"
+    """Terminal task state (succeeded, failed, aborted, timeout) or error when the harness failed."""
+    message: str = ""
+    """Reasoner's or harness's explanation."""
+    success: bool = False
+    """Ground-truth verdict: the right object placed on the destination (or held) before T_max."""
+    verdict: str = ""
+    """Why the verdict is what it is."""
+    held: str | None = None
+    """What the gripper held at the end (ground truth)."""
+    collisions: tuple[str, ...] = ()
+    """Collisions reported by the simulator."""
+    steps: list[ReasoningStep] = []
+    """Every reasoning step of the task, in order."""
+    status: TaskStatus | None = None
+    """Terminal task status."""
+    judge: JudgeResult | None = None
+    """The simulator's answer to the success question."""
+    t_max_s: float = 600.0
+    """T_max in force."""
+    started_ns: int = 0
+    """When the task was started (harness clock)."""
+    ended_ns: int = 0
+    """When the terminal status arrived."""
+    foreign_samples: int = 0
+    """Step samples seen on this vehicle's key during the episode that belonged to another task (cross-talk)."""
+    harness_error: str = ""
+    """Set when the episode could not run (reset failed, no status...)."""
+
+    @property
+    def duration_s(self) -> float:
+        """End-to-end task time: from the reasoner's start/end stamps when present, else the harness's."""
+        if self.status is not None and self.status.started_ns and self.status.ended_ns:
+            return (self.status.ended_ns - self.status.started_ns) / 1e9
+        return max(0.0, (self.ended_ns - self.started_ns) / 1e9)
+
+    @property
+    def config(self) -> str:
+        return f"{self.backend}/{self.variant}"
+
+
+class ResultsFile:
+    """Append-only JSONL of EpisodeRecords, one line per finished episode, flushed at once so an interrupted
+    run loses at most the episodes in flight. A truncated last line (killed mid-write) is ignored."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = Path(path)
+        self._lock = threading.Lock()
+
+    def load(self) -> list[EpisodeRecord]:
+        out: dict[str, EpisodeRecord] = {}
+        if not self.path.exists():
+            return []
+        for line in self.path.read_text(encoding="utf-8").splitlines():
+            line = line.strip()
+            if not line:
+                continue
+            try:
+                rec = EpisodeRecord.model_validate(json.loads(line))
+            except (json.JSONDecodeError, ValueError):
+                continue
+            out[rec.episode_id] = rec  # a rerun episode replaces an older line
+        return list(out.values())
+
+    def finished_ids(self) -> set[str]:
+        """Episodes that ran to a verdict; those the harness could not run are tried again on a rerun."""
+        return {r.episode_id for r in self.load() if not r.harness_error}
+
+    def append(self, rec: EpisodeRecord) -> None:
+        line = rec.model_dump_json() + "\n"
+        with self._lock:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            with open(self.path, "a", encoding="utf-8") as f:
+                # A torn line from a killed run must not glue onto this one.
+                if f.tell() > 0:
+                    with open(self.path, "rb") as r:
+                        r.seek(-1, 2)
+                        if r.read(1) != b"\n":
+                            f.write("\n")
+                f.write(line)
+                f.flush()

@@ -1,0 +1,256 @@
+"""The evaluation report: report.json (every episode), report.md (the paper's Tables II and V), PNG plots."""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Iterable
+from ipaddress import ip_address
+from pathlib import Path
+from typing import Any
+from urllib.parse import urlparse
+
+from services.evaluation.metrics import compute, reasoning_steps
+from services.evaluation.records import RESULTS_FILE, EpisodeRecord, ResultsFile
+from services.evaluation.tasks import PAPER_RS, PAPER_SUITES, SUITE_TITLES
+from shared.messages import VARIANTS
+
+VARIANT_TITLES = {
+    "unstructured": "Unstructured", "no_drt": "No-DRT", "drt_v1": "DRT-V1", "drt_v2": "DRT-V2",
+    "drt_v3": "DRT-V3", "full": "AERMANI-VLM", "react": "ReAct Prompting",
+}
+
+
+def _fmt(v: float | None, digits: int = 1) -> str:
+    return "--" if v is None else f"{v:.{digits}f}"
+
+
+def _suite_order(suites: Iterable[str]) -> list[str]:
+    s = set(suites)
+    return [x for x in PAPER_SUITES if x in s] + sorted(s - set(PAPER_SUITES))
+
+
+def _config_order(records: list[EpisodeRecord]) -> list[tuple[str, str]]:
+    configs = {(r.backend, r.variant) for r in records}
+    rank = {v: i for i, v in enumerate(VARIANTS)}
+    return sorted(configs, key=lambda c: (c[0], rank.get(c[1], 99), c[1]))
+
+
+def method_name(backend: str, variant: str, multi_backend: bool) -> str:
+    name = VARIANT_TITLES.get(variant, variant)
+    return f"{name} ({backend})" if multi_backend else name
+
+
+def _loopback(url: str) -> bool:
+    host = urlparse(url).hostname or ""
+    if host == "localhost":
+        return True
+    try:
+        return ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def backend_note(config: dict[str, Any], records: list[EpisodeRecord]) -> str:
+    """What the numbers measure, in one paragraph: the report must never pass off a stand-in as a VLM."""
+    backends = sorted({r.backend for r in records}) or [config.get("backend", "rules")]
+    parts = []
+    for b in backends:
+        if b == "rules":
+            parts.append("`rules`: the deterministic rule-based policy, not a VLM; the numbers measure the stack "
+                         "(simulator, perception, skills, reasoner loop) with a policy that always answers validly")
+        elif b == "replay":
+            parts.append("`replay`: answers replayed from a recorded log, not live model calls")
+        else:
+            url = config.get("base_url") or ""
+            model = config.get("model") or "(default model)"
+            where = f" at {url}" if url else ""
+            p = f"`{b}`: model {model}{where}"
+            if url and _loopback(url):
+                p += (" -- a server on this machine (loopback); when it is the local test server "
+                      "(tests/reasoner/fake_vlm.py) the numbers reflect the test server, not a real VLM")
+            parts.append(p)
+    note = "; ".join(parts) + "."
+    if config.get("note"):
+        note = f"{config['note']} {note}"
+    return note
+
+
+def summarize(records: list[EpisodeRecord]) -> dict[str, Any]:
+    """Metrics per configuration (backend/variant) and per configuration x suite."""
+    by_config: dict[str, Any] = {}
+    for backend, variant in _config_order(records):
+        recs = [r for r in records if r.backend == backend and r.variant == variant]
+        by_config[f"{backend}/{variant}"] = {
+            "backend": backend, "variant": variant,
+            "overall": compute(recs).model_dump(),
+            "suites": {s: compute([r for r in recs if r.suite == s]).model_dump()
+                       for s in _suite_order(r.suite for r in recs)},
+        }
+    return by_config
+
+
+def markdown(records: list[EpisodeRecord], config: dict[str, Any], plots: list[str]) -> str:
+    configs = _config_order(records)
+    multi = len({b for b, _ in configs}) > 1
+    suites = _suite_order(r.suite for r in records)
+    lines = ["# aermani evaluation report", "",
+             f"Generated {time.strftime('%Y-%m-%d %H:%M:%S %Z')} from `{RESULTS_FILE}` ({len(records)} episodes).", "",
+             f"**Backend.** {backend_note(config, records)}", ""]
+    settings = {k: config.get(k) for k in ("backend", "variants", "model", "base_url", "episodes", "suites", "seed",
+                                           "parallel", "speed_factor", "t_max_s", "tolerance", "tasks_file")
+                if config.get(k) not in (None, "", [])}
+    if settings:
+        lines += ["Run settings: " + ", ".join(f"{k}={v}" for k, v in settings.items()) + ".", ""]
+
+    lines += ["## Results by task suite (paper Table II layout)", "",
+              "| Task Suite | Method | N | SR ↑ | ARR ↓ | RS ↓ | IAR ↓ |", "|---|---|---|---|---|---|---|"]
+    for s in suites:
+        for i, (b, v) in enumerate(configs):
+            recs = [r for r in records if r.suite == s and r.backend == b and r.variant == v]
+            if not recs:
+                continue
+            m = compute(recs)
+            suite_cell = SUITE_TITLES.get(s, s) if i == 0 else ""
+            lines.append(f"| {suite_cell} | {method_name(b, v, multi)} | {m.episodes} | {_fmt(m.sr)} | "
+                         f"{_fmt(m.arr)} | {_fmt(m.rs)} | {_fmt(m.iar)} |")
+    lines += ["", "## Summary per method (paper Table V layout)", "",
+              "| Method | N | SR ↑ | ARR ↓ | RS ↓ | IAR ↓ | RT median (s) ↓ | RT p95 (s) ↓ | TT (s) ↓ |",
+              "|---|---|---|---|---|---|---|---|---|"]
+    for b, v in configs:
+        m = compute(r for r in records if r.backend == b and r.variant == v)
+        lines.append(f"| {method_name(b, v, multi)} | {m.episodes} | {_fmt(m.sr)} | {_fmt(m.arr)} | {_fmt(m.rs)} | "
+                     f"{_fmt(m.iar)} | {_fmt(m.rt_median, 3)} | {_fmt(m.rt_p95, 3)} | {_fmt(m.tt)} |")
+    paper_suites = [s for s in suites if s in PAPER_RS]
+    if paper_suites:
+        lines += ["", "## Against the paper's AERMANI-VLM (Table II)", "",
+                  "| Task Suite | Method | SR | paper SR | RS | paper RS |", "|---|---|---|---|---|---|"]
+        paper_sr = {"localization": 90.0, "clutter": 80.0, "sequential": 100.0, "search": 80.0}
+        for s in paper_suites:
+            for b, v in configs:
+                recs = [r for r in records if r.suite == s and r.backend == b and r.variant == v]
+                if recs and v == "full":
+                    m = compute(recs)
+                    lines.append(f"| {SUITE_TITLES.get(s, s)} | {method_name(b, v, multi)} | {_fmt(m.sr)} | "
+                                 f"{paper_sr[s]:.1f} | {_fmt(m.rs)} | {PAPER_RS[s]:.1f} |")
+    lines += ["", "Metrics (definitions in docs/evaluation.md): SR = % of episodes where the simulator's ground "
+              "truth has the right object on the destination within tolerance (or held, when the command has no "
+              "destination) before T_max; ARR = mean % of redundant actions over successful episodes; RS = mean "
+              "reasoning steps per episode; IAR = % of model answers that were invalid; RT = model latency per "
+              "query; TT = mean end-to-end time of successful episodes (wall clock, simulator speed factor "
+              f"{config.get('speed_factor', '?')}).", ""]
+    not_run = [r for r in records if r.harness_error]
+    failed = [r for r in records if not r.success and not r.harness_error]
+    if failed:
+        lines += ["## Failed episodes", "", "| Episode | Vehicle | State | Steps | Verdict |", "|---|---|---|---|---|"]
+        for r in failed[:50]:
+            verdict = (r.verdict or r.message).replace("|", "/")
+            lines.append(f"| {r.episode_id} | {r.vehicle_id} | {r.state} | {reasoning_steps(r)} | {verdict} |")
+        lines.append("")
+    if not_run:
+        lines += ["## Episodes the harness could not run (left out of the metrics)", ""]
+        lines += [f"- {r.episode_id}: {r.harness_error}" for r in not_run[:50]]
+        lines.append("")
+    if plots:
+        lines += ["## Plots", ""] + [f"![{Path(p).stem}]({p})" for p in plots] + [""]
+    return "\n".join(lines)
+
+
+def plot(records: list[EpisodeRecord], out: Path) -> list[str]:
+    """PNG plots next to the report; returns their paths relative to `out`."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    if not records:
+        return []
+    (out / "plots").mkdir(parents=True, exist_ok=True)
+    configs = _config_order(records)
+    multi = len({b for b, _ in configs}) > 1
+    suites = _suite_order(r.suite for r in records)
+    names = [method_name(b, v, multi) for b, v in configs]
+    paths = []
+
+    fig, ax = plt.subplots(figsize=(max(6, 1.6 * len(suites) * max(1, len(configs)) / 2), 4))
+    width = 0.8 / max(1, len(configs))
+    for k, (b, v) in enumerate(configs):
+        vals = []
+        for s in suites:
+            m = compute(r for r in records if r.suite == s and r.backend == b and r.variant == v)
+            vals.append(m.sr or 0.0)
+        ax.bar([i + k * width - 0.4 + width / 2 for i in range(len(suites))], vals, width, label=names[k])
+    ax.set_xticks(range(len(suites)), [SUITE_TITLES.get(s, s) for s in suites])
+    ax.set_ylabel("success rate (%)")
+    ax.set_ylim(0, 105)
+    ax.set_title("Success by suite and variant")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(out / "plots" / "success_by_suite.png", dpi=100)
+    plt.close(fig)
+    paths.append("plots/success_by_suite.png")
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for k, (b, v) in enumerate(configs):
+        lat = [c.latency_s for r in records if r.backend == b and r.variant == v and not r.harness_error
+               for s in r.steps for c in s.calls]
+        if lat:
+            ax.hist(lat, bins=30, alpha=0.6, label=names[k])
+    ax.set_xlabel("model response time per query (s)")
+    ax.set_ylabel("queries")
+    ax.set_title("RT histogram")
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(out / "plots" / "rt_histogram.png", dpi=100)
+    plt.close(fig)
+    paths.append("plots/rt_histogram.png")
+
+    fig, ax = plt.subplots(figsize=(max(6, 1.2 * len(suites) * max(1, len(configs)) / 2), 4))
+    data, labels = [], []
+    for s in suites:
+        for k, (b, v) in enumerate(configs):
+            steps = [reasoning_steps(r) for r in records
+                     if r.suite == s and r.backend == b and r.variant == v and not r.harness_error]
+            if steps:
+                data.append(steps)
+                labels.append(f"{SUITE_TITLES.get(s, s)}\n{names[k]}" if len(configs) > 1 else SUITE_TITLES.get(s, s))
+    if data:
+        ax.boxplot(data, showmeans=True)
+        ax.set_xticks(range(1, len(labels) + 1), labels, fontsize=6 if len(configs) > 1 else 9,
+                      rotation=90 if len(configs) > 1 else 0)
+    for s in suites:
+        if s in PAPER_RS and len(configs) == 1:
+            i = suites.index(s) + 1
+            ax.plot([i - 0.4, i + 0.4], [PAPER_RS[s]] * 2, "r--", linewidth=1)
+    ax.set_ylabel("reasoning steps per episode")
+    ax.set_title("Steps per episode" + (" (red: paper's AERMANI-VLM RS)" if len(configs) == 1 else ""))
+    fig.tight_layout()
+    fig.savefig(out / "plots" / "steps_per_episode.png", dpi=100)
+    plt.close(fig)
+    paths.append("plots/steps_per_episode.png")
+    return paths
+
+
+def write_report(out: Path, config: dict[str, Any] | None = None) -> dict[str, Path]:
+    """(Re)build report.json, report.md and plots/ from out/episodes.jsonl. The run's settings are kept in
+    run_config.json so a report rebuilt later still says what produced the numbers."""
+    out = Path(out)
+    cfg_path = out / "run_config.json"
+    if config is not None:
+        cfg_path.write_text(json.dumps(config, indent=2, default=str))
+    elif cfg_path.exists():
+        config = json.loads(cfg_path.read_text())
+    config = config or {}
+    records = sorted(ResultsFile(out / RESULTS_FILE).load(), key=lambda r: r.episode_id)
+    plots = plot(records, out)
+    doc = {
+        "generated": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        "backend_note": backend_note(config, records),
+        "config": config,
+        "metrics": summarize(records),
+        "episodes": [r.model_dump(mode="json") for r in records],
+    }
+    (out / "report.json").write_text(json.dumps(doc, indent=1))
+    (out / "report.md").write_text(markdown(records, config, plots))
+    return {"json": out / "report.json", "markdown": out / "report.md", "plots": out / "plots"}

@@ -1,0 +1,404 @@
+"""Runs evaluation episodes on the real stack: K simulated vehicles on one router, one worker per vehicle.
+
+Per episode: `sim/reset` lays out the task's scenario (vehicle on the ground, disarmed), `reasoner/start_task`
+starts the command, every `reasoner/step` of that task is kept, the terminal `reasoner/task_status` ends it,
+and `sim/judge` gives the ground-truth verdict. Each finished episode is appended to episodes.jsonl at once,
+so an interrupted run resumes where it stopped (finished episode ids are skipped).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from pydantic import BaseModel, ConfigDict
+
+from services.evaluation.records import RESULTS_FILE, EpisodeRecord, ResultsFile
+from services.evaluation.tasks import (
+    DEFAULT_T_MAX_S,
+    EpisodeSpec,
+    EvalTask,
+    expand,
+    group_by_suite,
+    load_jsonl,
+    load_suites,
+)
+from shared.bus import Bus, Subscription
+from shared.errors import AermaniError, BusError, ConfigError
+from shared.keys import Keys
+from shared.launcher import PER_VEHICLE, Stack, available_services, free_udp_port
+from shared.messages import (
+    Abort,
+    JudgeRequest,
+    JudgeResult,
+    LandedState,
+    ReasoningStep,
+    SimResetResult,
+    TaskAccept,
+    TaskRequest,
+    TaskStatus,
+    VehicleState,
+    new_id,
+    now_ns,
+)
+
+log = logging.getLogger("aermani.evaluation")
+
+STATUS_MARGIN_S = 90.0  # wait this long past T_max for the reasoner's own timeout status before giving up
+START_RETRY_S = 30.0  # a vehicle may still be finishing its previous task: retry start_task this long
+QUERY_TIMEOUT_S = 20.0
+
+
+class RunConfig(BaseModel):
+    """Everything `aermani eval` needs; the CLI builds it from its options."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    out: Path = Path("runs/eval")
+    backend: str = "rules"
+    variants: list[str] = ["full"]
+    model: str = ""
+    base_url: str | None = None
+    api_key: str | None = None
+    episodes: int | None = 10
+    suites: list[str] | None = None
+    tasks_file: Path | None = None
+    seed: int = 0
+    parallel: int = 1
+    speed_factor: float = 4.0
+    t_max_s: float = DEFAULT_T_MAX_S
+    tolerance: float = 0.05
+    # Use vehicles already running behind a router (e.g. on other hosts) instead of launching a stack.
+    connect: str | None = None
+    vehicles: list[str] | None = None
+    startup_timeout_s: float = 240.0
+    extra_env: dict[str, str] = {}
+    progress: bool = True
+    # What the backend is, stated at the top of the report (e.g. "numbers reflect the local test server").
+    note: str = ""
+    # Testing hook: stop (as if interrupted) after this many episodes have finished in this run.
+    stop_after: int | None = None
+
+    def vehicle_ids(self) -> list[str]:
+        if self.vehicles:
+            return list(self.vehicles)
+        return [f"ev{i + 1}" for i in range(max(1, self.parallel))]
+
+
+def episode_specs(cfg: RunConfig) -> list[EpisodeSpec]:
+    if cfg.tasks_file is not None:
+        tasks = group_by_suite(load_jsonl(cfg.tasks_file))
+        if cfg.suites:
+            tasks = {s: t for s, t in tasks.items() if s in cfg.suites}
+        # A user's file lists its episodes; --episodes only repeats them when asked for more.
+        return expand(tasks, episodes=cfg.episodes, backends=[cfg.backend], variants=cfg.variants,
+                      base_seed=cfg.seed)
+    return expand(load_suites(cfg.suites), episodes=cfg.episodes, backends=[cfg.backend], variants=cfg.variants,
+                  base_seed=cfg.seed)
+
+
+def vehicle_env(cfg: RunConfig) -> dict[str, str]:
+    """Environment of one simulated vehicle's services: its own MAVLink UDP ports and the reasoner backend."""
+    api = free_udp_port()
+    env = {
+        "AERMANI_SIM_API_PORT": str(api),
+        "AERMANI_SIM_API_LOCAL_PORT": str(free_udp_port()),
+        "AERMANI_SIM_GCS_PORT": str(free_udp_port()),
+        "AERMANI_SIM_GCS_LOCAL_PORT": str(free_udp_port()),
+        "AERMANI_AUTOPILOT_BRIDGE_CONNECTION": f"udpin:127.0.0.1:{api}",
+        "AERMANI_SIM_SPEED_FACTOR": str(cfg.speed_factor),
+        "AERMANI_REASONER_BACKEND": cfg.backend,
+        "AERMANI_REASONER_T_MAX_S": str(cfg.t_max_s),
+    }
+    if cfg.model:
+        env["AERMANI_REASONER_MODEL"] = cfg.model
+    if cfg.base_url:
+        env["AERMANI_REASONER_BASE_URL"] = cfg.base_url
+    if cfg.api_key:
+        env["AERMANI_REASONER_API_KEY"] = cfg.api_key
+    return {**env, **cfg.extra_env}
+
+
+def build_stack(cfg: RunConfig, vehicle_ids: list[str]) -> Stack:
+    services = [s for s in available_services() if s in PER_VEHICLE]
+    missing = [s for s in PER_VEHICLE if s not in services]
+    if missing:
+        raise ConfigError(f"the evaluation needs every per-vehicle service; missing in this checkout: {missing}")
+    stack = Stack(services, vehicle_id=vehicle_ids[0], env=vehicle_env(cfg), log_dir=cfg.out / "logs")
+    for vid in vehicle_ids[1:]:
+        stack.add_vehicle(vid, services, vehicle_env(cfg))
+    return stack
+
+
+# --------------------------------------------------------------------------- one vehicle
+
+
+@dataclass
+class VehicleWorker:
+    """Runs episodes one after another on one vehicle id."""
+
+    bus: Bus
+    vehicle_id: str
+    cfg: RunConfig
+    keys: Keys = field(init=False)
+    steps: Subscription[ReasoningStep] = field(init=False)
+    statuses: Subscription[TaskStatus] = field(init=False)
+    state: Subscription[VehicleState] = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.keys = Keys(self.vehicle_id)
+        self.steps = self.bus.subscribe(self.keys.reasoning_step, ReasoningStep, maxsize=10_000,
+                                        overflow="drop_newest")
+        self.statuses = self.bus.subscribe(self.keys.task_status, TaskStatus, maxsize=1_000)
+        self.state = self.bus.subscribe(self.keys.autopilot_state, VehicleState, maxsize=2)
+
+    def close(self) -> None:
+        for sub in (self.steps, self.statuses, self.state):
+            sub.close()
+
+    async def _drain_steps(self, task_id: str, into: list[ReasoningStep]) -> int:
+        """Move queued steps of `task_id` into `into`; returns how many belonged to another task."""
+        foreign = 0
+        while self.steps.qsize():
+            s = await self.steps.recv(timeout=1.0)
+            if s.task_id == task_id:
+                into.append(s)
+            else:
+                foreign += 1
+        return foreign
+
+    async def _wait_grounded(self, timeout: float = 30.0) -> None:
+        """After a reset the bridge must report the vehicle on the ground, disarmed, before a task starts."""
+        self.state.latest_nowait()  # anything queued predates the reset
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            try:
+                st = await self.state.recv(timeout=max(0.1, deadline - time.monotonic()))
+            except TimeoutError:
+                break
+            if not st.armed and st.landed_state in (LandedState.ON_GROUND, LandedState.UNKNOWN) and st.link_ok:
+                return
+        log.warning("%s: vehicle not reported grounded %.0f s after reset; starting anyway", self.vehicle_id,
+                    timeout)
+
+    async def run(self, spec: EpisodeSpec) -> EpisodeRecord:
+        task = spec.task
+        t_max = task.t_max_s or self.cfg.t_max_s
+        rec = EpisodeRecord(episode_id=spec.episode_id, suite=task.suite, backend=spec.backend,
+                            variant=spec.variant, model=self.cfg.model, task=task, seed=spec.seed,
+                            vehicle_id=self.vehicle_id, t_max_s=t_max)
+        try:
+            return await self._run(spec, rec, t_max)
+        except (AermaniError, TimeoutError) as exc:
+            log.warning("%s: episode %s could not run: %s", self.vehicle_id, spec.episode_id, exc)
+            return rec.model_copy(update={"harness_error": f"{type(exc).__name__}: {exc}", "ended_ns": now_ns()})
+
+    async def _run(self, spec: EpisodeSpec, rec: EpisodeRecord, t_max: float) -> EpisodeRecord:
+        task = spec.task
+        reset = await self.bus.query(self.keys.sim_reset, task.scenario(spec.seed), SimResetResult,
+                                     timeout=QUERY_TIMEOUT_S)
+        if not reset.ok:
+            return rec.model_copy(update={"harness_error": f"sim/reset refused the scenario: {reset.message}"})
+        await self._wait_grounded()
+        self.statuses.latest_nowait()
+        await self._drain_steps("", [])  # whatever is queued belongs to earlier tasks
+
+        task_id = new_id("ev-")
+        request = TaskRequest(command=task.command, task_id=task_id, variant=spec.variant, t_max_s=t_max,
+                              takeoff=True)
+        started = now_ns()
+        accept = await self._start(request)
+        if not accept.accepted:
+            return rec.model_copy(update={"harness_error": f"reasoner refused the task: {accept.reason}",
+                                          "task_id": task_id})
+
+        steps: list[ReasoningStep] = []
+        foreign = 0
+        status: TaskStatus | None = None
+        deadline = time.monotonic() + t_max + STATUS_MARGIN_S
+        while status is None:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                break
+            try:
+                st = await self.statuses.recv(timeout=min(remaining, 5.0))
+            except TimeoutError:
+                foreign += await self._drain_steps(task_id, steps)
+                continue
+            if st.task_id == task_id and st.state.terminal:
+                status = st
+            foreign += await self._drain_steps(task_id, steps)
+        ended = now_ns()
+        if status is None:
+            # The reasoner never ended the task: stop it so the next episode starts clean.
+            self.bus.publish(self.keys.abort, Abort(reason="evaluation: no terminal status", source="evaluation",
+                                                    task_id=task_id))
+        else:
+            # Steps are published before the status, but give stragglers a moment on a loaded machine.
+            until = time.monotonic() + 5.0
+            while len(steps) < status.steps and time.monotonic() < until:
+                await asyncio.sleep(0.1)
+                foreign += await self._drain_steps(task_id, steps)
+        steps.sort(key=lambda s: s.step)
+
+        judge, success, verdict = await self._judge(task)
+        state = status.state.value if status else "timeout"
+        if success and status is None:
+            success, verdict = False, f"{verdict}, but the task did not end before T_max"
+        elif success and status is not None and status.state.value == "timeout":
+            success, verdict = False, f"{verdict}, but only after T_max ({t_max:.0f} s)"
+        return rec.model_copy(update={
+            "task_id": task_id, "state": state,
+            "message": status.message if status else f"no terminal status within {t_max + STATUS_MARGIN_S:.0f} s",
+            "success": success, "verdict": verdict, "held": judge.held, "collisions": judge.collisions,
+            "steps": steps, "status": status, "judge": judge, "started_ns": started, "ended_ns": ended,
+            "foreign_samples": foreign,
+        })
+
+    async def _start(self, request: TaskRequest) -> TaskAccept:
+        deadline = time.monotonic() + START_RETRY_S
+        while True:
+            accept = await self.bus.query(self.keys.start_task, request, TaskAccept, timeout=QUERY_TIMEOUT_S)
+            if accept.accepted or time.monotonic() > deadline:
+                return accept
+            await asyncio.sleep(1.0)
+
+    async def _judge(self, task: EvalTask) -> tuple[JudgeResult, bool, str]:
+        """Ground truth, exactly as the paper: the right object on the destination within tolerance, or, with
+        no destination, the right object in the gripper at the end."""
+        if task.destination:
+            last: JudgeResult | None = None
+            for obj in task.accepted:
+                j = await self.bus.query(self.keys.sim_judge, JudgeRequest(
+                    op="on_surface", object=obj, surface=task.destination, tolerance=self.cfg.tolerance),
+                    JudgeResult, timeout=QUERY_TIMEOUT_S)
+                if j.ok:
+                    return j, True, j.message
+                last = last or j
+            assert last is not None
+            return last, False, last.message
+        j = await self.bus.query(self.keys.sim_judge, JudgeRequest(op="held"), JudgeResult, timeout=QUERY_TIMEOUT_S)
+        if j.held in task.accepted:
+            return j, True, f"holding {j.held}"
+        return j, False, f"holding {j.held}, expected {' or '.join(task.accepted)}" if j.held else \
+            f"holding nothing, expected {' or '.join(task.accepted)}"
+
+
+# --------------------------------------------------------------------------- the run
+
+
+@dataclass
+class RunSummary:
+    out: Path
+    planned: int
+    skipped: int
+    ran: int
+    records: list[EpisodeRecord]
+    interrupted: bool = False
+    wall_s: float = 0.0
+
+
+async def run_episodes(bus: Bus, specs: list[EpisodeSpec], cfg: RunConfig, results: ResultsFile,
+                       on_done: Callable[[EpisodeRecord], None] | None = None) -> list[EpisodeRecord]:
+    """One worker per vehicle pulls episodes from a shared queue until it is empty (or stop_after is hit)."""
+    queue: asyncio.Queue[EpisodeSpec] = asyncio.Queue()
+    for s in specs:
+        queue.put_nowait(s)
+    done: list[EpisodeRecord] = []
+    stop = asyncio.Event()
+
+    async def worker(vid: str) -> None:
+        w = VehicleWorker(bus, vid, cfg)
+        try:
+            while not stop.is_set():
+                try:
+                    spec = queue.get_nowait()
+                except asyncio.QueueEmpty:
+                    return
+                rec = await w.run(spec)
+                results.append(rec)
+                done.append(rec)
+                if on_done:
+                    on_done(rec)
+                if cfg.stop_after is not None and len(done) >= cfg.stop_after:
+                    stop.set()
+        finally:
+            w.close()
+
+    async with asyncio.TaskGroup() as tg:
+        for vid in cfg.vehicle_ids():
+            tg.create_task(worker(vid))
+    return done
+
+
+def run(cfg: RunConfig) -> RunSummary:
+    """Run (or resume) an evaluation and write its report; blocking. Ctrl-C stops after saving what finished."""
+    from services.evaluation.report import write_report
+
+    cfg.out.mkdir(parents=True, exist_ok=True)
+    results = ResultsFile(cfg.out / RESULTS_FILE)
+    specs = episode_specs(cfg)
+    finished = results.finished_ids()
+    todo = [s for s in specs if s.episode_id not in finished]
+    summary = RunSummary(cfg.out, planned=len(specs), skipped=len(specs) - len(todo), ran=0, records=[])
+    t0 = time.monotonic()
+    if todo:
+        vehicle_ids = cfg.vehicle_ids()[:len(todo)]
+        cfg = cfg.model_copy(update={"vehicles": vehicle_ids})
+        stack = None
+        try:
+            if cfg.connect:
+                endpoint = cfg.connect
+            else:
+                stack = build_stack(cfg, vehicle_ids)
+                stack.start(wait=True, timeout=cfg.startup_timeout_s)
+                endpoint = stack.endpoint
+            summary.records = asyncio.run(_run_async(endpoint, todo, cfg, results, len(specs),
+                                                     len(specs) - len(todo)))
+        except KeyboardInterrupt:
+            summary.interrupted = True
+        finally:
+            if stack is not None:
+                stack.stop()
+    summary.ran = len(summary.records)
+    summary.wall_s = time.monotonic() - t0
+    summary.interrupted = summary.interrupted or (cfg.stop_after is not None and summary.ran < len(todo))
+    write_report(cfg.out, config=cfg.model_dump(mode="json", exclude={"api_key", "extra_env"}))
+    return summary
+
+
+async def _run_async(endpoint: str, todo: list[EpisodeSpec], cfg: RunConfig, results: ResultsFile, total: int,
+                     skipped: int) -> list[EpisodeRecord]:
+    try:
+        bus = await Bus.open(connect=[endpoint])
+    except BusError as exc:
+        raise ConfigError(f"cannot reach the router at {endpoint}: {exc}")
+    try:
+        if not cfg.progress:
+            return await run_episodes(bus, todo, cfg, results)
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+        with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                      TextColumn("{task.fields[sr]}"), TimeElapsedColumn()) as progress:
+            bar = progress.add_task(f"eval {cfg.backend} on {len(cfg.vehicle_ids())} vehicle(s)", total=total,
+                                    completed=skipped, sr="")
+            wins = [0, 0]
+
+            def on_done(rec: EpisodeRecord) -> None:
+                wins[0] += rec.success
+                wins[1] += 1
+                mark = "[green]ok[/green]" if rec.success else ("[yellow]not run[/yellow]" if rec.harness_error
+                                                               else "[red]fail[/red]")
+                progress.console.print(f"{mark} {rec.episode_id} ({rec.vehicle_id}, {len(rec.steps)} steps, "
+                                       f"{rec.duration_s:.0f} s): {rec.verdict or rec.harness_error}")
+                progress.update(bar, advance=1, sr=f"success {wins[0]}/{wins[1]}")
+
+            return await run_episodes(bus, todo, cfg, results, on_done)
+    finally:
+        with contextlib.suppress(Exception):
+            await bus.close()

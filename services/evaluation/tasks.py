@@ -1,0 +1,153 @@
+"""Task suites as data: the paper's four categories, user task files, and their expansion into episodes."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from shared.errors import ConfigError
+from shared.messages import MAX_COMMAND_CHARS, Scenario
+
+SUITES_DIR = Path(__file__).resolve().parent / "suites"
+# Paper order (Section IV-B, Table II); also the row order of the report.
+PAPER_SUITES = ("localization", "clutter", "sequential", "search")
+SUITE_TITLES = {
+    "localization": "Localization",
+    "clutter": "Pick from Clutter",
+    "sequential": "Sequential",
+    "search": "Search & Pick",
+}
+# The paper's AERMANI-VLM reasoning steps per suite (Table II), the bar the rules baseline must meet.
+PAPER_RS = {"localization": 11.0, "clutter": 14.1, "sequential": 19.2, "search": 23.7}
+DEFAULT_T_MAX_S = 600.0  # paper: T_max = 10 min
+
+
+class EvalTask(BaseModel):
+    """One task: a command and what counts as success, plus what the simulator must lay out."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid", use_attribute_docstrings=True)
+
+    command: str = Field(..., min_length=1, max_length=MAX_COMMAND_CHARS)
+    """Natural-language command L sent to the reasoner."""
+    suite: str = "custom"
+    """Task category (localization, clutter, sequential, search, or a user's own name)."""
+    target_object: str
+    """Canonical name of the object that must be grasped (e.g. "red cup")."""
+    accept_objects: tuple[str, ...] = ()
+    """Other objects that also satisfy the command (e.g. any snack for "Bring me a snack")."""
+    destination: str | None = None
+    """Surface the object must end on; None means success is the object held at the end."""
+    seed: int | None = None
+    """Layout seed; None lets the runner derive one from --seed and the episode index."""
+    distractors: tuple[str, ...] | None = None
+    """Other objects to lay out; None lets the simulator's seed choose."""
+    extra_objects: tuple[str, ...] = ()
+    """Objects that must be present (e.g. the tools of "Ignore the tools ...")."""
+    target_out_of_view: bool = False
+    """Put the target outside the initial view (search tasks)."""
+    t_max_s: float | None = Field(None, gt=0, le=3600)
+    """T_max override for this task, seconds."""
+
+    @field_validator("command")
+    @classmethod
+    def _strip(cls, v: str) -> str:
+        v = v.strip()
+        if not v:
+            raise ValueError("command is empty")
+        return v
+
+    @property
+    def accepted(self) -> tuple[str, ...]:
+        return (self.target_object, *self.accept_objects)
+
+    def scenario(self, seed: int) -> Scenario:
+        return Scenario(seed=seed, target_object=self.target_object, destination=self.destination,
+                        distractors=self.distractors, target_out_of_view=self.target_out_of_view,
+                        extra_objects=self.extra_objects)
+
+
+class EpisodeSpec(BaseModel):
+    """One episode to run: a task with its seed under one backend and variant. `episode_id` is stable
+    across runs (it names the configuration, the suite and the index), which is what makes runs resumable."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    episode_id: str
+    task: EvalTask
+    seed: int
+    index: int
+    backend: str
+    variant: str
+
+
+def load_jsonl(path: Path, default_suite: str | None = None) -> list[EvalTask]:
+    """Tasks from a JSON Lines file; blank lines and lines starting with # are skipped."""
+    tasks: list[EvalTask] = []
+    try:
+        lines = Path(path).read_text(encoding="utf-8").splitlines()
+    except OSError as exc:
+        raise ConfigError(f"cannot read task file {path}: {exc}")
+    for n, line in enumerate(lines, 1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        try:
+            data = json.loads(line)
+            if default_suite and "suite" not in data:
+                data["suite"] = default_suite
+            tasks.append(EvalTask.model_validate(data))
+        except (json.JSONDecodeError, ValidationError) as exc:
+            raise ConfigError(f"{path}:{n}: not a valid task ({exc}); expected one JSON object per line with "
+                              f'"command", "suite", "target_object", "destination", "seed"')
+    if not tasks:
+        raise ConfigError(f"{path} holds no tasks")
+    return tasks
+
+
+def load_suites(names: list[str] | None = None) -> dict[str, list[EvalTask]]:
+    """The built-in suites (services/evaluation/suites/<name>.jsonl), in paper order."""
+    available = {p.stem: p for p in SUITES_DIR.glob("*.jsonl")}
+    wanted = list(names) if names else [s for s in PAPER_SUITES if s in available]
+    unknown = [n for n in wanted if n not in available]
+    if unknown:
+        raise ConfigError(f"unknown suites {unknown}; available: {sorted(available)}")
+    return {name: load_jsonl(available[name], default_suite=name) for name in wanted}
+
+
+def derive_seed(base_seed: int, suite: str, index: int) -> int:
+    """A layout seed that depends only on (base seed, suite, index), stable across Python runs."""
+    digest = hashlib.sha256(f"{base_seed}/{suite}/{index}".encode()).digest()
+    return int.from_bytes(digest[:4], "big") & 0x7FFFFFFF
+
+
+def config_label(backend: str, variant: str) -> str:
+    return f"{backend}/{variant}"
+
+
+def expand(tasks_by_suite: dict[str, list[EvalTask]], *, episodes: int | None, backends: list[str],
+           variants: list[str], base_seed: int = 0) -> list[EpisodeSpec]:
+    """Episodes for every (backend, variant) x suite: `episodes` per suite cycling through the suite's tasks
+    (None: each task once). Seeds are the task's own or derived, and identical across variants, so every
+    variant sees the same layouts."""
+    specs: list[EpisodeSpec] = []
+    for backend in backends:
+        for variant in variants:
+            for suite, tasks in tasks_by_suite.items():
+                n = len(tasks) if episodes is None else episodes
+                for i in range(n):
+                    task = tasks[i % len(tasks)]
+                    seed = task.seed if task.seed is not None else derive_seed(base_seed, suite, i)
+                    eid = f"{backend}/{variant}/{suite}/{i:03d}-s{seed}"
+                    specs.append(EpisodeSpec(episode_id=eid, task=task, seed=seed, index=i, backend=backend,
+                                             variant=variant))
+    return specs
+
+
+def group_by_suite(tasks: list[EvalTask]) -> dict[str, list[EvalTask]]:
+    out: dict[str, list[EvalTask]] = {}
+    for t in tasks:
+        out.setdefault(t.suite, []).append(t)
+    return out

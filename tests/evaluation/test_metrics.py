@@ -1,0 +1,210 @@
+"""The paper's metrics on hand-made traces, with exact expected numbers."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from services.evaluation.metrics import (
+    Action,
+    actions_of,
+    compute,
+    oscillations,
+    percentile,
+    redundancy_ratio,
+    redundant_actions,
+    repeated_localizations,
+    zero_net_sequences,
+)
+from services.evaluation.records import EpisodeRecord
+from services.evaluation.tasks import EvalTask
+from shared.messages import (
+    ModelCall,
+    Pose,
+    ReasoningStep,
+    SkillOutcome,
+    SkillState,
+    SkillToExecute,
+    TaskState,
+    TaskStatus,
+    Vec3,
+)
+
+TASK = EvalTask(command="Pick up the red cup and place it on the table.", suite="localization",
+                target_object="red cup", destination="table")
+
+
+def acts(*names: str) -> list[Action]:
+    out = []
+    for n in names:
+        skill, _, arg = n.partition(":")
+        out.append(Action(skill, arg or None))
+    return out
+
+
+def step(i: int, skill: str | None, arg: str | None = None, *, calls=((True, 0.5),), state=SkillState.SUCCEEDED,
+         start: Pose | None = None, end: Pose | None = None) -> ReasoningStep:
+    return ReasoningStep(
+        task_id="t", step=i,
+        calls=tuple(ModelCall(raw_answer="{}", valid=v, latency_s=lat) for v, lat in calls),
+        ste=SkillToExecute(skill=skill, argument=arg) if skill else None, valid=skill is not None,
+        skill_state=state if skill else None,
+        outcome=SkillOutcome(start_pose=start, end_pose=end) if (start or end) else None,
+    )
+
+
+def record(eid: str, success: bool, steps: list[ReasoningStep], duration_s: float = 10.0, **kw) -> EpisodeRecord:
+    status = TaskStatus(task_id="t", command=TASK.command, state=TaskState.SUCCEEDED if success else
+                        TaskState.FAILED, steps=len(steps), started_ns=1_000_000_000,
+                        ended_ns=1_000_000_000 + int(duration_s * 1e9))
+    return EpisodeRecord(episode_id=eid, suite="localization", backend="rules", variant="full", task=TASK, seed=1,
+                         state=status.state.value, success=success, steps=steps, status=status, **kw)
+
+
+# ---------------------------------------------------------------- ARR rules
+
+
+def test_oscillation_within_two_motions_marks_both():
+    a = acts("forward", "yaw_left", "backward", "obj_localization:red cup", "grasp")
+    assert oscillations(a) == {0, 2}
+
+
+def test_oscillation_beyond_two_motions_is_not_redundant():
+    a = acts("forward", "yaw_left", "up", "backward")
+    assert oscillations(a) == set()
+
+
+def test_oscillation_chain():
+    assert oscillations(acts("left", "right", "left")) == {0, 1, 2}
+
+
+def test_zero_net_square_without_poses():
+    # forward, left, backward, right: back at the start whatever the step sizes; no pair is adjacent-opposite
+    a = acts("forward", "left", "backward", "right", "obj_localization:cup")
+    assert oscillations(a) == {0, 1, 2, 3}  # each leg is undone two motions later
+    assert zero_net_sequences(a) == {0, 1, 2, 3}
+
+
+def test_zero_net_square_with_separated_legs():
+    # forward, left, up, backward, right, down: no opposite within two motions, still zero net
+    a = acts("forward", "left", "up", "backward", "right", "down")
+    assert oscillations(a) == set()
+    assert zero_net_sequences(a) == set(range(6))
+
+
+def test_zero_net_needs_consecutive_motions():
+    # a localization between the legs breaks the run: rule 2 does not apply
+    a = acts("forward", "left", "obj_localization:cup", "backward", "right")
+    assert zero_net_sequences(a) == set()
+
+
+def test_zero_net_yaw_turn_is_not_zero_without_poses():
+    # forward, yaw_left, backward does not return to the start for a generic yaw step
+    assert zero_net_sequences(acts("forward", "yaw_left", "backward")) == set()
+    # a full turn around with the same number of left and right yaws does
+    assert zero_net_sequences(acts("yaw_left", "yaw_left", "yaw_right", "yaw_right")) == {0, 1, 2, 3}
+
+
+def test_zero_net_from_trajectory_poses():
+    p = lambda x, y, yaw=0.0: Pose(position=Vec3(x=x, y=y, z=1.5), yaw=yaw)  # noqa: E731
+    # forward, yaw_left, forward, yaw_left ... poses say it came back within 5 cm (tolerance 10 cm)
+    a = [Action("forward", None, p(0, 0), p(1, 0)),
+         Action("yaw_left", None, p(1, 0), p(1, 0, math.pi / 2)),
+         Action("forward", None, p(1, 0, math.pi / 2), p(1, 1, math.pi / 2)),
+         Action("yaw_left", None, p(1, 1, math.pi / 2), p(1, 1, math.pi)),
+         Action("forward", None, p(1, 1, math.pi), p(0.03, 1.0, math.pi)),
+         Action("yaw_left", None, p(0.03, 1.0, math.pi), p(0.03, 1.0, -math.pi / 2)),
+         Action("forward", None, p(0.03, 1.0, -math.pi / 2), p(0.03, 0.04, -math.pi / 2)),
+         Action("yaw_left", None, p(0.03, 0.04, -math.pi / 2), p(0.03, 0.04, 0.02)),
+         Action("obj_localization", "cup", p(0.03, 0.04), p(0.03, 0.04))]
+    assert zero_net_sequences(a) == set(range(8))
+    # but the same motions ending 30 cm away are not redundant
+    far = [*a[:6], Action("forward", None, a[6].start_pose, p(0.3, 0.0, -math.pi / 2)), a[7]]
+    far[7] = Action("yaw_left", None, p(0.3, 0.0, -math.pi / 2), p(0.3, 0.0, 0.0))
+    assert zero_net_sequences(far) == set()
+
+
+def test_repeated_localization_without_motion():
+    a = acts("obj_localization:red cup", "placement_localization:table", "obj_localization:Red  Cup",
+             "forward", "obj_localization:red cup", "grasp", "placement_localization:table",
+             "placement_localization:table")
+    assert repeated_localizations(a) == {2, 7}
+
+
+def test_redundant_union_counts_each_action_once():
+    # forward/backward is both an oscillation and a zero-net pair: 2 redundant actions, not 4
+    a = acts("forward", "backward", "obj_localization:cup", "obj_localization:cup", "grasp")
+    assert redundant_actions(a) == {0, 1, 3}
+    assert redundancy_ratio(a) == pytest.approx(3 / 5)
+
+
+def test_clean_pick_and_place_has_no_redundancy():
+    a = acts("forward", "forward", "obj_localization:red cup", "grasp", "yaw_left", "placement_localization:table",
+             "place")
+    assert redundant_actions(a) == set()
+    assert redundancy_ratio([]) == 0.0
+
+
+def test_actions_skip_done_and_unexecuted_steps():
+    steps = [step(1, "forward"), step(2, None, calls=((False, 0.4), (False, 0.4))), step(3, "done")]
+    assert [a.skill for a in actions_of(steps)] == ["forward"]
+
+
+# ---------------------------------------------------------------- aggregate metrics
+
+
+def test_percentile_linear_interpolation():
+    xs = [1.0, 2.0, 3.0, 4.0]
+    assert percentile(xs, 50) == pytest.approx(2.5)
+    assert percentile(xs, 95) == pytest.approx(3.85)
+    assert percentile([7.0], 95) == 7.0
+
+
+def test_compute_on_hand_made_episodes():
+    ep1 = record("e1", True, [  # 4 actions, forward/backward oscillation -> 2/4 redundant; 4 calls, 1 invalid
+        step(1, "forward", calls=((True, 1.0),)),
+        step(2, "backward", calls=((False, 2.0), (True, 3.0))),
+        step(3, "obj_localization", "red cup", calls=((True, 4.0),)),
+        step(4, "grasp", calls=()),
+        step(5, "done", calls=()),
+    ], duration_s=20.0)
+    ep2 = record("e2", True, [  # 3 actions, none redundant; 2 calls valid
+        step(1, "obj_localization", "red cup", calls=((True, 5.0),)),
+        step(2, "grasp", calls=((True, 6.0),)),
+        step(3, "place", calls=()),
+    ], duration_s=40.0)
+    ep3 = record("e3", False, [  # failure: 2 steps, 2 invalid calls; its actions do not count for ARR
+        step(1, "left", calls=((False, 7.0),)),
+        step(2, "right", calls=((False, 8.0),)),
+    ], duration_s=600.0)
+    m = compute([ep1, ep2, ep3])
+    assert m.episodes == 3 and m.successes == 2
+    assert m.sr == pytest.approx(200 / 3)
+    assert m.arr == pytest.approx(100 * (0.5 + 0.0) / 2)  # 25.0
+    assert m.rs == pytest.approx((5 + 3 + 2) / 3)
+    assert m.queries == 8 and m.invalid == 3
+    assert m.iar == pytest.approx(37.5)
+    assert m.rt_median == pytest.approx(4.5)  # latencies 1..8
+    assert m.rt_p95 == pytest.approx(7.65)
+    assert m.tt == pytest.approx(30.0)
+
+
+def test_compute_leaves_out_episodes_the_harness_could_not_run():
+    ok = record("e1", True, [step(1, "obj_localization", "red cup"), step(2, "grasp")])
+    broken = EpisodeRecord(episode_id="e2", suite="localization", backend="rules", variant="full", task=TASK, seed=2,
+                           harness_error="sim/reset failed")
+    m = compute([ok, broken])
+    assert (m.episodes, m.not_run, m.sr, m.rs) == (1, 1, 100.0, 2.0)
+
+
+def test_compute_without_success_or_calls():
+    m = compute([record("e1", False, [step(1, "forward", calls=())])])
+    assert m.sr == 0.0 and m.arr is None and m.tt is None and m.iar is None and m.rt_median is None
+    assert compute([]).sr is None
+
+
+def test_rs_counts_steps_announced_by_the_status_when_samples_were_lost():
+    rec = record("e1", True, [step(1, "grasp")])
+    rec = rec.model_copy(update={"status": rec.status.model_copy(update={"steps": 4})})
+    assert compute([rec]).rs == 4.0
