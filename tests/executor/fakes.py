@@ -1,0 +1,246 @@
+"""Stand-ins for the autopilot bridge, perception and the depth camera, served on a real Zenoh bus.
+
+They answer the same keys with the same messages as the real services, with a simple kinematic vehicle and
+a toy world (objects, surfaces, a camera frustum), so executor logic can be tested without the simulator."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from shared.bus import Bus
+from shared.keys import Keys
+from shared.messages import (
+    AutopilotCommand,
+    AutopilotResult,
+    GripperState,
+    LandedState,
+    LocalizeRequest,
+    ObjectEstimate,
+    PlacementEstimate,
+    Pose,
+    Vec3,
+    VehicleState,
+    now_ns,
+)
+from shared.sensors import raw16_message
+
+
+@dataclass
+class Thing:
+    name: str
+    center: np.ndarray
+    size: tuple[float, float, float]
+    attached: bool = False
+
+    @property
+    def top(self) -> float:
+        return float(self.center[2] + self.size[2] / 2)
+
+
+@dataclass
+class ToyWorld:
+    objects: dict[str, Thing] = field(default_factory=dict)
+    surfaces: dict[str, Thing] = field(default_factory=dict)
+
+    def add_object(self, name: str, x: float, y: float, support_z: float, size=(0.08, 0.08, 0.11)) -> Thing:
+        t = Thing(name, np.array([x, y, support_z + size[2] / 2]), size)
+        self.objects[name] = t
+        return t
+
+    def add_surface(self, name: str, x: float, y: float, top: float, size=(1.2, 0.8)) -> Thing:
+        t = Thing(name, np.array([x, y, top / 2]), (size[0], size[1], top))
+        self.surfaces[name] = t
+        return t
+
+    def grab(self, g: np.ndarray) -> Thing | None:
+        for t in self.objects.values():
+            if (not t.attached and math.hypot(g[0] - t.center[0], g[1] - t.center[1]) <= 0.07
+                    and t.center[2] <= g[2] <= t.top + 0.05):
+                t.attached = True
+                return t
+        return None
+
+    def carry(self, g: np.ndarray) -> None:
+        for t in self.objects.values():
+            if t.attached:
+                t.center = np.array([g[0], g[1], g[2] - t.size[2] / 2])
+
+    def release(self) -> None:
+        for t in self.objects.values():
+            if t.attached:
+                t.attached = False
+                support = 0.0
+                for s in self.surfaces.values():
+                    if (abs(t.center[0] - s.center[0]) <= s.size[0] / 2 and abs(t.center[1] - s.center[1])
+                            <= s.size[1] / 2 and s.top <= t.center[2] - t.size[2] / 2 + 0.02):
+                        support = max(support, s.top)
+                t.center = np.array([t.center[0], t.center[1], support + t.size[2] / 2])
+
+
+class FakeAutopilot:
+    """Kinematic vehicle: goto ramps at max_speed, yaw at 90 deg/s; hold freezes; publishes state at 50 Hz."""
+
+    def __init__(self, bus: Bus, keys: Keys, world: ToyWorld | None = None, airborne_at: float | None = None,
+                 rate_hz: float = 50.0) -> None:
+        self.bus, self.keys, self.world = bus, keys, world
+        self.pos = np.zeros(3)
+        self.vel = np.zeros(3)
+        self.yaw = 0.0
+        self.target: np.ndarray | None = None
+        self.target_yaw = 0.0
+        self.speed = 1.0
+        self.armed = False
+        self.landed = LandedState.ON_GROUND
+        self.gripper = GripperState.OPEN
+        self.link_ok = True
+        self.offboard_ok = False
+        self.publishing = True
+        self.commands: list[str] = []
+        self.dt = 1.0 / rate_hz
+        if airborne_at is not None:
+            self.pos[2] = airborne_at
+            self.armed, self.landed, self.offboard_ok = True, LandedState.IN_AIR, True
+            self.target = self.pos.copy()
+
+    def moving_commands(self) -> list[str]:
+        return [c for c in self.commands if c in ("goto", "takeoff", "land", "arm")]
+
+    def state(self) -> VehicleState:
+        return VehicleState(vehicle_id=self.keys.vehicle_id, position=Vec3(x=self.pos[0], y=self.pos[1], z=self.pos[2]),
+                            velocity=Vec3(x=self.vel[0], y=self.vel[1], z=self.vel[2]), yaw=self.yaw, armed=self.armed,
+                            mode="OFFBOARD" if self.offboard_ok else "POSCTL", landed_state=self.landed,
+                            gripper=self.gripper, link_ok=self.link_ok, offboard_ok=self.offboard_ok)
+
+    def gripper_point(self) -> np.ndarray:
+        return self.pos + np.array([0.0, 0.0, -0.22])
+
+    async def handle(self, cmd) -> AutopilotResult:
+        self.commands.append(cmd.kind)
+        ok = True
+        if cmd.kind == "arm":
+            self.armed = True
+        elif cmd.kind == "takeoff":
+            if not self.armed:
+                return AutopilotResult(ok=False, command="takeoff", message="not armed")
+            self.landed = LandedState.TAKEOFF
+            self.target, self.speed = np.array([self.pos[0], self.pos[1], cmd.altitude]), 1.0
+            while self.pos[2] < cmd.altitude - 1e-6:
+                await asyncio.sleep(self.dt)
+            self.landed, self.offboard_ok = LandedState.IN_AIR, True
+        elif cmd.kind == "goto":
+            p = cmd.position
+            self.target, self.target_yaw = np.array([p.x, p.y, p.z]), cmd.yaw
+            self.speed = cmd.max_speed or 1.0
+        elif cmd.kind == "hold":
+            self.target, self.target_yaw = self.pos.copy(), self.yaw
+            self.vel[:] = 0.0
+        elif cmd.kind == "land":
+            self.landed = LandedState.LANDING
+            self.target, self.speed = np.array([self.pos[0], self.pos[1], 0.0]), 0.8
+        elif cmd.kind == "gripper":
+            self.gripper = GripperState.CLOSED if cmd.action == "close" else GripperState.OPEN
+            if self.world is not None:
+                if cmd.action == "close":
+                    self.world.grab(self.gripper_point())
+                else:
+                    self.world.release()
+        return AutopilotResult(ok=ok, command=cmd.kind, message="ok")
+
+    def step(self) -> None:
+        if self.target is not None:
+            d = self.target - self.pos
+            n = float(np.linalg.norm(d))
+            stepn = self.speed * self.dt
+            if n <= stepn:
+                self.pos = self.target.copy()
+                self.vel[:] = 0.0
+            else:
+                self.vel = d / n * self.speed
+                self.pos = self.pos + self.vel * self.dt
+            err = (self.target_yaw - self.yaw + math.pi) % (2 * math.pi) - math.pi
+            turn = math.radians(90) * self.dt
+            self.yaw = self.target_yaw if abs(err) <= turn else self.yaw + math.copysign(turn, err)
+            self.yaw = (self.yaw + math.pi) % (2 * math.pi) - math.pi
+        if self.landed == LandedState.LANDING and self.pos[2] <= 0.01:
+            self.landed, self.armed, self.offboard_ok, self.target = LandedState.ON_GROUND, False, False, None
+        if self.world is not None:
+            self.world.carry(self.gripper_point())
+
+    async def run(self) -> None:
+        self.bus.serve(self.keys.autopilot_command, self.handle, AutopilotCommand)
+        while True:
+            self.step()
+            if self.publishing:
+                self.bus.publish(self.keys.autopilot_state, self.state())
+            await asyncio.sleep(self.dt)
+
+
+class FakePerception:
+    """Localizes toy-world things inside a camera frustum pitched 35 deg down (never right below)."""
+
+    def __init__(self, bus: Bus, keys: Keys, world: ToyWorld, vehicle: FakeAutopilot) -> None:
+        self.bus, self.keys, self.world, self.vehicle = bus, keys, world, vehicle
+        self.queries: list[str] = []
+
+    def visible(self, p: np.ndarray) -> bool:
+        cam = self.vehicle.pos + np.array([0.12 * math.cos(self.vehicle.yaw), 0.12 * math.sin(self.vehicle.yaw), -0.05])
+        d = p - cam
+        horiz = math.hypot(d[0], d[1])
+        if horiz < 0.05:
+            return False
+        bearing = (math.atan2(d[1], d[0]) - self.vehicle.yaw + math.pi) % (2 * math.pi) - math.pi
+        depression = math.degrees(math.atan2(-d[2], horiz))
+        return abs(bearing) < math.radians(40) and 1.0 < depression < 68.0 and horiz < 4.0
+
+    async def localize_object(self, req: LocalizeRequest) -> ObjectEstimate:
+        self.queries.append(req.query)
+        for t in self.world.objects.values():
+            if req.query.lower() in t.name and not t.attached and self.visible(t.center):
+                return ObjectEstimate(query=req.query, found=True, label=t.name,
+                                      pose=Pose(position=Vec3(x=t.center[0], y=t.center[1], z=t.center[2])),
+                                      size=Vec3(x=t.size[0], y=t.size[1], z=t.size[2]), top_z=t.top,
+                                      support_z=t.center[2] - t.size[2] / 2, confidence=0.9, frame_stamp_ns=now_ns())
+        return ObjectEstimate(query=req.query, found=False, reason="not_visible", message=f"{req.query} not visible")
+
+    async def localize_placement(self, req: LocalizeRequest) -> PlacementEstimate:
+        self.queries.append(req.query)
+        for t in self.world.surfaces.values():
+            if req.query.lower() in t.name and self.visible(np.array([t.center[0], t.center[1], t.top])):
+                return PlacementEstimate(query=req.query, found=True, label=t.name,
+                                         pose=Pose(position=Vec3(x=t.center[0], y=t.center[1], z=t.top + 0.02)),
+                                         surface_z=t.top, vertical_offset=0.02, confidence=0.9,
+                                         frame_stamp_ns=now_ns())
+        return PlacementEstimate(query=req.query, found=False, reason="not_visible", message=f"{req.query} not visible")
+
+    def serve(self) -> None:
+        self.bus.serve(self.keys.localize_object, self.localize_object, LocalizeRequest)
+        self.bus.serve(self.keys.localize_placement, self.localize_placement, LocalizeRequest)
+
+
+class FakeDepth:
+    """Publishes a uniform depth image (`distance_m` along the optical axis everywhere) at 10 Hz."""
+
+    def __init__(self, bus: Bus, keys: Keys, distance_m: float = 8.0) -> None:
+        self.bus, self.keys, self.distance_m = bus, keys, distance_m
+        self.publishing = True
+
+    async def run(self) -> None:
+        while True:
+            if self.publishing:
+                img = np.full((480, 640), int(self.distance_m * 1000), dtype=np.uint16)
+                self.bus.publish(self.keys.camera_depth, raw16_message(img, time.time_ns()), schema="foxglove.RawImage")
+            await asyncio.sleep(0.1)
+
+
+async def cancel_all(tasks: list[asyncio.Task]) -> None:
+    for t in tasks:
+        t.cancel()
+    for t in tasks:
+        with contextlib.suppress(BaseException):
+            await t

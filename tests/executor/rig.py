@@ -1,0 +1,89 @@
+"""An in-process test rig: router, the executor on its own client session, fakes and a caller on another."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from dataclasses import dataclass
+
+from services.executor.service import Executor
+from services.executor.settings import ExecutorSettings
+from shared.bus import Bus, Subscription
+from shared.errors import BusError
+from shared.keys import Keys
+from shared.launcher import free_port, open_router
+from shared.messages import SkillAccept, SkillLibrary, SkillRequest, SkillState, SkillStatus, WorkingMemory
+from tests.executor.fakes import FakeAutopilot, FakeDepth, FakePerception, ToyWorld, cancel_all
+from tests.helpers import wait_until
+
+
+@dataclass
+class Rig:
+    bus: Bus
+    executor: Executor
+    vehicle: FakeAutopilot
+    perception: FakePerception
+    depth: FakeDepth
+    world: ToyWorld
+    keys: Keys
+    statuses: Subscription[SkillStatus]
+    memory: Subscription[WorkingMemory]
+
+    async def request(self, skill: str, argument: str | None = None, task_id: str = "t1") -> SkillAccept:
+        return await self.bus.query(self.keys.run_skill, SkillRequest(skill=skill, argument=argument, task_id=task_id),
+                                    SkillAccept, timeout=5.0)
+
+    async def terminal(self, goal_id: str, timeout: float = 60.0) -> SkillStatus:
+        async def loop() -> SkillStatus:
+            while True:
+                st = await self.statuses.recv()
+                if st.goal_id == goal_id and st.state.terminal:
+                    return st
+
+        return await asyncio.wait_for(loop(), timeout)
+
+    async def run_skill(self, skill: str, argument: str | None = None, timeout: float = 60.0) -> SkillStatus:
+        acc = await self.request(skill, argument)
+        st = await self.terminal(acc.goal_id, timeout)
+        if not acc.accepted:
+            assert st.state == SkillState.REJECTED
+        return st
+
+
+@contextlib.asynccontextmanager
+async def rig(airborne_at: float | None = 1.5, depth_m: float | None = 8.0, **settings_kw):
+    port = free_port()
+    router = open_router(port)
+    endpoint = f"tcp/127.0.0.1:{port}"
+    settings = ExecutorSettings(zenoh_connect=[endpoint], **settings_kw)
+    keys = settings.keys
+    ebus = await Bus.open(connect=[endpoint])
+    bus = await Bus.open(connect=[endpoint])
+    world = ToyWorld()
+    vehicle = FakeAutopilot(bus, keys, world, airborne_at=airborne_at)
+    perception = FakePerception(bus, keys, world, vehicle)
+    perception.serve()
+    depth = FakeDepth(bus, keys, depth_m or 8.0)
+    depth.publishing = depth_m is not None
+    executor = Executor(ebus, settings)
+    stop = asyncio.Event()
+    statuses = bus.subscribe(keys.skill_status, SkillStatus, maxsize=1000, overflow="drop_newest")
+    memory = bus.subscribe(keys.memory, WorkingMemory, maxsize=1000)
+    tasks = [asyncio.create_task(vehicle.run()), asyncio.create_task(depth.run()),
+             asyncio.create_task(executor.run(stop))]
+    try:
+        await wait_until(lambda: executor.state.value is not None
+                         and (depth_m is None or executor.clearance.depth is not None), 20.0, what="executor inputs")
+        # The executor's queryables must be reachable from the caller's session before the test starts.
+        for _ in range(100):
+            with contextlib.suppress(BusError):
+                await bus.query(keys.skills, None, SkillLibrary, timeout=1.0)
+                break
+            await asyncio.sleep(0.05)
+        yield Rig(bus, executor, vehicle, perception, depth, world, keys, statuses, memory)
+    finally:
+        stop.set()
+        await cancel_all(tasks)
+        await bus.close()
+        await ebus.close()
+        router.close()
