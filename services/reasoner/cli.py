@@ -1,0 +1,280 @@
+"""`aermani vlm check FILE` (validate recorded model answers) and `aermani demo "COMMAND"` (whole stack, one task)."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.console import Console
+
+from shared.messages import VARIANTS
+
+console = Console()
+
+
+# --------------------------------------------------------------------------- vlm check
+
+
+async def _live_library(connect: str, timeout: float):
+    """The executor's registry if a router and an executor answer within `timeout`, else None."""
+    import json as _json
+
+    from shared.bus import Bus, zenoh_config
+    from shared.keys import Keys
+    from shared.messages import SkillLibrary
+
+    cfg = zenoh_config(mode="client", connect=[connect])
+    cfg.insert_json5("connect/timeout_ms", _json.dumps(int(timeout * 1000)))
+    try:
+        bus = await Bus.open(config=cfg)
+    except Exception:
+        return None
+    try:
+        return await bus.query(Keys().skills, None, SkillLibrary, timeout=timeout)
+    except Exception:
+        return None
+    finally:
+        await bus.close()
+
+
+def check_command(
+    file: Annotated[Path, typer.Argument(help="One JSON-encoded string (a model answer) per line.")],
+    variant: Annotated[str, typer.Option(help=f"Prompt variant the answers were given for ({', '.join(VARIANTS)}).")]
+    = "full",
+    connect: Annotated[str, typer.Option(help="Zenoh router to ask for the executor's live skill library.")]
+    = "tcp/127.0.0.1:7447",
+    offline: Annotated[bool, typer.Option(help="Use the built-in default skill library without asking.")] = False,
+    coverage: Annotated[float, typer.Option(help="Fraction of skills the action predictions must cover.")] = 1.0,
+) -> None:
+    """Print, per line, whether the answer is accepted (and the skill) or the reason it is rejected."""
+    from services.reasoner.library import default_library
+    from services.reasoner.parse import parse_answer
+    from shared.errors import InvalidAnswer
+
+    if variant not in VARIANTS:
+        console.print(f"[red]unknown variant {variant!r}; use one of {', '.join(VARIANTS)}[/red]")
+        raise typer.Exit(2)
+    try:
+        lines = file.read_text(encoding="utf-8").splitlines()
+    except OSError as exc:
+        console.print(f"[red]cannot read {file}: {exc}[/red]")
+        raise typer.Exit(2)
+    library = None if offline else asyncio.run(_live_library(connect, 2.0))
+    source = "executor's live registry" if library is not None else "built-in default library"
+    library = library or default_library()
+    console.print(f"checking {file} against the {source} (variant {variant})")
+    rejected = total = 0
+    for n, line in enumerate(lines, 1):
+        if not line.strip():
+            continue
+        total += 1
+        try:
+            raw = json.loads(line)
+            if not isinstance(raw, str):
+                raise ValueError("the line is JSON but not a string")
+        except ValueError as exc:
+            rejected += 1
+            console.print(f"{n}: rejected: line is not a JSON-encoded string ({exc})", markup=False)
+            continue
+        try:
+            p = parse_answer(raw, variant, library, coverage=coverage)
+        except InvalidAnswer as exc:
+            rejected += 1
+            console.print(f"{n}: rejected: {exc}", markup=False)
+            continue
+        call = f"{p.ste.skill}({p.ste.argument})" if p.ste.argument else p.ste.skill
+        console.print(f"{n}: accepted: {call}" + (" (recovered leniently)" if p.recovered else ""), markup=False)
+    console.print(f"{total - rejected}/{total} accepted, {rejected} rejected")
+    if rejected:
+        raise typer.Exit(1)
+
+
+# --------------------------------------------------------------------------- demo
+
+
+def scenario_for(command: str, target: str | None, destination: str | None, seed: int):
+    """A simulator scenario that makes the command meaningful (target, destination, needed extras)."""
+    from services.reasoner.backends.rules import parse_command
+    from shared.messages import Scenario
+
+    plan = parse_command(command)
+    extra: tuple[str, ...] = ()
+    accept: tuple[str, ...] = ()
+    out_of_view = bool(__import__("re").search(r"\b(find|locate|search|look for)\b", command.lower()))
+    if target is None:
+        if plan.choices:
+            target, extra = plan.choices[0], (plan.choices[1],)
+        elif plan.selector:
+            big, small = "large box", "small box"
+            target, extra = (big, (small,)) if plan.selector == "larger" else (small, (big,))
+        elif plan.category == "snack":
+            target, accept = "apple", ("banana", "orange", "cracker box")
+        else:
+            target = plan.target
+    if plan.excluded and "tool" in plan.excluded:
+        extra = (*extra, "hammer", "wrench")
+    if destination is None:
+        destination = plan.destination
+    return Scenario(seed=seed, target_object=target, destination=destination, extra_objects=extra,
+                    target_out_of_view=out_of_view), (target, *accept) if target else accept
+
+
+def demo_command(
+    command: Annotated[str, typer.Argument(help="The natural-language command, e.g. \"pick up the red cup and "
+                                                "place it on the table\".")],
+    backend: Annotated[str, typer.Option(help="rules, openai, anthropic or replay.")] = "rules",
+    variant: Annotated[str, typer.Option(help=f"Prompt variant ({', '.join(VARIANTS)}).")] = "full",
+    seed: Annotated[int, typer.Option(help="Layout seed of the simulated room.")] = 0,
+    target: Annotated[str | None, typer.Option(help="Scenario target object (default: read from the command).")]
+    = None,
+    destination: Annotated[str | None, typer.Option(help="Scenario destination surface (default: from the command).")]
+    = None,
+    speed_factor: Annotated[float, typer.Option(help="Simulator speed versus wall clock.")] = 2.0,
+    model: Annotated[str, typer.Option(help="Model for openai/anthropic.")] = "",
+    base_url: Annotated[str | None, typer.Option(help="Endpoint for openai/anthropic (e.g. a local vLLM).")] = None,
+    t_max: Annotated[float, typer.Option(help="T_max, seconds.")] = 600.0,
+    log_dir: Annotated[Path | None, typer.Option(help="Service logs directory (default runs/<time>/logs).")] = None,
+) -> None:
+    """Start the embedded stack (router, sim, bridge, perception, executor, reasoner, recorder), run the command,
+    stream each step, and judge success with the simulator's ground truth."""
+    if variant not in VARIANTS:
+        console.print(f"[red]unknown variant {variant!r}; use one of {', '.join(VARIANTS)}[/red]")
+        raise typer.Exit(2)
+    scenario, accepted = scenario_for(command, target, destination, seed)
+    env = {"AERMANI_REASONER_BACKEND": backend, "AERMANI_REASONER_VARIANT": variant,
+           "AERMANI_SIM_SPEED_FACTOR": str(speed_factor), "AERMANI_SIM_SEED": str(seed)}
+    if scenario.target_object:
+        env["AERMANI_SIM_TARGET_OBJECT"] = scenario.target_object
+    if scenario.destination:
+        env["AERMANI_SIM_DESTINATION"] = scenario.destination
+    if model:
+        env["AERMANI_REASONER_MODEL"] = model
+    if base_url:
+        env["AERMANI_REASONER_BASE_URL"] = base_url
+    code = run_demo(command, scenario, accepted, env=env, t_max=t_max, log_dir=log_dir)
+    raise typer.Exit(code)
+
+
+def demo_env(extra: dict[str, str]) -> dict[str, str]:
+    """Free loopback UDP ports for the sim/bridge MAVLink pair, so a demo never collides with another stack."""
+    from shared.launcher import free_udp_port
+
+    api = free_udp_port()
+    return {"AERMANI_SIM_API_PORT": str(api), "AERMANI_SIM_API_LOCAL_PORT": str(free_udp_port()),
+            "AERMANI_SIM_GCS_PORT": str(free_udp_port()), "AERMANI_SIM_GCS_LOCAL_PORT": str(free_udp_port()),
+            "AERMANI_AUTOPILOT_BRIDGE_CONNECTION": f"udpin:127.0.0.1:{api}", **extra}
+
+
+DEMO_SERVICES = ("sim", "autopilot_bridge", "perception", "executor", "reasoner", "recorder")
+
+
+def run_demo(command: str, scenario, accepted: tuple[str, ...], *, env: dict[str, str], t_max: float = 600.0,
+             log_dir: Path | None = None, services: tuple[str, ...] = DEMO_SERVICES) -> int:
+    """Start the stack, run one task, print the verdict; returns the exit code (0 = success)."""
+    from shared.launcher import Stack, available_services
+
+    have = available_services()
+    missing = [s for s in services if s not in have and s != "recorder"]
+    if missing:
+        console.print(f"[red]this checkout lacks services {missing}; cannot run the demo[/red]")
+        return 2
+    names = [s for s in services if s in have]
+    stack = Stack(names, env=demo_env(env), log_dir=log_dir)
+    console.print(f"starting {', '.join(names)} (router {stack.endpoint}, logs in {stack.log_dir})")
+    t0 = time.monotonic()
+    try:
+        stack.start(wait=True, timeout=180)
+        console.print(f"stack up in {time.monotonic() - t0:.1f} s")
+        return asyncio.run(_demo_task(stack, command, scenario, accepted, t_max))
+    except KeyboardInterrupt:
+        console.print("[yellow]interrupted[/yellow]")
+        return 130
+    except Exception as exc:
+        console.print(f"[red]demo failed: {type(exc).__name__}: {exc}[/red]")
+        return 1
+    finally:
+        stack.stop()
+
+
+async def _demo_task(stack, command: str, scenario, accepted: tuple[str, ...], t_max: float) -> int:
+    from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+
+    from services.reasoner.client import follow_task
+    from shared.bus import Bus
+    from shared.keys import Keys
+    from shared.messages import Health, JudgeRequest, JudgeResult, SimResetResult, TaskRequest
+
+    keys = Keys(stack.procs[0].vehicle_id)
+    bus = await Bus.open(connect=[stack.endpoint])
+    try:
+        health = bus.subscribe(keys.health("recorder"), Health, maxsize=5)
+        reset = await bus.query(keys.sim_reset, scenario, SimResetResult, timeout=30)
+        if not reset.ok:
+            console.print(f"[red]the simulator refused the scenario: {reset.message} (use --target/--destination)"
+                          "[/red]")
+            return 2
+        sc = reset.scenario or scenario
+        console.print(f"scenario: seed {sc.seed}, target {sc.target_object}, destination {sc.destination}")
+        console.print(f"[bold]task:[/bold] {command}")
+        request = TaskRequest(command=command, t_max_s=t_max)
+        with Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(), console=console,
+                      transient=True) as progress:
+            bar = progress.add_task("waiting for the first step...", total=None)
+
+            def on_step(s) -> None:
+                call = (f"{s.ste.skill}({s.ste.argument})" if s.ste and s.ste.argument else
+                        (s.ste.skill if s.ste else "(no valid answer)"))
+                why = (s.drt.reasoning or s.drt.summary or "") if s.drt else ""
+                retries = f" [yellow]{s.retries} re-prompt(s)[/yellow]" if s.retries else ""
+                state = s.skill_state.value if s.skill_state else "-"
+                color = "green" if state == "succeeded" else "red"
+                console.print(f"  {s.step:>3} {call:<38} [{color}]{state:<9}[/{color}]{retries} "
+                              f"[dim]{why[:90]}[/dim]")
+                progress.update(bar, description=f"step {s.step} done; thinking...")
+
+            accept, final, steps = await follow_task(bus, keys, request, on_step=on_step, timeout=t_max + 60)
+        if not accept.accepted:
+            console.print(f"[red]the reasoner refused the task: {accept.reason}[/red]")
+            return 1
+        assert final is not None
+        calls = final.model_calls or 1
+        console.print(f"task {final.state.value}: {final.message} ({final.steps} steps, {final.model_calls} model "
+                      f"calls, IAR {100 * final.invalid_answers / calls:.1f} %)")
+        if sc.destination:
+            ok, verdict = False, ""
+            for obj in accepted or (sc.target_object,):
+                j = await bus.query(keys.sim_judge, JudgeRequest(op="on_surface", object=obj, surface=sc.destination),
+                                    JudgeResult, timeout=10)
+                ok, verdict = j.ok, j.message
+                if ok:
+                    break
+        else:
+            j = await bus.query(keys.sim_judge, JudgeRequest(op="held"), JudgeResult, timeout=10)
+            ok = j.held is not None and (not accepted or j.held in accepted)
+            verdict = f"holding {j.held or 'nothing'}"
+        console.print(("[bold green]SUCCESS[/bold green]" if ok else "[bold red]FAILURE[/bold red]") +
+                      f" (simulator judge: {verdict})")
+        log_path = None
+        try:
+            h = health.latest_nowait() or await health.recv(timeout=3)
+            log_path = h.details.get("path")
+        except TimeoutError:
+            pass
+        console.print(f"log: {log_path}" if log_path else "log: no recorder running (no MCAP log written)")
+        console.print(f"service logs: {stack.log_dir}")
+        return 0 if ok and final.state.value == "succeeded" else 1
+    finally:
+        await bus.close()
+
+
+def register(app: typer.Typer) -> None:
+    vlm = typer.Typer(help="Tools for VLM answers.", no_args_is_help=True)
+    vlm.command("check")(check_command)
+    app.add_typer(vlm, name="vlm")
+    app.command("demo")(demo_command)
+
+
