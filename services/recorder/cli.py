@@ -111,6 +111,8 @@ def rereason_cmd(
     variant: Annotated[str | None, typer.Option(help="Prompt variant (default: the recorded one).")] = None,
     model: Annotated[str | None, typer.Option(help="Model name for openai/anthropic backends.")] = None,
     task: Annotated[str | None, typer.Option(help="Only this task id.")] = None,
+    answers: Annotated[Path | None, typer.Option(help="For --backend replay: the log whose recorded answers "
+                                                     "to replay.")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Machine-readable output.")] = False,
 ) -> None:
     """Re-run the reasoner's decision step offline on the recorded observations (same frames, same history)
@@ -118,7 +120,8 @@ def rereason_cmd(
     from services.recorder.rereason import RereasonError, rereason_log
 
     try:
-        res = asyncio.run(rereason_log(log, backend=backend, variant=variant, model=model, task_id=task))
+        res = asyncio.run(rereason_log(log, backend=backend, variant=variant, model=model, task_id=task,
+                                       answers=answers))
     except RereasonError as exc:
         err.print(f"[red]{exc}[/red]")
         raise typer.Exit(2)

@@ -272,6 +272,23 @@ def reasoning_steps(path: str | Path, vehicle_id: str | None = None,
     return list(latest.values())
 
 
+class McapReplaySource:
+    """Answers for the reasoner's `replay` backend from an MCAP log: every model call's raw answer (invalid
+    ones included) of the recorded reasoning steps, in order. Implements the reasoner's ReplaySource."""
+
+    def __init__(self, path: str | Path, vehicle_id: str | None = None, task_id: str | None = None) -> None:
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise FileNotFoundError(f"replay log {self.path} does not exist")
+        self.vehicle_id = vehicle_id
+        self.task_id = task_id
+
+    def answers(self) -> Iterator[str]:
+        for step in reasoning_steps(self.path, self.vehicle_id, self.task_id):
+            for call in step.calls:
+                yield call.raw_answer
+
+
 def task_statuses(path: str | Path, vehicle_id: str | None = None) -> dict[str, TaskStatus]:
     """The last recorded status of each task."""
     pattern = f"aermani/v1/{vehicle_id or '*'}/reasoner/task_status"
