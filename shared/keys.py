@@ -15,6 +15,7 @@ CAMERA_SEGMENTATION = "camera/segmentation"  # pub  foxglove.RawImage 16UC1 inst
 SIM_LABELS = "sim/labels"  # pub  SimLabels JSON: instance id -> name (sim only)
 SIM_JUDGE = "sim/judge"  # q    JudgeRequest -> JudgeResult (evaluation only; no policy may read it)
 SIM_RESET = "sim/reset"  # q    Scenario -> SimResetResult
+SIM_STATS = "sim/stats"  # q    (optional b"reset") -> JSON figures: setpoint intervals, fps, MAVLink counters
 TF = "tf"  # pub  foxglove.FrameTransforms (world->base_link, base_link->camera, base_link->gripper)
 AUTOPILOT_STATE = "autopilot/state"  # pub  VehicleState
 AUTOPILOT_COMMAND = "autopilot/command"  # q    AutopilotCommand -> AutopilotResult
@@ -64,6 +65,7 @@ class Keys:
     sim_labels = property(lambda self: self.key(SIM_LABELS))
     sim_judge = property(lambda self: self.key(SIM_JUDGE))
     sim_reset = property(lambda self: self.key(SIM_RESET))
+    sim_stats = property(lambda self: self.key(SIM_STATS))
     tf = property(lambda self: self.key(TF))
     autopilot_state = property(lambda self: self.key(AUTOPILOT_STATE))
     autopilot_command = property(lambda self: self.key(AUTOPILOT_COMMAND))

@@ -1,0 +1,173 @@
+"""The simulator service: MAVLink vehicle thread, camera publishing on Zenoh, judge/reset/stats queryables."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+
+import cv2
+
+from services.sim.core import SimCore
+from services.sim.mavlink_server import LinkSettings, MavlinkServer
+from services.sim.render import Renderer
+from services.sim.settings import SimSettings
+from services.sim.vehicle import VehicleParams
+from shared.bus import Bus
+from shared.frames import DEFAULT_INTRINSICS, base_to_camera, base_to_gripper
+from shared.messages import JudgeRequest, Scenario, SimLabels, now_ns
+from shared.sensors import (
+    BODY_FRAME,
+    CAMERA_FRAME,
+    GRIPPER_FRAME,
+    WORLD_FRAME,
+    calibration_message,
+    color_message,
+    encode_jpeg,
+    pose_matrix,
+    raw16_message,
+    transforms_message,
+)
+
+log = logging.getLogger("aermani.sim")
+
+
+def scenario_from(settings: SimSettings) -> Scenario:
+    return Scenario(seed=settings.seed, target_object=settings.target_object, destination=settings.destination,
+                    distractors=tuple(settings.distractors) if settings.distractors is not None else None,
+                    target_out_of_view=settings.target_out_of_view, extra_objects=tuple(settings.extra_objects))
+
+
+def build(settings: SimSettings) -> tuple[SimCore, MavlinkServer]:
+    params = VehicleParams(takeoff_alt=settings.takeoff_alt, offboard_loss_timeout=settings.offboard_loss_timeout,
+                           failsafe_land_delay=settings.failsafe_land_delay)
+    core = SimCore(scenario_from(settings), params)
+    links = [LinkSettings("api", settings.api_local_port, settings.api_host, settings.api_port, settings.bind_host)]
+    if settings.gcs_enabled:
+        links.append(LinkSettings("gcs", settings.gcs_local_port, settings.gcs_host, settings.gcs_port,
+                                  settings.bind_host))
+    server = MavlinkServer(core, links, speed_factor=settings.speed_factor, physics_rate=settings.physics_rate)
+    return core, server
+
+
+class CameraPublisher:
+    """Renders and publishes colour, depth, segmentation and tf with one stamp per frame."""
+
+    def __init__(self, bus: Bus, core: SimCore, settings: SimSettings) -> None:
+        self.bus, self.core, self.settings = bus, core, settings
+        self.keys = settings.keys
+        scale = settings.render_scale
+        intr = DEFAULT_INTRINSICS
+        if scale > 1:
+            # A coarser pinhole whose pixel centres coincide with every scale-th full-resolution pixel
+            # block centre; nearest upsampling keeps the published calibration exact to half a block.
+            from shared.sensors import Intrinsics
+
+            intr = Intrinsics(intr.width // scale, intr.height // scale, intr.fx / scale, intr.fy / scale,
+                              (intr.cx + 0.5) / scale - 0.5, (intr.cy + 0.5) / scale - 0.5)
+        self.renderer = Renderer(intr)
+        self.scale = scale
+        self.frames = 0
+        self.render_s = 0.0
+        self.started = time.monotonic()
+        self.last_labels_version = -1
+
+    def render_frame(self, stamp_ns: int) -> tuple[bytes, bytes, bytes, bytes]:
+        snap = self.core.snapshot()
+        t0 = time.perf_counter()
+        frame = self.renderer.render(snap)
+        rgb, depth, inst = frame.rgb, frame.depth_mm, frame.instance
+        if self.scale > 1:
+            full = (DEFAULT_INTRINSICS.width, DEFAULT_INTRINSICS.height)
+            rgb = cv2.resize(rgb, full, interpolation=cv2.INTER_LINEAR)
+            depth = cv2.resize(depth, full, interpolation=cv2.INTER_NEAREST)
+            inst = cv2.resize(inst, full, interpolation=cv2.INTER_NEAREST)
+        color = color_message(rgb, stamp_ns, jpeg=encode_jpeg(rgb, self.settings.jpeg_quality))
+        depth_msg = raw16_message(depth, stamp_ns)
+        seg_msg = raw16_message(inst, stamp_ns)
+        body = pose_matrix(float(snap.position[0]), float(snap.position[1]), float(snap.position[2]), snap.yaw)
+        tf = transforms_message([(WORLD_FRAME, BODY_FRAME, body), (BODY_FRAME, CAMERA_FRAME, base_to_camera()),
+                                 (BODY_FRAME, GRIPPER_FRAME, base_to_gripper())], stamp_ns)
+        self.render_s += time.perf_counter() - t0
+        return color, depth_msg, seg_msg, tf
+
+    async def run(self, stop: asyncio.Event) -> None:
+        period = 1.0 / self.settings.fps
+        next_t = time.monotonic()
+        last_cal = last_labels = 0.0
+        while not stop.is_set():
+            now = time.monotonic()
+            if now - last_cal >= 1.0:
+                self.bus.publish(self.keys.camera_calibration, calibration_message(DEFAULT_INTRINSICS, now_ns()),
+                                 schema="foxglove.CameraCalibration")
+                last_cal = now
+            version = self.core.world.version
+            if now - last_labels >= 1.0 or version != self.last_labels_version:
+                self.bus.publish(self.keys.sim_labels, SimLabels(labels=self.core.labels()))
+                last_labels, self.last_labels_version = now, version
+            stamp = now_ns()
+            try:
+                color, depth, seg, tf = await asyncio.to_thread(self.render_frame, stamp)
+            except Exception:
+                log.exception("rendering failed; retrying next frame")
+            else:
+                self.bus.publish(self.keys.camera_color, color, schema="foxglove.CompressedImage", reliable=False)
+                self.bus.publish(self.keys.camera_depth, depth, schema="foxglove.RawImage", reliable=False)
+                self.bus.publish(self.keys.camera_segmentation, seg, schema="foxglove.RawImage", reliable=False)
+                self.bus.publish(self.keys.tf, tf, schema="foxglove.FrameTransforms", reliable=False)
+                self.frames += 1
+            next_t += period
+            delay = next_t - time.monotonic()
+            if delay < -period:  # fell behind (loaded machine): drop frames instead of bursting
+                next_t = time.monotonic()
+                delay = 0.0
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(stop.wait(), max(delay, 0.0))
+
+    def stats(self) -> dict:
+        elapsed = max(time.monotonic() - self.started, 1e-9)
+        return {"frames": self.frames, "fps": self.frames / elapsed,
+                "render_ms_mean": 1000 * self.render_s / self.frames if self.frames else None,
+                "scene_rebuilds": self.renderer.rebuilds}
+
+    def reset_stats(self) -> None:
+        self.frames, self.render_s, self.started = 0, 0.0, time.monotonic()
+
+
+async def run(bus: Bus, settings: SimSettings, stop: asyncio.Event, *, core: SimCore | None = None,
+              server: MavlinkServer | None = None) -> None:
+    if core is None or server is None:
+        core, server = build(settings)
+        server.start()
+    camera = CameraPublisher(bus, core, settings)
+    keys = settings.keys
+
+    async def judge(req: JudgeRequest):
+        return core.judge(req)
+
+    async def reset(req: Scenario):
+        result = await asyncio.to_thread(core.reset, req)
+        if result.ok:
+            bus.publish(keys.sim_labels, SimLabels(labels=core.labels()))
+        return result
+
+    async def stats(req: bytes | None):
+        if req and b"reset" in req:
+            with core.lock:
+                core.setpoint_arrivals_ns.clear()
+            camera.reset_stats()
+        with core.lock:
+            counters = dict(core.counters)
+        return {"setpoints": core.setpoint_stats(), "camera": camera.stats(), "mavlink": server.state_summary(),
+                "counters": counters, "resets": core.resets}
+
+    bus.serve(keys.sim_judge, judge, JudgeRequest)
+    bus.serve(keys.sim_reset, reset, Scenario, concurrent=False)
+    bus.serve(keys.sim_stats, stats, None)
+    log.info("sim ready: scenario %s", core.scenario.model_dump_json())
+    try:
+        await camera.run(stop)
+    finally:
+        server.stop()
+

@@ -1,0 +1,130 @@
+"""The simulator state shared by the MAVLink thread, the renderer and the queryables, behind one lock."""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from services.sim.scenarios import ScenarioError, generate
+from services.sim.vehicle import Vehicle, VehicleParams, enu_to_ned, wrap
+from services.sim.world import World
+from shared.messages import (
+    JudgeRequest,
+    JudgeResult,
+    Pose,
+    Scenario,
+    SimLabel,
+    SimObjectTruth,
+    SimResetResult,
+    Vec3,
+)
+
+log = logging.getLogger("aermani.sim")
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    """What one camera frame needs, copied under the lock so rendering runs without it."""
+
+    world: World
+    position: np.ndarray  # ENU body origin
+    yaw: float  # ENU
+
+
+class SimCore:
+    def __init__(self, scenario: Scenario, params: VehicleParams | None = None) -> None:
+        self.lock = threading.RLock()
+        world, filled, start = generate(scenario)
+        self.world = world
+        self.scenario = filled
+        self.vehicle = Vehicle(world, params)
+        self._place_vehicle(start)
+        self.setpoint_arrivals_ns: deque[int] = deque(maxlen=20_000)
+        self.counters: dict[str, int] = {}
+        self.resets = 0
+
+    def _place_vehicle(self, start: Pose) -> None:
+        p = enu_to_ned(np.array([start.position.x, start.position.y, 0.0]))
+        self.vehicle.reset(p, wrap(math.pi / 2 - start.yaw), self.world)
+
+    # ---- queryables
+
+    def reset(self, scenario: Scenario) -> SimResetResult:
+        try:
+            world, filled, start = generate(scenario)
+        except ScenarioError as exc:
+            return SimResetResult(ok=False, message=str(exc))
+        with self.lock:
+            world.version = self.world.version + 1
+            self.world = world
+            self.scenario = filled
+            self._place_vehicle(start)
+            self.resets += 1
+        log.info("reset to scenario %s", filled.model_dump_json())
+        return SimResetResult(ok=True, message=f"world reset with seed {filled.seed}", scenario=filled)
+
+    def judge(self, req: JudgeRequest) -> JudgeResult:
+        with self.lock:
+            w, v = self.world, self.vehicle
+            held = w.attached()
+            common = {"held": held.name if held else None, "vehicle": self.vehicle_pose(),
+                      "collisions": tuple(w.collisions), "scenario": self.scenario}
+            if req.op == "held":
+                return JudgeResult(ok=held is not None, message=f"holding {held.name}" if held else
+                                   ("gripper closed, empty" if v.gripper_closed else "gripper open"), **common)
+            if req.op == "on_surface":
+                obj = w.by_name(req.object or "")
+                surf = w.by_name(req.surface or "")
+                if obj is None or obj.category != "object":
+                    return JudgeResult(ok=False, message=f"unknown object {req.object!r}", **common)
+                if req.surface and req.surface.strip().lower() == "floor":
+                    ok = not obj.attached and obj.support == "floor"
+                    return JudgeResult(ok=ok, message=f"{obj.name} {'is' if ok else 'is not'} on the floor",
+                                       **common)
+                if surf is None or surf.category not in ("surface", "furniture"):
+                    return JudgeResult(ok=False, message=f"unknown surface {req.surface!r}", **common)
+                ok, msg = w.on_surface(obj, surf, req.tolerance)
+                return JudgeResult(ok=ok, message=msg, **common)
+            truths = tuple(
+                SimObjectTruth(name=e.name, category=e.category, position=Vec3(x=e.center[0], y=e.center[1],
+                                                                               z=e.center[2]),
+                               yaw=e.yaw, size=Vec3(x=e.size[0], y=e.size[1], z=e.size[2]), top_z=e.top_z,
+                               attached=e.attached, support=e.support)
+                for e in w.entities if e.category in ("object", "surface", "furniture"))
+            return JudgeResult(ok=True, message=f"{len(truths)} things", objects=truths, **common)
+
+    def labels(self) -> tuple[SimLabel, ...]:
+        with self.lock:
+            return tuple(SimLabel(id=e.id, name=e.name, category=e.category, color=e.color,
+                                  size=Vec3(x=e.size[0], y=e.size[1], z=e.size[2])) for e in self.world.entities)
+
+    def vehicle_pose(self) -> Pose:
+        with self.lock:
+            p = self.vehicle.position_enu()
+            return Pose(position=Vec3(x=p[0], y=p[1], z=p[2]), yaw=self.vehicle.yaw_enu())
+
+    def snapshot(self) -> Snapshot:
+        with self.lock:
+            return Snapshot(self.world.copy(), self.vehicle.position_enu(), self.vehicle.yaw_enu())
+
+    # ---- statistics
+
+    def count(self, name: str, n: int = 1) -> None:
+        self.counters[name] = self.counters.get(name, 0) + n
+
+    def setpoint_stats(self) -> dict:
+        """Intervals between received SET_POSITION_TARGET_LOCAL_NED (kernel receive timestamps), in ms."""
+        arr = np.array(self.setpoint_arrivals_ns, dtype=np.int64)
+        if len(arr) < 3:
+            return {"n": int(len(arr))}
+        iv = np.diff(arr) / 1e6
+        return {"n": int(len(arr)), "interval_ms_p50": float(np.percentile(iv, 50)),
+                "interval_ms_p99": float(np.percentile(iv, 99)), "interval_ms_max": float(iv.max()),
+                "interval_ms_mean": float(iv.mean()),
+                "jitter_ms_p99": float(np.percentile(np.abs(iv - np.median(iv)), 99))}
+

@@ -1,0 +1,479 @@
+"""PX4 SITL-like MAVLink endpoints over UDP: a thread that reads commands, runs the physics and streams telemetry."""
+
+from __future__ import annotations
+
+import logging
+import math
+import select
+import socket
+import struct
+import threading
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from pymavlink.dialects.v20 import common as mav
+
+from services.sim.core import SimCore
+from services.sim.vehicle import (
+    ACCEPTED,
+    DENIED,
+    FORCE_MAGIC,
+    MAIN_AUTO,
+    MAIN_OFFBOARD,
+    MAIN_POSCTL,
+    SUB_LOITER,
+    UNSUPPORTED,
+    yaw_ned_to_enu,
+)
+
+log = logging.getLogger("aermani.sim.mavlink")
+
+SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)
+SYSTEM_ID = 1
+COMPONENT_ID = mav.MAV_COMP_ID_AUTOPILOT1
+
+# Default telemetry rates in Hz (what PX4's onboard/API link streams, roughly).
+DEFAULT_RATES: dict[int, float] = {
+    mav.MAVLINK_MSG_ID_HEARTBEAT: 1.0,
+    mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED: 50.0,
+    mav.MAVLINK_MSG_ID_ATTITUDE: 50.0,
+    mav.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: 5.0,
+    mav.MAVLINK_MSG_ID_SYS_STATUS: 2.0,
+    mav.MAVLINK_MSG_ID_BATTERY_STATUS: 1.0,
+    mav.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 10.0,
+    mav.MAVLINK_MSG_ID_HOME_POSITION: 0.5,
+}
+STREAMABLE = set(DEFAULT_RATES)
+
+# Types of SET_POSITION_TARGET_LOCAL_NED.type_mask bits (set = ignore that field).
+IGNORE_POS = 0b111
+IGNORE_VEL = 0b111000
+IGNORE_YAW = 1024
+IGNORE_YAW_RATE = 2048
+
+# Home of the simulated world, only for GLOBAL_POSITION_INT/HOME_POSITION (AMSL 0 so that takeoff
+# altitudes read the same relative or absolute).
+HOME_LAT, HOME_LON = 47.3977419, 8.5455938
+EARTH_R = 6_378_137.0
+
+PARAMS: dict[str, float] = {
+    "MIS_TAKEOFF_ALT": 1.5,
+    "COM_OF_LOSS_T": 0.5,
+    "COM_DISARM_LAND": 2.0,
+    "MPC_XY_VEL_MAX": 2.0,
+    "MPC_Z_VEL_MAX_UP": 1.0,
+    "MPC_Z_VEL_MAX_DN": 1.0,
+    "MPC_LAND_SPEED": 0.7,
+    "MPC_YAWRAUTO_MAX": 90.0,
+}
+
+
+@dataclass
+class LinkSettings:
+    name: str
+    local_port: int
+    remote_host: str
+    remote_port: int
+    bind_host: str = "127.0.0.1"
+
+
+@dataclass
+class Link:
+    """One UDP endpoint: sends to the configured remote; a peer that writes from elsewhere is answered there."""
+
+    cfg: LinkSettings
+    sock: socket.socket
+    mav: mav.MAVLink
+    remote: tuple[str, int]
+    intervals: dict[int, float] = field(default_factory=dict)  # message id -> seconds (0 = off)
+    next_due: dict[int, float] = field(default_factory=dict)
+    received: int = 0
+    sent: int = 0
+
+    def send(self, msg: mav.MAVLink_message) -> None:
+        try:
+            self.sock.sendto(msg.pack(self.mav), self.remote)
+            self.sent += 1
+        except OSError:  # nobody listens yet (ICMP port unreachable on loopback): PX4 keeps sending too
+            pass
+
+
+class MavlinkServer:
+    def __init__(self, core: SimCore, links: list[LinkSettings], speed_factor: float = 1.0,
+                 physics_rate: float = 200.0) -> None:
+        self.core = core
+        self.speed_factor = speed_factor
+        self.physics_dt = 1.0 / physics_rate
+        self.links: list[Link] = []
+        for cfg in links:
+            sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+            sock.bind((cfg.bind_host, cfg.local_port))
+            sock.setblocking(False)
+            m = mav.MAVLink(None, srcSystem=SYSTEM_ID, srcComponent=COMPONENT_ID)
+            m.robust_parsing = True
+            self.links.append(Link(cfg, sock, m, (cfg.remote_host, cfg.remote_port),
+                                   {k: 1.0 / v for k, v in DEFAULT_RATES.items()}))
+        self.params = dict(PARAMS)
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._boot = time.monotonic()
+        self._log_budget: dict[str, int] = {}
+
+    # ------------------------------------------------------------------ lifecycle
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._loop, name="sim-mavlink", daemon=True)
+        self._thread.start()
+        for link in self.links:
+            log.info("MAVLink %s link: local udp %s:%d -> %s:%d", link.cfg.name, link.cfg.bind_host,
+                     link.cfg.local_port, *link.remote)
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(5.0)
+        for link in self.links:
+            link.sock.close()
+
+    def _loop(self) -> None:
+        last = time.monotonic()
+        next_tick = last
+        socks = [lk.sock for lk in self.links]
+        by_sock = {lk.sock: lk for lk in self.links}
+        while not self._stop.is_set():
+            timeout = max(0.0, next_tick - time.monotonic())
+            try:
+                ready, _, _ = select.select(socks, [], [], timeout)
+            except (OSError, ValueError):
+                if self._stop.is_set():
+                    return
+                raise
+            for s in ready:
+                self._drain(by_sock[s])
+            now = time.monotonic()
+            if now < next_tick:
+                continue
+            next_tick = max(next_tick + self.physics_dt, now - self.physics_dt)
+            dt_sim = min(now - last, 0.1) * self.speed_factor
+            last = now
+            try:
+                with self.core.lock:
+                    v = self.core.vehicle
+                    v.update_modes(now)
+                    n = max(1, math.ceil(dt_sim / 0.01))  # substeps of <= 10 ms simulated time
+                    for _ in range(n):
+                        v.step(dt_sim / n)
+                    events, v.events = v.events, []
+                for sev, text in events:
+                    self._statustext(sev, text)
+                for link in self.links:
+                    self._stream(link, now)
+            except Exception:  # a bug must not silently kill the vehicle: log and keep flying
+                log.exception("simulation tick failed")
+
+    # ------------------------------------------------------------------ receive
+
+    def _drain(self, link: Link) -> None:
+        while True:
+            try:
+                data, anc, _flags, addr = link.sock.recvmsg(65535, socket.CMSG_SPACE(16))
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError:
+                return  # ICMP errors from earlier sends surface here on Linux
+            rx_ns = time.time_ns()
+            for level, kind, cdata in anc:
+                if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(cdata) >= 16:
+                    sec, nsec = struct.unpack("qq", cdata[:16])
+                    rx_ns = sec * 1_000_000_000 + nsec
+            link.received += 1
+            if addr != link.remote:
+                log.info("MAVLink %s link: peer at %s:%d, answering there", link.cfg.name, *addr)
+                link.remote = addr
+            try:
+                msgs = link.mav.parse_buffer(data) or []
+            except Exception as exc:  # pymavlink raises on some malformed frames even when robust
+                msgs = []
+                self._bad(f"unparseable datagram from {addr}: {exc}")
+            if link.mav.buf_len() > 0:
+                # A UDP datagram carries whole packets: a truncated tail is garbage, and keeping it would
+                # make the parser swallow the next valid datagram.
+                self._bad(f"{link.mav.buf_len()} trailing bytes from {addr}")
+            link.mav.buf = bytearray()
+            link.mav.buf_index = 0
+            link.mav.expected_length = mav.HEADER_LEN_V1 + 2
+            link.mav.have_prefix_error = False
+            for msg in msgs:
+                try:
+                    self._handle(link, msg, rx_ns)
+                except Exception:
+                    self.core.count("handler_errors")
+                    log.exception("MAVLink %s handler failed; input ignored", msg.get_type())
+
+    def _bad(self, what: str) -> None:
+        self.core.count("bad_input")
+        self._log_limited("bad", logging.WARNING, "ignored bad MAVLink input: %s", what)
+
+    def _log_limited(self, key: str, level: int, fmt: str, *args: object) -> None:
+        n = self._log_budget.get(key, 0)
+        self._log_budget[key] = n + 1
+        if n < 20 or n % 100 == 0:
+            log.log(level, fmt + ("" if n < 20 else f" ({n} so far)"), *args)
+
+    def _for_us(self, msg: mav.MAVLink_message) -> bool:
+        ts = getattr(msg, "target_system", 0)
+        tc = getattr(msg, "target_component", 0)
+        if ts not in (0, SYSTEM_ID) or tc not in (0, COMPONENT_ID):
+            self.core.count("wrong_target")
+            self._log_limited("target", logging.WARNING, "ignored %s for system %d component %d (we are %d/%d)",
+                              msg.get_type(), ts, tc, SYSTEM_ID, COMPONENT_ID)
+            return False
+        return True
+
+    def _handle(self, link: Link, msg: mav.MAVLink_message, rx_ns: int) -> None:
+        t = msg.get_type()
+        self.core.count(f"rx_{t}")
+        if t == "BAD_DATA":
+            self._bad(f"{getattr(msg, 'reason', 'bad data')} ({len(msg.get_msgbuf())} bytes)")
+            return
+        if t == "HEARTBEAT":
+            return
+        if t == "SET_POSITION_TARGET_LOCAL_NED":
+            if self._for_us(msg):
+                self._setpoint(msg, rx_ns)
+            return
+        if t == "COMMAND_LONG":
+            if self._for_us(msg):
+                self._command(link, msg, msg.command, [msg.param1, msg.param2, msg.param3, msg.param4,
+                                                       msg.param5, msg.param6, msg.param7])
+            return
+        if t == "COMMAND_INT":
+            if self._for_us(msg):
+                self._command(link, msg, msg.command, [msg.param1, msg.param2, msg.param3, msg.param4,
+                                                       msg.x, msg.y, msg.z])
+            return
+        if t == "SET_MODE":
+            if msg.target_system == SYSTEM_ID:
+                main, sub = (msg.custom_mode >> 16) & 0xFF, (msg.custom_mode >> 24) & 0xFF
+                with self.core.lock:
+                    self.core.vehicle.set_mode(main, sub, time.monotonic())
+            return
+        if t == "TIMESYNC":
+            if msg.tc1 == 0:
+                link.send(link.mav.timesync_encode(time.monotonic_ns(), msg.ts1))
+            return
+        if t in ("PARAM_REQUEST_LIST", "PARAM_REQUEST_READ", "PARAM_SET"):
+            if self._for_us(msg):
+                self._param(link, msg)
+            return
+        if t == "MISSION_REQUEST_LIST":
+            if self._for_us(msg):
+                link.send(link.mav.mission_count_encode(msg.get_srcSystem(), msg.get_srcComponent(), 0,
+                                                        getattr(msg, "mission_type", 0)))
+            return
+        if t in ("SYSTEM_TIME", "PING", "MANUAL_CONTROL", "RC_CHANNELS_OVERRIDE"):
+            return
+        self.core.count("unknown_messages")
+        self._log_limited(f"unknown-{t}", logging.INFO, "ignored unsupported MAVLink message %s", t)
+
+    def _setpoint(self, msg: mav.MAVLink_message, rx_ns: int) -> None:
+        if msg.coordinate_frame != mav.MAV_FRAME_LOCAL_NED:
+            self.core.count("setpoint_bad_frame")
+            self._log_limited("frame", logging.WARNING, "ignored setpoint in frame %d (only LOCAL_NED=1)",
+                              msg.coordinate_frame)
+            return
+        mask = msg.type_mask
+        pos = None if mask & IGNORE_POS == IGNORE_POS else np.array([msg.x, msg.y, msg.z], dtype=float)
+        vel = None if mask & IGNORE_VEL == IGNORE_VEL else np.array([msg.vx, msg.vy, msg.vz], dtype=float)
+        yaw = None if mask & IGNORE_YAW else float(msg.yaw)
+        rate = None if mask & IGNORE_YAW_RATE else float(msg.yaw_rate)
+        for arr in (pos, vel):
+            if arr is not None and not np.all(np.isfinite(arr)):
+                self._bad("setpoint with non-finite values")
+                return
+        if yaw is not None and not math.isfinite(yaw):
+            yaw = None
+        if pos is None and vel is None and yaw is None and rate is None:
+            self._bad(f"setpoint type_mask {mask} ignores everything")
+            return
+        with self.core.lock:
+            self.core.vehicle.setpoint(time.monotonic(), pos, vel, yaw, rate)
+            self.core.setpoint_arrivals_ns.append(rx_ns)
+
+    # ------------------------------------------------------------------ commands
+
+    def _command(self, link: Link, msg: mav.MAVLink_message, cmd: int, p: list[float]) -> None:
+        result = UNSUPPORTED
+        out = None
+        now = time.monotonic()
+        v = self.core.vehicle
+        with self.core.lock:
+            if cmd == mav.MAV_CMD_COMPONENT_ARM_DISARM:
+                result = v.arm(p[0] >= 0.5, force=int(round(p[1])) == FORCE_MAGIC)
+            elif cmd == mav.MAV_CMD_DO_SET_MODE:
+                if int(p[0]) & mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
+                    result = v.set_mode(int(p[1]), int(p[2]), now)
+                else:
+                    result = DENIED
+            elif cmd == mav.MAV_CMD_NAV_TAKEOFF:
+                result = v.takeoff(p[6])
+            elif cmd == mav.MAV_CMD_NAV_LAND:
+                result = v.land()
+            elif cmd == mav.MAV_CMD_NAV_LOITER_UNLIM:
+                result = v.set_mode(MAIN_AUTO, SUB_LOITER, now)
+            elif cmd == mav.MAV_CMD_DO_GRIPPER:
+                result = v.gripper(int(round(p[1])) == mav.GRIPPER_ACTION_GRAB)
+            elif cmd == mav.MAV_CMD_SET_MESSAGE_INTERVAL:
+                result = self._set_interval(link, int(p[0]), p[1])
+            elif cmd in (mav.MAV_CMD_REQUEST_MESSAGE, mav.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES,
+                         mav.MAV_CMD_GET_HOME_POSITION):
+                want = {mav.MAV_CMD_REQUEST_MESSAGE: int(p[0]),
+                        mav.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES: mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION,
+                        mav.MAV_CMD_GET_HOME_POSITION: mav.MAVLINK_MSG_ID_HOME_POSITION}[cmd]
+                out = self._build(link, want)
+                result = ACCEPTED if out is not None else DENIED
+            events, v.events = v.events, []
+        link.send(link.mav.command_ack_encode(cmd, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()))
+        if cmd in (mav.MAV_CMD_REQUEST_MESSAGE, mav.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES,
+                   mav.MAV_CMD_GET_HOME_POSITION) and result == ACCEPTED and out is not None:
+            link.send(out)
+        if result == UNSUPPORTED:
+            self._log_limited(f"cmd-{cmd}", logging.INFO, "unsupported command %d", cmd)
+        else:
+            log.info("command %d %s -> result %d", cmd, [round(x, 3) for x in p[:3]], result)
+        for sev, text in events:
+            self._statustext(sev, text)
+
+    def _set_interval(self, link: Link, msg_id: int, interval_us: float) -> int:
+        if msg_id not in STREAMABLE:
+            return DENIED
+        if interval_us < 0:
+            link.intervals[msg_id] = 0.0
+        elif interval_us == 0:
+            link.intervals[msg_id] = 1.0 / DEFAULT_RATES[msg_id]
+        else:
+            link.intervals[msg_id] = max(interval_us / 1e6, 0.002)  # cap at 500 Hz
+        link.next_due.pop(msg_id, None)
+        return ACCEPTED
+
+    def _param(self, link: Link, msg: mav.MAVLink_message) -> None:
+        names = list(self.params)
+        t = msg.get_type()
+
+        def value(i: int) -> mav.MAVLink_message:
+            name = names[i]
+            return link.mav.param_value_encode(name.encode(), float(self.params[name]),
+                                               mav.MAV_PARAM_TYPE_REAL32, len(names), i)
+
+        if t == "PARAM_REQUEST_LIST":
+            for i in range(len(names)):
+                link.send(value(i))
+            return
+        pid = msg.param_id.rstrip("\x00") if isinstance(msg.param_id, str) else msg.param_id
+        if t == "PARAM_REQUEST_READ":
+            i = msg.param_index if msg.param_index >= 0 else (names.index(pid) if pid in names else -1)
+            if 0 <= i < len(names):
+                link.send(value(i))
+            return
+        if pid in self.params and math.isfinite(msg.param_value):
+            self.params[pid] = float(msg.param_value)
+            self._apply_params()
+            link.send(value(names.index(pid)))
+
+    def _apply_params(self) -> None:
+        with self.core.lock:
+            p = self.core.vehicle.params
+            p.takeoff_alt = self.params["MIS_TAKEOFF_ALT"]
+            p.offboard_loss_timeout = self.params["COM_OF_LOSS_T"]
+            p.disarm_after_land = self.params["COM_DISARM_LAND"]
+            p.max_speed_h = self.params["MPC_XY_VEL_MAX"]
+            p.max_speed_up = self.params["MPC_Z_VEL_MAX_UP"]
+            p.max_speed_down = self.params["MPC_Z_VEL_MAX_DN"]
+            p.land_speed = self.params["MPC_LAND_SPEED"]
+            p.yaw_rate = math.radians(self.params["MPC_YAWRAUTO_MAX"])
+
+    # ------------------------------------------------------------------ send
+
+    def _statustext(self, severity: int, text: str) -> None:
+        for link in self.links:
+            link.send(link.mav.statustext_encode(severity, text.encode()[:50]))
+
+    def _stream(self, link: Link, now: float) -> None:
+        for msg_id, interval in link.intervals.items():
+            if interval <= 0:
+                continue
+            due = link.next_due.get(msg_id, now)
+            if now >= due:
+                out = self._build(link, msg_id)
+                if out is not None:
+                    link.send(out)
+                link.next_due[msg_id] = max(due + interval, now)
+
+    def _build(self, link: Link, msg_id: int) -> mav.MAVLink_message | None:
+        m = link.mav
+        with self.core.lock:
+            v = self.core.vehicle
+            boot_ms = int(v.sim_time * 1000)  # time since boot runs on simulated time
+            if msg_id == mav.MAVLINK_MSG_ID_HEARTBEAT:
+                base = mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | mav.MAV_MODE_FLAG_STABILIZE_ENABLED
+                if v.main_mode in (MAIN_AUTO, MAIN_OFFBOARD):
+                    base |= mav.MAV_MODE_FLAG_GUIDED_ENABLED
+                if v.main_mode == MAIN_AUTO:
+                    base |= mav.MAV_MODE_FLAG_AUTO_ENABLED
+                if v.main_mode == MAIN_POSCTL:
+                    base |= mav.MAV_MODE_FLAG_MANUAL_INPUT_ENABLED
+                if v.armed:
+                    base |= mav.MAV_MODE_FLAG_SAFETY_ARMED
+                status = mav.MAV_STATE_ACTIVE if v.armed else mav.MAV_STATE_STANDBY
+                return m.heartbeat_encode(mav.MAV_TYPE_QUADROTOR, mav.MAV_AUTOPILOT_PX4, base, v.custom_mode, status)
+            if msg_id == mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED:
+                return m.local_position_ned_encode(boot_ms, *(float(x) for x in v.p), *(float(x) for x in v.v))
+            if msg_id == mav.MAVLINK_MSG_ID_ATTITUDE:
+                return m.attitude_encode(boot_ms, 0.0, 0.0, float(v.yaw), 0.0, 0.0, 0.0)
+            if msg_id == mav.MAVLINK_MSG_ID_EXTENDED_SYS_STATE:
+                return m.extended_sys_state_encode(mav.MAV_VTOL_STATE_UNDEFINED, v.landed_state)
+            if msg_id == mav.MAVLINK_MSG_ID_SYS_STATUS:
+                sensors = 0x3FFFFF
+                return m.sys_status_encode(sensors, sensors, sensors, 200, int(v.battery_voltage * 1000),
+                                           800 if v.armed else 50, int(v.battery), 0, 0, 0, 0, 0, 0)
+            if msg_id == mav.MAVLINK_MSG_ID_BATTERY_STATUS:
+                cell = int(v.battery_voltage * 1000 / 3)
+                return m.battery_status_encode(0, mav.MAV_BATTERY_FUNCTION_ALL, mav.MAV_BATTERY_TYPE_LIPO,
+                                               2500, [cell] * 3 + [65535] * 7, 800 if v.armed else 50, -1, -1,
+                                               int(v.battery))
+            if msg_id == mav.MAVLINK_MSG_ID_GLOBAL_POSITION_INT:
+                lat, lon = self._latlon(v.p[0], v.p[1])
+                alt_mm = int(-v.p[2] * 1000)
+                hdg = int((math.degrees(v.yaw) % 360) * 100)
+                return m.global_position_int_encode(boot_ms, lat, lon, alt_mm, alt_mm, int(v.v[0] * 100),
+                                                    int(v.v[1] * 100), int(v.v[2] * 100), hdg)
+            if msg_id == mav.MAVLINK_MSG_ID_HOME_POSITION:
+                lat, lon = self._latlon(v.home[0], v.home[1])
+                return m.home_position_encode(lat, lon, int(-v.home[2] * 1000), *(float(x) for x in v.home),
+                                              [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0)
+            if msg_id == mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
+                caps = (mav.MAV_PROTOCOL_CAPABILITY_MAVLINK2 | mav.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
+                        | mav.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED
+                        | mav.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT | mav.MAV_PROTOCOL_CAPABILITY_MISSION_INT)
+                version = (1 << 24) | (15 << 16) | (0 << 8) | 255  # 1.15.0 release
+                return m.autopilot_version_encode(caps, version, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0,
+                                                  0x41455253494D)
+        return None
+
+    @staticmethod
+    def _latlon(north: float, east: float) -> tuple[int, int]:
+        lat = HOME_LAT + math.degrees(north / EARTH_R)
+        lon = HOME_LON + math.degrees(east / (EARTH_R * math.cos(math.radians(HOME_LAT))))
+        return int(lat * 1e7), int(lon * 1e7)
+
+    def state_summary(self) -> dict:
+        with self.core.lock:
+            v = self.core.vehicle
+            return {"mode": v.mode_name, "armed": v.armed, "landed_state": v.landed_state,
+                    "position_ned": [float(x) for x in v.p], "yaw_enu": yaw_ned_to_enu(v.yaw),
+                    "links": {lk.cfg.name: {"remote": f"{lk.remote[0]}:{lk.remote[1]}", "received": lk.received,
+                                            "sent": lk.sent} for lk in self.links}}
+

@@ -1,0 +1,75 @@
+"""Settings of the built-in simulator (env AERMANI_SIM_*)."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from pydantic import Field, field_validator
+from pydantic_settings import NoDecode, SettingsConfigDict
+
+from shared.settings import ServiceSettings, parse_endpoints
+
+
+class SimSettings(ServiceSettings):
+    model_config = SettingsConfigDict(env_prefix="AERMANI_SIM_", extra="ignore", populate_by_name=True,
+                                      use_attribute_docstrings=True)
+
+    seed: int = 0
+    """Layout seed of the initial scenario."""
+    target_object: str | None = None
+    """Target object of the initial scenario (e.g. "red cup"); empty lets the seed choose."""
+    destination: str | None = None
+    """Destination surface of the initial scenario (e.g. "table"); empty lets the seed choose."""
+    distractors: Annotated[list[str] | None, NoDecode] = None
+    """Distractor objects (comma-separated); empty lets the seed choose."""
+    extra_objects: Annotated[list[str], NoDecode] = []
+    """Objects that must be present besides target and distractors (comma-separated)."""
+    target_out_of_view: bool = False
+    """Place the target outside the initial camera view."""
+
+    fps: float = Field(15.0, gt=0, le=60)
+    """Camera frame rate (colour, depth, segmentation and tf), frames per second."""
+    jpeg_quality: int = Field(85, ge=10, le=100)
+    """JPEG quality of the colour frames."""
+    render_scale: int = Field(1, ge=1, le=4)
+    """Cast one ray per render_scale x render_scale pixels and upsample (1 = full resolution)."""
+
+    api_host: str = "127.0.0.1"
+    """Host the offboard/API link sends to (where the autopilot bridge listens)."""
+    api_port: int = Field(14540, ge=1, le=65535)
+    """UDP port the offboard/API link sends to (PX4 SITL: 14540)."""
+    api_local_port: int = Field(14580, ge=1, le=65535)
+    """Local UDP port of the offboard/API link (PX4 SITL: 14580)."""
+    gcs_enabled: bool = True
+    """Also open the ground-station link."""
+    gcs_host: str = "127.0.0.1"
+    """Host the ground-station link sends to."""
+    gcs_port: int = Field(14550, ge=1, le=65535)
+    """UDP port the ground-station link sends to (QGroundControl: 14550)."""
+    gcs_local_port: int = Field(18570, ge=1, le=65535)
+    """Local UDP port of the ground-station link (PX4 SITL: 18570)."""
+    bind_host: str = "127.0.0.1"
+    """Address the MAVLink sockets bind to (0.0.0.0 to accept other machines)."""
+
+    speed_factor: float = Field(1.0, gt=0, le=20)
+    """Simulated time runs this many times faster than wall time (dynamics only)."""
+    physics_rate: float = Field(200.0, ge=100, le=1000)
+    """Physics and MAVLink loop rate, Hz."""
+    offboard_loss_timeout: float = Field(0.5, gt=0)
+    """COM_OF_LOSS_T: seconds without setpoints in OFFBOARD before the failsafe holds."""
+    failsafe_land_delay: float = Field(3.0, ge=0)
+    """Seconds of failsafe hold before landing."""
+    takeoff_alt: float = Field(1.5, gt=0)
+    """MIS_TAKEOFF_ALT: default take-off altitude above home, metres."""
+
+    @field_validator("distractors", "extra_objects", mode="before")
+    @classmethod
+    def _names(cls, v: object) -> object:
+        if isinstance(v, str):
+            return parse_endpoints(v) if v.strip() else None
+        return v
+
+    @field_validator("target_object", "destination", mode="before")
+    @classmethod
+    def _empty(cls, v: object) -> object:
+        return None if isinstance(v, str) and not v.strip() else v

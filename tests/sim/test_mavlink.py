@@ -1,0 +1,248 @@
+"""The simulated vehicle over real UDP with a raw pymavlink client, the way a bridge or a GCS talks to PX4."""
+
+from __future__ import annotations
+
+import math
+import socket
+import time
+
+import pytest
+from pymavlink import mavutil
+from pymavlink.dialects.v20 import common as mav
+
+from services.sim.core import SimCore
+from services.sim.mavlink_server import LinkSettings, MavlinkServer
+from services.sim.vehicle import VehicleParams
+from shared.launcher import free_udp_port
+from shared.messages import Scenario
+
+OFFBOARD = (mavutil.PX4_CUSTOM_MAIN_MODE_OFFBOARD, 0)
+LOITER = (mavutil.PX4_CUSTOM_MAIN_MODE_AUTO, mavutil.PX4_CUSTOM_SUB_MODE_AUTO_LOITER)
+LAND = (mavutil.PX4_CUSTOM_MAIN_MODE_AUTO, mavutil.PX4_CUSTOM_SUB_MODE_AUTO_LAND)
+POS_YAW_MASK = 2552
+
+
+class Client:
+    def __init__(self, port: int) -> None:
+        self.conn = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=255,
+                                               source_component=mav.MAV_COMP_ID_ONBOARD_COMPUTER)
+        self.hb = self.conn.wait_heartbeat(timeout=20)
+        assert self.hb is not None, "no heartbeat from the sim"
+
+    def recv(self, kind: str, cond=lambda m: True, timeout: float = 20.0):
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            m = self.conn.recv_match(type=kind, blocking=True, timeout=0.2)
+            if m is not None and cond(m):
+                return m
+        raise TimeoutError(f"no {kind} matching the condition within {timeout} s")
+
+    def command(self, cmd: int, *p: float, target: int = 1) -> int:
+        params = list(p) + [0.0] * (7 - len(p))
+        self.conn.mav.command_long_send(target, 1, cmd, 0, *params)
+        return self.recv("COMMAND_ACK", lambda m: m.command == cmd, 10.0).result
+
+    def mode(self) -> tuple[int, int]:
+        hb = self.recv("HEARTBEAT", lambda m: m.get_srcSystem() == 1)
+        return (hb.custom_mode >> 16) & 0xFF, (hb.custom_mode >> 24) & 0xFF
+
+    def wait_mode(self, want: tuple[int, int], timeout: float = 20.0) -> None:
+        deadline = time.monotonic() + timeout
+        while self.mode() != want:
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"mode {want} not reached")
+
+    def armed(self) -> bool:
+        return bool(self.recv("HEARTBEAT", lambda m: m.get_srcSystem() == 1).base_mode
+                    & mav.MAV_MODE_FLAG_SAFETY_ARMED)
+
+    def setpoint(self, n: float, e: float, d: float, yaw: float) -> None:
+        self.conn.mav.set_position_target_local_ned_send(0, 1, 1, mav.MAV_FRAME_LOCAL_NED, POS_YAW_MASK,
+                                                         n, e, d, 0, 0, 0, 0, 0, 0, yaw, 0)
+
+    def stream_until(self, n: float, e: float, d: float, yaw: float, cond, timeout: float = 40.0):
+        """Send setpoints at 20 Hz until cond(LOCAL_POSITION_NED, ATTITUDE) holds."""
+        deadline = time.monotonic() + timeout
+        att = None
+        while time.monotonic() < deadline:
+            self.setpoint(n, e, d, yaw)
+            end = time.monotonic() + 0.05
+            pos = None
+            while time.monotonic() < end:
+                m = self.conn.recv_match(blocking=True, timeout=max(0.0, end - time.monotonic()))
+                if m is None:
+                    continue
+                if m.get_type() == "LOCAL_POSITION_NED":
+                    pos = m
+                elif m.get_type() == "ATTITUDE":
+                    att = m
+            if pos is not None and att is not None and cond(pos, att):
+                return pos, att
+        raise TimeoutError(f"setpoint ({n}, {e}, {d}, {yaw}) not reached")
+
+    def close(self) -> None:
+        self.conn.close()
+
+
+@pytest.fixture
+def sim():
+    api, gcs = free_udp_port(), free_udp_port()
+    core = SimCore(Scenario(seed=5, target_object="red cup"),
+                   VehicleParams(failsafe_land_delay=1.0, disarm_after_land=0.5))
+    server = MavlinkServer(core, [LinkSettings("api", free_udp_port(), "127.0.0.1", api),
+                                  LinkSettings("gcs", free_udp_port(), "127.0.0.1", gcs)], speed_factor=3.0)
+    server.start()
+    client = Client(api)
+    # Faster heartbeats so mode changes show up quickly (also exercises SET_MESSAGE_INTERVAL).
+    assert client.command(mav.MAV_CMD_SET_MESSAGE_INTERVAL, mav.MAVLINK_MSG_ID_HEARTBEAT, 100_000) == 0
+    yield core, server, client, gcs
+    client.close()
+    server.stop()
+
+
+def test_heartbeat_identity_and_capabilities(sim):
+    core, server, client, gcs = sim
+    hb = client.hb
+    assert hb.type == mav.MAV_TYPE_QUADROTOR and hb.autopilot == mav.MAV_AUTOPILOT_PX4
+    assert hb.base_mode & mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+    assert not hb.base_mode & mav.MAV_MODE_FLAG_SAFETY_ARMED
+    assert client.command(mav.MAV_CMD_REQUEST_MESSAGE, mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION) == 0
+    av = client.recv("AUTOPILOT_VERSION")
+    assert av.capabilities & mav.MAV_PROTOCOL_CAPABILITY_MAVLINK2
+    assert client.command(mav.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES, 1) == 0
+    assert client.command(31999) == mav.MAV_RESULT_UNSUPPORTED
+    ext = client.recv("EXTENDED_SYS_STATE")
+    assert ext.landed_state == mav.MAV_LANDED_STATE_ON_GROUND
+    sys = client.recv("SYS_STATUS")
+    assert 10_000 < sys.voltage_battery < 13_000 and 0 < sys.battery_remaining <= 100
+    # Rates are honoured per message id: LOCAL_POSITION_NED off, then back on.
+    assert client.command(mav.MAV_CMD_SET_MESSAGE_INTERVAL, mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED, -1) == 0
+    time.sleep(0.3)
+    while client.conn.recv_match(blocking=False) is not None:
+        pass
+    t_end = time.monotonic() + 0.6
+    n_pos = 0
+    while time.monotonic() < t_end:
+        m = client.conn.recv_match(blocking=True, timeout=0.1)
+        n_pos += m is not None and m.get_type() == "LOCAL_POSITION_NED"
+    assert n_pos == 0
+    assert client.command(mav.MAV_CMD_SET_MESSAGE_INTERVAL, mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED, 0) == 0
+    client.recv("LOCAL_POSITION_NED", timeout=5)
+    # The GCS link streams too, to its own port.
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", gcs))
+        s.settimeout(5)
+        assert s.recv(2048)
+
+
+def test_arm_offboard_takeoff_goto_gripper_and_land(sim):
+    core, server, client, _ = sim
+    # OFFBOARD is refused without a setpoint stream.
+    assert client.command(mav.MAV_CMD_DO_SET_MODE, 1, *OFFBOARD) == mav.MAV_RESULT_TEMPORARILY_REJECTED
+    assert client.command(mav.MAV_CMD_NAV_TAKEOFF) == mav.MAV_RESULT_DENIED  # disarmed
+    assert client.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 1) == 0
+    assert client.armed()
+    assert client.command(mav.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan, 1.5) == 0
+    client.recv("EXTENDED_SYS_STATE", lambda m: m.landed_state == mav.MAV_LANDED_STATE_IN_AIR, 30)
+    pos = client.recv("LOCAL_POSITION_NED", lambda m: abs(m.z + 1.5) < 0.1, 30)
+    # Disarm in the air is denied unless forced.
+    assert client.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 0) == mav.MAV_RESULT_DENIED
+    # Stream for > 1 s, then OFFBOARD is accepted.
+    n0, e0 = pos.x, pos.y
+    deadline = time.monotonic() + 1.3
+    while time.monotonic() < deadline:
+        client.setpoint(n0, e0, -1.5, 0.0)
+        time.sleep(0.05)
+    client.setpoint(n0, e0, -1.5, 0.0)
+    assert client.command(mav.MAV_CMD_DO_SET_MODE, 1, *OFFBOARD) == 0
+    client.setpoint(n0, e0, -1.5, 0.0)
+
+    # Fly to the target object (ground truth) with the gripper point inside its capture region.
+    with core.lock:
+        cup = core.world.by_name("red cup")
+        cx, cy, top = float(cup.center[0]), float(cup.center[1]), cup.top_z
+    hover_z = -(top + 0.02 + 0.22)  # gripper 2 cm above the cup top
+    client.stream_until(cy, cx, -2.0, math.pi / 2,
+                        lambda p, a: math.hypot(p.x - cy, p.y - cx) < 0.03 and abs(a.yaw - math.pi / 2) < 0.05)
+    client.stream_until(cy, cx, hover_z, math.pi / 2,
+                        lambda p, a: abs(p.z - hover_z) < 0.02 and math.hypot(p.x - cy, p.y - cx) < 0.02)
+    client.setpoint(cy, cx, hover_z, math.pi / 2)
+    assert client.command(mav.MAV_CMD_DO_GRIPPER, 1, mav.GRIPPER_ACTION_GRAB) == 0
+    with core.lock:
+        assert core.world.attached() is not None and core.world.attached().name == "red cup"
+    client.recv("STATUSTEXT", lambda m: "holding red cup" in m.text, 5)
+
+    # Carry it to a table and release above it: it lands on the table.
+    with core.lock:
+        table = next(s for s in core.world.surfaces if s.name != cup.support)
+        tx, ty, ttop, tname = float(table.center[0]), float(table.center[1]), table.top_z, table.name
+    client.stream_until(ty, tx, -2.0, 0.0, lambda p, a: math.hypot(p.x - ty, p.y - tx) < 0.03)
+    drop_z = -(ttop + 0.11 + 0.22 + 0.05)
+    client.stream_until(ty, tx, drop_z, 0.0, lambda p, a: abs(p.z - drop_z) < 0.03)
+    assert client.command(mav.MAV_CMD_DO_GRIPPER, 1, mav.GRIPPER_ACTION_RELEASE) == 0
+    from shared.messages import JudgeRequest
+
+    res = core.judge(JudgeRequest(op="on_surface", object="red cup", surface=tname))
+    assert res.ok, res.message
+    assert not core.judge(JudgeRequest(op="held")).ok
+
+    client.stream_until(n0, e0, -1.5, 0.0, lambda p, a: math.hypot(p.x - n0, p.y - e0) < 0.05)
+    assert client.command(mav.MAV_CMD_NAV_LAND) == 0
+    client.recv("EXTENDED_SYS_STATE", lambda m: m.landed_state == mav.MAV_LANDED_STATE_ON_GROUND, 40)
+    assert client.recv("LOCAL_POSITION_NED").z > -0.02
+    assert core.judge(JudgeRequest()).collisions == ()
+    deadline = time.monotonic() + 10
+    while client.armed():  # auto-disarm after landing
+        assert time.monotonic() < deadline
+
+
+def test_offboard_loss_holds_then_lands(sim):
+    core, server, client, _ = sim
+    assert client.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 1) == 0
+    deadline = time.monotonic() + 1.3
+    while time.monotonic() < deadline:
+        client.setpoint(0, 0, -1.0, 0.0)
+        time.sleep(0.05)
+    client.setpoint(0, 0, -1.0, 0.0)
+    assert client.command(mav.MAV_CMD_DO_SET_MODE, 1, *OFFBOARD) == 0
+    with core.lock:
+        n, e = float(core.vehicle.p[0]), float(core.vehicle.p[1])
+    client.stream_until(n, e, -1.0, 0.0, lambda p, a: abs(p.z + 1.0) < 0.05)
+    # Stop streaming: hold, then land, then disarm on the ground.
+    client.wait_mode(LOITER, 10)
+    client.recv("STATUSTEXT", lambda m: "offboard" in m.text.lower(), 5)
+    client.wait_mode(LAND, 10)
+    client.recv("EXTENDED_SYS_STATE", lambda m: m.landed_state == mav.MAV_LANDED_STATE_ON_GROUND, 30)
+    deadline = time.monotonic() + 10
+    while client.armed():
+        assert time.monotonic() < deadline
+
+
+def test_bad_input_changes_nothing(sim):
+    core, server, client, _ = sim
+    with core.lock:
+        before = (core.vehicle.p.copy(), core.vehicle.armed, core.vehicle.mode_name)
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    target = server.links[0].sock.getsockname()
+    sock.sendto(b"\xfd\x09garbage-bytes\x00\xff" * 20, target)
+    sock.sendto(bytes(range(256)), target)
+    # A valid arm command for another system id, and one for another component, are ignored.
+    client.conn.mav.command_long_send(7, 1, mav.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
+    client.conn.mav.command_long_send(1, 42, mav.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
+    # A setpoint for another system and an unknown message (valid CRC, not handled) are ignored too.
+    client.conn.mav.set_position_target_local_ned_send(0, 9, 1, mav.MAV_FRAME_LOCAL_NED, POS_YAW_MASK,
+                                                       5, 5, -5, 0, 0, 0, 0, 0, 0, 0, 0)
+    client.conn.mav.debug_send(0, 1, 2.0)
+    sock.close()
+    # Still alive and answering, nothing changed.
+    assert client.command(mav.MAV_CMD_REQUEST_MESSAGE, mav.MAVLINK_MSG_ID_HOME_POSITION) == 0
+    client.recv("HOME_POSITION")
+    assert not client.armed()
+    with core.lock:
+        after = (core.vehicle.p.copy(), core.vehicle.armed, core.vehicle.mode_name)
+        counters = dict(core.counters)
+    assert (after[0] == before[0]).all() and after[1:] == before[1:]
+    assert counters.get("bad_input", 0) >= 1
+    assert counters.get("wrong_target", 0) >= 3
+    assert counters.get("unknown_messages", 0) >= 1
+    assert core.vehicle.setpoints_received == 0
