@@ -1,0 +1,68 @@
+"""The ground-station page in headless Chromium: submit a command, see steps and camera frames, abort."""
+
+from __future__ import annotations
+
+import os
+import re
+from collections.abc import Iterator
+
+import pytest
+
+from tests.gateway.conftest import TOKEN
+from tests.gateway.fakes import Harness
+
+CHROMIUM = "/usr/bin/chromium"
+pytestmark = [pytest.mark.integration, pytest.mark.browser,
+              pytest.mark.skipif(not os.path.exists(CHROMIUM),
+                                 reason=f"{CHROMIUM} is absent: apt-get install chromium to run the browser test")]
+ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+        "--disable-component-update", "--disable-sync", "--no-first-run"]
+
+
+@pytest.fixture(scope="module")
+def page_url(tmp_path_factory) -> Iterator[tuple[str, Harness]]:
+    h = Harness(tmp_path_factory.mktemp("browser"), gateway_settings={"token": TOKEN}, step_delay_s=0.3).start()
+    try:
+        yield h.base_url + "/", h
+    finally:
+        h.stop()
+
+
+def test_page_runs_a_task_and_aborts(page_url) -> None:
+    sync_api = pytest.importorskip("playwright.sync_api", reason="playwright is not installed")
+    url, h = page_url
+    with sync_api.sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, args=ARGS, headless=True)
+        try:
+            page = browser.new_page()
+            errors: list[str] = []
+            page.on("pageerror", lambda e: errors.append(str(e)))
+            page.goto(url)
+            expect = sync_api.expect
+            expect(page.locator("#vehicle option")).to_have_count(1, timeout=30_000)
+            page.fill("#token", TOKEN)
+            assert page.evaluate("sessionStorage.getItem('aermani.token')") == TOKEN
+
+            # The camera updates: two different frame stamps over time.
+            page.wait_for_function("document.getElementById('camera').dataset.stamp", timeout=30_000)
+            first = page.get_attribute("#camera", "data-stamp")
+            page.wait_for_function(f"(s => document.getElementById('camera').dataset.stamp !== s)('{first}')",
+                                   timeout=30_000)
+            assert page.evaluate("document.getElementById('camera').naturalWidth") == 64
+
+            page.fill("#command", "search the room until abort")
+            page.click("#send")
+            expect(page.locator("#timeline li.step")).to_have_count(2, timeout=30_000)
+            expect(page.locator("#timeline li.step").first).to_contain_text("a red cup on a table")
+            expect(page.locator("#timeline li.step").first).to_contain_text("#1 takeoff")
+            expect(page.locator("#task-state")).to_have_text("running")
+            expect(page.locator("#current-skill")).not_to_have_text("–")
+            expect(page.locator("#pose")).to_contain_text("OFFBOARD")
+
+            page.click("#abort")
+            expect(page.locator("#task-state")).to_have_text("aborted", timeout=30_000)
+            expect(page.locator("#message")).to_contain_text(re.compile("acknowledged by am1|aborted: abort button"))
+            assert h.fake.aborts and h.fake.aborts[-1].reason == "abort button"
+            assert errors == []
+        finally:
+            browser.close()
