@@ -217,8 +217,9 @@ class RecordWriter:
         self.errors += 1
         self.error = f"{what}: {type(exc).__name__}: {exc}"
         log.error("%s; retrying in %.0f s", self.error, self.settings.retry_s)
-        # Messages of the chunk in progress are gone with the broken file.
+        # Messages of the chunk in progress are gone with the broken file: they were never written.
         self.lost_on_error += self._pending
+        self.written -= self._pending
         self._pending = 0
         if self._file is not None:
             with contextlib.suppress(Exception):
@@ -252,6 +253,7 @@ class RecordWriter:
                 self._pending = 0
                 self.bytes_written += after - before
         except Exception as exc:
+            self.lost_on_error += 1  # this message went down with its chunk
             self._fail(exc, f"cannot write to {self.path}")
 
     def _maybe_rotate(self) -> None:

@@ -1,0 +1,158 @@
+"""The writer thread and MCAP helpers in-process: rotation, disk full, recovery, key matching, stamps."""
+
+from __future__ import annotations
+
+import errno
+import io
+import time
+from pathlib import Path
+
+import pytest
+from mcap.reader import make_reader
+
+from services.recorder import mcaplog
+from services.recorder.settings import RecorderSettings
+from services.recorder.writer import RecordWriter
+from shared.bus import encode
+from shared.messages import ReasoningStep, VehicleState
+from tests.recorder.samples import K, frames, step_message
+
+
+def settings(tmp_path: Path, **kw) -> RecorderSettings:
+    return RecorderSettings(out_dir=str(tmp_path / "rec"), chunk_size=4096, **kw)
+
+
+def submit_model(w: RecordWriter, key: str, obj) -> None:
+    data, enc = encode(obj)
+    assert w.submit(key, data, str(enc), time.time_ns())
+
+
+def count_messages(path: Path) -> int:
+    with path.open("rb") as f:
+        return sum(1 for _ in make_reader(f).iter_messages())
+
+
+def wait_for(pred, timeout: float = 30.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not pred():
+        assert time.monotonic() < deadline, "condition not met"
+        time.sleep(0.01)
+
+
+def test_rotation_by_size_keeps_every_message_across_finished_files(tmp_path: Path) -> None:
+    w = RecordWriter(settings(tmp_path, rotate_mb=0.005))
+    w.start()
+    for i in range(400):
+        submit_model(w, K.autopilot_state, VehicleState(message=f"#{i}" * 10))
+    w.stop()
+    files = sorted((tmp_path / "rec").glob("*.mcap"))
+    assert len(files) >= 3, files
+    assert sum(count_messages(f) for f in files) == 400
+    for f in files:  # every file is finished and carries the metadata records
+        assert mcaplog.salvage(f).complete
+        assert {"aermani", "aermani.session"} <= set(mcaplog.metadata(f))
+    texts = [VehicleState.model_validate_json(s.payload).message for f in files for s in mcaplog.iter_samples(f)]
+    assert texts == [f"#{i}" * 10 for i in range(400)]
+
+
+def test_rotation_by_time(tmp_path: Path) -> None:
+    w = RecordWriter(settings(tmp_path, rotate_s=0.3))
+    w.start()
+    submit_model(w, K.autopilot_state, VehicleState())
+    wait_for(lambda: len(w.files) >= 2)
+    submit_model(w, K.autopilot_state, VehicleState())
+    w.stop()
+    files = sorted((tmp_path / "rec").glob("*.mcap"))
+    assert len(files) >= 2
+    assert sum(count_messages(f) for f in files) == 2
+
+
+class FullDisk(io.RawIOBase):
+    """A file that accepts `room` bytes, then fails with ENOSPC like a full disk."""
+
+    def __init__(self, room: int) -> None:
+        self.room = room
+
+    def writable(self) -> bool:
+        return True
+
+    def write(self, b) -> int:
+        if len(b) > self.room:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        self.room -= len(b)
+        return len(b)
+
+
+def test_disk_full_is_reported_and_the_writer_recovers(tmp_path: Path) -> None:
+    disks = [FullDisk(6000)]
+
+    def opener(path: Path):
+        path.touch()
+        return disks[0]
+
+    w = RecordWriter(settings(tmp_path, retry_s=0.2), opener=opener)
+    w.start()
+    for i in range(100):
+        submit_model(w, K.autopilot_state, VehicleState(message=f"#{i}"))
+    wait_for(lambda: not w.ok)
+    assert "No space left" in w.error and w.errors >= 1
+    stats = w.stats()
+    assert stats["lost_on_error"] > 0 and stats["error"]
+    disks[0] = FullDisk(1 << 30)  # space again
+    wait_for(lambda: w.ok)  # a new file after retry_s
+    submit_model(w, K.autopilot_state, VehicleState(message="after"))
+    w.stop()
+    assert w.ok and len(w.files) >= 2
+    assert w.written + w.lost_on_error == 101
+
+
+def test_salvage_keeps_complete_chunks_of_a_truncated_file(tmp_path: Path) -> None:
+    w = RecordWriter(settings(tmp_path))
+    w.start()
+    for i in range(200):
+        submit_model(w, K.reasoning_step, step_message("t", i + 1, "forward"))
+    w.stop()
+    [path] = sorted((tmp_path / "rec").glob("*.mcap"))
+    data = path.read_bytes()
+    broken = tmp_path / "broken.mcap"
+    broken.write_bytes(data[: len(data) // 2])  # cut in the middle of a chunk
+    res = mcaplog.recover(broken, tmp_path / "fixed.mcap")
+    assert not res.complete and res.error
+    n = count_messages(tmp_path / "fixed.mcap")
+    assert 0 < n < 200 and n == len(res.samples)
+    steps = [ReasoningStep.model_validate_json(s.payload).step for s in mcaplog.iter_samples(tmp_path / "fixed.mcap")]
+    assert steps == list(range(1, n + 1))
+    # The unfinished file is also readable directly (sequentially, up to the last complete chunk).
+    assert len(list(mcaplog.iter_samples(broken))) == n
+
+
+@pytest.mark.parametrize(("pattern", "key", "match"), [
+    ("aermani/**", "aermani/v1/am1/camera/color", True),
+    ("aermani/*/*/reasoner/**", "aermani/v1/am2/reasoner/step", True),
+    ("aermani/*/am1/reasoner/step", "aermani/v1/am2/reasoner/step", False),
+    ("aermani/v1/am1/**", "aermani/v1/am1", True),
+    ("aermani/v1/*/camera/*", "aermani/v1/am1/camera/color/x", False),
+    ("aermani/v1/am$*/tf", "aermani/v1/am7/tf", True),
+])
+def test_key_matches(pattern: str, key: str, match: bool) -> None:
+    assert mcaplog.key_matches(pattern, key) is match
+
+
+def test_publish_time_is_the_message_stamp() -> None:
+    f = frames(123_456_789_000, 0)
+    assert mcaplog.publish_time_ns("application/protobuf;foxglove.CompressedImage", f[K.camera_color], 1) \
+        == 123_456_789_000
+    assert mcaplog.publish_time_ns("application/protobuf;foxglove.RawImage", f[K.camera_depth], 1) == 123_456_789_000
+    data, enc = encode(VehicleState(stamp_ns=42))
+    assert mcaplog.publish_time_ns(str(enc), data, 1) == 42
+    assert mcaplog.publish_time_ns("zenoh/bytes", b"\x00", 7) == 7
+    assert mcaplog.publish_time_ns("application/json;aermani.VehicleState", b"{broken", 9) == 9
+
+
+def test_channel_specs() -> None:
+    spec = mcaplog.channel_spec("application/protobuf;foxglove.RawImage")
+    assert (spec.schema_name, spec.schema_encoding, spec.message_encoding) == ("foxglove.RawImage", "protobuf",
+                                                                               "protobuf")
+    spec = mcaplog.channel_spec("application/json;aermani.ReasoningStep")
+    assert spec.schema_encoding == "jsonschema" and b"image_stamp_ns" in spec.schema_data
+    assert not mcaplog.channel_spec("zenoh/bytes").has_schema
