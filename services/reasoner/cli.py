@@ -200,6 +200,20 @@ def run_demo(command: str, scenario, accepted: tuple[str, ...], *, env: dict[str
         stack.stop()
 
 
+async def _query_retry(bus, key: str, request, model, timeout: float):
+    """A query retried while nobody serves the key yet (liveliness tokens come before queryables)."""
+    from shared.errors import NoResponder
+
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            return await bus.query(key, request, model, timeout=timeout)
+        except NoResponder:
+            if time.monotonic() > deadline:
+                raise
+            await asyncio.sleep(0.3)
+
+
 async def _demo_task(stack, command: str, scenario, accepted: tuple[str, ...], t_max: float) -> int:
     from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 
@@ -212,7 +226,7 @@ async def _demo_task(stack, command: str, scenario, accepted: tuple[str, ...], t
     bus = await Bus.open(connect=[stack.endpoint])
     try:
         health = bus.subscribe(keys.health("recorder"), Health, maxsize=5)
-        reset = await bus.query(keys.sim_reset, scenario, SimResetResult, timeout=30)
+        reset = await _query_retry(bus, keys.sim_reset, scenario, SimResetResult, timeout=30)
         if not reset.ok:
             console.print(f"[red]the simulator refused the scenario: {reset.message} (use --target/--destination)"
                           "[/red]")

@@ -83,7 +83,9 @@ def policy_context(command: str, variant: str, library: SkillLibrary, history: H
         steps=[PastStep(e.skill, e.argument, e.state, e.message) for e in history.entries],
         held=mem.held_object if mem else None, visible=seen,
         known_objects=[o.label for o in mem.objects] if mem else [],
-        known_placements=[p.label for p in mem.placements] if mem else [])
+        known_placements=[p.label for p in mem.placements] if mem else [],
+        pose=(obs.state.position.x, obs.state.position.y, obs.state.yaw) if obs.state else None,
+        positions={o.label: (o.position.x, o.position.y) for o in (*mem.objects, *mem.placements)} if mem else {})
 
 
 @dataclass

@@ -151,3 +151,19 @@ def test_parse_command_suites() -> None:
     assert p.target == "cardboard box" and p.destination == "sink"
     p = parse_command("Move closer to the table, turn left, and pick up the cup")
     assert p.motions == ["forward", "yaw_left"] and p.target == "cup"
+
+
+def test_out_of_reach_turns_toward_then_flies_closer_then_retries() -> None:
+    from services.reasoner.backends.base import PastStep, PolicyContext
+    from services.reasoner.backends.rules import RulesPolicy
+
+    refused = PastStep("place", None, "rejected", "the placement spot on the table is 4.28 m away (reach 3.00 m): "
+                                                  "move closer")
+    base = {"command": "pick up the red cup and place it on the table", "variant": "full", "skills": [], "held": "red cup",
+                "known_placements": ["table"], "positions": {"table": (0.0, 4.0)}}
+    steps = [PastStep("grasp", "red cup", "succeeded"), PastStep("placement_localization", "table", "succeeded"), refused]
+    policy = RulesPolicy()
+    assert policy.decide(PolicyContext(**base, steps=steps, pose=(0.0, 0.0, 0.0)))[0] == "yaw_left"
+    assert policy.decide(PolicyContext(**base, steps=steps, pose=(0.0, 0.0, 1.57)))[0] == "forward"
+    near = [*steps, PastStep("forward", None, "succeeded")]
+    assert policy.decide(PolicyContext(**base, steps=near, pose=(0.0, 2.0, 1.57)))[0] == "place"

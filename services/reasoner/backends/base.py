@@ -38,6 +38,10 @@ class PolicyContext:
     visible: list[Seen] = field(default_factory=list)
     known_objects: list[str] = field(default_factory=list)
     known_placements: list[str] = field(default_factory=list)
+    pose: tuple[float, float, float] | None = None
+    """Vehicle x, y (world, m) and yaw (rad), when known."""
+    positions: dict[str, tuple[float, float]] = field(default_factory=dict)
+    """World x, y of localized objects and placement spots by label (working memory)."""
 
 
 @dataclass

@@ -20,6 +20,7 @@ operator takes it from the hovering vehicle (a landing with a held object is the
 from __future__ import annotations
 
 import json
+import math
 import re
 import time
 from dataclasses import dataclass, field
@@ -258,6 +259,9 @@ class RulesPolicy:
         if target is None:
             return self._search(rest, query, S.OBJ_LOCALIZATION, why)
         last = rest[-1] if rest else None
+        approach = self._approach(ctx, rest, S.GRASP, target)
+        if approach is not None:
+            return approach
         if last and last.skill == S.OBJ_LOCALIZATION and last.state == "succeeded":
             return S.GRASP, target, f"{why} It was just localized, so grasp it."
         if last and last.skill == S.OBJ_LOCALIZATION and last.state != "succeeded":
@@ -269,8 +273,12 @@ class RulesPolicy:
 
     def _place(self, ctx: PolicyContext, plan: Plan, rest: list[PastStep], holding: str) -> tuple[str, str | None, str]:
         dest = plan.destination or ""
-        seen = any(_matches(v.label, dest) for v in ctx.visible) or any(_matches(k, dest) for k in ctx.known_placements)
+        # Surfaces need the exact name: "table" must not be taken for the "round table" next to it.
+        seen = any(v.label.lower() == dest for v in ctx.visible) or any(k.lower() == dest for k in ctx.known_placements)
         last = rest[-1] if rest else None
+        approach = self._approach(ctx, rest, S.PLACE, dest)
+        if approach is not None:
+            return approach
         if last and last.skill == S.PLACEMENT_LOCALIZATION and last.state == "succeeded":
             return S.PLACE, None, f"Holding the {holding}; the {dest} placement pose is localized, so place it."
         if last and last.skill == S.PLACEMENT_LOCALIZATION and last.state != "succeeded":
@@ -283,6 +291,37 @@ class RulesPolicy:
                                                                       "detected yet.")
         return S.PLACEMENT_LOCALIZATION, dest, f"Holding the {holding} and the {dest} is detected: localize the " \
                                                "placement spot."
+
+    def _approach(self, ctx: PolicyContext, rest: list[PastStep], skill: str,
+                  label: str) -> tuple[str, str | None, str] | None:
+        """After `skill` was refused as out of reach: turn toward the localized spot and fly closer, then retry."""
+        idx = next((i for i in range(len(rest) - 1, -1, -1) if rest[i].skill in (skill, S.OBJ_LOCALIZATION,
+                                                                                  S.PLACEMENT_LOCALIZATION)), None)
+        if idx is None or rest[idx].skill != skill or rest[idx].state == "succeeded":
+            return None
+        msg = rest[idx].message
+        if "closer" not in msg and "away" not in msg:
+            return None
+        m = re.search(r"reach ([\d.]+) m", msg)
+        reach = float(m.group(1)) if m else 1.0
+        moves = rest[idx + 1:]
+        arg = label if skill == S.GRASP else None
+        pos = next((xy for name, xy in ctx.positions.items() if _matches(name, label)), None)
+        if pos is None or ctx.pose is None:
+            if sum(1 for s in moves if s.skill == S.FORWARD) < 2:
+                return S.FORWARD, None, f"The {label} is out of reach ({msg}); fly closer."
+            return skill, arg, f"Approached the {label}; try {skill} again."
+        x, y, yaw = ctx.pose
+        dist = math.hypot(pos[0] - x, pos[1] - y)
+        bearing = math.atan2(pos[1] - y, pos[0] - x) - yaw
+        bearing = math.atan2(math.sin(bearing), math.cos(bearing))
+        if dist <= 0.8 * reach or len(moves) >= 12:
+            return skill, arg, f"The {label} is now {dist:.1f} m away, within reach ({reach:.1f} m): {skill}."
+        if abs(bearing) > math.radians(35):
+            turn = S.YAW_LEFT if bearing > 0 else S.YAW_RIGHT
+            return turn, None, (f"The {label} is {dist:.1f} m away at {math.degrees(bearing):.0f} deg: turn toward "
+                                "it before flying closer.")
+        return S.FORWARD, None, f"The {label} is {dist:.1f} m away (reach {reach:.1f} m) and ahead: fly closer."
 
     def _search(self, rest: list[PastStep], query: str | None, localize: str, why: str) -> tuple[str, str | None, str]:
         yaws = 0
@@ -402,8 +441,13 @@ def context_from_prompt(text: str) -> PolicyContext:
     def labels(m: re.Match | None) -> list[str]:
         return [x.split(" at (")[0].strip() for x in m.group(1).split("; ")] if m else []
 
+    positions = {name: (float(px), float(py)) for name, px, py in
+                 re.findall(r"(?:^|: |; )([^:;()]+?) at \((-?[\d.]+), (-?[\d.]+), -?[\d.]+\)", history, re.M)}
+    pose_m = re.search(r"^Now: position \((-?[\d.]+), (-?[\d.]+), -?[\d.]+\) m, yaw (-?[\d.]+) deg", history, re.M)
+    pose = (float(pose_m.group(1)), float(pose_m.group(2)), math.radians(float(pose_m.group(3)))) if pose_m else None
     return PolicyContext(command=command, variant=variant, skills=skills, steps=steps, held=held, visible=visible,
-                         known_objects=labels(objs), known_placements=labels(places))
+                         known_objects=labels(objs), known_placements=labels(places), pose=pose,
+                         positions={k.strip(): v for k, v in positions.items()})
 
 
 def answer_for_prompt(text: str) -> str:
