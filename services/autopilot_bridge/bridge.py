@@ -227,12 +227,23 @@ class Bridge:
             self.message = f"offboard lost: PX4 switched to {mode}{self._status_hint()}"
             log.warning("%s", self.message)
 
+    def _finite(self, msg: Any, *values: float) -> bool:
+        if px4.all_finite(*values):
+            return True
+        self.counters["nonfinite_telemetry"] += 1
+        self.warn("nan", "ignored %s with non-finite values", msg.get_type())
+        return False
+
     def _on_local_position_ned(self, msg: Any) -> None:
+        if not self._finite(msg, msg.x, msg.y, msg.z, msg.vx, msg.vy, msg.vz):
+            return
         self.position = px4.ned_to_enu(msg.x, msg.y, msg.z)
         self.velocity = px4.ned_to_enu(msg.vx, msg.vy, msg.vz)
         self.have_position = True
 
     def _on_attitude(self, msg: Any) -> None:
+        if not self._finite(msg, msg.roll, msg.pitch, msg.yaw):
+            return
         # PX4 FRD roll and pitch keep their sign in our convention (roll right-wing-down, pitch nose-up).
         self.roll, self.pitch, self.yaw = msg.roll, msg.pitch, px4.yaw_ned_to_enu(msg.yaw)
 
@@ -338,6 +349,8 @@ class Bridge:
 
     async def arm(self, _cmd: ArmCommand) -> AutopilotResult:
         code = await self.command_long(px4.MAV_CMD_COMPONENT_ARM_DISARM, 1)
+        if code == px4.MAV_RESULT_ACCEPTED:
+            self.armed = True  # PX4 acks after arming; its next HEARTBEAT (1 Hz) confirms
         return self._ack_result("arm", code, "arm", "armed")
 
     async def disarm(self, cmd: DisarmCommand) -> AutopilotResult:
@@ -345,6 +358,7 @@ class Bridge:
         code = await self.command_long(px4.MAV_CMD_COMPONENT_ARM_DISARM, 0,
                                        px4.FORCE_ARM_MAGIC if cmd.force else 0)
         if code == px4.MAV_RESULT_ACCEPTED:
+            self.armed = False
             self.offboard_expected = False
             self.stream.stop()
         return self._ack_result("disarm", code, "disarm", "disarmed")
@@ -390,6 +404,7 @@ class Bridge:
                     if code != px4.MAV_RESULT_ACCEPTED:
                         self.stream.stop()
                         return self._ack_result("takeoff", code, "arm", "")
+                    self.armed = True
                 failed = await self.enter_offboard(Target(x, y, z, yaw))
                 if failed is not None:
                     return failed.model_copy(update={"command": "takeoff"})
