@@ -105,6 +105,7 @@ class RecordWriter:
         self.error = ""
         self.errors = 0
         self.file_messages = 0
+        self.foxglove_url = ""
 
     # ---- any thread
 
@@ -147,7 +148,7 @@ class RecordWriter:
             "durable": self.durable, "file_messages": self.file_messages, "dropped": self.dropped_backlog,
             "lost_on_error": self.lost_on_error, "bytes": self.bytes_written, "channels": self.channels,
             "vehicles": sorted(self.vehicles), "backlog_bytes": self._backlog_bytes, "error": self.error,
-            "errors": self.errors,
+            "errors": self.errors, "foxglove": self.foxglove_url,
         }
 
     # ---- writer thread
@@ -306,7 +307,8 @@ class RecordWriter:
 
             self._fox = foxglove
             self._fox_server = foxglove.start_server(host=self.settings.foxglove_host, port=self.settings.foxglove_port)
-            log.info("Foxglove live server on ws://%s:%d", self.settings.foxglove_host, self._fox_server.port)
+            self.foxglove_url = f"ws://{self.settings.foxglove_host}:{self._fox_server.port}"
+            log.info("Foxglove live server on %s", self.foxglove_url)
         except Exception as exc:
             log.error("Foxglove live server not started: %s", exc)
             self._fox = None

@@ -156,3 +156,20 @@ def test_channel_specs() -> None:
     spec = mcaplog.channel_spec("application/json;aermani.ReasoningStep")
     assert spec.schema_encoding == "jsonschema" and b"image_stamp_ns" in spec.schema_data
     assert not mcaplog.channel_spec("zenoh/bytes").has_schema
+
+
+def test_foxglove_live_server_gets_every_channel(tmp_path: Path) -> None:
+    w = RecordWriter(settings(tmp_path, foxglove=True, foxglove_port=0))
+    w.start()
+    stamp = time.time_ns()
+    for key, data in frames(stamp).items():
+        schema = "foxglove.CompressedImage" if key == K.camera_color else "foxglove.RawImage"
+        assert w.submit(key, data, f"application/protobuf;{schema}", stamp)
+    submit_model(w, K.autopilot_state, VehicleState())
+    wait_for(lambda: w.written == 4)
+    url = w.foxglove_url
+    channels = {ch.topic(): ch.schema_name() for ch in w._fox_channels.values()}
+    w.stop()
+    assert url.startswith("ws://127.0.0.1:") and not url.endswith(":0")
+    assert channels[K.camera_color] == "foxglove.CompressedImage"
+    assert channels[K.autopilot_state] == "aermani.VehicleState"
