@@ -208,8 +208,10 @@ class Fleet:
 
     # ---- commands
 
-    async def abort(self, vehicles: list[str], reason: str, task_id: str | None, wait_s: float) -> list[str]:
-        """Publish an Abort to each vehicle; return those whose executor acknowledged within `wait_s`."""
+    async def abort(self, vehicles: list[str], reason: str, task_id: str | None,
+                    wait_s: float) -> dict[str, str]:
+        """Publish an Abort to each vehicle; return {vehicle: executor's ack message} for those that
+        acknowledged within `wait_s`."""
         from shared.messages import Abort
 
         stamps: dict[str, int] = {}
@@ -218,9 +220,9 @@ class Fleet:
             stamps[vid] = msg.stamp_ns
             self.bus.publish(Keys(vid).abort, msg)
 
-        def acked() -> list[str]:
-            return [vid for vid in vehicles
-                    if any(a.abort_stamp_ns == stamps[vid] for a in self.view(vid).acks)]
+        def acked() -> dict[str, str]:
+            return {vid: a.message for vid in vehicles for a in self.view(vid).acks
+                    if a.abort_stamp_ns == stamps[vid]}
 
         deadline = time.monotonic() + wait_s
         async with self.changed:

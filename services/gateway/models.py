@@ -184,7 +184,8 @@ class AbortIn(ApiModel):
 
 class AbortOut(ApiModel):
     model_config = ConfigDict(json_schema_extra={"examples": [
-        {"vehicles": ["am1"], "acknowledged": ["am1"], "task_id": "task-1a2b3c4d5e6f"}]})
+        {"vehicles": ["am1"], "acknowledged": ["am1"], "task_id": "task-1a2b3c4d5e6f",
+         "messages": {"am1": "stopped grasp (goal goal-0123456789ab), holding position"}}]})
 
     vehicles: list[str]
     """Vehicles the abort was sent to."""
@@ -192,6 +193,8 @@ class AbortOut(ApiModel):
     """Vehicles whose executor acknowledged the hold in time."""
     task_id: str | None = None
     """Task aborted, when one was named."""
+    messages: dict[str, str] = {}
+    """What each acknowledging executor did (e.g. "holding position")."""
 
 
 # --------------------------------------------------------------------------- health

@@ -64,7 +64,8 @@ def test_conflict_abort_and_restart(gw, client: httpx.Client) -> None:
     assert len(read_sse(client, f"/tasks/{tid}/events", stop=3)) == 3
     ab = client.post(f"/tasks/{tid}/abort", json={"reason": "test abort"})
     assert ab.status_code == 202, ab.text
-    assert ab.json() == {"vehicles": ["am1"], "acknowledged": ["am1"], "task_id": tid}
+    assert ab.json() == {"vehicles": ["am1"], "acknowledged": ["am1"], "task_id": tid,
+                         "messages": {"am1": "holding"}}
     assert gw.fake.aborts[-1].task_id == tid and gw.fake.aborts[-1].reason == "test abort"
     end = read_sse(client, f"/tasks/{tid}/events")[-1]
     assert end["event"] == "task_status" and end["data"]["state"] == "aborted"

@@ -217,4 +217,5 @@ async def abort_task(task_id: TaskId, store: StoreDep, fleet: FleetDep, settings
                             "every vehicle")
     reason = (body or AbortIn()).reason
     acked = await fleet.abort([row["vehicle_id"]], reason, task_id, settings.abort_ack_timeout_s)
-    return AbortOut(vehicles=[row["vehicle_id"]], acknowledged=acked, task_id=task_id)
+    return AbortOut(vehicles=[row["vehicle_id"]], acknowledged=sorted(acked), messages=acked,
+                    task_id=task_id)
