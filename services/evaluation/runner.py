@@ -29,7 +29,7 @@ from services.evaluation.tasks import (
     load_suites,
 )
 from shared.bus import Bus, Subscription
-from shared.errors import AermaniError, BusError, ConfigError
+from shared.errors import AermaniError, BusError, ConfigError, NoResponder
 from shared.keys import Keys
 from shared.launcher import PER_VEHICLE, Stack, available_services, free_udp_port
 from shared.messages import (
@@ -39,6 +39,9 @@ from shared.messages import (
     LandedState,
     ReasoningStep,
     SimResetResult,
+    SkillAccept,
+    SkillRequest,
+    SkillStatus,
     TaskAccept,
     TaskRequest,
     TaskStatus,
@@ -52,6 +55,7 @@ log = logging.getLogger("aermani.evaluation")
 STATUS_MARGIN_S = 90.0  # wait this long past T_max for the reasoner's own timeout status before giving up
 START_RETRY_S = 30.0  # a vehicle may still be finishing its previous task: retry start_task this long
 QUERY_TIMEOUT_S = 20.0
+READY_WAIT_S = 60.0  # a service's liveliness token appears before its queryables: wait for them this long
 
 
 class RunConfig(BaseModel):
@@ -149,6 +153,7 @@ class VehicleWorker:
     steps: Subscription[ReasoningStep] = field(init=False)
     statuses: Subscription[TaskStatus] = field(init=False)
     state: Subscription[VehicleState] = field(init=False)
+    skill_status: Subscription[SkillStatus] = field(init=False)
 
     def __post_init__(self) -> None:
         self.keys = Keys(self.vehicle_id)
@@ -156,10 +161,24 @@ class VehicleWorker:
                                         overflow="drop_newest")
         self.statuses = self.bus.subscribe(self.keys.task_status, TaskStatus, maxsize=1_000)
         self.state = self.bus.subscribe(self.keys.autopilot_state, VehicleState, maxsize=2)
+        self.skill_status = self.bus.subscribe(self.keys.skill_status, SkillStatus, maxsize=100)
 
     def close(self) -> None:
-        for sub in (self.steps, self.statuses, self.state):
+        for sub in (self.steps, self.statuses, self.state, self.skill_status):
             sub.close()
+
+    async def _query(self, key: str, request: object, model: type, timeout: float = QUERY_TIMEOUT_S):
+        """A query that waits for its queryable to appear (startup, or a supervised restart after a crash)."""
+        deadline = time.monotonic() + READY_WAIT_S
+        delay = 0.2
+        while True:
+            try:
+                return await self.bus.query(key, request, model, timeout=timeout)
+            except NoResponder:
+                if time.monotonic() > deadline:
+                    raise
+                await asyncio.sleep(delay)
+                delay = min(2.0, delay * 2)
 
     async def _drain_steps(self, task_id: str, into: list[ReasoningStep]) -> int:
         """Move queued steps of `task_id` into `into`; returns how many belonged to another task."""
@@ -171,6 +190,42 @@ class VehicleWorker:
             else:
                 foreign += 1
         return foreign
+
+    async def _current_state(self, timeout: float = 10.0) -> VehicleState | None:
+        latest = self.state.latest_nowait()
+        try:
+            return await self.state.recv(timeout=timeout)
+        except TimeoutError:
+            return latest
+
+    async def _land(self, timeout: float = 90.0) -> None:
+        """Land and let PX4 auto-disarm before the next reset, as between real trials: teleporting an armed,
+        flying vehicle would leave the bridge's offboard stream and PX4's mode out of step."""
+        st = await self._current_state()
+        if st is None or (not st.armed and st.landed_state in (LandedState.ON_GROUND, LandedState.UNKNOWN)):
+            return
+        self.skill_status.latest_nowait()
+        try:
+            acc = await self._query(self.keys.run_skill, SkillRequest(skill="land"), SkillAccept)
+        except AermaniError as exc:
+            log.warning("%s: land request failed (%s); resetting anyway", self.vehicle_id, exc)
+            return
+        if not acc.accepted:
+            log.warning("%s: land rejected (%s); resetting anyway", self.vehicle_id, acc.reason)
+            return
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            try:
+                ss = await self.skill_status.recv(timeout=max(0.1, deadline - time.monotonic()))
+            except TimeoutError:
+                break
+            if ss.goal_id == acc.goal_id and ss.state.terminal:
+                break
+        while time.monotonic() < deadline:  # PX4 disarms a couple of seconds after touchdown
+            st = await self._current_state(timeout=2.0)
+            if st is not None and not st.armed:
+                return
+        log.warning("%s: vehicle still armed %.0f s after land; resetting anyway", self.vehicle_id, timeout)
 
     async def _wait_grounded(self, timeout: float = 30.0) -> None:
         """After a reset the bridge must report the vehicle on the ground, disarmed, before a task starts."""
@@ -200,8 +255,8 @@ class VehicleWorker:
 
     async def _run(self, spec: EpisodeSpec, rec: EpisodeRecord, t_max: float) -> EpisodeRecord:
         task = spec.task
-        reset = await self.bus.query(self.keys.sim_reset, task.scenario(spec.seed), SimResetResult,
-                                     timeout=QUERY_TIMEOUT_S)
+        await self._land()
+        reset = await self._query(self.keys.sim_reset, task.scenario(spec.seed), SimResetResult)
         if not reset.ok:
             return rec.model_copy(update={"harness_error": f"sim/reset refused the scenario: {reset.message}"})
         await self._wait_grounded()
@@ -263,7 +318,7 @@ class VehicleWorker:
     async def _start(self, request: TaskRequest) -> TaskAccept:
         deadline = time.monotonic() + START_RETRY_S
         while True:
-            accept = await self.bus.query(self.keys.start_task, request, TaskAccept, timeout=QUERY_TIMEOUT_S)
+            accept = await self._query(self.keys.start_task, request, TaskAccept)
             if accept.accepted or time.monotonic() > deadline:
                 return accept
             await asyncio.sleep(1.0)
@@ -274,15 +329,15 @@ class VehicleWorker:
         if task.destination:
             last: JudgeResult | None = None
             for obj in task.accepted:
-                j = await self.bus.query(self.keys.sim_judge, JudgeRequest(
+                j = await self._query(self.keys.sim_judge, JudgeRequest(
                     op="on_surface", object=obj, surface=task.destination, tolerance=self.cfg.tolerance),
-                    JudgeResult, timeout=QUERY_TIMEOUT_S)
+                    JudgeResult)
                 if j.ok:
                     return j, True, j.message
                 last = last or j
             assert last is not None
             return last, False, last.message
-        j = await self.bus.query(self.keys.sim_judge, JudgeRequest(op="held"), JudgeResult, timeout=QUERY_TIMEOUT_S)
+        j = await self._query(self.keys.sim_judge, JudgeRequest(op="held"), JudgeResult)
         if j.held in task.accepted:
             return j, True, f"holding {j.held}"
         return j, False, f"holding {j.held}, expected {' or '.join(task.accepted)}" if j.held else \

@@ -1,0 +1,99 @@
+"""The evaluation on the real stack: services as processes, the simulator as the world, rules backend."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from services.evaluation.records import RESULTS_FILE, ResultsFile
+from services.evaluation.runner import RunConfig, run
+
+pytestmark = pytest.mark.integration
+
+# Short T_max and a faster simulator keep CI short; the verdicts are still the simulator's ground truth.
+FAST = {"speed_factor": 4.0, "t_max_s": 240.0, "progress": False, "extra_env": {"AERMANI_SIM_FPS": "5"}}
+TERMINAL = {"succeeded", "failed", "aborted", "timeout"}
+
+
+def _check_episode(rec) -> None:
+    assert not rec.harness_error, rec.harness_error
+    assert rec.state in TERMINAL
+    assert rec.status is not None and rec.status.task_id == rec.task_id
+    assert rec.steps, "no reasoning step recorded"
+    assert [s.step for s in rec.steps] == sorted(s.step for s in rec.steps)
+    assert len(rec.steps) == rec.status.steps
+    assert rec.judge is not None and rec.verdict
+    if rec.success:  # the verdict is the simulator's ground truth, not the reasoner's claim
+        assert rec.judge.ok if rec.task.destination else rec.held in rec.task.accepted
+        assert rec.state != "timeout"
+
+
+def test_smoke_two_suites_one_episode_each(tmp_path):
+    cfg = RunConfig(out=tmp_path, suites=["localization", "sequential"], episodes=1, **FAST)
+    summary = run(cfg)
+    assert (summary.planned, summary.ran, summary.skipped) == (2, 2, 0)
+    recs = ResultsFile(tmp_path / RESULTS_FILE).load()
+    assert sorted(r.suite for r in recs) == ["localization", "sequential"]
+    for rec in recs:
+        _check_episode(rec)
+    md = (tmp_path / "report.md").read_text()
+    assert "| Localization | AERMANI-VLM | 1 |" in md and "| Sequential | AERMANI-VLM | 1 |" in md
+    assert "not a VLM" in md
+    doc = json.loads((tmp_path / "report.json").read_text())
+    assert len(doc["episodes"]) == 2 and doc["episodes"][0]["steps"]
+    assert (tmp_path / "plots" / "steps_per_episode.png").exists()
+
+
+def test_parallel_vehicles_have_no_cross_talk(tmp_path):
+    cfg = RunConfig(out=tmp_path, suites=["localization", "clutter"], episodes=1, parallel=2, **FAST)
+    summary = run(cfg)
+    assert summary.ran == 2
+    recs = ResultsFile(tmp_path / RESULTS_FILE).load()
+    assert {r.vehicle_id for r in recs} == {"ev1", "ev2"}
+    assert len({r.task_id for r in recs}) == 2
+    for rec in recs:
+        _check_episode(rec)
+        assert rec.foreign_samples == 0
+        assert rec.status.vehicle_id == rec.vehicle_id
+        for s in rec.steps:
+            assert (s.vehicle_id, s.task_id) == (rec.vehicle_id, rec.task_id)
+
+
+def test_interrupted_run_resumes_without_rerunning_finished_episodes(tmp_path):
+    out = tmp_path / "eval"
+    args = [sys.executable, "-m", "shared.cli", "eval", "--suites", "localization", "--episodes", "2",
+            "--out", str(out), "--speed-factor", "4", "--t-max", "240", "--no-progress"]
+    env = {**os.environ, "AERMANI_SIM_FPS": "5"}
+    proc = subprocess.Popen(args, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            cwd=Path(__file__).resolve().parents[2])
+    results = ResultsFile(out / RESULTS_FILE)
+    try:
+        deadline = time.monotonic() + 400
+        while not results.finished_ids():
+            assert proc.poll() is None, proc.stdout.read().decode(errors="replace")
+            assert time.monotonic() < deadline, "no episode finished"
+            time.sleep(0.5)
+        proc.send_signal(signal.SIGINT)  # Ctrl-C while the second episode runs
+        proc.wait(timeout=90)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    first = results.load()
+    assert len(first) == 1
+    first_id = first[0].episode_id
+    first_line = (out / RESULTS_FILE).read_text().splitlines()[0]
+
+    summary = run(RunConfig(out=out, suites=["localization"], episodes=2, **FAST))
+    assert (summary.planned, summary.skipped, summary.ran) == (2, 1, 1)
+    assert first_id not in {r.episode_id for r in summary.records}
+    lines = (out / RESULTS_FILE).read_text().splitlines()
+    assert lines[0] == first_line and sum(first_id in ln for ln in lines) == 1
+    assert len(results.load()) == 2
