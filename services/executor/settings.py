@@ -87,8 +87,10 @@ class ExecutorSettings(ServiceSettings):
     """Takeoff and transit altitude; grasp and place retreat to it, metres."""
     standoff_distance: float = 0.75
     """Horizontal distance from the object at which grasp/place re-localize, facing it, metres."""
-    reach: float = 3.0
-    """Grasp/place refuse targets farther than this horizontally, metres."""
+    reach: float = 4.0
+    """Grasp refuses an object farther than this horizontally, metres (long legs on one far estimate)."""
+    place_reach: float = 6.0
+    """Place refuses a placement spot farther than this horizontally, metres."""
     localization_max_age_s: float = 120.0
     """A grasp needs a localization of the object younger than this, seconds (memory is in world frame)."""
     relocalize_iterations: int = 3

@@ -378,8 +378,9 @@ class Place(_Manipulation):
         st = ctx.state.value
         assert st is not None
         d = horizontal_distance(pl.position, st.position)
-        if d > s.reach:
-            return f"the placement spot on the {pl.label} is {d:.2f} m away (reach {s.reach:.2f} m): move closer"
+        if d > s.place_reach:
+            return (f"the placement spot on the {pl.label} is {d:.2f} m away (reach {s.place_reach:.2f} m): "
+                    "move closer")
         return None
 
     async def run(self, ctx: SkillContext, argument: str | None) -> SkillResult:
@@ -463,7 +464,7 @@ class Takeoff(Skill):
         if not ctx.current().armed:
             await ctx.command(ArmCommand())
         await ctx.command(TakeoffCommand(altitude=s.flight_altitude), timeout=s.takeoff_timeout_s)
-        st = await ctx.wait_for(lambda st: st.position.z >= s.flight_altitude - 0.2 and st.offboard_ok,
+        st = await ctx.wait_for(lambda st: st.position.z >= s.flight_altitude - s.position_tolerance and st.offboard_ok,
                                 s.takeoff_timeout_s, "takeoff altitude")
         return SkillResult(f"airborne at {fmt(st.position)}")
 
