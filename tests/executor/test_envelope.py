@@ -119,7 +119,7 @@ def test_on_the_ground_only_takeoff():
 
 def test_routine_preconditions():
     async def main():
-        async with rig() as r:
+        async with rig(place_reach=4.0) as r:
             assert "needs an argument" in await _rejected(r, "obj_localization")
             assert "run obj_localization first" in await _rejected(r, "grasp")
             assert "not holding" in await _rejected(r, "place")
