@@ -167,32 +167,36 @@ class History:
             head.append("Working memory: " + obs.memory.summary())
         if not self.entries:
             return _fit("\n".join([*head, "No skill executed yet."]), self.max_chars)
+        head_text = "\n".join(head)
+        # Budget: keep as many full entries as fit (at least the last one), then fill what is left with
+        # condensed lines, newest first; whatever does not fit is counted as omitted. Linear in what fits.
+        reserve = 60  # "Earlier steps:" and "(N earlier steps omitted)"
         n_full = min(self.full_steps, len(self.entries))
-        # Only the tail can matter for the budget: entries beyond what could fit even condensed are omitted.
-        max_lines = self.max_chars // 12
-        tail = self.entries[-max_lines:] if len(self.entries) > max_lines else self.entries
-        omitted = len(self.entries) - len(tail)
         while True:
-            condensed = tail[: len(tail) - n_full] if n_full < len(tail) else []
-            full = tail[len(condensed):]
-            body = []
-            if omitted:
-                body.append(f"({omitted} earlier steps omitted)")
-            if condensed:
-                body.append("Earlier steps:")
-                body.extend("  " + e.condensed() for e in condensed)
-            body.append("Recent steps:")
-            body.extend(e.full() for e in full)
-            text = "\n".join([*head, *body])
-            if len(text) <= self.max_chars:
-                return text
-            if n_full > 1:
-                n_full -= 1  # condense the oldest full entry first
-            elif len(tail) > 1:
-                tail = tail[1:]  # then drop the oldest condensed line
-                omitted += 1
-            else:
-                return _fit(text, self.max_chars)
+            full = [e.full() for e in self.entries[len(self.entries) - n_full:]] if n_full else []
+            base = len(head_text) + len("\nRecent steps:") + sum(len(f) + 1 for f in full)
+            if base + reserve <= self.max_chars or n_full <= 1:
+                break
+            n_full -= 1
+        room = self.max_chars - base - reserve
+        condensed: list[str] = []
+        for e in reversed(self.entries[: len(self.entries) - n_full]):
+            line = "  " + e.condensed()
+            if len(line) + 1 > room:
+                break
+            condensed.append(line)
+            room -= len(line) + 1
+        condensed.reverse()
+        omitted = len(self.entries) - n_full - len(condensed)
+        body = []
+        if omitted:
+            body.append(f"({omitted} earlier steps omitted)")
+        if condensed:
+            body.append("Earlier steps:")
+            body.extend(condensed)
+        body.append("Recent steps:")
+        body.extend(full)
+        return _fit("\n".join([head_text, *body]), self.max_chars)
 
 
 def _fit(text: str, n: int) -> str:
