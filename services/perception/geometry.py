@@ -1,0 +1,214 @@
+"""RGB-D geometry with Open3D: mask -> world points, filtered object boxes, support planes, free placement spots."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import open3d as o3d
+
+from services.perception.frames import Frame
+from shared.messages import BBox2D
+
+MAX_DEPTH_M = 8.0
+
+
+@dataclass
+class Cloud:
+    """World points of a mask (subsampled) with their pixel indices."""
+
+    points: np.ndarray  # Nx3 world ENU
+    pixels: np.ndarray  # N flat pixel indices
+    n_pixels: int  # mask size before depth filtering and subsampling
+    n_valid: int  # pixels with valid depth
+
+
+def bbox_of(idx: np.ndarray, width: int) -> BBox2D | None:
+    if idx.size == 0:
+        return None
+    v, u = np.divmod(idx, width)
+    return BBox2D(x0=int(u.min()), y0=int(v.min()), x1=int(u.max()) + 1, y1=int(v.max()) + 1)
+
+
+def touches_border(bbox: BBox2D | None, shape: tuple[int, int], margin: int = 1) -> bool:
+    if bbox is None:
+        return False
+    h, w = shape
+    return bbox.x0 < margin or bbox.y0 < margin or bbox.x1 > w - margin or bbox.y1 > h - margin
+
+
+def lift(frame: Frame, idx: np.ndarray, max_points: int | None = None) -> Cloud:
+    """Flat pixel indices -> world points; invalid depth (0 or beyond MAX_DEPTH_M) is dropped; evenly
+    subsampled to at most `max_points` (deterministic, so answers are repeatable)."""
+    h, w = frame.shape
+    d = frame.depth_mm.ravel()[idx]
+    keep = (d > 0) & (d < MAX_DEPTH_M * 1000)
+    good = idx[keep]
+    n_valid = int(good.size)
+    if max_points is not None and good.size > max_points:
+        good = good[np.linspace(0, good.size - 1, max_points).astype(np.int64)]
+    z = frame.depth_mm.ravel()[good].astype(np.float64) * 0.001
+    v, u = np.divmod(good, w)
+    intr = frame.intr
+    pc = np.empty((good.size, 3))
+    pc[:, 0] = (u - intr.cx) * z / intr.fx
+    pc[:, 1] = (v - intr.cy) * z / intr.fy
+    pc[:, 2] = z
+    T = frame.world_from_camera  # noqa: N806
+    pts = pc @ T[:3, :3].T + T[:3, 3]
+    return Cloud(pts, good, int(idx.size), n_valid)
+
+
+def remove_outliers(points: np.ndarray, nb_neighbors: int = 16, std_ratio: float = 2.0) -> np.ndarray:
+    """Open3D statistical outlier removal; returns the kept indices."""
+    if len(points) < nb_neighbors + 2:
+        return np.arange(len(points))
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    _, kept = pcd.remove_statistical_outlier(nb_neighbors=nb_neighbors, std_ratio=std_ratio)
+    return np.asarray(kept, dtype=np.int64)
+
+
+@dataclass
+class ObjectGeometry:
+    center: np.ndarray  # x/y: centre of the footprint box; z: halfway between support and top
+    yaw: float  # along the footprint's longer side, in (-pi/2, pi/2]
+    size: np.ndarray  # along yaw, across, height
+    top_z: float
+    support_z: float
+    n_points: int
+
+
+def upright_box(points: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
+    """Gravity-aligned oriented box of an object resting on a horizontal surface: the minimum-area rectangle
+    of the x/y footprint (exact on squares, unlike a PCA box) -> (centre xy, yaw, (long, short))."""
+    (cx, cy), (w, h), angle = cv2.minAreaRect(points[:, :2].astype(np.float32))
+    yaw = math.radians(angle)
+    if h > w:
+        w, h = h, w
+        yaw += math.pi / 2
+    yaw = (yaw + math.pi / 2) % math.pi - math.pi / 2  # a box is symmetric under a half turn
+    return np.array([cx, cy]), yaw, np.array([w, h])
+
+
+def support_height(frame: Frame, idx: np.ndarray, bottom_z: float, ring_px: int = 6) -> float | None:
+    """Median height of the surface just around the object's mask (a ring of pixels), when it is there."""
+    h, w = frame.shape
+    v, u = np.divmod(idx, w)
+    y0, y1 = max(int(v.min()) - ring_px, 0), min(int(v.max()) + ring_px + 1, h)
+    x0, x1 = max(int(u.min()) - ring_px, 0), min(int(u.max()) + ring_px + 1, w)
+    crop = np.zeros((y1 - y0, x1 - x0), np.uint8)
+    crop[v - y0, u - x0] = 1
+    ring = cv2.dilate(crop, np.ones((2 * ring_px + 1, 2 * ring_px + 1), np.uint8)) & (crop ^ 1)
+    rv, ru = np.nonzero(ring)
+    ring_idx = (rv + y0) * w + (ru + x0)
+    cloud = lift(frame, ring_idx, max_points=800)
+    if len(cloud.points) == 0:
+        return None
+    z = cloud.points[:, 2]
+    near = z[(z > bottom_z - 0.04) & (z < bottom_z + 0.03)]
+    if near.size < 8:
+        return None
+    return float(np.median(near))
+
+
+def object_geometry(frame: Frame, cloud: Cloud, idx: np.ndarray) -> ObjectGeometry:
+    """Box, top and support of an object from its (already depth-valid) cloud.
+
+    The camera sees only the near side. Objects here stand upright on horizontal surfaces and the camera
+    looks down on them, so the visible top plus the near sides project onto the full footprint: the centre
+    of the footprint rectangle is the object's axis, not the (near-biased) mean of the visible points."""
+    pts = cloud.points
+    kept = remove_outliers(pts)
+    pts = pts[kept] if kept.size >= 4 else pts
+    z = pts[:, 2]
+    top_z = float(np.percentile(z, 99.0))
+    bottom_z = float(np.percentile(z, 1.0))
+    support = support_height(frame, idx, bottom_z)
+    support_z = support if support is not None and support < top_z - 0.005 else bottom_z
+    # Only points at the object's own height span the footprint (a stray support pixel must not widen it).
+    body = pts[z > support_z + 0.005] if np.count_nonzero(z > support_z + 0.005) >= 4 else pts
+    cxy, yaw, lw = upright_box(body)
+    height = max(top_z - support_z, 0.0)
+    center = np.array([cxy[0], cxy[1], support_z + height / 2])
+    return ObjectGeometry(center, yaw, np.array([lw[0], lw[1], height]), top_z, support_z, int(len(pts)))
+
+
+@dataclass
+class Placement:
+    spot: np.ndarray  # x, y on the plane
+    surface_z: float
+    plane: tuple[float, float, float, float]
+    clearance: float
+    n_inliers: int
+    max_clearance: float
+
+
+def horizontal_plane(points: np.ndarray, distance: float = 0.012, max_tilt_deg: float = 10.0,
+                     tries: int = 3, min_inliers: int = 50, seed: int = 0) -> tuple[np.ndarray, np.ndarray] | None:
+    """RANSAC (Open3D segment_plane) for the dominant near-horizontal plane: vertical faces (table sides,
+    legs) are peeled off and the search repeats. Returns (plane a,b,c,d with normal up, inlier indices)."""
+    rest = np.arange(len(points))
+    cos_max = math.cos(math.radians(max_tilt_deg))
+    o3d.utility.random.seed(seed)
+    for _ in range(tries):
+        if rest.size < min_inliers:
+            return None
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points[rest]))
+        plane, inl = pcd.segment_plane(distance_threshold=distance, ransac_n=3, num_iterations=150)
+        inl = np.asarray(inl, dtype=np.int64)
+        plane = np.asarray(plane, dtype=np.float64)
+        norm = np.linalg.norm(plane[:3])
+        if norm <= 0 or inl.size < min_inliers:
+            return None
+        plane = plane / norm
+        if plane[2] < 0:
+            plane = -plane
+        if plane[2] >= cos_max:
+            return plane, rest[inl]
+        rest = np.delete(rest, inl)
+    return None
+
+
+def free_spot(surface_pts: np.ndarray, surface_z: float, clutter_pts: np.ndarray, required: float,
+              cell: float = 0.02, preferred: np.ndarray | None = None) -> Placement | None:
+    """A point on the surface at least `required` from every edge and every clutter point standing on it.
+
+    The visible surface is rasterised on a `cell` grid; cells with clutter (anything 1.5 cm to 80 cm above
+    the plane) are blocked; a distance transform gives each free cell its clearance to the nearest edge or
+    clutter (unseen parts count as edges: conservative). Among cells with the best clearance up to
+    `required` + 10 cm, the one nearest `preferred` (default: the visible surface's middle) wins."""
+    xy = surface_pts[:, :2]
+    lo = xy.min(axis=0) - 2 * cell
+    hi = xy.max(axis=0) + 2 * cell
+    shape = (int(math.ceil((hi[1] - lo[1]) / cell)) + 1, int(math.ceil((hi[0] - lo[0]) / cell)) + 1)
+    if shape[0] * shape[1] > 400 * 400:
+        return None
+    grid = np.zeros(shape, np.uint8)
+    ij = ((xy - lo) / cell).astype(np.int64)
+    grid[ij[:, 1], ij[:, 0]] = 1
+    # Close sampling gaps between depth pixels, not occlusion holes (those are a few cells wide).
+    grid = cv2.morphologyEx(grid, cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8))
+    if len(clutter_pts):
+        c = clutter_pts[(clutter_pts[:, 2] > surface_z + 0.015) & (clutter_pts[:, 2] < surface_z + 0.8)]
+        cij = ((c[:, :2] - lo) / cell).astype(np.int64)
+        ok = (cij[:, 0] >= 0) & (cij[:, 1] >= 0) & (cij[:, 0] < shape[1]) & (cij[:, 1] < shape[0])
+        block = np.zeros(shape, np.uint8)
+        block[cij[ok, 1], cij[ok, 0]] = 1
+        grid[block.astype(bool)] = 0
+    grid[0, :] = grid[-1, :] = 0
+    grid[:, 0] = grid[:, -1] = 0
+    dist = cv2.distanceTransform(grid, cv2.DIST_L2, 5) * cell
+    best = float(dist.max())
+    if best <= 0:
+        return None
+    target = min(best, required + 0.10)
+    cand = np.argwhere(dist >= target - 1e-6)
+    pos = lo + (cand[:, ::-1] + 0.5) * cell
+    ref = preferred if preferred is not None else xy.mean(axis=0)
+    k = int(np.argmin(np.linalg.norm(pos - ref, axis=1)))
+    # The clearance counts from the cell centre to the nearest blocked cell's centre; half a cell is lost.
+    clearance = float(dist[tuple(cand[k])]) - cell / 2
+    plane = (0.0, 0.0, 1.0, -surface_z)
+    return Placement(pos[k], surface_z, plane, clearance, len(surface_pts), best - cell / 2)
