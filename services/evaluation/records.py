@@ -61,6 +61,8 @@ class EpisodeRecord(BaseModel):
     """When the task was started (harness clock)."""
     ended_ns: int = 0
     """When the terminal status arrived."""
+    attempts: int = 1
+    """Trials started for this episode (a take-off failure before the first reasoning step restarts it)."""
     foreign_samples: int = 0
     """Step samples seen on this vehicle's key during the episode that belonged to another task (cross-talk)."""
     harness_error: str = ""

@@ -55,6 +55,7 @@ log = logging.getLogger("aermani.evaluation")
 STATUS_MARGIN_S = 90.0  # wait this long past T_max for the reasoner's own timeout status before giving up
 START_RETRY_S = 30.0  # a vehicle may still be finishing its previous task: retry start_task this long
 QUERY_TIMEOUT_S = 20.0
+TAKEOFF_ATTEMPTS = 3  # a trial whose take-off fails before the policy ever acts is restarted, as on a real rig
 READY_WAIT_S = 60.0  # a service's liveliness token appears before its queryables: wait for them this long
 
 
@@ -202,7 +203,7 @@ class VehicleWorker:
         """Land and let PX4 auto-disarm before the next reset, as between real trials: teleporting an armed,
         flying vehicle would leave the bridge's offboard stream and PX4's mode out of step."""
         st = await self._current_state()
-        if st is None or (not st.armed and st.landed_state in (LandedState.ON_GROUND, LandedState.UNKNOWN)):
+        if st is None or st.landed_state not in (LandedState.IN_AIR, LandedState.TAKEOFF, LandedState.LANDING):
             return
         self.skill_status.latest_nowait()
         try:
@@ -247,11 +248,22 @@ class VehicleWorker:
         rec = EpisodeRecord(episode_id=spec.episode_id, suite=task.suite, backend=spec.backend,
                             variant=spec.variant, model=self.cfg.model, task=task, seed=spec.seed,
                             vehicle_id=self.vehicle_id, t_max_s=t_max)
-        try:
-            return await self._run(spec, rec, t_max)
-        except (AermaniError, TimeoutError) as exc:
-            log.warning("%s: episode %s could not run: %s", self.vehicle_id, spec.episode_id, exc)
-            return rec.model_copy(update={"harness_error": f"{type(exc).__name__}: {exc}", "ended_ns": now_ns()})
+        for attempt in range(1, TAKEOFF_ATTEMPTS + 1):
+            try:
+                out = await self._run(spec, rec, t_max)
+            except (AermaniError, TimeoutError) as exc:
+                log.warning("%s: episode %s could not run: %s", self.vehicle_id, spec.episode_id, exc)
+                return rec.model_copy(update={"harness_error": f"{type(exc).__name__}: {exc}",
+                                              "ended_ns": now_ns()})
+            if not _failed_before_first_step(out):
+                return out.model_copy(update={"attempts": attempt})
+            log.warning("%s: episode %s failed before its first reasoning step (%s); attempt %d of %d",
+                        self.vehicle_id, spec.episode_id, out.message, attempt, TAKEOFF_ATTEMPTS)
+        # The trial never reached the policy: not a policy failure, so it stays out of the metrics (and a
+        # rerun tries it again), but the report lists it.
+        return out.model_copy(update={"attempts": TAKEOFF_ATTEMPTS, "harness_error":
+                                      f"failed before the first reasoning step {TAKEOFF_ATTEMPTS} times: "
+                                      f"{out.message}"})
 
     async def _run(self, spec: EpisodeSpec, rec: EpisodeRecord, t_max: float) -> EpisodeRecord:
         task = spec.task
@@ -342,6 +354,11 @@ class VehicleWorker:
             return j, True, f"holding {j.held}"
         return j, False, f"holding {j.held}, expected {' or '.join(task.accepted)}" if j.held else \
             f"holding nothing, expected {' or '.join(task.accepted)}"
+
+
+def _failed_before_first_step(rec: EpisodeRecord) -> bool:
+    return (rec.status is not None and rec.status.state.value == "failed" and rec.status.steps == 0
+            and not rec.steps and not rec.success)
 
 
 # --------------------------------------------------------------------------- the run
