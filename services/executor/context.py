@@ -59,8 +59,11 @@ class StateTracker:
 
     async def next(self, timeout: float) -> bool:
         """Wait for a newer sample; False on timeout."""
+        # asyncio.timeout, not wait_for: on 3.11 wait_for can swallow a cancellation (an abort) that races
+        # with the event firing, and samples fire at 50 Hz.
         try:
-            await asyncio.wait_for(self._event.wait(), timeout)
+            async with asyncio.timeout(timeout):
+                await self._event.wait()
             return True
         except TimeoutError:
             return False
@@ -81,10 +84,12 @@ class SkillContext:
         self.memory = memory
         self.state = state
         self.clearance = clearance
+        self.stop_requested = False  # set by an abort: a skill that missed its cancellation stops at the next check
         self.perceived: list[str] = []  # filled by the running skill, reported in its outcome
         self.estimate: ObjectEstimate | PlacementEstimate | None = None
 
     def reset_outcome(self) -> None:
+        self.stop_requested = False
         self.perceived = []
         self.estimate = None
 
@@ -92,6 +97,8 @@ class SkillContext:
 
     def current(self) -> VehicleState:
         """The newest state, or SkillFailed when it breaks a health rule."""
+        if self.stop_requested:
+            raise asyncio.CancelledError("aborted")
         problem = state_problem(self.state.value, self.state.age_s, self.settings)
         if problem:
             raise SkillFailed(problem.replace("nothing was moved", "the skill stopped and holds"))
@@ -124,6 +131,8 @@ class SkillContext:
     # ---- autopilot
 
     async def command(self, cmd: Message, timeout: float | None = None) -> AutopilotResult:
+        if self.stop_requested:
+            raise asyncio.CancelledError("aborted")
         t = timeout or self.settings.command_timeout_s
         try:
             res = await self.bus.query(self.keys.autopilot_command, cmd, AutopilotResult, timeout=t)

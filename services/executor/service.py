@@ -162,6 +162,8 @@ class Executor:
         state, message = SkillState.FAILED, ""
         try:
             done, _ = await asyncio.wait({goal.task}, timeout=timeout)
+            if goal.aborted_by and not done:
+                done, _ = await asyncio.wait({goal.task}, timeout=1.0)
             if not done:
                 goal.task.cancel()
                 with contextlib.suppress(BaseException):
@@ -169,7 +171,8 @@ class Executor:
                 state, message = SkillState.TIMEOUT, f"{skill.name} did not finish within {timeout:.0f} s; holding"
                 if skill.moves:
                     await self._hold()
-            elif goal.task.cancelled():
+            elif goal.task.cancelled() or (goal.aborted_by and isinstance(goal.task.exception(),
+                                                                          asyncio.CancelledError)):
                 state = SkillState.ABORTED
                 message = f"{skill.name} aborted ({goal.aborted_by or 'cancelled'}); holding position"
             else:
@@ -211,6 +214,7 @@ class Executor:
             return ack
         if goal is not None and goal.task is not None and not goal.task.done():
             goal.aborted_by = f"{abort.source}: {abort.reason}"
+            self.ctx.stop_requested = True
             goal.task.cancel()
         result = None
         if airborne(self.state.value) or goal is not None:
