@@ -86,3 +86,27 @@ def test_one_skill_at_a_time_and_done_and_unknown():
 
 def test_keys_are_per_vehicle():
     assert Keys("am2").run_skill.endswith("am2/executor/run_skill")
+
+
+def test_the_documented_example_skill_registers_and_runs():
+    import re
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[2] / "docs" / "skills.md").read_text()
+    code = re.search(r"```python\n(.*?)```", text, re.S).group(1)
+    try:
+        exec(compile(code, "docs/skills.md", "exec"), {})
+        assert "descend_to_inspect" in REGISTRY
+
+        async def main():
+            async with rig() as r:
+                lib = await r.bus.query(r.keys.skills, None, SkillLibrary, timeout=5)
+                spec = next(s for s in lib.skills if s.name == "descend_to_inspect")
+                assert "0.3 m" in spec.description
+                st = await r.run_skill("descend_to_inspect")
+                assert st.state == SkillState.SUCCEEDED, st.message
+                assert abs(r.vehicle.pos[2] - 0.3) < 0.09
+
+        arun(main())
+    finally:
+        REGISTRY.pop("descend_to_inspect", None)

@@ -1,0 +1,66 @@
+"""`aermani skill` and `aermani skills`: run one executor skill or list the library from the shell."""
+
+from __future__ import annotations
+
+import asyncio
+from typing import Annotated
+
+import typer
+
+from shared.bus import Bus
+from shared.keys import Keys
+from shared.messages import SkillAccept, SkillLibrary, SkillRequest, SkillStatus
+from shared.settings import env_endpoints
+
+
+async def _run_skill(vehicle: str, skill: str, argument: str | None, timeout: float) -> SkillStatus | SkillAccept:
+    keys = Keys(vehicle)
+    bus = await Bus.open(connect=env_endpoints())
+    try:
+        statuses = bus.subscribe(keys.skill_status, SkillStatus, maxsize=1000)
+        await asyncio.sleep(0.3)
+        acc = await bus.query(keys.run_skill, SkillRequest(skill=skill, argument=argument), SkillAccept, timeout=10)
+        if not acc.accepted:
+            return acc
+        while True:
+            st = await statuses.recv(timeout=timeout)
+            if st.goal_id == acc.goal_id and st.state.terminal:
+                return st
+    finally:
+        await bus.close()
+
+
+async def _library(vehicle: str) -> SkillLibrary:
+    bus = await Bus.open(connect=env_endpoints())
+    try:
+        return await bus.query(Keys(vehicle).skills, None, SkillLibrary, timeout=10)
+    finally:
+        await bus.close()
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("skill")
+    def skill_cmd(
+        name: Annotated[str, typer.Argument(help="skill name, e.g. forward, obj_localization")],
+        argument: Annotated[str | None, typer.Argument(help="object or surface query")] = None,
+        vehicle: Annotated[str, typer.Option(help="vehicle id")] = "am1",
+        timeout: Annotated[float, typer.Option(help="seconds to wait for the result")] = 180.0,
+    ) -> None:
+        """Run one skill on the executor and print its result (router from AERMANI_ZENOH_CONNECT)."""
+        res = asyncio.run(_run_skill(vehicle, name, argument, timeout))
+        if isinstance(res, SkillAccept):
+            typer.echo(f"rejected: {res.reason}")
+            raise typer.Exit(2)
+        typer.echo(f"{res.state.value}: {res.message}")
+        if res.outcome.perceived:
+            typer.echo(f"perceived: {res.outcome.perceived}")
+        raise typer.Exit(0 if res.state.value == "succeeded" else 1)
+
+    @app.command("skills")
+    def skills_cmd(vehicle: Annotated[str, typer.Option(help="vehicle id")] = "am1") -> None:
+        """List the executor's skill library."""
+        lib = asyncio.run(_library(vehicle))
+        for s in lib.skills:
+            arg = f"({s.argument})" if s.argument else ""
+            hidden = "" if s.policy_visible else " [operator]"
+            typer.echo(f"{s.name}{arg}{hidden}: {s.description}")
