@@ -173,8 +173,10 @@ DEMO_SERVICES = ("sim", "autopilot_bridge", "perception", "executor", "reasoner"
 
 
 def run_demo(command: str, scenario, accepted: tuple[str, ...], *, env: dict[str, str], t_max: float = 600.0,
-             log_dir: Path | None = None, services: tuple[str, ...] = DEMO_SERVICES) -> int:
-    """Start the stack, run one task, print the verdict; returns the exit code (0 = success)."""
+             log_dir: Path | None = None, services: tuple[str, ...] = DEMO_SERVICES,
+             result: dict | None = None) -> int:
+    """Start the stack, run one task, print the verdict; returns the exit code (0 = success). `result`, when
+    given, receives the final TaskStatus, the ReasoningSteps and the judge's verdict."""
     from shared.launcher import Stack, available_services
 
     have = available_services()
@@ -189,7 +191,7 @@ def run_demo(command: str, scenario, accepted: tuple[str, ...], *, env: dict[str
     try:
         stack.start(wait=True, timeout=180)
         console.print(f"stack up in {time.monotonic() - t0:.1f} s")
-        return asyncio.run(_demo_task(stack, command, scenario, accepted, t_max))
+        return asyncio.run(_demo_task(stack, command, scenario, accepted, t_max, {} if result is None else result))
     except KeyboardInterrupt:
         console.print("[yellow]interrupted[/yellow]")
         return 130
@@ -214,7 +216,7 @@ async def _query_retry(bus, key: str, request, model, timeout: float):
             await asyncio.sleep(0.3)
 
 
-async def _demo_task(stack, command: str, scenario, accepted: tuple[str, ...], t_max: float) -> int:
+async def _demo_task(stack, command: str, scenario, accepted: tuple[str, ...], t_max: float, result: dict) -> int:
     from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 
     from services.reasoner.client import follow_task
@@ -278,6 +280,7 @@ async def _demo_task(stack, command: str, scenario, accepted: tuple[str, ...], t
             log_path = h.details.get("path")
         except TimeoutError:
             pass
+        result.update(final=final, steps=steps, success=ok, verdict=verdict, log=log_path)
         console.print(f"log: {log_path}" if log_path else "log: no recorder running (no MCAP log written)")
         console.print(f"service logs: {stack.log_dir}")
         return 0 if ok and final.state.value == "succeeded" else 1

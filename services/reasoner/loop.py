@@ -162,15 +162,30 @@ class TaskRunner:
             if st.state is not SkillState.SUCCEEDED:
                 return self.status(TaskState.FAILED, f"takeoff {st.state.value}: {st.message}")
         failed_in_row = 0
+        retakeoffs = 0
         last_end_ns = 0
         while True:
             if self.steps >= self.settings.max_steps:
                 await self.world.hold(self.req.task_id, "max steps")
                 return self.status(TaskState.FAILED, f"no completion within {self.settings.max_steps} steps; "
                                                      "vehicle held")
-            self.steps += 1
             t_step = time.perf_counter()
             obs = await self.world.observe(last_end_ns)
+            if (self.req.takeoff and retakeoffs < 2 and obs.state is not None
+                    and obs.state.landed_state is LandedState.ON_GROUND):
+                # A failsafe landed the vehicle mid-task (e.g. offboard lost): the reasoner owns takeoff, so
+                # it takes off again (bounded) instead of offering the model skills that cannot run.
+                retakeoffs += 1
+                st = await self._execute(SkillRequest(skill=S.TAKEOFF, task_id=self.req.task_id, step=self.steps),
+                                         self.settings.takeoff_timeout_s)
+                self.history.append(HistoryEntry(self.steps, S.TAKEOFF, None, st.state.value,
+                                                 "the vehicle had landed (failsafe); took off again: " + st.message))
+                last_end_ns = now_ns()
+                if st.state is not SkillState.SUCCEEDED:
+                    return self.status(TaskState.FAILED, f"vehicle landed mid-task and takeoff {st.state.value}: "
+                                                         f"{st.message}")
+                continue
+            self.steps += 1
             try:
                 result, model_time = await self._decide(compiler, library, obs)
             except ModelError as exc:
