@@ -32,9 +32,8 @@ from shared.messages import ArmCommand, AutopilotResult, Scenario, TakeoffComman
 
 def standalone(frames: int, scale: int) -> None:
     core = SimCore(Scenario(seed=1))
-    settings = SimSettings(render_scale=scale)
-    cam = CameraPublisher.__new__(CameraPublisher)
-    CameraPublisher.__init__(cam, None, core, settings)  # type: ignore[arg-type]  # no bus needed to render
+    settings = SimSettings(render_scale=scale, render_process=False)
+    cam = CameraPublisher(None, core, settings)  # rendering needs no bus
     with core.lock:
         core.vehicle.p[2] = -1.5  # airborne view: tables and objects in the frame
     cam.render_frame(time.time_ns())
@@ -45,7 +44,7 @@ def standalone(frames: int, scale: int) -> None:
     snap: Snapshot = core.snapshot()
     t1 = time.perf_counter()
     for _ in range(frames):
-        cam.renderer.render(snap)
+        cam.encoder.renderer.render(snap)
     rt = (time.perf_counter() - t1) / frames
     print(f"standalone (scale {scale}): raycast+shade {rt * 1000:.1f} ms, full frame (render, JPEG, depth, "
           f"segmentation, tf) {dt * 1000:.1f} ms = {1 / dt:.1f} fps max")

@@ -7,11 +7,9 @@ import contextlib
 import logging
 import time
 
-import cv2
-
 from services.sim.core import SimCore
 from services.sim.mavlink_server import LinkSettings, MavlinkServer
-from services.sim.render import Renderer
+from services.sim.render_worker import FrameEncoder, RenderWorker
 from services.sim.settings import SimSettings
 from services.sim.vehicle import VehicleParams
 from shared.bus import Bus
@@ -23,10 +21,7 @@ from shared.sensors import (
     GRIPPER_FRAME,
     WORLD_FRAME,
     calibration_message,
-    color_message,
-    encode_jpeg,
     pose_matrix,
-    raw16_message,
     transforms_message,
 )
 
@@ -54,43 +49,32 @@ def build(settings: SimSettings) -> tuple[SimCore, MavlinkServer]:
 class CameraPublisher:
     """Renders and publishes colour, depth, segmentation and tf with one stamp per frame."""
 
-    def __init__(self, bus: Bus, core: SimCore, settings: SimSettings) -> None:
+    def __init__(self, bus: Bus | None, core: SimCore, settings: SimSettings) -> None:
         self.bus, self.core, self.settings = bus, core, settings
         self.keys = settings.keys
-        scale = settings.render_scale
-        intr = DEFAULT_INTRINSICS
-        if scale > 1:
-            # A coarser pinhole whose pixel centres coincide with every scale-th full-resolution pixel
-            # block centre; nearest upsampling keeps the published calibration exact to half a block.
-            from shared.sensors import Intrinsics
-
-            intr = Intrinsics(intr.width // scale, intr.height // scale, intr.fx / scale, intr.fy / scale,
-                              (intr.cx + 0.5) / scale - 0.5, (intr.cy + 0.5) / scale - 0.5)
-        self.renderer = Renderer(intr)
-        self.scale = scale
+        self.worker: RenderWorker | None = None
+        self.encoder: FrameEncoder | None = None
+        if settings.render_process:
+            self.worker = RenderWorker(settings.render_scale, settings.jpeg_quality)
+        else:
+            self.encoder = FrameEncoder(settings.render_scale, settings.jpeg_quality)
         self.frames = 0
         self.render_s = 0.0
         self.started = time.monotonic()
         self.last_labels_version = -1
 
+    def close(self) -> None:
+        if self.worker is not None:
+            self.worker.close()
+
     def render_frame(self, stamp_ns: int) -> tuple[bytes, bytes, bytes, bytes]:
         snap = self.core.snapshot()
-        t0 = time.perf_counter()
-        frame = self.renderer.render(snap)
-        rgb, depth, inst = frame.rgb, frame.depth_mm, frame.instance
-        if self.scale > 1:
-            full = (DEFAULT_INTRINSICS.width, DEFAULT_INTRINSICS.height)
-            rgb = cv2.resize(rgb, full, interpolation=cv2.INTER_LINEAR)
-            depth = cv2.resize(depth, full, interpolation=cv2.INTER_NEAREST)
-            inst = cv2.resize(inst, full, interpolation=cv2.INTER_NEAREST)
-        color = color_message(rgb, stamp_ns, jpeg=encode_jpeg(rgb, self.settings.jpeg_quality))
-        depth_msg = raw16_message(depth, stamp_ns)
-        seg_msg = raw16_message(inst, stamp_ns)
+        enc = self.worker.render(snap, stamp_ns) if self.worker is not None else self.encoder(snap, stamp_ns)
         body = pose_matrix(float(snap.position[0]), float(snap.position[1]), float(snap.position[2]), snap.yaw)
         tf = transforms_message([(WORLD_FRAME, BODY_FRAME, body), (BODY_FRAME, CAMERA_FRAME, base_to_camera()),
                                  (BODY_FRAME, GRIPPER_FRAME, base_to_gripper())], stamp_ns)
-        self.render_s += time.perf_counter() - t0
-        return color, depth_msg, seg_msg, tf
+        self.render_s += enc.render_s
+        return enc.color, enc.depth, enc.segmentation, tf
 
     async def run(self, stop: asyncio.Event) -> None:
         period = 1.0 / self.settings.fps
@@ -129,7 +113,7 @@ class CameraPublisher:
         elapsed = max(time.monotonic() - self.started, 1e-9)
         return {"frames": self.frames, "fps": self.frames / elapsed,
                 "render_ms_mean": 1000 * self.render_s / self.frames if self.frames else None,
-                "scene_rebuilds": self.renderer.rebuilds}
+                "render_process": self.worker is not None}
 
     def reset_stats(self) -> None:
         self.frames, self.render_s, self.started = 0, 0.0, time.monotonic()
@@ -140,7 +124,11 @@ async def run(bus: Bus, settings: SimSettings, stop: asyncio.Event, *, core: Sim
     if core is None or server is None:
         core, server = build(settings)
         server.start()
-    camera = CameraPublisher(bus, core, settings)
+    try:
+        camera = await asyncio.to_thread(CameraPublisher, bus, core, settings)
+    except BaseException:
+        server.stop()
+        raise
     keys = settings.keys
 
     async def judge(req: JudgeRequest):
@@ -170,4 +158,5 @@ async def run(bus: Bus, settings: SimSettings, stop: asyncio.Event, *, core: Sim
         await camera.run(stop)
     finally:
         server.stop()
+        await asyncio.to_thread(camera.close)
 

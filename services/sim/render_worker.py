@@ -1,0 +1,111 @@
+"""Rendering in a child process: Open3D's cast_rays holds the GIL for the whole raycast, which would stall the
+MAVLink/physics thread and the event loop for tens of milliseconds every frame."""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+import threading
+import time
+from dataclasses import dataclass
+
+import cv2
+
+from services.sim.core import Snapshot
+from shared.frames import DEFAULT_INTRINSICS
+from shared.sensors import Intrinsics, color_message, encode_jpeg, raw16_message
+
+log = logging.getLogger("aermani.sim.render")
+
+
+@dataclass
+class Encoded:
+    color: bytes  # serialized foxglove.CompressedImage
+    depth: bytes  # serialized foxglove.RawImage 16UC1 (mm)
+    segmentation: bytes  # serialized foxglove.RawImage 16UC1 (instance ids)
+    render_s: float  # time spent in the renderer and encoders
+
+
+def coarse_intrinsics(scale: int, full: Intrinsics = DEFAULT_INTRINSICS) -> Intrinsics:
+    """Pinhole whose pixel (i, j) looks through the centre of the full-resolution block of scale x scale pixels
+    starting at (scale*i, scale*j); nearest upsampling then keeps the published calibration right to half a
+    block."""
+    if scale == 1:
+        return full
+    return Intrinsics(full.width // scale, full.height // scale, full.fx / scale, full.fy / scale,
+                      (full.cx - (scale - 1) / 2) / scale, (full.cy - (scale - 1) / 2) / scale)
+
+
+class FrameEncoder:
+    """Render + upsample + encode one frame (runs in the worker process, or in-process for tests)."""
+
+    def __init__(self, scale: int = 1, jpeg_quality: int = 85) -> None:
+        from services.sim.render import Renderer
+
+        self.scale, self.quality = scale, jpeg_quality
+        self.renderer = Renderer(coarse_intrinsics(scale))
+
+    def __call__(self, snap: Snapshot, stamp_ns: int) -> Encoded:
+        t0 = time.perf_counter()
+        frame = self.renderer.render(snap)
+        rgb, depth, inst = frame.rgb, frame.depth_mm, frame.instance
+        if self.scale > 1:
+            full = (DEFAULT_INTRINSICS.width, DEFAULT_INTRINSICS.height)
+            rgb = cv2.resize(rgb, full, interpolation=cv2.INTER_LINEAR)
+            depth = cv2.resize(depth, full, interpolation=cv2.INTER_NEAREST)
+            inst = cv2.resize(inst, full, interpolation=cv2.INTER_NEAREST)
+        color = color_message(rgb, stamp_ns, jpeg=encode_jpeg(rgb, self.quality))
+        return Encoded(color, raw16_message(depth, stamp_ns), raw16_message(inst, stamp_ns),
+                       time.perf_counter() - t0)
+
+
+def _worker(conn, scale: int, quality: int) -> None:  # runs in the child
+    encoder = FrameEncoder(scale, quality)
+    conn.send("ready")
+    while True:
+        try:
+            job = conn.recv()
+        except (EOFError, OSError):
+            return  # parent gone
+        if job is None:
+            return
+        snap, stamp = job
+        try:
+            conn.send(encoder(snap, stamp))
+        except Exception as exc:  # report, keep serving
+            conn.send(exc)
+
+
+class RenderWorker:
+    """One child process that renders frames on request; call `render` from a worker thread."""
+
+    def __init__(self, scale: int = 1, jpeg_quality: int = 85, start_timeout: float = 120.0) -> None:
+        ctx = mp.get_context("spawn")  # never fork a process that runs Zenoh and MAVLink threads
+        self._conn, child = ctx.Pipe()
+        self._proc = ctx.Process(target=_worker, args=(child, scale, jpeg_quality), name="sim-render",
+                                 daemon=True)
+        self._proc.start()
+        child.close()
+        self._lock = threading.Lock()
+        if not self._conn.poll(start_timeout) or self._conn.recv() != "ready":
+            self.close()
+            raise RuntimeError("the render worker process did not start")
+
+    def render(self, snap: Snapshot, stamp_ns: int) -> Encoded:
+        with self._lock:
+            self._conn.send((snap, stamp_ns))
+            out = self._conn.recv()
+        if isinstance(out, Exception):
+            raise out
+        return out
+
+    def close(self) -> None:
+        try:
+            self._conn.send(None)
+        except (OSError, BrokenPipeError):
+            pass
+        self._proc.join(5.0)
+        if self._proc.is_alive():
+            self._proc.terminate()
+            self._proc.join(5.0)
+        self._conn.close()
