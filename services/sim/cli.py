@@ -1,0 +1,117 @@
+"""`aermani sim render|reset|judge|stats`: preview layouts offline and poke a running simulator."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.console import Console
+
+console = Console()
+
+Connect = Annotated[str, typer.Option(help="Zenoh endpoint of the router.")]
+Vehicle = Annotated[str, typer.Option(help="Vehicle id.")]
+
+
+def register(app: typer.Typer) -> None:
+    sim_app = typer.Typer(help="The built-in simulator: preview layouts, reset, judge, stats.", no_args_is_help=True)
+    app.add_typer(sim_app, name="sim")
+    sim_app.command("render")(render_cmd)
+    sim_app.command("reset")(reset_cmd)
+    sim_app.command("judge")(judge_cmd)
+    sim_app.command("stats")(stats_cmd)
+
+
+def _scenario(seed: int, target: str | None, destination: str | None, out_of_view: bool):
+    from shared.messages import Scenario
+
+    return Scenario(seed=seed, target_object=target, destination=destination, target_out_of_view=out_of_view)
+
+
+def render_cmd(
+    seed: Annotated[int, typer.Option(help="Layout seed.")] = 0,
+    target: Annotated[str | None, typer.Option(help="Target object, e.g. 'red cup'.")] = None,
+    destination: Annotated[str | None, typer.Option(help="Destination surface.")] = None,
+    out_of_view: Annotated[bool, typer.Option(help="Put the target out of the initial view.")] = False,
+    altitude: Annotated[float, typer.Option(help="Camera height above the start point, metres.")] = 1.5,
+    out: Annotated[Path, typer.Option(help="PNG to write (a _seg.png with instance colours goes beside it).")]
+    = Path("sim_view.png"),
+) -> None:
+    """Render the start view of a scenario offline (no bus, no processes) and print its layout."""
+    import cv2
+    import numpy as np
+
+    from services.sim.core import Snapshot
+    from services.sim.render import Renderer
+    from services.sim.scenarios import ScenarioError, generate
+
+    try:
+        world, scen, start = generate(_scenario(seed, target, destination, out_of_view))
+    except ScenarioError as exc:
+        console.print(f"[red]{exc}[/red]")
+        raise typer.Exit(2)
+    frame = Renderer().render(Snapshot(world, np.array([start.position.x, start.position.y, altitude]), start.yaw))
+    cv2.imwrite(str(out), cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR))
+    palette = np.random.default_rng(0).integers(40, 255, (int(frame.instance.max()) + 1, 3), dtype=np.uint8)
+    palette[0] = 0
+    cv2.imwrite(str(out.with_name(out.stem + "_seg.png")), palette[frame.instance])
+    console.print(scen.model_dump_json(indent=2))
+    visible = set(np.unique(frame.instance).tolist())
+    for e in world.entities:
+        if e.category in ("object", "surface", "furniture"):
+            where = f"on {e.support}" if e.support else ""
+            console.print(f"{e.id:4d} {e.name:15s} {e.category:9s} ({e.center[0]:+.2f}, {e.center[1]:+.2f}, "
+                          f"{e.center[2]:+.2f}) {where:20s} {'visible' if e.id in visible else ''}", highlight=False)
+    console.print(f"wrote {out}")
+
+
+async def _query(connect: str, key_attr: str, vehicle: str, request, model):
+    from shared.bus import Bus
+    from shared.keys import Keys
+
+    bus = await Bus.open(connect=[connect])
+    try:
+        return await bus.query(getattr(Keys(vehicle), key_attr), request, model, timeout=20)
+    finally:
+        await bus.close()
+
+
+def reset_cmd(
+    seed: Annotated[int, typer.Option(help="Layout seed.")] = 0,
+    target: Annotated[str | None, typer.Option(help="Target object.")] = None,
+    destination: Annotated[str | None, typer.Option(help="Destination surface.")] = None,
+    out_of_view: Annotated[bool, typer.Option(help="Put the target out of the initial view.")] = False,
+    connect: Connect = "tcp/127.0.0.1:7447",
+    vehicle: Vehicle = "am1",
+) -> None:
+    """Reset the running simulator to a scenario (vehicle back on the ground, disarmed)."""
+    from shared.messages import SimResetResult
+
+    res = asyncio.run(_query(connect, "sim_reset", vehicle, _scenario(seed, target, destination, out_of_view),
+                             SimResetResult))
+    console.print(res.model_dump_json(indent=2))
+    if not res.ok:
+        raise typer.Exit(1)
+
+
+def judge_cmd(
+    obj: Annotated[str | None, typer.Option("--object", help="With --surface: is this object on it?")] = None,
+    surface: Annotated[str | None, typer.Option(help="Surface for --object.")] = None,
+    connect: Connect = "tcp/127.0.0.1:7447",
+    vehicle: Vehicle = "am1",
+) -> None:
+    """Ground truth from the running simulator (evaluation only)."""
+    from shared.messages import JudgeRequest, JudgeResult
+
+    req = JudgeRequest(op="on_surface", object=obj, surface=surface) if obj else JudgeRequest(op="world")
+    res = asyncio.run(_query(connect, "sim_judge", vehicle, req, JudgeResult))
+    console.print(res.model_dump_json(indent=2))
+
+
+def stats_cmd(connect: Connect = "tcp/127.0.0.1:7447", vehicle: Vehicle = "am1") -> None:
+    """Frame rate, setpoint-stream intervals and MAVLink counters of the running simulator."""
+    raw = asyncio.run(_query(connect, "sim_stats", vehicle, None, None))
+    console.print_json(json.dumps(json.loads(raw)))
