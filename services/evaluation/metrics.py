@@ -15,7 +15,8 @@ Definitions, exactly as computed here (docs/evaluation.md repeats them):
      cancels whatever the primitives' step sizes are;
   3. a repeated localization with no motion between: obj_localization or placement_localization with the
      same (case- and space-normalized) argument as an earlier one of the same kind, with no motion
-     primitive, grasp or place in between (the view did not change, so the answer cannot).
+     primitive, grasp or place in between that the executor ran (a rejected skill moved nothing): the view
+     did not change, so the answer cannot.
 - ARR = mean over successful episodes of n_redundant / n_total, x 100 (the paper's tables are in percent).
 - RS = mean number of reasoning cycles (reasoning steps) per episode over all episodes.
 - IAR = invalid answers / all model queries x 100 (every call of every step, re-prompts included).
@@ -64,6 +65,7 @@ class Action:
     argument: str | None = None
     start_pose: Pose | None = None
     end_pose: Pose | None = None
+    state: str | None = None
 
 
 def actions_of(steps: Iterable[ReasoningStep]) -> list[Action]:
@@ -73,7 +75,8 @@ def actions_of(steps: Iterable[ReasoningStep]) -> list[Action]:
         if s.ste is None or s.skill_state is None or s.ste.skill == DONE:
             continue
         o = s.outcome
-        out.append(Action(s.ste.skill, s.ste.argument, o.start_pose if o else None, o.end_pose if o else None))
+        out.append(Action(s.ste.skill, s.ste.argument, o.start_pose if o else None, o.end_pose if o else None,
+                          s.skill_state.value))
     return out
 
 
@@ -147,7 +150,7 @@ def repeated_localizations(actions: Sequence[Action]) -> set[int]:
     out: set[int] = set()
     seen: set[tuple[str, str]] = set()
     for i, a in enumerate(actions):
-        if a.skill in VIEW_CHANGING:
+        if a.skill in VIEW_CHANGING and a.state != "rejected":  # a rejected skill moved nothing
             seen.clear()
         elif a.skill in LOCALIZATIONS:
             key = (a.skill, _norm(a.argument))

@@ -36,9 +36,10 @@ def _config_order(records: list[EpisodeRecord]) -> list[tuple[str, str]]:
     return sorted(configs, key=lambda c: (c[0], rank.get(c[1], 99), c[1]))
 
 
-def method_name(backend: str, variant: str, multi_backend: bool) -> str:
+def method_name(backend: str, variant: str, multi_backend: bool = True) -> str:
+    """Paper name of the variant plus the backend that answered, so a rules row never reads as a VLM's."""
     name = VARIANT_TITLES.get(variant, variant)
-    return f"{name} ({backend})" if multi_backend else name
+    return f"{name} ({backend})"
 
 
 def _loopback(url: str) -> bool:
@@ -121,6 +122,15 @@ def markdown(records: list[EpisodeRecord], config: dict[str, Any], plots: list[s
         m = compute(r for r in records if r.backend == b and r.variant == v)
         lines.append(f"| {method_name(b, v, multi)} | {m.episodes} | {_fmt(m.sr)} | {_fmt(m.arr)} | {_fmt(m.rs)} | "
                      f"{_fmt(m.iar)} | {_fmt(m.rt_median, 3)} | {_fmt(m.rt_p95, 3)} | {_fmt(m.tt)} |")
+    lines += ["", "How the episodes ended (reasoner's terminal state; success above is the simulator's ground truth):", ""]
+    for b, v in configs:
+        recs = [r for r in records if r.backend == b and r.variant == v and not r.harness_error]
+        states: dict[str, int] = {}
+        for r in recs:
+            states[r.state] = states.get(r.state, 0) + 1
+        retried = sum(1 for r in recs if r.attempts > 1)
+        lines.append(f"- {method_name(b, v, multi)}: " + ", ".join(f"{k} {n}" for k, n in sorted(states.items()))
+                     + (f"; {retried} restarted after a take-off failure before the first step" if retried else ""))
     paper_suites = [s for s in suites if s in PAPER_RS]
     if paper_suites:
         lines += ["", "## Against the paper's AERMANI-VLM (Table II)", "",

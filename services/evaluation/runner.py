@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import logging
 import time
 from collections.abc import Callable
@@ -413,6 +414,8 @@ def run(cfg: RunConfig) -> RunSummary:
     from services.evaluation.report import write_report
 
     cfg.out.mkdir(parents=True, exist_ok=True)
+    run_config = cfg.model_dump(mode="json", exclude={"api_key", "extra_env", "stop_after", "progress"})
+    (cfg.out / "run_config.json").write_text(json.dumps(run_config, indent=2))  # a report rebuilt mid-run
     results = ResultsFile(cfg.out / RESULTS_FILE)
     specs = episode_specs(cfg)
     finished = results.finished_ids()
@@ -440,7 +443,7 @@ def run(cfg: RunConfig) -> RunSummary:
     summary.ran = len(summary.records)
     summary.wall_s = time.monotonic() - t0
     summary.interrupted = summary.interrupted or (cfg.stop_after is not None and summary.ran < len(todo))
-    write_report(cfg.out, config=cfg.model_dump(mode="json", exclude={"api_key", "extra_env"}))
+    write_report(cfg.out, config=run_config)
     return summary
 
 

@@ -44,7 +44,7 @@ def test_smoke_two_suites_one_episode_each(tmp_path):
     for rec in recs:
         _check_episode(rec)
     md = (tmp_path / "report.md").read_text()
-    assert "| Localization | AERMANI-VLM | 1 |" in md and "| Sequential | AERMANI-VLM | 1 |" in md
+    assert "| Localization | AERMANI-VLM (rules) | 1 |" in md and "| Sequential | AERMANI-VLM (rules) | 1 |" in md
     assert "not a VLM" in md
     doc = json.loads((tmp_path / "report.json").read_text())
     assert len(doc["episodes"]) == 2 and doc["episodes"][0]["steps"]

@@ -132,6 +132,14 @@ def test_repeated_localization_without_motion():
     assert repeated_localizations(a) == {2, 7}
 
 
+def test_rejected_skill_does_not_change_the_view():
+    a = [Action("placement_localization", "shelf", state="succeeded"), Action("place", None, state="rejected"),
+         Action("placement_localization", "shelf", state="succeeded"), Action("forward", None, state="rejected"),
+         Action("placement_localization", "shelf", state="succeeded"), Action("place", None, state="failed"),
+         Action("placement_localization", "shelf", state="succeeded")]
+    assert repeated_localizations(a) == {2, 4}
+
+
 def test_redundant_union_counts_each_action_once():
     # forward/backward is both an oscillation and a zero-net pair: 2 redundant actions, not 4
     a = acts("forward", "backward", "obj_localization:cup", "obj_localization:cup", "grasp")
