@@ -6,6 +6,7 @@ import asyncio
 import contextlib
 import logging
 import math
+import sys
 import time
 from collections import defaultdict
 from collections.abc import Callable
@@ -70,7 +71,8 @@ class Bridge:
         self.keys = settings.keys
         self.loop: asyncio.AbstractEventLoop | None = None
         self.t0 = time.monotonic()
-        self.stream = SetpointStream(self._send_setpoint, settings.stream_rate_hz)
+        self.stream = SetpointStream(self._send_setpoint, settings.stream_rate_hz,
+                                     realtime_priority=settings.stream_realtime_priority)
         # autopilot identity, learned from the first PX4 HEARTBEAT
         self.target_system: int | None = None
         self.target_component = px4.MAV_COMP_ID_AUTOPILOT1
@@ -570,5 +572,8 @@ class Bridge:
 
 
 async def run(bus: Bus, settings: BridgeSettings, stop: asyncio.Event) -> None:
+    # The setpoint thread waits for the GIL whenever another thread holds it; Python's default 5 ms switch
+    # interval would show up directly as stream jitter.
+    sys.setswitchinterval(settings.gil_switch_interval_s)
     link = MavlinkLink(settings.connection, baud=settings.baud, source_system=settings.source_system)
     await Bridge(bus, settings, link).run(stop)

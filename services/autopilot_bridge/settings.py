@@ -50,3 +50,7 @@ class BridgeSettings(ServiceSettings):
     publishes tf itself; turn it on for real hardware and PX4 SITL."""
     health_period_s: float = Field(1.0, gt=0.0)
     """Period of health/autopilot_bridge."""
+    gil_switch_interval_s: float = Field(0.0005, gt=0.0, le=0.01)
+    """Python thread switch interval for this process; small so the setpoint thread gets the GIL quickly."""
+    stream_realtime_priority: int = Field(10, ge=0, le=99)
+    """SCHED_FIFO priority of the setpoint thread when the OS allows it (root or CAP_SYS_NICE); 0 = never."""

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import threading
 import time
 from collections import deque
@@ -60,8 +61,11 @@ class SetpointStream:
     skips the missed slots instead of bursting. A thread rather than an asyncio task keeps the stream's
     timing independent of whatever the event loop is busy with."""
 
-    def __init__(self, send: Callable[[SetpointNED], bool], rate_hz: float, window: int = 2000) -> None:
+    def __init__(self, send: Callable[[SetpointNED], bool], rate_hz: float, window: int = 2000,
+                 realtime_priority: int = 0) -> None:
         self._send = send
+        self.realtime_priority = realtime_priority
+        self.scheduling = "normal"
         self.period = 1.0 / rate_hz
         self.target: Target | None = None
         self._stop = threading.Event()
@@ -102,7 +106,21 @@ class SetpointStream:
         self._thread = None
         self.started_at = None
 
+    def _raise_priority(self) -> None:
+        """SCHED_FIFO for this thread when allowed: on a loaded machine the OS scheduler, not our code, decides
+        the wake-up latency. It sleeps 99% of the time, so it cannot starve anyone."""
+        if self.realtime_priority <= 0 or not hasattr(os, "sched_setscheduler"):
+            return
+        try:
+            os.sched_setscheduler(threading.get_native_id(), os.SCHED_FIFO, os.sched_param(self.realtime_priority))
+            self.scheduling = f"SCHED_FIFO {self.realtime_priority}"
+        except (OSError, PermissionError) as exc:
+            if self.scheduling == "normal":
+                log.info("setpoint stream keeps normal scheduling (SCHED_FIFO not permitted: %s)", exc)
+            self.scheduling = "normal (SCHED_FIFO not permitted)"
+
     def _run(self, stop: threading.Event) -> None:
+        self._raise_priority()
         period = self.period
         t_start = time.monotonic()
         n = 0
@@ -142,7 +160,8 @@ class SetpointStream:
         with self._lock:
             iv = list(self._intervals)
         out: dict[str, float | int] = {"stream_rate_hz": round(1.0 / self.period, 2), "setpoints_sent": self.sent,
-                                       "stream_skipped_slots": self.skipped, "stream_samples": len(iv)}
+                                       "stream_skipped_slots": self.skipped, "stream_samples": len(iv),
+                                       "stream_scheduling": self.scheduling}
         if iv:
             jit = [abs(v - self.period) for v in iv]
             out.update(

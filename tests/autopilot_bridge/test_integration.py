@@ -65,6 +65,21 @@ async def fly_to(bus: Bus, state: Latest[VehicleState], x: float, y: float, z: f
     return state.value
 
 
+async def sim_ready(bus: Bus, timeout: float = 90.0) -> None:
+    """The sim's liveliness token comes up before its queryables (it builds the world in between)."""
+
+    async def answered() -> bool:
+        with contextlib.suppress(NoResponder):
+            await bus.query(KEYS.sim_judge, JudgeRequest(op="held"), JudgeResult, timeout=10)
+            return True
+        return False
+
+    deadline = asyncio.get_running_loop().time() + timeout
+    while not await answered():
+        assert asyncio.get_running_loop().time() < deadline, "sim/judge never answered"
+        await asyncio.sleep(0.2)
+
+
 async def start_state(bus: Bus) -> tuple[Latest[VehicleState], asyncio.Task]:
     state = Latest(bus.subscribe(KEYS.autopilot_state, VehicleState))
     task = asyncio.create_task(state.run())
@@ -101,18 +116,9 @@ def free_spot(surface: SimObjectTruth, things: tuple[SimObjectTruth, ...]) -> tu
 def test_pick_and_place_flight_over_real_udp(tmp_path) -> None:
     async def body(stack):
         async with bus_for(stack) as bus:
-            reset = None
-
-            async def try_reset() -> None:
-                nonlocal reset
-                # The sim's liveliness token comes up before its queryables: retry until it answers.
-                with contextlib.suppress(NoResponder):
-                    reset = await bus.query(KEYS.sim_reset, Scenario(seed=7, target_object="red cup",
-                                                                     destination="table"), SimResetResult, timeout=30)
-
-            while reset is None:
-                await asyncio.wait_for(try_reset(), 60)
-                await asyncio.sleep(0.2)
+            await sim_ready(bus)
+            reset = await bus.query(KEYS.sim_reset, Scenario(seed=7, target_object="red cup", destination="table"),
+                                    SimResetResult, timeout=30)
             assert reset.ok, reset.message
             state, task = await start_state(bus)
             world = await bus.query(KEYS.sim_judge, JudgeRequest(op="world"), JudgeResult)
@@ -182,6 +188,7 @@ def test_pick_and_place_flight_over_real_udp(tmp_path) -> None:
 def test_bridge_death_makes_sim_hold_then_land_and_sim_death_is_link_loss(tmp_path) -> None:
     async def body(stack):
         async with bus_for(stack) as bus:
+            await sim_ready(bus)
             state, task = await start_state(bus)
             s = await take_off(bus, state)
             task.cancel()
