@@ -38,6 +38,7 @@ class FakePX4:
         self.ned = [0.0, 0.0, 0.0]
         self.yaw_ned = 0.0
         self.deny_arm = False
+        self.deny_offboard = False
         self.heartbeats = True
         self.ack_commands = True
         self.last_setpoint_t = 0.0
@@ -121,8 +122,9 @@ class FakePX4:
                     self.armed = m.param1 == 1
             elif m.command == px4.MAV_CMD_DO_SET_MODE:
                 name = px4.decode_custom_mode((int(m.param2) << 16) | (int(m.param3) << 24))
-                if name == "OFFBOARD" and time.monotonic() - self.last_setpoint_t > 0.5:
+                if name == "OFFBOARD" and (self.deny_offboard or time.monotonic() - self.last_setpoint_t > 0.5):
                     result = 2
+                    self.send(self.mav.statustext_encode(4, b"Switching to Offboard is currently not available"))
                 else:
                     self.mode = name
             self.send(self.mav.command_ack_encode(m.command, result, 0, 0, m.get_srcSystem(), m.get_srcComponent()))

@@ -224,3 +224,18 @@ def test_link_loss_and_offboard_loss_are_reported() -> None:
             await wait_until(lambda: bridge.state().link_ok, 10, what="link restored")
 
     arun(body(), 60)
+
+
+def test_offboard_refusal_carries_ack_and_px4_reason() -> None:
+    async def body():
+        async with bridge_and_fake() as (bridge, fake):
+            fake.deny_offboard = True
+            res = await bridge.handle(TakeoffCommand(altitude=1.5))
+            assert not res.ok and res.command == "takeoff"
+            assert res.ack_code == 2 and res.ack_name == "MAV_RESULT_DENIED"
+            assert "OFFBOARD denied" in res.message and "not available" in res.message
+            assert not bridge.stream.running and fake.mode == "POSCTL"
+            st = bridge.state()
+            assert not st.offboard_ok
+
+    arun(body(), 60)

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import asyncio
 import json
+import os
+import sys
 
 import pytest
 
@@ -18,6 +20,8 @@ from shared.messages import AutopilotResult, Health, TakeoffCommand, VehicleStat
 from shared.sensors import parse_transforms
 from tests.autopilot_bridge.fake_px4 import FakePX4
 from tests.helpers import arun, free_port, free_udp_port, wait_until
+
+pytestmark = pytest.mark.integration  # starts the CLI as a process
 
 
 def test_state_health_commands_over_zenoh() -> None:
@@ -68,6 +72,16 @@ def test_state_health_commands_over_zenoh() -> None:
 
             frames = parse_transforms(await tf.recv(10))
             assert ("world", "base_link") in frames
+
+            # The hand-control CLI reads the same state and health.
+            proc = await asyncio.create_subprocess_exec(
+                sys.executable, "-m", "shared.cli", "autopilot", "state", "--connect", f"tcp/127.0.0.1:{zport}",
+                "--vehicle", "t1", stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.STDOUT,
+                env={**os.environ, "COLUMNS": "200"})
+            out, _ = await asyncio.wait_for(proc.communicate(), 60)
+            text = out.decode()
+            assert proc.returncode == 0, text
+            assert "OFFBOARD" in text and "link=True" in text, text
 
             # >= 20 Hz: count states over one second of the publisher's own timestamps.
             first = await states.recv(5)
