@@ -26,6 +26,7 @@ from services.sim.vehicle import (
     UNSUPPORTED,
     yaw_ned_to_enu,
 )
+from shared.errors import MavlinkError
 
 log = logging.getLogger("aermani.sim.mavlink")
 
@@ -108,9 +109,17 @@ class MavlinkServer:
         self.links: list[Link] = []
         for cfg in links:
             sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            # No SO_REUSEADDR: two simulators on one port must fail loudly, not split the traffic.
             sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
-            sock.bind((cfg.bind_host, cfg.local_port))
+            try:
+                sock.bind((cfg.bind_host, cfg.local_port))
+            except OSError as exc:
+                sock.close()
+                for link in self.links:
+                    link.sock.close()
+                raise MavlinkError(f"cannot bind the MAVLink {cfg.name} link to udp {cfg.bind_host}:"
+                                   f"{cfg.local_port}: {exc}. Is another simulator or PX4 SITL running? Set "
+                                   f"AERMANI_SIM_{cfg.name.upper()}_LOCAL_PORT to a free port.") from exc
             sock.setblocking(False)
             m = mav.MAVLink(None, srcSystem=SYSTEM_ID, srcComponent=COMPONENT_ID)
             m.robust_parsing = True
