@@ -167,3 +167,25 @@ def test_openapi_is_complete(gw) -> None:
     assert spec["components"]["securitySchemes"]["HTTPBearer"]["scheme"] == "bearer"
     page = httpx.get(gw.base_url + "/")
     assert page.status_code == 200 and "text/html" in page.headers["content-type"]
+
+
+def test_cli_task_command(gw, monkeypatch) -> None:
+    import typer
+    from typer.testing import CliRunner
+
+    from services.gateway.cli import register
+
+    app = typer.Typer()
+    register(app)
+
+    @app.command()
+    def _other() -> None:  # a second command keeps typer in multi-command mode, as in `aermani`
+        pass
+
+    monkeypatch.setenv("AERMANI_GATEWAY_TOKEN", TOKEN)
+    result = CliRunner().invoke(app, ["task", "pick up the red cup", "--url", gw.base_url])
+    assert result.exit_code == 0, result.output
+    assert "step 3: move_to_object -> succeeded" in result.output and "succeeded: task complete" in result.output
+    monkeypatch.setenv("AERMANI_GATEWAY_TOKEN", "wrong-token")
+    result = CliRunner().invoke(app, ["task", "again", "--url", gw.base_url])
+    assert result.exit_code == 1 and "invalid bearer token" in result.output
