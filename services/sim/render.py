@@ -119,6 +119,7 @@ class Renderer:
         self._offsets = np.zeros(1, dtype=np.int64)
         self._colors = np.zeros((1, 3), dtype=np.uint8)
         self.rebuilds = 0
+        self._mesh_cache: dict[tuple, tuple] = {}
 
     def _ensure_scene(self, world: World) -> None:
         held = world.attached()
@@ -128,13 +129,22 @@ class Renderer:
         scene = o3d.t.geometry.RaycastingScene()
         lut, offsets, colors = [], [], []
         total = 0
+        cache: dict[tuple, tuple] = {}
         for e in world.entities:
-            verts, tris, parity = entity_mesh(e)
-            scene.add_triangles(o3d.core.Tensor(verts), o3d.core.Tensor(tris))
+            # Meshes are cached by pose, so carrying an object re-meshes only that object.
+            ekey = (e.id, e.shape, tuple(np.round(e.center, 5)), tuple(e.size), round(e.yaw, 5), e.rgb)
+            entry = self._mesh_cache.get(ekey)
+            if entry is None:
+                verts, tris, parity = entity_mesh(e)
+                entry = (o3d.core.Tensor(verts), o3d.core.Tensor(tris), _triangle_colors(e, verts, tris, parity))
+            cache[ekey] = entry
+            vt, tt, col = entry
+            scene.add_triangles(vt, tt)
             lut.append(e.id)
             offsets.append(total)
-            colors.append(_triangle_colors(e, verts, tris, parity))
-            total += len(tris)
+            colors.append(col)
+            total += len(col)
+        self._mesh_cache = cache
         colors.append(np.zeros((1, 3), dtype=np.uint8))  # misses: black
         self._scene = scene
         self._lut = np.array(lut + [0], dtype=np.uint16)  # last entry: misses

@@ -97,3 +97,24 @@ def test_target_in_view_by_default():
         target = world.by_name(scen.target_object)
         visible += any(target.id in _rendered_ids(world, start, alt) for alt in (0.0, 1.5))
     assert visible >= 5
+
+
+def test_coarse_rendering_keeps_calibration():
+    """render_scale 2 casts each ray through the centre of its 2x2 block of full-resolution pixels. On a
+    plane 1/z is affine in the pixel coordinates, so the coarse inverse depth equals the block mean."""
+    from services.sim.render_worker import coarse_intrinsics
+
+    world, _, start = generate(Scenario(seed=1))
+    snap = Snapshot(world, np.array([start.position.x, start.position.y, 1.5]), start.yaw)
+    full = Renderer().render(snap)
+    coarse = Renderer(coarse_intrinsics(2)).render(snap)
+    blocks = full.instance.reshape(240, 2, 320, 2)
+    floor = (blocks == 1).all(axis=(1, 3)) & (coarse.instance == 1)
+    inv = (1.0 / np.maximum(full.depth_mm, 1).astype(float)).reshape(240, 2, 320, 2).mean(axis=(1, 3))
+    expect = 1.0 / inv
+    err = np.abs(coarse.depth_mm.astype(float) - expect)[floor]
+    assert floor.sum() > 10_000
+    assert np.percentile(err, 95) < 1.0  # millimetres: only the depth rounding
+    # A one-pixel shift would be far off: the floor depth changes by several mm per row here.
+    shifted = np.abs(coarse.depth_mm[1:].astype(float) - expect[:-1])[floor[1:] & floor[:-1]]
+    assert np.median(shifted) > 5 * np.median(err) + 1.0
