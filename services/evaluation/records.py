@@ -61,6 +61,8 @@ class EpisodeRecord(BaseModel):
     """When the task was started (harness clock)."""
     ended_ns: int = 0
     """When the terminal status arrived."""
+    stale_memory: str = ""
+    """Set when the executor's working memory still held state of an earlier episode at this one's start."""
     attempts: int = 1
     """Trials started for this episode (a take-off failure before the first reasoning step restarts it)."""
     foreign_samples: int = 0

@@ -129,8 +129,11 @@ def markdown(records: list[EpisodeRecord], config: dict[str, Any], plots: list[s
         for r in recs:
             states[r.state] = states.get(r.state, 0) + 1
         retried = sum(1 for r in recs if r.attempts > 1)
+        stale = sum(1 for r in recs if r.stale_memory)
         lines.append(f"- {method_name(b, v, multi)}: " + ", ".join(f"{k} {n}" for k, n in sorted(states.items()))
-                     + (f"; {retried} restarted after a take-off failure before the first step" if retried else ""))
+                     + (f"; {retried} restarted after a take-off failure before the first step" if retried else "")
+                     + (f"; **{stale} started with executor memory left over from the previous episode**"
+                        if stale else ""))
     paper_suites = [s for s in suites if s in PAPER_RS]
     if paper_suites:
         lines += ["", "## Against the paper's AERMANI-VLM (Table II)", "",

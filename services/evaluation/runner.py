@@ -47,6 +47,7 @@ from shared.messages import (
     TaskRequest,
     TaskStatus,
     VehicleState,
+    WorkingMemory,
     new_id,
     now_ns,
 )
@@ -156,6 +157,8 @@ class VehicleWorker:
     statuses: Subscription[TaskStatus] = field(init=False)
     state: Subscription[VehicleState] = field(init=False)
     skill_status: Subscription[SkillStatus] = field(init=False)
+    memory: Subscription[WorkingMemory] = field(init=False)
+    last_memory: WorkingMemory | None = None
 
     def __post_init__(self) -> None:
         self.keys = Keys(self.vehicle_id)
@@ -164,9 +167,10 @@ class VehicleWorker:
         self.statuses = self.bus.subscribe(self.keys.task_status, TaskStatus, maxsize=1_000)
         self.state = self.bus.subscribe(self.keys.autopilot_state, VehicleState, maxsize=2)
         self.skill_status = self.bus.subscribe(self.keys.skill_status, SkillStatus, maxsize=100)
+        self.memory = self.bus.subscribe(self.keys.memory, WorkingMemory, maxsize=5)
 
     def close(self) -> None:
-        for sub in (self.steps, self.statuses, self.state, self.skill_status):
+        for sub in (self.steps, self.statuses, self.state, self.skill_status, self.memory):
             sub.close()
 
     async def _query(self, key: str, request: object, model: type, timeout: float = QUERY_TIMEOUT_S):
@@ -273,6 +277,14 @@ class VehicleWorker:
         if not reset.ok:
             return rec.model_copy(update={"harness_error": f"sim/reset refused the scenario: {reset.message}"})
         await self._wait_grounded()
+        # The executor publishes its working memory on change only: keep the newest one seen.
+        self.last_memory = self.memory.latest_nowait() or self.last_memory
+        stale = ""
+        if self.last_memory is not None and self.last_memory.held_object:
+            stale = (f"executor working memory says it holds the {self.last_memory.held_object} at the start of "
+                     "the episode, after sim/reset emptied the gripper (memory carried over from the last one)")
+            log.warning("%s: %s", self.vehicle_id, stale)
+        rec = rec.model_copy(update={"stale_memory": stale})
         self.statuses.latest_nowait()
         await self._drain_steps("", [])  # whatever is queued belongs to earlier tasks
 
@@ -302,6 +314,7 @@ class VehicleWorker:
                 status = st
             foreign += await self._drain_steps(task_id, steps)
         ended = now_ns()
+        self.last_memory = self.memory.latest_nowait() or self.last_memory
         if status is None:
             # The reasoner never ended the task: stop it so the next episode starts clean.
             self.bus.publish(self.keys.abort, Abort(reason="evaluation: no terminal status", source="evaluation",
