@@ -3,11 +3,16 @@ MAVLink/physics thread and the event loop for tens of milliseconds every frame."
 
 from __future__ import annotations
 
+import contextlib
 import logging
-import multiprocessing as mp
+import socket
+import subprocess
+import sys
 import threading
 import time
 from dataclasses import dataclass
+from multiprocessing.connection import Connection
+from pathlib import Path
 
 import cv2
 
@@ -77,19 +82,25 @@ def _worker(conn, scale: int, quality: int) -> None:  # runs in the child
 
 
 class RenderWorker:
-    """One child process that renders frames on request; call `render` from a worker thread."""
+    """One child process (`python -m services.sim.render_worker`) that renders frames on request over a
+    socketpair; call `render` from a worker thread. A plain subprocess rather than multiprocessing's spawn,
+    which would re-import whatever script happens to be the parent's __main__."""
 
     def __init__(self, scale: int = 1, jpeg_quality: int = 85, start_timeout: float = 120.0) -> None:
-        ctx = mp.get_context("spawn")  # never fork a process that runs Zenoh and MAVLink threads
-        self._conn, child = ctx.Pipe()
-        self._proc = ctx.Process(target=_worker, args=(child, scale, jpeg_quality), name="sim-render",
-                                 daemon=True)
-        self._proc.start()
+        parent, child = socket.socketpair()
+        self._proc = subprocess.Popen(
+            [sys.executable, "-m", "services.sim.render_worker", str(child.fileno()), str(scale), str(jpeg_quality)],
+            pass_fds=(child.fileno(),), cwd=str(Path(__file__).resolve().parents[2]))
         child.close()
+        self._conn = Connection(parent.detach())
         self._lock = threading.Lock()
-        if not self._conn.poll(start_timeout) or self._conn.recv() != "ready":
+        try:
+            ready = self._conn.poll(start_timeout) and self._conn.recv() == "ready"
+        except (EOFError, OSError):
+            ready = False
+        if not ready:
             self.close()
-            raise RuntimeError("the render worker process did not start")
+            raise RuntimeError(f"the render worker process did not start (exit code {self._proc.poll()})")
 
     def render(self, snap: Snapshot, stamp_ns: int) -> Encoded:
         with self._lock:
@@ -100,12 +111,18 @@ class RenderWorker:
         return out
 
     def close(self) -> None:
-        try:
+        with contextlib.suppress(OSError):
             self._conn.send(None)
-        except (OSError, BrokenPipeError):
-            pass
-        self._proc.join(5.0)
-        if self._proc.is_alive():
-            self._proc.terminate()
-            self._proc.join(5.0)
+        try:
+            self._proc.wait(5.0)
+        except subprocess.TimeoutExpired:
+            self._proc.kill()
+            self._proc.wait(5.0)
         self._conn.close()
+
+
+if __name__ == "__main__":
+    # Import by name so pickled frames reference services.sim.render_worker.Encoded, not __main__.Encoded.
+    from services.sim.render_worker import _worker as worker
+
+    worker(Connection(int(sys.argv[1])), int(sys.argv[2]), int(sys.argv[3]))
