@@ -59,6 +59,7 @@ class CameraPublisher:
         else:
             self.encoder = FrameEncoder(settings.render_scale, settings.jpeg_quality)
         self.frames = 0
+        self.idle_frames = 0
         self.render_s = 0.0
         self.started = time.monotonic()
         self.last_labels_version = -1
@@ -70,11 +71,20 @@ class CameraPublisher:
     def render_frame(self, stamp_ns: int) -> tuple[bytes, bytes, bytes, bytes]:
         snap = self.core.snapshot()
         enc = self.worker.render(snap, stamp_ns) if self.worker is not None else self.encoder(snap, stamp_ns)
-        body = pose_matrix(float(snap.position[0]), float(snap.position[1]), float(snap.position[2]), snap.yaw)
-        tf = transforms_message([(WORLD_FRAME, BODY_FRAME, body), (BODY_FRAME, CAMERA_FRAME, base_to_camera()),
-                                 (BODY_FRAME, GRIPPER_FRAME, base_to_gripper())], stamp_ns)
         self.render_s += enc.render_s
-        return enc.color, enc.depth, enc.segmentation, tf
+        return enc.color, enc.depth, enc.segmentation, self.transforms(snap, stamp_ns)
+
+    @staticmethod
+    def transforms(snap, stamp_ns: int) -> bytes:
+        body = pose_matrix(float(snap.position[0]), float(snap.position[1]), float(snap.position[2]), snap.yaw)
+        return transforms_message([(WORLD_FRAME, BODY_FRAME, body), (BODY_FRAME, CAMERA_FRAME, base_to_camera()),
+                                   (BODY_FRAME, GRIPPER_FRAME, base_to_gripper())], stamp_ns)
+
+    def watched(self) -> bool:
+        if self.settings.render_always or self.bus is None:
+            return True
+        return any(self.bus.has_subscribers(k, reliable=False) for k in (
+            self.keys.camera_color, self.keys.camera_depth, self.keys.camera_segmentation))
 
     async def run(self, stop: asyncio.Event) -> None:
         period = 1.0 / self.settings.fps
@@ -91,16 +101,24 @@ class CameraPublisher:
                 self.bus.publish(self.keys.sim_labels, SimLabels(labels=self.core.labels()))
                 last_labels, self.last_labels_version = now, version
             stamp = now_ns()
-            try:
-                color, depth, seg, tf = await asyncio.to_thread(self.render_frame, stamp)
-            except Exception:
-                log.exception("rendering failed; retrying next frame")
+            if not self.watched():
+                # Nobody consumes images (e.g. a MAVLink-only test or many idle evaluation vehicles): skip the
+                # raycast, keep tf flowing.
+                self.idle_frames += 1
+                self.bus.publish(self.keys.tf, self.transforms(self.core.snapshot(), stamp),
+                                 schema="foxglove.FrameTransforms", reliable=False)
             else:
-                self.bus.publish(self.keys.camera_color, color, schema="foxglove.CompressedImage", reliable=False)
-                self.bus.publish(self.keys.camera_depth, depth, schema="foxglove.RawImage", reliable=False)
-                self.bus.publish(self.keys.camera_segmentation, seg, schema="foxglove.RawImage", reliable=False)
-                self.bus.publish(self.keys.tf, tf, schema="foxglove.FrameTransforms", reliable=False)
-                self.frames += 1
+                try:
+                    color, depth, seg, tf = await asyncio.to_thread(self.render_frame, stamp)
+                except Exception:
+                    log.exception("rendering failed; retrying next frame")
+                else:
+                    self.bus.publish(self.keys.camera_color, color, schema="foxglove.CompressedImage",
+                                     reliable=False)
+                    self.bus.publish(self.keys.camera_depth, depth, schema="foxglove.RawImage", reliable=False)
+                    self.bus.publish(self.keys.camera_segmentation, seg, schema="foxglove.RawImage", reliable=False)
+                    self.bus.publish(self.keys.tf, tf, schema="foxglove.FrameTransforms", reliable=False)
+                    self.frames += 1
             next_t += period
             delay = next_t - time.monotonic()
             if delay < -period:  # fell behind (loaded machine): drop frames instead of bursting
@@ -113,10 +131,10 @@ class CameraPublisher:
         elapsed = max(time.monotonic() - self.started, 1e-9)
         return {"frames": self.frames, "fps": self.frames / elapsed,
                 "render_ms_mean": 1000 * self.render_s / self.frames if self.frames else None,
-                "render_process": self.worker is not None}
+                "render_process": self.worker is not None, "idle_frames": self.idle_frames}
 
     def reset_stats(self) -> None:
-        self.frames, self.render_s, self.started = 0, 0.0, time.monotonic()
+        self.frames, self.idle_frames, self.render_s, self.started = 0, 0, 0.0, time.monotonic()
 
 
 async def run(bus: Bus, settings: SimSettings, stop: asyncio.Event, *, core: SimCore | None = None,

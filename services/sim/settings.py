@@ -33,6 +33,8 @@ class SimSettings(ServiceSettings):
     """JPEG quality of the colour frames."""
     render_scale: int = Field(1, ge=1, le=4)
     """Cast one ray per render_scale x render_scale pixels and upsample (1 = full resolution)."""
+    render_always: bool = False
+    """Render even when nobody subscribes to the camera keys (by default idle frames publish tf only)."""
     render_process: bool = True
     """Render in a child process (Open3D holds the GIL while raycasting, which would stall MAVLink)."""
 
