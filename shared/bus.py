@@ -296,6 +296,12 @@ class Bus:
         data, enc = encode(obj, schema)
         self._publisher(key, reliable).put(data, encoding=enc, attachment=attachment)
 
+    def has_subscribers(self, key: str, *, reliable: bool = True) -> bool:
+        """Whether any subscriber (local or behind the router) matches `key` now, so a producer can skip
+        expensive work nobody consumes (the simulator renders only while someone watches)."""
+        status = self._publisher(key, reliable).matching_status
+        return bool(getattr(status, "matching", status))
+
     def publish_raw(self, key: str, data: bytes, encoding: str, *, reliable: bool = True,
                     attachment: bytes | None = None) -> None:
         """Publish bytes with an exact Zenoh encoding string (e.g. `application/json;aermani.ReasoningStep`),
