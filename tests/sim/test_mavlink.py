@@ -208,6 +208,8 @@ def test_offboard_loss_holds_then_lands(sim):
     with core.lock:
         n, e = float(core.vehicle.p[0]), float(core.vehicle.p[1])
     client.stream_until(n, e, -1.0, 0.0, lambda p, a: abs(p.z + 1.0) < 0.05)
+    stats = core.setpoint_stats()  # every setpoint's kernel receive time is recorded for the jitter figures
+    assert stats["n"] == core.vehicle.setpoints_received > 20 and stats["interval_ms_p50"] > 0
     # Stop streaming: hold, then land, then disarm on the ground.
     client.wait_mode(LOITER, 10)
     client.recv("STATUSTEXT", lambda m: "offboard" in m.text.lower(), 5)
