@@ -12,8 +12,10 @@ import asyncio
 import contextlib
 import json
 import logging
+import signal
+import subprocess
 import time
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -159,6 +161,7 @@ class VehicleWorker:
     skill_status: Subscription[SkillStatus] = field(init=False)
     memory: Subscription[WorkingMemory] = field(init=False)
     last_memory: WorkingMemory | None = None
+    restart_executor: Callable[[], Awaitable[None]] | None = None
 
     def __post_init__(self) -> None:
         self.keys = Keys(self.vehicle_id)
@@ -284,6 +287,21 @@ class VehicleWorker:
             stale = (f"executor working memory says it holds the {self.last_memory.held_object} at the start of "
                      "the episode, after sim/reset emptied the gripper (memory carried over from the last one)")
             log.warning("%s: %s", self.vehicle_id, stale)
+        if stale and self.restart_executor is not None:
+            # A fresh executor process is a clean trial; the record keeps the finding for the report.
+            await self.restart_executor()
+            self.last_memory = None
+            # The reasoner reads the held object from the same publication: wait for the fresh executor's.
+            deadline = time.monotonic() + 20.0
+            while time.monotonic() < deadline:
+                try:
+                    m = await self.memory.recv(timeout=max(0.1, deadline - time.monotonic()))
+                except TimeoutError:
+                    break
+                if not m.held_object:
+                    self.last_memory = m
+                    break
+            stale += "; executor restarted before the episode"
         rec = rec.model_copy(update={"stale_memory": stale})
         self.statuses.latest_nowait()
         await self._drain_steps("", [])  # whatever is queued belongs to earlier tasks
@@ -389,8 +407,27 @@ class RunSummary:
     wall_s: float = 0.0
 
 
+def restart_service(stack: Stack, name: str, vehicle_id: str, timeout: float = 60.0) -> None:
+    """Stop one service of one vehicle with SIGTERM and let the stack's supervisor start it again (blocking)."""
+    p = stack.find(name, vehicle_id)
+    old = p.proc
+    p.restarts = 0  # a deliberate restart, not a crash: no growing backoff
+    if old is not None and old.poll() is None:
+        old.send_signal(signal.SIGTERM)
+        try:
+            old.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            old.kill()
+            old.wait(timeout=5)
+    deadline = time.monotonic() + timeout
+    while (p.proc is old or not p.running) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    stack.wait_alive([name], timeout=max(1.0, deadline - time.monotonic()))
+
+
 async def run_episodes(bus: Bus, specs: list[EpisodeSpec], cfg: RunConfig, results: ResultsFile,
-                       on_done: Callable[[EpisodeRecord], None] | None = None) -> list[EpisodeRecord]:
+                       on_done: Callable[[EpisodeRecord], None] | None = None,
+                       stack: Stack | None = None) -> list[EpisodeRecord]:
     """One worker per vehicle pulls episodes from a shared queue until it is empty (or stop_after is hit)."""
     queue: asyncio.Queue[EpisodeSpec] = asyncio.Queue()
     for s in specs:
@@ -400,6 +437,11 @@ async def run_episodes(bus: Bus, specs: list[EpisodeSpec], cfg: RunConfig, resul
 
     async def worker(vid: str) -> None:
         w = VehicleWorker(bus, vid, cfg)
+        if stack is not None:
+            async def restart(vid: str = vid) -> None:
+                await asyncio.to_thread(restart_service, stack, "executor", vid)
+
+            w.restart_executor = restart
         try:
             while not stop.is_set():
                 try:
@@ -447,7 +489,7 @@ def run(cfg: RunConfig) -> RunSummary:
                 stack.start(wait=True, timeout=cfg.startup_timeout_s)
                 endpoint = stack.endpoint
             summary.records = asyncio.run(_run_async(endpoint, todo, cfg, results, len(specs),
-                                                     len(specs) - len(todo)))
+                                                     len(specs) - len(todo), stack))
         except KeyboardInterrupt:
             summary.interrupted = True
         finally:
@@ -461,14 +503,14 @@ def run(cfg: RunConfig) -> RunSummary:
 
 
 async def _run_async(endpoint: str, todo: list[EpisodeSpec], cfg: RunConfig, results: ResultsFile, total: int,
-                     skipped: int) -> list[EpisodeRecord]:
+                     skipped: int, stack: Stack | None = None) -> list[EpisodeRecord]:
     try:
         bus = await Bus.open(connect=[endpoint])
     except BusError as exc:
         raise ConfigError(f"cannot reach the router at {endpoint}: {exc}")
     try:
         if not cfg.progress:
-            return await run_episodes(bus, todo, cfg, results)
+            return await run_episodes(bus, todo, cfg, results, stack=stack)
         from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
         with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
@@ -486,7 +528,7 @@ async def _run_async(endpoint: str, todo: list[EpisodeSpec], cfg: RunConfig, res
                                        f"{rec.duration_s:.0f} s): {rec.verdict or rec.harness_error}")
                 progress.update(bar, advance=1, sr=f"success {wins[0]}/{wins[1]}")
 
-            return await run_episodes(bus, todo, cfg, results, on_done)
+            return await run_episodes(bus, todo, cfg, results, on_done, stack=stack)
     finally:
         with contextlib.suppress(Exception):
             await bus.close()
