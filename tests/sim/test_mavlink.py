@@ -128,6 +128,16 @@ def test_heartbeat_identity_and_capabilities(sim):
     assert n_pos == 0
     assert client.command(mav.MAV_CMD_SET_MESSAGE_INTERVAL, mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED, 0) == 0
     client.recv("LOCAL_POSITION_NED", timeout=5)
+    # Parameters as ground stations read and write them; a write reaches the vehicle.
+    client.conn.mav.param_request_read_send(1, 1, b"MIS_TAKEOFF_ALT", -1)
+    pv = client.recv("PARAM_VALUE", lambda m: m.param_id == "MIS_TAKEOFF_ALT")
+    assert pv.param_value == pytest.approx(1.5)
+    client.conn.mav.param_set_send(1, 1, b"MIS_TAKEOFF_ALT", 2.0, mav.MAV_PARAM_TYPE_REAL32)
+    client.recv("PARAM_VALUE", lambda m: m.param_id == "MIS_TAKEOFF_ALT" and abs(m.param_value - 2.0) < 1e-6)
+    assert core.vehicle.params.takeoff_alt == pytest.approx(2.0)
+    # COMMAND_INT takes the same path as COMMAND_LONG.
+    client.conn.mav.command_int_send(1, 1, 0, mav.MAV_CMD_DO_SET_MODE, 0, 0, 1, *LOITER, 0, 0, 0, 0)
+    assert client.recv("COMMAND_ACK", lambda m: m.command == mav.MAV_CMD_DO_SET_MODE).result == 0
     # The GCS link streams too, to its own port.
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", gcs))
