@@ -6,6 +6,7 @@ import asyncio
 import math
 import time
 from collections.abc import Callable
+from typing import Any
 
 from services.executor.envelope import (
     DepthClearance,
@@ -84,6 +85,7 @@ class SkillContext:
         self.memory = memory
         self.state = state
         self.clearance = clearance
+        self.settled_ns = 0  # when the vehicle last arrived somewhere: perception must use a later frame
         self.stop_requested = False  # set by an abort: a skill that missed its cancellation stops at the next check
         self.perceived: list[str] = []  # filled by the running skill, reported in its outcome
         self.estimate: ObjectEstimate | PlacementEstimate | None = None
@@ -163,7 +165,10 @@ class SkillContext:
                     and math.sqrt(v.x ** 2 + v.y ** 2 + v.z ** 2) <= s.settle_speed)
 
         budget = timeout or (dist / speed + turn / math.radians(45.0) + s.motion_slack_s)
-        return await self.wait_for(arrived, budget, what)
+        try:
+            return await self.wait_for(arrived, budget, what)
+        finally:
+            self.settled_ns = time.time_ns()
 
     async def gripper(self, action: str) -> None:
         await self.command(GripperCommand(action=action))  # type: ignore[arg-type]
@@ -175,24 +180,31 @@ class SkillContext:
 
     # ---- perception
 
+    async def _fresh(self, key: str, query: str, object_size: Vec3 | None, model: type) -> Any:
+        """Ask perception about a frame captured after the vehicle last settled: a frame from mid-motion
+        (the camera pipeline lags) would show the scene from the wrong place, e.g. report a grasped object
+        as gone when the camera just had not arrived yet."""
+        after = self.settled_ns
+        deadline = time.monotonic() + self.settings.fresh_frame_timeout_s
+        while True:
+            age = max(0.05, (time.time_ns() - after) / 1e9)
+            try:
+                est = await self.bus.query(key, LocalizeRequest(query=query, object_size=object_size,
+                                                                max_frame_age_s=min(age, 5.0)),
+                                           model, timeout=self.settings.localize_timeout_s)
+            except BusError as exc:
+                raise SkillFailed(f"perception did not answer the localization of {query!r}: {exc}") from exc
+            old = est.reason in ("stale_frame", "no_frame") or (est.frame_stamp_ns and est.frame_stamp_ns < after)
+            if not old or time.monotonic() > deadline:
+                self.estimate = est
+                return est
+            await asyncio.sleep(0.05)
+
     async def localize_object(self, query: str) -> ObjectEstimate:
-        try:
-            est = await self.bus.query(self.keys.localize_object, LocalizeRequest(query=query), ObjectEstimate,
-                                       timeout=self.settings.localize_timeout_s)
-        except BusError as exc:
-            raise SkillFailed(f"perception did not answer the localization of {query!r}: {exc}") from exc
-        self.estimate = est
-        return est
+        return await self._fresh(self.keys.localize_object, query, None, ObjectEstimate)
 
     async def localize_placement(self, query: str, object_size: Vec3 | None) -> PlacementEstimate:
-        try:
-            est = await self.bus.query(self.keys.localize_placement,
-                                       LocalizeRequest(query=query, object_size=object_size), PlacementEstimate,
-                                       timeout=self.settings.localize_timeout_s)
-        except BusError as exc:
-            raise SkillFailed(f"perception did not answer the placement query {query!r}: {exc}") from exc
-        self.estimate = est
-        return est
+        return await self._fresh(self.keys.localize_placement, query, object_size, PlacementEstimate)
 
     def note(self, text: str) -> None:
         self.perceived.append(text)

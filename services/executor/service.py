@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import time
 from dataclasses import dataclass, field
 
 from services.executor.context import SkillContext, SkillFailed, StateTracker, pose_of
@@ -193,6 +194,8 @@ class Executor:
                     if skill.moves:
                         await self._hold()
         finally:
+            if skill.moves:
+                self.ctx.settled_ns = time.time_ns()
             outcome = SkillOutcome(start_pose=goal.start_pose, end_pose=pose_of(self.state.value),
                                    perceived="; ".join(self.ctx.perceived), held_object=self.memory.held,
                                    estimate=self.ctx.estimate)

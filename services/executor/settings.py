@@ -77,6 +77,8 @@ class ExecutorSettings(ServiceSettings):
     """Timeout of the whole grasp routine, seconds."""
     place_timeout_s: float = 120.0
     """Timeout of the whole place routine, seconds."""
+    fresh_frame_timeout_s: float = 3.0
+    """How long a localization waits for a camera frame captured after the vehicle settled, seconds."""
     command_timeout_s: float = 5.0
     """Timeout of an autopilot command reply (takeoff excepted), seconds."""
     gripper_timeout_s: float = 3.0

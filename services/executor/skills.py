@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 
 from services.executor.context import SkillContext, SkillFailed
-from services.executor.envelope import airborne, altitude_problem, geofence_problem, wrap
+from services.executor.envelope import airborne, altitude_problem, geofence_problem, outside_geofence, wrap
 from services.executor.memory import age_s, horizontal_distance
 from services.executor.registry import Category, Skill, SkillResult, register
 from shared import skills as names
@@ -171,6 +171,10 @@ class ObjLocalization(Skill):
         est = await ctx.localize_object(argument)
         if not est.found or est.pose is None:
             raise SkillFailed(_not_found(argument, est))
+        if outside_geofence(est.pose.position, self.settings, 0.05):
+            # e.g. depth through a gap or a pose/frame mismatch: never store a target no skill may fly to
+            raise SkillFailed(f"{argument} estimate {fmt(est.pose.position)} lies outside the flyable room: "
+                              "implausible, not stored; look again")
         mo = ctx.memory.store_object(est, argument)
         text = f"{mo.label} at {fmt(mo.position)}"
         st = ctx.state.value

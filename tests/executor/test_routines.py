@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import asyncio
-import time
 
 import numpy as np
 
@@ -102,11 +101,9 @@ def test_grasp_that_closes_on_nothing_reports_a_miss():
 async def _abort_and_check(r, goal_id: str) -> None:
     acks = r.bus.subscribe(r.keys.abort_ack, AbortAck)
     await asyncio.sleep(0.2)
-    t0 = time.monotonic()
     abort = Abort(reason="test", source="test")
     r.bus.publish(r.keys.abort, abort)
     ack = await acks.recv(timeout=5)
-    elapsed = time.monotonic() - t0
     assert ack.abort_stamp_ns == abort.stamp_ns and ack.goal_id == goal_id and "holding" in ack.message
     st = await r.terminal(goal_id, 10)
     assert st.state == SkillState.ABORTED
@@ -115,7 +112,7 @@ async def _abort_and_check(r, goal_id: str) -> None:
     here = r.vehicle.pos.copy()
     await asyncio.sleep(0.5)
     assert np.linalg.norm(r.vehicle.pos - here) < 0.02, "vehicle kept moving after abort"
-    assert elapsed < 30  # sanity only; timing is measured by benchmarks/executor.py
+    # no timing assertion here: benchmarks/executor.py measures abort-to-hold
     # ready for the next skill at once
     nxt = await r.request("yaw_left")
     assert nxt.accepted, nxt.reason
