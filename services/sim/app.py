@@ -6,6 +6,7 @@ import asyncio
 import contextlib
 import logging
 import time
+from collections import deque
 
 from services.sim.core import SimCore
 from services.sim.mavlink_server import LinkSettings, MavlinkServer
@@ -14,7 +15,7 @@ from services.sim.settings import SimSettings
 from services.sim.vehicle import VehicleParams
 from shared.bus import Bus
 from shared.frames import DEFAULT_INTRINSICS, base_to_camera, base_to_gripper
-from shared.messages import JudgeRequest, Scenario, SimLabels, now_ns
+from shared.messages import Health, JudgeRequest, Scenario, SimLabels, now_ns
 from shared.sensors import (
     BODY_FRAME,
     CAMERA_FRAME,
@@ -59,6 +60,9 @@ class CameraPublisher:
         else:
             self.encoder = FrameEncoder(settings.render_scale, settings.jpeg_quality)
         self.frames = 0
+        self.recent: deque[float] = deque(maxlen=600)
+        self.failures = 0
+        self.last_error = ""
         self.idle_frames = 0
         self.render_s = 0.0
         self.started = time.monotonic()
@@ -99,6 +103,8 @@ class CameraPublisher:
             version = self.core.world.version
             if now - last_labels >= 1.0 or version != self.last_labels_version:
                 self.bus.publish(self.keys.sim_labels, SimLabels(labels=self.core.labels()))
+                if now - last_labels >= 1.0:
+                    self.bus.publish(self.keys.health("sim"), self.health())
                 last_labels, self.last_labels_version = now, version
             stamp = now_ns()
             if not self.watched():
@@ -110,7 +116,9 @@ class CameraPublisher:
             else:
                 try:
                     color, depth, seg, tf = await asyncio.to_thread(self.render_frame, stamp)
-                except Exception:
+                except Exception as exc:
+                    self.failures += 1
+                    self.last_error = f"{type(exc).__name__}: {exc}"
                     log.exception("rendering failed; retrying next frame")
                 else:
                     self.bus.publish(self.keys.camera_color, color, schema="foxglove.CompressedImage",
@@ -119,6 +127,8 @@ class CameraPublisher:
                     self.bus.publish(self.keys.camera_segmentation, seg, schema="foxglove.RawImage", reliable=False)
                     self.bus.publish(self.keys.tf, tf, schema="foxglove.FrameTransforms", reliable=False)
                     self.frames += 1
+                    self.failures = 0
+                    self.recent.append(time.monotonic())
             next_t += period
             delay = next_t - time.monotonic()
             if delay < -period:  # fell behind (loaded machine): drop frames instead of bursting
@@ -126,6 +136,19 @@ class CameraPublisher:
                 delay = 0.0
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(stop.wait(), max(delay, 0.0))
+
+    def health(self) -> Health:
+        st = self.stats()
+        with self.core.lock:
+            v = self.core.vehicle
+            now = time.monotonic()
+            fps = sum(1 for t in self.recent if now - t <= 5.0) / 5.0
+            details = {"fps_5s": fps, "frames": st["frames"], "idle_frames": st["idle_frames"],
+                       "mode": v.mode_name, "armed": v.armed, "scenario_seed": self.core.scenario.seed,
+                       "setpoints_received": v.setpoints_received, **self.core.counters}
+        ok = self.failures < 3
+        return Health(service="sim", ok=ok, message="" if ok else f"rendering keeps failing: {self.last_error}",
+                      details=details)
 
     def stats(self) -> dict:
         elapsed = max(time.monotonic() - self.started, 1e-9)

@@ -11,7 +11,7 @@ import pytest
 from pymavlink.dialects.v20 import common as mav
 
 from shared.frames import DEFAULT_INTRINSICS
-from shared.messages import JudgeRequest, JudgeResult, Pose, Scenario, SimLabels, SimResetResult, Vec3
+from shared.messages import Health, JudgeRequest, JudgeResult, Pose, Scenario, SimLabels, SimResetResult, Vec3
 from shared.sensors import backproject, parse_calibration, parse_color, parse_raw16, parse_transforms
 from tests.helpers import arun, bus_for, run_stack
 from tests.sim.test_mavlink import Client
@@ -136,6 +136,8 @@ async def _check_frames(stack, client: Client) -> None:
                                 lambda m: not m.base_mode & mav.MAV_MODE_FLAG_SAFETY_ARMED, 10)
         bad = await bus.query(keys.sim_reset, Scenario(target_object="unicorn"), SimResetResult, timeout=20)
         assert not bad.ok and "unicorn" in bad.message
+        health = await bus.subscribe(keys.health("sim"), Health).recv(10)
+        assert health.ok and health.details["frames"] > 0
         stats = json.loads(await bus.query(keys.sim_stats, None, None, timeout=10))
         # Before this test subscribed, nobody watched: the sim skipped rendering; since then it renders.
         assert stats["camera"]["idle_frames"] > 0 and stats["camera"]["frames"] > 0
