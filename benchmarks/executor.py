@@ -63,13 +63,18 @@ async def bench(endpoint: str, trials: int, still: float) -> None:
     states = bus.subscribe(KEYS.autopilot_state, VehicleState, maxsize=1000)
     acks = bus.subscribe(KEYS.abort_ack, AbortAck, maxsize=100)
     try:
-        for _ in range(60):
-            st = await run_skill(bus, statuses, "takeoff")
-            if st.state == SkillState.SUCCEEDED:
-                break
+        why = ""
+        for _ in range(60):  # the bridge needs a moment to see the sim's heartbeats
+            try:
+                st = await run_skill(bus, statuses, "takeoff")
+                if st.state == SkillState.SUCCEEDED:
+                    break
+                why = st.message
+            except RuntimeError as exc:
+                why = str(exc)
             await asyncio.sleep(1.0)
         else:
-            raise RuntimeError(f"takeoff failed: {st.message}")
+            raise RuntimeError(f"takeoff failed: {why}")
         ack_ms: list[float] = []
         still_ms: list[float] = []
         for i in range(trials):
