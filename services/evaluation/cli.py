@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import signal
 from pathlib import Path
 from typing import Annotated
 
@@ -19,6 +20,10 @@ def _split(value: str | None) -> list[str] | None:
     if not value:
         return None
     return [v.strip() for v in value.split(",") if v.strip()]
+
+
+def _interrupt(_signum: int, _frame: object) -> None:
+    raise KeyboardInterrupt
 
 
 def eval_command(
@@ -70,6 +75,9 @@ def eval_command(
                     suites=_split(suites), tasks_file=tasks, seed=seed, parallel=parallel,
                     speed_factor=speed_factor, t_max_s=t_max, tolerance=tolerance, connect=connect,
                     vehicles=_split(vehicles), progress=progress, note=note)
+    # SIGTERM (and SIGINT, which a background job ignores) stop the run cleanly: finished episodes are kept.
+    signal.signal(signal.SIGTERM, _interrupt)
+    signal.signal(signal.SIGINT, _interrupt)
     try:
         summary = run(cfg)
     except ConfigError as exc:

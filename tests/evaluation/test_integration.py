@@ -36,15 +36,18 @@ def _check_episode(rec) -> None:
 
 
 def test_smoke_two_suites_one_episode_each(tmp_path):
-    cfg = RunConfig(out=tmp_path, suites=["localization", "sequential"], episodes=1, **FAST)
+    # clutter first: its episode ends with the object held, so the next one starts from a used vehicle
+    cfg = RunConfig(out=tmp_path, suites=["clutter", "localization"], episodes=1, **FAST)
     summary = run(cfg)
     assert (summary.planned, summary.ran, summary.skipped) == (2, 2, 0)
     recs = ResultsFile(tmp_path / RESULTS_FILE).load()
-    assert sorted(r.suite for r in recs) == ["localization", "sequential"]
+    assert sorted(r.suite for r in recs) == ["clutter", "localization"]
     for rec in recs:
         _check_episode(rec)
+        # working memory left over from the previous episode must never reach the policy
+        assert not rec.stale_memory or rec.stale_memory.endswith("executor restarted before the episode")
     md = (tmp_path / "report.md").read_text()
-    assert "| Localization | AERMANI-VLM (rules) | 1 |" in md and "| Sequential | AERMANI-VLM (rules) | 1 |" in md
+    assert "| Localization | AERMANI-VLM (rules) | 1 |" in md and "| Pick from Clutter | AERMANI-VLM (rules) | 1 |" in md
     assert "not a VLM" in md
     doc = json.loads((tmp_path / "report.json").read_text())
     assert len(doc["episodes"]) == 2 and doc["episodes"][0]["steps"]
