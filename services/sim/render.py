@@ -18,6 +18,9 @@ INVALID_ID = o3d.t.geometry.RaycastingScene.INVALID_ID
 _SUN = np.array([0.35, 0.25, 1.0]) / np.linalg.norm([0.35, 0.25, 1.0])
 _FILL = np.array([-0.6, -0.75, 0.3]) / np.linalg.norm([-0.6, -0.75, 0.3])
 TILE = 0.5  # floor/wall tile size, metres: texture for the eye and for feature-based consumers
+SINK_CELL = 0.05
+SINK_RIM = 0.1  # the basin is drawn inside this rim (visual only: objects still rest on the top plane)
+BASIN_RGB = (105, 115, 125)
 
 
 @dataclass
@@ -43,7 +46,7 @@ def _unit_mesh(shape: str) -> tuple[np.ndarray, np.ndarray]:
 _UNIT = {s: _unit_mesh(s) for s in ("box", "cylinder", "sphere")}
 
 
-def _tiled_box(size: tuple[float, float, float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _tiled_box(size: tuple[float, float, float], cell: float = TILE) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A box centred on the origin whose faces are split into about TILE-sized quads (outward triangles),
     with a checkerboard parity per triangle."""
     half = np.array(size) / 2
@@ -53,8 +56,8 @@ def _tiled_box(size: tuple[float, float, float]) -> tuple[np.ndarray, np.ndarray
     n = 0
     for axis in range(3):
         a1, a2 = [i for i in range(3) if i != axis]
-        k1 = max(1, int(math.ceil(size[a1] / TILE)))
-        k2 = max(1, int(math.ceil(size[a2] / TILE)))
+        k1 = max(1, int(math.ceil(size[a1] / cell)))
+        k2 = max(1, int(math.ceil(size[a2] / cell)))
         g1 = np.linspace(-half[a1], half[a1], k1 + 1)
         g2 = np.linspace(-half[a2], half[a2], k2 + 1)
         for sign in (-1.0, 1.0):
@@ -80,6 +83,8 @@ def entity_mesh(e: Entity) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     parity = None
     if e.category == "structure" and e.shape == "box":
         v, t, parity = _tiled_box(e.size)
+    elif e.name == "sink":
+        v, t, _ = _tiled_box(e.size, SINK_CELL)  # fine top grid so the basin can be drawn in it
     else:
         v, t = _UNIT[e.shape]
         v = v * np.array(e.size)
@@ -96,7 +101,13 @@ def _triangle_colors(e: Entity, verts: np.ndarray, tris: np.ndarray, parity: np.
     shade = 0.38 + 0.55 * np.clip(n @ _SUN, 0, None) + 0.22 * np.clip(n @ _FILL, 0, None)
     if parity is not None:
         shade = shade * (1.0 - 0.09 * parity)
-    return np.clip(np.array(e.rgb, dtype=np.float64) * shade[:, None], 0, 255).astype(np.uint8)
+    albedo = np.tile(np.array(e.rgb, dtype=np.float64), (len(tris), 1))
+    if e.name == "sink":
+        cen = p.mean(axis=1) - e.center
+        basin = (n[:, 2] > 0.9) & (np.abs(cen[:, 0]) < e.size[0] / 2 - SINK_RIM) & (
+            np.abs(cen[:, 1]) < e.size[1] / 2 - SINK_RIM)
+        albedo[basin] = BASIN_RGB
+    return np.clip(albedo * shade[:, None], 0, 255).astype(np.uint8)
 
 
 class Renderer:
