@@ -155,14 +155,18 @@ def horizontal_plane(points: np.ndarray, distance: float = 0.012, max_tilt_deg: 
     for _ in range(tries):
         if rest.size < min_inliers:
             return None
-        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points[rest]))
-        plane, inl = pcd.segment_plane(distance_threshold=distance, ransac_n=3, num_iterations=150)
-        inl = np.asarray(inl, dtype=np.int64)
+        # RANSAC on an even subsample (a plane needs few points), inliers then from every point.
+        sample = rest[np.linspace(0, rest.size - 1, min(rest.size, 2500)).astype(np.int64)]
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points[sample]))
+        plane, _ = pcd.segment_plane(distance_threshold=distance, ransac_n=3, num_iterations=120)
         plane = np.asarray(plane, dtype=np.float64)
         norm = np.linalg.norm(plane[:3])
-        if norm <= 0 or inl.size < min_inliers:
+        if norm <= 0:
             return None
         plane = plane / norm
+        inl = np.flatnonzero(np.abs(points[rest] @ plane[:3] + plane[3]) <= distance)
+        if inl.size < min_inliers:
+            return None
         if plane[2] < 0:
             plane = -plane
         if plane[2] >= cos_max:

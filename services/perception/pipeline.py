@@ -112,7 +112,7 @@ class Perception:
         surface_z = float(np.median(surf[:, 2]))
         radius = self._held_radius(req)
         required = radius + s.placement_margin
-        clutter = self._clutter(frame, surf, surface_z)
+        clutter = self._clutter(frame, surf, surface_z, bbox)
         spot = geo.free_spot(surf, surface_z, clutter, required, s.cell_size)
         if spot is None or spot.clearance < required:
             best = 0.0 if spot is None else spot.max_clearance
@@ -136,11 +136,14 @@ class Perception:
             return self.settings.default_object_radius
         return min(math.hypot(size.x, size.y) / 2, 1.0)
 
-    def _clutter(self, frame: Frame, surf: np.ndarray, surface_z: float) -> np.ndarray:
-        """Points of the whole image standing on the surface's footprint: what a placed object could hit."""
+    def _clutter(self, frame: Frame, surf: np.ndarray, surface_z: float, bbox) -> np.ndarray:
+        """Points standing on the surface's footprint: what a placed object could hit. Only the image region
+        of the surface and above it (things standing on it rise above it in the image) is lifted."""
         h, w = frame.shape
         st = self.settings.clutter_stride
-        vv, uu = np.mgrid[0:h:st, 0:w:st]
+        y0 = max(0, bbox.y0 - h // 3) if bbox is not None else 0
+        y1, x0, x1 = (bbox.y1, bbox.x0, bbox.x1) if bbox is not None else (h, 0, w)
+        vv, uu = np.mgrid[y0:y1:st, x0:x1:st]
         idx = (vv * w + uu).ravel()
         pts = geo.lift(frame, idx).points
         lo = surf[:, :2].min(axis=0) - 0.05

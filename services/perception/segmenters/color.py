@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -39,6 +40,7 @@ class SurfaceClass:
     rgb: tuple[int, int, int]  # albedo; tops of surfaces are lit almost uniformly (normal up)
     tol: float = 22.0
     category: str = "surface"
+    min_extent: float = 0.35  # metres: a top narrower than this is an object of the same colour
 
 
 DEFAULT_OBJECTS = (
@@ -117,20 +119,35 @@ class ColorSegmenter(Segmenter):
         self.objects, self.surfaces = load_catalog(path) if path else (DEFAULT_OBJECTS, DEFAULT_SURFACES)
         self.lut = _hs_lut(self.objects)
         self.kernel = np.ones((3, 3), np.uint8)
+        self._cache: dict[tuple[int, int, str], list[Segment]] = {}
+        self._lock = threading.Lock()
 
     def known_names(self, frame: Frame | None) -> list[str]:
         return [c.name for c in self.objects] + [s.name for s in self.surfaces]
 
     def detect(self, frame: Frame) -> list[Segment]:
-        return self.detect_objects(frame) + self.detect_surfaces(frame)
+        return self._cached(frame, "objects", self.detect_objects) + self._cached(frame, "surfaces",
+                                                                                    self.detect_surfaces)
+
+    def _cached(self, frame: Frame, part: str, fn) -> list[Segment]:
+        """Several queries (and the detections) on one frame segment it once. Segments are read-only."""
+        key = (id(frame), frame.stamp_ns, part)
+        with self._lock:
+            hit = self._cache.get(key)
+        if hit is None:
+            hit = fn(frame)
+            with self._lock:
+                self._cache = {k: v for k, v in self._cache.items() if k[1] == frame.stamp_ns and k[0] == id(frame)}
+                self._cache[key] = hit
+        return list(hit)
 
     def find(self, frame: Frame, query: q.Query, categories: tuple[str, ...]) -> Found:
         # Only run the half that can answer: object blobs or surface tops (each costs tens of ms).
         segments = []
         if "object" in categories:
-            segments += self.detect_objects(frame)
+            segments += self._cached(frame, "objects", self.detect_objects)
         if {"surface", "furniture"} & set(categories):
-            segments += self.detect_surfaces(frame)
+            segments += self._cached(frame, "surfaces", self.detect_surfaces)
         result = q.match(query, [s.candidate() for s in segments], self.known_names(frame), categories)
         if result.chosen is None:
             return Found(None, result.reason, result.message)
@@ -144,11 +161,15 @@ class ColorSegmenter(Segmenter):
         cls[hsv[..., 2] < 30] = 0
         h, w = cls.shape
         out: list[Segment] = []
-        for ci in np.unique(cls):
-            if ci == 0:
-                continue
+        counts = np.bincount(cls.ravel(), minlength=len(self.objects) + 1)
+        for ci in np.flatnonzero(counts[1:] >= self.settings.color_min_area_px) + 1:
             c = self.objects[int(ci) - 1]
-            mask = cv2.morphologyEx((cls == ci).astype(np.uint8), cv2.MORPH_OPEN, self.kernel)
+            full = cls == ci
+            # Work in the class's bounding box: most classes cover a small part of the image.
+            rows, cols = np.flatnonzero(full.any(axis=1)), np.flatnonzero(full.any(axis=0))
+            oy, ox = int(rows[0]), int(cols[0])
+            roi = full[oy:int(rows[-1]) + 1, ox:int(cols[-1]) + 1]
+            mask = cv2.morphologyEx(roi.astype(np.uint8), cv2.MORPH_OPEN, self.kernel)
             n, lab, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
             found: list[tuple[Segment, np.ndarray]] = []
             for k in range(1, n):
@@ -157,7 +178,7 @@ class ColorSegmenter(Segmenter):
                     continue
                 x, y, bw, bh = (int(stats[k, j]) for j in range(4))
                 sv, su = np.nonzero(lab[y:y + bh, x:x + bw] == k)
-                idx = (sv + y) * w + (su + x)
+                idx = (sv + y + oy) * w + (su + x + ox)
                 checked = self._check_blob(frame, hsv, c, idx, len(out) + len(found))
                 if checked is not None:
                     found.append(checked)
@@ -243,20 +264,38 @@ class ColorSegmenter(Segmenter):
         flat &= (zf > SURFACE_HEIGHT[0]) & (zf < SURFACE_HEIGHT[1])
         if not flat.any():
             return []
-        rgb = frame.rgb[::stride, ::stride].astype(np.float32)[:gh, :gw]
+        fy, fx = np.nonzero(flat)
+        rgb = frame.rgb[fy * stride, fx * stride].astype(np.float32)  # only the flat pixels
+        albedo = np.array([s.rgb for s in self.surfaces], np.float32) * 0.95
+        # Tops face the light: the renderer's (and a room's) overhead light keeps them near albedo.
+        dist = np.sqrt(((rgb[:, None, :] - albedo[None]) ** 2).sum(axis=2))
+        nearest = dist.argmin(axis=1)
         out: list[Segment] = []
         for i, s in enumerate(self.surfaces):
-            # Tops face the light: the renderer's (and a room's) overhead light keeps them near albedo.
-            dist = np.linalg.norm(rgb - np.array(s.rgb, np.float32) * 0.95, axis=2)
-            mask = (flat & (dist < s.tol)).astype(np.uint8)
+            pick = (nearest == i) & (dist[:, i] < s.tol)
+            if np.count_nonzero(pick) * stride * stride < 4 * self.settings.color_min_area_px:
+                continue
+            mask = np.zeros((gh, gw), np.uint8)
+            mask[fy[pick], fx[pick]] = 1
             mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, self.kernel)
             n_cc, lab, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
             if n_cc <= 1:
                 continue
-            k = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
-            if stats[k, cv2.CC_STAT_AREA] * stride * stride < 4 * self.settings.color_min_area_px:
+            best: tuple[float, np.ndarray] | None = None
+            for k in range(1, n_cc):
+                if stats[k, cv2.CC_STAT_AREA] * stride * stride < 4 * self.settings.color_min_area_px:
+                    continue
+                sel = (lab == k).ravel()
+                xy = pw.reshape(-1, 3)[sel, :2]
+                (_, _), (a, b), _ = cv2.minAreaRect(xy.astype(np.float32))
+                # A brown box top is not a wooden table: furniture tops are wide.
+                if min(a, b) < s.min_extent:
+                    continue
+                if best is None or a * b > best[0]:
+                    best = (a * b, sel)
+            if best is None:
                 continue
-            sel = (lab == k).ravel()
+            sel = best[1]
             out.append(Segment(1000 + i, s.name, s.category, s.color, 0.8, 0.0, int(sel.sum()) * stride * stride,
                                _indices=idx[sel]))
         return out
