@@ -30,6 +30,8 @@ from shared.sensors import CompressedImage, decode_proto
 
 log = logging.getLogger("aermani.gateway.fleet")
 
+FINISH_GRACE_S = 2.0
+
 
 def fleet_key(topic: str) -> str:
     return f"{ROOT}/*/{topic}"
@@ -78,6 +80,8 @@ class Fleet:
         self.closing = asyncio.Event()
         self._tasks: list[asyncio.Task] = []
         self._subs: list[Subscription] = []
+        self._finishing: set[asyncio.Task] = set()
+        self._ordered: asyncio.Queue[tuple[Callable[[str, Any], Awaitable[None]], str, Any]] = asyncio.Queue()
 
     def view(self, vehicle_id: str) -> VehicleView:
         v = self.vehicles.get(vehicle_id)
@@ -101,14 +105,19 @@ class Fleet:
             if not self.view(task["vehicle_id"]).reasoner_alive:
                 await self._end_orphan(task, "the reasoner was not running when the gateway started")
 
-        def sub(topic: str, model: Any, handler: Callable[[str, Any], Awaitable[None]], maxsize: int = 1000):
+        def sub(topic: str, model: Any, handler: Callable[[str, Any], Awaitable[None]], maxsize: int = 1000,
+                ordered: bool = False):
             s = self.bus.subscribe(fleet_key(topic), model, maxsize=maxsize)
             self._subs.append(s)
-            self._tasks.append(asyncio.create_task(self._consume(s, handler), name=f"gateway.{topic}"))
+            run = self._forward(s, handler) if ordered else self._consume(s, handler)
+            self._tasks.append(asyncio.create_task(run, name=f"gateway.{topic}"))
 
-        sub(REASONER_TASK_STATUS, TaskStatus, self._on_status)
-        sub(REASONER_STEP, ReasoningStep, self._on_step)
-        sub(EXECUTOR_SKILL_STATUS, SkillStatus, self._on_skill)
+        # Task events of all three topics go through one queue and one writer, so the database keeps the
+        # order they arrived in: the final step is stored before the terminal status that ends the stream.
+        sub(REASONER_TASK_STATUS, TaskStatus, self._on_status, ordered=True)
+        sub(REASONER_STEP, ReasoningStep, self._on_step, ordered=True)
+        sub(EXECUTOR_SKILL_STATUS, SkillStatus, self._on_skill, ordered=True)
+        self._tasks.append(asyncio.create_task(self._write_ordered(), name="gateway.writer"))
         sub(AUTOPILOT_STATE, VehicleState, self._on_state, maxsize=10)
         sub(CAMERA_COLOR, None, self._on_frame, maxsize=2)
         sub(SAFETY_ABORT_ACK, AbortAck, self._on_ack, maxsize=100)
@@ -118,6 +127,8 @@ class Fleet:
     async def stop(self) -> None:
         self.closing.set()
         await self._notify()
+        if self._finishing:  # terminal statuses still waiting for their last steps: store them now
+            await asyncio.wait(set(self._finishing), timeout=5.0)
         for t in self._tasks:
             t.cancel()
         for t in self._tasks:
@@ -137,6 +148,22 @@ class Fleet:
                 # One bad sample must not stop the history of every other task.
                 log.exception("could not handle a sample on %s", rec.key)
 
+    async def _forward(self, sub: Subscription, handler: Callable[[str, Any], Awaitable[None]]) -> None:
+        # Nothing awaits between receiving and queueing, so the shared queue keeps the loop's arrival order.
+        while True:
+            rec = await sub.recv_sample()
+            self._ordered.put_nowait((handler, rec.key, rec.value))
+
+    async def _write_ordered(self) -> None:
+        while True:
+            handler, key, value = await self._ordered.get()
+            try:
+                await handler(key, value)
+            except asyncio.CancelledError:
+                raise
+            except Exception:
+                log.exception("could not store a sample from %s", key)
+
     async def _notify(self) -> None:
         async with self.changed:
             self.version += 1
@@ -152,7 +179,25 @@ class Fleet:
     # ---- handlers
 
     async def _on_status(self, key: str, st: TaskStatus) -> None:
+        if st.state.terminal and st.steps > 0:
+            # Zenoh does not order samples across keys (large ones travel by shared memory), so the last
+            # step can arrive after the terminal status. The status ends the task's streams: hold it until
+            # the steps it counts are stored, or a short grace has passed.
+            t = asyncio.create_task(self._finish(vehicle_of(key), st), name=f"gateway.finish.{st.task_id}")
+            self._finishing.add(t)
+            t.add_done_callback(self._finishing.discard)
+            return
         await self.store.record_status(vehicle_of(key), st.model_dump(mode="json"))
+        await self._notify()
+
+    async def _finish(self, vehicle_id: str, st: TaskStatus) -> None:
+        deadline = time.monotonic() + FINISH_GRACE_S
+        while time.monotonic() < deadline and not self.closing.is_set():
+            seen = self.version
+            if (await self.store.step_counts([st.task_id])).get(st.task_id, 0) >= st.steps:
+                break
+            await self.wait_change(seen, max(0.01, deadline - time.monotonic()))
+        await self.store.record_status(vehicle_id, st.model_dump(mode="json"))
         await self._notify()
 
     async def _on_step(self, key: str, step: ReasoningStep) -> None:

@@ -197,7 +197,11 @@ async def task_events(task_id: TaskId, store: StoreDep, fleet: FleetDep, setting
                 continue
             row = await store.get_task(task_id)
             if row is None or row["state"] in TERMINAL or fleet.closing.is_set():
-                return  # resumed after the end, or the gateway is shutting down
+                # The terminal status may have landed since the query above (row and event are written in
+                # one transaction): send what is left, else we resumed after the end or are shutting down.
+                if await store.events(task_id, after=last, limit=1):
+                    continue
+                return
             await fleet.wait_change(seen, settings.sse_ping_s)
 
     return EventSourceResponse(stream(), ping=int(max(1, settings.sse_ping_s)),
