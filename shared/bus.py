@@ -69,6 +69,28 @@ def zenoh_config(mode: str = "client", connect: list[str] | tuple[str, ...] = ()
     return cfg
 
 
+async def _open_in_daemon_thread(cfg: zenoh.Config) -> zenoh.Session:
+    """zenoh.open blocks while a client waits for its router. A daemon thread (not the loop's executor)
+    lets a SIGTERM during that wait cancel us and exit: asyncio.run would otherwise join the thread."""
+    loop = asyncio.get_running_loop()
+    fut: asyncio.Future[zenoh.Session] = loop.create_future()
+
+    def work() -> None:
+        try:
+            session = zenoh.open(cfg)
+        except BaseException as exc:  # handed to the waiting coroutine
+            if not loop.is_closed():
+                loop.call_soon_threadsafe(lambda e=exc: fut.done() or fut.set_exception(e))
+            return
+        if loop.is_closed():
+            session.close()
+            return
+        loop.call_soon_threadsafe(lambda: fut.set_result(session) if not fut.done() else session.close())
+
+    threading.Thread(target=work, name="zenoh-open", daemon=True).start()
+    return await fut
+
+
 # --------------------------------------------------------------------------- encoding
 
 
@@ -229,7 +251,7 @@ class Bus:
         _init_zenoh_log()
         cfg = config or zenoh_config(mode=mode, connect=connect, listen=listen, connect_timeout_s=connect_timeout_s)
         try:
-            session = await asyncio.to_thread(zenoh.open, cfg)
+            session = await _open_in_daemon_thread(cfg)
         except Exception as exc:  # zenoh raises ZError
             raise BusError(f"could not open a Zenoh {mode} session (connect={list(connect)}, "
                            f"listen={list(listen)}): {exc}. Is the router running?") from exc

@@ -26,7 +26,16 @@ async def serve_forever(name: str, run: RunFn, settings: S, stop: asyncio.Event 
     for sig in (signal.SIGINT, signal.SIGTERM):
         with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
             loop.add_signal_handler(sig, stop.set)
-    bus = await Bus.open(connect=settings.zenoh_connect, mode=settings.zenoh_mode)
+    opening = asyncio.create_task(Bus.open(connect=settings.zenoh_connect, mode=settings.zenoh_mode))
+    stopper = asyncio.create_task(stop.wait())
+    await asyncio.wait({opening, stopper}, return_when=asyncio.FIRST_COMPLETED)
+    if not opening.done():
+        # Stopped while still waiting for the router: nothing to release.
+        opening.cancel()
+        log.info("%s stopped before reaching the router %s", name, settings.zenoh_connect)
+        return
+    stopper.cancel()
+    bus = opening.result()
     try:
         bus.declare_token(settings.keys.alive(name))
         log.info("%s up (vehicle %s, zenoh %s)", name, settings.vehicle_id, settings.zenoh_connect)
