@@ -145,6 +145,8 @@ class FrameStore:
             parts.append("depth images")
         if self.need_segmentation and not self.counts["segmentation"]:
             parts.append("segmentation images")
+        if self.need_segmentation and self.labels is None:
+            parts.append("sim/labels")
         if not self._tf_stamps:
             parts.append("tf world->base_link")
         if self.base_from_camera is None:
@@ -164,6 +166,10 @@ class FrameStore:
         if base is None or self.base_from_camera is None:
             return None
         slot = self._slots[stamp]
+        if self.need_segmentation and slot.get("labels") is None:
+            if self.labels is None:
+                return None  # instance ids without names are useless
+            slot["labels"] = self.labels
         depth = slot["depth"]
         assert isinstance(depth, np.ndarray)
         intr = self.intr or DEFAULT_INTRINSICS

@@ -6,6 +6,7 @@ import numpy as np
 
 from services.perception.frames import FrameStore
 from shared.frames import DEFAULT_INTRINSICS, base_to_camera
+from shared.messages import SimLabels
 from shared.sensors import calibration_message, color_message, parse_calibration, pose_matrix, raw16_message
 from shared.sensors import transforms_message as tfm
 
@@ -57,6 +58,8 @@ def test_segmentation_required_for_sim_and_calibration_used() -> None:
     st.add_depth(raw16_message(DEPTH, 5))
     assert st.latest() is None and "segmentation" in st.missing()
     st.add_segmentation(raw16_message(np.zeros((480, 640), np.uint16), 5))
+    assert st.latest() is None and "sim/labels" in st.missing()
+    st.add_labels(SimLabels())
     f = st.latest()
     assert f is not None and f.segmentation is not None and f.intr == DEFAULT_INTRINSICS
 

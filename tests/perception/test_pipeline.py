@@ -154,3 +154,21 @@ def test_detections_list_objects_and_surfaces(view, sim, color) -> None:
         assert labels["table"].category == "surface"
         assert dets.segmenter == p.segmenter.type and dets.frame_stamp_ns == view.frame.stamp_ns
         assert "floor" not in labels
+
+
+def test_color_sink_with_basin_and_catalog_file(tmp_path) -> None:
+    sink = furniture("sink", 2.0, 0.0)
+    v = render_view(manual_world(sink, thing("red cup", 1.8, 0.2, sink)), *POSE)
+    p = perception("color")
+    est = place(p, v.frame, "sink", Vec3(x=0.08, y=0.08, z=0.11))
+    assert est.found and sink.contains_xy(est.pose.position.x, est.pose.position.y), est
+    assert abs(est.surface_z - sink.top_z) < 0.01
+    # A catalogue file replaces the built-in classes: with only a green bottle known, the red cup is unknown.
+    cat = tmp_path / "catalog.json"
+    cat.write_text('{"objects": [{"name": "green bottle", "color": "green", "hsv": [66, 221, 150], '
+                   '"dims": [0.07, 0.07, 0.25]}], "surfaces": [{"name": "sink", "color": "steel", '
+                   '"rgb": [190, 200, 205], "more_rgb": [[105, 115, 125]]}]}')
+    p2 = perception("color", color_catalog=str(cat))
+    assert p2.segmenter.known_names(None) == ["green bottle", "sink"]
+    assert obj(p2, v.frame, "red cup").reason == "not_visible"
+    assert place(p2, v.frame, "sink").found

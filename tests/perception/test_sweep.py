@@ -141,4 +141,5 @@ def test_twenty_layouts_sim_and_color() -> None:
     assert in_view >= 30
     assert col["object_ok"] / in_view >= 0.90
     assert (col["object_wrong"] + col["object_false"]) / max(answered, 1) <= 0.05
-    assert col["place_wrong"] == 0
+    assert col["place_wrong"] == 0 and col["place_false"] == 0
+    assert col["place_ok"] / max(col["place_ok"] + col["place_miss"], 1) >= 0.90

@@ -41,6 +41,7 @@ class SurfaceClass:
     tol: float = 22.0
     category: str = "surface"
     min_extent: float = 0.35  # metres: a top narrower than this is an object of the same colour
+    more_rgb: tuple[tuple[int, int, int], ...] = ()  # other colours of the same top (a sink's basin)
 
 
 DEFAULT_OBJECTS = (
@@ -64,7 +65,7 @@ DEFAULT_SURFACES = (
     SurfaceClass("round table", "grey", (175, 175, 180)),
     SurfaceClass("wooden table", "wood", (150, 100, 55)),
     SurfaceClass("shelf", "beige", (205, 190, 160)),
-    SurfaceClass("sink", "steel", (190, 200, 205)),
+    SurfaceClass("sink", "steel", (190, 200, 205), more_rgb=((105, 115, 125),)),
     SurfaceClass("counter", "dark grey", (90, 90, 95)),
 )
 SURFACE_HEIGHT = (0.3, 1.6)  # metres above the floor where furniture tops are
@@ -74,7 +75,9 @@ def load_catalog(path: str) -> tuple[tuple[ColorClass, ...], tuple[SurfaceClass,
     """JSON {"objects": [{name, color, hsv, dims, ...}], "surfaces": [{name, color, rgb, ...}]}."""
     data = json.loads(Path(path).read_text())
     objs = tuple(ColorClass(**{**o, "hsv": tuple(o["hsv"]), "dims": tuple(o["dims"])}) for o in data.get("objects", []))
-    surfs = tuple(SurfaceClass(**{**s, "rgb": tuple(s["rgb"])}) for s in data.get("surfaces", []))
+    surfs = tuple(SurfaceClass(**{**s, "rgb": tuple(s["rgb"]),
+                                  "more_rgb": tuple(tuple(c) for c in s.get("more_rgb", ()))})
+                  for s in data.get("surfaces", []))
     return objs, surfs
 
 
@@ -266,13 +269,17 @@ class ColorSegmenter(Segmenter):
             return []
         fy, fx = np.nonzero(flat)
         rgb = frame.rgb[fy * stride, fx * stride].astype(np.float32)  # only the flat pixels
-        albedo = np.array([s.rgb for s in self.surfaces], np.float32) * 0.95
+        owner = np.array([i for i, s in enumerate(self.surfaces) for _ in (s.rgb, *s.more_rgb)])
+        tols = np.array([s.tol for s in self.surfaces for _ in (s.rgb, *s.more_rgb)], np.float32)
+        albedo = np.array([c for s in self.surfaces for c in (s.rgb, *s.more_rgb)], np.float32) * 0.95
         # Tops face the light: the renderer's (and a room's) overhead light keeps them near albedo.
         dist = np.sqrt(((rgb[:, None, :] - albedo[None]) ** 2).sum(axis=2))
         nearest = dist.argmin(axis=1)
+        close = dist[np.arange(len(nearest)), nearest] < tols[nearest]
+        cls = np.where(close, owner[nearest], -1)
         out: list[Segment] = []
         for i, s in enumerate(self.surfaces):
-            pick = (nearest == i) & (dist[:, i] < s.tol)
+            pick = cls == i
             if np.count_nonzero(pick) * stride * stride < 4 * self.settings.color_min_area_px:
                 continue
             mask = np.zeros((gh, gw), np.uint8)
