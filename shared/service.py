@@ -19,8 +19,17 @@ RunFn = Callable[[Bus, S, asyncio.Event], Awaitable[None]]
 log = logging.getLogger("aermani.service")
 
 
-async def serve_forever(name: str, run: RunFn, settings: S, stop: asyncio.Event | None = None) -> None:
-    """Open the bus, declare `alive/<name>`, run the service until `stop` is set or `run` returns."""
+def announce(bus: Bus, settings: ServiceSettings, name: str) -> None:
+    """Declare the liveliness token `alive/<name>`: the service is ready to answer."""
+    bus.declare_token(settings.keys.alive(name))
+
+
+async def serve_forever(name: str, run: RunFn, settings: S, stop: asyncio.Event | None = None,
+                        announce_at_start: bool = True) -> None:
+    """Open the bus, declare `alive/<name>`, run the service until `stop` is set or `run` returns.
+
+    A service whose queryables need set-up first passes `announce_at_start=False` and calls `announce()`
+    once they are declared, so that "alive" always means "answers"."""
     stop = stop or asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -37,7 +46,8 @@ async def serve_forever(name: str, run: RunFn, settings: S, stop: asyncio.Event 
     stopper.cancel()
     bus = opening.result()
     try:
-        bus.declare_token(settings.keys.alive(name))
+        if announce_at_start:
+            announce(bus, settings, name)
         log.info("%s up (vehicle %s, zenoh %s)", name, settings.vehicle_id, settings.zenoh_connect)
         runner = asyncio.create_task(run(bus, settings, stop), name=f"{name}.run")
         stopper = asyncio.create_task(stop.wait(), name=f"{name}.stop")
@@ -54,9 +64,10 @@ async def serve_forever(name: str, run: RunFn, settings: S, stop: asyncio.Event 
         log.info("%s stopped", name)
 
 
-def main_for(name: str, run: RunFn, settings_cls: type[S]) -> None:
+def main_for(name: str, run: RunFn, settings_cls: type[S], *, settings: S | None = None,
+             announce_at_start: bool = True) -> None:
     """Body of every `services/<name>/__main__.py`."""
-    settings = settings_cls()
+    settings = settings or settings_cls()
     setup_logging(settings.log_level, name)
     with contextlib.suppress(KeyboardInterrupt):
-        asyncio.run(serve_forever(name, run, settings))
+        asyncio.run(serve_forever(name, run, settings, announce_at_start=announce_at_start))

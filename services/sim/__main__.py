@@ -17,7 +17,9 @@ def main() -> None:
     setup_logging(settings.log_level, "sim")
     core, server = build(settings)
     server.start()
-    main_for("sim", functools.partial(run, core=core, server=server), SimSettings)
+    # "alive" is announced by run() once sim/judge and sim/reset answer.
+    main_for("sim", functools.partial(run, core=core, server=server), SimSettings, settings=settings,
+             announce_at_start=False)
 
 
 if __name__ == "__main__":

@@ -25,6 +25,7 @@ from shared.sensors import (
     pose_matrix,
     transforms_message,
 )
+from shared.service import announce
 
 log = logging.getLogger("aermani.sim")
 
@@ -194,6 +195,7 @@ async def run(bus: Bus, settings: SimSettings, stop: asyncio.Event, *, core: Sim
     bus.serve(keys.sim_judge, judge, JudgeRequest)
     bus.serve(keys.sim_reset, reset, Scenario, concurrent=False)
     bus.serve(keys.sim_stats, stats, None)
+    announce(bus, settings, "sim")
     log.info("sim ready: scenario %s", core.scenario.model_dump_json())
     try:
         await camera.run(stop)
