@@ -262,7 +262,8 @@ def write_report(out: Path, config: dict[str, Any] | None = None) -> dict[str, P
         "backend_note": backend_note(config, records),
         "config": config,
         "metrics": summarize(records),
-        "episodes": [r.model_dump(mode="json") for r in records],
+        # Every episode with every step; the prompt texts (the bulk) stay in episodes.jsonl only.
+        "episodes": [r.model_dump(mode="json", exclude={"steps": {"__all__": {"prompt"}}}) for r in records],
     }
     (out / "report.json").write_text(json.dumps(doc, indent=1))
     (out / "report.md").write_text(markdown(records, config, plots))
