@@ -413,6 +413,9 @@ class WorkingMemory(Message):
     """Labels visible in the latest detections."""
     executed: tuple[str, ...] = ()
     """Skills executed so far in this task ("forward", "obj_localization(red cup)"...)."""
+    seen: tuple[MemoryObject, ...] = ()
+    """Everything perception has detected so far, latest world position per label (coarse: detection
+    centroids), so a search can turn toward what was seen before instead of scanning again."""
 
     def summary(self) -> str:
         """One compact paragraph for the prompt."""
@@ -424,6 +427,11 @@ class WorkingMemory(Message):
             parts.append("placement spots: " + "; ".join(
                 f"{p.label} at ({p.position.x:.2f}, {p.position.y:.2f}, {p.position.z:.2f})" for p in self.placements))
         parts.append(f"holding: {self.held_object or 'nothing'}")
+        known = {o.label for o in (*self.objects, *self.placements)}
+        earlier = [o for o in self.seen if o.label not in known and o.label not in self.visible]
+        if earlier:
+            parts.append("seen earlier: " + "; ".join(
+                f"{o.label} at ({o.position.x:.2f}, {o.position.y:.2f}, {o.position.z:.2f})" for o in earlier))
         if self.visible:
             parts.append("visible now: " + ", ".join(self.visible))
         return ". ".join(parts) + "."

@@ -8,6 +8,8 @@ from collections.abc import Callable
 
 from shared.messages import Detections, MemoryObject, ObjectEstimate, PlacementEstimate, Vec3, WorkingMemory
 
+SEEN_MOVE_M = 0.25  # a detection centroid that moved less than this is the same sighting
+
 
 def _norm(label: str) -> str:
     return " ".join(label.strip().lower().split())
@@ -23,6 +25,7 @@ class Memory:
         self.held: str | None = None
         self.held_size: Vec3 | None = None
         self.visible: tuple[str, ...] = ()
+        self.seen: dict[str, MemoryObject] = {}
         self.executed: list[str] = []
         self.task_id = ""
         self.last_object: str | None = None
@@ -85,8 +88,20 @@ class Memory:
 
     def set_visible(self, det: Detections) -> None:
         labels = tuple(dict.fromkeys(d.label for d in det.items))
-        if labels != self.visible:
-            self.visible = labels
+        changed = labels != self.visible
+        self.visible = labels
+        stamp = det.frame_stamp_ns or time.time_ns()
+        for d in det.items:
+            if d.centroid is None:
+                continue
+            label = _norm(d.label)
+            old = self.seen.get(label)
+            # Publish only when something new appears or moves noticeably: detections arrive at frame rate.
+            if old is None or horizontal_distance(old.position, d.centroid) > SEEN_MOVE_M:
+                changed = True
+            self.seen[label] = MemoryObject(label=label, position=d.centroid, size=d.size, last_seen_ns=stamp,
+                                            confidence=d.confidence)
+        if changed:
             self._changed()
 
     # ---- lookups
@@ -112,7 +127,8 @@ class Memory:
 
     def snapshot(self) -> WorkingMemory:
         return WorkingMemory(objects=tuple(self.objects.values()), placements=tuple(self.placements.values()),
-                             held_object=self.held, visible=self.visible, executed=tuple(self.executed))
+                             held_object=self.held, visible=self.visible, executed=tuple(self.executed),
+                             seen=tuple(self.seen.values()))
 
 
 def age_s(obj: MemoryObject, now_ns: int | None = None) -> float:

@@ -85,7 +85,8 @@ def policy_context(command: str, variant: str, library: SkillLibrary, history: H
         known_objects=[o.label for o in mem.objects] if mem else [],
         known_placements=[p.label for p in mem.placements] if mem else [],
         pose=(obs.state.position.x, obs.state.position.y, obs.state.yaw) if obs.state else None,
-        positions={o.label: (o.position.x, o.position.y) for o in (*mem.objects, *mem.placements)} if mem else {})
+        positions={o.label: (o.position.x, o.position.y)
+                   for o in (*mem.seen, *mem.objects, *mem.placements)} if mem else {})
 
 
 @dataclass

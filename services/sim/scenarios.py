@@ -157,6 +157,18 @@ def generate(scenario: Scenario) -> tuple[World, Scenario, Pose]:
     furniture = _place_furniture(rng, (start.position.x, start.position.y))
     surfaces = {e.name: e for e in furniture if e.category == "surface"}
     target_surface_choices = [s for s in surfaces if s != dest]
+    if scenario.start is None and not scenario.target_out_of_view:
+        # The normal case has the target in view at the start: face the candidate surface closest to the
+        # drawn heading (no extra random draws, so the furniture of a seed does not change).
+        def off(name: str) -> float:
+            c = surfaces[name].center
+            d = math.atan2(c[1] - start.position.y, c[0] - start.position.x) - start.yaw
+            return abs(math.atan2(math.sin(d), math.cos(d)))
+
+        facing = min(target_surface_choices, key=off)
+        c = surfaces[facing].center
+        start = Pose(position=start.position, yaw=math.atan2(c[1] - start.position.y, c[0] - start.position.x))
+        target_surface_choices = [facing]
 
     if scenario.distractors is not None:
         distractors = tuple(canonical(n, OBJECTS, "object") for n in scenario.distractors)

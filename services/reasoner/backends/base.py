@@ -41,7 +41,8 @@ class PolicyContext:
     pose: tuple[float, float, float] | None = None
     """Vehicle x, y (world, m) and yaw (rad), when known."""
     positions: dict[str, tuple[float, float]] = field(default_factory=dict)
-    """World x, y of localized objects and placement spots by label (working memory)."""
+    """World x, y of localized objects and placement spots by label (working memory), and of everything
+    perception has detected before ("seen earlier"), localized positions taking precedence."""
 
 
 @dataclass

@@ -38,6 +38,7 @@ CATEGORY_WORDS = {
     "drink": ("can", "bottle", "soda", "coke", "juice", "cup", "drink"),
 }
 NUMBERS = {"once": 1, "twice": 2, "thrice": 3, "one": 1, "two": 2, "three": 3, "four": 4, "five": 5}
+SEEN_FOV_HALF_DEG = 30  # a remembered thing within this of the heading is in view (camera: +-42 deg)
 SCAN_LIMIT = 8  # consecutive yaw steps (one full turn at 45 deg) before trying something else
 _ACTION_WORDS = ("pick", "grab", "get", "take", "fetch", "find", "locate", "search", "bring", "place", "put",
                  "drop", "look for", "if ", "otherwise")
@@ -257,7 +258,7 @@ class RulesPolicy:
         target, why = self._target(ctx, plan, rest)
         query = target or plan.target or (plan.choices[-1] if plan.choices else None)
         if target is None:
-            return self._search(rest, query, S.OBJ_LOCALIZATION, why)
+            return self._search(ctx, rest, query, S.OBJ_LOCALIZATION, why)
         last = rest[-1] if rest else None
         approach = self._approach(ctx, rest, S.GRASP, target)
         if approach is not None:
@@ -287,8 +288,8 @@ class RulesPolicy:
                 return S.FORWARD, None, f"Placement localization failed ({last.message or last.state}); move closer."
             return S.YAW_LEFT, None, "Placement localization failed again; re-align the view."
         if not seen:
-            return self._search(rest, dest, S.PLACEMENT_LOCALIZATION, f"Holding the {holding}; the {dest} is not "
-                                                                      "detected yet.")
+            return self._search(ctx, rest, dest, S.PLACEMENT_LOCALIZATION,
+                                f"Holding the {holding}; the {dest} is not detected now.")
         return S.PLACEMENT_LOCALIZATION, dest, f"Holding the {holding} and the {dest} is detected: localize the " \
                                                "placement spot."
 
@@ -323,7 +324,12 @@ class RulesPolicy:
                                 "it before flying closer.")
         return S.FORWARD, None, f"The {label} is {dist:.1f} m away (reach {reach:.1f} m) and ahead: fly closer."
 
-    def _search(self, rest: list[PastStep], query: str | None, localize: str, why: str) -> tuple[str, str | None, str]:
+    def _search(self, ctx: PolicyContext, rest: list[PastStep], query: str | None, localize: str,
+                why: str) -> tuple[str, str | None, str]:
+        remembered = self._toward_remembered(ctx, rest, query, localize)
+        if remembered is not None:
+            skill, arg, how = remembered
+            return skill, arg, f"{why} {how}"
         yaws = 0
         for s in reversed(rest):
             if s.skill not in (S.YAW_LEFT, S.YAW_RIGHT):
@@ -332,6 +338,28 @@ class RulesPolicy:
         if yaws < SCAN_LIMIT or not query:
             return S.YAW_LEFT, None, f"{why} Rotate to scan for it ({yaws + 1}/{SCAN_LIMIT})."
         return localize, query, f"{why} A full scan did not detect it; ask perception directly."
+
+
+    @staticmethod
+    def _toward_remembered(ctx: PolicyContext, rest: list[PastStep], query: str | None,
+                           localize: str) -> tuple[str, str | None, str] | None:
+        """Working memory says where the thing was seen earlier: turn toward it instead of scanning, then
+        localize it. Gives up (back to scanning) after a localization there has failed twice."""
+        if not query or ctx.pose is None:
+            return None
+        exact = localize == S.PLACEMENT_LOCALIZATION  # "table" must not match "round table"
+        pos = next((xy for name, xy in ctx.positions.items()
+                    if (name.lower() == query.lower() if exact else _matches(name, query))), None)
+        if pos is None or _trailing_failures(rest, localize) >= 2:
+            return None
+        x, y, yaw = ctx.pose
+        bearing = math.atan2(pos[1] - y, pos[0] - x) - yaw
+        bearing = math.atan2(math.sin(bearing), math.cos(bearing))
+        if abs(bearing) > math.radians(SEEN_FOV_HALF_DEG):
+            turn = S.YAW_LEFT if bearing > 0 else S.YAW_RIGHT
+            return turn, None, (f"It was seen earlier at ({pos[0]:.1f}, {pos[1]:.1f}), "
+                                f"{math.degrees(bearing):.0f} deg from my heading: turn toward it.")
+        return localize, query, f"It was seen earlier at ({pos[0]:.1f}, {pos[1]:.1f}), ahead of me now: localize it."
 
 
 def _trailing_failures(rest: list[PastStep], skill: str) -> int:
