@@ -185,7 +185,7 @@ def plot(records: list[EpisodeRecord], out: Path) -> list[str]:
     names = [method_name(b, v, multi) for b, v in configs]
     paths = []
 
-    fig, ax = plt.subplots(figsize=(max(6, 1.6 * len(suites) * max(1, len(configs)) / 2), 4))
+    fig, ax = plt.subplots(figsize=(min(12, max(6, 2.2 * len(suites))), 4))
     width = 0.8 / max(1, len(configs))
     for k, (b, v) in enumerate(configs):
         vals = []
@@ -197,7 +197,7 @@ def plot(records: list[EpisodeRecord], out: Path) -> list[str]:
     ax.set_ylabel("success rate (%)")
     ax.set_ylim(0, 105)
     ax.set_title("Success by suite and variant")
-    ax.legend(fontsize=7)
+    ax.legend(fontsize=7, loc="lower right")
     fig.tight_layout()
     fig.savefig(out / "plots" / "success_by_suite.png", dpi=100)
     plt.close(fig)
@@ -219,7 +219,7 @@ def plot(records: list[EpisodeRecord], out: Path) -> list[str]:
     plt.close(fig)
     paths.append("plots/rt_histogram.png")
 
-    fig, ax = plt.subplots(figsize=(max(6, 1.2 * len(suites) * max(1, len(configs)) / 2), 4))
+    fig, ax = plt.subplots(figsize=(min(14, max(6, 0.6 * len(suites) * max(1, len(configs)))), 4.5))
     data, labels = [], []
     for s in suites:
         for k, (b, v) in enumerate(configs):
