@@ -109,7 +109,7 @@ async def over_bus(requests: int, cpu: int | None) -> None:
             # 5 Hz, like a slow camera: every frame gets a fresh stamp.
             i = 0
             while not stop.is_set():
-                v = vs[(i // 10) % len(vs)].frame
+                v = vs[(i // 10) % len(vs)][0].frame
                 stamp = time.time_ns()
                 from shared.sensors import CompressedImage, decode_proto, ns_to_stamp
 
@@ -127,8 +127,10 @@ async def over_bus(requests: int, cpu: int | None) -> None:
                 await asyncio.sleep(0.2)
 
         cam = asyncio.create_task(camera())
+        cam.add_done_callback(lambda t: t.cancelled() or t.exception() is None or print(f"camera: {t.exception()!r}"))
         try:
-            deadline = time.monotonic() + 240
+            deadline = time.monotonic() + 120
+            est = None
             while True:
                 try:
                     est = await bus.query(keys.localize_object, LocalizeRequest(query="red cup"), ObjectEstimate,
@@ -137,8 +139,8 @@ async def over_bus(requests: int, cpu: int | None) -> None:
                         break
                 except NoResponder:
                     pass
-                if time.monotonic() > deadline:
-                    raise SystemExit("perception did not come up")
+                if time.monotonic() > deadline or proc.poll() is not None:
+                    raise SystemExit(f"perception did not come up (exit code {proc.poll()}, last answer {est})")
                 await asyncio.sleep(0.3)
             obj_t, place_t = [], []
             for i in range(requests):
