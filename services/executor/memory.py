@@ -40,10 +40,16 @@ class Memory:
     # ---- updates
 
     def begin_task(self, task_id: str) -> None:
-        """A new task starts a new history; what was seen stays (the world did not change)."""
+        """A new task starts from a clean memory: the world may have changed since the last one (people move
+        things; evaluation resets the room), and a stale position would send a grasp to an empty spot. Only
+        what the gripper holds carries over, since that is physical."""
         if task_id and task_id != self.task_id:
             self.task_id = task_id
             self.executed.clear()
+            self.objects.clear()
+            self.placements.clear()
+            self.seen.clear()
+            self.last_object = self.last_placement = None
             self._changed()
 
     def record_executed(self, entry: str) -> None:

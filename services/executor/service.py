@@ -21,6 +21,7 @@ from shared.messages import (
     AbortAck,
     AutopilotResult,
     Detections,
+    GripperState,
     HoldCommand,
     SkillAccept,
     SkillLibrary,
@@ -245,6 +246,11 @@ class Executor:
         while True:
             rec = await sub.recv_sample()
             self.state.update(rec.value, rec.receive_ns)
+            # An open gripper holds nothing: keeps memory true to the vehicle when the object is taken out
+            # by hand or the world is reset (skills manage `held` themselves while they run).
+            if self.goal is None and self.memory.held and rec.value.gripper == GripperState.OPEN:
+                log.info("gripper reports open: no longer holding the %s", self.memory.held)
+                self.memory.set_held(None)
 
     async def _pump_aborts(self) -> None:
         sub = self.bus.subscribe(self.keys.abort, Abort, maxsize=16, overflow="drop_newest")

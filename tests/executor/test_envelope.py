@@ -8,7 +8,7 @@ import time
 import numpy as np
 import pytest
 
-from shared.messages import MemoryObject, SkillState, Vec3
+from shared.messages import GripperState, MemoryObject, SkillState, Vec3
 from tests.executor.rig import Rig, rig
 from tests.helpers import arun, wait_until
 
@@ -132,6 +132,8 @@ def test_routine_preconditions():
             mem.objects["red cup"] = old.model_copy(update={"last_seen_ns": time.time_ns(),
                                                             "position": Vec3(x=3.5, y=3.5, z=0.8)})
             assert "reach" in await _rejected(r, "grasp")
+            r.vehicle.gripper = GripperState.CLOSED  # holding is only believed while the gripper is closed
+            await asyncio.sleep(0.3)
             mem.set_held("red cup", Vec3(x=0.08, y=0.08, z=0.11))
             assert "already holding" in await _rejected(r, "grasp")
             assert "run placement_localization first" in await _rejected(r, "place")
@@ -161,5 +163,27 @@ def test_monitor_stops_a_skill_that_leaves_the_geofence_or_loses_state():
             st = await r.terminal(acc.goal_id, 10)
             assert st.state == SkillState.FAILED and "stale" in st.message
             assert r.vehicle.commands[-1] == "hold"
+
+    arun(main())
+
+
+def test_memory_drops_a_held_object_when_the_gripper_reports_open_and_a_new_task_starts_clean():
+    async def main():
+        async with rig() as r:
+            mem = r.executor.memory
+            r.vehicle.gripper = GripperState.CLOSED
+            await asyncio.sleep(0.3)
+            mem.set_held("red cup", Vec3(x=0.08, y=0.08, z=0.11))
+            mem.objects["apple"] = MemoryObject(label="apple", position=Vec3(x=1.0), last_seen_ns=time.time_ns())
+            await asyncio.sleep(0.3)
+            assert mem.held == "red cup"  # closed gripper: still held
+            r.vehicle.gripper = GripperState.OPEN  # e.g. the simulator was reset
+            for _ in range(50):
+                if mem.held is None:
+                    break
+                await asyncio.sleep(0.1)
+            assert mem.held is None
+            mem.begin_task("task-a")
+            assert mem.objects == {} and mem.seen == {}
 
     arun(main())
