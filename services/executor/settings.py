@@ -13,8 +13,9 @@ class ExecutorSettings(ServiceSettings):
                                       use_attribute_docstrings=True)
 
     # ---- motion primitives (fixed parameters, paper Table II)
-    yaw_step_deg: float = 30.0
-    """Rotation of yaw_left / yaw_right, degrees."""
+    yaw_step_deg: float = 45.0
+    """Rotation of yaw_left / yaw_right, degrees. 45 keeps consecutive views of the 85 deg camera
+    overlapping while a full scan takes 8 steps instead of 12."""
     horizontal_step: float = 0.5
     """Translation of forward / backward / left / right, metres."""
     vertical_step: float = 0.3
