@@ -14,6 +14,8 @@ from shared.frames import DEFAULT_INTRINSICS
 from shared.sensors import Intrinsics, parse_color, parse_raw16, parse_transforms
 
 WORLD, BASE, CAMERA = "world", "base_link", "camera"
+TF_EXACT_NS = 5_000_000  # a world->base_link sample this close to a frame's stamp is that frame's pose
+TF_BRACKET_NS = 250_000_000  # interpolate between two samples only across a gap this short
 
 
 @dataclass
@@ -66,6 +68,7 @@ class FrameStore:
         self.labels: object | None = None
         self.complete_stamp = 0  # newest stamp with every part present
         self.complete_receive_ns = 0
+        self.revision = 0  # bumps when a frame completes or a pose arrives: something may have become usable
         self.counts = {"color": 0, "depth": 0, "segmentation": 0, "tf": 0, "calibration": 0, "bad": 0}
         self._cache: tuple[int, Frame] | None = None
 
@@ -81,9 +84,12 @@ class FrameStore:
 
     def _check_complete(self, stamp: int, slot: dict[str, object], receive_ns: int) -> None:
         parts = ("color", "depth", "segmentation") if self.need_segmentation else ("color", "depth")
-        if all(p in slot for p in parts) and stamp >= self.complete_stamp:
-            self.complete_stamp = stamp
-            self.complete_receive_ns = receive_ns
+        if all(p in slot for p in parts) and "receive_ns" not in slot:
+            slot["receive_ns"] = receive_ns
+            self.revision += 1
+            if stamp >= self.complete_stamp:
+                self.complete_stamp = stamp
+                self.complete_receive_ns = receive_ns
 
     def add_color(self, payload: bytes, receive_ns: int | None = None) -> None:
         from shared.sensors import CompressedImage, decode_proto, stamp_to_ns
@@ -119,6 +125,7 @@ class FrameStore:
                     continue  # out of order: keep the history sorted
                 self._tf_stamps.append(stamp)
                 self._tf_poses.append(T)
+                self.revision += 1
             elif (parent, child) == (BASE, CAMERA):
                 self.base_from_camera = T
 
@@ -128,13 +135,27 @@ class FrameStore:
     # ---- output
 
     def world_from_base_at(self, stamp: int) -> tuple[np.ndarray, int] | None:
-        """The world->base_link pose nearest to `stamp` and its time offset in ns."""
+        """The world->base_link pose at `stamp` and the offset of the sample used (ns), or None.
+
+        Zenoh does not order samples across keys, so a frame may arrive before its pose. Using the nearest
+        older pose then is wrong by however far the vehicle moved (half a metre during a climb was seen), so
+        a pose is only taken from a sample within TF_EXACT_NS or interpolated between samples that bracket
+        the stamp; otherwise None: the frame waits for its pose, never a guess."""
         if not self._tf_stamps:
             return None
         stamps = list(self._tf_stamps)
         i = bisect.bisect_left(stamps, stamp)
-        best = min((j for j in (i - 1, i) if 0 <= j < len(stamps)), key=lambda j: abs(stamps[j] - stamp))
-        return self._tf_poses[best], stamps[best] - stamp
+        near = [j for j in (i - 1, i) if 0 <= j < len(stamps) and abs(stamps[j] - stamp) <= TF_EXACT_NS]
+        if near:
+            best = min(near, key=lambda j: abs(stamps[j] - stamp))
+            return self._tf_poses[best], stamps[best] - stamp
+        if 0 < i < len(stamps) and stamps[i] - stamps[i - 1] <= TF_BRACKET_NS:
+            a = (stamp - stamps[i - 1]) / (stamps[i] - stamps[i - 1])
+            before, after = self._tf_poses[i - 1], self._tf_poses[i]
+            T = (before if a < 0.5 else after).copy()  # noqa: N806 - rotation of the nearer sample
+            T[:3, 3] = (1 - a) * before[:3, 3] + a * after[:3, 3]
+            return T, 0
+        return None
 
     def missing(self) -> str:
         """What is missing for a first frame, in words."""
@@ -153,19 +174,26 @@ class FrameStore:
             parts.append("tf base_link->camera")
         if self.counts["color"] and self.counts["depth"] and not self.complete_stamp:
             parts.append("a colour/depth pair with the same timestamp")
+        elif self.complete_stamp and self._tf_stamps and self.world_from_base_at(self.complete_stamp) is None:
+            parts.append("a world->base_link transform at the frame's timestamp")
         return ", ".join(parts)
 
     def latest(self) -> Frame | None:
-        """Newest complete frame, or None (see `missing()`)."""
-        stamp = self.complete_stamp
-        if not stamp or stamp not in self._slots:
+        """Newest complete frame whose pose is known, or None (see `missing()`)."""
+        if self.base_from_camera is None:
             return None
-        if self._cache is not None and self._cache[0] == stamp:
-            return self._cache[1]
-        base = self.world_from_base_at(stamp)
-        if base is None or self.base_from_camera is None:
-            return None
-        slot = self._slots[stamp]
+        for stamp in sorted(self._slots, reverse=True):
+            slot = self._slots[stamp]
+            if "receive_ns" not in slot:
+                continue
+            if self._cache is not None and self._cache[0] == stamp:
+                return self._cache[1]
+            base = self.world_from_base_at(stamp)
+            if base is not None:
+                return self._build(stamp, slot, base[0])
+        return None
+
+    def _build(self, stamp: int, slot: dict[str, object], world_from_base: np.ndarray) -> Frame | None:
         if self.need_segmentation and slot.get("labels") is None:
             if self.labels is None:
                 return None  # instance ids without names are useless
@@ -177,7 +205,7 @@ class FrameStore:
             # Calibration for another resolution: scale it rather than mis-project.
             sx, sy = depth.shape[1] / intr.width, depth.shape[0] / intr.height
             intr = Intrinsics(depth.shape[1], depth.shape[0], intr.fx * sx, intr.fy * sy, intr.cx * sx, intr.cy * sy)
-        frame = Frame(stamp, depth, intr, base[0] @ self.base_from_camera, self.complete_receive_ns,
+        frame = Frame(stamp, depth, intr, world_from_base @ self.base_from_camera, int(slot["receive_ns"]),
                       slot.get("color"), slot.get("segmentation"), slot.get("labels"))  # type: ignore[arg-type]
         self._cache = (stamp, frame)
         return frame

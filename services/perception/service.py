@@ -70,9 +70,9 @@ class PerceptionService:
         while True:
             rec = await sub.recv_sample()
             try:
-                before = self.store.complete_stamp
+                before = self.store.revision
                 handle(rec.value) if model is not None else handle(rec.payload)
-                if self.store.complete_stamp != before:
+                if self.store.revision != before:
                     self.new_frame.set()
             except (DecodeError, ValueError) as exc:
                 self.store.counts["bad"] += 1

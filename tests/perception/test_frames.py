@@ -70,3 +70,32 @@ def test_no_tf_means_no_frame() -> None:
     st.add_depth(raw16_message(DEPTH, 5))
     assert st.latest() is None
     assert "tf world->base_link" in st.missing()
+
+
+def test_frame_waits_for_its_own_pose_instead_of_taking_an_old_one() -> None:
+    # Zenoh does not order keys: a frame can arrive before the tf with its stamp. During a 1 m/s climb an
+    # older pose 0.5 s back would put every point half a metre too low.
+    st = FrameStore()
+    t0 = 1_700_000_000_000_000_000
+    st.add_tf(tf(t0, 0.0))
+    st.add_color(color_message(RGB, t0 + 500_000_000))
+    st.add_depth(raw16_message(DEPTH, t0 + 500_000_000))
+    assert st.latest() is None
+    assert "transform at the frame's timestamp" in st.missing()
+    rev = st.revision
+    st.add_tf(tf(t0 + 500_000_000, 2.0))
+    assert st.revision > rev  # the service wakes waiting queries on a pose too
+    f = st.latest()
+    assert f is not None and f.stamp_ns == t0 + 500_000_000
+    assert np.allclose(f.world_from_camera, pose_matrix(2.0, 0.0, 1.0, 0.0) @ base_to_camera(), atol=1e-6)
+
+
+def test_pose_interpolated_between_bracketing_samples() -> None:
+    st = FrameStore()
+    t0 = 1_700_000_000_000_000_000
+    st.add_tf(tf(t0, 0.0))
+    st.add_tf(tf(t0 + 100_000_000, 1.0))
+    st.add_color(color_message(RGB, t0 + 25_000_000))
+    st.add_depth(raw16_message(DEPTH, t0 + 25_000_000))
+    f = st.latest()
+    assert np.allclose(f.world_from_camera, pose_matrix(0.25, 0.0, 1.0, 0.0) @ base_to_camera(), atol=1e-6)
