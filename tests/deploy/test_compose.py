@@ -77,3 +77,24 @@ def test_dockerfile_installs_open3d_runtime_libraries():
     text = (ROOT / "Dockerfile").read_text()
     for lib in ("libusb-1.0-0", "libgl1", "libegl1", "libgomp1"):
         assert lib in text
+
+
+def test_environment_variables_name_real_settings():
+    """A misspelt AERMANI_<SERVICE>_* variable would be silently ignored by pydantic-settings."""
+    import importlib
+
+    classes = {}
+    for name in ("sim", "autopilot_bridge", "perception", "executor", "reasoner", "recorder", "gateway"):
+        mod = importlib.import_module(f"services.{name}.settings")
+        for obj in vars(mod).values():
+            prefix = getattr(getattr(obj, "model_config", {}), "get", lambda *_: None)("env_prefix")
+            if isinstance(obj, type) and prefix and prefix.startswith("AERMANI_") and prefix != "AERMANI_":
+                classes[prefix] = obj
+    for svc_name, svc in SERVICES.items():
+        for var in (svc.get("environment") or {}):
+            for prefix, cls in classes.items():
+                if var.startswith(prefix):
+                    field = var[len(prefix):].lower()
+                    names = set(cls.model_fields) | {a for f in cls.model_fields.values()
+                                                     for a in getattr(f.validation_alias, "choices", ()) or ()}
+                    assert field in names or var in names, f"{svc_name}: {var} is not a setting of {cls.__name__}"

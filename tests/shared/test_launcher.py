@@ -52,7 +52,7 @@ def _alive_pids(pids: set[int]) -> set[int]:
 def test_up_health_restart_and_clean_stop(tmp_path: Path):
     port = free_port()
     services = "reasoner,recorder"
-    env = {**os.environ, "AERMANI_RECORDER_DIRECTORY": str(tmp_path / "rec")}
+    env = {**os.environ, "AERMANI_RECORDER_OUT_DIR": str(tmp_path / "rec")}
     up = subprocess.Popen([*AERMANI, "up", "--services", services, "--port", str(port), "--log-dir",
                            str(tmp_path / "logs")], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                           env=env)
