@@ -3,10 +3,18 @@
 from __future__ import annotations
 
 import asyncio
+import math
 
 import pytest
 
-from services.reasoner.backends.rules import RulesBackend, answer_for_prompt, parse_command, render_answer
+from services.reasoner.backends.base import PastStep, PolicyContext, Seen
+from services.reasoner.backends.rules import (
+    RulesBackend,
+    RulesPolicy,
+    answer_for_prompt,
+    parse_command,
+    render_answer,
+)
 from services.reasoner.loop import TaskRunner, policy_context
 from services.reasoner.parse import parse_answer
 from services.reasoner.prompt import History, PromptCompiler
@@ -83,10 +91,92 @@ def test_sequential_motions_then_pick() -> None:
 
 @pytest.mark.parametrize(("present", "expected"), [(("orange", "banana"), "orange"), (("banana",), "banana")])
 def test_conditional(present: tuple[str, ...], expected: str) -> None:
-    w = MiniWorld([Thing(p, needs_forward=1) for p in present] + [Thing("counter", "surface")])
+    # The counter is detected 1.2 m away, within the approach radius: decide at once from what is seen.
+    w = MiniWorld([Thing(p) for p in present] + [Thing("counter", "surface")])
     final, *_ = run_task("Approach the counter. If you see an orange, pick it up; otherwise grab the banana.", w)
     assert final.state is TaskState.SUCCEEDED and w.held == expected
-    assert w.executed[1] == "forward"
+    assert w.executed[1:] == [f"obj_localization({expected})", f"grasp({expected})", "done"]
+
+
+COUNTER_CMD = "Approach the counter. If you see an orange, pick it up; otherwise grab the banana."
+
+
+def _ctx(command: str, steps: list, **kw: object) -> PolicyContext:
+    return PolicyContext(command=command, variant="full", skills=[], steps=steps, **kw)
+
+
+def _motion(skill: str, x: float, y: float, yaw_deg: float) -> PastStep:
+    return PastStep(skill, None, "succeeded", f"{skill} done: now at ({x:.2f}, {y:.2f}, 1.50), yaw {yaw_deg:.0f} deg")
+
+
+def test_approach_turns_then_flies_until_close_then_decides() -> None:
+    policy = RulesPolicy()
+    where = {"counter": (4.0, 0.0)}
+    # Facing away: turn toward the counter first.
+    skill, *_ = policy.decide(_ctx(COUNTER_CMD, [], pose=(0.0, 0.0, math.pi / 2), positions=where))
+    assert skill == "yaw_right"
+    steps = [_motion("yaw_right", 0.0, 0.0, 45), _motion("yaw_right", 0.0, 0.0, 0)]
+    skill, *_ = policy.decide(_ctx(COUNTER_CMD, steps, pose=(0.0, 0.0, 0.0), positions=where))
+    assert skill == "forward"
+    steps += [_motion("forward", 0.5 * i, 0.0, 0) for i in range(1, 5)]
+    # 2.0 m away: still too far, even though an orange is already in view.
+    seen = [Seen("orange", "object", 0.001, 2.1), Seen("banana", "object", 0.002, 2.2)]
+    skill, *_ = policy.decide(_ctx(COUNTER_CMD, steps, pose=(2.0, 0.0, 0.0), positions=where, visible=seen))
+    assert skill == "forward"
+    steps.append(_motion("forward", 2.5, 0.0, 0))
+    skill, arg, _ = policy.decide(_ctx(COUNTER_CMD, steps, pose=(2.5, 0.0, 0.0), positions=where, visible=seen))
+    assert (skill, arg) == ("obj_localization", "orange")
+    # Only the banana there: the otherwise branch, decided after the same approach.
+    skill, arg, _ = policy.decide(_ctx(COUNTER_CMD, steps, pose=(2.5, 0.0, 0.0), positions=where, visible=seen[1:]))
+    assert (skill, arg) == ("obj_localization", "banana")
+    # A failed look for the orange there also means "otherwise".
+    failed = [*steps, PastStep("obj_localization", "orange", "failed", "orange not visible")]
+    skill, arg, _ = policy.decide(_ctx(COUNTER_CMD, failed, pose=(2.5, 0.0, 0.0), positions=where, visible=seen))
+    assert (skill, arg) == ("obj_localization", "banana")
+
+
+PLACE_CMD = "Pick up the red cup and place it on the table."
+_PICKED = [PastStep("obj_localization", "red cup", "succeeded", "localized red cup at (1.00, 0.00, 0.80)"),
+           PastStep("grasp", "red cup", "succeeded", "grasped the red cup; holding it at (0.30, 0.00, 1.50)"),
+           PastStep("placement_localization", "table", "succeeded",
+                    "found placement spot on the table at (2.00, 0.00, 0.78) (surface z 0.75)")]
+
+
+def test_place_released_but_unconfirmed_looks_then_finishes_or_regrasps() -> None:
+    policy = RulesPolicy()
+    lost = PastStep("place", None, "failed", "released the red cup over the table but could not see it there "
+                                             "afterwards: red cup not visible")
+    steps = [*_PICKED, lost]
+    # Not holding any more: never loop on placement_localization + place; look for the object instead.
+    skill, arg, _ = policy.decide(_ctx(PLACE_CMD, steps, pose=(2.0, -0.8, 1.57)))
+    assert (skill, arg) == ("obj_localization", "red cup")
+    on_table = PastStep("obj_localization", "red cup", "succeeded", "localized red cup at (2.08, 0.05, 0.81)")
+    assert policy.decide(_ctx(PLACE_CMD, [*steps, on_table], pose=(2.0, -0.8, 1.57)))[0] == "done"
+    on_floor = PastStep("obj_localization", "red cup", "succeeded", "localized red cup at (2.60, 0.50, 0.05)")
+    skill, arg, _ = policy.decide(_ctx(PLACE_CMD, [*steps, on_floor], pose=(2.0, -0.8, 1.57),
+                                       known_objects=["red cup"]))
+    assert (skill, arg) == ("grasp", "red cup")
+
+
+def test_place_off_spot_but_on_surface_is_done() -> None:
+    off = PastStep("place", None, "failed", "released the red cup but it lies at (2.25, 0.05, 0.80), 0.25 m from "
+                                            "the placement spot on the table")
+    assert RulesPolicy().decide(_ctx(PLACE_CMD, [*_PICKED, off], pose=(2.0, -0.8, 1.57)))[0] == "done"
+
+
+def test_failed_placement_localization_flies_toward_remembered_surface() -> None:
+    cmd = "Find the purple cup and place it on the round table."
+    steps = [PastStep("obj_localization", "purple cup", "succeeded", "localized purple cup at (2.10, -1.14, 0.81)"),
+             PastStep("grasp", "purple cup", "succeeded", "grasped the purple cup"),
+             PastStep("placement_localization", "round table", "failed", "round table seen but with too few depth "
+                                                                          "points: no horizontal plane found")]
+    where = {"round table": (-1.0, 2.5), "table": (2.0, -0.7)}
+    seen = [Seen("round table", "surface", None, 3.7)]
+    ctx = _ctx(cmd, steps, held="purple cup", pose=(1.0, -0.5, math.atan2(3.0, -2.0)), positions=where, visible=seen)
+    assert RulesPolicy().decide(ctx)[0] == "forward"
+    ctx = _ctx(cmd, [*steps, _motion("forward", -0.5, 1.5, 124)], held="purple cup",
+               pose=(-0.5, 1.5, math.atan2(1.0, -0.5)), positions=where, visible=seen)
+    assert RulesPolicy().decide(ctx)[:2] == ("placement_localization", "round table")
 
 
 def test_search_out_of_view_then_place() -> None:

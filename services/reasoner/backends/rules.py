@@ -40,6 +40,14 @@ CATEGORY_WORDS = {
 NUMBERS = {"once": 1, "twice": 2, "thrice": 3, "one": 1, "two": 2, "three": 3, "four": 4, "five": 5}
 SEEN_FOV_HALF_DEG = 30  # a remembered thing within this of the heading is in view (camera: +-42 deg)
 SCAN_LIMIT = 8  # consecutive yaw steps (one full turn at 45 deg) before trying something else
+APPROACH_RADIUS = 1.5  # "approach the counter" ends within this horizontal distance of what was seen of it
+APPROACH_FACING_DEG = 20  # turn toward the surface first when it is further off the heading than this
+APPROACH_LIMIT = 12  # motion steps an "approach" may take before the policy decides from where it is
+SURFACE_RETRY_RADIUS = 2.0  # after a failed placement_localization, fly this close to the surface first
+ON_SURFACE_XY = 0.35  # a released object this close to its placement spot (and at its height) rests there
+_MOTION_SKILLS = (S.YAW_LEFT, S.YAW_RIGHT, S.FORWARD, S.BACKWARD, S.LEFT, S.RIGHT, S.UP, S.DOWN)
+_APPROACH = "approach:"  # motion token: fly to the named thing, as many steps as it takes
+_VEC = r"\((-?[\d.]+), (-?[\d.]+), (-?[\d.]+)\)"
 _ACTION_WORDS = ("pick", "grab", "get", "take", "fetch", "find", "locate", "search", "bring", "place", "put",
                  "drop", "look for", "if ", "otherwise")
 _ART = r"(?:the|a|an|some|me|my)\s+"
@@ -86,7 +94,14 @@ def _motions(clause: str) -> list[str]:
         turn, turn_dir, move, approach, count = m.groups()
         if turn:
             skill = S.YAW_LEFT if turn_dir == "left" else S.YAW_RIGHT
-        elif approach or move in ("forward", "ahead", "closer"):
+        elif approach:
+            # "approach the counter": a destination, not a step count; the policy flies there (_approach_to)
+            what = re.match(r"approach\s+(?:the\s+|a\s+|an\s+)?([a-z][a-z \-]*)", clause[m.start():])
+            if what:
+                out.append(_APPROACH + _clean_query(what.group(1)))
+                continue
+            skill = S.FORWARD
+        elif move in ("forward", "ahead", "closer"):
             skill = S.FORWARD
         elif move in ("backward", "backwards", "back"):
             skill = S.BACKWARD
@@ -180,37 +195,138 @@ class RulesPolicy:
         plan = parse_command(ctx.command)
         steps = ctx.steps
         # 1. The motions the command spells out, in order (a motion that fails twice is skipped).
-        done_motions, fails, first_free = 0, 0, 0
-        for i, s in enumerate(steps):
-            if done_motions >= len(plan.motions):
-                break
-            if s.skill == plan.motions[done_motions]:
-                if s.state == "succeeded":
-                    done_motions, fails = done_motions + 1, 0
-                else:
-                    fails += 1
-                    if fails >= 2:
-                        done_motions, fails = done_motions + 1, 0
-            first_free = i + 1
-        if done_motions < len(plan.motions):
-            return plan.motions[done_motions], None, (
-                f"The command asks for these motions first: {', '.join(plan.motions)}; "
-                f"{done_motions} done, so next is {plan.motions[done_motions]}.")
+        first_free, pending = self._motions_left(ctx, plan, steps)
+        if pending is not None:
+            return pending
         rest = steps[first_free:]
         if any(s.skill == S.PLACE and s.state == "succeeded" for s in rest):
             return S.DONE, None, "The object has been placed on the destination: the command is complete."
         holding = ctx.held
         if holding is None:
             for s in reversed(rest):
-                if s.skill in (S.GRASP, S.PLACE) and s.state == "succeeded":
-                    holding = "object" if s.skill == S.GRASP else None
+                if _released(s):
+                    break
+                if s.skill == S.GRASP and s.state == "succeeded":
+                    holding = "object"
                     break
         if not holding:
+            after = self._after_release(ctx, plan, rest)
+            if after is not None:
+                return after
             return self._pick(ctx, plan, rest)
         if plan.destination is None:
             return S.DONE, None, (f"Holding the {holding} and the command names no destination: the task ends "
                                   "with the object held for the operator.")
         return self._place(ctx, plan, rest, holding)
+
+    def _motions_left(self, ctx: PolicyContext, plan: Plan,
+                      steps: list[PastStep]) -> tuple[int, tuple[str, str | None, str] | None]:
+        """Replays the history against the command's motions: (index of the first step after them, the next
+        motion to run or None when they are all done)."""
+        i, k, fails, approach_steps = 0, 0, 0, 0
+        motions = plan.motions
+        while k < len(motions):
+            m = motions[k]
+            if i < len(steps) and steps[i].skill in S.OPERATOR_SKILLS:
+                i += 1  # takeoff and the like are the operator's, not the command's motions
+                continue
+            if m.startswith(_APPROACH):
+                what = m[len(_APPROACH):]
+                if i < len(steps) and steps[i].skill in _MOTION_SKILLS and approach_steps < APPROACH_LIMIT:
+                    # A past approach step: it ended the approach when it reported a pose close enough.
+                    pose = _pose_in(steps[i].message)
+                    i, approach_steps = i + 1, approach_steps + 1
+                    if pose is not None and self._approach_to(ctx, what, approach_steps, pose, steps[i - 1]) is None:
+                        k, approach_steps = k + 1, 0
+                    continue
+                if i >= len(steps):
+                    nxt = self._approach_to(ctx, what, approach_steps, ctx.pose, steps[-1] if steps else None)
+                    if nxt is not None:
+                        return i, nxt
+                k, approach_steps = k + 1, 0  # arrived, gave up, or the policy moved on to other skills
+                continue
+            if i >= len(steps):
+                return i, (m, None, f"The command asks for these motions first: {', '.join(motions)}; "
+                                    f"{k} done, so next is {m}.")
+            s = steps[i]
+            i += 1
+            if s.skill == m:
+                if s.state == "succeeded":
+                    k, fails = k + 1, 0
+                else:
+                    fails += 1
+                    if fails >= 2:
+                        k, fails = k + 1, 0
+        return i, None
+
+    def _approach_to(self, ctx: PolicyContext, what: str, taken: int, pose: tuple[float, float, float] | None,
+                     last: PastStep | None, exact: bool = False,
+                     radius: float = APPROACH_RADIUS) -> tuple[str, str | None, str] | None:
+        """The next step of "approach the <what>" from `pose`: turn toward it, fly closer until within
+        `radius`; None when there (or when it cannot get closer)."""
+        if taken >= APPROACH_LIMIT:
+            return None
+        if last is not None and last.skill == S.FORWARD and last.state != "succeeded" and taken > 0:
+            return None  # the way is blocked: decide from here
+
+        def same(name: str) -> bool:  # surfaces need the exact name: "table" is not the "round table"
+            return name.lower() == what.lower() if exact else _matches(name, what)
+
+        pos = next((xy for name, xy in ctx.positions.items() if same(name)), None)
+        if pos is None or pose is None:
+            near = next((v for v in ctx.visible if same(v.label)), None)
+            if near is not None:
+                # In view but not placed in the world (no pose or memory): judge by its reported distance, or
+                # take one step toward it when even that is unknown.
+                if near.distance is not None:
+                    return None if near.distance <= radius else (
+                        S.FORWARD, None, f"Approach the {what}: it is {near.distance:.1f} m away, fly closer.")
+                return (S.FORWARD, None, f"Approach the {what}: it is in view, fly closer.") if taken == 0 else None
+            if taken < SCAN_LIMIT:
+                return S.YAW_LEFT, None, f"Approach the {what}: I have not seen it yet, so turn to look for it."
+            return None
+        x, y, yaw = pose
+        dist = math.hypot(pos[0] - x, pos[1] - y)
+        if dist <= radius:
+            return None
+        bearing = math.atan2(pos[1] - y, pos[0] - x) - yaw
+        bearing = math.atan2(math.sin(bearing), math.cos(bearing))
+        if abs(bearing) > math.radians(APPROACH_FACING_DEG):
+            turn = S.YAW_LEFT if bearing > 0 else S.YAW_RIGHT
+            return turn, None, (f"Approach the {what}: it is {dist:.1f} m away at {math.degrees(bearing):.0f} deg "
+                                "from my heading, turn toward it.")
+        return S.FORWARD, None, f"Approach the {what}: it is {dist:.1f} m ahead, fly closer (until {radius} m)."
+
+    def _after_release(self, ctx: PolicyContext, plan: Plan,
+                       rest: list[PastStep]) -> tuple[str, str | None, str] | None:
+        """`place` let the object go but reported failure (not seen afterwards, or off the spot): look where it
+        is. On the destination is done; anywhere else it is picked up again (the normal pick phase)."""
+        idx = next((i for i in range(len(rest) - 1, -1, -1) if _released(rest[i])), None)
+        if idx is None or not plan.destination:
+            return None
+        place = rest[idx]
+        spot = next((s for s in reversed(rest[:idx]) if s.skill == S.PLACEMENT_LOCALIZATION
+                     and s.state == "succeeded"), None)
+        spot_m = re.search(_VEC + r".*surface z (-?[\d.]+)", spot.message) if spot else None
+        obj = re.search(r"^released the (.+?) (?:over|but)", place.message)
+        label = obj.group(1) if obj else (plan.target or "object")
+        after = rest[idx + 1:]
+        seen_at = _pose_in(place.message, vec_only=True) if "lies at" in place.message else None
+        for s in after:
+            if s.skill == S.OBJ_LOCALIZATION and s.state == "succeeded":
+                seen_at = _pose_in(s.message, vec_only=True) or seen_at
+        if seen_at is not None and spot_m is not None:
+            sx, sy, surface_z = float(spot_m.group(1)), float(spot_m.group(2)), float(spot_m.group(4))
+            d = math.hypot(seen_at[0] - sx, seen_at[1] - sy)
+            if d <= ON_SURFACE_XY and surface_z - 0.05 <= seen_at[2] <= surface_z + 0.4:
+                return S.DONE, None, (f"The released {label} rests at ({seen_at[0]:.2f}, {seen_at[1]:.2f}, "
+                                      f"{seen_at[2]:.2f}), {d:.2f} m from the placement spot on the "
+                                      f"{plan.destination}: the command is complete.")
+            return None  # somewhere else: pick it up again
+        if any(s.skill == S.OBJ_LOCALIZATION for s in after):
+            return None  # not found where it was released: search for it like any target
+        return S.OBJ_LOCALIZATION, label, (f"place released the {label} but could not confirm it ({place.message}); "
+                                           "look for it where it was released.")
 
     # ---- phases
 
@@ -218,10 +334,14 @@ class RulesPolicy:
         """(label or query to localize, why); label None when nothing fits yet."""
         visible = [v for v in ctx.visible if v.category == "object" and not _excluded(v.label, plan)]
         if plan.choices:
-            for s in rest:  # the conditional is decided once, by the first localization
-                if s.skill == S.OBJ_LOCALIZATION and s.argument in plan.choices:
+            # Decided from what is seen where the command says to look (after its motions), once: the first
+            # successful localization of either choice settles it; a failed look for the first means "otherwise".
+            for s in rest:
+                if s.skill == S.OBJ_LOCALIZATION and s.argument in plan.choices and s.state == "succeeded":
                     return s.argument, f"I already chose the {s.argument} for the conditional."
             first, other = plan.choices
+            if any(s.skill == S.OBJ_LOCALIZATION and s.argument == first for s in rest):
+                return other, f"I looked for a {first} here and did not find one, so grab the {other}."
             if any(_matches(v.label, first) for v in visible) or first in ctx.known_objects:
                 return first, f"I see a {first}, so the condition holds: pick the {first}."
             return other, f"I do not see a {first}, so the command says to grab the {other}."
@@ -265,7 +385,7 @@ class RulesPolicy:
             return approach
         if last and last.skill == S.OBJ_LOCALIZATION and last.state == "succeeded":
             return S.GRASP, target, f"{why} It was just localized, so grasp it."
-        if last and last.skill == S.OBJ_LOCALIZATION and last.state != "succeeded":
+        if last and last.skill == S.OBJ_LOCALIZATION and last.state != "succeeded" and last.argument == target:
             fails = _trailing_failures(rest, S.OBJ_LOCALIZATION)
             if fails % 2 == 1:
                 return S.FORWARD, None, f"{why} Localization failed ({last.message or last.state}); move closer."
@@ -282,6 +402,20 @@ class RulesPolicy:
             return approach
         if last and last.skill == S.PLACEMENT_LOCALIZATION and last.state == "succeeded":
             return S.PLACE, None, f"Holding the {holding}; the {dest} placement pose is localized, so place it."
+        fails = _trailing_failures(rest, S.PLACEMENT_LOCALIZATION)
+        if fails and fails <= 4:
+            # Too far to find a plane on it (or seen past an edge): fly to where it was seen, then retry.
+            since = next((len(rest) - 1 - i for i in range(len(rest) - 1, -1, -1)
+                          if rest[i].skill == S.PLACEMENT_LOCALIZATION), 0)
+            known = ctx.pose is not None and any(n.lower() == dest for n in ctx.positions)
+            closer = self._approach_to(ctx, dest, since, ctx.pose, last, exact=True,
+                                       radius=SURFACE_RETRY_RADIUS) if known else None
+            if closer is not None:
+                skill, arg, how = closer
+                return skill, arg, f"Placement localization failed ({_short(rest)}). {how}"
+            if since > 0 and seen:
+                return S.PLACEMENT_LOCALIZATION, dest, f"Holding the {holding}; closer to the {dest} now: localize " \
+                                                       "the placement spot again."
         if last and last.skill == S.PLACEMENT_LOCALIZATION and last.state != "succeeded":
             fails = _trailing_failures(rest, S.PLACEMENT_LOCALIZATION)
             if fails % 2 == 1:
@@ -360,6 +494,26 @@ class RulesPolicy:
             return turn, None, (f"It was seen earlier at ({pos[0]:.1f}, {pos[1]:.1f}), "
                                 f"{math.degrees(bearing):.0f} deg from my heading: turn toward it.")
         return localize, query, f"It was seen earlier at ({pos[0]:.1f}, {pos[1]:.1f}), ahead of me now: localize it."
+
+
+def _short(rest: list[PastStep]) -> str:
+    last = next((s for s in reversed(rest) if s.state != "succeeded"), None)
+    return (last.message or last.state)[:80] if last else ""
+
+
+def _released(s: PastStep) -> bool:
+    """A place that opened the gripper, whatever it reported: the object is no longer held."""
+    return s.skill == S.PLACE and (s.state == "succeeded" or s.message.startswith("released"))
+
+
+def _pose_in(message: str, vec_only: bool = False) -> tuple[float, float, float] | None:
+    """(x, y, yaw rad) from a motion's "now at (x, y, z), yaw N deg", or (x, y, z) of the first vector."""
+    m = re.search(_VEC + (r"" if vec_only else r", yaw (-?[\d.]+) deg"), message)
+    if not m:
+        return None
+    if vec_only:
+        return float(m.group(1)), float(m.group(2)), float(m.group(3))
+    return float(m.group(1)), float(m.group(2)), math.radians(float(m.group(4)))
 
 
 def _trailing_failures(rest: list[PastStep], skill: str) -> int:
