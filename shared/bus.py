@@ -20,6 +20,7 @@ import json
 import logging
 import threading
 import time
+from collections import deque
 from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass
 from typing import Any, Generic, Literal, TypeVar
@@ -169,6 +170,27 @@ class Subscription(Generic[T]):
         self.received = 0
         self._sub: Any = None
         self._closed = False
+        # Hand-over from zenoh's thread: samples gather here and one loop callback drains them, so a burst
+        # costs one loop wake-up instead of one per sample.
+        self._pending: deque[tuple[str, bytes, str, int]] = deque()
+        self._pending_lock = threading.Lock()
+        self._drain_scheduled = False
+
+    def _from_zenoh(self, item: tuple[str, bytes, str, int]) -> None:  # runs on a zenoh thread
+        with self._pending_lock:
+            self._pending.append(item)
+            if self._drain_scheduled:
+                return
+            self._drain_scheduled = True
+        self.bus._to_loop(self._drain)
+
+    def _drain(self) -> None:  # runs on the loop
+        with self._pending_lock:
+            items = list(self._pending)
+            self._pending.clear()
+            self._drain_scheduled = False
+        for item in items:
+            self._push(item)
 
     def _push(self, item: tuple[str, bytes, str, int]) -> None:  # runs on the loop
         self.received += 1
@@ -339,8 +361,8 @@ class Bus:
         sub_obj: Subscription[T] = Subscription(self, key, model, maxsize, overflow)
 
         def on_sample(sample: zenoh.Sample) -> None:
-            item = (str(sample.key_expr), sample.payload.to_bytes(), str(sample.encoding), time.time_ns())
-            self._to_loop(sub_obj._push, item)
+            sub_obj._from_zenoh((str(sample.key_expr), sample.payload.to_bytes(), str(sample.encoding),
+                                 time.time_ns()))
 
         sub_obj._sub = self.session.declare_subscriber(key, on_sample)
         self._declared.append(sub_obj._sub)
