@@ -702,6 +702,8 @@ class Scenario(Message):
     """Objects that must be present besides target and distractors (e.g. both "orange" and "banana")."""
     start: Pose | None = None
     """Vehicle start pose on the ground; None lets the seed choose."""
+    placements: dict[str, str] | None = None
+    """Object -> surface it must start on (e.g. {"orange": "counter"}); others go where the seed puts them."""
 
 
 class SimLabel(Part):

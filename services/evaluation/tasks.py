@@ -48,6 +48,8 @@ class EvalTask(BaseModel):
     """Objects that must be present (e.g. the tools of "Ignore the tools ...")."""
     target_out_of_view: bool = False
     """Put the target outside the initial view (search tasks)."""
+    placements: dict[str, str] | None = None
+    """Object -> surface it must start on (e.g. {"orange": "counter"} for "approach the counter ...")."""
     t_max_s: float | None = Field(None, gt=0, le=3600)
     """T_max override for this task, seconds."""
 
@@ -66,7 +68,7 @@ class EvalTask(BaseModel):
     def scenario(self, seed: int) -> Scenario:
         return Scenario(seed=seed, target_object=self.target_object, destination=self.destination,
                         distractors=self.distractors, target_out_of_view=self.target_out_of_view,
-                        extra_objects=self.extra_objects)
+                        extra_objects=self.extra_objects, placements=self.placements)
 
 
 class EpisodeSpec(BaseModel):

@@ -143,6 +143,13 @@ def generate(scenario: Scenario) -> tuple[World, Scenario, Pose]:
     if dest is not None and dest not in SURFACES:
         raise ScenarioError(f"{dest!r} has no top to place things on; surfaces: {', '.join(SURFACES)}")
     extras = tuple(canonical(n, OBJECTS, "object") for n in scenario.extra_objects)
+    fixed = {canonical(o, OBJECTS, "object"): canonical(s, FURNITURE, "surface")
+             for o, s in (scenario.placements or {}).items()}
+    for obj_name, surf_name in fixed.items():
+        if surf_name not in SURFACES:
+            raise ScenarioError(f"{surf_name!r} has no top to place the {obj_name} on; surfaces: {', '.join(SURFACES)}")
+        if obj_name == target and surf_name == dest:
+            raise ScenarioError(f"the {obj_name} cannot start on its destination, the {dest}")
 
     if scenario.start is not None:
         start = scenario.start
@@ -156,7 +163,7 @@ def generate(scenario: Scenario) -> tuple[World, Scenario, Pose]:
     target = target or rng.choice(list(OBJECTS))
     furniture = _place_furniture(rng, (start.position.x, start.position.y))
     surfaces = {e.name: e for e in furniture if e.category == "surface"}
-    target_surface_choices = [s for s in surfaces if s != dest]
+    target_surface_choices = [fixed[target]] if target in fixed else [s for s in surfaces if s != dest]
     if scenario.start is None and not scenario.target_out_of_view:
         # The normal case has the target in view at the start: face the candidate surface closest to the
         # drawn heading (no extra random draws, so the furniture of a seed does not change).
@@ -177,6 +184,7 @@ def generate(scenario: Scenario) -> tuple[World, Scenario, Pose]:
         distractors = tuple(rng.sample(pool, rng.randint(2, 4)))
     names = [target, *[n for n in extras if n != target]]
     names += [n for n in distractors if n not in names]
+    names += [n for n in fixed if n not in names]
 
     placed: list[Entity] = []
 
@@ -207,7 +215,7 @@ def generate(scenario: Scenario) -> tuple[World, Scenario, Pose]:
                             f" with seed {scenario.seed}; try another seed")
     placed.append(obj)
     for name in names[1:]:
-        obj = place(name, list(surfaces), None)
+        obj = place(name, [fixed[name]] if name in fixed else list(surfaces), None)
         if obj is None:
             raise ScenarioError(f"no room left for the {name} with seed {scenario.seed}")
         placed.append(obj)
@@ -216,5 +224,6 @@ def generate(scenario: Scenario) -> tuple[World, Scenario, Pose]:
         dest = rng.choice([s for s in surfaces if s != placed[0].support])
     world = World(entities=_structure() + furniture + placed)
     filled = Scenario(seed=scenario.seed, target_object=target, destination=dest, distractors=distractors,
-                      target_out_of_view=scenario.target_out_of_view, extra_objects=extras, start=start)
+                      target_out_of_view=scenario.target_out_of_view, extra_objects=extras, start=start,
+                      placements=fixed or None)
     return world, filled, start

@@ -25,7 +25,15 @@ def test_builtin_suites_parse_and_name_only_things_the_simulator_has():
             for obj in (*t.accepted, *(t.distractors or ()), *t.extra_objects):
                 assert obj in OBJECTS, (name, t.command, obj)
             assert t.destination is None or t.destination in SURFACES, (name, t.destination)
+            for obj, surface in (t.placements or {}).items():
+                assert obj in OBJECTS and surface in SURFACES, (name, t.command, obj, surface)
+                assert t.scenario(1).placements == t.placements
     assert all(t.target_out_of_view for t in suites["search"])
+    # The conditional's outcome is decided by the layout: the orange (or, otherwise, the banana) is on the counter.
+    counter = [t for t in suites["sequential"] if "counter" in t.command]
+    assert {t.target_object for t in counter} == {"orange", "banana"}
+    assert all(t.placements == {t.target_object: "counter"} for t in counter)
+    assert all("orange" not in (*t.extra_objects, *(t.distractors or ())) for t in counter if t.target_object == "banana")
     commands = {t.command for ts in suites.values() for t in ts}
     # the paper's Table I commands are all there
     for c in ("Pick up the red cup and place it on the table.", "Of the two boxes, pick up the larger one.",

@@ -118,3 +118,21 @@ def test_coarse_rendering_keeps_calibration():
     # A one-pixel shift would be far off: the floor depth changes by several mm per row here.
     shifted = np.abs(coarse.depth_mm[1:].astype(float) - expect[:-1])[floor[1:] & floor[:-1]]
     assert np.median(shifted) > 5 * np.median(err) + 1.0
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_placements_put_objects_on_the_named_surface(seed):
+    scen = Scenario(seed=seed, target_object="orange", extra_objects=("banana",), distractors=("red cup",),
+                    placements={"Orange": "counter", "red cup": "shelf"})
+    world, filled, start = generate(scen)
+    assert world.by_name("orange").support == "counter"
+    assert world.by_name("red cup").support == "shelf"
+    assert filled.placements == {"orange": "counter", "red cup": "shelf"}
+    # The target's surface is the one faced at the start, so "approach the counter" starts looking at it.
+    counter = world.by_name("counter")
+    bearing = math.atan2(counter.center[1] - start.position.y, counter.center[0] - start.position.x) - start.yaw
+    assert abs(math.atan2(math.sin(bearing), math.cos(bearing))) < 1e-6
+    with pytest.raises(ScenarioError, match="coffee machine"):
+        generate(Scenario(seed=seed, target_object="orange", placements={"orange": "coffee machine"}))
+    with pytest.raises(ScenarioError, match="destination"):
+        generate(Scenario(seed=seed, target_object="orange", destination="counter", placements={"orange": "counter"}))
