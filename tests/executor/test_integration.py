@@ -11,6 +11,7 @@ import time
 
 import pytest
 
+from services.executor.settings import ExecutorSettings
 from shared.bus import Bus
 from shared.errors import NoResponder
 from shared.keys import Keys
@@ -156,7 +157,7 @@ def test_motion_primitives_and_operator_skills(stack):
                     assert abs(moved - 0.5) < 0.12, (skill, moved)
                 elif skill.startswith("yaw"):
                     turn = math.degrees((b.yaw - a.yaw + math.pi) % (2 * math.pi) - math.pi)
-                    assert abs(abs(turn) - 30) < 8, (skill, turn)
+                    assert abs(abs(turn) - ExecutorSettings().yaw_step_deg) < 8, (skill, turn)
             # forward needs free depth ahead: turn until the corridor is clear (a rejection moves nothing)
             for _ in range(12):
                 acc = await c.request("forward")

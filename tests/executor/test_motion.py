@@ -48,7 +48,8 @@ def test_each_motion_primitive_ends_at_its_fixed_step():
         async with rig() as r:
             r.vehicle.yaw = r.vehicle.target_yaw = math.pi / 2  # facing +y: body axes differ from world axes
             await wait_until(lambda: abs(r.executor.state.value.yaw - math.pi / 2) < 1e-6, 10, what="yaw seen")
-            expect = {"yaw_left": (0, 0, 0, 30), "yaw_right": (0, 0, 0, -30), "forward": (0, 0.5, 0, 0),
+            yaw = ExecutorSettings().yaw_step_deg
+            expect = {"yaw_left": (0, 0, 0, yaw), "yaw_right": (0, 0, 0, -yaw), "forward": (0, 0.5, 0, 0),
                       "backward": (0, -0.5, 0, 0), "left": (-0.5, 0, 0, 0), "right": (0.5, 0, 0, 0),
                       "up": (0, 0, 0.3, 0), "down": (0, 0, -0.3, 0)}
             for skill, (dx, dy, dz, dyaw) in expect.items():
