@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
 
 from services.executor.context import SkillContext, SkillFailed
@@ -21,6 +22,9 @@ from shared.messages import (
     Vec3,
     VehicleState,
 )
+
+GRASP_SETTLE_M = 0.02  # the body must be this close to the grasp point before the gripper closes
+GRASP_SETTLE_TIMEOUT_S = 3.0  # ... or close anyway after this (the verification then tells)
 
 
 def fmt(p: Vec3) -> str:
@@ -336,8 +340,14 @@ class Grasp(_Manipulation):
         body_z = grip_z - s.gripper_offset_z
         hover = Vec3(x=est_pos.x, y=est_pos.y, z=ctx.current().position.z)
         await ctx.goto(hover, yaw, s.approach_speed, what=f"above the {label}")
-        await ctx.goto(Vec3(x=est_pos.x, y=est_pos.y, z=body_z), yaw, s.descent_speed,
-                       low=s.manipulation_min_altitude, what=f"grasp height over the {label}")
+        grip = Vec3(x=est_pos.x, y=est_pos.y, z=body_z)
+        await ctx.goto(grip, yaw, s.descent_speed, low=s.manipulation_min_altitude,
+                       what=f"grasp height over the {label}")
+        # Arrival (position_tolerance) is looser than the gripper's capture region (a few cm around the
+        # object's axis, from its centre to just above its top): closing at once often closed on air.
+        with contextlib.suppress(TimeoutError):
+            await ctx.wait_for(lambda st: math.dist(st.position.as_tuple(), grip.as_tuple()) <= GRASP_SETTLE_M,
+                               GRASP_SETTLE_TIMEOUT_S, "grasp point")
         await ctx.gripper("close")
         up = max(s.flight_altitude, hover.z)
         await ctx.goto(Vec3(x=est_pos.x, y=est_pos.y, z=up), yaw, s.descent_speed, what="retreat height")
