@@ -51,6 +51,12 @@ def up(
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
     console.print(f"router on tcp/127.0.0.1:{port}; starting {', '.join(names)}; logs in {stack.log_dir}")
+    if "gateway" in names:
+        import os
+
+        host = os.environ.get("AERMANI_GATEWAY_HOST", "127.0.0.1")
+        console.print(f"ground-station page and API: http://{host}:{os.environ.get('AERMANI_GATEWAY_PORT', '8080')}/"
+                      " (POST /api/v1/tasks)")
     stack.start(wait=False)
     shown: dict[str, bool] = {p.label: False for p in stack.procs}
     seen_events = 0
