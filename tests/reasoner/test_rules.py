@@ -257,3 +257,10 @@ def test_out_of_reach_turns_toward_then_flies_closer_then_retries() -> None:
     assert policy.decide(PolicyContext(**base, steps=steps, pose=(0.0, 0.0, 1.57)))[0] == "forward"
     near = [*steps, PastStep("forward", None, "succeeded")]
     assert policy.decide(PolicyContext(**base, steps=near, pose=(0.0, 2.0, 1.57)))[0] == "place"
+
+
+def test_approach_does_not_oscillate_around_a_yaw_step() -> None:
+    # 25 deg off after a 45 deg turn: turning again would put it 20 deg off the other side, and back.
+    where = {"counter": (4.0 * math.cos(math.radians(25)), 4.0 * math.sin(math.radians(25)))}
+    steps = [_motion("yaw_right", 0.0, 0.0, 0)]
+    assert RulesPolicy().decide(_ctx(COUNTER_CMD, steps, pose=(0.0, 0.0, 0.0), positions=where))[0] == "forward"
