@@ -264,3 +264,19 @@ def test_approach_does_not_oscillate_around_a_yaw_step() -> None:
     where = {"counter": (4.0 * math.cos(math.radians(25)), 4.0 * math.sin(math.radians(25)))}
     steps = [_motion("yaw_right", 0.0, 0.0, 0)]
     assert RulesPolicy().decide(_ctx(COUNTER_CMD, steps, pose=(0.0, 0.0, 0.0), positions=where))[0] == "forward"
+
+
+def test_larger_box_choice_survives_losing_sight_of_the_other() -> None:
+    cmd = "Of the two boxes, pick up the larger one."
+    both = [Seen("large box", "object", 0.02, 2.0), Seen("small box", "object", 0.005, 2.1)]
+    policy = RulesPolicy()
+    assert policy.decide(_ctx(cmd, [], visible=both))[:2] == ("obj_localization", "large box")
+    lost = [PastStep("obj_localization", "large box", "failed", "large box not visible: no large box in view")]
+    # Only the small box in view now, and the large one remembered to the left: turn back, never take the small.
+    skill, arg, _ = policy.decide(_ctx(cmd, lost, visible=both[1:], pose=(0.0, 0.0, 0.0),
+                                       positions={"large box": (0.0, 2.0), "small box": (2.0, 0.0)}))
+    assert (skill, arg) == ("yaw_left", None)
+    skill, arg, _ = policy.decide(_ctx(cmd, [*lost, _motion("yaw_left", 0, 0, 45), _motion("yaw_left", 0, 0, 90)],
+                                       visible=both[1:], pose=(0.0, 0.0, math.pi / 2),
+                                       positions={"large box": (0.0, 2.0), "small box": (2.0, 0.0)}))
+    assert (skill, arg) == ("obj_localization", "large box")

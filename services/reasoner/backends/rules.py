@@ -347,6 +347,12 @@ class RulesPolicy:
             return other, f"I do not see a {first}, so the command says to grab the {other}."
         if plan.selector:
             group = plan.group or ""
+            # Sizes are compared while both are in view; once chosen, a turn that hides the other one (or the
+            # choice itself) must not flip the decision to "the larger of the one I see".
+            for s in rest:
+                if s.skill == S.OBJ_LOCALIZATION and s.argument and (not group or _matches(s.argument, group)
+                                                                     or group in s.argument):
+                    return s.argument, f"I already chose the {s.argument} as the {plan.selector} {group or 'one'}."
             cands = [v for v in visible if not group or _matches(v.label, group) or group in v.label]
             sized = [v for v in cands if v.volume is not None]
             if len(sized) >= 1:
@@ -386,6 +392,9 @@ class RulesPolicy:
         if last and last.skill == S.OBJ_LOCALIZATION and last.state == "succeeded":
             return S.GRASP, target, f"{why} It was just localized, so grasp it."
         if last and last.skill == S.OBJ_LOCALIZATION and last.state != "succeeded" and last.argument == target:
+            turn = self._toward_remembered(ctx, rest, target, S.OBJ_LOCALIZATION)
+            if turn is not None and turn[0] != S.OBJ_LOCALIZATION:
+                return turn[0], turn[1], f"{why} Localization failed ({last.message or last.state}). {turn[2]}"
             fails = _trailing_failures(rest, S.OBJ_LOCALIZATION)
             if fails % 2 == 1:
                 return S.FORWARD, None, f"{why} Localization failed ({last.message or last.state}); move closer."
