@@ -183,7 +183,8 @@ def test_search_out_of_view_then_place() -> None:
     w = MiniWorld([Thing("purple cup", headings=(3,)), Thing("round table", "surface", headings=(5,))])
     final, *_ = run_task("Find the purple cup and place it on the round table.", w)
     assert final.state is TaskState.SUCCEEDED and w.placed_on == {"purple cup": "round table"}
-    assert w.executed[1:4] == ["yaw_left"] * 3
+    # First a direct look on a fresh frame (perception's list lags at take-off), then the scan.
+    assert w.executed[1:5] == ["obj_localization(purple cup)"] + ["yaw_left"] * 3
 
 
 def test_failed_grasp_relocalizes() -> None:

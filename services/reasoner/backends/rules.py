@@ -469,6 +469,10 @@ class RulesPolicy:
 
     def _search(self, ctx: PolicyContext, rest: list[PastStep], query: str | None, localize: str,
                 why: str) -> tuple[str, str | None, str]:
+        if query and not any(s.skill not in S.OPERATOR_SKILLS for s in ctx.steps):
+            # Perception's list at the first step still comes from frames taken during take-off (tables seen
+            # from below, their tops hidden); the executor localizes on a fresh frame, so ask it before turning.
+            return localize, query, f"{why} Just took off: ask perception about the current view before scanning."
         remembered = self._toward_remembered(ctx, rest, query, localize)
         if remembered is not None:
             skill, arg, how = remembered
