@@ -281,3 +281,29 @@ def test_larger_box_choice_survives_losing_sight_of_the_other() -> None:
                                        visible=both[1:], pose=(0.0, 0.0, math.pi / 2),
                                        positions={"large box": (0.0, 2.0), "small box": (2.0, 0.0)}))
     assert (skill, arg) == ("obj_localization", "large box")
+
+
+def test_larger_box_by_name_when_only_one_is_in_view() -> None:
+    cmd = "Of the two boxes, pick up the larger one and place it on the table."
+    policy = RulesPolicy()
+    small = [Seen("small box", "object", 0.005, 2.0)]
+    steps = [_motion("yaw_left", 0, 0, 45)]
+    # Only the small one in view and none seen before: keep looking rather than take it.
+    assert policy.decide(_ctx(cmd, steps, visible=small, pose=(0.0, 0.0, math.pi / 4)))[0] == "yaw_left"
+    # The large one was seen behind: turn toward it.
+    where = {"large box": (-2.0, 0.0), "small box": (1.4, 1.4)}
+    assert policy.decide(_ctx(cmd, steps, visible=small, pose=(0.0, 0.0, math.pi / 4), positions=where))[0] == \
+        "yaw_left"
+    assert policy.decide(_ctx(cmd, steps, visible=small, pose=(0.0, 0.0, math.pi), positions=where))[:2] == \
+        ("obj_localization", "large box")
+
+
+def test_approach_retries_one_blocked_forward_and_decides_after_two() -> None:
+    where = {"counter": (4.0, 0.0)}
+    blocked = PastStep("forward", None, "rejected", "obstacle 0.15 m ahead")
+    seen = [Seen("banana", "object", 0.002, 3.0)]
+    policy = RulesPolicy()
+    assert policy.decide(_ctx(COUNTER_CMD, [blocked], pose=(0.0, 0.0, 0.0), positions=where, visible=seen))[0] == \
+        "forward"
+    assert policy.decide(_ctx(COUNTER_CMD, [blocked, blocked], pose=(0.0, 0.0, 0.0), positions=where,
+                              visible=seen))[:2] == ("obj_localization", "banana")

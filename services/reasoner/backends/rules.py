@@ -37,6 +37,7 @@ CATEGORY_WORDS = {
     "fruit": ("apple", "banana", "orange", "pear", "lemon", "fruit"),
     "drink": ("can", "bottle", "soda", "coke", "juice", "cup", "drink"),
 }
+SIZE_WORDS = {"larger": {"large", "big", "larger", "bigger", "huge"}, "smaller": {"small", "little", "smaller", "tiny"}}
 NUMBERS = {"once": 1, "twice": 2, "thrice": 3, "one": 1, "two": 2, "three": 3, "four": 4, "five": 5}
 SEEN_FOV_HALF_DEG = 30  # a remembered thing within this of the heading is in view (camera: +-42 deg)
 SCAN_LIMIT = 8  # consecutive yaw steps (one full turn at 45 deg) before trying something else
@@ -236,11 +237,11 @@ class RulesPolicy:
                     # A past approach step: it ended the approach when it reported a pose close enough.
                     pose = _pose_in(steps[i].message)
                     i, approach_steps = i + 1, approach_steps + 1
-                    if pose is not None and self._approach_to(ctx, what, approach_steps, pose, steps[i - 1]) is None:
+                    if pose is not None and self._approach_to(ctx, what, approach_steps, pose, steps[:i]) is None:
                         k, approach_steps = k + 1, 0
                     continue
                 if i >= len(steps):
-                    nxt = self._approach_to(ctx, what, approach_steps, ctx.pose, steps[-1] if steps else None)
+                    nxt = self._approach_to(ctx, what, approach_steps, ctx.pose, steps)
                     if nxt is not None:
                         return i, nxt
                 k, approach_steps = k + 1, 0  # arrived, gave up, or the policy moved on to other skills
@@ -260,14 +261,19 @@ class RulesPolicy:
         return i, None
 
     def _approach_to(self, ctx: PolicyContext, what: str, taken: int, pose: tuple[float, float, float] | None,
-                     last: PastStep | None, exact: bool = False,
+                     done: list[PastStep], exact: bool = False,
                      radius: float = APPROACH_RADIUS) -> tuple[str, str | None, str] | None:
         """The next step of "approach the <what>" from `pose`: turn toward it, fly closer until within
         `radius`; None when there (or when it cannot get closer)."""
         if taken >= APPROACH_LIMIT:
             return None
-        if last is not None and last.skill == S.FORWARD and last.state != "succeeded" and taken > 0:
-            return None  # the way is blocked: decide from here
+        blocked = 0
+        for s in reversed(done[len(done) - taken:] if taken else []):
+            if s.skill != S.FORWARD or s.state == "succeeded":
+                break
+            blocked += 1
+        if blocked >= 2:
+            return None  # the way is blocked (once may be a stale depth image right after take-off): decide here
 
         def same(name: str) -> bool:  # surfaces need the exact name: "table" is not the "round table"
             return name.lower() == what.lower() if exact else _matches(name, what)
@@ -355,11 +361,21 @@ class RulesPolicy:
                     return s.argument, f"I already chose the {s.argument} as the {plan.selector} {group or 'one'}."
             cands = [v for v in visible if not group or _matches(v.label, group) or group in v.label]
             sized = [v for v in cands if v.volume is not None]
-            if len(sized) >= 1:
+            if len(sized) >= 2:
                 pick = (max if plan.selector == "larger" else min)(sized, key=lambda v: v.volume or 0.0)
                 return pick.label, (f"Of the {len(sized)} {group or 'object'} candidates I compare sizes: the "
                                     f"{plan.selector} is the {pick.label}.")
-            return None, f"No {group or 'candidate'} is detected yet to compare sizes."
+            # Only one in view: a name that says its size ("large box") settles it, in view or seen earlier;
+            # one whose name says the opposite is not taken for want of the other.
+            want, avoid = SIZE_WORDS[plan.selector], SIZE_WORDS["smaller" if plan.selector == "larger" else "larger"]
+            names = [v.label for v in cands] + [n for n in ctx.positions
+                                                if not group or _matches(n, group) or group in n]
+            named = next((n for n in names if set(n.lower().split()) & want), None)
+            if named:
+                return named, f"The {named} is the {plan.selector} {group or 'one'} by its name."
+            if len(sized) == 1 and not set(sized[0].label.lower().split()) & avoid:
+                return sized[0].label, f"The {sized[0].label} is the only {group or 'candidate'} I detect."
+            return None, f"I need both {group or 'candidate'}s in view to compare sizes."
         if plan.category:
             words = CATEGORY_WORDS[plan.category]
             cands = [v for v in visible if any(w in v.label.lower() for w in words)]
@@ -389,6 +405,11 @@ class RulesPolicy:
         approach = self._approach(ctx, rest, S.GRASP, target)
         if approach is not None:
             return approach
+        if not any(_matches(v.label, target) for v in ctx.visible) and target not in ctx.known_objects:
+            # Chosen from what was seen earlier: face it before asking perception.
+            turn = self._toward_remembered(ctx, rest, target, S.OBJ_LOCALIZATION)
+            if turn is not None and turn[0] != S.OBJ_LOCALIZATION:
+                return turn[0], turn[1], f"{why} {turn[2]}"
         if last and last.skill == S.OBJ_LOCALIZATION and last.state == "succeeded":
             return S.GRASP, target, f"{why} It was just localized, so grasp it."
         if last and last.skill == S.OBJ_LOCALIZATION and last.state != "succeeded" and last.argument == target:
@@ -417,7 +438,7 @@ class RulesPolicy:
             since = next((len(rest) - 1 - i for i in range(len(rest) - 1, -1, -1)
                           if rest[i].skill == S.PLACEMENT_LOCALIZATION), 0)
             known = ctx.pose is not None and any(n.lower() == dest for n in ctx.positions)
-            closer = self._approach_to(ctx, dest, since, ctx.pose, last, exact=True,
+            closer = self._approach_to(ctx, dest, since, ctx.pose, rest, exact=True,
                                        radius=SURFACE_RETRY_RADIUS) if known else None
             if closer is not None:
                 skill, arg, how = closer
