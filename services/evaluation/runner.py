@@ -282,6 +282,14 @@ class VehicleWorker:
         await self._wait_grounded()
         # The executor publishes its working memory on change only: keep the newest one seen.
         self.last_memory = self.memory.latest_nowait() or self.last_memory
+        # The executor drops a held object once the autopilot reports the gripper open (sim/reset opens
+        # it): give that update a moment to arrive before calling the memory stale.
+        deadline = time.monotonic() + 3.0
+        while self.last_memory is not None and self.last_memory.held_object and time.monotonic() < deadline:
+            try:
+                self.last_memory = await self.memory.recv(timeout=max(0.1, deadline - time.monotonic()))
+            except TimeoutError:
+                break
         stale = ""
         if self.last_memory is not None and self.last_memory.held_object:
             stale = (f"executor working memory says it holds the {self.last_memory.held_object} at the start of "
