@@ -307,3 +307,13 @@ def test_approach_retries_one_blocked_forward_and_decides_after_two() -> None:
         "forward"
     assert policy.decide(_ctx(COUNTER_CMD, [blocked, blocked], pose=(0.0, 0.0, 0.0), positions=where,
                               visible=seen))[:2] == ("obj_localization", "banana")
+
+
+def test_demo_scenario_keeps_a_command_without_destination_without_one():
+    # The demo judges "held" for such commands; the simulator's own choice of destination must not leak in.
+    from services.reasoner.cli import scenario_for
+
+    sc, _ = scenario_for("ignore the tools and pick up the green bottle", None, None, 0)
+    assert sc.target_object == "green bottle" and sc.destination is None
+    sc, _ = scenario_for("pick up the red cup and place it on the table", None, None, 0)
+    assert sc.destination == "table"
