@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import ClassVar, Literal
 
@@ -19,7 +20,7 @@ class SkillResult:
     message: str = ""
 
 
-class Skill:
+class Skill(ABC):
     """Base of every skill. Subclasses set the class attributes and implement `run`; the executor applies
     the generic preconditions (state health, airborne, offboard) from the flags, then `check`."""
 
@@ -54,8 +55,9 @@ class Skill:
     def timeout_s(self, ctx: SkillContext, argument: str | None) -> float:
         return 30.0
 
+    @abstractmethod
     async def run(self, ctx: SkillContext, argument: str | None) -> SkillResult:
-        raise NotImplementedError
+        """The routine: returns on success, raises SkillFailed (with a reason for the model) otherwise."""
 
 
 REGISTRY: dict[str, type[Skill]] = {}

@@ -155,13 +155,10 @@ def _not_found(query: str, est) -> str:
     return f"{query} {why.get(est.reason, est.reason)}" + (f": {est.message}" if est.message else "")
 
 
-@register
-class ObjLocalization(Skill):
-    name = names.OBJ_LOCALIZATION
+class _Localization(Skill):
+    """Perception routines: ask perception, store the estimate; they never move the vehicle."""
+
     category: Category = "perception"
-    description = ("Estimate the 3D pose of the queried object (open-vocabulary segmentation fused with depth) "
-                   "and store it in working memory. Fails when the object is not in view.")
-    argument = "object query"
     argument_required = True
     moves = False
     needs_airborne = False
@@ -169,6 +166,14 @@ class ObjLocalization(Skill):
 
     def timeout_s(self, ctx: SkillContext, argument: str | None) -> float:
         return self.settings.localize_timeout_s + 2.0
+
+
+@register
+class ObjLocalization(_Localization):
+    name = names.OBJ_LOCALIZATION
+    description = ("Estimate the 3D pose of the queried object (open-vocabulary segmentation fused with depth) "
+                   "and store it in working memory. Fails when the object is not in view.")
+    argument = "object query"
 
     async def run(self, ctx: SkillContext, argument: str | None) -> SkillResult:
         assert argument
@@ -189,19 +194,11 @@ class ObjLocalization(Skill):
 
 
 @register
-class PlacementLocalization(Skill):
+class PlacementLocalization(_Localization):
     name = names.PLACEMENT_LOCALIZATION
-    category: Category = "perception"
     description = ("Find the queried support surface in the point cloud and compute a collision-free placement "
                    "pose with a vertical offset for the held object; store it in working memory.")
     argument = "surface query"
-    argument_required = True
-    moves = False
-    needs_airborne = False
-    needs_offboard = False
-
-    def timeout_s(self, ctx: SkillContext, argument: str | None) -> float:
-        return self.settings.localize_timeout_s + 2.0
 
     async def run(self, ctx: SkillContext, argument: str | None) -> SkillResult:
         assert argument

@@ -7,8 +7,7 @@ import time
 
 import anthropic
 
-from services.reasoner.backends.base import Backend, ModelReply, ModelRequest
-from services.reasoner.prompt import reprompt_text
+from services.reasoner.backends.base import Backend, ModelReply, ModelRequest, conversation
 from shared.errors import ModelError
 
 
@@ -29,11 +28,7 @@ class AnthropicBackend(Backend):
             content.append({"type": "image", "source": {"type": "base64", "media_type": "image/jpeg",
                                                          "data": base64.b64encode(request.prompt.image_jpeg).decode()}})
         content.append({"type": "text", "text": request.prompt.text})
-        msgs: list[dict] = [{"role": "user", "content": content}]
-        for raw, error in request.feedback:
-            msgs.append({"role": "assistant", "content": raw or "(empty)"})
-            msgs.append({"role": "user", "content": reprompt_text(request.prompt.variant, error)})
-        return msgs
+        return conversation(request, content)
 
     async def complete(self, request: ModelRequest) -> ModelReply:
         t0 = time.perf_counter()

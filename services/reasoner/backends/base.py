@@ -5,7 +5,7 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 
-from services.reasoner.prompt import CompiledPrompt
+from services.reasoner.prompt import CompiledPrompt, reprompt_text
 
 
 @dataclass
@@ -59,6 +59,16 @@ class ModelReply:
     latency_s: float
     tokens_in: int | None = None
     tokens_out: int | None = None
+
+
+def conversation(request: ModelRequest, first_user_content: list[dict]) -> list[dict]:
+    """Chat messages for a step: the prompt (with its image) as the first user turn, then each earlier
+    invalid answer and its re-prompt, so the model sees exactly what it got wrong."""
+    msgs: list[dict] = [{"role": "user", "content": first_user_content}]
+    for raw, error in request.feedback:
+        msgs.append({"role": "assistant", "content": raw or "(empty)"})
+        msgs.append({"role": "user", "content": reprompt_text(request.prompt.variant, error)})
+    return msgs
 
 
 class Backend(ABC):

@@ -8,8 +8,7 @@ import time
 
 import openai
 
-from services.reasoner.backends.base import Backend, ModelReply, ModelRequest
-from services.reasoner.prompt import reprompt_text
+from services.reasoner.backends.base import Backend, ModelReply, ModelRequest, conversation
 from shared.errors import ModelError
 
 
@@ -32,11 +31,7 @@ class OpenAIBackend(Backend):
         content: list[dict] = [{"type": "text", "text": request.prompt.text}]
         if request.prompt.image_jpeg is not None:
             content.append({"type": "image_url", "image_url": {"url": image_data_url(request.prompt.image_jpeg)}})
-        msgs: list[dict] = [{"role": "user", "content": content}]
-        for raw, error in request.feedback:
-            msgs.append({"role": "assistant", "content": raw or "(empty)"})
-            msgs.append({"role": "user", "content": reprompt_text(request.prompt.variant, error)})
-        return msgs
+        return conversation(request, content)
 
     async def complete(self, request: ModelRequest) -> ModelReply:
         t0 = time.perf_counter()
