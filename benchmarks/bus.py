@@ -96,7 +96,7 @@ async def wrapper_bench(endpoint: str, payloads: list[tuple[str, object, str | N
                         ) -> tuple[list[float], float]:
     a = await Bus.open(connect=[endpoint])
     b = await Bus.open(connect=[endpoint])
-    subs = [b.subscribe(key, type(obj) if not isinstance(obj, bytes) else None, maxsize=4 * n)
+    subs = [b.subscribe(key, maxsize=4 * n)
             for key, obj, _ in payloads]
     await asyncio.sleep(0.5)
     lat = []

@@ -15,6 +15,11 @@ from typing import Annotated, Any, ClassVar, Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 SCHEMA_VERSION = 1
+"""Major version of the message schemas. A receiver rejects a message of a newer major version with an
+error naming both versions."""
+SCHEMA_MINOR = 1
+"""Minor version: bumped when fields are added. A receiver accepts a message of a newer minor version,
+ignoring the fields it does not know (logged once per field)."""
 MAX_COMMAND_CHARS = 500
 MAX_QUERY_CHARS = 200
 
@@ -35,7 +40,9 @@ class Message(BaseModel):
     schema_name: ClassVar[str] = ""
 
     schema_version: int = SCHEMA_VERSION
-    """Schema version of this message; bumped on incompatible changes."""
+    """Major schema version of this message; bumped on incompatible changes."""
+    schema_minor: int = SCHEMA_MINOR
+    """Minor schema version; bumped when fields are added (older receivers ignore the new fields)."""
 
     @classmethod
     def full_schema_name(cls) -> str:
@@ -586,6 +593,38 @@ class ReasoningStep(Message):
     """Wall time of the skill."""
 
 
+class CancelGoal(Message):
+    """Action protocol: ask the server of a goal (a skill or a task) to cancel it."""
+
+    kind: Literal["cancel_goal"] = "cancel_goal"
+    goal_id: str = Field(..., max_length=64)
+    """The goal to cancel (skill goal id or task id)."""
+    reason: str = Field("cancelled", max_length=200)
+    """Why, for the record."""
+    source: str = Field("operator", max_length=64)
+    """Who asks."""
+
+
+class CancelReply(Message):
+    """Action protocol: whether a cancel request was taken."""
+
+    kind: Literal["cancel_reply"] = "cancel_reply"
+    accepted: bool
+    """True when the goal was running and is being cancelled."""
+    reason: str = ""
+    """Why not (unknown goal, already ended)."""
+
+
+class ResetNotice(Message):
+    """The simulated world was reset: what was held and seen belongs to the old world."""
+
+    kind: Literal["reset_notice"] = "reset_notice"
+    stamp_ns: int = Field(default_factory=now_ns)
+    """When the reset finished."""
+    seed: int = 0
+    """Layout seed of the new world."""
+
+
 class TaskState(StrEnum):
     PENDING = "pending"
     RUNNING = "running"
@@ -792,5 +831,6 @@ MESSAGE_TYPES: tuple[type[Message], ...] = (
     GripperCommand, AutopilotResult, LocalizeRequest, ObjectEstimate, PlacementEstimate, Detections,
     SkillLibrary, SkillRequest, SkillAccept, WorkingMemory, SkillStatus, Abort, AbortAck, ReasoningStep,
     TaskRequest, TaskAccept, TaskStatus, Health, Scenario, SimLabels, JudgeRequest, JudgeResult, SimResetResult,
+    CancelGoal, CancelReply, ResetNotice,
 )
 MESSAGES_BY_SCHEMA: dict[str, type[Message]] = {m.full_schema_name(): m for m in MESSAGE_TYPES}

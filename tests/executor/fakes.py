@@ -16,7 +16,6 @@ import numpy as np
 from shared.bus import Bus
 from shared.keys import Keys
 from shared.messages import (
-    AutopilotCommand,
     AutopilotResult,
     GripperState,
     LandedState,
@@ -173,7 +172,7 @@ class FakeAutopilot:
             self.world.carry(self.gripper_point())
 
     async def run(self) -> None:
-        self.bus.serve(self.keys.autopilot_command, self.handle, AutopilotCommand)
+        self.bus.serve(self.keys.autopilot_command, self.handle)
         while True:
             self.step()
             if self.publishing:
@@ -219,8 +218,8 @@ class FakePerception:
         return PlacementEstimate(query=req.query, found=False, reason="not_visible", message=f"{req.query} not visible")
 
     def serve(self) -> None:
-        self.bus.serve(self.keys.localize_object, self.localize_object, LocalizeRequest)
-        self.bus.serve(self.keys.localize_placement, self.localize_placement, LocalizeRequest)
+        self.bus.serve(self.keys.localize_object, self.localize_object)
+        self.bus.serve(self.keys.localize_placement, self.localize_placement)
 
 
 class FakeDepth:
@@ -234,7 +233,7 @@ class FakeDepth:
         while True:
             if self.publishing:
                 img = np.full((480, 640), int(self.distance_m * 1000), dtype=np.uint16)
-                self.bus.publish(self.keys.camera_depth, raw16_message(img, time.time_ns()), schema="foxglove.RawImage")
+                self.bus.publish(self.keys.camera_depth, raw16_message(img, time.time_ns()))
             await asyncio.sleep(0.1)
 
 

@@ -6,7 +6,7 @@ import asyncio
 
 import numpy as np
 
-from shared.messages import Abort, AbortAck, SkillState
+from shared.messages import Abort, SkillState
 from tests.executor.rig import rig
 from tests.helpers import arun, wait_until
 
@@ -99,7 +99,7 @@ def test_grasp_that_closes_on_nothing_reports_a_miss():
 
 
 async def _abort_and_check(r, goal_id: str) -> None:
-    acks = r.bus.subscribe(r.keys.abort_ack, AbortAck)
+    acks = r.bus.subscribe(r.keys.abort_ack)
     await asyncio.sleep(0.2)
     abort = Abort(reason="test", source="test")
     r.bus.publish(r.keys.abort, abort)
@@ -148,7 +148,7 @@ def test_abort_during_grasp_holds_and_leaves_the_executor_ready():
 def test_abort_with_nothing_running_is_acknowledged():
     async def main():
         async with rig() as r:
-            acks = r.bus.subscribe(r.keys.abort_ack, AbortAck)
+            acks = r.bus.subscribe(r.keys.abort_ack)
             await asyncio.sleep(0.2)
             r.bus.publish(r.keys.abort, Abort())
             ack = await acks.recv(timeout=5)

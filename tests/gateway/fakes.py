@@ -61,8 +61,8 @@ class FakeVehicle:
     async def start(self) -> None:
         for s in self.services:
             self.bus.declare_token(self.keys.alive(s))
-        self.bus.serve(self.keys.start_task, self._start, TaskRequest)
-        sub = self.bus.subscribe(self.keys.abort, Abort)
+        self.bus.serve(self.keys.start_task, self._start)
+        sub = self.bus.subscribe(self.keys.abort)
         self._tasks += [asyncio.create_task(self._aborts(sub)), asyncio.create_task(self._publish_sensors())]
 
     async def stop(self) -> None:
