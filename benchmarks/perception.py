@@ -118,8 +118,7 @@ async def over_bus(requests: int, cpu: int | None) -> None:
                 bus.publish(keys.sim_labels, v.labels)
                 bus.publish(keys.tf, transforms_message([("world", "base_link", v.world_from_camera
                                                           @ np.linalg.inv(base_to_camera())),
-                                                         ("base_link", "camera", base_to_camera())], stamp),
-                            schema="foxglove.FrameTransforms")
+                                                         ("base_link", "camera", base_to_camera())], stamp))
                 bus.publish(keys.camera_segmentation, raw16_message(v.segmentation, stamp))
                 bus.publish(keys.camera_depth, raw16_message(v.depth_mm, stamp))
                 bus.publish(keys.camera_color, msg.SerializeToString())

@@ -119,6 +119,8 @@ class Topic(Generic[M]):
     """Service(s) that publish it."""
     reliable: bool = True
     """False for streams where late is worse than lost (frames, state): congestion drops, express."""
+    periodic: bool = False
+    """Published on a clock (not only on events): a running publisher must show a sample within seconds."""
 
     kind = "pub"
 
@@ -217,21 +219,22 @@ class BoundToken:
 # --------------------------------------------------------------------------- the declarations
 
 CAMERA_COLOR: Topic[bytes] = Topic(
-    "camera/color", Protobuf("foxglove.CompressedImage"), "colour frame, JPEG", "sim | camera", reliable=False)
+    "camera/color", Protobuf("foxglove.CompressedImage"), "colour frame, JPEG", "sim, camera", reliable=False, periodic=True)
 CAMERA_DEPTH: Topic[bytes] = Topic(
     "camera/depth", Protobuf("foxglove.RawImage"), "depth, 16UC1 millimetres, aligned to colour, same stamp",
-    "sim | camera", reliable=False)
+    "sim, camera", reliable=False, periodic=True)
 CAMERA_CALIBRATION: Topic[bytes] = Topic(
     "camera/calibration", Protobuf("foxglove.CameraCalibration"), "pinhole intrinsics of the colour camera",
-    "sim | camera")
+    "sim, camera", periodic=True)
 CAMERA_SEGMENTATION: Topic[bytes] = Topic(
     "camera/segmentation", Protobuf("foxglove.RawImage"), "16UC1 instance ids (oracle only)", "sim",
-    reliable=False)
+    reliable=False, periodic=True)
 TF: Topic[bytes] = Topic(
     "tf", Protobuf("foxglove.FrameTransforms"), "world->base_link, base_link->camera, base_link->gripper",
-    "autopilot_bridge | sim", reliable=False)
+    "autopilot_bridge, sim", reliable=False, periodic=True)
 SIM_LABELS: Topic[SimLabels] = Topic(
-    "sim/labels", SimLabels, "instance id -> name for camera/segmentation (oracle only)", "sim")
+    "sim/labels", SimLabels, "instance id -> name for camera/segmentation (oracle only)", "sim",
+    periodic=True)
 SIM_JUDGE: Query[JudgeRequest, JudgeResult] = Query(
     "sim/judge", JudgeRequest, JudgeResult, "ground-truth judge (evaluation only; no policy may read it)", "sim")
 SIM_RESET: Query[Scenario, SimResetResult] = Query(
@@ -242,7 +245,7 @@ SIM_RESET_NOTICE: Topic[ResetNotice] = Topic(
     "sim/reset_notice", ResetNotice, "the world was reset: forget what was held and seen", "sim")
 AUTOPILOT_STATE: Topic[VehicleState] = Topic(
     "autopilot/state", VehicleState, "pose, velocity, armed, mode, landed state, battery, gripper, link health",
-    "autopilot_bridge", reliable=False)
+    "autopilot_bridge", reliable=False, periodic=True)
 AUTOPILOT_COMMAND: Query[AutopilotCommand, AutopilotResult] = Query(
     "autopilot/command", AutopilotCommand, AutopilotResult, "arm, takeoff, goto, hold, land, gripper",
     "autopilot_bridge")
@@ -251,7 +254,7 @@ PERCEPTION_LOCALIZE_OBJECT: Query[LocalizeRequest, ObjectEstimate] = Query(
 PERCEPTION_LOCALIZE_PLACEMENT: Query[LocalizeRequest, PlacementEstimate] = Query(
     "perception/localize_placement", LocalizeRequest, PlacementEstimate, "placement_localization", "perception")
 PERCEPTION_DETECTIONS: Topic[Detections] = Topic(
-    "perception/detections", Detections, "what is visible now", "perception")
+    "perception/detections", Detections, "what is visible now", "perception", periodic=True)
 EXECUTOR_RUN_SKILL: Query[SkillRequest, SkillAccept] = Query(
     "executor/run_skill", SkillRequest, SkillAccept, "skill goal -> accepted/rejected (action protocol)",
     "executor")
@@ -263,7 +266,8 @@ EXECUTOR_SKILL_STATUS: Topic[SkillStatus] = Topic(
 EXECUTOR_SKILLS: Query[None, SkillLibrary] = Query(
     "executor/skills", None, SkillLibrary, "the live skill library", "executor")
 EXECUTOR_MEMORY: Topic[WorkingMemory] = Topic(
-    "executor/memory", WorkingMemory, "working memory: localized objects, placements, held object", "executor")
+    "executor/memory", WorkingMemory, "working memory: localized objects, placements, held object", "executor",
+    periodic=True)
 REASONER_START_TASK: Query[TaskRequest, TaskAccept] = Query(
     "reasoner/start_task", TaskRequest, TaskAccept, "task goal -> accepted/rejected (action protocol)",
     "reasoner")

@@ -68,7 +68,7 @@ async def rig(airborne_at: float | None = 1.5, depth_m: float | None = 8.0, **se
     stop = asyncio.Event()
     statuses = bus.subscribe(keys.skill_status, maxsize=1000, overflow="drop_newest")
     memory = bus.subscribe(keys.memory, maxsize=1000)
-    tasks = [asyncio.create_task(vehicle.run()), asyncio.create_task(depth.run()),
+    tasks = [asyncio.create_task(vehicle.run()), asyncio.create_task(depth.run()), asyncio.create_task(perception.run()),
              asyncio.create_task(executor.run(stop))]
     try:
         await wait_until(lambda: executor.state.value is not None

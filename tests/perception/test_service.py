@@ -190,8 +190,7 @@ async def _bad_and_stale(stack) -> None:
                                                                 color="red", size=Vec3(x=0.08, y=0.08, z=0.11)),)))
         await asyncio.sleep(0.5)
         bus.publish(KEYS.tf, transforms_message([("world", "base_link", pose_matrix(0, 0, 1.5, 0)),
-                                                 ("base_link", "camera", base_to_camera())], stamp),
-                    schema="foxglove.FrameTransforms")
+                                                 ("base_link", "camera", base_to_camera())], stamp))
         bus.publish(KEYS.camera_segmentation, raw16_message(seg, stamp))
         bus.publish(KEYS.camera_depth, raw16_message(depth, stamp))
         bus.publish(KEYS.camera_color, color_message(rgb, stamp))

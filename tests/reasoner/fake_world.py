@@ -19,6 +19,8 @@ from shared import skills as S  # noqa: N812
 from shared.bus import Bus
 from shared.keys import Keys
 from shared.messages import (
+    CancelGoal,
+    CancelReply,
     Detection,
     Detections,
     LandedState,
@@ -190,8 +192,12 @@ async def serve_executor(bus: Bus, world: MiniWorld, keys: Keys, *, skill_delay:
         bus.publish(keys.memory, world.memory())
         bus.publish(keys.autopilot_state, world.state())
 
+    async def cancel_skill(req: CancelGoal) -> CancelReply:
+        return CancelReply(accepted=False, reason=f"goal {req.goal_id} is not running (skills here end at once)")
+
     bus.serve(keys.skills, skills)
     bus.serve(keys.run_skill, run_skill)
+    bus.serve(keys.cancel_skill, cancel_skill)
 
     async def ticker() -> None:
         while True:
