@@ -130,8 +130,7 @@ class FakeAutopilot:
         if cmd.kind == "arm":
             self.armed = True
         elif cmd.kind == "takeoff":
-            if not self.armed:
-                return AutopilotResult(ok=False, command="takeoff", message="not armed")
+            self.armed = True  # like the bridge: takeoff arms (PX4 ACK) and returns once at altitude
             self.landed = LandedState.TAKEOFF
             self.target, self.speed = np.array([self.pos[0], self.pos[1], cmd.altitude]), 1.0
             while self.pos[2] < cmd.altitude - 1e-6:

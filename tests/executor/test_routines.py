@@ -6,6 +6,7 @@ import asyncio
 
 import numpy as np
 
+from services.reasoner.prompt import memory_summary
 from shared.messages import Abort, SkillState
 from tests.executor.rig import rig
 from tests.helpers import arun, wait_until
@@ -30,7 +31,7 @@ def test_localize_grasp_localize_placement_place():
             mem = await r.memory.recv(timeout=5)
             while not mem.objects:
                 mem = await r.memory.recv(timeout=5)
-            assert mem.objects[0].label == "red cup" and "red cup at (1.50" in mem.summary()
+            assert mem.objects[0].label == "red cup" and "red cup at (1.50" in memory_summary(mem)
 
             st = await r.run_skill("grasp")
             assert st.state == SkillState.SUCCEEDED, st.message

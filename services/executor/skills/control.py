@@ -8,7 +8,6 @@ from services.executor.registry import Category, Skill, SkillResult, register
 from services.executor.skills.common import fmt
 from shared import skills as names
 from shared.messages import (
-    ArmCommand,
     HoldCommand,
     LandCommand,
     SkillParameter,
@@ -52,13 +51,13 @@ class Takeoff(Skill):
         return self.settings.takeoff_timeout_s
 
     async def run(self, ctx: SkillContext, argument: str | None) -> SkillResult:
+        # The bridge owns arming and judging arrival at the takeoff altitude (PX4's ACKs, its tolerance); its
+        # result says whether the vehicle is airborne in OFFBOARD.
         s = self.settings
-        if not ctx.current().armed:
-            await ctx.command(ArmCommand())
-        await ctx.command(TakeoffCommand(altitude=s.flight_altitude), timeout=s.takeoff_timeout_s)
-        st = await ctx.wait_for(lambda st: st.position.z >= s.flight_altitude - s.position_tolerance and st.offboard_ok,
-                                s.takeoff_timeout_s, "takeoff altitude")
-        return SkillResult(f"airborne at {fmt(st.position)}")
+        res = await ctx.command(TakeoffCommand(altitude=s.flight_altitude), timeout=s.takeoff_timeout_s)
+        # Let the state stream catch up with the bridge's verdict before the next skill's preconditions.
+        st = await ctx.wait_for(airborne, s.state_max_age_s * 4, "airborne state after takeoff")
+        return SkillResult(f"airborne at {fmt(st.position)} ({res.message})")
 
 
 @register
