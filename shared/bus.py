@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import json
 import logging
 import threading
@@ -74,6 +75,18 @@ def zenoh_config(mode: str = "client", connect: list[str] | tuple[str, ...] = ()
     return cfg
 
 
+def _fail(fut: asyncio.Future[zenoh.Session], exc: BaseException) -> None:
+    if not fut.done():
+        fut.set_exception(exc)
+
+
+def _deliver(fut: asyncio.Future[zenoh.Session], session: zenoh.Session) -> None:
+    if fut.done():  # the waiter gave up (stop during the wait): nobody will close it otherwise
+        session.close()  # type: ignore[no-untyped-call]
+    else:
+        fut.set_result(session)
+
+
 async def _open_in_daemon_thread(cfg: zenoh.Config) -> zenoh.Session:
     """zenoh.open blocks while a client waits for its router. A daemon thread (not the loop's executor)
     lets a SIGTERM during that wait cancel us and exit: asyncio.run would otherwise join the thread."""
@@ -85,12 +98,12 @@ async def _open_in_daemon_thread(cfg: zenoh.Config) -> zenoh.Session:
             session = zenoh.open(cfg)
         except BaseException as exc:  # handed to the waiting coroutine
             if not loop.is_closed():
-                loop.call_soon_threadsafe(lambda e=exc: fut.done() or fut.set_exception(e))
+                loop.call_soon_threadsafe(_fail, fut, exc)
             return
         if loop.is_closed():
-            session.close()
+            session.close()  # type: ignore[no-untyped-call]
             return
-        loop.call_soon_threadsafe(lambda: fut.set_result(session) if not fut.done() else session.close())
+        loop.call_soon_threadsafe(_deliver, fut, session)
 
     threading.Thread(target=work, name="zenoh-open", daemon=True).start()
     return await fut
@@ -106,20 +119,28 @@ def schema_of(obj: Any) -> str:
     return ""
 
 
+@functools.lru_cache(maxsize=256)
+def _encoding(base: str, schema: str) -> zenoh.Encoding:
+    """Encodings are immutable: build each (base, schema) once instead of per sample."""
+    enc = {"json": _ENC_JSON, "protobuf": _ENC_PROTOBUF}[base]
+    return enc.with_schema(schema) if schema else enc
+
+
 def encode(obj: Any, schema: str | None = None) -> tuple[bytes, zenoh.Encoding]:
     """Model -> JSON bytes with `application/json;aermani.<Model>`; protobuf message -> bytes with
-    `application/protobuf;<full name>`; bytes pass through with the given schema (protobuf if it names
-    a foxglove type)."""
+    `application/protobuf;<full name>`; bytes pass through (not copied) with the given schema (protobuf if
+    it names a foxglove type)."""
     if isinstance(obj, BaseModel):
-        return obj.model_dump_json().encode(), _ENC_JSON.with_schema(schema or schema_of(obj))
+        return obj.model_dump_json().encode(), _encoding("json", schema or schema_of(obj))
     if hasattr(obj, "SerializeToString") and hasattr(obj, "DESCRIPTOR"):
-        return obj.SerializeToString(), _ENC_PROTOBUF.with_schema(obj.DESCRIPTOR.full_name)
+        return obj.SerializeToString(), _encoding("protobuf", obj.DESCRIPTOR.full_name)
     if isinstance(obj, bytes | bytearray | memoryview):
+        data = obj if isinstance(obj, bytes) else bytes(obj)
         if schema and schema.startswith("foxglove."):
-            return bytes(obj), _ENC_PROTOBUF.with_schema(schema)
+            return data, _encoding("protobuf", schema)
         if schema:
-            return bytes(obj), _ENC_JSON.with_schema(schema)
-        return bytes(obj), _ENC_BYTES
+            return data, _encoding("json", schema)
+        return data, _ENC_BYTES
     if isinstance(obj, dict | list | str | int | float | bool) or obj is None:
         return json.dumps(obj).encode(), _ENC_JSON.with_schema(schema) if schema else _ENC_JSON
     raise TypeError(f"cannot encode {type(obj).__name__} for the bus")
@@ -147,7 +168,7 @@ class _Decoder(Generic[T]):
         if self.adapter is None:
             if self.json:
                 try:
-                    return json.loads(data) if data else None  # type: ignore[no-any-return]
+                    return json.loads(data) if data else None  # type: ignore[return-value]
                 except ValueError as exc:
                     raise DecodeError(f"invalid JSON for {self.name}: {exc}") from exc
             return data  # type: ignore[return-value]
@@ -190,9 +211,10 @@ class _Decoder(Generic[T]):
                 except ValidationError as again:
                     exc = again
                     errors = again.errors()
-        first = errors[0] if errors else {}
-        where = ".".join(str(p) for p in first.get("loc", ())) or "payload"
-        raise DecodeError(f"invalid {self.name} at {where}: {first.get('msg', exc)}") from exc
+        loc = errors[0].get("loc", ()) if errors else ()
+        msg = errors[0].get("msg", str(exc)) if errors else str(exc)
+        where = ".".join(str(p) for p in loc) or "payload"
+        raise DecodeError(f"invalid {self.name} at {where}: {msg}") from exc
 
 
 def _drop_path(doc: Any, loc: tuple[Any, ...]) -> None:
@@ -224,8 +246,8 @@ def _check_type(decl_type: Any, obj: Any, key: str) -> None:
     elif isinstance(decl_type, type):
         ok = isinstance(obj, decl_type)
     else:  # a union (possibly Annotated)
-        args = getattr(decl_type, "__args__", ())
-        inner = args[0] if getattr(decl_type, "__metadata__", None) else decl_type
+        args: tuple[Any, ...] = getattr(decl_type, "__args__", ())
+        inner = args[0] if args and getattr(decl_type, "__metadata__", None) else decl_type
         ok = isinstance(obj, tuple(getattr(inner, "__args__", (inner,))))
     if not ok:
         raise TypeError(f"{key} carries {getattr(decl_type, '__name__', decl_type)}, not {type(obj).__name__}")
@@ -295,8 +317,11 @@ class Subscription(Generic[T]):
         """Next valid sample (malformed ones are logged and skipped). Raises TimeoutError."""
         deadline = None if timeout is None else time.monotonic() + timeout
         while True:
-            remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
-            key, data, enc, rns = await asyncio.wait_for(self._queue.get(), remaining)
+            try:  # fast path: a queued sample needs no timer (wait_for costs more than the decode)
+                key, data, enc, rns = self._queue.get_nowait()
+            except asyncio.QueueEmpty:
+                remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
+                key, data, enc, rns = await asyncio.wait_for(self._queue.get(), remaining)
             try:
                 value = self._decode(data)
             except DecodeError as exc:
@@ -362,7 +387,7 @@ class Bus:
         self.loop = loop
         self._publishers: dict[tuple[str, bool], Any] = {}
         self._declared: list[Any] = []
-        self._tasks: set[asyncio.Task] = set()
+        self._tasks: set[asyncio.Task[None]] = set()
         self._closed = False
         self._lock = threading.Lock()
 
@@ -510,8 +535,11 @@ class Bus:
                 fut.set_result(list(replies))
 
         def on_reply(reply: zenoh.Reply) -> None:
-            res = reply.ok
-            item = (True, res.payload.to_bytes()) if res is not None else (False, reply.err.payload.to_bytes())
+            res, err = reply.ok, reply.err
+            if res is not None:
+                item = (True, res.payload.to_bytes())
+            else:
+                item = (False, err.payload.to_bytes() if err is not None else b"no reply")
             self._to_loop(add, item)
 
         def finish() -> None:
@@ -573,7 +601,7 @@ class Bus:
                 query.reply(key, payload, encoding=enc)
             finally:
                 with contextlib.suppress(Exception):
-                    query.drop()
+                    query.drop()  # type: ignore[no-untyped-call]
 
         def start(query: zenoh.Query, data: bytes | None) -> None:
             task = self.loop.create_task(answer(query, data))

@@ -15,7 +15,7 @@ import contextlib
 from dataclasses import dataclass, field
 from typing import Any
 
-from shared.bus import Bus, decoder
+from shared.bus import Bus, Subscription, decoder
 from shared.errors import AermaniError, NoResponder, QueryTimeout, RemoteError
 from shared.keys import ALIVE_TOKEN, DECLARATIONS, HEALTH_TOPIC, Keys, Protobuf, Query, Topic
 from shared.messages import ReasoningStep, SkillLibrary, SkillStatus
@@ -78,7 +78,7 @@ def _decode(decl: Topic[Any], data: bytes) -> Any:
 async def _check_topic(bus: Bus, keys: Keys, decl: Topic[Any], report: Report, timeout: float,
                        library: SkillLibrary | None, require: bool) -> None:
     key = decl.bind(keys.vehicle_id).key
-    sub = bus.subscribe(key, maxsize=50)  # raw bytes: the check decodes itself to name the problem
+    sub: Subscription[bytes] = bus.subscribe(key, maxsize=50)  # raw bytes: the check decodes itself to name the problem
     try:
         got: list[Any] = []
         loop = asyncio.get_running_loop()
@@ -161,7 +161,7 @@ async def check_service(bus: Bus, service: str, vehicle_id: str = "am1", *, time
               if t.name not in skip]
     if expect_health:
         health = HEALTH_TOPIC.bind(vehicle_id, service=service)
-        periodic_health = Topic(health.key.split("/", 3)[3], HEALTH_TOPIC.type, HEALTH_TOPIC.doc, service,
+        periodic_health: Topic[Any] = Topic(health.key.split("/", 3)[3], HEALTH_TOPIC.type, HEALTH_TOPIC.doc, service,
                                 periodic=True)
         checks.append(_check_topic(bus, keys, periodic_health, report, max(timeout, 3.0), None, True))
     await asyncio.gather(*checks)

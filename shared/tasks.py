@@ -131,9 +131,10 @@ async def judge_episode(bus: Bus, keys: Keys, accepted: Sequence[str], destinati
     if destination:
         first: JudgeResult | None = None
         for obj in accepted:
-            extra = {"tolerance": tolerance} if tolerance is not None else {}
-            j = await query_ready(bus, keys.sim_judge, JudgeRequest(op="on_surface", object=obj, surface=destination,
-                                                                    **extra), timeout=timeout)
+            req = JudgeRequest(op="on_surface", object=obj, surface=destination)
+            if tolerance is not None:
+                req = req.model_copy(update={"tolerance": tolerance})
+            j = await query_ready(bus, keys.sim_judge, req, timeout=timeout)
             if j.ok:
                 return Verdict(True, j.message, j)
             first = first or j
