@@ -165,55 +165,50 @@ class Token:
         return BoundToken(f"{vehicle_prefix(vehicle_id)}/{self.name.format(**params)}", self)
 
 
-@dataclass(frozen=True, eq=False)
-class BoundTopic(Generic[M]):
-    """A topic on one vehicle (or the fleet): the full key and its declaration."""
+class BoundTopic(str, Generic[M]):
+    """A topic on one vehicle (or the fleet): a `str` (the full key, usable wherever a key is) that also
+    carries its declaration, from which the bus takes the types."""
 
-    key: str
     decl: Topic[M]
 
-    def __str__(self) -> str:
-        return self.key
+    def __new__(cls, key: str, decl: Topic[M]) -> BoundTopic[M]:
+        obj = super().__new__(cls, key)
+        obj.decl = decl
+        return obj
 
-    def __eq__(self, other: object) -> bool:  # a bound declaration is its key, also in dicts keyed by str
-        return self.key == (other.key if isinstance(other, BoundTopic | BoundQuery | BoundToken) else other)
-
-    def __hash__(self) -> int:
-        return hash(self.key)
+    @property
+    def key(self) -> str:
+        return str.__str__(self)
 
 
-@dataclass(frozen=True, eq=False)
-class BoundQuery(Generic[Req, Rep]):
-    """A queryable on one vehicle: the full key and its declaration."""
+class BoundQuery(str, Generic[Req, Rep]):
+    """A queryable on one vehicle: its full key (a `str`) with its declaration."""
 
-    key: str
     decl: Query[Req, Rep]
 
-    def __str__(self) -> str:
-        return self.key
+    def __new__(cls, key: str, decl: Query[Req, Rep]) -> BoundQuery[Req, Rep]:
+        obj = super().__new__(cls, key)
+        obj.decl = decl
+        return obj
 
-    def __eq__(self, other: object) -> bool:  # a bound declaration is its key, also in dicts keyed by str
-        return self.key == (other.key if isinstance(other, BoundTopic | BoundQuery | BoundToken) else other)
-
-    def __hash__(self) -> int:
-        return hash(self.key)
+    @property
+    def key(self) -> str:
+        return str.__str__(self)
 
 
-@dataclass(frozen=True, eq=False)
-class BoundToken:
-    """A liveliness token key on one vehicle."""
+class BoundToken(str):
+    """A liveliness token key on one vehicle (a `str`) with its declaration."""
 
-    key: str
     decl: Token
 
-    def __str__(self) -> str:
-        return self.key
+    def __new__(cls, key: str, decl: Token) -> BoundToken:
+        obj = super().__new__(cls, key)
+        obj.decl = decl
+        return obj
 
-    def __eq__(self, other: object) -> bool:  # a bound declaration is its key, also in dicts keyed by str
-        return self.key == (other.key if isinstance(other, BoundTopic | BoundQuery | BoundToken) else other)
-
-    def __hash__(self) -> int:
-        return hash(self.key)
+    @property
+    def key(self) -> str:
+        return str.__str__(self)
 
 
 # --------------------------------------------------------------------------- the declarations

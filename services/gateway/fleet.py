@@ -23,6 +23,7 @@ from shared.keys import (
     ROOT,
     SAFETY_ABORT_ACK,
     Keys,
+    Topic,
     parse_alive_key,
 )
 from shared.messages import AbortAck, ReasoningStep, SkillStatus, TaskState, TaskStatus, VehicleState, now_ns
@@ -31,10 +32,6 @@ from shared.sensors import CompressedImage, decode_proto
 log = logging.getLogger("aermani.gateway.fleet")
 
 FINISH_GRACE_S = 2.0
-
-
-def fleet_key(topic: str) -> str:
-    return f"{ROOT}/*/{topic}"
 
 
 def vehicle_of(key: str) -> str:
@@ -105,22 +102,22 @@ class Fleet:
             if not self.view(task["vehicle_id"]).reasoner_alive:
                 await self._end_orphan(task, "the reasoner was not running when the gateway started")
 
-        def sub(topic: str, model: Any, handler: Callable[[str, Any], Awaitable[None]], maxsize: int = 1000,
-                ordered: bool = False):
-            s = self.bus.subscribe(fleet_key(topic), maxsize=maxsize)
+        def sub(topic: Topic[Any], handler: Callable[[str, Any], Awaitable[None]], maxsize: int = 1000,
+                ordered: bool = False) -> None:
+            s = self.bus.subscribe(topic.fleet(), maxsize=maxsize)
             self._subs.append(s)
             run = self._forward(s, handler) if ordered else self._consume(s, handler)
-            self._tasks.append(asyncio.create_task(run, name=f"gateway.{topic}"))
+            self._tasks.append(asyncio.create_task(run, name=f"gateway.{topic.name}"))
 
         # Task events of all three topics go through one queue and one writer, so the database keeps the
         # order they arrived in: the final step is stored before the terminal status that ends the stream.
-        sub(REASONER_TASK_STATUS, TaskStatus, self._on_status, ordered=True)
-        sub(REASONER_STEP, ReasoningStep, self._on_step, ordered=True)
-        sub(EXECUTOR_SKILL_STATUS, SkillStatus, self._on_skill, ordered=True)
+        sub(REASONER_TASK_STATUS, self._on_status, ordered=True)
+        sub(REASONER_STEP, self._on_step, ordered=True)
+        sub(EXECUTOR_SKILL_STATUS, self._on_skill, ordered=True)
         self._tasks.append(asyncio.create_task(self._write_ordered(), name="gateway.writer"))
-        sub(AUTOPILOT_STATE, VehicleState, self._on_state, maxsize=10)
-        sub(CAMERA_COLOR, None, self._on_frame, maxsize=2)
-        sub(SAFETY_ABORT_ACK, AbortAck, self._on_ack, maxsize=100)
+        sub(AUTOPILOT_STATE, self._on_state, maxsize=10)
+        sub(CAMERA_COLOR, self._on_frame, maxsize=2)
+        sub(SAFETY_ABORT_ACK, self._on_ack, maxsize=100)
         queue = self.bus.watch_liveliness(f"{ROOT}/*/{ALIVE}/*", history=True)
         self._tasks.append(asyncio.create_task(self._liveliness(queue), name="gateway.liveliness"))
 
