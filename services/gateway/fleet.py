@@ -18,6 +18,7 @@ from shared.keys import (
     AUTOPILOT_STATE,
     CAMERA_COLOR,
     EXECUTOR_SKILL_STATUS,
+    PERCEPTION_DETECTIONS,
     REASONER_STEP,
     REASONER_TASK_STATUS,
     ROOT,
@@ -26,7 +27,16 @@ from shared.keys import (
     Topic,
     parse_alive_key,
 )
-from shared.messages import AbortAck, ReasoningStep, SkillStatus, TaskState, TaskStatus, VehicleState, now_ns
+from shared.messages import (
+    AbortAck,
+    Detections,
+    ReasoningStep,
+    SkillStatus,
+    TaskState,
+    TaskStatus,
+    VehicleState,
+    now_ns,
+)
 from shared.sensors import CompressedImage, decode_proto
 
 log = logging.getLogger("aermani.gateway.fleet")
@@ -57,6 +67,7 @@ class VehicleView:
     state: VehicleState | None = None
     state_ns: int = 0
     frame: Frame | None = None
+    detections: Detections | None = None
     acks: list[AbortAck] = field(default_factory=list)
 
     @property
@@ -118,6 +129,7 @@ class Fleet:
         sub(AUTOPILOT_STATE, self._on_state, maxsize=10)
         sub(CAMERA_COLOR, self._on_frame, maxsize=2)
         sub(SAFETY_ABORT_ACK, self._on_ack, maxsize=100)
+        sub(PERCEPTION_DETECTIONS, self._on_detections, maxsize=4)
         queue = self.bus.watch_liveliness(f"{ROOT}/*/{ALIVE}/*", history=True)
         self._tasks.append(asyncio.create_task(self._liveliness(queue), name="gateway.liveliness"))
 
@@ -216,6 +228,9 @@ class Fleet:
         self.view(vehicle_of(key)).frame = Frame(payload, time.time_ns(), self.frame_seq)
         async with self.changed:
             self.changed.notify_all()
+
+    async def _on_detections(self, key: str, dets: Detections) -> None:
+        self.view(vehicle_of(key)).detections = dets
 
     async def _on_ack(self, key: str, ack: AbortAck) -> None:
         v = self.view(vehicle_of(key))

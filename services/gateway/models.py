@@ -180,6 +180,8 @@ class AbortIn(ApiModel):
 
     reason: str = Field("operator abort via gateway", min_length=1, max_length=200)
     """Why (recorded by the executor and the reasoner)."""
+    vehicle_id: str | None = Field(None, pattern=r"^[A-Za-z0-9_-]{1,32}$")
+    """Only this vehicle (POST /abort); every vehicle when omitted."""
 
 
 class AbortOut(ApiModel):
@@ -241,3 +243,47 @@ class HealthOut(ApiModel):
 
 
 SkillStatusOut = SkillStatus
+
+
+class SkillsOut(ApiModel):
+    """The skill library a vehicle's executor serves."""
+
+    vehicle_id: str
+    """Vehicle."""
+    skills: list[dict[str, Any]]
+    """Every skill (see shared.messages.SkillSpec): name, category, description, argument, policy_visible."""
+
+
+class DetectionsOut(ApiModel):
+    """What perception sees now on one vehicle."""
+
+    vehicle_id: str
+    """Vehicle."""
+    stamp_ns: int
+    """Time of the frame the detections come from."""
+    items: list[dict[str, Any]]
+    """Detections (see shared.messages.Detection): label, category, centroid, size, confidence."""
+
+
+class SkillRunIn(ApiModel):
+    """Run one skill outside a task (only when the gateway allows it)."""
+
+    skill: str = Field(..., min_length=1, max_length=64, pattern=r"^[a-z][a-z0-9_]*$")
+    """Registered skill name, e.g. `yaw_left` or `obj_localization`."""
+    argument: str | None = Field(None, max_length=200)
+    """Object or surface query, for skills that take one."""
+    timeout_s: float = Field(120.0, gt=0, le=600)
+    """How long to wait for the result."""
+
+
+class SkillRunOut(ApiModel):
+    """How a single skill ended."""
+
+    vehicle_id: str
+    skill: str
+    state: str
+    """succeeded, failed, timeout or aborted."""
+    message: str
+    """The executor's explanation."""
+    perceived: str = ""
+    """What perception reported during the skill."""

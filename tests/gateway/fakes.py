@@ -22,8 +22,11 @@ from shared.messages import (
     CancelGoal,
     CancelReply,
     DescriptiveReasoningTrace,
+    Detection,
+    Detections,
     ModelCall,
     ReasoningStep,
+    SkillLibrary,
     SkillState,
     SkillStatus,
     SkillToExecute,
@@ -65,6 +68,8 @@ class FakeVehicle:
             self.bus.declare_token(self.keys.alive(s))
         self.bus.serve(self.keys.start_task, self._start)
         self.bus.serve(self.keys.cancel_task, self._cancel)
+        if "executor" in self.services:
+            self.bus.serve(self.keys.skills, self._skills)
         sub = self.bus.subscribe(self.keys.abort)
         self._tasks += [asyncio.create_task(self._aborts(sub)), asyncio.create_task(self._publish_sensors())]
 
@@ -86,6 +91,11 @@ class FakeVehicle:
         self.current_req = req
         self.current = asyncio.create_task(self._run_task(req))
         return TaskAccept(accepted=True, task_id=req.task_id)
+
+    async def _skills(self, _req: object) -> SkillLibrary:
+        from services.reasoner.library import default_library
+
+        return default_library()
 
     async def _cancel(self, req: CancelGoal) -> CancelReply:
         if self.current is None or self.current.done() or self.current_req is None \
@@ -150,6 +160,9 @@ class FakeVehicle:
             img[:, :, 0] = (self.frames * 37) % 256
             img[: (self.frames % 48), :, 1] = 200
             self.bus.publish(self.keys.camera_color, color_message(img, time.time_ns()))
+            self.bus.publish(self.keys.detections, Detections(items=(
+                Detection(label="red cup", centroid=Vec3(x=1.2, y=0.3, z=0.8), size=Vec3(x=0.08, y=0.08, z=0.11),
+                          confidence=0.9),)))
             await asyncio.sleep(0.2)
 
 
