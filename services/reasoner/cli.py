@@ -86,6 +86,10 @@ def check_command(
             rejected += 1
             console.print(f"{n}: rejected: {exc}", markup=False)
             continue
+        except Exception as exc:  # the parser promises InvalidAnswer only; a bug still must not stop the file
+            rejected += 1
+            console.print(f"{n}: rejected: parser error {type(exc).__name__}: {exc} (please report)", markup=False)
+            continue
         call = f"{p.ste.skill}({p.ste.argument})" if p.ste.argument else p.ste.skill
         console.print(f"{n}: accepted: {call}" + (" (recovered leniently)" if p.recovered else ""), markup=False)
     console.print(f"{total - rejected}/{total} accepted, {rejected} rejected")
