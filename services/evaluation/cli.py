@@ -27,7 +27,7 @@ def _interrupt(_signum: int, _frame: object) -> None:
 
 
 def eval_command(
-    backend: Annotated[str, typer.Option(help="Reasoner backend: rules, openai, anthropic, replay.")] = "rules",
+    backend: Annotated[str, typer.Option(help="Reasoner backend (`aermani vlm backends` lists them).")] = "rules",
     variant: Annotated[str, typer.Option(help="Prompt variant, or a comma list for a sweep, or 'all' "
                                               f"({', '.join(VARIANTS)}).")] = "full",
     episodes: Annotated[int | None, typer.Option(help="Episodes per suite (cycling through its tasks); "
@@ -43,7 +43,7 @@ def eval_command(
     speed_factor: Annotated[float, typer.Option(help="Simulator speed versus wall clock.")] = 4.0,
     t_max: Annotated[float, typer.Option(help="T_max per episode, seconds (paper: 600).")] = 600.0,
     tolerance: Annotated[float, typer.Option(help="Placement tolerance for the ground-truth judge, m.")] = 0.05,
-    model: Annotated[str, typer.Option(help="Model name for openai/anthropic backends.")] = "",
+    model: Annotated[str, typer.Option(help="Model name for a model backend.")] = "",
     base_url: Annotated[str | None, typer.Option(help="Base URL of an OpenAI-compatible endpoint.")] = None,
     connect: Annotated[str | None, typer.Option(help="Use vehicles already running behind this Zenoh router "
                                                      "instead of launching a stack (with --vehicles).")] = None,

@@ -130,7 +130,7 @@ def scenario_for(command: str, target: str | None, destination: str | None, seed
 def demo_command(
     command: Annotated[str, typer.Argument(help="The natural-language command, e.g. \"pick up the red cup and "
                                                 "place it on the table\".")],
-    backend: Annotated[str, typer.Option(help="rules, openai, anthropic or replay.")] = "rules",
+    backend: Annotated[str, typer.Option(help="Policy backend (`aermani vlm backends` lists them).")] = "rules",
     variant: Annotated[str, typer.Option(help=f"Prompt variant ({', '.join(VARIANTS)}).")] = "full",
     seed: Annotated[int, typer.Option(help="Layout seed of the simulated room.")] = 0,
     target: Annotated[str | None, typer.Option(help="Scenario target object (default: read from the command).")]
@@ -138,8 +138,8 @@ def demo_command(
     destination: Annotated[str | None, typer.Option(help="Scenario destination surface (default: from the command).")]
     = None,
     speed_factor: Annotated[float, typer.Option(help="Simulator speed versus wall clock.")] = 2.0,
-    model: Annotated[str, typer.Option(help="Model for openai/anthropic.")] = "",
-    base_url: Annotated[str | None, typer.Option(help="Endpoint for openai/anthropic (e.g. a local vLLM).")] = None,
+    model: Annotated[str, typer.Option(help="Model name for a model backend (empty: the backend's default).")] = "",
+    base_url: Annotated[str | None, typer.Option(help="Endpoint of a model backend (e.g. a local vLLM).")] = None,
     t_max: Annotated[float, typer.Option(help="T_max, seconds.")] = 600.0,
     log_dir: Annotated[Path | None, typer.Option(help="Service logs directory (default runs/<time>/logs).")] = None,
 ) -> None:
@@ -294,9 +294,20 @@ async def _demo_task(stack, command: str, scenario, accepted: tuple[str, ...], t
         await bus.close()
 
 
+def backends_command() -> None:
+    """List the registered policy backends (the values of AERMANI_REASONER_BACKEND and --backend)."""
+    from services.reasoner.backends import BACKENDS, load_backend_modules
+    from services.reasoner.settings import ReasonerSettings
+
+    load_backend_modules(ReasonerSettings().backend_modules)
+    for kind, cls in BACKENDS.items():
+        console.print(f"{kind:<12} {cls.summary}", markup=False)
+
+
 def register(app: typer.Typer) -> None:
-    vlm = typer.Typer(help="Tools for VLM answers.", no_args_is_help=True)
+    vlm = typer.Typer(help="Tools for VLM answers and backends.", no_args_is_help=True)
     vlm.command("check")(check_command)
+    vlm.command("backends")(backends_command)
     app.add_typer(vlm, name="vlm")
     app.command("demo")(demo_command)
 

@@ -2,28 +2,27 @@
 
 from __future__ import annotations
 
-from typing import Literal
-
 from pydantic import Field, SecretStr
 from pydantic_settings import SettingsConfigDict
 
 from shared.messages import Variant
 from shared.settings import ServiceSettings
 
-BackendName = Literal["rules", "openai", "anthropic", "replay"]
-
 
 class ReasonerSettings(ServiceSettings):
     model_config = SettingsConfigDict(env_prefix="AERMANI_REASONER_", extra="ignore", populate_by_name=True,
                                       use_attribute_docstrings=True)
 
-    backend: BackendName = "rules"
-    """Policy backend: rules (deterministic non-VLM baseline), openai (any OpenAI-compatible endpoint),
-    anthropic (Messages API) or replay (answers from a recorded log)."""
+    backend: str = Field("rules", pattern=r"^[a-z][a-z0-9_]{0,31}$")
+    """Policy backend: a kind registered in services/reasoner/backends (`aermani vlm backends` lists them with
+    what each reads); the deterministic non-VLM baseline `rules` is the default."""
+    backend_modules: str = ""
+    """Comma-separated Python modules imported before the backend is looked up; each registers backends with
+    `@register` (a backend kept outside this repository)."""
     variant: Variant = "full"
     """Prompt variant (paper Table IV + ReAct): unstructured, no_drt, drt_v1, drt_v2, drt_v3, full, react."""
     model: str = ""
-    """Model name; empty picks gpt-4o for openai and claude-3-5-sonnet-latest for anthropic."""
+    """Model name; empty picks the backend's default model."""
     base_url: str | None = None
     """Endpoint base URL, e.g. http://127.0.0.1:8000/v1 for vLLM/Ollama/llama.cpp, or the Anthropic URL."""
     api_key: SecretStr | None = None

@@ -7,11 +7,23 @@ import time
 
 import anthropic
 
-from services.reasoner.backends.base import Backend, ModelReply, ModelRequest, conversation
+from services.reasoner.backends.base import Backend, ModelReply, ModelRequest, api_key, conversation, register
 from shared.errors import ModelError
 
 
+@register
 class AnthropicBackend(Backend):
+    kind = "anthropic"
+    summary = "Claude through the Anthropic Messages API; MODEL, BASE_URL, API_KEY or ANTHROPIC_API_KEY"
+    default_model = "claude-3-5-sonnet-latest"
+
+    @classmethod
+    def from_settings(cls, settings) -> AnthropicBackend:
+        return cls(model=settings.model or cls.default_model,
+                   api_key=api_key(settings, cls.kind, "ANTHROPIC_API_KEY"), base_url=settings.base_url,
+                   timeout_s=settings.request_timeout_s, retries=settings.transport_retries,
+                   max_tokens=settings.max_tokens, temperature=settings.temperature)
+
     def __init__(self, *, model: str, api_key: str, base_url: str | None, timeout_s: float, retries: int,
                  max_tokens: int, temperature: float) -> None:
         self.model = model

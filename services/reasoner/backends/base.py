@@ -1,11 +1,19 @@
-"""The one interface every policy backend implements: raw text in, raw text + tokens + latency out."""
+"""The one interface every policy backend implements (raw text in, raw text + tokens + latency out) and the
+backend registry: a backend is one module with a `Backend` subclass decorated with `@register`; its `kind`
+is the value of `AERMANI_REASONER_BACKEND` and of a task's `backend` override, and nothing else names it."""
 
 from __future__ import annotations
 
+import os
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, ClassVar
 
 from services.reasoner.prompt import CompiledPrompt, reprompt_text
+from shared.errors import ConfigError
+
+if TYPE_CHECKING:
+    from services.reasoner.settings import ReasonerSettings
 
 
 @dataclass
@@ -72,12 +80,47 @@ def conversation(request: ModelRequest, first_user_content: list[dict]) -> list[
 
 
 class Backend(ABC):
-    """A policy pi(o_t, P_t). Transport retries happen inside; after the budget it raises ModelError."""
+    """A policy pi(o_t, P_t). Transport retries happen inside; after the budget it raises ModelError.
 
+    Subclasses set `kind` (the registry name) and `summary` (one line for `aermani vlm backends`), and build
+    themselves from the reasoner settings in `from_settings`."""
+
+    kind: ClassVar[str] = ""
+    """Registry name: AERMANI_REASONER_BACKEND, TaskRequest.backend, `--backend`."""
+    summary: ClassVar[str] = ""
+    """One line saying what the backend is and which settings it reads."""
     name: str = ""
+    """Label of this instance in records, e.g. `openai:gpt-4o` (the kind plus the model when there is one)."""
+
+    @classmethod
+    def from_settings(cls, settings: ReasonerSettings) -> Backend:
+        """Build from the reasoner settings; raise ConfigError naming the setting to fix."""
+        return cls()
 
     @abstractmethod
     async def complete(self, request: ModelRequest) -> ModelReply: ...
 
     async def aclose(self) -> None:
         return None
+
+
+BACKENDS: dict[str, type[Backend]] = {}
+
+
+def register(cls: type[Backend]) -> type[Backend]:
+    """Class decorator: make a backend selectable by its `kind`."""
+    if not cls.kind:
+        raise ValueError(f"{cls.__name__} has no `kind`")
+    BACKENDS[cls.kind] = cls
+    return cls
+
+
+def api_key(settings: ReasonerSettings, kind: str, env_var: str) -> str:
+    """The key for backend `kind`: AERMANI_REASONER_API_KEY, else `env_var`; a ConfigError naming both."""
+    if settings.api_key is not None:
+        return settings.api_key.get_secret_value()
+    key = os.environ.get(env_var)
+    if not key:
+        raise ConfigError(f"backend {kind} needs an API key: set AERMANI_REASONER_API_KEY or {env_var} "
+                          "(a local server that ignores keys still needs a placeholder such as 'none')")
+    return key

@@ -8,7 +8,7 @@ import time
 
 import openai
 
-from services.reasoner.backends.base import Backend, ModelReply, ModelRequest, conversation
+from services.reasoner.backends.base import Backend, ModelReply, ModelRequest, api_key, conversation, register
 from shared.errors import ModelError
 
 
@@ -16,7 +16,20 @@ def image_data_url(jpeg: bytes) -> str:
     return "data:image/jpeg;base64," + base64.b64encode(jpeg).decode("ascii")
 
 
+@register
 class OpenAIBackend(Backend):
+    kind = "openai"
+    summary = ("any OpenAI-compatible chat-completions endpoint (GPT-4o, Gemini, vLLM, Ollama, llama.cpp); "
+               "MODEL, BASE_URL, API_KEY or OPENAI_API_KEY")
+    default_model = "gpt-4o"
+
+    @classmethod
+    def from_settings(cls, settings) -> OpenAIBackend:
+        return cls(model=settings.model or cls.default_model, api_key=api_key(settings, cls.kind, "OPENAI_API_KEY"),
+                   base_url=settings.base_url, timeout_s=settings.request_timeout_s,
+                   retries=settings.transport_retries, max_tokens=settings.max_tokens,
+                   temperature=settings.temperature)
+
     def __init__(self, *, model: str, api_key: str, base_url: str | None, timeout_s: float, retries: int,
                  max_tokens: int, temperature: float) -> None:
         self.model = model
