@@ -291,7 +291,9 @@ def _parse(raw: str, variant: str, library: SkillLibrary, coverage: float, work:
         raise InvalidAnswer("No JSON object found in the answer; reply with exactly one JSON object in the "
                             "format given in the Rules.")
     obj = {norm_key(k): v for k, v in obj.items()}
-    ste_obj = next((obj[k] for k in ("ste", "skill_to_execute") if isinstance(obj.get(k), dict)), None)
+    ste_obj = next((obj[k] for k in ("ste", "skill_to_execute", "action") if isinstance(obj.get(k), dict)), None)
+    if variant == "react" and isinstance(obj.get("thought"), str) and not thought:
+        thought = obj["thought"].strip() or None  # the schema-constrained form {"thought", "action"}
     ste = {norm_key(k): v for k, v in ste_obj.items()} if ste_obj is not None else obj
     drt_obj = next((obj[k] for k in ("drt", "descriptive_reasoning_trace") if isinstance(obj.get(k), dict)), None)
     drt = {norm_key(k): v for k, v in drt_obj.items()} if drt_obj is not None else obj

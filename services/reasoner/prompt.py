@@ -2,6 +2,11 @@
 
 Parts are plain text with fixed section headers so that every backend (and the fake VLM used in tests)
 sees exactly the same prompt; `CompiledPrompt.parts` is what the reasoning step records.
+
+Layout for prompt caches (vLLM prefix caching, OpenAI automatic caching, Anthropic `cache_control`): the
+parts that depend only on the variant and the skill library (Preamble, Skill Library, Rules) come first
+and are byte-identical across the steps and tasks of a vehicle (`CompiledPrompt.prefix`); the task
+command, the History with the current observation, and the image come after (`suffix`).
 """
 
 from __future__ import annotations
@@ -32,6 +37,8 @@ DRT_FIELDS: dict[str, tuple[str, ...]] = {
     "full": ("image_description", "summary", "action_predictions", "reasoning"),
     "react": (),
 }
+CONSTANT_PARTS = ("preamble", "skill_library", "rules")
+"""Parts that depend only on the variant and the skill library: the cacheable prefix, in this order."""
 SECTION_TITLES = {
     "command": "Task command",
     "preamble": "Preamble",
@@ -114,7 +121,17 @@ class CompiledPrompt:
     variant: str
     parts: dict[str, str]
     text: str
+    """The whole prompt text: `prefix + suffix`."""
     image_jpeg: bytes | None = None
+    prefix: str = ""
+    """The constant head of `text` (Preamble, Skill Library, Rules): identical for every step and task of a
+    vehicle with this variant and skill library, so prompt caches reuse it."""
+    schema: dict | None = None
+    """JSON schema of a valid answer for schema-constrained decoding (schema.py)."""
+
+    @property
+    def suffix(self) -> str:
+        return self.text[len(self.prefix):]
 
     @property
     def has_image(self) -> bool:
@@ -250,9 +267,18 @@ class PromptCompiler:
             raise ValueError(f"unknown prompt variant {variant!r}; use one of {', '.join(PROMPT_PARTS)}")
         self.variant = variant
         self.library = library
-        # The fixed parts depend only on the variant and the registry: compile them once.
+        # The fixed parts depend only on the variant and the registry: compile them once, as the prefix.
+        from services.reasoner.schema import answer_schema
+
         self._library_text = library_text(library)
         self._rules = rules_text(variant, library)
+        self.schema = answer_schema(variant, library)
+        if variant == "unstructured":
+            self.prefix = f"Skills:\n{self._library_text}\n\n"
+        else:
+            fixed = {"preamble": PREAMBLE, "skill_library": self._library_text, "rules": self._rules}
+            self.prefix = "".join(f"# {SECTION_TITLES[k]}\n{fixed[k]}\n\n" for k in CONSTANT_PARTS
+                                  if k in PROMPT_PARTS[variant])
 
     def compile(self, command: str, history: History, obs: Observation) -> CompiledPrompt:
         wanted = PROMPT_PARTS[self.variant]
@@ -269,10 +295,10 @@ class PromptCompiler:
             elif name == "rules":
                 parts[name] = self._rules
         if self.variant == "unstructured":
-            text = f"{command}\n\nSkills:\n{self._library_text}"
+            suffix = f"Command: {command}"
         else:
-            text = "\n\n".join(f"# {SECTION_TITLES[k]}\n{v}" for k, v in parts.items())
-        return CompiledPrompt(self.variant, parts, text, obs.image_jpeg)
+            suffix = "\n\n".join(f"# {SECTION_TITLES[k]}\n{parts[k]}" for k in wanted if k not in CONSTANT_PARTS)
+        return CompiledPrompt(self.variant, parts, self.prefix + suffix, obs.image_jpeg, self.prefix, self.schema)
 
 
 REPROMPT = ("Your previous answer was invalid: {error} Answer again with one valid skill, following the Rules "

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Literal
+
 from pydantic import Field, SecretStr
 from pydantic_settings import SettingsConfigDict
 
@@ -31,10 +33,17 @@ class ReasonerSettings(ServiceSettings):
     """Timeout of one model HTTP request, seconds."""
     transport_retries: int = Field(3, ge=0, le=10)
     """Retries with exponential backoff on transport errors (5xx, 429, connection, timeout) per model call."""
-    max_tokens: int = Field(1024, ge=16)
-    """Answer token limit per model call."""
-    temperature: float = Field(0.0, ge=0.0, le=2.0)
-    """Sampling temperature."""
+    max_tokens: int | None = Field(None, ge=16)
+    """Answer token limit per model call; unset takes the model profile's."""
+    temperature: float | None = Field(None, ge=0.0, le=2.0)
+    """Sampling temperature; unset takes the model profile's (0 for every built-in profile)."""
+    profile: str = "auto"
+    """Model profile (profiles.py: gpt-4o, gemini, claude, qwen2-vl, llava-next, generic); auto picks it from
+    the model name."""
+    output_mode: Literal["auto", "schema", "text"] = "auto"
+    """Answer decoding: schema sends the answer's JSON schema (strict) with every request and fails when the
+    server rejects it; text never sends it (free text, lenient reader); auto sends it when the profile says
+    the model supports it and falls back to text, remembered per endpoint and logged once, on rejection."""
     replay_path: str = ""
     """JSONL file of recorded ReasoningStep records or raw answers, for backend=replay."""
     t_max_s: float = Field(600.0, gt=0)

@@ -4,13 +4,14 @@ is the value of `AERMANI_REASONER_BACKEND` and of a task's `backend` override, a
 
 from __future__ import annotations
 
+import logging
 import os
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, ClassVar
 
 from services.reasoner.prompt import CompiledPrompt, reprompt_text
-from shared.errors import ConfigError
+from shared.errors import ConfigError, ModelError
 
 if TYPE_CHECKING:
     from services.reasoner.settings import ReasonerSettings
@@ -67,6 +68,10 @@ class ModelReply:
     latency_s: float
     tokens_in: int | None = None
     tokens_out: int | None = None
+    structured: bool = False
+    """The answer was decoded under the answer's JSON schema (schema-constrained output)."""
+    cached_tokens: int | None = None
+    """Prompt tokens the server read from its prompt cache, when it says."""
 
 
 def conversation(request: ModelRequest, first_user_content: list[dict]) -> list[dict]:
@@ -124,3 +129,116 @@ def api_key(settings: ReasonerSettings, kind: str, env_var: str) -> str:
         raise ConfigError(f"backend {kind} needs an API key: set AERMANI_REASONER_API_KEY or {env_var} "
                           "(a local server that ignores keys still needs a placeholder such as 'none')")
     return key
+
+
+# --------------------------------------------------------------------------- chat-model backends
+
+log = logging.getLogger("aermani.reasoner.backends")
+_SCHEMA_REJECTED: dict[tuple[str, str, str], str] = {}
+"""(backend kind, base URL, model) -> why the server rejected schema-constrained output (auto mode)."""
+
+
+class SchemaRejected(Exception):
+    """The server refused the request because of the answer schema (HTTP 400/422 with a schema sent)."""
+
+
+def jpeg_size(jpeg: bytes) -> tuple[int, int] | None:
+    """(width, height) from the JPEG's start-of-frame marker, without decoding the image."""
+    i = 2
+    while i + 9 < len(jpeg):
+        if jpeg[i] != 0xFF:
+            return None
+        marker = jpeg[i + 1]
+        seg = int.from_bytes(jpeg[i + 2: i + 4], "big")
+        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
+            return int.from_bytes(jpeg[i + 7: i + 9], "big"), int.from_bytes(jpeg[i + 5: i + 7], "big")
+        i += 2 + seg
+    return None
+
+
+def fit_image(jpeg: bytes, max_side: int) -> bytes:
+    """The JPEG, downscaled so its longest side is at most `max_side` (unchanged when it already fits)."""
+    size = jpeg_size(jpeg)
+    if size is not None and max(size) <= max_side:
+        return jpeg
+    import cv2
+    import numpy as np
+
+    img = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
+    if img is None:
+        return jpeg
+    h, w = img.shape[:2]
+    scale = max_side / max(h, w)
+    if scale >= 1:
+        return jpeg
+    small = cv2.resize(img, (max(1, round(w * scale)), max(1, round(h * scale))), interpolation=cv2.INTER_AREA)
+    ok, buf = cv2.imencode(".jpg", small, [cv2.IMWRITE_JPEG_QUALITY, 90])
+    return buf.tobytes() if ok else jpeg
+
+
+class ChatBackend(Backend):
+    """A hosted or local chat model: model profile, output mode (schema-constrained or free text) with the
+    per-endpoint fallback, and the settings every such backend reads. Subclasses implement `_call`."""
+
+    default_model: ClassVar[str] = ""
+    key_env: ClassVar[str] = ""
+
+    def __init__(self, *, model: str, api_key: str, base_url: str | None = None, timeout_s: float = 30.0,
+                 retries: int = 3, max_tokens: int | None = None, temperature: float | None = None,
+                 output_mode: str = "auto", profile: str = "auto") -> None:
+        from services.reasoner.profiles import profile_for
+
+        self.model = model
+        self.name = f"{self.kind}:{model}"
+        self.profile = profile_for(model, profile)
+        self.max_tokens = max_tokens or self.profile.max_tokens
+        self.temperature = self.profile.temperature if temperature is None else temperature
+        self.output_mode = output_mode
+        self.base_url = base_url or ""
+        self.api_key = api_key
+        self.timeout_s = timeout_s
+        self.retries = retries
+
+    @classmethod
+    def from_settings(cls, settings: ReasonerSettings) -> ChatBackend:
+        return cls(model=settings.model or cls.default_model, api_key=api_key(settings, cls.kind, cls.key_env),
+                   base_url=settings.base_url, timeout_s=settings.request_timeout_s,
+                   retries=settings.transport_retries, max_tokens=settings.max_tokens,
+                   temperature=settings.temperature, output_mode=settings.output_mode, profile=settings.profile)
+
+    @property
+    def _endpoint(self) -> tuple[str, str, str]:
+        return self.kind, self.base_url, self.model
+
+    def schema_for(self, request: ModelRequest) -> dict | None:
+        """The answer schema to send with this request, or None for free text."""
+        if request.prompt.schema is None or self.output_mode == "text":
+            return None
+        if self.output_mode == "auto" and (not self.profile.schema or self._endpoint in _SCHEMA_REJECTED):
+            return None
+        return request.prompt.schema
+
+    def image(self, request: ModelRequest) -> bytes | None:
+        jpeg = request.prompt.image_jpeg
+        return None if jpeg is None else fit_image(jpeg, self.profile.image_max_side)
+
+    async def complete(self, request: ModelRequest) -> ModelReply:
+        schema = self.schema_for(request)
+        try:
+            return await self._call(request, schema)
+        except SchemaRejected as exc:
+            if self.output_mode == "schema":
+                raise ModelError(f"{self.kind} endpoint {self.base_url or '(default)'} rejected the answer schema "
+                                 f"for model {self.model}: {exc}; set AERMANI_REASONER_OUTPUT_MODE=text or auto")
+            reply = await self._call(request, None)
+            if self._endpoint not in _SCHEMA_REJECTED:  # remembered per endpoint, logged once
+                _SCHEMA_REJECTED[self._endpoint] = str(exc)
+                log.warning("%s endpoint %s rejected schema-constrained output for model %s (%s); using free "
+                            "text and the lenient reader from now on", self.kind, self.base_url or "(default)",
+                            self.model, str(exc)[:200])
+            return reply
+
+    @abstractmethod
+    async def _call(self, request: ModelRequest, schema: dict | None) -> ModelReply:
+        """One model call (transport retries inside); raise SchemaRejected when a schema was sent and the
+        server refused the request for it, ModelError after the retry budget."""

@@ -647,7 +647,7 @@ def context_from_prompt(text: str) -> PolicyContext:
             variant = next((v for v, fs in DRT_FIELDS.items() if fs == present and v not in ("unstructured", "react")),
                            "full")
     else:
-        command, _, lib = text.partition("\n\nSkills:\n")
+        lib, _, command = text.removeprefix("Skills:\n").rpartition("\n\nCommand: ")
         command, rules, history, variant = command.strip(), "", "", "unstructured"
     skills = re.findall(r"^- ([a-z_]+)", lib, re.M)
     steps = [PastStep(m.group(2), m.group(3), m.group(4), m.group(5) or "") for m in _STEP_LINE.finditer(history)]
