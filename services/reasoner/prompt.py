@@ -179,12 +179,14 @@ class History:
         return len(self.entries)
 
     def render(self, obs: Observation) -> str:
+        """Executed steps first (oldest first), the current observation last: between two steps the text up to
+        the newest entries repeats, so a prefix cache reuses it (vLLM, OpenAI automatic caching)."""
         head = [describe_state(obs), describe_detections(obs)]
         if obs.memory is not None:
             head.append("Working memory: " + obs.memory.summary())
-        if not self.entries:
-            return _fit("\n".join([*head, "No skill executed yet."]), self.max_chars)
         head_text = "\n".join(head)
+        if not self.entries:
+            return _fit_tail("No skill executed yet.", head_text, self.max_chars)
         # Budget: keep as many full entries as fit (at least the last one), then fill what is left with
         # condensed lines, newest first; whatever does not fit is counted as omitted. Linear in what fits.
         reserve = 60  # "Earlier steps:" and "(N earlier steps omitted)"
@@ -213,7 +215,18 @@ class History:
             body.extend(condensed)
         body.append("Recent steps:")
         body.extend(full)
-        return _fit("\n".join([head_text, *body]), self.max_chars)
+        return _fit_tail("\n".join(body), head_text, self.max_chars)
+
+
+def _fit_tail(body: str, tail: str, n: int) -> str:
+    """body + tail within n characters, cutting the start of the body (the oldest steps), never the tail."""
+    text = f"{body}\n{tail}"
+    if len(text) <= n:
+        return text
+    if len(tail) + 4 >= n:
+        return _fit(tail, n)
+    keep = n - len(tail) - 4  # "..." + "\n"
+    return "..." + body[len(body) - keep:] + "\n" + tail
 
 
 def _fit(text: str, n: int) -> str:
@@ -259,6 +272,18 @@ def rules_text(variant: str, library: SkillLibrary) -> str:
     return "\n".join(lines)
 
 
+def layout(variant: str, parts: dict[str, str]) -> tuple[str, str]:
+    """(constant prefix, whole text) of a prompt from its parts: Preamble, Skill Library and Rules first (they
+    depend only on the variant and the skill library), then the command and the History."""
+    if variant == "unstructured":
+        prefix = f"Skills:\n{parts['skill_library']}\n\n"
+        return prefix, prefix + f"Command: {parts['command']}"
+    wanted = PROMPT_PARTS[variant]
+    prefix = "".join(f"# {SECTION_TITLES[k]}\n{parts[k]}\n\n" for k in CONSTANT_PARTS if k in wanted)
+    rest = "\n\n".join(f"# {SECTION_TITLES[k]}\n{parts[k]}" for k in wanted if k not in CONSTANT_PARTS)
+    return prefix, prefix + rest
+
+
 class PromptCompiler:
     """Builds P_t for one variant from the command, the History, the observation and the skill registry."""
 
@@ -273,12 +298,6 @@ class PromptCompiler:
         self._library_text = library_text(library)
         self._rules = rules_text(variant, library)
         self.schema = answer_schema(variant, library)
-        if variant == "unstructured":
-            self.prefix = f"Skills:\n{self._library_text}\n\n"
-        else:
-            fixed = {"preamble": PREAMBLE, "skill_library": self._library_text, "rules": self._rules}
-            self.prefix = "".join(f"# {SECTION_TITLES[k]}\n{fixed[k]}\n\n" for k in CONSTANT_PARTS
-                                  if k in PROMPT_PARTS[variant])
 
     def compile(self, command: str, history: History, obs: Observation) -> CompiledPrompt:
         wanted = PROMPT_PARTS[self.variant]
@@ -294,11 +313,8 @@ class PromptCompiler:
                 parts[name] = self._library_text
             elif name == "rules":
                 parts[name] = self._rules
-        if self.variant == "unstructured":
-            suffix = f"Command: {command}"
-        else:
-            suffix = "\n\n".join(f"# {SECTION_TITLES[k]}\n{parts[k]}" for k in wanted if k not in CONSTANT_PARTS)
-        return CompiledPrompt(self.variant, parts, self.prefix + suffix, obs.image_jpeg, self.prefix, self.schema)
+        prefix, text = layout(self.variant, parts)
+        return CompiledPrompt(self.variant, parts, text, obs.image_jpeg, prefix, self.schema)
 
 
 REPROMPT = ("Your previous answer was invalid: {error} Answer again with one valid skill, following the Rules "
