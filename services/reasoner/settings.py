@@ -44,6 +44,9 @@ class ReasonerSettings(ServiceSettings):
     """Answer decoding: schema sends the answer's JSON schema (strict) with every request and fails when the
     server rejects it; text never sends it (free text, lenient reader); auto sends it when the profile says
     the model supports it and falls back to text, remembered per endpoint and logged once, on rejection."""
+    otlp_endpoint: str = ""
+    """OpenTelemetry collector base URL (OTLP/HTTP, e.g. http://127.0.0.1:4318) to send one GenAI span per model
+    call to; empty (the default) traces nothing. Needs the `otel` extra."""
     replay_path: str = ""
     """JSONL file of recorded ReasoningStep records or raw answers, for backend=replay."""
     t_max_s: float = Field(600.0, gt=0)

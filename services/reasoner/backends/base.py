@@ -198,13 +198,19 @@ class ChatBackend(Backend):
         self.api_key = api_key
         self.timeout_s = timeout_s
         self.retries = retries
+        self.tracer = None
+        """OpenTelemetry tracer for model-call spans (tracing.py), None when tracing is off."""
 
     @classmethod
     def from_settings(cls, settings: ReasonerSettings) -> ChatBackend:
-        return cls(model=settings.model or cls.default_model, api_key=api_key(settings, cls.kind, cls.key_env),
-                   base_url=settings.base_url, timeout_s=settings.request_timeout_s,
-                   retries=settings.transport_retries, max_tokens=settings.max_tokens,
-                   temperature=settings.temperature, output_mode=settings.output_mode, profile=settings.profile)
+        from services.reasoner.tracing import tracer_for
+
+        backend = cls(model=settings.model or cls.default_model, api_key=api_key(settings, cls.kind, cls.key_env),
+                      base_url=settings.base_url, timeout_s=settings.request_timeout_s,
+                      retries=settings.transport_retries, max_tokens=settings.max_tokens,
+                      temperature=settings.temperature, output_mode=settings.output_mode, profile=settings.profile)
+        backend.tracer = tracer_for(settings.otlp_endpoint)
+        return backend
 
     @property
     def _endpoint(self) -> tuple[str, str, str]:
@@ -223,7 +229,17 @@ class ChatBackend(Backend):
         return None if jpeg is None else fit_image(jpeg, self.profile.image_max_side)
 
     async def complete(self, request: ModelRequest) -> ModelReply:
+        from services.reasoner import tracing
+
         schema = self.schema_for(request)
+        with tracing.model_call_span(self.tracer, provider=self.kind, model=self.model, base_url=self.base_url,
+                                     max_tokens=self.max_tokens, temperature=self.temperature,
+                                     structured=schema is not None) as span:
+            reply = await self._complete(request, schema)
+            tracing.record_usage(span, reply.tokens_in, reply.tokens_out, reply.structured)
+            return reply
+
+    async def _complete(self, request: ModelRequest, schema: dict | None) -> ModelReply:
         try:
             return await self._call(request, schema)
         except SchemaRejected as exc:
