@@ -41,6 +41,7 @@ MAX_ANSWER_CHARS = 32_000
 """Longest answer read: a full DRT/STE answer is 1-4 kB; anything longer is rejected with the reason."""
 MAX_NESTING = 16
 """Deepest bracket nesting read: the answer format needs 3 levels (drt -> action_predictions -> value)."""
+_SPECIAL = re.compile(r"[{}\[\]\"'\\]")
 _ACTION_LINE = re.compile(r"^[ \t>*#_`-]*action[ \t*_`]*:", re.I | re.M)
 
 
@@ -80,14 +81,16 @@ def _object_spans(text: str, quotes: str, work: Work) -> list[tuple[int, int]]:
     stack: list[tuple[str, int]] = []
     pairs: list[tuple[int, int]] = []
     quote = ""
-    esc = False
+    skip = 0  # inside a string, the character after a backslash is escaped
     work.chars += len(text)
-    for i, c in enumerate(text):
+    for m in _SPECIAL.finditer(text):  # visits only brackets, quotes and backslashes
+        i = m.start()
+        c = text[i]
         if quote:
-            if esc:
-                esc = False
-            elif c == "\\":
-                esc = True
+            if i < skip:
+                continue
+            if c == "\\":
+                skip = i + 2
             elif c == quote:
                 quote = ""
             continue

@@ -245,3 +245,9 @@ def test_vlm_check_reads_the_whole_file_past_pathological_lines(tmp_path) -> Non
     assert "3: rejected: The answer nests brackets deeper than 16" in out
     assert "4: rejected: The answer is 40000 characters long" in out
     assert "2/5 accepted, 3 rejected" in out
+
+
+def test_braces_and_escaped_quotes_inside_strings_do_not_split_the_object() -> None:
+    raw = 'Sure: {"ste": {"skill": "obj_localization", "argument": "the \\"red\\" cup {left} \\\\"}} ok'
+    p = parse_answer(raw, "no_drt", LIB)
+    assert (p.ste.skill, p.ste.argument) == ("obj_localization", 'the "red" cup {left} \\')
