@@ -241,23 +241,31 @@ def _bare_skill(raw: str, names: list[str], work: Work) -> tuple[str, str | None
     return name, _argument_after(text, end)
 
 
-def _react_action(raw: str, work: Work) -> tuple[dict, str | None]:
-    """(the JSON object after the last `Action:` line, the Thought text before it). A JSON object inside
-    the Thought is never taken for the action."""
+def _react_action(raw: str, work: Work) -> tuple[dict, str | None, bool]:
+    """(the JSON object after the last `Action:` line, the Thought text before it, whether the lenient reader
+    was needed). A JSON object inside the Thought is never taken for the action."""
     work.chars += len(raw)
     marks = list(_ACTION_LINE.finditer(raw))
     if not marks:
         obj, recovered, _ = extract_json(raw, work)
         if obj is not None and not recovered:
-            return obj, None  # a bare JSON object is an action without thoughts
+            return obj, None, False  # a bare JSON object is an action without thoughts
         raise InvalidAnswer("No 'Action:' line found; end with one line 'Action: {\"skill\": <name>, "
                             "\"argument\": <string or null>}'.")
     mark = marks[-1]
-    obj, _ = _first_object(raw[mark.end():], work)
+    tail = raw[mark.end():].strip()
+    _object_spans(tail, "\"'", work)  # depth check first: the decoders must never see deep nesting
+    try:  # the format asked for: nothing but the object after `Action:`
+        strict = json.loads(tail)
+        if isinstance(strict, dict):
+            return strict, _clean_thought(raw[: mark.start()]), False
+    except (ValueError, RecursionError):
+        pass
+    obj, _ = _first_object(tail, work)
     if obj is None:
         raise InvalidAnswer("The 'Action:' line has no JSON object; write 'Action: {\"skill\": <name>, "
                             "\"argument\": <string or null>}'.")
-    return obj, _clean_thought(raw[: mark.start()])
+    return obj, _clean_thought(raw[: mark.start()]), True
 
 
 def parse_answer(raw: str, variant: str, library: SkillLibrary, *, coverage: float = 1.0,
@@ -283,8 +291,7 @@ def _parse(raw: str, variant: str, library: SkillLibrary, coverage: float, work:
     names = list(specs)
     thought: str | None = None
     if variant == "react":
-        obj, thought = _react_action(raw, work)
-        recovered = raw.strip() != json.dumps(obj)
+        obj, thought, recovered = _react_action(raw, work)
     else:
         obj, recovered, _start = extract_json(raw, work)
     if obj is None:
