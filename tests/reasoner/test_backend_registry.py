@@ -87,3 +87,12 @@ def test_reasoner_process_runs_a_task_on_the_registered_backend_and_names_a_miss
     assert "rules" not in refused.reason
     assert final.state is TaskState.SUCCEEDED, final.message
     assert final.backend == "counting_test:m2" and all(s.backend == "counting_test:m2" for s in steps)
+
+
+def test_no_help_text_lists_the_backends() -> None:
+    """The names live in the registry only: `--backend` help points to `aermani vlm backends`."""
+    for cmd in (["demo"], ["eval"], ["rereason"], ["vlm", "probe"]):
+        out = subprocess.run([sys.executable, "-m", "shared.cli", *cmd, "--help"], capture_output=True, text=True,
+                             timeout=120, env={**os.environ, "COLUMNS": "200"}).stdout
+        assert "--backend" in out and "vlm backends" in out, cmd
+        assert "anthropic" not in out and "openai, " not in out, cmd
