@@ -132,8 +132,14 @@ def shaped_answer(answer: str, schema: dict) -> str:
 
 class FakeVLMServer:
     def __init__(self, *, timeout_delay: float = 3.0, outage: bool = False, model: str = "fake-vlm",
-                 reject_schema: bool = False) -> None:
+                 reject_schema: bool = False, fault_every: int = 0, periodic_fault: str = "invalid_json",
+                 port: int = 0) -> None:
         self.faults: deque[str | None] = deque()
+        self.fault_every = fault_every
+        """When > 0 and no fault is queued, every fault_every-th answer gets `periodic_fault` (a standing schedule
+        for evaluation runs, e.g. docs/eval/variants: every 20th answer truncated)."""
+        self.periodic_fault = periodic_fault
+        self._answered = 0
         self.requests: list[dict] = []
         self.images: list[bool] = []
         self.schemas: list[dict | None] = []
@@ -147,7 +153,7 @@ class FakeVLMServer:
         self.app = self._build()
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        self._sock.bind(("127.0.0.1", 0))
+        self._sock.bind(("127.0.0.1", port))
         self.port = self._sock.getsockname()[1]
         self._server = uvicorn.Server(uvicorn.Config(self.app, log_level="warning", lifespan="off"))
         self._thread: threading.Thread | None = None
@@ -165,7 +171,12 @@ class FakeVLMServer:
         return self.url
 
     def _next_fault(self) -> str | None:
-        return self.faults.popleft() if self.faults else None
+        self._answered += 1
+        if self.faults:
+            return self.faults.popleft()
+        if self.fault_every and self._answered % self.fault_every == 0:
+            return self.periodic_fault
+        return None
 
     def _schema_of(self, body: dict) -> dict | None:
         """The answer schema a request carries (checked), or None for free text."""
@@ -300,7 +311,16 @@ class FakeVLMServer:
 
 
 if __name__ == "__main__":  # `python -m tests.reasoner.fake_vlm`: serve until Ctrl-C, print the URLs
-    srv = FakeVLMServer().start()
+    import argparse
+
+    ap = argparse.ArgumentParser(description="Serve the local VLM stand-in (not a model: the rules policy).")
+    ap.add_argument("--port", type=int, default=0, help="loopback port (0: a free one)")
+    ap.add_argument("--fault-every", type=int, default=0, help="every N-th answer gets --fault")
+    ap.add_argument("--fault", default="invalid_json", choices=FAULTS)
+    ap.add_argument("--reject-schema", action="store_true", help="answer HTTP 400 to requests with a schema")
+    a = ap.parse_args()
+    srv = FakeVLMServer(port=a.port, fault_every=a.fault_every, periodic_fault=a.fault,
+                        reject_schema=a.reject_schema).start()
     print(f"OpenAI-compatible: {srv.openai_base_url}   Anthropic: {srv.anthropic_base_url}", flush=True)
     try:
         while True:

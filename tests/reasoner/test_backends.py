@@ -191,3 +191,12 @@ def test_each_variant_answers_in_its_format_under_its_schema(variant: str, vlm: 
                    for a in answers)
     props = vlm.schemas[n0]["properties"]
     assert ("drt" in props) == (variant.startswith("drt") or variant == "full")
+
+
+def test_standing_fault_schedule() -> None:
+    """The schedule of the committed variants run (every 20th answer truncated), reproducible from the repo."""
+    with FakeVLMServer(fault_every=3) as srv:
+        final, steps = run(settings_for("openai", srv), world())
+    calls = [c for s in steps for c in s.calls]
+    assert final.state is TaskState.SUCCEEDED
+    assert [i for i, c in enumerate(calls, 1) if not c.valid] == [i for i in range(1, len(calls) + 1) if i % 3 == 0]
