@@ -9,10 +9,12 @@ PY="${PY:-.venv/bin/python}"
 OUT="${1:-runs/eval-variants}"
 shift || true
 PORT="$("$PY" -c 'import socket; s = socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])')"
-"$PY" -m tests.reasoner.fake_vlm --port "$PORT" --fault-every 20 --fault invalid_json &
+LOG="$(mktemp)"
+"$PY" -m tests.reasoner.fake_vlm --port "$PORT" --fault-every 20 --fault invalid_json >"$LOG" 2>&1 &
 SERVER=$!
-trap 'kill -INT "$SERVER" 2>/dev/null || true; wait "$SERVER" 2>/dev/null || true' EXIT
-sleep 3
+trap 'kill -INT "$SERVER" 2>/dev/null || true; wait "$SERVER" 2>/dev/null || true; rm -f "$LOG"' EXIT
+for _ in $(seq 120); do grep -q "OpenAI-compatible" "$LOG" && break; sleep 0.5; done
+grep -q "OpenAI-compatible" "$LOG" || { cat "$LOG"; echo "the test server did not start" >&2; exit 1; }
 AERMANI_REASONER_API_KEY=none "$PY" -m shared.cli eval --backend openai --model fake-vlm \
   --base-url "http://127.0.0.1:$PORT/v1" --variant unstructured,no_drt,drt_v1,drt_v2,drt_v3,full --episodes 1 \
   --parallel 3 --t-max 300 --out "$OUT" \
