@@ -110,11 +110,13 @@ def _object_spans(text: str, quotes: str, work: Work) -> list[tuple[int, int]]:
                 stack.pop()
         elif stack and c in quotes:
             quote = c
-    pairs.sort()
+    # `pairs` is in closing order and brackets nest, so walking it backwards a pair is outermost exactly when it
+    # ends before the start of the last outermost one kept (otherwise that one contains it): linear, no sort.
     out: list[tuple[int, int]] = []
-    for start, end in pairs:  # keep those not inside an earlier kept one
-        if not out or start >= out[-1][1]:
+    for start, end in reversed(pairs):
+        if not out or end <= out[-1][0]:
             out.append((start, end))
+    out.reverse()
     return out
 
 
