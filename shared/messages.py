@@ -601,6 +601,10 @@ class ModelCall(Part):
     """Prompt tokens, when the backend reports them."""
     tokens_out: int | None = None
     """Answer tokens, when the backend reports them."""
+    structured: bool = False
+    """The answer was decoded under the answer's JSON schema (schema-constrained output), not free text."""
+    tokens_cached: int | None = None
+    """Prompt tokens the server read from its prompt cache, when it reports them."""
 
 
 class ReasoningStep(Message):

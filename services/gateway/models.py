@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
@@ -49,8 +49,9 @@ class TaskCreate(ApiModel):
     """Natural-language command (printable text, at most 500 characters)."""
     vehicle_id: str | None = Field(None, pattern=VEHICLE_ID_PATTERN)
     """Target vehicle; omitted picks the gateway's default vehicle, or the only one whose reasoner is alive."""
-    backend: Literal["rules", "openai", "anthropic", "replay"] | None = None
-    """Override of the reasoner's policy backend."""
+    backend: str | None = Field(None, pattern=r"^[a-z][a-z0-9_]{0,31}$")
+    """Override of the reasoner's policy backend: a kind registered in the reasoner (`aermani vlm backends`);
+    the reasoner refuses an unknown one, or one it cannot build, with the reason (409)."""
     variant: Variant | None = None
     """Override of the prompt variant."""
     t_max_s: float | None = Field(None, gt=0, le=3600)

@@ -250,12 +250,14 @@ class TaskRunner:
             try:
                 parsed = parse_answer(reply.text, self.variant, library, coverage=self.settings.prediction_coverage)
                 calls.append(ModelCall(raw_answer=reply.text, valid=True, latency_s=reply.latency_s,
-                                       tokens_in=reply.tokens_in, tokens_out=reply.tokens_out))
+                                       tokens_in=reply.tokens_in, tokens_out=reply.tokens_out,
+                                       structured=reply.structured, tokens_cached=reply.cached_tokens))
                 break
             except InvalidAnswer as exc:
                 self.invalid += 1
                 calls.append(ModelCall(raw_answer=reply.text, valid=False, error=str(exc), latency_s=reply.latency_s,
-                                       tokens_in=reply.tokens_in, tokens_out=reply.tokens_out))
+                                       tokens_in=reply.tokens_in, tokens_out=reply.tokens_out,
+                                       structured=reply.structured, tokens_cached=reply.cached_tokens))
                 feedback.append((reply.text, str(exc)))
                 log.info("invalid answer (step %d): %s", self.steps, exc)
         rec = ReasoningStep(

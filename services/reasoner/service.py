@@ -8,6 +8,7 @@ import logging
 
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 
+from services.reasoner import tracing
 from services.reasoner.backends import Backend, make_backend
 from services.reasoner.loop import TaskRunner, World
 from services.reasoner.prompt import Observation
@@ -129,6 +130,7 @@ class Reasoner:
             if backend is not self.default_backend:
                 with contextlib.suppress(Exception):
                     await backend.aclose()
+            await asyncio.to_thread(tracing.flush)  # a no-op unless AERMANI_REASONER_OTLP_ENDPOINT is set
 
     def _pub_step(self, rec) -> None:
         self.bus.publish(self.settings.keys.reasoning_step, rec)
@@ -160,6 +162,7 @@ class Reasoner:
             with contextlib.suppress(Exception):
                 await asyncio.wait_for(self.current[1], 5.0)
         await self.default_backend.aclose()
+        await asyncio.to_thread(tracing.flush)
 
 
 async def run(bus: Bus, settings: ReasonerSettings, stop: asyncio.Event) -> None:
