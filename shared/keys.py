@@ -17,6 +17,8 @@ from pydantic import BaseModel
 from shared.messages import (
     Abort,
     AbortAck,
+    ApprovalDecision,
+    ApprovalStatus,
     AutopilotCommand,
     AutopilotResult,
     CancelGoal,
@@ -279,6 +281,11 @@ REASONER_STEP: Topic[ReasoningStep] = Topic(
     "reasoner/step", ReasoningStep, "every reasoning step: DRT, STE, raw answer, latency", "reasoner")
 REASONER_TASK_STATUS: Topic[TaskStatus] = Topic(
     "reasoner/task_status", TaskStatus, "feedback and result of each task", "reasoner")
+REASONER_APPROVAL: Topic[ApprovalStatus] = Topic(
+    "reasoner/approval", ApprovalStatus, "operator approval of a critical skill: pending, then decided",
+    "reasoner")
+REASONER_DECIDE_APPROVAL: Query[ApprovalDecision, CancelReply] = Query(
+    "reasoner/decide_approval", ApprovalDecision, CancelReply, "approve or reject a pending skill", "reasoner")
 SAFETY_ABORT: Topic[Abort] = Topic("safety/abort", Abort, "stop: hold and end the task (anyone)", "any")
 SAFETY_ABORT_ACK: Topic[AbortAck] = Topic(
     "safety/abort_ack", AbortAck, "an abort was obeyed (vehicle commanded to hold)", "executor")
@@ -290,7 +297,7 @@ DECLARATIONS: tuple[Topic[Any] | Query[Any, Any] | Token, ...] = (
     SIM_STATS, SIM_RESET_NOTICE, AUTOPILOT_STATE, AUTOPILOT_COMMAND, PERCEPTION_LOCALIZE_OBJECT,
     PERCEPTION_LOCALIZE_PLACEMENT, PERCEPTION_DETECTIONS, EXECUTOR_RUN_SKILL, EXECUTOR_CANCEL_SKILL,
     EXECUTOR_SKILL_STATUS, EXECUTOR_SKILLS, EXECUTOR_MEMORY, REASONER_START_TASK, REASONER_CANCEL_TASK, REASONER_STEP,
-    REASONER_TASK_STATUS, SAFETY_ABORT, SAFETY_ABORT_ACK, HEALTH_TOPIC, ALIVE_TOKEN,
+    REASONER_TASK_STATUS, REASONER_APPROVAL, REASONER_DECIDE_APPROVAL, SAFETY_ABORT, SAFETY_ABORT_ACK, HEALTH_TOPIC, ALIVE_TOKEN,
 )
 BY_NAME: dict[str, Topic[Any] | Query[Any, Any] | Token] = {d.name: d for d in DECLARATIONS}
 
@@ -358,6 +365,8 @@ class Keys:
     cancel_task = _QueryOn(REASONER_CANCEL_TASK)
     reasoning_step = _TopicOn(REASONER_STEP)
     task_status = _TopicOn(REASONER_TASK_STATUS)
+    approval = _TopicOn(REASONER_APPROVAL)
+    decide_approval = _QueryOn(REASONER_DECIDE_APPROVAL)
     abort = _TopicOn(SAFETY_ABORT)
     abort_ack = _TopicOn(SAFETY_ABORT_ACK)
 

@@ -19,6 +19,7 @@ from shared.keys import (
     CAMERA_COLOR,
     EXECUTOR_SKILL_STATUS,
     PERCEPTION_DETECTIONS,
+    REASONER_APPROVAL,
     REASONER_STEP,
     REASONER_TASK_STATUS,
     ROOT,
@@ -29,6 +30,8 @@ from shared.keys import (
 )
 from shared.messages import (
     AbortAck,
+    ApprovalState,
+    ApprovalStatus,
     Detections,
     ReasoningStep,
     SkillStatus,
@@ -68,6 +71,8 @@ class VehicleView:
     state_ns: int = 0
     frame: Frame | None = None
     detections: Detections | None = None
+    approvals: dict[str, ApprovalStatus] = field(default_factory=dict)
+    """Pending operator approvals by id (decided or expired ones are dropped)."""
     acks: list[AbortAck] = field(default_factory=list)
 
     @property
@@ -130,6 +135,7 @@ class Fleet:
         sub(CAMERA_COLOR, self._on_frame, maxsize=2)
         sub(SAFETY_ABORT_ACK, self._on_ack, maxsize=100)
         sub(PERCEPTION_DETECTIONS, self._on_detections, maxsize=4)
+        sub(REASONER_APPROVAL, self._on_approval, maxsize=100)
         queue = self.bus.watch_liveliness(f"{ROOT}/*/{ALIVE}/*", history=True)
         self._tasks.append(asyncio.create_task(self._liveliness(queue), name="gateway.liveliness"))
 
@@ -228,6 +234,22 @@ class Fleet:
         self.view(vehicle_of(key)).frame = Frame(payload, time.time_ns(), self.frame_seq)
         async with self.changed:
             self.changed.notify_all()
+
+    async def _on_approval(self, key: str, st: ApprovalStatus) -> None:
+        v = self.view(vehicle_of(key))
+        if st.state is ApprovalState.PENDING:
+            v.approvals[st.approval_id] = st
+        else:
+            v.approvals.pop(st.approval_id, None)
+        async with self.changed:
+            self.changed.notify_all()
+
+    def pending_approvals(self) -> list[ApprovalStatus]:
+        """Every pending approval of the fleet, oldest first (expired ones the reasoner did not report yet are
+        left out)."""
+        now = time.time_ns()
+        out = [a for v in self.vehicles.values() for a in v.approvals.values() if not a.expires_ns or a.expires_ns > now]
+        return sorted(out, key=lambda a: a.stamp_ns)
 
     async def _on_detections(self, key: str, dets: Detections) -> None:
         self.view(vehicle_of(key)).detections = dets

@@ -288,3 +288,41 @@ class SkillRunOut(ApiModel):
     """The executor's explanation."""
     perceived: str = ""
     """What perception reported during the skill."""
+
+
+class ApprovalOut(ApiModel):
+    """A skill waiting for the operator (see shared.messages.ApprovalStatus)."""
+
+    approval_id: str
+    vehicle_id: str
+    task_id: str
+    step: int
+    skill: str
+    argument: str | None = None
+    reasoning: str = ""
+    """Why the policy chose it."""
+    stamp_ns: int
+    expires_ns: int = 0
+    """When it expires (the vehicle then holds and the step fails)."""
+
+
+class ApprovalDecisionIn(ApiModel):
+    """The operator's decision."""
+
+    model_config = ConfigDict(extra="forbid", use_attribute_docstrings=True,
+                              json_schema_extra={"examples": [{"approve": False, "reason": "wrong cup"}]})
+
+    approve: bool
+    """True runs the skill; False makes the policy choose again."""
+    reason: str = Field("", max_length=300)
+    """Why (the policy reads it on a rejection)."""
+    operator: str = Field("operator", min_length=1, max_length=64)
+    """Who decides."""
+
+
+class ApprovalDecisionOut(ApiModel):
+    """The decision was delivered to the reasoner."""
+
+    approval_id: str
+    vehicle_id: str
+    approved: bool

@@ -122,6 +122,19 @@ def build_server(settings: McpSettings) -> MCPServer:
         r = await gw.call("GET", f"/vehicles/{vehicle}/camera.jpg")
         return Image(data=r.content, format="jpeg")
 
+    @server.tool()
+    async def list_approvals() -> list[dict[str, Any]]:
+        """Skills the on-board policy chose that wait for an operator's approval (set per vehicle and skill
+        class on the reasoner), with the policy's reasoning and when the request expires."""
+        return list(await gw.json("GET", "/approvals"))
+
+    @server.tool()
+    async def decide_approval(approval_id: str, approve: bool, reason: str = "") -> dict[str, Any]:
+        """Approve (the skill runs) or reject (the policy reads your reason and chooses again) a pending
+        approval."""
+        return dict(await gw.json("POST", f"/approvals/{approval_id}",
+                                  json={"approve": approve, "reason": reason, "operator": "mcp"}))
+
     if settings.allow_skills:
         @server.tool()
         async def run_skill(skill: str, argument: str | None = None, vehicle: str = "am1") -> dict[str, Any]:

@@ -63,6 +63,11 @@ class ReasonerSettings(ServiceSettings):
     """Character budget of the History part; the oldest entries are condensed, then dropped, to stay under."""
     prediction_coverage: float = Field(1.0, ge=0.0, le=1.0)
     """Fraction of the available skills the DRT's action predictions must cover (paper: every skill)."""
+    approval: list[str] = []
+    """Skills that wait for an operator's approval before they run: skill names (`grasp`, `takeoff`) or
+    categories (`motion`, `manipulation`, `perception`), e.g. `["grasp", "place"]`. Empty: none."""
+    approval_timeout_s: float = Field(120.0, gt=0)
+    """How long a skill waits for the operator; then the vehicle holds and the step fails."""
     skill_timeout_s: float = Field(180.0, gt=0)
     """Longest wait for one skill's terminal status before the reasoner holds and records a timeout."""
     frame_wait_s: float = Field(1.0, ge=0)

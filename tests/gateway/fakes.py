@@ -19,6 +19,9 @@ from shared.keys import Keys
 from shared.messages import (
     Abort,
     AbortAck,
+    ApprovalDecision,
+    ApprovalState,
+    ApprovalStatus,
     CancelGoal,
     CancelReply,
     DescriptiveReasoningTrace,
@@ -61,6 +64,8 @@ class FakeVehicle:
         self.current_req: TaskRequest | None = None
         self.aborts: list[Abort] = []
         self.frames = 0
+        self.decisions: list[ApprovalDecision] = []
+        self._pending: dict[str, asyncio.Future[ApprovalDecision]] = {}
         self._tasks: list[asyncio.Task] = []
 
     async def start(self) -> None:
@@ -68,6 +73,7 @@ class FakeVehicle:
             self.bus.declare_token(self.keys.alive(s))
         self.bus.serve(self.keys.start_task, self._start)
         self.bus.serve(self.keys.cancel_task, self._cancel)
+        self.bus.serve(self.keys.decide_approval, self._decide)
         if "executor" in self.services:
             self.bus.serve(self.keys.skills, self._skills)
         sub = self.bus.subscribe(self.keys.abort)
@@ -105,6 +111,30 @@ class FakeVehicle:
         self.bus.publish(self.keys.task_status, self.status(self.current_req, TaskState.ABORTED, 0, req.reason))
         return CancelReply(accepted=True)
 
+    async def _decide(self, d: ApprovalDecision) -> CancelReply:
+        fut = self._pending.pop(d.approval_id, None)
+        if fut is None or fut.done():
+            return CancelReply(accepted=False, reason=f"approval {d.approval_id} is not pending")
+        fut.set_result(d)
+        return CancelReply(accepted=True)
+
+    async def _approved(self, req: TaskRequest, step: int, skill: str) -> None:
+        """Like the reasoner with approval on: wait for the operator; a rejection makes it ask again (the
+        policy chooses the same skill again here)."""
+        while True:
+            ask = ApprovalStatus(vehicle_id=self.vehicle_id, task_id=req.task_id, step=step, skill=skill,
+                                 reasoning=f"{skill} is the next step of the plan",
+                                 expires_ns=time.time_ns() + 60_000_000_000)
+            fut: asyncio.Future[ApprovalDecision] = asyncio.get_running_loop().create_future()
+            self._pending[ask.approval_id] = fut
+            self.bus.publish(self.keys.approval, ask)
+            d = await fut
+            self.decisions.append(d)
+            self.bus.publish(self.keys.approval, ask.model_copy(update={
+                "state": ApprovalState.APPROVED if d.approved else ApprovalState.REJECTED, "reason": d.reason}))
+            if d.approved:
+                return
+
     async def _run_task(self, req: TaskRequest) -> None:
         self.bus.publish(self.keys.task_status, self.status(req, TaskState.RUNNING, 0))
         endless = "until abort" in req.command
@@ -113,6 +143,8 @@ class FakeVehicle:
             step += 1
             await asyncio.sleep(self.step_delay_s)
             skill = SKILLS[(step - 1) % len(SKILLS)]
+            if "with approval" in req.command and skill == "grasp":
+                await self._approved(req, step, skill)
             goal = new_id("goal-")
             started = time.time_ns()
             self.bus.publish(self.keys.skill_status, SkillStatus(goal_id=goal, task_id=req.task_id, step=step,

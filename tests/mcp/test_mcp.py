@@ -150,3 +150,40 @@ def test_refuses_an_open_http_bind_without_a_token():
 
     with pytest.raises(ConfigError, match="AERMANI_MCP_TOKEN"):
         McpSettings(transport="http", host="0.0.0.0").check_safe()
+
+
+def test_stdio_client_decides_approvals(tmp_path):
+    h = Harness(tmp_path, gateway_settings={"token": GW_TOKEN}, steps=5, step_delay_s=0.2).start()
+    params = StdioServerParameters(command=sys.executable, args=["-m", "shared.cli", "mcp"], env=_env(h))
+
+    async def pending(client: Client) -> list[dict]:
+        deadline = time.monotonic() + 30
+        while True:
+            items = _json(await client.call_tool("list_approvals", {}))
+            if items:
+                return items
+            assert time.monotonic() < deadline, "no approval request appeared"
+            await asyncio.sleep(0.2)
+
+    async def main():
+        async with Client(params) as client:
+            started = _json(await client.call_tool("start_task", {"command": "pick up the red cup with approval"}))
+            first = (await pending(client))[0]
+            assert first["skill"] == "grasp" and first["reasoning"]
+            out = _json(await client.call_tool("decide_approval", {"approval_id": first["approval_id"],
+                                                                  "approve": False, "reason": "not that one"}))
+            assert out["approved"] is False
+            again = await client.call_tool("decide_approval", {"approval_id": first["approval_id"], "approve": True})
+            assert again.is_error  # decided once
+            second = (await pending(client))[0]
+            assert second["approval_id"] != first["approval_id"]
+            _json(await client.call_tool("decide_approval", {"approval_id": second["approval_id"], "approve": True}))
+            final = await _wait_state(client, started["task_id"], {"succeeded", "failed", "aborted", "timeout"})
+            assert final["state"] == "succeeded"
+
+    try:
+        asyncio.run(asyncio.wait_for(main(), 120))
+        assert [(d.approved, d.reason, d.operator) for d in h.fake.decisions] == [(False, "not that one", "mcp"),
+                                                                                  (True, "", "mcp")]
+    finally:
+        h.stop()
