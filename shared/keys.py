@@ -48,6 +48,8 @@ from shared.messages import (
 
 ROOT = "aermani/v1"
 DEFAULT_VEHICLE_ID = "am1"
+FLEET_ID = "fleet"
+"""Reserved in place of a vehicle id: keys under `aermani/v1/fleet/` address every vehicle at once."""
 ALIVE = "alive"
 HEALTH = "health"
 
@@ -292,6 +294,9 @@ SAFETY_ABORT_ACK: Topic[AbortAck] = Topic(
 HEALTH_TOPIC: Topic[Health] = Topic(f"{HEALTH}/{{service}}", Health, "a service's health, 1 Hz", "every service")
 ALIVE_TOKEN = Token(f"{ALIVE}/{{service}}", "presence of a service", "every service")
 
+FLEET_ABORT: BoundTopic[Abort] = BoundTopic(f"{ROOT}/{FLEET_ID}/{SAFETY_ABORT.name}", SAFETY_ABORT)
+"""The fleet-wide abort: every vehicle's executor, bridge and reasoner obey it as their own."""
+
 DECLARATIONS: tuple[Topic[Any] | Query[Any, Any] | Token, ...] = (
     CAMERA_COLOR, CAMERA_DEPTH, CAMERA_CALIBRATION, CAMERA_SEGMENTATION, TF, SIM_LABELS, SIM_JUDGE, SIM_RESET,
     SIM_STATS, SIM_RESET_NOTICE, AUTOPILOT_STATE, AUTOPILOT_COMMAND, PERCEPTION_LOCALIZE_OBJECT,
@@ -305,6 +310,8 @@ BY_NAME: dict[str, Topic[Any] | Query[Any, Any] | Token] = {d.name: d for d in D
 def vehicle_prefix(vehicle_id: str = DEFAULT_VEHICLE_ID) -> str:
     if not vehicle_id or "/" in vehicle_id or any(c in vehicle_id for c in "*$?#"):
         raise ValueError(f"invalid vehicle id {vehicle_id!r}: use letters, digits, '-' or '_'")
+    if vehicle_id == FLEET_ID:
+        raise ValueError(f"vehicle id {FLEET_ID!r} is reserved for fleet-wide keys (aermani/v1/{FLEET_ID}/...)")
     return f"{ROOT}/{vehicle_id}"
 
 

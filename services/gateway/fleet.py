@@ -18,6 +18,7 @@ from shared.keys import (
     AUTOPILOT_STATE,
     CAMERA_COLOR,
     EXECUTOR_SKILL_STATUS,
+    FLEET_ABORT,
     PERCEPTION_DETECTIONS,
     REASONER_APPROVAL,
     REASONER_STEP,
@@ -288,13 +289,18 @@ class Fleet:
     # ---- commands
 
     async def abort(self, vehicles: list[str], reason: str, task_id: str | None,
-                    wait_s: float) -> dict[str, str]:
-        """Publish an Abort to each vehicle; return {vehicle: executor's ack message} for those that
-        acknowledged within `wait_s`."""
+                    wait_s: float, *, fleet_wide: bool = False) -> dict[str, str]:
+        """Publish an Abort to each vehicle (or one on the fleet-wide key, which every vehicle obeys, even one
+        the gateway has not seen yet); return {vehicle: executor's ack message} for those that acknowledged
+        within `wait_s`."""
         from shared.messages import Abort
 
         stamps: dict[str, int] = {}
-        for vid in vehicles:
+        if fleet_wide:
+            msg = Abort(reason=reason, source="gateway")
+            self.bus.publish(FLEET_ABORT, msg)
+            stamps = dict.fromkeys(vehicles, msg.stamp_ns)
+        for vid in [] if fleet_wide else vehicles:
             msg = Abort(reason=reason, source="gateway", task_id=task_id)
             stamps[vid] = msg.stamp_ns
             self.bus.publish(Keys(vid).abort, msg)

@@ -14,8 +14,9 @@ from services.reasoner.loop import TaskRunner, World
 from services.reasoner.prompt import Observation
 from services.reasoner.settings import ReasonerSettings
 from shared.action import skill_client
-from shared.bus import Bus, Latest
+from shared.bus import Bus, Latest, Subscription
 from shared.errors import ConfigError
+from shared.keys import FLEET_ABORT
 from shared.messages import (
     Abort,
     ApprovalDecision,
@@ -202,22 +203,23 @@ class Reasoner:
 
 async def run(bus: Bus, settings: ReasonerSettings, stop: asyncio.Event) -> None:
     reasoner = Reasoner(bus, settings)
-    aborts = bus.subscribe(settings.keys.abort, maxsize=50)
+    aborts = [bus.subscribe(settings.keys.abort, maxsize=50), bus.subscribe(FLEET_ABORT, maxsize=50)]
     bus.serve(settings.keys.start_task, reasoner.start_task)
     bus.serve(settings.keys.cancel_task, reasoner.cancel_task)
     if isinstance(reasoner.world, BusWorld):
         bus.serve(settings.keys.decide_approval, reasoner.world.decide)
     log.info("reasoner ready: backend %s, variant %s", reasoner.default_backend.name, settings.variant)
 
-    async def abort_loop() -> None:
+    async def abort_loop(sub: Subscription[Abort]) -> None:
         while True:
-            reasoner.on_abort(await aborts.recv())
+            reasoner.on_abort(await sub.recv())
 
     try:
         async with asyncio.TaskGroup() as tg:
             if isinstance(reasoner.world, BusWorld):
                 tg.create_task(reasoner.world.pump())
-            tg.create_task(abort_loop())
+            for sub in aborts:
+                tg.create_task(abort_loop(sub))
             await stop.wait()
             raise _Stop
     except* _Stop:

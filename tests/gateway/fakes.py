@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from shared.bus import Bus
-from shared.keys import Keys
+from shared.keys import FLEET_ABORT, Keys
 from shared.messages import (
     Abort,
     AbortAck,
@@ -76,8 +76,9 @@ class FakeVehicle:
         self.bus.serve(self.keys.decide_approval, self._decide)
         if "executor" in self.services:
             self.bus.serve(self.keys.skills, self._skills)
-        sub = self.bus.subscribe(self.keys.abort)
-        self._tasks += [asyncio.create_task(self._aborts(sub)), asyncio.create_task(self._publish_sensors())]
+        self._tasks += [asyncio.create_task(self._aborts(self.bus.subscribe(key))) for key in (self.keys.abort,
+                                                                                                FLEET_ABORT)]
+        self._tasks.append(asyncio.create_task(self._publish_sensors()))
 
     async def stop(self) -> None:
         for t in [*self._tasks, *([self.current] if self.current else [])]:

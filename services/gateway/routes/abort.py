@@ -25,5 +25,6 @@ async def abort_all(fleet: FleetDep, settings: SettingsDep, body: AbortIn | None
     if not vehicles:
         raise ApiError(503, "no vehicle is on the bus: nothing to abort")
     reason = req.reason
-    acked = await fleet.abort(vehicles, reason, None, settings.abort_ack_timeout_s)
+    acked = await fleet.abort(vehicles, reason, None, settings.abort_ack_timeout_s,
+                              fleet_wide=req.vehicle_id is None)
     return AbortOut(vehicles=vehicles, acknowledged=sorted(acked), messages=acked)
