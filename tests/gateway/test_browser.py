@@ -63,6 +63,11 @@ def test_page_runs_a_task_and_aborts(page_url) -> None:
             expect(page.locator("#task-state")).to_have_text("aborted", timeout=30_000)
             expect(page.locator("#message")).to_contain_text(re.compile("acknowledged by am1|aborted: abort button"))
             assert h.fake.aborts and h.fake.aborts[-1].reason == "abort button"
+            # ABORT ALL VEHICLES: one fleet-wide publication, acknowledged by the vehicle.
+            page.click("#abort-all")
+            expect(page.locator("#message")).to_contain_text("fleet abort sent (1 vehicles); acknowledged by am1",
+                                                             timeout=10_000)
+            assert h.fake.aborts[-1].reason == "abort-all button" and h.fake.aborts[-1].task_id is None
             assert errors == []
         finally:
             browser.close()

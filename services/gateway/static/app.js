@@ -54,6 +54,13 @@ $("abort").addEventListener("click", async () => {
   } catch (e) { say(`abort failed: ${e.message}`, true); }
 });
 
+$("abort-all").addEventListener("click", async () => {
+  try {
+    const out = await api("POST", "/abort", { reason: "abort-all button" });
+    say(`fleet abort sent (${out.vehicles.length} vehicles); acknowledged by ${out.acknowledged.join(", ") || "nobody yet"}`);
+  } catch (e) { say(`abort failed: ${e.message}`, true); }
+});
+
 const isTerminal = (s) => ["succeeded", "failed", "aborted", "timeout"].includes(s);
 
 // ---- the event stream (fetch, not EventSource: EventSource cannot send the Authorization header)
