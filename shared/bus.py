@@ -142,6 +142,29 @@ def decoder(model: type[T] | Any | None) -> Callable[[bytes], T]:
     return _Decoder(model)
 
 
+@dataclass(frozen=True)
+class Caller:
+    """Who sent a query, as the querier's attachment claims it: its service name and Zenoh session id.
+    Not authenticated by itself (the routers' access control decides who may query at all); logged so that
+    every command can be traced to a session."""
+
+    sender: str = "unknown"
+    zid: str = ""
+
+    @classmethod
+    def from_attachment(cls, data: bytes | None) -> Caller:
+        if not data:
+            return cls("unknown (no attachment)")
+        try:
+            obj = json.loads(data)
+            return cls(str(obj.get("sender", "unknown"))[:64], str(obj.get("zid", ""))[:64])
+        except (ValueError, AttributeError):
+            return cls(f"unknown (attachment {bytes(data[:32])!r})")
+
+    def __str__(self) -> str:
+        return f"{self.sender} (zid {self.zid or '?'})"
+
+
 # --------------------------------------------------------------------------- subscription
 
 
@@ -263,6 +286,8 @@ class Bus:
         self._tasks: set[asyncio.Task] = set()
         self._closed = False
         self._lock = threading.Lock()
+        self.name = ""
+        """This service's name, sent with every query so queryables can log who asked (see Caller)."""
 
     # ---- lifecycle
 
@@ -408,7 +433,7 @@ class Bus:
         def on_done() -> None:
             self._to_loop(finish)
 
-        kwargs: dict[str, Any] = {"timeout": timeout}
+        kwargs: dict[str, Any] = {"timeout": timeout, "attachment": self._caller_attachment()}
         if request is not None:
             data, enc = encode(request, schema)
             kwargs.update(payload=data, encoding=enc)
@@ -418,15 +443,21 @@ class Bus:
         except TimeoutError:
             raise QueryTimeout(f"query {key} timed out after {timeout:.1f} s")
 
-    def serve(self, key: str, handler: Callable[[Any], Awaitable[Any]], request_model: type | Any | None = None,
-              *, concurrent: bool = True) -> Any:
+    def _caller_attachment(self) -> bytes:
+        with contextlib.suppress(Exception):
+            return json.dumps({"sender": self.name or "anonymous", "zid": str(self.session.zid())}).encode()
+        return b""
+
+    def serve(self, key: str, handler: Callable[..., Awaitable[Any]], request_model: type | Any | None = None,
+              *, concurrent: bool = True, with_caller: bool = False) -> Any:
         """Declare a queryable on `key`. `handler(request)` runs on the loop; its return value (model,
         protobuf, bytes) is the reply. A malformed request gets an error reply naming the problem and the
-        handler is not called; an exception in the handler becomes an error reply, never a crash."""
+        handler is not called; an exception in the handler becomes an error reply, never a crash.
+        With `with_caller`, the handler is called as `handler(request, caller)` with the querier's Caller."""
         decode = decoder(request_model)
         lock = asyncio.Lock()
 
-        async def answer(query: zenoh.Query, data: bytes | None) -> None:
+        async def answer(query: zenoh.Query, data: bytes | None, attachment: bytes | None) -> None:
             try:
                 try:
                     if request_model is None:
@@ -440,12 +471,13 @@ class Bus:
                     log.warning("rejected malformed query on %s: %s", key, exc)
                     query.reply_err(json.dumps({"error": str(exc)}).encode())
                     return
+                args = (req, Caller.from_attachment(attachment)) if with_caller else (req,)
                 try:
                     if concurrent:
-                        result = await handler(req)
+                        result = await handler(*args)
                     else:
                         async with lock:
-                            result = await handler(req)
+                            result = await handler(*args)
                 except asyncio.CancelledError:
                     query.reply_err(b'{"error": "service is shutting down"}')
                     raise
@@ -459,14 +491,16 @@ class Bus:
                 with contextlib.suppress(Exception):
                     query.drop()
 
-        def start(query: zenoh.Query, data: bytes | None) -> None:
-            task = self.loop.create_task(answer(query, data))
+        def start(query: zenoh.Query, data: bytes | None, attachment: bytes | None) -> None:
+            task = self.loop.create_task(answer(query, data, attachment))
             self._tasks.add(task)
             task.add_done_callback(self._tasks.discard)
 
         def on_query(query: zenoh.Query) -> None:
             payload = query.payload
-            self._to_loop(start, query, payload.to_bytes() if payload is not None else None)
+            attachment = query.attachment
+            self._to_loop(start, query, payload.to_bytes() if payload is not None else None,
+                          attachment.to_bytes() if attachment is not None else None)
 
         q = self.session.declare_queryable(key, on_query)
         self._declared.append(q)

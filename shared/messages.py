@@ -144,7 +144,10 @@ class ArmCommand(Message):
 class DisarmCommand(Message):
     kind: Literal["disarm"] = "disarm"
     force: bool = False
-    """Force disarm even in the air (emergency only)."""
+    """Force the disarm past PX4's pre-checks (on the ground)."""
+    kill: bool = False
+    """Required to disarm while airborne: the motors stop and the vehicle falls. Emergency only; the bridge
+    refuses an in-air disarm without it and logs every kill with its sender."""
 
 
 class TakeoffCommand(Message):

@@ -45,6 +45,7 @@ async def serve_forever(name: str, run: RunFn, settings: S, stop: asyncio.Event 
         return
     stopper.cancel()
     bus = opening.result()
+    bus.name = name
     try:
         if announce_at_start:
             announce(bus, settings, name)

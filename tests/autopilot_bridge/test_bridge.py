@@ -125,7 +125,9 @@ def test_takeoff_goto_hold_gripper_land_in_ned() -> None:
             await wait_until(lambda: math.isclose(bridge.state().yaw, 0.0, abs_tol=1e-6), 10, what="yaw ENU")
 
             res = await bridge.handle(GotoCommand(position=Vec3(x=3.0, y=2.0, z=1.2), yaw=1.0, max_speed=100.0))
-            assert res.ok and "3.00 m/s" in res.message  # clamped to settings.max_speed
+            assert not res.ok and "above the limit 1.00 m/s" in res.message  # the envelope's speed limit
+            res = await bridge.handle(GotoCommand(position=Vec3(x=3.0, y=2.0, z=1.2), yaw=1.0, max_speed=0.5))
+            assert res.ok and "0.50 m/s" in res.message
 
             res = await bridge.handle(HoldCommand())
             assert res.ok and "OFFBOARD" in res.message
