@@ -7,16 +7,26 @@ times in integer nanoseconds since the epoch. Every model has a `kind` literal (
 
 from __future__ import annotations
 
+import math
 import time
 import uuid
 from enum import StrEnum
 from typing import Annotated, Any, ClassVar, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
 SCHEMA_VERSION = 1
 MAX_COMMAND_CHARS = 500
 MAX_QUERY_CHARS = 200
+# Physical bounds: a value beyond them is a broken estimate or a forged message, never a state to act on.
+MAX_COORDINATE_M = 10_000.0
+"""Largest |x|, |y|, |z| of any position or extent, metres (a local frame of +-10 km)."""
+MAX_VEHICLE_SPEED_MS = 50.0
+"""Largest |velocity| component a multirotor state may report, m/s."""
+MAX_ANGLE_RAD = 2 * math.pi + 1e-6
+"""Largest |yaw|, |roll|, |pitch|, radians."""
+MAX_BATTERY_VOLTAGE_V = 100.0
+"""Largest battery voltage, volts (a 12S pack is ~50 V)."""
 
 
 def now_ns() -> int:
@@ -29,9 +39,9 @@ def new_id(prefix: str = "") -> str:
 
 
 class Message(BaseModel):
-    """Base of every bus message: frozen, strict about unknown fields, versioned."""
+    """Base of every bus message: frozen, strict about unknown fields, versioned, finite numbers only."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid", use_attribute_docstrings=True)
+    model_config = ConfigDict(frozen=True, extra="forbid", use_attribute_docstrings=True, allow_inf_nan=False)
     schema_name: ClassVar[str] = ""
 
     schema_version: int = SCHEMA_VERSION
@@ -46,18 +56,22 @@ class Message(BaseModel):
 class Part(BaseModel):
     """Base of nested value objects (not published on their own)."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid", use_attribute_docstrings=True)
+    model_config = ConfigDict(frozen=True, extra="forbid", use_attribute_docstrings=True, allow_inf_nan=False)
 
 
 # --------------------------------------------------------------------------- geometry
 
 
+_COORD = {"ge": -MAX_COORDINATE_M, "le": MAX_COORDINATE_M}
+_ANGLE = {"ge": -MAX_ANGLE_RAD, "le": MAX_ANGLE_RAD}
+
+
 class Vec3(Part):
-    x: float = 0.0
+    x: float = Field(0.0, **_COORD)
     """x in metres (world ENU: east/forward at start; body FLU: forward)."""
-    y: float = 0.0
+    y: float = Field(0.0, **_COORD)
     """y in metres (world ENU: north/left at start; body FLU: left)."""
-    z: float = 0.0
+    z: float = Field(0.0, **_COORD)
     """z in metres (up)."""
 
     def as_tuple(self) -> tuple[float, float, float]:
@@ -101,19 +115,19 @@ class GripperState(StrEnum):
 
 class VehicleState(Message):
     kind: Literal["vehicle_state"] = "vehicle_state"
-    stamp_ns: int = Field(default_factory=now_ns)
+    stamp_ns: int = Field(default_factory=now_ns, ge=0)
     """When the bridge produced this state (ns since epoch)."""
     vehicle_id: str = "am1"
     """Vehicle this state belongs to."""
     position: Vec3 = Vec3()
     """Body origin in the world frame (ENU), metres."""
     velocity: Vec3 = Vec3()
-    """Velocity in the world frame (ENU), m/s."""
-    yaw: float = 0.0
+    """Velocity in the world frame (ENU), m/s; each component within +-50 m/s."""
+    yaw: float = Field(0.0, **_ANGLE)
     """Heading, radians, ENU."""
-    roll: float = 0.0
+    roll: float = Field(0.0, **_ANGLE)
     """Roll, radians (FLU)."""
-    pitch: float = 0.0
+    pitch: float = Field(0.0, **_ANGLE)
     """Pitch, radians (FLU, positive nose up)."""
     armed: bool = False
     """Whether the motors are armed."""
@@ -121,9 +135,9 @@ class VehicleState(Message):
     """PX4 flight mode name, e.g. OFFBOARD, POSCTL, AUTO.TAKEOFF, AUTO.LOITER, AUTO.LAND."""
     landed_state: LandedState = LandedState.UNKNOWN
     """Landed state from EXTENDED_SYS_STATE."""
-    battery_voltage: float | None = None
+    battery_voltage: float | None = Field(None, ge=0.0, le=MAX_BATTERY_VOLTAGE_V)
     """Battery voltage in volts, if reported."""
-    battery_remaining: float | None = None
+    battery_remaining: float | None = Field(None, ge=0.0, le=100.0)
     """Battery remaining in percent (0-100), if reported."""
     gripper: GripperState = GripperState.UNKNOWN
     """Last commanded/acknowledged gripper state."""
@@ -131,10 +145,31 @@ class VehicleState(Message):
     """True while heartbeats arrive (none for 2 s means link lost)."""
     offboard_ok: bool = False
     """True while in OFFBOARD with the setpoint stream running."""
-    last_heartbeat_ns: int = 0
+    last_heartbeat_ns: int = Field(0, ge=0)
     """Receive time of the last autopilot HEARTBEAT."""
     message: str = ""
     """Latest human-readable status (STATUSTEXT, link loss...)."""
+
+    # What the bridge always sends: a state on the wire without these does not say where the vehicle is.
+    WIRE_FIELDS: ClassVar[tuple[str, ...]] = ("kind", "stamp_ns", "vehicle_id", "position", "velocity", "armed",
+                                              "landed_state", "link_ok")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _complete_on_the_wire(cls, data: Any, info: ValidationInfo) -> Any:
+        if info.mode == "json" and isinstance(data, dict):
+            missing = [f for f in cls.WIRE_FIELDS if f not in data]
+            if missing:
+                raise ValueError(f"a vehicle state on the bus must carry {list(cls.WIRE_FIELDS)}; missing {missing}")
+        return data
+
+    @field_validator("velocity")
+    @classmethod
+    def _physical_speed(cls, v: Vec3) -> Vec3:
+        if max(abs(v.x), abs(v.y), abs(v.z)) > MAX_VEHICLE_SPEED_MS:
+            raise ValueError(f"velocity ({v.x:.1f}, {v.y:.1f}, {v.z:.1f}) m/s exceeds {MAX_VEHICLE_SPEED_MS:.0f} m/s "
+                             "per axis: not a multirotor state")
+        return v
 
 
 class ArmCommand(Message):
@@ -162,7 +197,7 @@ class GotoCommand(Message):
     """Target position, world ENU, metres."""
     yaw: float
     """Target heading, radians ENU."""
-    max_speed: float | None = Field(None, gt=0.0)
+    max_speed: float | None = Field(None, gt=0.0, le=MAX_VEHICLE_SPEED_MS)
     """Optional speed limit for this motion, m/s (the bridge ramps the setpoint)."""
 
 

@@ -39,9 +39,10 @@ def test_page_runs_a_task_and_aborts(page_url) -> None:
             page.on("pageerror", lambda e: errors.append(str(e)))
             page.goto(url)
             expect = sync_api.expect
-            expect(page.locator("#vehicle option")).to_have_count(1, timeout=30_000)
+            # Fleet health needs the token too (it carries the vehicle's position): type it first.
             page.fill("#token", TOKEN)
             assert page.evaluate("sessionStorage.getItem('aermani.token')") == TOKEN
+            expect(page.locator("#vehicle option")).to_have_count(1, timeout=30_000)
 
             # The camera updates: two different frame stamps over time.
             page.wait_for_function("document.getElementById('camera').dataset.stamp", timeout=30_000)

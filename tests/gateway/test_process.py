@@ -56,7 +56,7 @@ class GatewayProcess:
         while True:
             assert self.proc.poll() is None, self.log.read_text()
             try:
-                h = httpx.get(f"{self.url}/health", timeout=5).json()
+                h = httpx.get(f"{self.url}/health", timeout=5, headers={"Authorization": f"Bearer {TOKEN}"}).json()
                 if any(v["services"].get("reasoner") for v in h["vehicles"]):
                     return
             except httpx.HTTPError:
