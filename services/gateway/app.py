@@ -66,7 +66,7 @@ def create_app(settings: GatewaySettings, bus: Bus | None = None) -> FastAPI:
                            allow_headers=["Authorization", "Content-Type", "Last-Event-ID"])
     app.include_router(live.router, prefix=API)
     for r in (tasks.router, abort.router, health.router, vehicles.router):
-        app.include_router(r, prefix=API, dependencies=[Authorized])
+        app.include_router(r, prefix=API, dependencies=[Authorized], responses=errors.responses(401))
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
     app.add_middleware(RequestGuard, settings=settings)
 
