@@ -15,6 +15,7 @@ Why each rule exists:
 from __future__ import annotations
 
 import json
+import logging
 from collections.abc import Awaitable, Callable, MutableMapping
 from typing import Any
 from urllib.parse import urlsplit
@@ -26,6 +27,8 @@ Message = MutableMapping[str, Any]
 Receive = Callable[[], Awaitable[Message]]
 Send = Callable[[Message], Awaitable[None]]
 ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
+
+log = logging.getLogger("aermani.gateway.guard")
 
 SAFE_METHODS = {"GET", "HEAD", "OPTIONS"}
 # Scripts, styles and images only from the gateway itself; camera frames are blob: URLs; no framing.
@@ -63,6 +66,7 @@ class RequestGuard:
         headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope.get("headers", [])}
         refusal = self.check(scope["method"], headers, scope.get("scheme", "http"))
         if refusal is not None:
+            log.warning("refused %s %s (%d): %s", scope["method"], scope.get("path", "")[:200], *refusal)
             await self._error(send, *refusal)
             return
         length = headers.get("content-length")
