@@ -62,16 +62,12 @@ class Part(BaseModel):
 # --------------------------------------------------------------------------- geometry
 
 
-_COORD = {"ge": -MAX_COORDINATE_M, "le": MAX_COORDINATE_M}
-_ANGLE = {"ge": -MAX_ANGLE_RAD, "le": MAX_ANGLE_RAD}
-
-
 class Vec3(Part):
-    x: float = Field(0.0, **_COORD)
+    x: float = Field(default=0.0, ge=-MAX_COORDINATE_M, le=MAX_COORDINATE_M)
     """x in metres (world ENU: east/forward at start; body FLU: forward)."""
-    y: float = Field(0.0, **_COORD)
+    y: float = Field(default=0.0, ge=-MAX_COORDINATE_M, le=MAX_COORDINATE_M)
     """y in metres (world ENU: north/left at start; body FLU: left)."""
-    z: float = Field(0.0, **_COORD)
+    z: float = Field(default=0.0, ge=-MAX_COORDINATE_M, le=MAX_COORDINATE_M)
     """z in metres (up)."""
 
     def as_tuple(self) -> tuple[float, float, float]:
@@ -123,11 +119,11 @@ class VehicleState(Message):
     """Body origin in the world frame (ENU), metres."""
     velocity: Vec3 = Vec3()
     """Velocity in the world frame (ENU), m/s; each component within +-50 m/s."""
-    yaw: float = Field(0.0, **_ANGLE)
+    yaw: float = Field(default=0.0, ge=-MAX_ANGLE_RAD, le=MAX_ANGLE_RAD)
     """Heading, radians, ENU."""
-    roll: float = Field(0.0, **_ANGLE)
+    roll: float = Field(default=0.0, ge=-MAX_ANGLE_RAD, le=MAX_ANGLE_RAD)
     """Roll, radians (FLU)."""
-    pitch: float = Field(0.0, **_ANGLE)
+    pitch: float = Field(default=0.0, ge=-MAX_ANGLE_RAD, le=MAX_ANGLE_RAD)
     """Pitch, radians (FLU, positive nose up)."""
     armed: bool = False
     """Whether the motors are armed."""

@@ -91,7 +91,10 @@ def init_certs(out_dir: str | Path, *, sans: list[str] | tuple[str, ...] = (), d
     if ca_from is not None:
         ca_dir = Path(ca_from)
         ca_cert = x509.load_pem_x509_certificate((ca_dir / "ca.pem").read_bytes())
-        ca_key = serialization.load_pem_private_key((ca_dir / "ca.key").read_bytes(), None)
+        loaded = serialization.load_pem_private_key((ca_dir / "ca.key").read_bytes(), None)
+        if not isinstance(loaded, ec.EllipticCurvePrivateKey):
+            raise ConfigError(f"{ca_dir / 'ca.key'} is not an EC private key made by `aermani certs init`")
+        ca_key = loaded
     else:
         ca_key = ec.generate_private_key(ec.SECP256R1())
         ca_subject = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, CA_NAME)])
@@ -131,7 +134,7 @@ def init_certs(out_dir: str | Path, *, sans: list[str] | tuple[str, ...] = (), d
             .add_extension(x509.ExtendedKeyUsage([ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH]),
                            critical=False)
             .add_extension(x509.SubjectAlternativeName(names), critical=False)
-            .add_extension(x509.AuthorityKeyIdentifier.from_issuer_public_key(ca_cert.public_key()), critical=False)
+            .add_extension(x509.AuthorityKeyIdentifier.from_issuer_public_key(ca_key.public_key()), critical=False)
             .sign(ca_key, hashes.SHA256())
         )
         files = cert_files(out, identity)
@@ -228,9 +231,9 @@ def client_config(certs_dir: str | Path, identity: str, connect: list[str], *,
     cfg.insert_json5("connect/endpoints", json.dumps(list(connect)))
     timeout_ms = -1 if connect_timeout_s is None else int(connect_timeout_s * 1000)
     cfg.insert_json5("connect/timeout_ms", json.dumps(timeout_ms))
-    tls = {"root_ca_certificate": files.ca, "connect_certificate": files.cert, "connect_private_key": files.key,
-           "enable_mtls": True, "verify_name_on_connect": False}
-    for field, value in tls.items():
-        cfg.insert_json5(f"transport/link/tls/{field}",
-                         json.dumps(value if isinstance(value, bool) else str(Path(value).resolve())))
+    paths = {"root_ca_certificate": files.ca, "connect_certificate": files.cert, "connect_private_key": files.key}
+    for field, path in paths.items():
+        cfg.insert_json5(f"transport/link/tls/{field}", json.dumps(str(path.resolve())))
+    cfg.insert_json5("transport/link/tls/enable_mtls", "true")
+    cfg.insert_json5("transport/link/tls/verify_name_on_connect", "false")
     return cfg
