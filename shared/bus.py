@@ -155,9 +155,12 @@ class Caller:
     def from_attachment(cls, data: bytes | None) -> Caller:
         if not data:
             return cls("unknown (no attachment)")
+        def clean(v: object) -> str:  # the text goes into logs: no newlines or control characters
+            return "".join(c for c in str(v)[:64] if c.isprintable())
+
         try:
             obj = json.loads(data)
-            return cls(str(obj.get("sender", "unknown"))[:64], str(obj.get("zid", ""))[:64])
+            return cls(clean(obj.get("sender", "unknown")), clean(obj.get("zid", "")))
         except (ValueError, AttributeError):
             return cls(f"unknown (attachment {bytes(data[:32])!r})")
 

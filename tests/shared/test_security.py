@@ -259,3 +259,38 @@ def test_secure_stack_real_bridge_obeys_the_ground_only(tmp_path):
     with stack:
         assert {("am1", "sim"), ("am1", "autopilot_bridge")} <= stack.alive()  # tokens cross the TLS link
         arun(main())
+
+
+def test_queries_carry_the_senders_name_and_session_id():
+    """What the bridge logs as a command's sender: the querier's Bus.name and Zenoh session id (claimed in
+    the query's attachment; sanitised for the log)."""
+    from shared.bus import Caller
+
+    port = free_port()
+    router = open_router(port)
+
+    async def main():
+        server = await Bus.open(connect=[f"tcp/127.0.0.1:{port}"])
+        client = await Bus.open(connect=[f"tcp/127.0.0.1:{port}"])
+        client.name = "executor"
+        seen: list[Caller] = []
+
+        async def handler(req, caller):
+            seen.append(caller)
+            return {"ok": True}
+
+        try:
+            server.serve("test/caller", handler, with_caller=True)
+            await asyncio.sleep(0.3)
+            await client.query("test/caller", {"x": 1}, timeout=3.0)
+            assert seen == [Caller("executor", str(client.session.zid()))]
+        finally:
+            await client.close()
+            await server.close()
+
+    try:
+        arun(main())
+    finally:
+        router.close()
+    assert str(Caller.from_attachment(b'{"sender": "a\\nINFO forged line", "zid": "z"}')) == "aINFO forged line (zid z)"
+    assert Caller.from_attachment(None).sender.startswith("unknown")
