@@ -294,3 +294,64 @@ def test_queries_carry_the_senders_name_and_session_id():
         router.close()
     assert str(Caller.from_attachment(b'{"sender": "a\\nINFO forged line", "zid": "z"}')) == "aINFO forged line (zid z)"
     assert Caller.from_attachment(None).sender.startswith("unknown")
+
+
+@pytest.mark.integration
+def test_router_command_used_by_compose(tmp_path, certs):
+    """`aermani router --role ground|drone` (the compose routers) as real processes: the drone router links
+    to the ground router over mutual TLS, the ground identity reaches the vehicle, a drone certificate does
+    not, and SIGTERM stops both cleanly."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    ground_local, tls, drone_local = free_port(), free_port(), free_port()
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    cmd = [sys.executable, "-m", "shared.cli", "router", "--certs", str(certs)]
+    procs = [subprocess.Popen([*cmd, "--role", "ground", "--local", f"tcp/127.0.0.1:{ground_local}",
+                               "--tls-listen", f"tls/127.0.0.1:{tls}"], env=env, cwd=root,
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True),
+             subprocess.Popen([*cmd, "--role", "drone", "--local", f"tcp/127.0.0.1:{drone_local}",
+                               "--connect", f"tls/127.0.0.1:{tls}"], env=env, cwd=root,
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)]
+
+    async def main():
+        bridge = await Bus.open(connect=[f"tcp/127.0.0.1:{drone_local}"], connect_timeout_s=20)
+        calls = []
+
+        async def handler(req):
+            calls.append(req)
+            return {"ok": True}
+
+        try:
+            bridge.serve(K.autopilot_command, handler)
+            ground = await Bus.open(config=client_config(certs, "ground", [f"tls/127.0.0.1:{tls}"],
+                                                         connect_timeout_s=20))
+            drone = await Bus.open(config=client_config(certs, "drone", [f"tls/127.0.0.1:{tls}"],
+                                                        connect_timeout_s=20))
+            try:
+                for _ in range(100):  # until the drone router's queryable has crossed the link
+                    with contextlib.suppress(NoResponder):
+                        await ground.query(K.autopilot_command, {"kind": "hold"}, timeout=1.0)
+                        break
+                    await asyncio.sleep(0.1)
+                assert calls, "the ground identity never reached the vehicle through the router processes"
+                await _refused(drone, K.autopilot_command)
+                assert len(calls) == 1
+            finally:
+                await ground.close()
+                await drone.close()
+        finally:
+            await bridge.close()
+
+    try:
+        arun(main())
+    finally:
+        for p in procs:
+            p.send_signal(signal.SIGTERM)
+        outs = [p.communicate(timeout=20)[0] for p in procs]
+    assert [p.returncode for p in procs] == [0, 0], outs
+    assert "ground router up" in outs[0] and "drone router up" in outs[1]
