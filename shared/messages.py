@@ -7,12 +7,13 @@ times in integer nanoseconds since the epoch. Every model has a `kind` literal (
 
 from __future__ import annotations
 
+import math
 import time
 import uuid
 from enum import StrEnum
 from typing import Annotated, Any, ClassVar, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
 SCHEMA_VERSION = 1
 """Major version of the message schemas. A receiver rejects a message of a newer major version with an
@@ -22,6 +23,15 @@ SCHEMA_MINOR = 1
 ignoring the fields it does not know (logged once per field)."""
 MAX_COMMAND_CHARS = 500
 MAX_QUERY_CHARS = 200
+# Physical bounds: a value beyond them is a broken estimate or a forged message, never a state to act on.
+MAX_COORDINATE_M = 10_000.0
+"""Largest |x|, |y|, |z| of any position or extent, metres (a local frame of +-10 km)."""
+MAX_VEHICLE_SPEED_MS = 50.0
+"""Largest |velocity| component a multirotor state may report, m/s."""
+MAX_ANGLE_RAD = 2 * math.pi + 1e-6
+"""Largest |yaw|, |roll|, |pitch|, radians."""
+MAX_BATTERY_VOLTAGE_V = 100.0
+"""Largest battery voltage, volts (a 12S pack is ~50 V)."""
 
 
 def now_ns() -> int:
@@ -34,9 +44,9 @@ def new_id(prefix: str = "") -> str:
 
 
 class Message(BaseModel):
-    """Base of every bus message: frozen, strict about unknown fields, versioned."""
+    """Base of every bus message: frozen, strict about unknown fields, versioned, finite numbers only."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid", use_attribute_docstrings=True)
+    model_config = ConfigDict(frozen=True, extra="forbid", use_attribute_docstrings=True, allow_inf_nan=False)
     schema_name: ClassVar[str] = ""
 
     schema_version: int = SCHEMA_VERSION
@@ -53,7 +63,7 @@ class Message(BaseModel):
 class Part(BaseModel):
     """Base of nested value objects (not published on their own)."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid", use_attribute_docstrings=True)
+    model_config = ConfigDict(frozen=True, extra="forbid", use_attribute_docstrings=True, allow_inf_nan=False)
 
 
 # --------------------------------------------------------------------------- geometry
@@ -62,11 +72,11 @@ class Part(BaseModel):
 class Vec3(Part):
     """A 3-vector in metres (a position or an extent), in the frame the field names."""
 
-    x: float = 0.0
+    x: float = Field(default=0.0, ge=-MAX_COORDINATE_M, le=MAX_COORDINATE_M)
     """x in metres (world ENU: east/forward at start; body FLU: forward)."""
-    y: float = 0.0
+    y: float = Field(default=0.0, ge=-MAX_COORDINATE_M, le=MAX_COORDINATE_M)
     """y in metres (world ENU: north/left at start; body FLU: left)."""
-    z: float = 0.0
+    z: float = Field(default=0.0, ge=-MAX_COORDINATE_M, le=MAX_COORDINATE_M)
     """z in metres (up)."""
 
     def as_tuple(self) -> tuple[float, float, float]:
@@ -120,19 +130,19 @@ class VehicleState(Message):
     """The vehicle as the autopilot bridge sees it, at >= 20 Hz: pose, motion, PX4 mode, health."""
 
     kind: Literal["vehicle_state"] = "vehicle_state"
-    stamp_ns: int = Field(default_factory=now_ns)
+    stamp_ns: int = Field(default_factory=now_ns, ge=0)
     """When the bridge produced this state (ns since epoch)."""
     vehicle_id: str = "am1"
     """Vehicle this state belongs to."""
     position: Vec3 = Vec3()
     """Body origin in the world frame (ENU), metres."""
     velocity: Vec3 = Vec3()
-    """Velocity in the world frame (ENU), m/s."""
-    yaw: float = 0.0
+    """Velocity in the world frame (ENU), m/s; each component within +-50 m/s."""
+    yaw: float = Field(default=0.0, ge=-MAX_ANGLE_RAD, le=MAX_ANGLE_RAD)
     """Heading, radians, ENU."""
-    roll: float = 0.0
+    roll: float = Field(default=0.0, ge=-MAX_ANGLE_RAD, le=MAX_ANGLE_RAD)
     """Roll, radians (FLU)."""
-    pitch: float = 0.0
+    pitch: float = Field(default=0.0, ge=-MAX_ANGLE_RAD, le=MAX_ANGLE_RAD)
     """Pitch, radians (FLU, positive nose up)."""
     armed: bool = False
     """Whether the motors are armed."""
@@ -140,9 +150,9 @@ class VehicleState(Message):
     """PX4 flight mode name, e.g. OFFBOARD, POSCTL, AUTO.TAKEOFF, AUTO.LOITER, AUTO.LAND."""
     landed_state: LandedState = LandedState.UNKNOWN
     """Landed state from EXTENDED_SYS_STATE."""
-    battery_voltage: float | None = None
+    battery_voltage: float | None = Field(None, ge=0.0, le=MAX_BATTERY_VOLTAGE_V)
     """Battery voltage in volts, if reported."""
-    battery_remaining: float | None = None
+    battery_remaining: float | None = Field(None, ge=0.0, le=100.0)
     """Battery remaining in percent (0-100), if reported."""
     gripper: GripperState = GripperState.UNKNOWN
     """Last commanded/acknowledged gripper state."""
@@ -150,10 +160,31 @@ class VehicleState(Message):
     """True while heartbeats arrive (none for 2 s means link lost)."""
     offboard_ok: bool = False
     """True while in OFFBOARD with the setpoint stream running."""
-    last_heartbeat_ns: int = 0
+    last_heartbeat_ns: int = Field(0, ge=0)
     """Receive time of the last autopilot HEARTBEAT."""
     message: str = ""
     """Latest human-readable status (STATUSTEXT, link loss...)."""
+
+    # What the bridge always sends: a state on the wire without these does not say where the vehicle is.
+    WIRE_FIELDS: ClassVar[tuple[str, ...]] = ("kind", "stamp_ns", "vehicle_id", "position", "velocity", "armed",
+                                              "landed_state", "link_ok")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _complete_on_the_wire(cls, data: Any, info: ValidationInfo) -> Any:
+        if info.mode == "json" and isinstance(data, dict):
+            missing = [f for f in cls.WIRE_FIELDS if f not in data]
+            if missing:
+                raise ValueError(f"a vehicle state on the bus must carry {list(cls.WIRE_FIELDS)}; missing {missing}")
+        return data
+
+    @field_validator("velocity")
+    @classmethod
+    def _physical_speed(cls, v: Vec3) -> Vec3:
+        if max(abs(v.x), abs(v.y), abs(v.z)) > MAX_VEHICLE_SPEED_MS:
+            raise ValueError(f"velocity ({v.x:.1f}, {v.y:.1f}, {v.z:.1f}) m/s exceeds {MAX_VEHICLE_SPEED_MS:.0f} m/s "
+                             "per axis: not a multirotor state")
+        return v
 
 
 class ArmCommand(Message):
@@ -167,7 +198,10 @@ class DisarmCommand(Message):
 
     kind: Literal["disarm"] = "disarm"
     force: bool = False
-    """Force disarm even in the air (emergency only)."""
+    """Force the disarm past PX4's pre-checks (on the ground)."""
+    kill: bool = False
+    """Required to disarm while airborne: the motors stop and the vehicle falls. Emergency only; the bridge
+    refuses an in-air disarm without it and logs every kill with its sender."""
 
 
 class TakeoffCommand(Message):
@@ -186,7 +220,7 @@ class GotoCommand(Message):
     """Target position, world ENU, metres."""
     yaw: float
     """Target heading, radians ENU."""
-    max_speed: float | None = Field(None, gt=0.0)
+    max_speed: float | None = Field(None, gt=0.0, le=MAX_VEHICLE_SPEED_MS)
     """Optional speed limit for this motion, m/s (the bridge ramps the setpoint)."""
 
 

@@ -16,7 +16,8 @@ from services.autopilot_bridge import px4
 from services.autopilot_bridge.link import MavlinkLink
 from services.autopilot_bridge.settings import BridgeSettings
 from services.autopilot_bridge.stream import SetpointStream, Target
-from shared.bus import Bus
+from shared.bus import Bus, Caller
+from shared.envelope import altitude_problem, geofence_problem, speed_problem
 from shared.messages import (
     ArmCommand,
     AutopilotResult,
@@ -332,10 +333,48 @@ class Bridge:
         return self._result(command, False, f"{what} {px4.result_words(code)} by PX4 ({px4.result_name(code)})"
                             f"{self._status_hint()}", code)
 
-    async def handle(self, cmd: Any) -> AutopilotResult:
-        """Serve one AutopilotCommand; never raises for a bad command, answers ok=False instead."""
+    def envelope_problem(self, cmd: Any) -> str | None:
+        """Why `cmd` would leave the flight envelope (geofence, altitude band, speed) or drop the vehicle, or
+        None. Checked here too, not only in the executor, so a command that bypasses it cannot leave it."""
+        if isinstance(cmd, GotoCommand):
+            p = cmd.position
+            if not px4.all_finite(p.x, p.y, p.z, cmd.yaw):
+                return None  # goto() answers non-finite input with its own message
+            return (geofence_problem(p, self.s, "goto target") or altitude_problem(p.z, self.s, what="goto target")
+                    or speed_problem(cmd.max_speed, self.s, "goto"))
+        if isinstance(cmd, TakeoffCommand):
+            x, y, _z = self.position
+            target = Vec3(x=x, y=y, z=cmd.altitude)
+            return (altitude_problem(cmd.altitude, self.s, what="takeoff")
+                    or geofence_problem(target, self.s, "takeoff target"))
+        if isinstance(cmd, DisarmCommand) and not cmd.kill and (self.airborne or (
+                self.armed and self.offboard_expected and self.position[2] > 0.15)):
+            return (f"disarm refused: the vehicle is in the air (landed_state={self.landed_state.value}, "
+                    f"z={self.position[2]:.2f} m) and would fall; land first, or send kill=true to stop the "
+                    "motors in an emergency")
+        return None
+
+    async def handle(self, cmd: Any, caller: Caller | str = "local") -> AutopilotResult:
+        """Serve one AutopilotCommand; never raises for a bad command, answers ok=False instead. Every
+        command is logged with `caller` (who sent it) and its outcome."""
         kind = getattr(cmd, "kind", type(cmd).__name__)
         self.counters["commands"] += 1
+        what = cmd.model_dump_json(exclude={"schema_version"}) if hasattr(cmd, "model_dump_json") else repr(cmd)
+        problem = self.envelope_problem(cmd)
+        if problem is not None:
+            self.counters["refused_envelope"] += 1
+            log.warning("REFUSED %s from %s: %s", what, caller, problem)
+            return self._result(str(kind), False, problem)
+        if isinstance(cmd, DisarmCommand) and cmd.kill:
+            log.critical("KILL: disarm with kill=true from %s (armed=%s, landed_state=%s, z=%.2f m)", caller,
+                         self.armed, self.landed_state.value, self.position[2])
+        else:
+            log.info("command %s from %s", what, caller)
+        res = await self._dispatch(cmd, kind)
+        log.info("command %s from %s -> %s: %s", kind, caller, "ok" if res.ok else "failed", res.message)
+        return res
+
+    async def _dispatch(self, cmd: Any, kind: str) -> AutopilotResult:
         if not self.link_ok:
             age = time.monotonic() - self.last_hb_mono if self.last_hb_mono else None
             why = "no HEARTBEAT received yet" if age is None else f"no HEARTBEAT for {age:.1f} s"
@@ -357,7 +396,7 @@ class Bridge:
     async def disarm(self, cmd: DisarmCommand) -> AutopilotResult:
         self.epoch += 1
         code = await self.command_long(px4.MAV_CMD_COMPONENT_ARM_DISARM, 0,
-                                       px4.FORCE_ARM_MAGIC if cmd.force else 0)
+                                       px4.FORCE_ARM_MAGIC if cmd.force or cmd.kill else 0)
         if code == px4.MAV_RESULT_ACCEPTED:
             self.armed = False
             self.offboard_expected = False
@@ -448,7 +487,9 @@ class Bridge:
             failed = await self.enter_offboard(self.current_target())
             if failed is not None:
                 return failed.model_copy(update={"command": "goto"})
-        speed = None if cmd.max_speed is None else min(cmd.max_speed, self.s.max_speed)
+        # The envelope check already refused a faster max_speed; none given means the envelope's limit, so a
+        # goto never jumps the setpoint and flies at the autopilot's own (higher) speed.
+        speed = self.s.max_speed if cmd.max_speed is None else min(cmd.max_speed, self.s.max_speed)
         start = None
         if speed is not None:
             # Ramp from where the setpoint is now (not the measured position) so the setpoint never jumps.
@@ -544,14 +585,14 @@ class Bridge:
             self.bus.publish(self.keys.health(SERVICE), self.health())
             await asyncio.sleep(self.s.health_period_s)
 
-    async def serve_command(self, cmd: Any) -> AutopilotResult:
-        return await self.handle(cmd)
+    async def serve_command(self, cmd: Any, caller: Caller) -> AutopilotResult:
+        return await self.handle(cmd, caller)
 
     async def run(self, stop: asyncio.Event) -> None:
         assert self.bus is not None
         self.loop = asyncio.get_running_loop()
         self.link.start(self.loop, self.on_message)
-        self.bus.serve(self.keys.autopilot_command, self.serve_command)
+        self.bus.serve(self.keys.autopilot_command, self.serve_command, with_caller=True)
         log.info("bridge on %s; serving %s", self.s.connection, self.keys.autopilot_command)
         loops = [asyncio.create_task(c) for c in (self.publish_state_loop(stop), self.heartbeat_loop(stop),
                                                   self.health_loop(stop))]

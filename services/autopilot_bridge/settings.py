@@ -2,10 +2,17 @@
 
 from __future__ import annotations
 
-from pydantic import Field
+from pydantic import AliasChoices, Field, model_validator
 from pydantic_settings import SettingsConfigDict
 
+from shared import envelope
 from shared.settings import ServiceSettings
+
+
+def _env(field: str, executor_field: str | None = None) -> AliasChoices:
+    """The bridge's own variable first, then the executor's: one setting moves both fences."""
+    return AliasChoices(field, f"AERMANI_AUTOPILOT_BRIDGE_{field.upper()}",
+                        f"AERMANI_EXECUTOR_{(executor_field or field).upper()}")
 
 
 class BridgeSettings(ServiceSettings):
@@ -35,8 +42,21 @@ class BridgeSettings(ServiceSettings):
     """Takeoff fails when the altitude is not reached within this time."""
     arrival_tolerance_m: float = Field(0.1, gt=0.0)
     """Takeoff counts as done within this distance of the target altitude."""
-    max_speed: float = Field(3.0, gt=0.0)
-    """Upper bound of a goto's max_speed ramp, m/s."""
+    # ---- the envelope, checked on every command whoever sent it (shared/envelope.py)
+    geofence_min: tuple[float, float, float] = Field(envelope.GEOFENCE_MIN, validation_alias=_env("geofence_min"))
+    """Geofence box lower corner (world ENU), metres; a goto or takeoff target outside is refused.
+    Also read from AERMANI_EXECUTOR_GEOFENCE_MIN."""
+    geofence_max: tuple[float, float, float] = Field(envelope.GEOFENCE_MAX, validation_alias=_env("geofence_max"))
+    """Geofence box upper corner, metres (also AERMANI_EXECUTOR_GEOFENCE_MAX)."""
+    min_altitude: float = Field(envelope.MANIPULATION_MIN_ALTITUDE,
+                                validation_alias=_env("min_altitude", "manipulation_min_altitude"))
+    """Lowest goto/takeoff target altitude, metres: the executor's grasp/place floor (also
+    AERMANI_EXECUTOR_MANIPULATION_MIN_ALTITUDE). Landing goes through `land`, not goto."""
+    max_altitude: float = Field(envelope.MAX_ALTITUDE, validation_alias=_env("max_altitude"))
+    """Highest goto/takeoff target altitude, metres (also AERMANI_EXECUTOR_MAX_ALTITUDE)."""
+    max_speed: float = Field(envelope.MAX_SPEED, gt=0.0, validation_alias=_env("max_speed"))
+    """Speed limit of a goto, m/s (also AERMANI_EXECUTOR_MAX_SPEED): a faster max_speed is refused and a goto
+    without one is ramped at this speed."""
     command_timeout_s: float = Field(1.5, gt=0.0)
     """Time to wait for a COMMAND_ACK before resending (MAVLink command protocol)."""
     command_attempts: int = Field(3, ge=1, le=10)
@@ -54,3 +74,11 @@ class BridgeSettings(ServiceSettings):
     """Python thread switch interval for this process; small so the setpoint thread gets the GIL quickly."""
     stream_realtime_priority: int = Field(10, ge=0, le=99)
     """SCHED_FIFO priority of the setpoint thread when the OS allows it (root or CAP_SYS_NICE); 0 = never."""
+
+    @model_validator(mode="after")
+    def _check_envelope(self) -> BridgeSettings:
+        if any(lo >= hi for lo, hi in zip(self.geofence_min, self.geofence_max, strict=True)):
+            raise ValueError("geofence_min must be below geofence_max on every axis")
+        if not 0 < self.min_altitude < self.max_altitude:
+            raise ValueError("need 0 < min_altitude < max_altitude")
+        return self

@@ -21,8 +21,10 @@ function say(text, isError = false) {
 }
 
 async function api(method, path, body) {
-  const opts = { method, headers: authHeaders(body ? { "Content-Type": "application/json" } : {}) };
-  if (body) opts.body = JSON.stringify(body);
+  // Every state-changing request is JSON (the gateway refuses anything else: no cross-site form posts).
+  const changes = method !== "GET";
+  const opts = { method, headers: authHeaders(changes ? { "Content-Type": "application/json" } : {}) };
+  if (changes) opts.body = JSON.stringify(body ?? {});
   const r = await fetch(API + path, opts);
   const data = r.headers.get("content-type")?.includes("json") ? await r.json() : null;
   if (!r.ok) throw new Error(data?.detail || `${r.status} ${r.statusText}`);
