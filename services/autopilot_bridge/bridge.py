@@ -264,8 +264,9 @@ class Bridge:
         log.info("PX4: %s", text)
 
     def _on_command_ack(self, msg: Any) -> None:
-        if getattr(msg, "target_system", 0) not in (0, self.s.source_system):
-            return  # an answer to another ground station on the same link
+        if getattr(msg, "target_system", 0) not in (0, self.s.source_system) or \
+                getattr(msg, "target_component", 0) not in (0, self.s.source_component):
+            return  # an answer to a ground station or another component on the same link
         fut = self._pending.get(msg.command)
         if fut is None or fut.done():
             self.counters["unexpected_acks"] += 1
@@ -575,5 +576,6 @@ async def run(bus: Bus, settings: BridgeSettings, stop: asyncio.Event) -> None:
     # The setpoint thread waits for the GIL whenever another thread holds it; Python's default 5 ms switch
     # interval would show up directly as stream jitter.
     sys.setswitchinterval(settings.gil_switch_interval_s)
-    link = MavlinkLink(settings.connection, baud=settings.baud, source_system=settings.source_system)
+    link = MavlinkLink(settings.connection, baud=settings.baud, source_system=settings.source_system,
+                       source_component=settings.source_component)
     await Bridge(bus, settings, link).run(stop)

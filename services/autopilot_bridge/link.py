@@ -48,7 +48,7 @@ class MavlinkLink:
     """Owns the pymavlink connection. `start(loop, on_message)` runs the reader thread; `send(...)` is safe
     from any thread."""
 
-    def __init__(self, connection: str, *, baud: int = 921600, source_system: int = 255,
+    def __init__(self, connection: str, *, baud: int = 921600, source_system: int = 1,
                  source_component: int = px4.MAV_COMP_ID_ONBOARD_COMPUTER) -> None:
         self.connection = connection
         try:

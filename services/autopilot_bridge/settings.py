@@ -19,8 +19,11 @@ class BridgeSettings(ServiceSettings):
     """Serial baud rate (ignored for UDP)."""
     target_system: int = Field(0, ge=0, le=255)
     """PX4 system id to talk to; 0 = learn it from the first PX4 HEARTBEAT (others are then ignored)."""
-    source_system: int = Field(255, ge=1, le=255)
-    """Our MAVLink system id (255 is the usual ground/companion id PX4 accepts)."""
+    source_system: int = Field(1, ge=1, le=255)
+    """Our MAVLink system id. MAVLink's routing guide puts a companion computer in its autopilot's system (PX4's
+    MAV_SYS_ID, 1 by default) under its own component id; 255 belongs to ground stations, so is not the default."""
+    source_component: int = Field(191, ge=1, le=255)
+    """Our MAVLink component id (191 = MAV_COMP_ID_ONBOARD_COMPUTER; 192-194 for further companions)."""
     heartbeat_timeout_s: float = Field(2.0, gt=0.0)
     """No autopilot HEARTBEAT for this long means the link is lost."""
     stream_rate_hz: float = Field(20.0, ge=2.0, le=100.0)

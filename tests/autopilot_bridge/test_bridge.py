@@ -32,7 +32,7 @@ async def bridge_and_fake(**overrides):
     port = free_udp_port()
     s = BridgeSettings(connection=f"udpin:127.0.0.1:{port}", command_timeout_s=0.5, offboard_warmup_s=0.3,
                        heartbeat_timeout_s=1.0, takeoff_timeout_s=20.0, **overrides)
-    link = MavlinkLink(s.connection, source_system=s.source_system)
+    link = MavlinkLink(s.connection, source_system=s.source_system, source_component=s.source_component)
     bridge = Bridge(None, s, link)
     stop = asyncio.Event()
     link.start(asyncio.get_running_loop(), bridge.on_message)
@@ -59,7 +59,8 @@ def test_handshake_heartbeat_and_message_rates() -> None:
             await wait_until(lambda: "HEARTBEAT" in fake.names(), 10, what="our heartbeat")
             hb = next(m for m in fake.received if m.get_type() == "HEARTBEAT")
             assert (hb.type, hb.autopilot) == (px4.MAV_TYPE_ONBOARD_CONTROLLER, px4.MAV_AUTOPILOT_INVALID)
-            assert (hb.get_srcSystem(), hb.get_srcComponent()) == (255, px4.MAV_COMP_ID_ONBOARD_COMPUTER)
+            # Its own identity: a companion component of the vehicle's system, never a ground station's 255.
+            assert (hb.get_srcSystem(), hb.get_srcComponent()) == (1, px4.MAV_COMP_ID_ONBOARD_COMPUTER)
 
             def intervals() -> dict[int, float]:
                 return {int(c.param1): c.param2 for c in list(fake.commands)
@@ -85,6 +86,30 @@ def test_arm_ack_accepted_and_denied() -> None:
             res = await bridge.handle(ArmCommand())
             assert res.ok and res.ack_code == 0 and res.ack_name == "MAV_RESULT_ACCEPTED"
             await wait_until(lambda: bridge.state().armed, 10, what="armed in HEARTBEAT")
+
+    arun(body(), 60)
+
+
+def test_configured_identity_is_used_and_acks_for_others_are_ignored() -> None:
+    async def body():
+        async with bridge_and_fake(source_system=7, source_component=192) as (bridge, fake):
+            await wait_until(lambda: "HEARTBEAT" in fake.names(), 10, what="our heartbeat")
+            hb = next(m for m in fake.received if m.get_type() == "HEARTBEAT")
+            assert (hb.get_srcSystem(), hb.get_srcComponent()) == (7, 192)
+            # An ACK addressed to another component of our system (or to a GCS) does not answer our command.
+            fake.ack_commands = False
+            task = asyncio.create_task(bridge.handle(GripperCommand(action="close")))
+            await wait_until(lambda: any(c.command == px4.MAV_CMD_DO_GRIPPER for c in fake.commands), 5,
+                             what="gripper command")
+            cmd = next(c for c in fake.commands if c.command == px4.MAV_CMD_DO_GRIPPER)
+            assert (cmd.get_srcSystem(), cmd.get_srcComponent()) == (7, 192)
+            fake.send(fake.mav.command_ack_encode(px4.MAV_CMD_DO_GRIPPER, 0, 0, 0, 7, 191))
+            fake.send(fake.mav.command_ack_encode(px4.MAV_CMD_DO_GRIPPER, 0, 0, 0, 255, 190))
+            await asyncio.sleep(0.2)
+            assert not task.done()
+            fake.send(fake.mav.command_ack_encode(px4.MAV_CMD_DO_GRIPPER, 0, 0, 0, 7, 192))
+            res = await task
+            assert res.ok, res.message
 
     arun(body(), 60)
 
@@ -185,7 +210,7 @@ def test_bad_mavlink_input_changes_nothing() -> None:
                 intruder.sendto(spoof.local_position_ned_encode(0, 7.0, 7.0, -7.0, 0, 0, 0).pack(spoof),
                                 ("127.0.0.1", port))
                 # From the real autopilot: an ACK for a command we never sent, and a message we do not use.
-                fake.send(fake.mav.command_ack_encode(px4.MAV_CMD_DO_GRIPPER, 0, 0, 0, 255, 191))
+                fake.send(fake.mav.command_ack_encode(px4.MAV_CMD_DO_GRIPPER, 0, 0, 0, 1, 191))
                 fake.send(fake.mav.vibration_encode(0, 0.1, 0.1, 0.1, 0, 0, 0))
                 await wait_until(lambda: bridge.counters["unexpected_acks"] >= 1 and bridge.counters["bad_data"] >= 1
                                  and bridge.counters["wrong_system"] >= 2 and bridge.counters["wrong_address"] >= 1,
