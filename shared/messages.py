@@ -135,10 +135,18 @@ class VehicleState(Message):
     """Receive time of the last autopilot HEARTBEAT."""
     message: str = ""
     """Latest human-readable status (STATUSTEXT, link loss...)."""
+    override: str = ""
+    """Why PX4, the pilot or an abort has taken control from the stack (e.g. "PX4 switched to AUTO.RTL"); while
+    set, the bridge neither re-enters OFFBOARD nor takes off for the task that was flying. Empty: the stack
+    may fly."""
+    override_ns: int = 0
+    """Bridge time when `override` was set (0 when empty): a change tells a new takeover from an old one."""
 
 
 class ArmCommand(Message):
     kind: Literal["arm"] = "arm"
+    task_id: str | None = None
+    """Task on whose behalf (set by the executor); None for an operator's direct command."""
 
 
 class DisarmCommand(Message):
@@ -151,6 +159,8 @@ class TakeoffCommand(Message):
     kind: Literal["takeoff"] = "takeoff"
     altitude: float = Field(1.5, gt=0.0, le=50.0)
     """Target altitude above the home position, metres."""
+    task_id: str | None = None
+    """Task on whose behalf (set by the executor); None for an operator's direct command."""
 
 
 class GotoCommand(Message):
@@ -161,6 +171,8 @@ class GotoCommand(Message):
     """Target heading, radians ENU."""
     max_speed: float | None = Field(None, gt=0.0)
     """Optional speed limit for this motion, m/s (the bridge ramps the setpoint)."""
+    task_id: str | None = None
+    """Task on whose behalf (set by the executor); None for an operator's direct command."""
 
 
 class HoldCommand(Message):
@@ -500,6 +512,8 @@ class AbortAck(Message):
     """The skill that was stopped, if any."""
     message: str = ""
     """What was done."""
+    service: str = "executor"
+    """Which service acknowledges (executor, autopilot_bridge)."""
 
 
 # --------------------------------------------------------------------------- reasoner

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Literal
+
 from pydantic import Field
 from pydantic_settings import SettingsConfigDict
 
@@ -46,6 +48,11 @@ class BridgeSettings(ServiceSettings):
     """Sends of one COMMAND_LONG before giving up."""
     mode_timeout_s: float = Field(3.0, gt=0.0)
     """After an accepted mode change, time to see the new mode in HEARTBEAT."""
+    abort_hold: Literal["offboard", "px4_hold"] = "offboard"
+    """How the bridge holds on safety/abort (also when the executor is dead): `offboard` freezes its own setpoint
+    stream at the current position (PX4 holds there; a new task continues from the air), `px4_hold` switches
+    PX4 to AUTO.LOITER and stops the stream (holds even if the bridge dies next; a new task must land and take
+    off again, or an operator re-enters OFFBOARD by hand)."""
     gripper_id: int = Field(1, ge=1, le=6)
     """Gripper instance for MAV_CMD_DO_GRIPPER param 1."""
     publish_tf: bool = False

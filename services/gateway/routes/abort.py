@@ -6,7 +6,7 @@ from fastapi import APIRouter
 
 from services.gateway.deps import Authorized, FleetDep, SettingsDep
 from services.gateway.errors import ApiError, responses
-from services.gateway.models import AbortIn, AbortOut
+from services.gateway.models import AbortIn, AbortOut, abort_summary
 
 router = APIRouter(tags=["abort"])
 
@@ -20,4 +20,4 @@ async def abort_all(fleet: FleetDep, settings: SettingsDep, body: AbortIn | None
         raise ApiError(503, "no vehicle is on the bus: nothing to abort")
     reason = (body or AbortIn()).reason
     acked = await fleet.abort(vehicles, reason, None, settings.abort_ack_timeout_s)
-    return AbortOut(vehicles=vehicles, acknowledged=sorted(acked), messages=acked)
+    return AbortOut(vehicles=vehicles, acknowledged=sorted(acked), messages=abort_summary(acked), services=acked)
