@@ -393,10 +393,15 @@ class MavlinkServer:
         if self.params.get("SYS_FAILURE_EN", 0.0) < 0.5:
             v._event(mav.MAV_SEVERITY_CRITICAL, "Failure injection disabled (SYS_FAILURE_EN)")
             return DENIED
-        if unit not in POSITION_SENSORS or kind not in (mav.FAILURE_TYPE_OK, mav.FAILURE_TYPE_OFF):
+        if kind not in (mav.FAILURE_TYPE_OK, mav.FAILURE_TYPE_OFF):
             return UNSUPPORTED
-        v.set_estimate_valid(kind == mav.FAILURE_TYPE_OK)
-        return ACCEPTED
+        if unit in POSITION_SENSORS:
+            v.set_estimate_valid(kind == mav.FAILURE_TYPE_OK)
+            return ACCEPTED
+        if unit == mav.FAILURE_UNIT_SYSTEM_BATTERY and kind == mav.FAILURE_TYPE_OFF:
+            v.battery_failsafe()
+            return ACCEPTED
+        return UNSUPPORTED
 
     def _set_interval(self, link: Link, msg_id: int, interval_us: float) -> int:
         if msg_id not in STREAMABLE:

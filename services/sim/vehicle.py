@@ -193,6 +193,16 @@ class Vehicle:
         self._event(mav.MAV_SEVERITY_INFO, "Disarmed by external command")
         return ACCEPTED
 
+    def battery_failsafe(self) -> None:
+        """The battery dropped to its critical level (an injected battery failure): PX4's low-battery failsafe
+        (COM_LOW_BAT_ACT = Return at critical) takes over from whatever mode flies, OFFBOARD included."""
+        self.battery = min(self.battery, 8.0)
+        self._event(mav.MAV_SEVERITY_CRITICAL, "Critical battery level!")
+        if self.armed and not self.on_ground and not (self.main_mode == MAIN_AUTO
+                                                      and self.sub_mode in (SUB_RTL, SUB_LAND)):
+            self._set_mode(MAIN_AUTO, SUB_RTL)
+            self._event(mav.MAV_SEVERITY_CRITICAL, "Failsafe activated: critical battery, returning to launch")
+
     def _disarmed(self) -> None:
         self.armed = False
         if self.main_mode == MAIN_AUTO and self.sub_mode in (SUB_LAND, SUB_RTL):

@@ -251,6 +251,39 @@ def test_link_loss_and_offboard_loss_are_reported() -> None:
     arun(body(), 60)
 
 
+def test_pilot_takeover_is_respected_until_a_new_operator_command() -> None:
+    async def body():
+        async with bridge_and_fake() as (bridge, fake):
+            assert (await bridge.handle(TakeoffCommand(altitude=1.0, task_id="task-a"))).ok
+            assert (await bridge.handle(GotoCommand(position=Vec3(x=1, y=0, z=1), yaw=0.0, task_id="task-a"))).ok
+            fake.mode = "POSCTL"  # the pilot flips the mode switch
+            await wait_until(lambda: bridge.state().override != "", 10, what="takeover latched")
+            st = bridge.state()
+            assert st.override.startswith("PX4 switched from OFFBOARD to POSCTL") and st.override_ns > 0
+            assert not bridge.stream.running  # no setpoints fighting the pilot
+            # Hold does not take the pilot's mode away, and the task cannot fly on.
+            n_modes = sum(1 for c in fake.commands if c.command == px4.MAV_CMD_DO_SET_MODE)
+            res = await bridge.handle(HoldCommand())
+            assert res.ok and "not overriding" in res.message
+            for cmd in (GotoCommand(position=Vec3(x=0, y=0, z=1), yaw=0.0, task_id="task-a"),
+                        TakeoffCommand(altitude=1.0, task_id="task-a"), ArmCommand(task_id="task-a")):
+                res = await bridge.handle(cmd)
+                assert not res.ok and "a new operator command is needed" in res.message, res
+            await asyncio.sleep(0.3)
+            assert fake.mode == "POSCTL"  # nothing asked PX4 for another mode, nothing armed
+            assert sum(1 for c in fake.commands if c.command == px4.MAV_CMD_DO_SET_MODE) == n_modes
+            # A new task is a new operator command: it may take control again.
+            res = await bridge.handle(GotoCommand(position=Vec3(x=0, y=0, z=1), yaw=0.0, task_id="task-b"))
+            assert res.ok, res.message
+            assert bridge.state().override == "" and fake.mode == "OFFBOARD"
+            assert sum(1 for c in fake.commands if c.command == px4.MAV_CMD_DO_SET_MODE) == n_modes + 1
+            # PX4 leaving OFFBOARD again (an RTL failsafe) latches again.
+            fake.mode = "AUTO.RTL"
+            await wait_until(lambda: "AUTO.RTL" in bridge.state().override, 10, what="RTL takeover")
+
+    arun(body(), 60)
+
+
 def test_offboard_refusal_carries_ack_and_px4_reason() -> None:
     async def body():
         async with bridge_and_fake() as (bridge, fake):

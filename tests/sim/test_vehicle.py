@@ -202,3 +202,13 @@ def test_px4_arming_checks_rtl_and_estimate_failsafe(core):
     v.set_estimate_valid(False)
     assert v.mode_name == "AUTO.LAND" and "Failsafe" in v.events[-1][1]
     assert v.set_mode(MAIN_OFFBOARD, 0, clock.now) == TEMPORARILY_REJECTED
+
+
+def test_battery_failsafe_takes_over_offboard_but_offboard_stays_possible(core):
+    clock, v = Clock(core), core.vehicle
+    to_offboard(core, clock, alt=1.0)
+    v.battery_failsafe()
+    assert v.mode_name == "AUTO.RTL" and "critical battery" in v.events[-1][1]
+    # PX4 would let a stack switch back (a setpoint stream is there): not re-entering is the stack's duty.
+    clock.run(0.2, ([0.0, 0.0, -1.0], 0.0))
+    assert v.set_mode(MAIN_OFFBOARD, 0, clock.now) == ACCEPTED
