@@ -597,7 +597,14 @@ class Bridge:
 
     async def gripper_cmd(self, cmd: GripperCommand) -> AutopilotResult:
         grab = cmd.action == "close"
-        code = await self.command_long(px4.MAV_CMD_DO_GRIPPER, self.s.gripper_id, 1 if grab else 0)
+        if self.s.gripper_actuation == "actuator":
+            # DO_SET_ACTUATOR: params 1-6 drive "Peripheral via Actuator Set 1..6"; NaN leaves an output alone.
+            values = [math.nan] * 6 + [0.0]  # param 7: index of the actuator set (0 = 1..6)
+            values[self.s.gripper_actuator_index - 1] = (self.s.gripper_actuator_closed if grab
+                                                         else self.s.gripper_actuator_open)
+            code = await self.command_long(px4.MAV_CMD_DO_SET_ACTUATOR, *values)
+        else:
+            code = await self.command_long(px4.MAV_CMD_DO_GRIPPER, self.s.gripper_id, 1 if grab else 0)
         if code == px4.MAV_RESULT_ACCEPTED:
             self.gripper = GripperState.CLOSED if grab else GripperState.OPEN
         return self._ack_result("gripper", code, f"gripper {cmd.action}",

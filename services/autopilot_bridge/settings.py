@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, field_validator
 from pydantic_settings import SettingsConfigDict
 
 from shared.settings import ServiceSettings
@@ -15,10 +15,10 @@ class BridgeSettings(ServiceSettings):
                                       use_attribute_docstrings=True)
 
     connection: str = "udpin:0.0.0.0:14540"
-    """pymavlink connection string: udpin:0.0.0.0:14540 for PX4 SITL's offboard link, a serial device such as
-    /dev/ttyACM0 (or /dev/serial/by-id/...) for hardware."""
+    """MAVLink link: udpin:0.0.0.0:14540 for PX4 SITL's offboard link (also udpout:, udp:, tcp:), or
+    serial:/dev/ttyACM0:921600 (device and optional baud; /dev/serial/by-id/... paths work) for hardware."""
     baud: int = Field(921600, gt=0)
-    """Serial baud rate (ignored for UDP)."""
+    """Serial baud rate when the connection names none (ignored for UDP)."""
     target_system: int = Field(0, ge=0, le=255)
     """PX4 system id to talk to; 0 = learn it from the first PX4 HEARTBEAT (others are then ignored)."""
     source_system: int = Field(1, ge=1, le=255)
@@ -55,6 +55,16 @@ class BridgeSettings(ServiceSettings):
     off again, or an operator re-enters OFFBOARD by hand)."""
     gripper_id: int = Field(1, ge=1, le=6)
     """Gripper instance for MAV_CMD_DO_GRIPPER param 1."""
+    gripper_actuation: Literal["gripper", "actuator"] = "gripper"
+    """How the gripper is driven: `gripper` = MAV_CMD_DO_GRIPPER (PX4's payload deliverer, PD_GRIPPER_EN=1);
+    `actuator` = MAV_CMD_DO_SET_ACTUATOR on output function "Peripheral via Actuator Set N" (a servo on any
+    PWM/AUX output; N = gripper_actuator_index)."""
+    gripper_actuator_index: int = Field(1, ge=1, le=6)
+    """N of "Peripheral via Actuator Set N" (DO_SET_ACTUATOR param N) for gripper_actuation=actuator."""
+    gripper_actuator_open: float = Field(-1.0, ge=-1.0, le=1.0)
+    """Actuator value (-1..1) that opens the gripper."""
+    gripper_actuator_closed: float = Field(1.0, ge=-1.0, le=1.0)
+    """Actuator value (-1..1) that closes the gripper."""
     publish_tf: bool = False
     """Publish tf world->base_link from LOCAL_POSITION_NED/ATTITUDE. Off by default because the simulator
     publishes tf itself; turn it on for real hardware and PX4 SITL."""
@@ -64,3 +74,14 @@ class BridgeSettings(ServiceSettings):
     """Python thread switch interval for this process; small so the setpoint thread gets the GIL quickly."""
     stream_realtime_priority: int = Field(10, ge=0, le=99)
     """SCHED_FIFO priority of the setpoint thread when the OS allows it (root or CAP_SYS_NICE); 0 = never."""
+
+    @field_validator("connection")
+    @classmethod
+    def _connection(cls, v: str) -> str:
+        from services.autopilot_bridge.link import parse_connection  # noqa: PLC0415 (pymavlink import cost)
+
+        try:
+            parse_connection(v)
+        except Exception as exc:
+            raise ValueError(str(exc)) from exc
+        return v.strip()

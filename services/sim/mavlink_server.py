@@ -70,6 +70,7 @@ PARAMS: dict[str, float] = {
     "MPC_YAWRAUTO_MAX": 90.0,
     "RTL_RETURN_ALT": 2.0,
     "SYS_FAILURE_EN": 0.0,  # PX4 answers MAV_CMD_INJECT_FAILURE only when this is 1
+    "SIM_GRIP_ACT_SET": 1.0,  # the gripper is on "Peripheral via Actuator Set N" for MAV_CMD_DO_SET_ACTUATOR
 }
 
 # MAV_CMD_INJECT_FAILURE units that take the local position estimate away (GPS outdoors, VIO indoors).
@@ -363,6 +364,12 @@ class MavlinkServer:
                 result = v.set_mode(MAIN_AUTO, SUB_LOITER, now)
             elif cmd == mav.MAV_CMD_DO_GRIPPER:
                 result = v.gripper(round(arg(1, mav.GRIPPER_ACTION_RELEASE)) == mav.GRIPPER_ACTION_GRAB)
+            elif cmd == mav.MAV_CMD_DO_SET_ACTUATOR:
+                # The gripper servo sits on output function "Peripheral via Actuator Set N" (SIM_GRIP_ACT_SET):
+                # > 0 closes, < 0 opens, NaN leaves it alone (PX4's semantics for params 1-6).
+                n = int(self.params.get("SIM_GRIP_ACT_SET", 1.0))
+                value = p[n - 1] if 1 <= n <= 6 and int(arg(6)) == 0 else math.nan
+                result = ACCEPTED if not math.isfinite(value) or value == 0.0 else v.gripper(value > 0.0)
             elif cmd == mav.MAV_CMD_INJECT_FAILURE:
                 result = self._inject_failure(int(arg(0, -1)), int(arg(1, -1)))
             elif cmd == mav.MAV_CMD_SET_MESSAGE_INTERVAL:

@@ -343,3 +343,18 @@ def test_nan_params_mean_default_and_arming_checks(sim):
     assert client.command(mav.MAV_CMD_DO_SET_MODE, 1, *LOITER) == mav.MAV_RESULT_TEMPORARILY_REJECTED
     with core.lock:
         assert core.counters.get("handler_errors", 0) == 0
+
+
+def test_gripper_on_an_actuator_output(sim):
+    core, server, client, _ = sim
+    nan = math.nan
+    assert client.command(mav.MAV_CMD_DO_SET_ACTUATOR, 1.0, nan, nan, nan, nan, nan, 0) == 0
+    client.recv("STATUSTEXT", lambda m: m.text.startswith("Gripper closed"), 5)
+    with core.lock:
+        assert core.vehicle.gripper_closed
+    assert client.command(mav.MAV_CMD_DO_SET_ACTUATOR, nan, 1.0, nan, nan, nan, nan, 0) == 0  # another output
+    with core.lock:
+        assert core.vehicle.gripper_closed
+    assert client.command(mav.MAV_CMD_DO_SET_ACTUATOR, -1.0, nan, nan, nan, nan, nan, 0) == 0
+    with core.lock:
+        assert not core.vehicle.gripper_closed
