@@ -136,9 +136,9 @@ class VehicleState(Message):
     message: str = ""
     """Latest human-readable status (STATUSTEXT, link loss...)."""
     override: str = ""
-    """Why PX4, the pilot or an abort has taken control from the stack (e.g. "PX4 switched to AUTO.RTL"); while
-    set, the bridge neither re-enters OFFBOARD nor takes off for the task that was flying. Empty: the stack
-    may fly."""
+    """Why PX4, the pilot or an abort has taken control from the stack ("PX4 switched from OFFBOARD to AUTO.RTL",
+    "aborted by <source>: <reason>"); while set, the bridge neither re-enters OFFBOARD nor takes off for the task
+    that was flying. Empty: the stack may fly."""
     override_ns: int = 0
     """Bridge time when `override` was set (0 when empty): a change tells a new takeover from an old one."""
 

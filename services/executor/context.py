@@ -119,7 +119,8 @@ class SkillContext:
 
     def _monitor(self, st: VehicleState) -> None:
         """Envelope rules checked on every state sample while a skill waits on the vehicle."""
-        if st.override and st.override_ns != self.override_ns_at_start:
+        if st.override and st.override_ns != self.override_ns_at_start and not st.override.startswith("aborted by "):
+            # (an abort's takeover is this executor's own abort too: it cancels the skill itself)
             raise AuthorityLost(f"the autopilot took control: {st.override}")
         s = self.settings
         if outside_geofence(st.position, s, s.geofence_exit_margin):

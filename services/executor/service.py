@@ -185,6 +185,10 @@ class Executor:
                     state, message = SkillState.TIMEOUT, f"{skill.name}: {exc}; holding"
                     if skill.moves:
                         await self._hold()
+                elif isinstance(exc, AuthorityLost) and goal.aborted_by:
+                    # The bridge saw the abort first (it holds on its own): still this executor's abort.
+                    state = SkillState.ABORTED
+                    message = f"{skill.name} aborted ({goal.aborted_by}); holding position"
                 elif isinstance(exc, AuthorityLost):
                     state, message = SkillState.FAILED, str(exc)  # no hold: PX4 or the pilot is in charge
                 elif isinstance(exc, SkillFailed):

@@ -66,10 +66,14 @@ def test_px4_failsafe_mid_task_ends_the_task_and_nothing_reenters_offboard(tmp_p
     env = {**RULES, "AERMANI_SIM_SPEED_FACTOR": "3", "AERMANI_SIM_GCS_PORT": str(gcs_port)}
     services = ["sim", "autopilot_bridge", "perception", "executor", "reasoner"]
     with run_stack(services, tmp_path, env=env, timeout=180) as stack:
-        gcs = Client(gcs_port)  # a ground station on PX4's GCS link, as QGroundControl would be
+        gcs: Client | None = None
 
         def failsafe() -> None:
             """PX4's low-battery failsafe: the battery goes critical, PX4 switches to AUTO.RTL on its own."""
+            nonlocal gcs
+            # A ground station on PX4's GCS link, as QGroundControl would be; connected only now, so its socket
+            # buffer is not full of a minute of unread telemetry (which would drop the answers).
+            gcs = Client(gcs_port)
             gcs.conn.mav.param_set_send(1, 1, b"SYS_FAILURE_EN", 1.0, mav.MAV_PARAM_TYPE_REAL32)
             gcs.recv("PARAM_VALUE", lambda m: m.param_id == "SYS_FAILURE_EN" and m.param_value == 1.0)
             assert gcs.command(mav.MAV_CMD_INJECT_FAILURE, mav.FAILURE_UNIT_SYSTEM_BATTERY,
@@ -77,6 +81,8 @@ def test_px4_failsafe_mid_task_ends_the_task_and_nothing_reenters_offboard(tmp_p
 
         def watch() -> tuple[list[str], list[bool], float]:
             """Every autopilot heartbeat from the failsafe until the vehicle is down and disarmed, then 3 s more."""
+            assert gcs is not None
+
             def hb():
                 return gcs.recv("HEARTBEAT", lambda m: m.get_srcSystem() == 1 and m.get_srcComponent() == 1)
 
@@ -85,7 +91,7 @@ def test_px4_failsafe_mid_task_ends_the_task_and_nothing_reenters_offboard(tmp_p
             while True:
                 m = hb()
                 modes.append(mode_of(m))
-                if "AUTO.RTL" in modes and not m.base_mode & mav.MAV_MODE_FLAG_SAFETY_ARMED:
+                if any(x != "OFFBOARD" for x in modes) and not m.base_mode & mav.MAV_MODE_FLAG_SAFETY_ARMED:
                     break
                 assert time.monotonic() < deadline, f"RTL did not end on the ground: {modes[-20:]}"
             armed_after: list[bool] = []
@@ -134,7 +140,9 @@ def test_px4_failsafe_mid_task_ends_the_task_and_nothing_reenters_offboard(tmp_p
                     assert not any(t.task_id == tid and t.state.terminal for t in statuses), statuses[-1]
                     await asyncio.to_thread(failsafe)
                     modes, armed_after, z = await asyncio.to_thread(watch)
-                    after_switch = modes[modes.index("AUTO.RTL"):]
+                    # PX4 flies RTL then lands (at 1 Hz heartbeats a short RTL may show as AUTO.LAND only).
+                    after_switch = modes[next(i for i, x in enumerate(modes) if x != "OFFBOARD"):]
+                    assert after_switch[0] in ("AUTO.RTL", "AUTO.LAND"), modes
                     assert "OFFBOARD" not in after_switch, f"the stack re-entered OFFBOARD: {after_switch}"
                     assert not any(armed_after), "the stack armed again after PX4's landing"
                     assert z > -0.05, "the vehicle took off again"
@@ -144,12 +152,12 @@ def test_px4_failsafe_mid_task_ends_the_task_and_nothing_reenters_offboard(tmp_p
                     final = next(t for t in statuses if t.task_id == tid and t.state.terminal)
                     grasp = next(k for k in skills if k.goal_id == goal and k.state.terminal)
                     assert grasp.state is SkillState.FAILED, grasp
-                    assert grasp.message.startswith("the autopilot took control: PX4 switched from OFFBOARD to "
-                                                    "AUTO.RTL"), grasp
+                    took = "the autopilot took control: PX4 switched from OFFBOARD to AUTO."
+                    assert grasp.message.startswith(took), grasp
                     assert final.state is TaskState.FAILED, final
-                    assert "the autopilot took control: PX4 switched from OFFBOARD to AUTO.RTL" in final.message, final
+                    assert took in final.message and "a new command is needed" in final.message, final
                     st = state.value
-                    assert st is not None and st.override.startswith("PX4 switched from OFFBOARD to AUTO.RTL")
+                    assert st is not None and st.override.startswith("PX4 switched from OFFBOARD to AUTO.")
                     assert not st.armed and not st.offboard_ok
                     # The same task cannot take the vehicle back; a new operator command could.
                     res = await bus.query(KEYS.autopilot_command, TakeoffCommand(altitude=1.0, task_id=tid),
@@ -162,7 +170,8 @@ def test_px4_failsafe_mid_task_ends_the_task_and_nothing_reenters_offboard(tmp_p
         try:
             arun(body(), 600)
         finally:
-            gcs.close()
+            if gcs is not None:
+                gcs.close()
 
 
 @pytest.mark.timeout(600)
