@@ -101,6 +101,7 @@ class Bridge:
         # PX4's authority: the mode we last asked for; a switch to anything else while armed means PX4 (a
         # failsafe) or the pilot took over, and latches `override` until a new operator command.
         self.mode_requested: str | None = None
+        self.mode_pending: str | None = None  # asked for, not yet seen in a HEARTBEAT
         self.override = ""
         self.override_ns = 0
         self.override_task: str | None = None  # the task that was flying when control was taken
@@ -242,6 +243,8 @@ class Bridge:
             self.message = f"offboard lost: PX4 switched to {mode}{self._status_hint()}"
             log.warning("%s", self.message)
             self.take_over(f"PX4 switched from OFFBOARD to {mode}{self._status_hint()}")
+        elif mode == self.mode_pending:
+            self.mode_requested, self.mode_pending = mode, None  # the switch we asked for
         elif self.armed and mode != previous and previous == self.mode_requested and mode != self.mode_requested:
             self.mode_requested = None
             self.take_over(f"PX4 switched from {previous} to {mode}{self._status_hint()}")
@@ -456,7 +459,11 @@ class Bridge:
         return self._ack_result("disarm", code, "disarm", "disarmed")
 
     async def set_mode(self, name: str) -> int | None:
-        return await self.command_long(px4.MAV_CMD_DO_SET_MODE, *px4.set_mode_params(name))
+        self.mode_pending = name
+        code = await self.command_long(px4.MAV_CMD_DO_SET_MODE, *px4.set_mode_params(name))
+        if code != px4.MAV_RESULT_ACCEPTED and self.mode_pending == name:
+            self.mode_pending = None
+        return code
 
     async def enter_offboard(self, target: Target) -> AutopilotResult | None:
         """Stream `target`, and once the stream has run long enough, switch to OFFBOARD. None on success."""

@@ -297,3 +297,27 @@ def test_offboard_refusal_carries_ack_and_px4_reason() -> None:
             assert not st.offboard_ok
 
     arun(body(), 60)
+
+
+def test_abort_without_executor_holds_through_px4_hold_mode() -> None:
+    from shared.messages import Abort
+
+    async def body():
+        async with bridge_and_fake(abort_hold="px4_hold") as (bridge, fake):
+            assert (await bridge.handle(TakeoffCommand(altitude=1.0, task_id="task-a"))).ok
+            ack = await bridge.on_abort(Abort(reason="stop", source="test", task_id="task-a"))
+            assert ack.service == "autopilot_bridge" and ack.message == "holding in AUTO.LOITER (PX4 Hold)", ack
+            await wait_until(lambda: bridge.state().mode == "AUTO.LOITER", 5, what="PX4 in Hold")
+            assert not bridge.stream.running
+            st = bridge.state()
+            assert st.override == "aborted by test: stop" and not st.offboard_ok
+            # The aborted task stays grounded in Hold; a new task takes control again, and that switch (asked
+            # for by the bridge itself) is not mistaken for a takeover.
+            res = await bridge.handle(GotoCommand(position=Vec3(x=0, y=0, z=1), yaw=0.0, task_id="task-a"))
+            assert not res.ok and "a new operator command is needed" in res.message
+            res = await bridge.handle(GotoCommand(position=Vec3(x=0, y=0, z=1), yaw=0.0, task_id="task-b"))
+            assert res.ok, res.message
+            await asyncio.sleep(0.5)
+            assert bridge.state().override == "" and bridge.state().mode == "OFFBOARD"
+
+    arun(body(), 60)
