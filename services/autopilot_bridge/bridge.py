@@ -106,6 +106,7 @@ class Bridge:
         self.override_ns = 0
         self.override_task: str | None = None  # the task that was flying when control was taken
         self.last_task: str | None = None  # task id of the newest motion command
+        self.aborted_tasks: set[str] = set()  # tasks named by an abort (or flying at one): never command again
         self.link_was_ok = False
         self.epoch = 0  # bumped by every motion command so a running takeoff knows it was superseded
         self._pending: dict[int, asyncio.Future[int]] = {}
@@ -315,6 +316,9 @@ class Bridge:
     def authority_refusal(self, command: str, task_id: str | None) -> AutopilotResult | None:
         """None when `command` may take control; else the refusal. A new task or an operator's direct command
         (task_id None) is the new operator command that ends a takeover."""
+        if task_id is not None and task_id in self.aborted_tasks:
+            return self._result(command, False, f"{command} refused: task {task_id} was aborted; a new operator "
+                                "command is needed")
         if self.override and task_id is not None and task_id == self.override_task:
             return self._result(command, False, f"{command} refused: the autopilot has control ({self.override}); "
                                 "the stack does not take it back within this task, a new operator command is needed")
@@ -327,10 +331,15 @@ class Bridge:
         return None
 
     async def on_abort(self, abort: Abort) -> AbortAck:
-        """Obey an abort without the executor: stop our setpoint motion and let PX4 hold (AUTO.LOITER)."""
+        """Obey an abort without the executor: hold (`abort_hold`: our own setpoint frozen in OFFBOARD, or PX4's
+        AUTO.LOITER), latch a takeover, and refuse every later command of the aborted task."""
+        for task in (abort.task_id, None if abort.task_id else self.last_task):
+            if task:
+                self.aborted_tasks.add(task)
         if abort.task_id and self.last_task and abort.task_id != self.last_task:
             ack = AbortAck(abort_stamp_ns=abort.stamp_ns, service=SERVICE,
-                           message=f"not flying for task {abort.task_id}; nothing done")
+                           message=f"not flying for task {abort.task_id} (its commands are refused from now on); "
+                                   "nothing else done")
         else:
             self.epoch += 1  # ends a takeoff that is waiting for its altitude
             self.take_over(f"aborted by {abort.source}: {abort.reason}", abort.task_id)
