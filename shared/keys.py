@@ -290,7 +290,7 @@ REASONER_DECIDE_APPROVAL: Query[ApprovalDecision, CancelReply] = Query(
     "reasoner/decide_approval", ApprovalDecision, CancelReply, "approve or reject a pending skill", "reasoner")
 SAFETY_ABORT: Topic[Abort] = Topic("safety/abort", Abort, "stop: hold and end the task (anyone)", "any")
 SAFETY_ABORT_ACK: Topic[AbortAck] = Topic(
-    "safety/abort_ack", AbortAck, "an abort was obeyed (vehicle commanded to hold)", "executor")
+    "safety/abort_ack", AbortAck, "an abort was obeyed (vehicle commanded to hold)", "executor, autopilot_bridge")
 HEALTH_TOPIC: Topic[Health] = Topic(f"{HEALTH}/{{service}}", Health, "a service's health, 1 Hz", "every service")
 ALIVE_TOKEN = Token(f"{ALIVE}/{{service}}", "presence of a service", "every service")
 

@@ -164,6 +164,12 @@ class VehicleState(Message):
     """Receive time of the last autopilot HEARTBEAT."""
     message: str = ""
     """Latest human-readable status (STATUSTEXT, link loss...)."""
+    override: str = ""
+    """Why PX4, the pilot or an abort has taken control from the stack ("PX4 switched from OFFBOARD to AUTO.RTL",
+    "aborted by <source>: <reason>"); while set, the bridge neither re-enters OFFBOARD nor takes off for the task
+    that was flying. Empty: the stack may fly."""
+    override_ns: int = 0
+    """Bridge time when `override` was set (0 when empty): a change tells a new takeover from an old one."""
 
     # What the bridge always sends: a state on the wire without these does not say where the vehicle is.
     WIRE_FIELDS: ClassVar[tuple[str, ...]] = ("kind", "stamp_ns", "vehicle_id", "position", "velocity", "armed",
@@ -191,6 +197,8 @@ class ArmCommand(Message):
     """Arm the motors (PX4 arming checks apply)."""
 
     kind: Literal["arm"] = "arm"
+    task_id: str | None = None
+    """Task on whose behalf (set by the executor); None for an operator's direct command."""
 
 
 class DisarmCommand(Message):
@@ -210,6 +218,8 @@ class TakeoffCommand(Message):
     kind: Literal["takeoff"] = "takeoff"
     altitude: float = Field(1.5, gt=0.0, le=50.0)
     """Target altitude above the home position, metres."""
+    task_id: str | None = None
+    """Task on whose behalf (set by the executor); None for an operator's direct command."""
 
 
 class GotoCommand(Message):
@@ -222,6 +232,8 @@ class GotoCommand(Message):
     """Target heading, radians ENU."""
     max_speed: float | None = Field(None, gt=0.0, le=MAX_VEHICLE_SPEED_MS)
     """Optional speed limit for this motion, m/s (the bridge ramps the setpoint)."""
+    task_id: str | None = None
+    """Task on whose behalf (set by the executor); None for an operator's direct command."""
 
 
 class HoldCommand(Message):
@@ -584,6 +596,8 @@ class AbortAck(Message):
     """The skill that was stopped, if any."""
     message: str = ""
     """What was done."""
+    service: str = "executor"
+    """Which service acknowledges (executor, autopilot_bridge)."""
 
 
 # --------------------------------------------------------------------------- reasoner

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
-from pydantic import AliasChoices, Field, model_validator
+from typing import Literal
+
+from pydantic import AliasChoices, Field, field_validator, model_validator
 from pydantic_settings import SettingsConfigDict
 
 from shared import envelope
@@ -20,14 +22,17 @@ class BridgeSettings(ServiceSettings):
                                       use_attribute_docstrings=True)
 
     connection: str = "udpin:0.0.0.0:14540"
-    """pymavlink connection string: udpin:0.0.0.0:14540 for PX4 SITL's offboard link, a serial device such as
-    /dev/ttyACM0 (or /dev/serial/by-id/...) for hardware."""
+    """MAVLink link: udpin:0.0.0.0:14540 for PX4 SITL's offboard link (also udpout:, udp:, tcp:), or
+    serial:/dev/ttyACM0:921600 (device and optional baud; /dev/serial/by-id/... paths work) for hardware."""
     baud: int = Field(921600, gt=0)
-    """Serial baud rate (ignored for UDP)."""
+    """Serial baud rate when the connection names none (ignored for UDP)."""
     target_system: int = Field(0, ge=0, le=255)
     """PX4 system id to talk to; 0 = learn it from the first PX4 HEARTBEAT (others are then ignored)."""
-    source_system: int = Field(255, ge=1, le=255)
-    """Our MAVLink system id (255 is the usual ground/companion id PX4 accepts)."""
+    source_system: int = Field(1, ge=1, le=255)
+    """Our MAVLink system id. MAVLink's routing guide puts a companion computer in its autopilot's system (PX4's
+    MAV_SYS_ID, 1 by default) under its own component id; 255 belongs to ground stations, so is not the default."""
+    source_component: int = Field(191, ge=1, le=255)
+    """Our MAVLink component id (191 = MAV_COMP_ID_ONBOARD_COMPUTER; 192-194 for further companions)."""
     heartbeat_timeout_s: float = Field(2.0, gt=0.0)
     """No autopilot HEARTBEAT for this long means the link is lost."""
     stream_rate_hz: float = Field(20.0, ge=2.0, le=100.0)
@@ -63,8 +68,23 @@ class BridgeSettings(ServiceSettings):
     """Sends of one COMMAND_LONG before giving up."""
     mode_timeout_s: float = Field(3.0, gt=0.0)
     """After an accepted mode change, time to see the new mode in HEARTBEAT."""
+    abort_hold: Literal["offboard", "px4_hold"] = "offboard"
+    """How the bridge holds on safety/abort (also when the executor is dead): `offboard` freezes its own setpoint
+    stream at the current position (PX4 holds there; a new task continues from the air), `px4_hold` switches
+    PX4 to AUTO.LOITER and stops the stream (holds even if the bridge dies next; a new task must land and take
+    off again, or an operator re-enters OFFBOARD by hand)."""
     gripper_id: int = Field(1, ge=1, le=6)
     """Gripper instance for MAV_CMD_DO_GRIPPER param 1."""
+    gripper_actuation: Literal["gripper", "actuator"] = "gripper"
+    """How the gripper is driven: `gripper` = MAV_CMD_DO_GRIPPER (PX4's payload deliverer, PD_GRIPPER_EN=1);
+    `actuator` = MAV_CMD_DO_SET_ACTUATOR on output function "Peripheral via Actuator Set N" (a servo on any
+    PWM/AUX output; N = gripper_actuator_index)."""
+    gripper_actuator_index: int = Field(1, ge=1, le=6)
+    """N of "Peripheral via Actuator Set N" (DO_SET_ACTUATOR param N) for gripper_actuation=actuator."""
+    gripper_actuator_open: float = Field(-1.0, ge=-1.0, le=1.0)
+    """Actuator value (-1..1) that opens the gripper."""
+    gripper_actuator_closed: float = Field(1.0, ge=-1.0, le=1.0)
+    """Actuator value (-1..1) that closes the gripper."""
     publish_tf: bool = False
     """Publish tf world->base_link from LOCAL_POSITION_NED/ATTITUDE. Off by default because the simulator
     publishes tf itself; turn it on for real hardware and PX4 SITL."""
@@ -82,3 +102,14 @@ class BridgeSettings(ServiceSettings):
         if not 0 < self.min_altitude < self.max_altitude:
             raise ValueError("need 0 < min_altitude < max_altitude")
         return self
+
+    @field_validator("connection")
+    @classmethod
+    def _connection(cls, v: str) -> str:
+        from services.autopilot_bridge.link import parse_connection  # noqa: PLC0415 (pymavlink import cost)
+
+        try:
+            parse_connection(v)
+        except Exception as exc:
+            raise ValueError(str(exc)) from exc
+        return v.strip()

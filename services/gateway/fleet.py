@@ -64,6 +64,9 @@ class Frame:
         return msg.timestamp.seconds * 1_000_000_000 + msg.timestamp.nanos, bytes(msg.data)
 
 
+ABORT_SERVICES = ("executor", "autopilot_bridge")  # the services that act on safety/abort and acknowledge it
+
+
 @dataclass
 class VehicleView:
     vehicle_id: str
@@ -289,10 +292,11 @@ class Fleet:
     # ---- commands
 
     async def abort(self, vehicles: list[str], reason: str, task_id: str | None,
-                    wait_s: float, *, fleet_wide: bool = False) -> dict[str, str]:
+                    wait_s: float, *, fleet_wide: bool = False) -> dict[str, dict[str, str]]:
         """Publish an Abort to each vehicle (or one on the fleet-wide key, which every vehicle obeys, even one
-        the gateway has not seen yet); return {vehicle: executor's ack message} for those that acknowledged
-        within `wait_s`."""
+        the gateway has not seen yet); return {vehicle: {service: what it did}} for the services (executor,
+        autopilot_bridge) that acknowledged within `wait_s`. Waits for every such service that is alive on
+        the vehicle, so a dead executor does not hold the answer up and is visibly missing."""
         from shared.messages import Abort
 
         stamps: dict[str, int] = {}
@@ -305,13 +309,25 @@ class Fleet:
             stamps[vid] = msg.stamp_ns
             self.bus.publish(Keys(vid).abort, msg)
 
-        def acked() -> dict[str, str]:
-            return {vid: a.message for vid in vehicles for a in self.view(vid).acks
-                    if a.abort_stamp_ns == stamps[vid]}
+        def acked() -> dict[str, dict[str, str]]:
+            out: dict[str, dict[str, str]] = {}
+            for vid in vehicles:
+                for a in self.view(vid).acks:
+                    if a.abort_stamp_ns == stamps[vid]:
+                        out.setdefault(vid, {})[a.service] = a.message
+            return out
+
+        def complete() -> bool:
+            got = acked()
+            for vid in vehicles:
+                alive = {svc for svc, up in self.view(vid).services.items() if up and svc in ABORT_SERVICES}
+                if not got.get(vid) or not alive <= set(got[vid]):
+                    return False
+            return True
 
         deadline = time.monotonic() + wait_s
         async with self.changed:
-            while len(acked()) < len(vehicles) and not self.closing.is_set():
+            while not complete() and not self.closing.is_set():
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
                     break

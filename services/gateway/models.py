@@ -185,19 +185,31 @@ class AbortIn(ApiModel):
     """Only this vehicle (POST /abort); every vehicle when omitted."""
 
 
+def abort_summary(acked: dict[str, dict[str, str]]) -> dict[str, str]:
+    """One line per vehicle for AbortOut.messages: the executor's answer, else the bridge's."""
+    return {vid: by.get("executor") or by.get("autopilot_bridge") or next(iter(by.values()), "")
+            for vid, by in acked.items()}
+
+
 class AbortOut(ApiModel):
     model_config = ConfigDict(json_schema_extra={"examples": [
         {"vehicles": ["am1"], "acknowledged": ["am1"], "task_id": "task-1a2b3c4d5e6f",
-         "messages": {"am1": "stopped grasp (goal goal-0123456789ab), holding position"}}]})
+         "messages": {"am1": "stopped grasp (goal goal-0123456789ab), holding position"},
+         "services": {"am1": {"executor": "stopped grasp (goal goal-0123456789ab), holding position",
+                              "autopilot_bridge": "holding in AUTO.LOITER (PX4 Hold)"}}}]})
 
     vehicles: list[str]
     """Vehicles the abort was sent to."""
     acknowledged: list[str]
-    """Vehicles whose executor acknowledged the hold in time."""
+    """Vehicles where at least one service (executor or autopilot bridge) acknowledged the abort in time."""
     task_id: str | None = None
     """Task aborted, when one was named."""
     messages: dict[str, str] = {}
-    """What each acknowledging executor did (e.g. "holding position")."""
+    """What each acknowledging vehicle did: its executor's answer (e.g. "holding position"), else its
+    autopilot bridge's."""
+    services: dict[str, dict[str, str]] = {}
+    """Per vehicle, which services acknowledged and what each did ({"am1": {"executor": ...,
+    "autopilot_bridge": ...}}); a service missing here did not answer in time (dead or unreachable)."""
 
 
 # --------------------------------------------------------------------------- health

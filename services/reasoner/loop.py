@@ -122,6 +122,8 @@ class TaskRunner:
         self.invalid = 0
         self.started_ns = now_ns()
         self.records: list[ReasoningStep] = []
+        self._abort: asyncio.Event | None = None
+        self._override_ns = 0  # takeover seen when the task started (the bridge's; a new one ends the task)
 
     def status(self, state: TaskState, message: str = "") -> TaskStatus:
         return TaskStatus(vehicle_id=self.settings.vehicle_id, task_id=self.req.task_id, command=self.req.command,
@@ -132,6 +134,7 @@ class TaskRunner:
     async def run(self, abort: asyncio.Event) -> TaskStatus:
         """Run until done/failure/abort/T_max; always returns (and publishes) the terminal status."""
         self.publish_status(self.status(TaskState.RUNNING, "task started"))
+        self._abort = abort
         body = asyncio.create_task(self._run())
         aborter = asyncio.create_task(abort.wait())
         try:
@@ -165,6 +168,8 @@ class TaskRunner:
         compiler = PromptCompiler(self.variant, library)
         self.categories = {spec.name: spec.category for spec in library.skills}
         obs = await self.world.observe(0)
+        if obs.state is not None:
+            self._override_ns = obs.state.override_ns
         if self.req.takeoff and obs.state is not None and obs.state.landed_state in (
                 LandedState.ON_GROUND, LandedState.UNKNOWN) and not obs.state.armed:
             st = await self._execute(SkillRequest(skill=S.TAKEOFF, task_id=self.req.task_id, step=0),
@@ -172,7 +177,7 @@ class TaskRunner:
             if st.state is not SkillState.SUCCEEDED:
                 return self.status(TaskState.FAILED, f"takeoff {st.state.value}: {st.message}")
         failed_in_row = 0
-        retakeoffs = 0
+        last_skill = S.TAKEOFF
         last_end_ns = 0
         while True:
             if self.steps >= self.settings.max_steps:
@@ -181,20 +186,9 @@ class TaskRunner:
                                                      "vehicle held")
             t_step = time.perf_counter()
             obs = await self.world.observe(last_end_ns)
-            if (self.req.takeoff and retakeoffs < 2 and obs.state is not None
-                    and obs.state.landed_state is LandedState.ON_GROUND):
-                # A failsafe landed the vehicle mid-task (e.g. offboard lost): the reasoner owns takeoff, so
-                # it takes off again (bounded) instead of offering the model skills that cannot run.
-                retakeoffs += 1
-                st = await self._execute(SkillRequest(skill=S.TAKEOFF, task_id=self.req.task_id, step=self.steps),
-                                         self.settings.takeoff_timeout_s)
-                self.history.append(HistoryEntry(self.steps, S.TAKEOFF, None, st.state.value,
-                                                 "the vehicle had landed (failsafe); took off again: " + st.message))
-                last_end_ns = now_ns()
-                if st.state is not SkillState.SUCCEEDED:
-                    return self.status(TaskState.FAILED, f"vehicle landed mid-task and takeoff {st.state.value}: "
-                                                         f"{st.message}")
-                continue
+            ended = self._authority_end(obs, last_skill)
+            if ended is not None:
+                return ended
             self.steps += 1
             try:
                 result, model_time = await self._decide(compiler, library, obs)
@@ -227,6 +221,7 @@ class TaskRunner:
             skill_s = time.perf_counter() - t_skill
             t_upd = time.perf_counter()
             last_end_ns = now_ns()  # local clock: the next frame must arrive after this
+            last_skill = ste.skill
             self.history.append(HistoryEntry(
                 self.steps, ste.skill, ste.argument, st.state.value, st.message, st.outcome.perceived,
                 parsed.drt.summary or "", parsed.drt.reasoning or ""))
@@ -240,6 +235,22 @@ class TaskRunner:
                 log.warning("done was %s: %s", st.state.value, st.message)
             if st.state is SkillState.ABORTED:
                 return self.status(TaskState.ABORTED, f"skill {ste.skill} aborted: {st.message}")
+
+    def _authority_end(self, obs: Observation, last_skill: str) -> TaskStatus | None:
+        """PX4's authority: when PX4, the pilot or an abort took control during this task, or the vehicle came
+        down without being asked, the task ends with that reason. Nothing takes off again on its own: that
+        needs a new operator command (a new task)."""
+        st = obs.state
+        if st is None or (self._abort is not None and self._abort.is_set()):
+            return None
+        if st.override and st.override_ns != self._override_ns:
+            return self.status(TaskState.FAILED, f"the autopilot took control: {st.override}; the task ends "
+                                                 "here, a new command is needed to fly again")
+        if self.req.takeoff and st.landed_state is LandedState.ON_GROUND and last_skill != S.LAND:
+            return self.status(TaskState.FAILED, f"the vehicle landed without being asked (mode {st.mode}"
+                                                 f"{': ' + st.message if st.message else ''}); the task ends "
+                                                 "here, a new command is needed to fly again")
+        return None
 
     def _publish(self, rec: ReasoningStep) -> None:
         self.records.append(rec)

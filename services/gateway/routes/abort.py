@@ -6,7 +6,7 @@ from fastapi import APIRouter
 
 from services.gateway.deps import Authorized, FleetDep, SettingsDep
 from services.gateway.errors import ApiError, responses
-from services.gateway.models import AbortIn, AbortOut
+from services.gateway.models import AbortIn, AbortOut, abort_summary
 
 router = APIRouter(tags=["abort"])
 
@@ -27,4 +27,4 @@ async def abort_all(fleet: FleetDep, settings: SettingsDep, body: AbortIn | None
     reason = req.reason
     acked = await fleet.abort(vehicles, reason, None, settings.abort_ack_timeout_s,
                               fleet_wide=req.vehicle_id is None)
-    return AbortOut(vehicles=vehicles, acknowledged=sorted(acked), messages=acked)
+    return AbortOut(vehicles=vehicles, acknowledged=sorted(acked), messages=abort_summary(acked), services=acked)
