@@ -213,6 +213,7 @@ class World:
         self._static_contact: set[int] = set()
         self.contacts: list[Contact] = []
         self.sim_time = 0.0
+        self._pending = 0.0
         self.set_fingers(FINGER_MAX_HALF)
         self.data.qpos[self._jnt["finger_left"]] = self.data.qpos[self._jnt["finger_right"]] = FINGER_MAX_HALF
         mujoco.mj_forward(self.model, self.data)
@@ -321,7 +322,11 @@ class World:
         rate, as PX4's does). Returns the airframe's new contacts with furniture, walls or the ceiling (each
         also recorded in `collisions`); one begun faster than `crash_speed` is a crash."""
         new: list[Contact] = []
-        n = max(1, int(round(dt / TIMESTEP)))
+        self._pending += dt  # simulated time not yet stepped (callers' dt need not be a multiple of TIMESTEP)
+        n = int(self._pending / TIMESTEP + 1e-9)
+        if n == 0:
+            return new
+        self._pending -= n * TIMESTEP
         speed = float(np.linalg.norm(self.vehicle_velocity()))
         mujoco.mj_step(self.model, self.data, nstep=n)
         self.sim_time += n * TIMESTEP

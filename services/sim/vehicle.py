@@ -142,6 +142,7 @@ class Vehicle:
         self.hold_yaw = self.yaw
         self.takeoff_target = self.p.copy()
         self.gripper_closed = False
+        self.held_name: str | None = None
         self.battery = 100.0
         self.sim_time = 0.0
         self.setpoints_received = 0
@@ -351,8 +352,17 @@ class Vehicle:
             else:
                 self._event(mav.MAV_SEVERITY_CRITICAL, f"Collision with {c.name} at {c.speed:.2f} m/s")
         self._read_state()
+        held = self.world.holding()
+        name = held.name if held is not None else None
+        if name != self.held_name:
+            if name is not None:
+                self._event(mav.MAV_SEVERITY_INFO, f"Gripper: holding {name} (width {self.finger_width:.3f} m)")
+            else:
+                self._event(mav.MAV_SEVERITY_INFO, f"Gripper: no longer holding {self.held_name}")
+            self.held_name = name
         was = self.on_ground
-        self.on_ground = self.world.gear_on_something() and abs(self.v[2]) < 0.15 and (
+        resting = self.world.gear_on_something() or self.world.vehicle_position()[2] < 0.003
+        self.on_ground = resting and abs(self.v[2]) < 0.15 and (
             not self.armed or not self._climbing())
         if was and not self.on_ground:
             self.landing_touch_wall = None
