@@ -59,19 +59,22 @@ OBJECTS: dict[str, ObjectSpec] = {s.name: s for s in (
     ObjectSpec("orange", "sphere", (0.08, 0.08, 0.08), "orange", (250, 135, 10), 0.18),
     ObjectSpec("banana", "box", (0.19, 0.045, 0.04), "yellow", (245, 220, 40), 0.15),
     ObjectSpec("cracker box", "box", (0.16, 0.07, 0.21), "pink", (235, 100, 170), 0.45),
-    ObjectSpec("cardboard box", "box", (0.30, 0.24, 0.20), "brown", (165, 115, 65), 0.6),
+    # Graspable across its 16 cm side (the fingers open to 18 cm); twice the cracker box's volume.
+    ObjectSpec("cardboard box", "box", (0.22, 0.16, 0.15), "brown", (165, 115, 65), 0.35),
     ObjectSpec("wrench", "box", (0.20, 0.05, 0.02), "silver", (150, 150, 160), 0.25),
     ObjectSpec("screwdriver", "box", (0.18, 0.025, 0.025), "black", (25, 25, 25), 0.1),
     ObjectSpec("hammer", "box", (0.30, 0.10, 0.035), "olive", (120, 120, 0), 0.55),
 )}
 TOOLS = ("wrench", "screwdriver", "hammer")
 
+# Tops differ in chromaticity, not only in brightness: under the varying room light a white top in shadow is as
+# dark as a grey one in full light, and a colour segmenter can only tell them apart by hue.
 FURNITURE: dict[str, FurnitureSpec] = {s.name: s for s in (
     FurnitureSpec("table", "box", (1.2, 0.8), 0.75, "white", (225, 225, 220), True),
-    FurnitureSpec("round table", "cylinder", (0.9, 0.9), 0.75, "grey", (175, 175, 180), True),
+    FurnitureSpec("round table", "cylinder", (0.9, 0.9), 0.75, "sage", (120, 165, 140), True),
     FurnitureSpec("wooden table", "box", (1.1, 0.7), 0.75, "wood", (150, 100, 55), True),
     FurnitureSpec("shelf", "box", (1.0, 0.5), 0.9, "beige", (205, 190, 160), True),
-    FurnitureSpec("sink", "box", (0.8, 0.6), 0.85, "steel", (190, 200, 205), True),
+    FurnitureSpec("sink", "box", (0.8, 0.6), 0.85, "blue steel", (140, 165, 200), True),
     FurnitureSpec("counter", "box", (1.4, 0.6), 0.9, "dark grey", (90, 90, 95), True),
     FurnitureSpec("coffee machine", "box", (0.35, 0.35), 1.0, "black", (40, 35, 35), False),
 )}

@@ -86,23 +86,29 @@ def build_xml(entities: list[Entity], light_seed: int = 0, light_variation: bool
         '<flag sleep="enable"/></option>')
     add(f'<visual><global offwidth="{intr.width}" offheight="{intr.height}"/>'
         '<quality shadowsize="1024"/><map znear="0.01" zfar="50"/>'
-        '<headlight ambient="0.35 0.35 0.35" diffuse="0.25 0.25 0.25" specular="0 0 0"/></visual>')
+        '<headlight ambient="0.3 0.3 0.3" diffuse="0.15 0.15 0.15" specular="0 0 0"/></visual>')
+    add('<asset><texture name="tiles" type="2d" builtin="checker" width="256" height="256" '
+        'rgb1="0.50 0.50 0.48" rgb2="0.42 0.42 0.40"/>'
+        '<material name="floor" texture="tiles" texrepeat="8 8" specular="0.05"/></asset>')
     add('<default><geom solref="0.004 1" solimp="0.95 0.99 0.001" condim="4"/></default>')
     add('<worldbody>')
-    # Ceiling lights: the brightness and position vary per layout (another office, another time of day).
-    k = float(rng.uniform(0.45, 0.75)) if light_variation else 0.6
-    for i, (lx, ly) in enumerate(((-1.5, -1.5), (1.5, 1.5))):
-        jx, jy = (rng.uniform(-0.8, 0.8, 2) if light_variation else (0.0, 0.0))
-        add(f'<light name="ceiling{i}" pos="{_vec([lx + jx, ly + jy, 2.5])}" dir="0 0 -1" directional="false" '
-            f'diffuse="{_vec([k, k, k * 0.97])}" specular="0.1 0.1 0.1" attenuation="1 0 0" cutoff="80" '
-            f'castshadow="{"true" if i == 0 else "false"}"/>')
+    # Room light from above (a directional key light, slanted, and a weaker fill): its brightness and
+    # direction vary per layout (another office, another time of day).
+    k = float(rng.uniform(0.45, 0.65)) if light_variation else 0.55
+    tilt = float(rng.uniform(0.25, 0.6)) if light_variation else 0.4
+    az = float(rng.uniform(-math.pi, math.pi)) if light_variation else 0.7
+    key_dir = [math.sin(tilt) * math.cos(az), math.sin(tilt) * math.sin(az), -math.cos(tilt)]
+    add(f'<light name="key" directional="true" pos="0 0 2.5" dir="{_vec(key_dir)}" '
+        f'diffuse="{_vec([k, k, k * 0.97])}" specular="0.05 0.05 0.05" castshadow="true"/>')
+    add(f'<light name="fill" directional="true" pos="0 0 2.5" dir="{_vec([-key_dir[0], -key_dir[1], -0.6])}" '
+        f'diffuse="{_vec([0.15, 0.15, 0.16])}" specular="0 0 0" castshadow="false"/>')
     for e in entities:
         name = quoteattr(entity_geom_name(e))
         if e.category == "object":
             continue
         if e.name == "floor":
             add(f'<geom name={name} type="box" size="{_vec(np.array(e.size) / 2)}" pos="{_vec(e.center)}" '
-                f'rgba="{_rgba(e.rgb)}" contype="{GROUP_FLOOR}" conaffinity="0" friction="0.8 0.01 0.001"/>')
+                f'material="floor" contype="{GROUP_FLOOR}" conaffinity="0" friction="0.8 0.01 0.001"/>')
             continue
         if e.shape == "cylinder":
             geom = f'type="cylinder" size="{_f(e.size[0] / 2)} {_f(e.size[2] / 2)}"'
@@ -184,6 +190,7 @@ class World:
     version: int = 0
     collisions: list[str] = field(default_factory=list)
     crash_speed: float = CRASH_SPEED
+    settle_s: float = 0.3  # let the objects come to rest on their supports before anything else
 
     def __post_init__(self) -> None:
         self.xml = build_xml(self.entities, self.light_seed, self.light_variation)
@@ -217,7 +224,8 @@ class World:
         self.set_fingers(FINGER_MAX_HALF)
         self.data.qpos[self._jnt["finger_left"]] = self.data.qpos[self._jnt["finger_right"]] = FINGER_MAX_HALF
         mujoco.mj_forward(self.model, self.data)
-        self.settle(0.3)
+        if self.settle_s > 0:
+            self.settle(self.settle_s)
 
     # ---- lookup (same names as the layout)
 

@@ -43,12 +43,13 @@ class Renderer:
             raise ValueError(f"unknown realism {realism!r}: {' or '.join(REALISM)}")
         self.intr, self.realism, self.segmentation = intr, realism, segmentation
         self.rng = np.random.default_rng(seed)
-        self._version: int | None = None
+        self._version: tuple[int, int] | None = None
         self._renderer: mujoco.Renderer | None = None
         self.exposure = 1.0
 
     def _model(self, snap: Snapshot) -> None:
-        if self._version == snap.version and self._renderer is not None:
+        key = (snap.version, hash(snap.xml))  # distinct layouts may share a version number (offline previews)
+        if self._version == key and self._renderer is not None:
             return
         if self._renderer is not None:
             self._renderer.close()
@@ -60,7 +61,7 @@ class Renderer:
         self._renderer = mujoco.Renderer(self.model, self.intr.height, self.intr.width)
         self._opt = mujoco.MjvOption()
         self._opt.geomgroup[3] = 0  # the gripper's fingers are out of the camera's view anyway
-        self._version = snap.version
+        self._version = key
 
     def close(self) -> None:
         if self._renderer is not None:
