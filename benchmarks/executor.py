@@ -28,8 +28,6 @@ from shared.keys import Keys  # noqa: E402
 from shared.launcher import Stack, free_udp_port  # noqa: E402
 from shared.messages import (  # noqa: E402
     Abort,
-    AbortAck,
-    SkillAccept,
     SkillRequest,
     SkillState,
     SkillStatus,
@@ -48,7 +46,7 @@ def speed(s: VehicleState) -> float:
 
 
 async def run_skill(bus: Bus, statuses, skill: str, timeout: float = 90.0) -> SkillStatus:
-    acc = await bus.query(KEYS.run_skill, SkillRequest(skill=skill), SkillAccept, timeout=10)
+    acc = await bus.query(KEYS.run_skill, SkillRequest(skill=skill), timeout=10)
     if not acc.accepted:
         raise RuntimeError(f"{skill} rejected: {acc.reason}")
     while True:
@@ -59,9 +57,9 @@ async def run_skill(bus: Bus, statuses, skill: str, timeout: float = 90.0) -> Sk
 
 async def bench(endpoint: str, trials: int, still: float) -> None:
     bus = await Bus.open(connect=[endpoint])
-    statuses = bus.subscribe(KEYS.skill_status, SkillStatus, maxsize=1000)
-    states = bus.subscribe(KEYS.autopilot_state, VehicleState, maxsize=1000)
-    acks = bus.subscribe(KEYS.abort_ack, AbortAck, maxsize=100)
+    statuses = bus.subscribe(KEYS.skill_status, maxsize=1000)
+    states = bus.subscribe(KEYS.autopilot_state, maxsize=1000)
+    acks = bus.subscribe(KEYS.abort_ack, maxsize=100)
     try:
         why = ""
         for _ in range(60):  # the bridge needs a moment to see the sim's heartbeats
@@ -79,7 +77,7 @@ async def bench(endpoint: str, trials: int, still: float) -> None:
         still_ms: list[float] = []
         for i in range(trials):
             skill = "left" if i % 2 == 0 else "right"
-            acc = await bus.query(KEYS.run_skill, SkillRequest(skill=skill), SkillAccept, timeout=10)
+            acc = await bus.query(KEYS.run_skill, SkillRequest(skill=skill), timeout=10)
             if not acc.accepted:
                 raise RuntimeError(f"{skill} rejected: {acc.reason}")
             while speed(await states.recv(timeout=10)) < 0.15:

@@ -34,7 +34,7 @@ from shared.errors import NoResponder  # noqa: E402
 from shared.frames import base_to_camera  # noqa: E402
 from shared.keys import Keys  # noqa: E402
 from shared.launcher import free_port  # noqa: E402
-from shared.messages import LocalizeRequest, ObjectEstimate, PlacementEstimate, Vec3  # noqa: E402
+from shared.messages import LocalizeRequest, Vec3  # noqa: E402
 from shared.sensors import raw16_message, transforms_message  # noqa: E402
 from tests.perception.scenes import aim_at, layout, render_view  # noqa: E402
 
@@ -118,11 +118,10 @@ async def over_bus(requests: int, cpu: int | None) -> None:
                 bus.publish(keys.sim_labels, v.labels)
                 bus.publish(keys.tf, transforms_message([("world", "base_link", v.world_from_camera
                                                           @ np.linalg.inv(base_to_camera())),
-                                                         ("base_link", "camera", base_to_camera())], stamp),
-                            schema="foxglove.FrameTransforms")
-                bus.publish(keys.camera_segmentation, raw16_message(v.segmentation, stamp), schema="foxglove.RawImage")
-                bus.publish(keys.camera_depth, raw16_message(v.depth_mm, stamp), schema="foxglove.RawImage")
-                bus.publish(keys.camera_color, msg.SerializeToString(), schema="foxglove.CompressedImage")
+                                                         ("base_link", "camera", base_to_camera())], stamp))
+                bus.publish(keys.camera_segmentation, raw16_message(v.segmentation, stamp))
+                bus.publish(keys.camera_depth, raw16_message(v.depth_mm, stamp))
+                bus.publish(keys.camera_color, msg.SerializeToString())
                 i += 1
                 await asyncio.sleep(0.2)
 
@@ -133,7 +132,7 @@ async def over_bus(requests: int, cpu: int | None) -> None:
             est = None
             while True:
                 try:
-                    est = await bus.query(keys.localize_object, LocalizeRequest(query="red cup"), ObjectEstimate,
+                    est = await bus.query(keys.localize_object, LocalizeRequest(query="red cup"),
                                           timeout=10)
                     if est.reason not in ("no_frame",):
                         break
@@ -148,11 +147,10 @@ async def over_bus(requests: int, cpu: int | None) -> None:
                 if kind == "color" and name not in OBJECT_NAMES:
                     name = "red cup"
                 t = time.perf_counter()
-                await bus.query(keys.localize_object, LocalizeRequest(query=name), ObjectEstimate, timeout=10)
+                await bus.query(keys.localize_object, LocalizeRequest(query=name), timeout=10)
                 obj_t.append(time.perf_counter() - t)
                 t = time.perf_counter()
-                await bus.query(keys.localize_placement, LocalizeRequest(query=surface, object_size=HELD),
-                                PlacementEstimate, timeout=10)
+                await bus.query(keys.localize_placement, LocalizeRequest(query=surface, object_size=HELD), timeout=10)
                 place_t.append(time.perf_counter() - t)
                 await asyncio.sleep(0.05)
             where = f"pinned to cpu {cpu}" if cpu is not None else "unpinned"

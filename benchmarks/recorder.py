@@ -22,7 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from shared.bus import Bus  # noqa: E402
 from shared.keys import Keys  # noqa: E402
 from shared.launcher import Stack  # noqa: E402
-from shared.messages import Health, VehicleState  # noqa: E402
+from shared.messages import VehicleState  # noqa: E402
 from shared.sensors import color_message, encode_jpeg, raw16_message  # noqa: E402
 
 DEMO_FPS = 15.0
@@ -52,12 +52,12 @@ async def publish(bus: Bus, keys: Keys, seconds: float, fps: float, frames) -> t
     while time.monotonic() - t0 < seconds:
         jpeg, depth, seg = frames[n % len(frames)]
         stamp = time.time_ns()
-        for key, data, schema in (
-            (keys.camera_color, color_message(None, stamp, jpeg=jpeg), "foxglove.CompressedImage"),  # type: ignore[arg-type]
-            (keys.camera_depth, raw16_message(depth, stamp), "foxglove.RawImage"),
-            (keys.camera_segmentation, raw16_message(seg, stamp), "foxglove.RawImage"),
+        for key, data in (
+            (keys.camera_color, color_message(None, stamp, jpeg=jpeg)),  # type: ignore[arg-type]
+            (keys.camera_depth, raw16_message(depth, stamp)),
+            (keys.camera_segmentation, raw16_message(seg, stamp)),
         ):
-            bus.publish(key, data, schema=schema)
+            bus.publish(key, data)
             sent += 1
             nbytes += len(data)
         if n % 3 == 0:  # vehicle state beside the frames (~15 Hz at 3x)
@@ -93,7 +93,7 @@ async def main_async(args: argparse.Namespace) -> None:
     stack.start(wait=True)
     try:
         bus = await Bus.open(connect=[stack.endpoint])
-        health = bus.subscribe(keys.health("recorder"), Health, maxsize=100)
+        health = bus.subscribe(keys.health("recorder"), maxsize=100)
         await health.recv(timeout=60)
         fps = DEMO_FPS * args.rate_mult
         print(f"publishing {args.width}x{args.height} colour+depth+segmentation at {fps:.0f} fps "

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import json
 import sys
 import tempfile
 import time
@@ -27,7 +26,7 @@ from services.sim.settings import SimSettings  # noqa: E402
 from shared.bus import Bus  # noqa: E402
 from shared.keys import Keys  # noqa: E402
 from shared.launcher import Stack, available_services, free_udp_port  # noqa: E402
-from shared.messages import ArmCommand, AutopilotResult, Scenario, TakeoffCommand  # noqa: E402
+from shared.messages import ArmCommand, Scenario, TakeoffCommand  # noqa: E402
 
 
 def standalone(frames: int, scale: int) -> None:
@@ -68,11 +67,11 @@ async def on_stack(services: list[str], seconds: float, scale: int) -> None:
             if "autopilot_bridge" in services:
                 await asyncio.sleep(3.0)  # link up, heartbeats exchanged
                 for cmd in (ArmCommand(), TakeoffCommand(altitude=1.5)):
-                    res = await bus.query(keys.autopilot_command, cmd, AutopilotResult, timeout=60)
+                    res = await bus.query(keys.autopilot_command, cmd, timeout=60)
                     print(f"bridge {cmd.kind}: ok={res.ok} {res.message}")
                 await asyncio.sleep(3.0)
-            sub = bus.subscribe(keys.camera_color, None, maxsize=5)
-            await bus.query(keys.sim_stats, b"reset", None, timeout=10)
+            sub = bus.subscribe(keys.camera_color, maxsize=5)
+            await bus.query(keys.sim_stats, "reset", timeout=10)
             t0 = time.monotonic()
             n = 0
             while time.monotonic() - t0 < seconds:
@@ -81,7 +80,7 @@ async def on_stack(services: list[str], seconds: float, scale: int) -> None:
                     n += 1
                 except TimeoutError:
                     pass
-            stats = json.loads(await bus.query(keys.sim_stats, None, None, timeout=10))
+            stats = await bus.query(keys.sim_stats, None, timeout=10)
             cam, sp = stats["camera"], stats["setpoints"]
             print(f"on Zenoh with {','.join(services)}: subscriber received {n / seconds:.1f} colour frames/s; sim "
                   f"published {cam['fps']:.1f} fps, mean frame work {cam['render_ms_mean']:.1f} ms")

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import json
 import logging
 import threading
@@ -29,10 +30,14 @@ import zenoh
 from pydantic import BaseModel, TypeAdapter, ValidationError
 
 from shared.errors import BusError, DecodeError, NoResponder, QueryTimeout, RemoteError
+from shared.keys import BoundQuery, BoundToken, BoundTopic, Json, Protobuf, schema_name
+from shared.messages import SCHEMA_MINOR, SCHEMA_VERSION
 
 log = logging.getLogger("aermani.bus")
 
 T = TypeVar("T")
+Req = TypeVar("Req")
+Rep = TypeVar("Rep")
 Overflow = Literal["drop_oldest", "drop_newest"]
 
 _ENC_JSON = zenoh.Encoding.APPLICATION_JSON
@@ -70,6 +75,18 @@ def zenoh_config(mode: str = "client", connect: list[str] | tuple[str, ...] = ()
     return cfg
 
 
+def _fail(fut: asyncio.Future[zenoh.Session], exc: BaseException) -> None:
+    if not fut.done():
+        fut.set_exception(exc)
+
+
+def _deliver(fut: asyncio.Future[zenoh.Session], session: zenoh.Session) -> None:
+    if fut.done():  # the waiter gave up (stop during the wait): nobody will close it otherwise
+        session.close()  # type: ignore[no-untyped-call]
+    else:
+        fut.set_result(session)
+
+
 async def _open_in_daemon_thread(cfg: zenoh.Config) -> zenoh.Session:
     """zenoh.open blocks while a client waits for its router. A daemon thread (not the loop's executor)
     lets a SIGTERM during that wait cancel us and exit: asyncio.run would otherwise join the thread."""
@@ -81,12 +98,12 @@ async def _open_in_daemon_thread(cfg: zenoh.Config) -> zenoh.Session:
             session = zenoh.open(cfg)
         except BaseException as exc:  # handed to the waiting coroutine
             if not loop.is_closed():
-                loop.call_soon_threadsafe(lambda e=exc: fut.done() or fut.set_exception(e))
+                loop.call_soon_threadsafe(_fail, fut, exc)
             return
         if loop.is_closed():
-            session.close()
+            session.close()  # type: ignore[no-untyped-call]
             return
-        loop.call_soon_threadsafe(lambda: fut.set_result(session) if not fut.done() else session.close())
+        loop.call_soon_threadsafe(_deliver, fut, session)
 
     threading.Thread(target=work, name="zenoh-open", daemon=True).start()
     return await fut
@@ -102,44 +119,138 @@ def schema_of(obj: Any) -> str:
     return ""
 
 
+@functools.lru_cache(maxsize=256)
+def _encoding(base: str, schema: str) -> zenoh.Encoding:
+    """Encodings are immutable: build each (base, schema) once instead of per sample."""
+    enc = {"json": _ENC_JSON, "protobuf": _ENC_PROTOBUF}[base]
+    return enc.with_schema(schema) if schema else enc
+
+
 def encode(obj: Any, schema: str | None = None) -> tuple[bytes, zenoh.Encoding]:
     """Model -> JSON bytes with `application/json;aermani.<Model>`; protobuf message -> bytes with
-    `application/protobuf;<full name>`; bytes pass through with the given schema (protobuf if it names
-    a foxglove type)."""
+    `application/protobuf;<full name>`; bytes pass through (not copied) with the given schema (protobuf if
+    it names a foxglove type)."""
     if isinstance(obj, BaseModel):
-        return obj.model_dump_json().encode(), _ENC_JSON.with_schema(schema or schema_of(obj))
+        return obj.model_dump_json().encode(), _encoding("json", schema or schema_of(obj))
     if hasattr(obj, "SerializeToString") and hasattr(obj, "DESCRIPTOR"):
-        return obj.SerializeToString(), _ENC_PROTOBUF.with_schema(obj.DESCRIPTOR.full_name)
+        return obj.SerializeToString(), _encoding("protobuf", obj.DESCRIPTOR.full_name)
     if isinstance(obj, bytes | bytearray | memoryview):
+        data = obj if isinstance(obj, bytes) else bytes(obj)
         if schema and schema.startswith("foxglove."):
-            return bytes(obj), _ENC_PROTOBUF.with_schema(schema)
+            return data, _encoding("protobuf", schema)
         if schema:
-            return bytes(obj), _ENC_JSON.with_schema(schema)
-        return bytes(obj), _ENC_BYTES
+            return data, _encoding("json", schema)
+        return data, _ENC_BYTES
     if isinstance(obj, dict | list | str | int | float | bool) or obj is None:
         return json.dumps(obj).encode(), _ENC_JSON.with_schema(schema) if schema else _ENC_JSON
     raise TypeError(f"cannot encode {type(obj).__name__} for the bus")
 
 
+_warned_minor: set[tuple[str, str]] = set()
+
+
+def _is_raw(model: Any) -> bool:
+    return model is None or isinstance(model, Protobuf)
+
+
 class _Decoder(Generic[T]):
-    def __init__(self, model: type[T] | Any | None) -> None:
+    """Bytes -> the declared type, with the versioning rule of `shared.messages`: a message of a newer minor
+    version may carry fields this receiver does not know (they are dropped, logged once per field); a
+    message of a newer major version is rejected with an error naming both versions."""
+
+    def __init__(self, model: Any) -> None:
         self.model = model
-        self.adapter = TypeAdapter(model) if model is not None else None
+        self.name = getattr(model, "__name__", str(model))
+        self.json = isinstance(model, Json)
+        self.adapter = None if _is_raw(model) or self.json else TypeAdapter(model)
 
     def __call__(self, data: bytes) -> T:
         if self.adapter is None:
+            if self.json:
+                try:
+                    return json.loads(data) if data else None  # type: ignore[return-value]
+                except ValueError as exc:
+                    raise DecodeError(f"invalid JSON for {self.name}: {exc}") from exc
             return data  # type: ignore[return-value]
         try:
-            return self.adapter.validate_json(data)
+            value = self.adapter.validate_json(data)
         except ValidationError as exc:
-            first = exc.errors()[0] if exc.errors() else {}
-            where = ".".join(str(p) for p in first.get("loc", ())) or "payload"
-            raise DecodeError(f"invalid {getattr(self.model, '__name__', self.model)} at {where}: "
-                              f"{first.get('msg', exc)}") from exc
+            value = self._newer_minor(data, exc)
+        major = getattr(value, "schema_version", SCHEMA_VERSION)
+        if major > SCHEMA_VERSION:
+            raise DecodeError(f"{self.name} of schema version {major}.{getattr(value, 'schema_minor', 0)} "
+                              f"cannot be read by this receiver (version {SCHEMA_VERSION}.{SCHEMA_MINOR}); "
+                              "upgrade aermani on this side")
+        return value  # type: ignore[no-any-return]
+
+    def _newer_minor(self, data: bytes, exc: ValidationError) -> Any:
+        errors = exc.errors()
+        try:
+            doc = json.loads(data)
+        except ValueError:
+            doc = None
+        if isinstance(doc, dict):
+            major = doc.get("schema_version", SCHEMA_VERSION)
+            minor = doc.get("schema_minor", 0)
+            if isinstance(major, int) and major > SCHEMA_VERSION:
+                raise DecodeError(f"{self.name} of schema version {major}.{minor} cannot be read by this "
+                                  f"receiver (version {SCHEMA_VERSION}.{SCHEMA_MINOR}); upgrade aermani on "
+                                  "this side") from exc
+            extra = [e["loc"] for e in errors if e.get("type") == "extra_forbidden"]
+            newer = isinstance(minor, int) and major == SCHEMA_VERSION and minor > SCHEMA_MINOR
+            if newer and extra and len(extra) == len(errors):
+                for loc in extra:
+                    _drop_path(doc, loc)
+                    field = ".".join(str(p) for p in loc)
+                    if (self.name, field) not in _warned_minor:
+                        _warned_minor.add((self.name, field))
+                        log.info("%s from schema version %s.%s carries field %r unknown to version %s.%s: "
+                                 "ignored", self.name, major, minor, field, SCHEMA_VERSION, SCHEMA_MINOR)
+                try:
+                    return self.adapter.validate_python(doc)  # type: ignore[union-attr]
+                except ValidationError as again:
+                    exc = again
+                    errors = again.errors()
+        loc = errors[0].get("loc", ()) if errors else ()
+        msg = errors[0].get("msg", str(exc)) if errors else str(exc)
+        where = ".".join(str(p) for p in loc) or "payload"
+        raise DecodeError(f"invalid {self.name} at {where}: {msg}") from exc
 
 
-def decoder(model: type[T] | Any | None) -> Callable[[bytes], T]:
+def _drop_path(doc: Any, loc: tuple[Any, ...]) -> None:
+    """Remove the value at `loc` (a pydantic error location; union tags are skipped) from a JSON document."""
+    node = doc
+    for i, part in enumerate(loc):
+        last = i == len(loc) - 1
+        if isinstance(node, dict) and part in node:
+            if last:
+                node.pop(part, None)
+                return
+            node = node[part]
+        elif isinstance(node, list) and isinstance(part, int) and part < len(node):
+            node = node[part]
+        # else: a union member tag in the location path; stay on this node
+
+
+def decoder(model: Any) -> Callable[[bytes], Any]:
     return _Decoder(model)
+
+
+def _check_type(decl_type: Any, obj: Any, key: str) -> None:
+    """Refuse to publish a value of another type than the key declares (a programming error)."""
+    if isinstance(decl_type, Protobuf):
+        ok = isinstance(obj, bytes | bytearray | memoryview) or (
+            hasattr(obj, "DESCRIPTOR") and obj.DESCRIPTOR.full_name == decl_type.full_name)
+    elif isinstance(decl_type, Json):
+        ok = isinstance(obj, dict | list)
+    elif isinstance(decl_type, type):
+        ok = isinstance(obj, decl_type)
+    else:  # a union (possibly Annotated)
+        args: tuple[Any, ...] = getattr(decl_type, "__args__", ())
+        inner = args[0] if args and getattr(decl_type, "__metadata__", None) else decl_type
+        ok = isinstance(obj, tuple(getattr(inner, "__args__", (inner,))))
+    if not ok:
+        raise TypeError(f"{key} carries {getattr(decl_type, '__name__', decl_type)}, not {type(obj).__name__}")
 
 
 # --------------------------------------------------------------------------- subscription
@@ -206,8 +317,11 @@ class Subscription(Generic[T]):
         """Next valid sample (malformed ones are logged and skipped). Raises TimeoutError."""
         deadline = None if timeout is None else time.monotonic() + timeout
         while True:
-            remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
-            key, data, enc, rns = await asyncio.wait_for(self._queue.get(), remaining)
+            try:  # fast path: a queued sample needs no timer (wait_for costs more than the decode)
+                key, data, enc, rns = self._queue.get_nowait()
+            except asyncio.QueueEmpty:
+                remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
+                key, data, enc, rns = await asyncio.wait_for(self._queue.get(), remaining)
             try:
                 value = self._decode(data)
             except DecodeError as exc:
@@ -218,6 +332,19 @@ class Subscription(Generic[T]):
 
     async def recv(self, timeout: float | None = None) -> T:
         return (await self.recv_sample(timeout)).value
+
+    def recv_nowait(self) -> T | None:
+        """The next valid queued sample, or None when the queue is empty (never waits)."""
+        while True:
+            try:
+                key, data, _enc, _rns = self._queue.get_nowait()
+            except asyncio.QueueEmpty:
+                return None
+            try:
+                return self._decode(data)  # type: ignore[no-any-return]
+            except DecodeError as exc:
+                self.malformed += 1
+                log.warning("dropped malformed sample on %s: %s", key, exc)
 
     def latest_nowait(self) -> T | None:
         """Drain the queue and return the newest valid sample, or None."""
@@ -260,7 +387,7 @@ class Bus:
         self.loop = loop
         self._publishers: dict[tuple[str, bool], Any] = {}
         self._declared: list[Any] = []
-        self._tasks: set[asyncio.Task] = set()
+        self._tasks: set[asyncio.Task[None]] = set()
         self._closed = False
         self._lock = threading.Lock()
 
@@ -331,19 +458,26 @@ class Bus:
             self._publishers[(key, reliable)] = pub
         return pub
 
-    def publish(self, key: str, obj: Any, *, schema: str | None = None, reliable: bool = True,
-                attachment: bytes | None = None) -> None:
-        """Publish a model, a protobuf message, or bytes (with a schema name). Non-blocking in practice:
-        BLOCK only waits when the transmission queue is full."""
+    def publish(self, target: BoundTopic[T] | str, obj: T, *, reliable: bool | None = None,
+                attachment: bytes | None = None, schema: str | None = None) -> None:
+        """Publish on a declared topic (its type and schema come from the declaration), or on a plain key
+        expression (`schema` names the payload). Non-blocking in practice: BLOCK only waits when the
+        transmission queue is full."""
         if self._closed:
-            raise BusError(f"publish on {key} after the bus was closed")
+            raise BusError(f"publish on {target} after the bus was closed")
+        if isinstance(target, BoundTopic):
+            _check_type(target.decl.type, obj, target.key)
+            key, schema = target.key, schema_name(target.decl.type)
+            reliable = target.decl.reliable if reliable is None else reliable
+        else:
+            key = target
         data, enc = encode(obj, schema)
-        self._publisher(key, reliable).put(data, encoding=enc, attachment=attachment)
+        self._publisher(key, True if reliable is None else reliable).put(data, encoding=enc, attachment=attachment)
 
-    def has_subscribers(self, key: str, *, reliable: bool = True) -> bool:
-        """Whether any subscriber (local or behind the router) matches `key` now, so a producer can skip
+    def has_subscribers(self, target: BoundTopic[Any]) -> bool:
+        """Whether any subscriber (local or behind the router) matches the topic now, so a producer can skip
         expensive work nobody consumes (the simulator renders only while someone watches)."""
-        status = self._publisher(key, reliable).matching_status
+        status = self._publisher(target.key, target.decl.reliable).matching_status
         return bool(getattr(status, "matching", status))
 
     def publish_raw(self, key: str, data: bytes, encoding: str, *, reliable: bool = True,
@@ -354,10 +488,11 @@ class Bus:
             raise BusError(f"publish on {key} after the bus was closed")
         self._publisher(key, reliable).put(bytes(data), encoding=zenoh.Encoding(encoding), attachment=attachment)
 
-    def subscribe(self, key: str, model: type[T] | Any | None = None, *, maxsize: int = 100,
+    def subscribe(self, target: BoundTopic[T] | str, *, maxsize: int = 100,
                   overflow: Overflow = "drop_oldest") -> Subscription[T]:
-        """Subscribe `key` (a key expression) into a bounded queue; values decode to `model`
-        (a pydantic model or union; None gives raw bytes)."""
+        """Subscribe a declared topic (values decode to its declared type; protobuf topics give bytes) or a
+        plain key expression (raw bytes), into a bounded queue."""
+        key, model = (target.key, target.decl.type) if isinstance(target, BoundTopic) else (target, None)
         sub_obj: Subscription[T] = Subscription(self, key, model, maxsize, overflow)
 
         def on_sample(sample: zenoh.Sample) -> None:
@@ -370,10 +505,13 @@ class Bus:
 
     # ---- query / reply
 
-    async def query(self, key: str, request: Any = None, response_model: type[T] | Any | None = None, *,
-                    timeout: float = 5.0, schema: str | None = None) -> T:
-        """Send a query and return the first reply, decoded. Raises NoResponder (nobody serves the key),
-        QueryTimeout, RemoteError (error reply) or DecodeError (reply is malformed)."""
+    async def query(self, target: BoundQuery[Req, Rep], request: Req | None = None, *,
+                    timeout: float = 5.0) -> Rep:
+        """Send a query to a declared queryable and return the first reply, decoded to its declared type.
+        Raises NoResponder (nobody serves the key), QueryTimeout, RemoteError (error reply) or DecodeError
+        (reply is malformed)."""
+        key = target.key
+        schema = schema_name(target.decl.request) if request is not None else None
         replies = await self.query_all(key, request, timeout=timeout, schema=schema, first_only=True)
         if not replies:
             raise NoResponder(f"no service answers {key}: is it running?")
@@ -383,7 +521,7 @@ class Bus:
             if "timeout" in text.lower():
                 raise QueryTimeout(f"query {key} timed out after {timeout:.1f} s")
             raise RemoteError(f"{key} answered with an error: {text}", text)
-        return decoder(response_model)(data)
+        return decoder(target.decl.reply)(data)  # type: ignore[no-any-return]
 
     async def query_all(self, key: str, request: Any = None, *, timeout: float = 5.0, schema: str | None = None,
                         first_only: bool = False) -> list[tuple[bool, bytes]]:
@@ -397,8 +535,11 @@ class Bus:
                 fut.set_result(list(replies))
 
         def on_reply(reply: zenoh.Reply) -> None:
-            res = reply.ok
-            item = (True, res.payload.to_bytes()) if res is not None else (False, reply.err.payload.to_bytes())
+            res, err = reply.ok, reply.err
+            if res is not None:
+                item = (True, res.payload.to_bytes())
+            else:
+                item = (False, err.payload.to_bytes() if err is not None else b"no reply")
             self._to_loop(add, item)
 
         def finish() -> None:
@@ -418,19 +559,22 @@ class Bus:
         except TimeoutError:
             raise QueryTimeout(f"query {key} timed out after {timeout:.1f} s")
 
-    def serve(self, key: str, handler: Callable[[Any], Awaitable[Any]], request_model: type | Any | None = None,
-              *, concurrent: bool = True) -> Any:
-        """Declare a queryable on `key`. `handler(request)` runs on the loop; its return value (model,
-        protobuf, bytes) is the reply. A malformed request gets an error reply naming the problem and the
-        handler is not called; an exception in the handler becomes an error reply, never a crash."""
+    def serve(self, target: BoundQuery[Req, Rep], handler: Callable[[Any], Awaitable[Rep]], *,
+              concurrent: bool = True, raw: bool = False) -> Any:
+        """Declare a queryable. `handler(request)` runs on the loop with the request decoded to its declared
+        type (`raw=True`: the bytes, for a handler that answers a malformed request itself); its return
+        value is the reply. A malformed request gets an error reply naming the problem and the handler is
+        not called; an exception in the handler becomes an error reply, never a crash."""
+        key = target.key
+        request_model = None if raw else target.decl.request
         decode = decoder(request_model)
         lock = asyncio.Lock()
 
         async def answer(query: zenoh.Query, data: bytes | None) -> None:
             try:
                 try:
-                    if request_model is None:
-                        req = data
+                    if request_model is None or isinstance(request_model, Json | Protobuf):
+                        req = decode(data) if data and request_model is not None else data
                     elif not data:
                         raise DecodeError(f"empty request: {key} expects a JSON "
                                           f"{getattr(request_model, '__name__', 'request')}")
@@ -457,7 +601,7 @@ class Bus:
                 query.reply(key, payload, encoding=enc)
             finally:
                 with contextlib.suppress(Exception):
-                    query.drop()
+                    query.drop()  # type: ignore[no-untyped-call]
 
         def start(query: zenoh.Query, data: bytes | None) -> None:
             task = self.loop.create_task(answer(query, data))
@@ -474,8 +618,8 @@ class Bus:
 
     # ---- liveliness
 
-    def declare_token(self, key: str) -> Any:
-        token = self.session.liveliness().declare_token(key)
+    def declare_token(self, target: BoundToken | str) -> Any:
+        token = self.session.liveliness().declare_token(str(target))
         self._declared.append(token)
         return token
 
@@ -508,28 +652,70 @@ class Bus:
 
 
 class Latest(Generic[T]):
-    """Keeps the newest value of a subscription up to date in the background: `latest.value`, `latest.age_s`."""
+    """The one latest-value helper: the newest sample of a subscription with its local receive time, and
+    "wait for one newer than X". `run()` keeps it up to date in the background; `transform` turns each
+    sample into the stored value (samples it rejects with an AermaniError are logged and skipped)."""
 
-    def __init__(self, sub: Subscription[T]) -> None:
+    def __init__(self, sub: Subscription[Any], transform: Callable[[Any], T] | None = None) -> None:
         self.sub = sub
+        self.transform = transform
         self.value: T | None = None
         self.receive_ns = 0
-        self.updated = asyncio.Event()
+        self._changed = asyncio.Event()
 
     async def run(self) -> None:
+        from shared.errors import AermaniError
+
         while True:
             rec = await self.sub.recv_sample()
-            self.value = rec.value
-            self.receive_ns = rec.receive_ns
-            self.updated.set()
+            try:
+                value = self.transform(rec.value) if self.transform else rec.value
+            except AermaniError as exc:
+                log.warning("dropped sample on %s: %s", rec.key, exc)
+                continue
+            self.put(value, rec.receive_ns)
+
+    def put(self, value: T, receive_ns: int) -> None:
+        self.value, self.receive_ns = value, receive_ns
+        self._changed.set()
+        self._changed = asyncio.Event()
 
     @property
     def age_s(self) -> float:
         return float("inf") if not self.receive_ns else (time.time_ns() - self.receive_ns) / 1e9
 
+    async def newer_than(self, ns: int, timeout: float) -> bool:
+        """Wait until a sample received after `ns` is here (True) or `timeout` passes (False)."""
+        deadline = time.monotonic() + timeout
+        while self.receive_ns <= ns:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                return False
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._changed.wait(), remaining)
+        return True
+
     async def wait(self, timeout: float) -> T:
-        """Wait for a value newer than now."""
-        self.updated.clear()
-        await asyncio.wait_for(self.updated.wait(), timeout)
+        """The next sample received from now on. Raises TimeoutError."""
+        if not await self.newer_than(time.time_ns(), timeout):
+            raise TimeoutError(f"no new sample on {self.sub.key} within {timeout:.1f} s")
         assert self.value is not None
         return self.value
+
+
+async def query_ready(bus: Bus, target: BoundQuery[Req, Rep], request: Req | None = None, *,
+                      timeout: float = 10.0, ready_timeout: float = 30.0, first_delay: float = 0.2,
+                      max_delay: float = 2.0) -> Rep:
+    """The one "query until someone answers" helper: retries while nobody serves the key yet (start-up, or a
+    supervised restart) with exponential backoff capped at `max_delay`, for at most `ready_timeout`
+    seconds; then raises the last NoResponder/QueryTimeout. Error replies are not retried."""
+    deadline = time.monotonic() + ready_timeout
+    delay = first_delay
+    while True:
+        try:
+            return await bus.query(target, request, timeout=timeout)
+        except (NoResponder, QueryTimeout):
+            if time.monotonic() + delay > deadline:
+                raise
+            await asyncio.sleep(delay)
+            delay = min(max_delay, delay * 2)

@@ -1,38 +1,296 @@
-"""The Zenoh key space of aermani in one place: `aermani/v1/<vehicle_id>/<topic>`."""
+"""The Zenoh key space of aermani, declared once: every key with its kind and its message type(s).
+
+A key is `aermani/v1/<vehicle_id>/<name>`. Each name below is a declaration object: a `Topic` (a
+publication and the type of its samples), a `Query` (a queryable with its request and reply types) or a
+`Token` (a liveliness token). `Keys("am2").autopilot_state` binds a declaration to a vehicle; the bus
+takes the bound declaration and infers every type from it, so no call site names a type again.
+`docs/architecture.md`'s key table is generated from `DECLARATIONS` (`python -m shared.keydoc`).
+"""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any, Generic, TypeVar
+
+from pydantic import BaseModel
+
+from shared.messages import (
+    Abort,
+    AbortAck,
+    AutopilotCommand,
+    AutopilotResult,
+    CancelGoal,
+    CancelReply,
+    Detections,
+    Health,
+    JudgeRequest,
+    JudgeResult,
+    LocalizeRequest,
+    ObjectEstimate,
+    PlacementEstimate,
+    ReasoningStep,
+    ResetNotice,
+    Scenario,
+    SimLabels,
+    SimResetResult,
+    SkillAccept,
+    SkillLibrary,
+    SkillRequest,
+    SkillStatus,
+    TaskAccept,
+    TaskRequest,
+    TaskStatus,
+    VehicleState,
+    WorkingMemory,
+)
 
 ROOT = "aermani/v1"
 DEFAULT_VEHICLE_ID = "am1"
+ALIVE = "alive"
+HEALTH = "health"
 
-# Topic suffixes (after the vehicle prefix). Kind: pub = publication, q = queryable, tok = liveliness.
-CAMERA_COLOR = "camera/color"  # pub  foxglove.CompressedImage (JPEG), protobuf
-CAMERA_DEPTH = "camera/depth"  # pub  foxglove.RawImage 16UC1 millimetres, same timestamp as color
-CAMERA_CALIBRATION = "camera/calibration"  # pub  foxglove.CameraCalibration
-CAMERA_SEGMENTATION = "camera/segmentation"  # pub  foxglove.RawImage 16UC1 instance ids (sim only)
-SIM_LABELS = "sim/labels"  # pub  SimLabels JSON: instance id -> name (sim only)
-SIM_JUDGE = "sim/judge"  # q    JudgeRequest -> JudgeResult (evaluation only; no policy may read it)
-SIM_RESET = "sim/reset"  # q    Scenario -> SimResetResult
-SIM_STATS = "sim/stats"  # q    (optional b"reset") -> JSON figures: setpoint intervals, fps, MAVLink counters
-TF = "tf"  # pub  foxglove.FrameTransforms (world->base_link, base_link->camera, base_link->gripper)
-AUTOPILOT_STATE = "autopilot/state"  # pub  VehicleState
-AUTOPILOT_COMMAND = "autopilot/command"  # q    AutopilotCommand -> AutopilotResult
-PERCEPTION_LOCALIZE_OBJECT = "perception/localize_object"  # q LocalizeRequest -> ObjectEstimate
-PERCEPTION_LOCALIZE_PLACEMENT = "perception/localize_placement"  # q LocalizeRequest -> PlacementEstimate
-PERCEPTION_DETECTIONS = "perception/detections"  # pub Detections
-EXECUTOR_RUN_SKILL = "executor/run_skill"  # q    SkillRequest -> SkillAccept
-EXECUTOR_SKILL_STATUS = "executor/skill_status"  # pub  SkillStatus
-EXECUTOR_SKILLS = "executor/skills"  # q    (empty) -> SkillLibrary
-EXECUTOR_MEMORY = "executor/memory"  # pub  WorkingMemory
-REASONER_START_TASK = "reasoner/start_task"  # q    TaskRequest -> TaskAccept
-REASONER_STEP = "reasoner/step"  # pub  ReasoningStep
-REASONER_TASK_STATUS = "reasoner/task_status"  # pub  TaskStatus
-SAFETY_ABORT = "safety/abort"  # pub  Abort (anyone may trigger)
-SAFETY_ABORT_ACK = "safety/abort_ack"  # pub  AbortAck (executor: held)
-HEALTH = "health"  # pub  health/<service>: Health
-ALIVE = "alive"  # tok  alive/<service>
+M = TypeVar("M")
+Req = TypeVar("Req")
+Rep = TypeVar("Rep")
+
+
+@dataclass(frozen=True)
+class Protobuf:
+    """A sensor payload in one of Foxglove's protobuf schemas; it travels (and is received) as bytes."""
+
+    full_name: str
+    """Protobuf full name, e.g. `foxglove.CompressedImage`."""
+
+    @property
+    def __name__(self) -> str:  # read by error messages like a model's name
+        return self.full_name
+
+
+@dataclass(frozen=True)
+class Json:
+    """Free-form JSON (a dict of figures); used only by diagnostics keys."""
+
+    description: str
+
+    @property
+    def __name__(self) -> str:
+        return "JSON"
+
+
+def type_name(t: Any) -> str:
+    """Human name of a declared payload type: `VehicleState`, `foxglove.RawImage`, `ArmCommand | ...`."""
+    if t is None:
+        return "(empty)"
+    if isinstance(t, Protobuf):
+        return t.full_name
+    if isinstance(t, Json):
+        return f"JSON ({t.description})"
+    if isinstance(t, type):
+        return t.__name__
+    args = getattr(t, "__args__", None)
+    if args:  # Annotated[Union[...], Field(...)] or a plain union
+        inner = args[0] if getattr(t, "__metadata__", None) else t
+        members = getattr(inner, "__args__", (inner,))
+        return " | ".join(type_name(a) for a in members)
+    return str(t)
+
+
+def schema_name(t: Any) -> str | None:
+    """The Zenoh encoding schema a payload of declared type `t` is sent with (None when it varies)."""
+    if isinstance(t, Protobuf):
+        return t.full_name
+    if isinstance(t, type) and issubclass(t, BaseModel):
+        fn = getattr(t, "full_schema_name", None)
+        return fn() if fn else f"aermani.{t.__name__}"
+    return None
+
+
+@dataclass(frozen=True)
+class Topic(Generic[M]):
+    """A publication: who publishes it, and the type of every sample on it."""
+
+    name: str
+    """Key after the vehicle prefix; `{service}` is filled in by `Keys.health`."""
+    type: Any
+    """Sample type: a message model, a union, or a `Protobuf` schema."""
+    doc: str
+    """What the samples mean."""
+    publisher: str
+    """Service(s) that publish it."""
+    reliable: bool = True
+    """False for streams where late is worse than lost (frames, state): congestion drops, express."""
+    periodic: bool = False
+    """Published on a clock (not only on events): a running publisher must show a sample within seconds."""
+
+    kind = "pub"
+
+    def bind(self, vehicle_id: str, **params: str) -> BoundTopic[M]:
+        return BoundTopic(f"{vehicle_prefix(vehicle_id)}/{self.name.format(**params)}", self)
+
+    def fleet(self, **params: str) -> BoundTopic[M]:
+        """The same topic on every vehicle (`aermani/v1/*/<name>`), for fleet-wide subscribers."""
+        return BoundTopic(f"{ROOT}/*/{self.name.format(**params)}", self)
+
+
+@dataclass(frozen=True)
+class Query(Generic[Req, Rep]):
+    """A queryable: the request it takes and the reply it gives."""
+
+    name: str
+    request: Any
+    """Request type (None: no body)."""
+    reply: Any
+    """Reply type."""
+    doc: str
+    server: str
+    """Service that answers it."""
+
+    kind = "query"
+
+    def bind(self, vehicle_id: str) -> BoundQuery[Req, Rep]:
+        return BoundQuery(f"{vehicle_prefix(vehicle_id)}/{self.name}", self)
+
+
+@dataclass(frozen=True)
+class Token:
+    """A liveliness token: present while its owner's session is alive."""
+
+    name: str
+    doc: str
+    owner: str
+
+    kind = "liveliness"
+
+    def bind(self, vehicle_id: str, **params: str) -> BoundToken:
+        return BoundToken(f"{vehicle_prefix(vehicle_id)}/{self.name.format(**params)}", self)
+
+
+@dataclass(frozen=True, eq=False)
+class BoundTopic(Generic[M]):
+    """A topic on one vehicle (or the fleet): the full key and its declaration."""
+
+    key: str
+    decl: Topic[M]
+
+    def __str__(self) -> str:
+        return self.key
+
+    def __eq__(self, other: object) -> bool:  # a bound declaration is its key, also in dicts keyed by str
+        return self.key == (other.key if isinstance(other, BoundTopic | BoundQuery | BoundToken) else other)
+
+    def __hash__(self) -> int:
+        return hash(self.key)
+
+
+@dataclass(frozen=True, eq=False)
+class BoundQuery(Generic[Req, Rep]):
+    """A queryable on one vehicle: the full key and its declaration."""
+
+    key: str
+    decl: Query[Req, Rep]
+
+    def __str__(self) -> str:
+        return self.key
+
+    def __eq__(self, other: object) -> bool:  # a bound declaration is its key, also in dicts keyed by str
+        return self.key == (other.key if isinstance(other, BoundTopic | BoundQuery | BoundToken) else other)
+
+    def __hash__(self) -> int:
+        return hash(self.key)
+
+
+@dataclass(frozen=True, eq=False)
+class BoundToken:
+    """A liveliness token key on one vehicle."""
+
+    key: str
+    decl: Token
+
+    def __str__(self) -> str:
+        return self.key
+
+    def __eq__(self, other: object) -> bool:  # a bound declaration is its key, also in dicts keyed by str
+        return self.key == (other.key if isinstance(other, BoundTopic | BoundQuery | BoundToken) else other)
+
+    def __hash__(self) -> int:
+        return hash(self.key)
+
+
+# --------------------------------------------------------------------------- the declarations
+
+CAMERA_COLOR: Topic[bytes] = Topic(
+    "camera/color", Protobuf("foxglove.CompressedImage"), "colour frame, JPEG", "sim, camera", reliable=False, periodic=True)
+CAMERA_DEPTH: Topic[bytes] = Topic(
+    "camera/depth", Protobuf("foxglove.RawImage"), "depth, 16UC1 millimetres, aligned to colour, same stamp",
+    "sim, camera", reliable=False, periodic=True)
+CAMERA_CALIBRATION: Topic[bytes] = Topic(
+    "camera/calibration", Protobuf("foxglove.CameraCalibration"), "pinhole intrinsics of the colour camera",
+    "sim, camera", periodic=True)
+CAMERA_SEGMENTATION: Topic[bytes] = Topic(
+    "camera/segmentation", Protobuf("foxglove.RawImage"), "16UC1 instance ids (oracle only)", "sim",
+    reliable=False, periodic=True)
+TF: Topic[bytes] = Topic(
+    "tf", Protobuf("foxglove.FrameTransforms"), "world->base_link, base_link->camera, base_link->gripper",
+    "autopilot_bridge, sim", reliable=False, periodic=True)
+SIM_LABELS: Topic[SimLabels] = Topic(
+    "sim/labels", SimLabels, "instance id -> name for camera/segmentation (oracle only)", "sim",
+    periodic=True)
+SIM_JUDGE: Query[JudgeRequest, JudgeResult] = Query(
+    "sim/judge", JudgeRequest, JudgeResult, "ground-truth judge (evaluation only; no policy may read it)", "sim")
+SIM_RESET: Query[Scenario, SimResetResult] = Query(
+    "sim/reset", Scenario, SimResetResult, "lay out a new scenario (evaluation)", "sim")
+SIM_STATS: Query[Any, dict[str, Any]] = Query(
+    "sim/stats", Json("optional 'reset'"), Json("figures"), "setpoint intervals, fps, MAVLink counters", "sim")
+SIM_RESET_NOTICE: Topic[ResetNotice] = Topic(
+    "sim/reset_notice", ResetNotice, "the world was reset: forget what was held and seen", "sim")
+AUTOPILOT_STATE: Topic[VehicleState] = Topic(
+    "autopilot/state", VehicleState, "pose, velocity, armed, mode, landed state, battery, gripper, link health",
+    "autopilot_bridge", reliable=False, periodic=True)
+AUTOPILOT_COMMAND: Query[AutopilotCommand, AutopilotResult] = Query(
+    "autopilot/command", AutopilotCommand, AutopilotResult, "arm, takeoff, goto, hold, land, gripper",
+    "autopilot_bridge")
+PERCEPTION_LOCALIZE_OBJECT: Query[LocalizeRequest, ObjectEstimate] = Query(
+    "perception/localize_object", LocalizeRequest, ObjectEstimate, "obj_localization", "perception")
+PERCEPTION_LOCALIZE_PLACEMENT: Query[LocalizeRequest, PlacementEstimate] = Query(
+    "perception/localize_placement", LocalizeRequest, PlacementEstimate, "placement_localization", "perception")
+PERCEPTION_DETECTIONS: Topic[Detections] = Topic(
+    "perception/detections", Detections, "what is visible now", "perception", periodic=True)
+EXECUTOR_RUN_SKILL: Query[SkillRequest, SkillAccept] = Query(
+    "executor/run_skill", SkillRequest, SkillAccept, "skill goal -> accepted/rejected (action protocol)",
+    "executor")
+EXECUTOR_CANCEL_SKILL: Query[CancelGoal, CancelReply] = Query(
+    "executor/cancel_skill", CancelGoal, CancelReply, "cancel a running skill goal (action protocol)",
+    "executor")
+EXECUTOR_SKILL_STATUS: Topic[SkillStatus] = Topic(
+    "executor/skill_status", SkillStatus, "feedback and result of each skill goal", "executor")
+EXECUTOR_SKILLS: Query[None, SkillLibrary] = Query(
+    "executor/skills", None, SkillLibrary, "the live skill library", "executor")
+EXECUTOR_MEMORY: Topic[WorkingMemory] = Topic(
+    "executor/memory", WorkingMemory, "working memory: localized objects, placements, held object", "executor",
+    periodic=True)
+REASONER_START_TASK: Query[TaskRequest, TaskAccept] = Query(
+    "reasoner/start_task", TaskRequest, TaskAccept, "task goal -> accepted/rejected (action protocol)",
+    "reasoner")
+REASONER_CANCEL_TASK: Query[CancelGoal, CancelReply] = Query(
+    "reasoner/cancel_task", CancelGoal, CancelReply, "cancel a running task (action protocol)", "reasoner")
+REASONER_STEP: Topic[ReasoningStep] = Topic(
+    "reasoner/step", ReasoningStep, "every reasoning step: DRT, STE, raw answer, latency", "reasoner")
+REASONER_TASK_STATUS: Topic[TaskStatus] = Topic(
+    "reasoner/task_status", TaskStatus, "feedback and result of each task", "reasoner")
+SAFETY_ABORT: Topic[Abort] = Topic("safety/abort", Abort, "stop: hold and end the task (anyone)", "any")
+SAFETY_ABORT_ACK: Topic[AbortAck] = Topic(
+    "safety/abort_ack", AbortAck, "an abort was obeyed (vehicle commanded to hold)", "executor")
+HEALTH_TOPIC: Topic[Health] = Topic(f"{HEALTH}/{{service}}", Health, "a service's health, 1 Hz", "every service")
+ALIVE_TOKEN = Token(f"{ALIVE}/{{service}}", "presence of a service", "every service")
+
+DECLARATIONS: tuple[Topic[Any] | Query[Any, Any] | Token, ...] = (
+    CAMERA_COLOR, CAMERA_DEPTH, CAMERA_CALIBRATION, CAMERA_SEGMENTATION, TF, SIM_LABELS, SIM_JUDGE, SIM_RESET,
+    SIM_STATS, SIM_RESET_NOTICE, AUTOPILOT_STATE, AUTOPILOT_COMMAND, PERCEPTION_LOCALIZE_OBJECT,
+    PERCEPTION_LOCALIZE_PLACEMENT, PERCEPTION_DETECTIONS, EXECUTOR_RUN_SKILL, EXECUTOR_CANCEL_SKILL,
+    EXECUTOR_SKILL_STATUS, EXECUTOR_SKILLS, EXECUTOR_MEMORY, REASONER_START_TASK, REASONER_CANCEL_TASK, REASONER_STEP,
+    REASONER_TASK_STATUS, SAFETY_ABORT, SAFETY_ABORT_ACK, HEALTH_TOPIC, ALIVE_TOKEN,
+)
+BY_NAME: dict[str, Topic[Any] | Query[Any, Any] | Token] = {d.name: d for d in DECLARATIONS}
 
 
 def vehicle_prefix(vehicle_id: str = DEFAULT_VEHICLE_ID) -> str:
@@ -41,9 +299,25 @@ def vehicle_prefix(vehicle_id: str = DEFAULT_VEHICLE_ID) -> str:
     return f"{ROOT}/{vehicle_id}"
 
 
+def declaration_of(key: str) -> Topic[Any] | Query[Any, Any] | Token | None:
+    """The declaration a full key belongs to (`aermani/v1/am1/health/gateway` -> HEALTH_TOPIC), or None."""
+    parts = str(key).split("/")
+    if len(parts) < 4 or "/".join(parts[:2]) != ROOT:
+        return None
+    name = "/".join(parts[3:])
+    if name in BY_NAME:
+        return BY_NAME[name]
+    if parts[3] == HEALTH and len(parts) == 5:
+        return HEALTH_TOPIC
+    if parts[3] == ALIVE and len(parts) == 5:
+        return ALIVE_TOKEN
+    return None
+
+
 @dataclass(frozen=True)
 class Keys:
-    """Fully qualified keys for one vehicle. `Keys("am2").autopilot_state` -> `aermani/v1/am2/autopilot/state`."""
+    """The declarations bound to one vehicle. `Keys("am2").autopilot_state.key` ->
+    `aermani/v1/am2/autopilot/state`."""
 
     vehicle_id: str = DEFAULT_VEHICLE_ID
 
@@ -58,35 +332,121 @@ class Keys:
     def all(self) -> str:
         return f"{self.prefix}/**"
 
-    camera_color = property(lambda self: self.key(CAMERA_COLOR))
-    camera_depth = property(lambda self: self.key(CAMERA_DEPTH))
-    camera_calibration = property(lambda self: self.key(CAMERA_CALIBRATION))
-    camera_segmentation = property(lambda self: self.key(CAMERA_SEGMENTATION))
-    sim_labels = property(lambda self: self.key(SIM_LABELS))
-    sim_judge = property(lambda self: self.key(SIM_JUDGE))
-    sim_reset = property(lambda self: self.key(SIM_RESET))
-    sim_stats = property(lambda self: self.key(SIM_STATS))
-    tf = property(lambda self: self.key(TF))
-    autopilot_state = property(lambda self: self.key(AUTOPILOT_STATE))
-    autopilot_command = property(lambda self: self.key(AUTOPILOT_COMMAND))
-    localize_object = property(lambda self: self.key(PERCEPTION_LOCALIZE_OBJECT))
-    localize_placement = property(lambda self: self.key(PERCEPTION_LOCALIZE_PLACEMENT))
-    detections = property(lambda self: self.key(PERCEPTION_DETECTIONS))
-    run_skill = property(lambda self: self.key(EXECUTOR_RUN_SKILL))
-    skill_status = property(lambda self: self.key(EXECUTOR_SKILL_STATUS))
-    skills = property(lambda self: self.key(EXECUTOR_SKILLS))
-    memory = property(lambda self: self.key(EXECUTOR_MEMORY))
-    start_task = property(lambda self: self.key(REASONER_START_TASK))
-    reasoning_step = property(lambda self: self.key(REASONER_STEP))
-    task_status = property(lambda self: self.key(REASONER_TASK_STATUS))
-    abort = property(lambda self: self.key(SAFETY_ABORT))
-    abort_ack = property(lambda self: self.key(SAFETY_ABORT_ACK))
+    def _t(self, decl: Topic[M]) -> BoundTopic[M]:
+        return decl.bind(self.vehicle_id)
 
-    def health(self, service: str) -> str:
-        return self.key(f"{HEALTH}/{service}")
+    def _q(self, decl: Query[Req, Rep]) -> BoundQuery[Req, Rep]:
+        return decl.bind(self.vehicle_id)
 
-    def alive(self, service: str) -> str:
-        return self.key(f"{ALIVE}/{service}")
+    @property
+    def camera_color(self) -> BoundTopic[bytes]:
+        return self._t(CAMERA_COLOR)
+
+    @property
+    def camera_depth(self) -> BoundTopic[bytes]:
+        return self._t(CAMERA_DEPTH)
+
+    @property
+    def camera_calibration(self) -> BoundTopic[bytes]:
+        return self._t(CAMERA_CALIBRATION)
+
+    @property
+    def camera_segmentation(self) -> BoundTopic[bytes]:
+        return self._t(CAMERA_SEGMENTATION)
+
+    @property
+    def tf(self) -> BoundTopic[bytes]:
+        return self._t(TF)
+
+    @property
+    def sim_labels(self) -> BoundTopic[SimLabels]:
+        return self._t(SIM_LABELS)
+
+    @property
+    def sim_judge(self) -> BoundQuery[JudgeRequest, JudgeResult]:
+        return self._q(SIM_JUDGE)
+
+    @property
+    def sim_reset(self) -> BoundQuery[Scenario, SimResetResult]:
+        return self._q(SIM_RESET)
+
+    @property
+    def sim_stats(self) -> BoundQuery[Any, dict[str, Any]]:
+        return self._q(SIM_STATS)
+
+    @property
+    def sim_reset_notice(self) -> BoundTopic[ResetNotice]:
+        return self._t(SIM_RESET_NOTICE)
+
+    @property
+    def autopilot_state(self) -> BoundTopic[VehicleState]:
+        return self._t(AUTOPILOT_STATE)
+
+    @property
+    def autopilot_command(self) -> BoundQuery[AutopilotCommand, AutopilotResult]:
+        return self._q(AUTOPILOT_COMMAND)
+
+    @property
+    def localize_object(self) -> BoundQuery[LocalizeRequest, ObjectEstimate]:
+        return self._q(PERCEPTION_LOCALIZE_OBJECT)
+
+    @property
+    def localize_placement(self) -> BoundQuery[LocalizeRequest, PlacementEstimate]:
+        return self._q(PERCEPTION_LOCALIZE_PLACEMENT)
+
+    @property
+    def detections(self) -> BoundTopic[Detections]:
+        return self._t(PERCEPTION_DETECTIONS)
+
+    @property
+    def run_skill(self) -> BoundQuery[SkillRequest, SkillAccept]:
+        return self._q(EXECUTOR_RUN_SKILL)
+
+    @property
+    def cancel_skill(self) -> BoundQuery[CancelGoal, CancelReply]:
+        return self._q(EXECUTOR_CANCEL_SKILL)
+
+    @property
+    def skill_status(self) -> BoundTopic[SkillStatus]:
+        return self._t(EXECUTOR_SKILL_STATUS)
+
+    @property
+    def skills(self) -> BoundQuery[None, SkillLibrary]:
+        return self._q(EXECUTOR_SKILLS)
+
+    @property
+    def memory(self) -> BoundTopic[WorkingMemory]:
+        return self._t(EXECUTOR_MEMORY)
+
+    @property
+    def start_task(self) -> BoundQuery[TaskRequest, TaskAccept]:
+        return self._q(REASONER_START_TASK)
+
+    @property
+    def cancel_task(self) -> BoundQuery[CancelGoal, CancelReply]:
+        return self._q(REASONER_CANCEL_TASK)
+
+    @property
+    def reasoning_step(self) -> BoundTopic[ReasoningStep]:
+        return self._t(REASONER_STEP)
+
+    @property
+    def task_status(self) -> BoundTopic[TaskStatus]:
+        return self._t(REASONER_TASK_STATUS)
+
+    @property
+    def abort(self) -> BoundTopic[Abort]:
+        return self._t(SAFETY_ABORT)
+
+    @property
+    def abort_ack(self) -> BoundTopic[AbortAck]:
+        return self._t(SAFETY_ABORT_ACK)
+
+    def health(self, service: str) -> BoundTopic[Health]:
+        return HEALTH_TOPIC.bind(self.vehicle_id, service=service)
+
+    def alive(self, service: str) -> BoundToken:
+        return ALIVE_TOKEN.bind(self.vehicle_id, service=service)
 
 
 def alive_pattern(vehicle_id: str | None = None) -> str:

@@ -22,6 +22,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import zenoh
 
@@ -39,13 +40,13 @@ PER_VEHICLE = ("sim", "autopilot_bridge", "perception", "executor", "reasoner")
 def free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+        return int(s.getsockname()[1])
 
 
 def free_udp_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+        return int(s.getsockname()[1])
 
 
 def available_services() -> list[str]:
@@ -76,7 +77,7 @@ class ServiceProcess:
     vehicle_id: str
     env: dict[str, str]
     log_path: Path
-    proc: subprocess.Popen | None = None
+    proc: subprocess.Popen[bytes] | None = None
     restarts: int = 0
     started_at: float = 0.0
     next_start: float = 0.0
@@ -158,7 +159,7 @@ class Stack:
             self.router = open_router(self.port, self.host)
         for p in self.procs:
             p.start()
-            self._event(f"started {p.label} (pid {p.proc.pid})")
+            self._event(f"started {p.label} (pid {p.proc.pid if p.proc else '?'})")
         if self.supervise:
             self._thread = threading.Thread(target=self._supervise, name="aermani-supervisor", daemon=True)
             self._thread.start()
@@ -232,7 +233,7 @@ class Stack:
         if self._thread is not None:
             self._thread.join(timeout=2.0)
         for p in reversed(self.procs):
-            if p.running:
+            if p.running and p.proc is not None:
                 with contextlib.suppress(ProcessLookupError):
                     p.proc.send_signal(signal.SIGTERM)
         deadline = time.monotonic() + timeout
@@ -248,7 +249,7 @@ class Stack:
                 p.proc.wait(timeout=5)
         if self.router is not None:
             with contextlib.suppress(Exception):
-                self.router.close()
+                self.router.close()  # type: ignore[no-untyped-call]
             self.router = None
 
     def __enter__(self) -> Stack:
@@ -257,7 +258,7 @@ class Stack:
     def __exit__(self, *exc: object) -> None:
         self.stop()
 
-    def status(self) -> list[dict]:
+    def status(self) -> list[dict[str, Any]]:
         alive = self.alive()
         return [{"service": p.label, "pid": p.proc.pid if p.proc else None, "running": p.running,
                  "alive": (p.vehicle_id, p.name) in alive, "restarts": p.restarts, "log": str(p.log_path)}

@@ -15,6 +15,11 @@ from typing import Annotated, Any, ClassVar, Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 SCHEMA_VERSION = 1
+"""Major version of the message schemas. A receiver rejects a message of a newer major version with an
+error naming both versions."""
+SCHEMA_MINOR = 1
+"""Minor version: bumped when fields are added. A receiver accepts a message of a newer minor version,
+ignoring the fields it does not know (logged once per field)."""
 MAX_COMMAND_CHARS = 500
 MAX_QUERY_CHARS = 200
 
@@ -35,7 +40,9 @@ class Message(BaseModel):
     schema_name: ClassVar[str] = ""
 
     schema_version: int = SCHEMA_VERSION
-    """Schema version of this message; bumped on incompatible changes."""
+    """Major schema version of this message; bumped on incompatible changes."""
+    schema_minor: int = SCHEMA_MINOR
+    """Minor schema version; bumped when fields are added (older receivers ignore the new fields)."""
 
     @classmethod
     def full_schema_name(cls) -> str:
@@ -53,6 +60,8 @@ class Part(BaseModel):
 
 
 class Vec3(Part):
+    """A 3-vector in metres (a position or an extent), in the frame the field names."""
+
     x: float = 0.0
     """x in metres (world ENU: east/forward at start; body FLU: forward)."""
     y: float = 0.0
@@ -65,6 +74,8 @@ class Vec3(Part):
 
 
 class Pose(Part):
+    """A position and a yaw in the world frame (ENU)."""
+
     position: Vec3 = Vec3()
     """Position in the world frame (ENU), metres."""
     yaw: float = 0.0
@@ -72,6 +83,8 @@ class Pose(Part):
 
 
 class BBox2D(Part):
+    """An axis-aligned box in image pixels."""
+
     x0: int
     """Left pixel column (inclusive)."""
     y0: int
@@ -86,6 +99,8 @@ class BBox2D(Part):
 
 
 class LandedState(StrEnum):
+    """PX4's landed state (MAV_LANDED_STATE), as the bridge reports it."""
+
     UNKNOWN = "unknown"
     ON_GROUND = "on_ground"
     IN_AIR = "in_air"
@@ -94,12 +109,16 @@ class LandedState(StrEnum):
 
 
 class GripperState(StrEnum):
+    """What the gripper reports: open, closed, or unknown."""
+
     UNKNOWN = "unknown"
     OPEN = "open"
     CLOSED = "closed"
 
 
 class VehicleState(Message):
+    """The vehicle as the autopilot bridge sees it, at >= 20 Hz: pose, motion, PX4 mode, health."""
+
     kind: Literal["vehicle_state"] = "vehicle_state"
     stamp_ns: int = Field(default_factory=now_ns)
     """When the bridge produced this state (ns since epoch)."""
@@ -138,22 +157,30 @@ class VehicleState(Message):
 
 
 class ArmCommand(Message):
+    """Arm the motors (PX4 arming checks apply)."""
+
     kind: Literal["arm"] = "arm"
 
 
 class DisarmCommand(Message):
+    """Disarm the motors."""
+
     kind: Literal["disarm"] = "disarm"
     force: bool = False
     """Force disarm even in the air (emergency only)."""
 
 
 class TakeoffCommand(Message):
+    """Arm if needed, enter OFFBOARD and climb to `altitude`; done once there."""
+
     kind: Literal["takeoff"] = "takeoff"
     altitude: float = Field(1.5, gt=0.0, le=50.0)
     """Target altitude above the home position, metres."""
 
 
 class GotoCommand(Message):
+    """Fly to a world position and yaw through the offboard setpoint stream."""
+
     kind: Literal["goto"] = "goto"
     position: Vec3
     """Target position, world ENU, metres."""
@@ -164,14 +191,20 @@ class GotoCommand(Message):
 
 
 class HoldCommand(Message):
+    """Hold the current position (stop any motion)."""
+
     kind: Literal["hold"] = "hold"
 
 
 class LandCommand(Message):
+    """Land at the current position (PX4 AUTO.LAND)."""
+
     kind: Literal["land"] = "land"
 
 
 class GripperCommand(Message):
+    """Open or close the gripper."""
+
     kind: Literal["gripper"] = "gripper"
     action: Literal["open", "close"]
     """Open (release) or close (grab)."""
@@ -184,6 +217,8 @@ AutopilotCommand = Annotated[
 
 
 class AutopilotResult(Message):
+    """The bridge's answer to an autopilot command, with PX4's ACK code where there is one."""
+
     kind: Literal["autopilot_result"] = "autopilot_result"
     ok: bool
     """Whether the command was accepted and carried out."""
@@ -202,6 +237,8 @@ class AutopilotResult(Message):
 
 
 class LocalizeRequest(Message):
+    """Ask perception to localize an object or a placement surface by an open-vocabulary query."""
+
     kind: Literal["localize_request"] = "localize_request"
     query: str = Field(..., max_length=10_000)
     """Free-text query: an object ("red cup", "the larger box") or a surface ("round table")."""
@@ -218,6 +255,8 @@ LocalizeReason = Literal[
 
 
 class ObjectEstimate(Message):
+    """Perception's answer to obj_localization: found or not (with the reason), pose, size, support."""
+
     kind: Literal["object_estimate"] = "object_estimate"
     query: str
     """The query this answers (truncated to 200 characters)."""
@@ -248,6 +287,8 @@ class ObjectEstimate(Message):
 
 
 class PlacementEstimate(Message):
+    """Perception's answer to placement_localization: the surface and a free placement spot."""
+
     kind: Literal["placement_estimate"] = "placement_estimate"
     query: str
     """The surface query this answers (truncated to 200 characters)."""
@@ -280,6 +321,8 @@ class PlacementEstimate(Message):
 
 
 class Detection(Part):
+    """One thing perception sees in the current frame."""
+
     label: str
     """Label of the detected thing (object or surface name)."""
     category: Literal["object", "surface", "furniture", "other"] = "object"
@@ -297,6 +340,8 @@ class Detection(Part):
 
 
 class Detections(Message):
+    """Everything perception sees in one frame (published at a fixed rate)."""
+
     kind: Literal["detections"] = "detections"
     stamp_ns: int = Field(default_factory=now_ns)
     """Publish time."""
@@ -312,6 +357,8 @@ class Detections(Message):
 
 
 class SkillState(StrEnum):
+    """Life cycle of a skill goal: running, then one terminal state."""
+
     RUNNING = "running"
     SUCCEEDED = "succeeded"
     FAILED = "failed"
@@ -325,6 +372,8 @@ class SkillState(StrEnum):
 
 
 class SkillParameter(Part):
+    """A fixed parameter of a skill (from the executor's settings), shown in the Skill Library."""
+
     name: str
     """Parameter name."""
     value: float | str | bool
@@ -334,6 +383,8 @@ class SkillParameter(Part):
 
 
 class SkillSpec(Part):
+    """One skill as the policy sees it: name, family, Skill Library text, argument rule."""
+
     name: str
     """Skill name the policy uses, e.g. `forward`, `obj_localization`."""
     category: Literal["motion", "perception", "manipulation", "operator", "control"]
@@ -351,12 +402,16 @@ class SkillSpec(Part):
 
 
 class SkillLibrary(Message):
+    """The live skill library the executor serves: the policy's whole action space."""
+
     kind: Literal["skill_library"] = "skill_library"
     skills: tuple[SkillSpec, ...]
     """Every registered skill."""
 
 
 class SkillRequest(Message):
+    """Action protocol, skill level: the goal (run this skill with this argument)."""
+
     kind: Literal["skill_request"] = "skill_request"
     skill: str = Field(..., max_length=64)
     """Registered skill name."""
@@ -371,6 +426,8 @@ class SkillRequest(Message):
 
 
 class SkillAccept(Message):
+    """Action protocol, skill level: the goal was accepted (with its goal id) or rejected (with why)."""
+
     kind: Literal["skill_accept"] = "skill_accept"
     accepted: bool
     """Whether the executor started the skill."""
@@ -381,6 +438,8 @@ class SkillAccept(Message):
 
 
 class MemoryObject(Part):
+    """One entry of working memory: an object or a placement spot and where it was localized."""
+
     label: str
     """Object or surface label."""
     query: str = ""
@@ -400,6 +459,8 @@ class MemoryObject(Part):
 
 
 class WorkingMemory(Message):
+    """The executor's working memory: what was localized, what is held, what was done."""
+
     kind: Literal["working_memory"] = "working_memory"
     stamp_ns: int = Field(default_factory=now_ns)
     """Publish time."""
@@ -417,27 +478,10 @@ class WorkingMemory(Message):
     """Everything perception has detected so far, latest world position per label (coarse: detection
     centroids), so a search can turn toward what was seen before instead of scanning again."""
 
-    def summary(self) -> str:
-        """One compact paragraph for the prompt."""
-        parts = []
-        if self.objects:
-            parts.append("localized objects: " + "; ".join(
-                f"{o.label} at ({o.position.x:.2f}, {o.position.y:.2f}, {o.position.z:.2f})" for o in self.objects))
-        if self.placements:
-            parts.append("placement spots: " + "; ".join(
-                f"{p.label} at ({p.position.x:.2f}, {p.position.y:.2f}, {p.position.z:.2f})" for p in self.placements))
-        parts.append(f"holding: {self.held_object or 'nothing'}")
-        known = {o.label for o in (*self.objects, *self.placements)}
-        earlier = [o for o in self.seen if o.label not in known and o.label not in self.visible]
-        if earlier:
-            parts.append("seen earlier: " + "; ".join(
-                f"{o.label} at ({o.position.x:.2f}, {o.position.y:.2f}, {o.position.z:.2f})" for o in earlier))
-        if self.visible:
-            parts.append("visible now: " + ", ".join(self.visible))
-        return ". ".join(parts) + "."
-
 
 class SkillOutcome(Part):
+    """Structured outcome of a skill: poses before and after, what was perceived, what is held."""
+
     start_pose: Pose | None = None
     """Vehicle pose when the skill started."""
     end_pose: Pose | None = None
@@ -451,6 +495,8 @@ class SkillOutcome(Part):
 
 
 class SkillStatus(Message):
+    """Action protocol, skill level: feedback (running) and the one terminal result of a goal."""
+
     kind: Literal["skill_status"] = "skill_status"
     stamp_ns: int = Field(default_factory=now_ns)
     """Publish time."""
@@ -479,6 +525,8 @@ class SkillStatus(Message):
 
 
 class Abort(Message):
+    """Stop now: every executor and reasoner of the vehicle holds and ends what runs."""
+
     kind: Literal["abort"] = "abort"
     stamp_ns: int = Field(default_factory=now_ns)
     """When the abort was requested."""
@@ -491,6 +539,8 @@ class Abort(Message):
 
 
 class AbortAck(Message):
+    """The executor obeyed an abort (the vehicle was commanded to hold)."""
+
     kind: Literal["abort_ack"] = "abort_ack"
     stamp_ns: int = Field(default_factory=now_ns)
     """When the executor had commanded hold."""
@@ -528,10 +578,17 @@ class SkillToExecute(Part):
 
 
 Variant = Literal["unstructured", "no_drt", "drt_v1", "drt_v2", "drt_v3", "full", "react"]
+BackendName = Annotated[str, Field(pattern=r"^([a-z][a-z0-9_.-]{0,63})?$")]
+"""A registered reasoner backend (`rules`, `openai`, `anthropic`, `replay`, or a plug-in's name); the
+reasoner's registry decides which exist, so the type fixes only the spelling."""
+BackendLabel = Annotated[str, Field(pattern=r"^([a-z][a-z0-9_.-]{0,63}(:\S{1,200})?)?$")]
+"""A backend with its model, as recorded: `rules`, `openai:gpt-4o`, `openai:Qwen/Qwen2-VL-7B-Instruct`."""
 VARIANTS: tuple[str, ...] = ("unstructured", "no_drt", "drt_v1", "drt_v2", "drt_v3", "full", "react")
 
 
 class ModelCall(Part):
+    """One call to the model within a reasoning step: raw answer, validity, latency, tokens."""
+
     raw_answer: str
     """The model's answer, verbatim."""
     valid: bool
@@ -547,6 +604,8 @@ class ModelCall(Part):
 
 
 class ReasoningStep(Message):
+    """One step of Algorithm 1: prompt parts, model calls, DRT and STE, and the skill's outcome."""
+
     kind: Literal["reasoning_step"] = "reasoning_step"
     stamp_ns: int = Field(default_factory=now_ns)
     """Publish time."""
@@ -556,9 +615,9 @@ class ReasoningStep(Message):
     """Task id."""
     step: int
     """Step index, from 1."""
-    backend: str = ""
+    backend: BackendLabel = ""
     """Backend (rules, openai:<model>, anthropic:<model>, replay)."""
-    variant: str = "full"
+    variant: Variant = "full"
     """Prompt variant."""
     prompt: dict[str, str] = {}
     """Prompt parts by name (command, preamble, history, skill_library, rules)."""
@@ -586,7 +645,41 @@ class ReasoningStep(Message):
     """Wall time of the skill."""
 
 
+class CancelGoal(Message):
+    """Action protocol: ask the server of a goal (a skill or a task) to cancel it."""
+
+    kind: Literal["cancel_goal"] = "cancel_goal"
+    goal_id: str = Field(..., max_length=64)
+    """The goal to cancel (skill goal id or task id)."""
+    reason: str = Field("cancelled", max_length=200)
+    """Why, for the record."""
+    source: str = Field("operator", max_length=64)
+    """Who asks."""
+
+
+class CancelReply(Message):
+    """Action protocol: whether a cancel request was taken."""
+
+    kind: Literal["cancel_reply"] = "cancel_reply"
+    accepted: bool
+    """True when the goal was running and is being cancelled."""
+    reason: str = ""
+    """Why not (unknown goal, already ended)."""
+
+
+class ResetNotice(Message):
+    """The simulated world was reset: what was held and seen belongs to the old world."""
+
+    kind: Literal["reset_notice"] = "reset_notice"
+    stamp_ns: int = Field(default_factory=now_ns)
+    """When the reset finished."""
+    seed: int = 0
+    """Layout seed of the new world."""
+
+
 class TaskState(StrEnum):
+    """Life cycle of a task: pending, running, then one terminal state."""
+
     PENDING = "pending"
     RUNNING = "running"
     SUCCEEDED = "succeeded"
@@ -600,12 +693,14 @@ class TaskState(StrEnum):
 
 
 class TaskRequest(Message):
+    """Action protocol, task level: the goal (a natural-language command L, with overrides)."""
+
     kind: Literal["task_request"] = "task_request"
     command: str = Field(..., min_length=1, max_length=MAX_COMMAND_CHARS)
     """Natural-language command L."""
     task_id: str = Field(default_factory=lambda: new_id("task-"))
     """Task id (generated when omitted)."""
-    backend: str | None = None
+    backend: BackendName | None = None
     """Override of the reasoner's backend (rules, openai, anthropic, replay)."""
     variant: Variant | None = None
     """Override of the prompt variant."""
@@ -627,6 +722,8 @@ class TaskRequest(Message):
 
 
 class TaskAccept(Message):
+    """Action protocol, task level: the task was accepted (with its id) or rejected (with why)."""
+
     kind: Literal["task_accept"] = "task_accept"
     accepted: bool
     """Whether the task was started."""
@@ -637,6 +734,8 @@ class TaskAccept(Message):
 
 
 class TaskStatus(Message):
+    """Action protocol, task level: feedback while the task runs and its one terminal result."""
+
     kind: Literal["task_status"] = "task_status"
     stamp_ns: int = Field(default_factory=now_ns)
     """Publish time."""
@@ -656,9 +755,9 @@ class TaskStatus(Message):
     """Model queries so far."""
     invalid_answers: int = 0
     """Invalid answers so far."""
-    backend: str = ""
+    backend: BackendLabel = ""
     """Backend in use."""
-    variant: str = "full"
+    variant: Variant = "full"
     """Prompt variant in use."""
     started_ns: int = 0
     """Start time."""
@@ -670,6 +769,8 @@ class TaskStatus(Message):
 
 
 class Health(Message):
+    """A service's health, published at about 1 Hz."""
+
     kind: Literal["health"] = "health"
     stamp_ns: int = Field(default_factory=now_ns)
     """Publish time."""
@@ -687,6 +788,8 @@ class Health(Message):
 
 
 class Scenario(Message):
+    """A simulator layout to reset to (evaluation): seed, target, destination, distractors."""
+
     kind: Literal["scenario"] = "scenario"
     seed: int = 0
     """Layout seed."""
@@ -707,6 +810,8 @@ class Scenario(Message):
 
 
 class SimLabel(Part):
+    """One instance of the simulator's segmentation image (oracle mode only)."""
+
     id: int
     """Instance id in the segmentation image."""
     name: str
@@ -720,6 +825,8 @@ class SimLabel(Part):
 
 
 class SimLabels(Message):
+    """Instance id -> name for the simulator's segmentation image (oracle mode only)."""
+
     kind: Literal["sim_labels"] = "sim_labels"
     stamp_ns: int = Field(default_factory=now_ns)
     """Publish time."""
@@ -728,6 +835,8 @@ class SimLabels(Message):
 
 
 class SimObjectTruth(Part):
+    """Ground truth of one simulated object (judge only)."""
+
     name: str
     """Canonical name."""
     category: str
@@ -747,6 +856,8 @@ class SimObjectTruth(Part):
 
 
 class JudgeRequest(Message):
+    """Ask the simulator's ground-truth judge a question (evaluation only)."""
+
     kind: Literal["judge_request"] = "judge_request"
     op: Literal["world", "on_surface", "held"] = "world"
     """world: everything; on_surface: is `object` on `surface`; held: what the gripper holds."""
@@ -759,6 +870,8 @@ class JudgeRequest(Message):
 
 
 class JudgeResult(Message):
+    """The judge's ground-truth answer (evaluation only; no policy reads it)."""
+
     kind: Literal["judge_result"] = "judge_result"
     ok: bool = True
     """Answer to the question (on_surface: whether it is)."""
@@ -777,6 +890,8 @@ class JudgeResult(Message):
 
 
 class SimResetResult(Message):
+    """Whether the simulator laid out the requested scenario."""
+
     kind: Literal["sim_reset_result"] = "sim_reset_result"
     ok: bool
     """Whether the world was reset."""
@@ -792,5 +907,6 @@ MESSAGE_TYPES: tuple[type[Message], ...] = (
     GripperCommand, AutopilotResult, LocalizeRequest, ObjectEstimate, PlacementEstimate, Detections,
     SkillLibrary, SkillRequest, SkillAccept, WorkingMemory, SkillStatus, Abort, AbortAck, ReasoningStep,
     TaskRequest, TaskAccept, TaskStatus, Health, Scenario, SimLabels, JudgeRequest, JudgeResult, SimResetResult,
+    CancelGoal, CancelReply, ResetNotice,
 )
 MESSAGES_BY_SCHEMA: dict[str, type[Message]] = {m.full_schema_name(): m for m in MESSAGE_TYPES}

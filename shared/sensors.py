@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
@@ -17,9 +18,12 @@ from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
 from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 from google.protobuf.message import DecodeError as _PbDecodeError
+from google.protobuf.message import Message
 from google.protobuf.timestamp_pb2 import Timestamp
 
 from shared.errors import DecodeError
+
+PbT = TypeVar("PbT", bound=Message)
 
 # Protobuf message classes by full schema name (used by the bus encoding and the recorder).
 PROTO_TYPES = {
@@ -44,8 +48,8 @@ def ns_to_stamp(ns: int) -> Timestamp:
     return Timestamp(seconds=ns // 1_000_000_000, nanos=ns % 1_000_000_000)
 
 
-def decode_proto(cls, data: bytes):
-    msg = cls()
+def decode_proto(cls: type[PbT], data: bytes) -> PbT:
+    msg: PbT = cls()
     try:
         msg.ParseFromString(bytes(data))
     except _PbDecodeError as exc:
@@ -79,8 +83,8 @@ def color_message(rgb: np.ndarray, stamp_ns: int, frame_id: str = CAMERA_FRAME, 
                   jpeg: bytes | None = None) -> bytes:
     """HxWx3 RGB uint8 -> serialized foxglove.CompressedImage (JPEG)."""
     data = jpeg if jpeg is not None else encode_jpeg(rgb, quality)
-    return CompressedImage(timestamp=ns_to_stamp(stamp_ns), frame_id=frame_id, format="jpeg",
-                           data=data).SerializeToString()
+    msg = CompressedImage(timestamp=ns_to_stamp(stamp_ns), frame_id=frame_id, format="jpeg", data=data)
+    return bytes(msg.SerializeToString())
 
 
 def parse_color(payload: bytes) -> tuple[int, np.ndarray]:
@@ -94,8 +98,9 @@ def raw16_message(img: np.ndarray, stamp_ns: int, frame_id: str = CAMERA_FRAME) 
     if img.dtype != np.uint16 or img.ndim != 2:
         raise ValueError(f"expected HxW uint16, got {img.dtype} {img.shape}")
     h, w = img.shape
-    return RawImage(timestamp=ns_to_stamp(stamp_ns), frame_id=frame_id, width=w, height=h, encoding="16UC1",
-                    step=w * 2, data=np.ascontiguousarray(img, dtype="<u2").tobytes()).SerializeToString()
+    msg = RawImage(timestamp=ns_to_stamp(stamp_ns), frame_id=frame_id, width=w, height=h, encoding="16UC1",
+                   step=w * 2, data=np.ascontiguousarray(img, dtype="<u2").tobytes())
+    return bytes(msg.SerializeToString())
 
 
 def parse_raw16(payload: bytes) -> tuple[int, np.ndarray]:
@@ -130,9 +135,9 @@ def calibration_message(intr: Intrinsics, stamp_ns: int, frame_id: str = CAMERA_
     k = [intr.fx, 0.0, intr.cx, 0.0, intr.fy, intr.cy, 0.0, 0.0, 1.0]
     p = [intr.fx, 0.0, intr.cx, 0.0, 0.0, intr.fy, intr.cy, 0.0, 0.0, 0.0, 1.0, 0.0]
     r = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
-    return CameraCalibration(timestamp=ns_to_stamp(stamp_ns), frame_id=frame_id, width=intr.width,
-                             height=intr.height, distortion_model="plumb_bob", D=[0.0] * 5, K=k, R=r,
-                             P=p).SerializeToString()
+    msg = CameraCalibration(timestamp=ns_to_stamp(stamp_ns), frame_id=frame_id, width=intr.width,
+                            height=intr.height, distortion_model="plumb_bob", D=[0.0] * 5, K=k, R=r, P=p)
+    return bytes(msg.SerializeToString())
 
 
 def parse_calibration(payload: bytes) -> Intrinsics:
@@ -188,7 +193,7 @@ def make_transform(parent: str, child: str, T: np.ndarray, stamp_ns: int) -> Fra
 
 
 def transforms_message(items: list[tuple[str, str, np.ndarray]], stamp_ns: int) -> bytes:
-    return FrameTransforms(transforms=[make_transform(p, c, T, stamp_ns) for p, c, T in items]).SerializeToString()
+    return bytes(FrameTransforms(transforms=[make_transform(p, c, T, stamp_ns) for p, c, T in items]).SerializeToString())
 
 
 def parse_transforms(payload: bytes) -> dict[tuple[str, str], tuple[int, np.ndarray]]:

@@ -7,14 +7,14 @@ import asyncio
 import contextlib
 import logging
 import signal
-from collections.abc import Awaitable, Callable
+from collections.abc import Callable, Coroutine
 from typing import TypeVar
 
 from shared.bus import Bus
 from shared.settings import ServiceSettings, setup_logging
 
 S = TypeVar("S", bound=ServiceSettings)
-RunFn = Callable[[Bus, S, asyncio.Event], Awaitable[None]]
+RunFn = Callable[[Bus, S, asyncio.Event], Coroutine[object, object, None]]
 
 log = logging.getLogger("aermani.service")
 
@@ -24,7 +24,7 @@ def announce(bus: Bus, settings: ServiceSettings, name: str) -> None:
     bus.declare_token(settings.keys.alive(name))
 
 
-async def serve_forever(name: str, run: RunFn, settings: S, stop: asyncio.Event | None = None,
+async def serve_forever(name: str, run: RunFn[S], settings: S, stop: asyncio.Event | None = None,
                         announce_at_start: bool = True) -> None:
     """Open the bus, declare `alive/<name>`, run the service until `stop` is set or `run` returns.
 
@@ -49,7 +49,7 @@ async def serve_forever(name: str, run: RunFn, settings: S, stop: asyncio.Event 
         if announce_at_start:
             announce(bus, settings, name)
         log.info("%s up (vehicle %s, zenoh %s)", name, settings.vehicle_id, settings.zenoh_connect)
-        runner = asyncio.create_task(run(bus, settings, stop), name=f"{name}.run")
+        runner: asyncio.Task[None] = asyncio.create_task(run(bus, settings, stop), name=f"{name}.run")
         stopper = asyncio.create_task(stop.wait(), name=f"{name}.stop")
         done, _ = await asyncio.wait({runner, stopper}, return_when=asyncio.FIRST_COMPLETED)
         if runner in done:
@@ -64,7 +64,7 @@ async def serve_forever(name: str, run: RunFn, settings: S, stop: asyncio.Event 
         log.info("%s stopped", name)
 
 
-def main_for(name: str, run: RunFn, settings_cls: type[S], *, settings: S | None = None,
+def main_for(name: str, run: RunFn[S], settings_cls: type[S], *, settings: S | None = None,
              announce_at_start: bool = True) -> None:
     """Body of every `services/<name>/__main__.py`."""
     settings = settings or settings_cls()

@@ -1,7 +1,9 @@
-"""Names of the skills in the library (the VLM's action space), shared by executor, reasoner and evaluation.
+"""Spellings of the built-in skill names that code refers to (the loop's own takeoff and hold, the rules
+baseline, the paper's metrics).
 
-The executor's registry is the source of truth for descriptions and parameters (served on
-`executor/skills`); these constants only fix the spelling so that every service agrees.
+These are not the library: a skill is one module in `services/executor/skills/` with its name, argument,
+preconditions and Skill Library description; the executor serves the library on `executor/skills`, and
+the prompt, the validator and the rules baseline read it from there.
 """
 
 from __future__ import annotations
@@ -22,7 +24,6 @@ OBJ_LOCALIZATION = "obj_localization"  # argument: object query, e.g. "red cup"
 GRASP = "grasp"  # argument: optional object label; uses the latest localization in working memory
 PLACEMENT_LOCALIZATION = "placement_localization"  # argument: surface query, e.g. "table"
 PLACE = "place"  # no argument; uses the latest placement estimate in working memory
-ROUTINES = (OBJ_LOCALIZATION, GRASP, PLACEMENT_LOCALIZATION, PLACE)
 
 # Policy control: the policy declares the task complete.
 DONE = "done"
@@ -32,8 +33,6 @@ TAKEOFF = "takeoff"
 LAND = "land"
 HOLD = "hold"
 OPERATOR_SKILLS = (TAKEOFF, LAND, HOLD)
-
-POLICY_SKILLS = (*MOTION_PRIMITIVES, *ROUTINES, DONE)
 
 # Opposite motions, for the action redundancy ratio (oscillatory corrections).
 OPPOSITE = {

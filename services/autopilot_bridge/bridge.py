@@ -19,7 +19,6 @@ from services.autopilot_bridge.stream import SetpointStream, Target
 from shared.bus import Bus
 from shared.messages import (
     ArmCommand,
-    AutopilotCommand,
     AutopilotResult,
     DisarmCommand,
     GotoCommand,
@@ -527,8 +526,7 @@ class Bridge:
             if self.s.publish_tf and self.have_position:
                 # The message's pitch is nose-up positive; FLU's rotation about +y (left) is nose-down.
                 T = pose_matrix(*self.position, self.yaw, self.roll, -self.pitch)  # noqa: N806
-                self.bus.publish(self.keys.tf, transforms_message([(WORLD_FRAME, BODY_FRAME, T)], st.stamp_ns),
-                                 schema="foxglove.FrameTransforms", reliable=False)
+                self.bus.publish(self.keys.tf, transforms_message([(WORLD_FRAME, BODY_FRAME, T)], st.stamp_ns), reliable=False)
             next_t += period
             delay = next_t - time.monotonic()
             if delay < -period:
@@ -553,7 +551,7 @@ class Bridge:
         assert self.bus is not None
         self.loop = asyncio.get_running_loop()
         self.link.start(self.loop, self.on_message)
-        self.bus.serve(self.keys.autopilot_command, self.serve_command, AutopilotCommand)
+        self.bus.serve(self.keys.autopilot_command, self.serve_command)
         log.info("bridge on %s; serving %s", self.s.connection, self.keys.autopilot_command)
         loops = [asyncio.create_task(c) for c in (self.publish_state_loop(stop), self.heartbeat_loop(stop),
                                                   self.health_loop(stop))]

@@ -18,12 +18,10 @@ from shared.messages import (
     DisarmCommand,
     GotoCommand,
     GripperCommand,
-    Health,
     HoldCommand,
     LandCommand,
     TakeoffCommand,
     Vec3,
-    VehicleState,
 )
 
 console = Console()
@@ -37,7 +35,7 @@ Vehicle = Annotated[str, typer.Option(help="Vehicle id.")]
 async def _send(connect: str, vehicle: str, cmd: Any, timeout: float) -> AutopilotResult:
     bus = await Bus.open(connect=[connect])
     try:
-        return await bus.query(Keys(vehicle).autopilot_command, cmd, AutopilotResult, timeout=timeout)
+        return await bus.query(Keys(vehicle).autopilot_command, cmd, timeout=timeout)
     finally:
         await bus.close()
 
@@ -64,8 +62,8 @@ def state(connect: Connect = "tcp/127.0.0.1:7447", vehicle: Vehicle = "am1",
         bus = await Bus.open(connect=[connect])
         try:
             keys = Keys(vehicle)
-            states = bus.subscribe(keys.autopilot_state, VehicleState, maxsize=1)
-            health = bus.subscribe(keys.health("autopilot_bridge"), Health, maxsize=1)
+            states = bus.subscribe(keys.autopilot_state, maxsize=1)
+            health = bus.subscribe(keys.health("autopilot_bridge"), maxsize=1)
             while True:
                 s = await states.recv(5.0)
                 console.print(

@@ -25,34 +25,27 @@ from services.evaluation.records import RESULTS_FILE, EpisodeRecord, ResultsFile
 from services.evaluation.tasks import (
     DEFAULT_T_MAX_S,
     EpisodeSpec,
-    EvalTask,
     expand,
     group_by_suite,
     load_jsonl,
     load_suites,
 )
-from shared.bus import Bus, Subscription
-from shared.errors import AermaniError, BusError, ConfigError, NoResponder
+from shared.action import skill_client
+from shared.bus import Bus, Subscription, query_ready
+from shared.errors import AermaniError, BusError, ConfigError
 from shared.keys import Keys
 from shared.launcher import PER_VEHICLE, Stack, available_services, free_udp_port
 from shared.messages import (
     Abort,
-    JudgeRequest,
-    JudgeResult,
     LandedState,
-    ReasoningStep,
-    SimResetResult,
-    SkillAccept,
     SkillRequest,
-    SkillStatus,
-    TaskAccept,
     TaskRequest,
-    TaskStatus,
     VehicleState,
     WorkingMemory,
     new_id,
     now_ns,
 )
+from shared.tasks import follow_task, judge_episode
 
 log = logging.getLogger("aermani.evaluation")
 
@@ -155,50 +148,19 @@ class VehicleWorker:
     vehicle_id: str
     cfg: RunConfig
     keys: Keys = field(init=False)
-    steps: Subscription[ReasoningStep] = field(init=False)
-    statuses: Subscription[TaskStatus] = field(init=False)
     state: Subscription[VehicleState] = field(init=False)
-    skill_status: Subscription[SkillStatus] = field(init=False)
     memory: Subscription[WorkingMemory] = field(init=False)
     last_memory: WorkingMemory | None = None
     restart_executor: Callable[[], Awaitable[None]] | None = None
 
     def __post_init__(self) -> None:
         self.keys = Keys(self.vehicle_id)
-        self.steps = self.bus.subscribe(self.keys.reasoning_step, ReasoningStep, maxsize=10_000,
-                                        overflow="drop_newest")
-        self.statuses = self.bus.subscribe(self.keys.task_status, TaskStatus, maxsize=1_000)
-        self.state = self.bus.subscribe(self.keys.autopilot_state, VehicleState, maxsize=2)
-        self.skill_status = self.bus.subscribe(self.keys.skill_status, SkillStatus, maxsize=100)
-        self.memory = self.bus.subscribe(self.keys.memory, WorkingMemory, maxsize=5)
+        self.state = self.bus.subscribe(self.keys.autopilot_state, maxsize=2)
+        self.memory = self.bus.subscribe(self.keys.memory, maxsize=5)
 
     def close(self) -> None:
-        for sub in (self.steps, self.statuses, self.state, self.skill_status, self.memory):
+        for sub in (self.state, self.memory):
             sub.close()
-
-    async def _query(self, key: str, request: object, model: type, timeout: float = QUERY_TIMEOUT_S):
-        """A query that waits for its queryable to appear (startup, or a supervised restart after a crash)."""
-        deadline = time.monotonic() + READY_WAIT_S
-        delay = 0.2
-        while True:
-            try:
-                return await self.bus.query(key, request, model, timeout=timeout)
-            except NoResponder:
-                if time.monotonic() > deadline:
-                    raise
-                await asyncio.sleep(delay)
-                delay = min(2.0, delay * 2)
-
-    async def _drain_steps(self, task_id: str, into: list[ReasoningStep]) -> int:
-        """Move queued steps of `task_id` into `into`; returns how many belonged to another task."""
-        foreign = 0
-        while self.steps.qsize():
-            s = await self.steps.recv(timeout=1.0)
-            if s.task_id == task_id:
-                into.append(s)
-            else:
-                foreign += 1
-        return foreign
 
     async def _current_state(self, timeout: float = 10.0) -> VehicleState | None:
         latest = self.state.latest_nowait()
@@ -213,23 +175,18 @@ class VehicleWorker:
         st = await self._current_state()
         if st is None or st.landed_state not in (LandedState.IN_AIR, LandedState.TAKEOFF, LandedState.LANDING):
             return
-        self.skill_status.latest_nowait()
-        try:
-            acc = await self._query(self.keys.run_skill, SkillRequest(skill="land"), SkillAccept)
-        except AermaniError as exc:
-            log.warning("%s: land request failed (%s); resetting anyway", self.vehicle_id, exc)
-            return
-        if not acc.accepted:
-            log.warning("%s: land rejected (%s); resetting anyway", self.vehicle_id, acc.reason)
-            return
         deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
+        async with skill_client(self.bus, self.vehicle_id) as skills:
             try:
-                ss = await self.skill_status.recv(timeout=max(0.1, deadline - time.monotonic()))
-            except TimeoutError:
-                break
-            if ss.goal_id == acc.goal_id and ss.state.terminal:
-                break
+                goal = await skills.send_goal(SkillRequest(skill="land"), timeout=QUERY_TIMEOUT_S,
+                                              ready_timeout=READY_WAIT_S)
+            except AermaniError as exc:
+                log.warning("%s: land request failed (%s); resetting anyway", self.vehicle_id, exc)
+                return
+            if not goal.accepted:
+                log.warning("%s: land rejected (%s); resetting anyway", self.vehicle_id, goal.reason)
+                return
+            await goal.result(timeout)
         while time.monotonic() < deadline:  # PX4 disarms a couple of seconds after touchdown
             st = await self._current_state(timeout=2.0)
             if st is not None and not st.armed:
@@ -276,7 +233,8 @@ class VehicleWorker:
     async def _run(self, spec: EpisodeSpec, rec: EpisodeRecord, t_max: float) -> EpisodeRecord:
         task = spec.task
         await self._land()
-        reset = await self._query(self.keys.sim_reset, task.scenario(spec.seed), SimResetResult)
+        reset = await query_ready(self.bus, self.keys.sim_reset, task.scenario(spec.seed), timeout=QUERY_TIMEOUT_S,
+                                  ready_timeout=READY_WAIT_S)
         if not reset.ok:
             return rec.model_copy(update={"harness_error": f"sim/reset refused the scenario: {reset.message}"})
         await self._wait_grounded()
@@ -311,49 +269,26 @@ class VehicleWorker:
                     break
             stale += "; executor restarted before the episode"
         rec = rec.model_copy(update={"stale_memory": stale})
-        self.statuses.latest_nowait()
-        await self._drain_steps("", [])  # whatever is queued belongs to earlier tasks
-
         task_id = new_id("ev-")
         request = TaskRequest(command=task.command, task_id=task_id, variant=spec.variant, t_max_s=t_max,
                               takeoff=True)
         started = now_ns()
-        accept = await self._start(request)
-        if not accept.accepted:
-            return rec.model_copy(update={"harness_error": f"reasoner refused the task: {accept.reason}",
+        followed = await follow_task(self.bus, self.keys, request, timeout=t_max + STATUS_MARGIN_S,
+                                     ready_timeout=READY_WAIT_S, retry_rejected_s=START_RETRY_S)
+        if not followed.accept.accepted:
+            return rec.model_copy(update={"harness_error": f"reasoner refused the task: {followed.accept.reason}",
                                           "task_id": task_id})
-
-        steps: list[ReasoningStep] = []
-        foreign = 0
-        status: TaskStatus | None = None
-        deadline = time.monotonic() + t_max + STATUS_MARGIN_S
-        while status is None:
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                break
-            try:
-                st = await self.statuses.recv(timeout=min(remaining, 5.0))
-            except TimeoutError:
-                foreign += await self._drain_steps(task_id, steps)
-                continue
-            if st.task_id == task_id and st.state.terminal:
-                status = st
-            foreign += await self._drain_steps(task_id, steps)
+        status, steps, foreign = followed.final, followed.steps, followed.foreign
         ended = now_ns()
         self.last_memory = self.memory.latest_nowait() or self.last_memory
         if status is None:
             # The reasoner never ended the task: stop it so the next episode starts clean.
             self.bus.publish(self.keys.abort, Abort(reason="evaluation: no terminal status", source="evaluation",
                                                     task_id=task_id))
-        else:
-            # Steps are published before the status, but give stragglers a moment on a loaded machine.
-            until = time.monotonic() + 5.0
-            while len(steps) < status.steps and time.monotonic() < until:
-                await asyncio.sleep(0.1)
-                foreign += await self._drain_steps(task_id, steps)
-        steps.sort(key=lambda s: s.step)
 
-        judge, success, verdict = await self._judge(task)
+        v = await judge_episode(self.bus, self.keys, task.accepted, task.destination, tolerance=self.cfg.tolerance,
+                                timeout=QUERY_TIMEOUT_S)
+        judge, success, verdict = v.result, v.success, v.message
         state = status.state.value if status else "timeout"
         if success and status is None:
             success, verdict = False, f"{verdict}, but the task did not end before T_max"
@@ -366,34 +301,6 @@ class VehicleWorker:
             "steps": steps, "status": status, "judge": judge, "started_ns": started, "ended_ns": ended,
             "foreign_samples": foreign,
         })
-
-    async def _start(self, request: TaskRequest) -> TaskAccept:
-        deadline = time.monotonic() + START_RETRY_S
-        while True:
-            accept = await self._query(self.keys.start_task, request, TaskAccept)
-            if accept.accepted or time.monotonic() > deadline:
-                return accept
-            await asyncio.sleep(1.0)
-
-    async def _judge(self, task: EvalTask) -> tuple[JudgeResult, bool, str]:
-        """Ground truth, exactly as the paper: the right object on the destination within tolerance, or, with
-        no destination, the right object in the gripper at the end."""
-        if task.destination:
-            last: JudgeResult | None = None
-            for obj in task.accepted:
-                j = await self._query(self.keys.sim_judge, JudgeRequest(
-                    op="on_surface", object=obj, surface=task.destination, tolerance=self.cfg.tolerance),
-                    JudgeResult)
-                if j.ok:
-                    return j, True, j.message
-                last = last or j
-            assert last is not None
-            return last, False, last.message
-        j = await self._query(self.keys.sim_judge, JudgeRequest(op="held"), JudgeResult)
-        if j.held in task.accepted:
-            return j, True, f"holding {j.held}"
-        return j, False, f"holding {j.held}, expected {' or '.join(task.accepted)}" if j.held else \
-            f"holding nothing, expected {' or '.join(task.accepted)}"
 
 
 def _failed_before_first_step(rec: EpisodeRecord) -> bool:

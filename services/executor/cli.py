@@ -17,9 +17,9 @@ async def _run_skill(vehicle: str, skill: str, argument: str | None, timeout: fl
     keys = Keys(vehicle)
     bus = await Bus.open(connect=env_endpoints())
     try:
-        statuses = bus.subscribe(keys.skill_status, SkillStatus, maxsize=1000)
+        statuses = bus.subscribe(keys.skill_status, maxsize=1000)
         await asyncio.sleep(0.3)
-        acc = await bus.query(keys.run_skill, SkillRequest(skill=skill, argument=argument), SkillAccept, timeout=10)
+        acc = await bus.query(keys.run_skill, SkillRequest(skill=skill, argument=argument), timeout=10)
         if not acc.accepted:
             return acc
         while True:
@@ -33,7 +33,7 @@ async def _run_skill(vehicle: str, skill: str, argument: str | None, timeout: fl
 async def _library(vehicle: str) -> SkillLibrary:
     bus = await Bus.open(connect=env_endpoints())
     try:
-        return await bus.query(Keys(vehicle).skills, None, SkillLibrary, timeout=10)
+        return await bus.query(Keys(vehicle).skills, None, timeout=10)
     finally:
         await bus.close()
 

@@ -137,7 +137,7 @@ class SkillContext:
             raise asyncio.CancelledError("aborted")
         t = timeout or self.settings.command_timeout_s
         try:
-            res = await self.bus.query(self.keys.autopilot_command, cmd, AutopilotResult, timeout=t)
+            res = await self.bus.query(self.keys.autopilot_command, cmd, timeout=t)
         except BusError as exc:
             raise SkillFailed(f"autopilot did not take the {cmd.kind} command: {exc}") from exc
         if not res.ok:
@@ -190,8 +190,7 @@ class SkillContext:
             age = max(0.05, (time.time_ns() - after) / 1e9)
             try:
                 est = await self.bus.query(key, LocalizeRequest(query=query, object_size=object_size,
-                                                                max_frame_age_s=min(age, 5.0)),
-                                           model, timeout=self.settings.localize_timeout_s)
+                                                                max_frame_age_s=min(age, 5.0)), timeout=self.settings.localize_timeout_s)
             except BusError as exc:
                 raise SkillFailed(f"perception did not answer the localization of {query!r}: {exc}") from exc
             old = est.reason in ("stale_frame", "no_frame") or (est.frame_stamp_ns and est.frame_stamp_ns < after)

@@ -52,6 +52,18 @@ class Memory:
             self.last_object = self.last_placement = None
             self._changed()
 
+    def world_reset(self) -> None:
+        """The world was laid out anew (a simulator reset): nothing seen or held belongs to it any more."""
+        self.task_id = ""
+        self.executed.clear()
+        self.objects.clear()
+        self.placements.clear()
+        self.seen.clear()
+        self.visible = ()
+        self.held, self.held_size = None, None
+        self.last_object = self.last_placement = None
+        self._changed()
+
     def record_executed(self, entry: str) -> None:
         self.executed.append(entry)
         del self.executed[:-self._max_executed]

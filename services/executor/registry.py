@@ -8,7 +8,8 @@ from typing import ClassVar, Literal
 
 from services.executor.context import SkillContext
 from services.executor.settings import ExecutorSettings
-from shared.messages import SkillParameter, SkillSpec
+from shared.errors import ConfigError
+from shared.messages import SkillLibrary, SkillParameter, SkillSpec
 
 Category = Literal["motion", "perception", "manipulation", "operator", "control"]
 
@@ -73,9 +74,29 @@ def register(cls: type[Skill]) -> type[Skill]:
     return cls
 
 
+def load_skills(modules: list[str] | tuple[str, ...] = ()) -> None:
+    """Register the built-in skills and those of `modules` (extra skills outside this package)."""
+    import importlib
+
+    from services.executor.skills import load_builtin
+
+    load_builtin()
+    for name in modules:
+        try:
+            importlib.import_module(name)
+        except ImportError as exc:
+            raise ConfigError(f"cannot import skill module {name!r} (AERMANI_EXECUTOR_SKILL_MODULES): {exc}") from exc
+
+
+def library(settings: ExecutorSettings | None = None) -> SkillLibrary:
+    """The Skill Library of every registered skill, as the executor serves it on `executor/skills`."""
+    settings = settings or ExecutorSettings()
+    return SkillLibrary(skills=tuple(sk.spec() for sk in build_library(settings).values()))
+
+
 def build_library(settings: ExecutorSettings, names: list[str] | None = None) -> dict[str, Skill]:
     """Instances of the registered skills (all, or `names` in that order)."""
-    import services.executor.skills  # noqa: F401 - registers the built-in skills
+    load_skills(settings.skill_modules)
 
     chosen = names or list(REGISTRY)
     unknown = [n for n in chosen if n not in REGISTRY]

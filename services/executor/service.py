@@ -20,7 +20,8 @@ from shared.messages import (
     Abort,
     AbortAck,
     AutopilotResult,
-    Detections,
+    CancelGoal,
+    CancelReply,
     GripperState,
     HoldCommand,
     SkillAccept,
@@ -29,7 +30,6 @@ from shared.messages import (
     SkillRequest,
     SkillState,
     SkillStatus,
-    VehicleState,
     new_id,
     now_ns,
 )
@@ -152,7 +152,7 @@ class Executor:
 
     async def _hold(self) -> AutopilotResult | None:
         try:
-            return await self.bus.query(self.keys.autopilot_command, HoldCommand(), AutopilotResult, timeout=2.0)
+            return await self.bus.query(self.keys.autopilot_command, HoldCommand(), timeout=2.0)
         except BusError as exc:
             log.warning("hold command failed: %s", exc)
             return None
@@ -239,10 +239,25 @@ class Executor:
         log.warning("abort from %s (%s): %s", abort.source, abort.reason, ack.message)
         return ack
 
+    async def handle_cancel(self, req: CancelGoal) -> CancelReply:
+        """Action protocol: cancel the running goal `req.goal_id` (it ends ABORTED, the vehicle holds)."""
+        goal = self.goal
+        if goal is None or goal.goal_id != req.goal_id:
+            return CancelReply(accepted=False, reason=f"goal {req.goal_id} is not running")
+        await self.handle_abort(Abort(reason=req.reason, source=req.source, task_id=goal.request.task_id or None))
+        return CancelReply(accepted=True)
+
     # ---- inputs
 
+    async def _pump_resets(self) -> None:
+        sub = self.bus.subscribe(self.keys.sim_reset_notice, maxsize=4)
+        while True:
+            notice = await sub.recv()
+            log.info("world reset (seed %d): working memory cleared", notice.seed)
+            self.memory.world_reset()
+
     async def _pump_state(self) -> None:
-        sub = self.bus.subscribe(self.keys.autopilot_state, VehicleState, maxsize=4)
+        sub = self.bus.subscribe(self.keys.autopilot_state, maxsize=4)
         while True:
             rec = await sub.recv_sample()
             self.state.update(rec.value, rec.receive_ns)
@@ -253,7 +268,7 @@ class Executor:
                 self.memory.set_held(None)
 
     async def _pump_aborts(self) -> None:
-        sub = self.bus.subscribe(self.keys.abort, Abort, maxsize=16, overflow="drop_newest")
+        sub = self.bus.subscribe(self.keys.abort, maxsize=16, overflow="drop_newest")
         while True:
             abort = await sub.recv()
             # Abort handling runs beside the pump so a second abort is not queued behind a slow hold.
@@ -262,7 +277,7 @@ class Executor:
             task.add_done_callback(self._background.discard)
 
     async def _pump_depth(self) -> None:
-        sub = self.bus.subscribe(self.keys.camera_depth, None, maxsize=1)
+        sub = self.bus.subscribe(self.keys.camera_depth, maxsize=1)
         while True:
             data = await sub.recv()
             try:
@@ -273,14 +288,14 @@ class Executor:
             self.clearance.update(stamp, img)
 
     async def _pump_calibration(self) -> None:
-        sub = self.bus.subscribe(self.keys.camera_calibration, None, maxsize=1)
+        sub = self.bus.subscribe(self.keys.camera_calibration, maxsize=1)
         while True:
             data = await sub.recv()
             with contextlib.suppress(DecodeError):
                 self.clearance.intr = parse_calibration(data)
 
     async def _pump_detections(self) -> None:
-        sub = self.bus.subscribe(self.keys.detections, Detections, maxsize=2)
+        sub = self.bus.subscribe(self.keys.detections, maxsize=2)
         while True:
             self.memory.set_visible(await sub.recv())
 
@@ -290,17 +305,18 @@ class Executor:
             await asyncio.sleep(self.settings.memory_period_s)
 
     async def run(self, stop: asyncio.Event) -> None:
-        self.bus.serve(self.keys.run_skill, self.handle_run_skill, SkillRequest)
+        self.bus.serve(self.keys.run_skill, self.handle_run_skill)
+        self.bus.serve(self.keys.cancel_skill, self.handle_cancel)
 
         async def skills(_req: object) -> SkillLibrary:
             return self.library()
 
-        self.bus.serve(self.keys.skills, skills, None)
+        self.bus.serve(self.keys.skills, skills)
         log.info("executor serving %d skills: %s", len(self.skills), ", ".join(self.skills))
         try:
             async with asyncio.TaskGroup() as tg:
                 for coro in (self._pump_state(), self._pump_aborts(), self._pump_depth(), self._pump_calibration(),
-                             self._pump_detections(), self._memory_ticker()):
+                             self._pump_detections(), self._pump_resets(), self._memory_ticker()):
                     tg.create_task(coro)
                 await stop.wait()
                 raise _Stop

@@ -12,6 +12,11 @@ class ExecutorSettings(ServiceSettings):
     model_config = SettingsConfigDict(env_prefix="AERMANI_EXECUTOR_", extra="ignore", populate_by_name=True,
                                       use_attribute_docstrings=True)
 
+    skill_modules: list[str] = []
+    """Python modules to import at start-up that register extra skills (`@register` from
+    services.executor.registry), e.g. `["my_lab.skills.inspect"]`: a skill is one module plus its
+    registration; the prompt, the validator and the rules baseline read it from the served library."""
+
     # ---- motion primitives (fixed parameters, paper Table II)
     yaw_step_deg: float = 45.0
     """Rotation of yaw_left / yaw_right, degrees. 45 keeps consecutive views of the 85 deg camera

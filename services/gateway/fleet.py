@@ -107,7 +107,7 @@ class Fleet:
 
         def sub(topic: str, model: Any, handler: Callable[[str, Any], Awaitable[None]], maxsize: int = 1000,
                 ordered: bool = False):
-            s = self.bus.subscribe(fleet_key(topic), model, maxsize=maxsize)
+            s = self.bus.subscribe(fleet_key(topic), maxsize=maxsize)
             self._subs.append(s)
             run = self._forward(s, handler) if ordered else self._consume(s, handler)
             self._tasks.append(asyncio.create_task(run, name=f"gateway.{topic}"))

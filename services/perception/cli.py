@@ -25,14 +25,13 @@ def register(app: typer.Typer) -> None:
 async def _ask(connect: str, vehicle: str, key_name: str, query: str, size: tuple[float, float, float] | None):
     from shared.bus import Bus
     from shared.keys import Keys
-    from shared.messages import LocalizeRequest, ObjectEstimate, PlacementEstimate, Vec3
+    from shared.messages import LocalizeRequest, Vec3
 
     keys = Keys(vehicle)
-    model = ObjectEstimate if key_name == "object" else PlacementEstimate
     key = keys.localize_object if key_name == "object" else keys.localize_placement
     req = LocalizeRequest(query=query, object_size=Vec3(x=size[0], y=size[1], z=size[2]) if size else None)
     async with await Bus.open(connect=[connect]) as bus:
-        return await bus.query(key, req, model, timeout=10)
+        return await bus.query(key, req, timeout=10)
 
 
 def _show(est) -> None:
@@ -63,7 +62,7 @@ def detections_cmd(connect: Connect = "tcp/127.0.0.1:7447", vehicle: Vehicle = "
 
     async def body() -> Detections:
         async with await Bus.open(connect=[connect]) as bus:
-            return await bus.subscribe(Keys(vehicle).detections, Detections).recv(timeout)
+            return await bus.subscribe(Keys(vehicle).detections).recv(timeout)
 
     try:
         dets = asyncio.run(body())

@@ -66,7 +66,7 @@ class PerceptionService:
     # ---- ingest
 
     async def _ingest(self, key: str, handle: Callable[[Any], None], model: Any = None) -> None:
-        sub = self.bus.subscribe(key, model, maxsize=4)
+        sub = self.bus.subscribe(key, maxsize=4)
         while True:
             rec = await sub.recv_sample()
             try:
@@ -181,8 +181,8 @@ async def run(bus: Bus, settings: PerceptionSettings, stop: asyncio.Event) -> No
     if segmenter.needs_segmentation:
         tasks.append(asyncio.create_task(svc._ingest(k.camera_segmentation, st.add_segmentation)))
         tasks.append(asyncio.create_task(svc._ingest(k.sim_labels, st.add_labels, SimLabels)))
-    bus.serve(k.localize_object, svc.localize_object, None)
-    bus.serve(k.localize_placement, svc.localize_placement, None)
+    bus.serve(k.localize_object, svc.localize_object, raw=True)
+    bus.serve(k.localize_placement, svc.localize_placement, raw=True)
     tasks += [asyncio.create_task(svc._detections(stop)), asyncio.create_task(svc._health(stop))]
     log.info("perception ready: segmenter %s, serving %s and %s", segmenter.type, k.localize_object,
              k.localize_placement)

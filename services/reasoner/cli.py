@@ -26,7 +26,6 @@ async def _live_library(connect: str, timeout: float):
 
     from shared.bus import Bus, zenoh_config
     from shared.keys import Keys
-    from shared.messages import SkillLibrary
 
     cfg = zenoh_config(mode="client", connect=[connect])
     cfg.insert_json5("connect/timeout_ms", _json.dumps(int(timeout * 1000)))
@@ -35,7 +34,7 @@ async def _live_library(connect: str, timeout: float):
     except Exception:
         return None
     try:
-        return await bus.query(Keys().skills, None, SkillLibrary, timeout=timeout)
+        return await bus.query(Keys().skills, None, timeout=timeout)
     except Exception:
         return None
     finally:
@@ -210,35 +209,21 @@ def run_demo(command: str, scenario, accepted: tuple[str, ...], *, env: dict[str
         stack.stop()
 
 
-async def _query_retry(bus, key: str, request, model, timeout: float):
-    """A query retried while nobody serves the key yet (liveliness tokens come before queryables)."""
-    from shared.errors import NoResponder
-
-    deadline = time.monotonic() + timeout
-    while True:
-        try:
-            return await bus.query(key, request, model, timeout=timeout)
-        except NoResponder:
-            if time.monotonic() > deadline:
-                raise
-            await asyncio.sleep(0.3)
-
-
 async def _demo_task(stack, command: str, scenario, accepted: tuple[str, ...], t_max: float, result: dict) -> int:
     from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 
-    from services.reasoner.client import follow_task
-    from shared.bus import Bus
+    from shared.bus import Bus, query_ready
     from shared.keys import Keys
-    from shared.messages import Health, JudgeRequest, JudgeResult, SimResetResult, TaskRequest
+    from shared.messages import TaskRequest
+    from shared.tasks import follow_task, judge_episode
 
     keys = Keys(stack.procs[0].vehicle_id)
     bus = await Bus.open(connect=[stack.endpoint])
     try:
-        health = bus.subscribe(keys.health("recorder"), Health, maxsize=5)
-        perception_health = bus.subscribe(keys.health("perception"), Health, maxsize=5)
-        sim_health = bus.subscribe(keys.health("sim"), Health, maxsize=5)
-        reset = await _query_retry(bus, keys.sim_reset, scenario, SimResetResult, timeout=30)
+        health = bus.subscribe(keys.health("recorder"), maxsize=5)
+        perception_health = bus.subscribe(keys.health("perception"), maxsize=5)
+        sim_health = bus.subscribe(keys.health("sim"), maxsize=5)
+        reset = await query_ready(bus, keys.sim_reset, scenario, timeout=30)
         if not reset.ok:
             console.print(f"[red]the simulator refused the scenario: {reset.message} (use --target/--destination)"
                           "[/red]")
@@ -272,28 +257,22 @@ async def _demo_task(stack, command: str, scenario, accepted: tuple[str, ...], t
                               f"[dim]{why[:90]}[/dim]")
                 progress.update(bar, description=f"step {s.step} done; thinking...")
 
-            accept, final, steps = await follow_task(bus, keys, request, on_step=on_step, timeout=t_max + 60)
+            followed = await follow_task(bus, keys, request, on_step=on_step, timeout=t_max + 60)
+        accept, final, steps = followed.accept, followed.final, followed.steps
         if not accept.accepted:
             console.print(f"[red]the reasoner refused the task: {accept.reason}[/red]")
             return 1
-        assert final is not None
+        if final is None:
+            console.print(f"[red]the task did not end within {t_max + 60:.0f} s[/red]")
+            return 1
         calls = final.model_calls or 1
         console.print(f"task {final.state.value}: {final.message} ({final.steps} steps, {final.model_calls} model "
                       f"calls, IAR {100 * final.invalid_answers / calls:.1f} %)")
         # Judge what the command asked: the simulator fills in a destination for every layout, but a command
         # without one ("pick up the tissue box") succeeds when the object is held.
-        if scenario.destination:
-            ok, verdict = False, ""
-            for obj in accepted or (sc.target_object,):
-                j = await bus.query(keys.sim_judge, JudgeRequest(op="on_surface", object=obj, surface=sc.destination),
-                                    JudgeResult, timeout=10)
-                ok, verdict = j.ok, j.message
-                if ok:
-                    break
-        else:
-            j = await bus.query(keys.sim_judge, JudgeRequest(op="held"), JudgeResult, timeout=10)
-            ok = j.held is not None and (not accepted or j.held in accepted)
-            verdict = f"holding {j.held or 'nothing'}"
+        objects = accepted or ((sc.target_object,) if sc.target_object else ())
+        verdict_ = await judge_episode(bus, keys, objects, sc.destination if scenario.destination else None)
+        ok, verdict = verdict_.success, verdict_.message
         console.print(("[bold green]SUCCESS[/bold green]" if ok else "[bold red]FAILURE[/bold red]") +
                       f" (simulator judge: {verdict})")
         log_path = None

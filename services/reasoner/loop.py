@@ -56,16 +56,14 @@ class World(ABC):
     async def observe(self, newer_than_ns: int) -> Observation: ...
 
     @abstractmethod
-    async def run_skill(self, request: SkillRequest) -> SkillAccept: ...
-
-    @abstractmethod
-    async def wait_status(self, goal_id: str, timeout: float) -> SkillStatus | None:
-        """Terminal status of a goal, or None after `timeout`."""
+    async def run_skill(self, request: SkillRequest, timeout: float) -> tuple[SkillAccept, SkillStatus | None]:
+        """Send the skill goal (action protocol); when accepted, wait up to `timeout` for its terminal status
+        (None when none came in time)."""
 
     async def hold(self, task_id: str, reason: str) -> None:
         """Command a hold (best effort): the failure path of a step."""
         with contextlib.suppress(Exception):
-            await self.run_skill(SkillRequest(skill=S.HOLD, task_id=task_id))
+            await self.run_skill(SkillRequest(skill=S.HOLD, task_id=task_id), 0.0)
 
 
 def policy_context(command: str, variant: str, library: SkillLibrary, history: History,
@@ -271,7 +269,7 @@ class TaskRunner:
         """Run one skill on the executor and wait for its terminal status (never raises)."""
         started = now_ns()
         try:
-            accept = await self.world.run_skill(req)
+            accept, st = await self.world.run_skill(req, timeout)
         except AermaniError as exc:
             return SkillStatus(goal_id="", skill=req.skill, argument=req.argument, state=SkillState.REJECTED,
                                message=f"executor unreachable: {exc}", task_id=req.task_id, step=req.step,
@@ -280,7 +278,6 @@ class TaskRunner:
             return SkillStatus(goal_id="", skill=req.skill, argument=req.argument, state=SkillState.REJECTED,
                                message=accept.reason, task_id=req.task_id, step=req.step, started_ns=started,
                                ended_ns=now_ns())
-        st = await self.world.wait_status(accept.goal_id, timeout)
         if st is None:
             await self.world.hold(req.task_id, "skill timeout")
             return SkillStatus(goal_id=accept.goal_id, skill=req.skill, argument=req.argument,

@@ -164,7 +164,7 @@ class History:
     def render(self, obs: Observation) -> str:
         head = [describe_state(obs), describe_detections(obs)]
         if obs.memory is not None:
-            head.append("Working memory: " + obs.memory.summary())
+            head.append("Working memory: " + memory_summary(obs.memory))
         if not self.entries:
             return _fit("\n".join([*head, "No skill executed yet."]), self.max_chars)
         head_text = "\n".join(head)
@@ -282,3 +282,23 @@ REPROMPT_UNSTRUCTURED = "Your previous answer was invalid: {error} Answer again 
 
 def reprompt_text(variant: str, error: str) -> str:
     return (REPROMPT_UNSTRUCTURED if variant == "unstructured" else REPROMPT).format(error=error)
+
+
+def memory_summary(memory: WorkingMemory) -> str:
+    """The working memory as one compact paragraph of the prompt's History part."""
+    parts = []
+    if memory.objects:
+        parts.append("localized objects: " + "; ".join(
+            f"{o.label} at ({o.position.x:.2f}, {o.position.y:.2f}, {o.position.z:.2f})" for o in memory.objects))
+    if memory.placements:
+        parts.append("placement spots: " + "; ".join(
+            f"{p.label} at ({p.position.x:.2f}, {p.position.y:.2f}, {p.position.z:.2f})" for p in memory.placements))
+    parts.append(f"holding: {memory.held_object or 'nothing'}")
+    known = {o.label for o in (*memory.objects, *memory.placements)}
+    earlier = [o for o in memory.seen if o.label not in known and o.label not in memory.visible]
+    if earlier:
+        parts.append("seen earlier: " + "; ".join(
+            f"{o.label} at ({o.position.x:.2f}, {o.position.y:.2f}, {o.position.z:.2f})" for o in earlier))
+    if memory.visible:
+        parts.append("visible now: " + ", ".join(memory.visible))
+    return ". ".join(parts) + "."

@@ -5,7 +5,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import time
 
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 
@@ -13,10 +12,13 @@ from services.reasoner.backends import Backend, make_backend
 from services.reasoner.loop import TaskRunner, World
 from services.reasoner.prompt import Observation
 from services.reasoner.settings import ReasonerSettings
-from shared.bus import Bus, Subscription
-from shared.errors import AermaniError, ConfigError
+from shared.action import skill_client
+from shared.bus import Bus, Latest
+from shared.errors import ConfigError
 from shared.messages import (
     Abort,
+    CancelGoal,
+    CancelReply,
     Detections,
     SkillAccept,
     SkillLibrary,
@@ -40,29 +42,6 @@ class AbortSignal(asyncio.Event):
         self.reason = ""
 
 
-class _Slot:
-    """Newest value of a stream with its local receive time, and an event to wait for a newer one."""
-
-    def __init__(self) -> None:
-        self.value = None
-        self.receive_ns = 0
-        self.changed = asyncio.Event()
-
-    def put(self, value: object, receive_ns: int) -> None:
-        self.value, self.receive_ns = value, receive_ns
-        self.changed.set()
-        self.changed = asyncio.Event()
-
-    async def newer_than(self, ns: int, timeout: float) -> None:
-        deadline = time.monotonic() + timeout
-        while self.receive_ns <= ns:
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                return
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self.changed.wait(), remaining)
-
-
 class BusWorld(World):
     """The loop's view of the stack over Zenoh."""
 
@@ -70,55 +49,24 @@ class BusWorld(World):
         self.bus = bus
         self.settings = settings
         self.keys = settings.keys
-        self.frame = _Slot()
-        self.state = _Slot()
-        self.detections = _Slot()
-        self.memory = _Slot()
-        self._statuses: dict[str, SkillStatus] = {}
-        self._waiters: dict[str, asyncio.Future[SkillStatus]] = {}
+        self.frame: Latest[tuple[bytes, int]] = Latest(bus.subscribe(self.keys.camera_color, maxsize=2), _jpeg)
+        self.state: Latest[VehicleState] = Latest(bus.subscribe(self.keys.autopilot_state, maxsize=5))
+        self.detections: Latest[Detections] = Latest(bus.subscribe(self.keys.detections, maxsize=5))
+        self.memory: Latest[WorkingMemory] = Latest(bus.subscribe(self.keys.memory, maxsize=5))
+        self.skills = skill_client(bus, settings.vehicle_id)
 
     async def pump(self) -> None:
-        """Keep the slots and the status table up to date (runs for the service's lifetime)."""
-        subs: list[tuple[Subscription, object]] = [
-            (self.bus.subscribe(self.keys.camera_color, None, maxsize=2), self.frame),
-            (self.bus.subscribe(self.keys.autopilot_state, VehicleState, maxsize=5), self.state),
-            (self.bus.subscribe(self.keys.detections, Detections, maxsize=5), self.detections),
-            (self.bus.subscribe(self.keys.memory, WorkingMemory, maxsize=5), self.memory),
-        ]
-        status_sub = self.bus.subscribe(self.keys.skill_status, SkillStatus, maxsize=1000, overflow="drop_oldest")
-
-        async def feed(sub: Subscription, slot: _Slot) -> None:
-            while True:
-                rec = await sub.recv_sample()
-                value = rec.value
-                if slot is self.frame:
-                    try:
-                        msg = decode_proto(CompressedImage, value)
-                    except AermaniError as exc:
-                        log.warning("bad colour frame: %s", exc)
-                        continue
-                    value = (bytes(msg.data), stamp_to_ns(msg.timestamp))
-                slot.put(value, rec.receive_ns)
-
-        async def statuses() -> None:
-            while True:
-                st = await status_sub.recv()
-                if not st.state.terminal:
-                    continue
-                self._statuses[st.goal_id] = st
-                if len(self._statuses) > 500:  # bounded: old goals are never asked for again
-                    self._statuses.pop(next(iter(self._statuses)))
-                fut = self._waiters.pop(st.goal_id, None)
-                if fut is not None and not fut.done():
-                    fut.set_result(st)
-
-        async with asyncio.TaskGroup() as tg:
-            for sub, slot in subs:
-                tg.create_task(feed(sub, slot))
-            tg.create_task(statuses())
+        """Keep the latest values up to date and route skill statuses (runs for the service's lifetime)."""
+        self.skills.start()
+        try:
+            async with asyncio.TaskGroup() as tg:
+                for latest in (self.frame, self.state, self.detections, self.memory):
+                    tg.create_task(latest.run())
+        finally:
+            await self.skills.close()
 
     async def skill_library(self) -> SkillLibrary:
-        return await self.bus.query(self.keys.skills, None, SkillLibrary, timeout=self.settings.library_timeout_s)
+        return await self.bus.query(self.keys.skills, None, timeout=self.settings.library_timeout_s)
 
     async def observe(self, newer_than_ns: int) -> Observation:
         if newer_than_ns and self.settings.frame_wait_s > 0:
@@ -129,18 +77,17 @@ class BusWorld(World):
         return Observation(image_jpeg=frame[0] if frame else None, image_stamp_ns=frame[1] if frame else 0,
                            state=self.state.value, detections=det.items if det else (), memory=self.memory.value)
 
-    async def run_skill(self, request: SkillRequest) -> SkillAccept:
-        return await self.bus.query(self.keys.run_skill, request, SkillAccept, timeout=10.0)
-
-    async def wait_status(self, goal_id: str, timeout: float) -> SkillStatus | None:
-        if goal_id in self._statuses:
-            return self._statuses[goal_id]
-        fut = self._waiters.setdefault(goal_id, asyncio.get_running_loop().create_future())
+    async def run_skill(self, request: SkillRequest, timeout: float) -> tuple[SkillAccept, SkillStatus | None]:
+        goal = await self.skills.send_goal(request, timeout=10.0)
         try:
-            return await asyncio.wait_for(asyncio.shield(fut), timeout)
-        except TimeoutError:
-            self._waiters.pop(goal_id, None)
-            return self._statuses.get(goal_id)
+            return goal.accept, await goal.result(timeout) if goal.accepted and timeout > 0 else None
+        finally:
+            goal.close()
+
+
+def _jpeg(payload: bytes) -> tuple[bytes, int]:
+    msg = decode_proto(CompressedImage, payload)
+    return bytes(msg.data), stamp_to_ns(msg.timestamp)
 
 
 class Reasoner:
@@ -197,6 +144,15 @@ class Reasoner:
             signal.reason = f"{ab.reason} (from {ab.source})"
             signal.set()
 
+    async def cancel_task(self, req: CancelGoal) -> CancelReply:
+        """Action protocol: cancel the running task (it ends ABORTED with the reason, after a hold)."""
+        if self.current is None or self.current[1].done() or self.current[0].task_id != req.goal_id:
+            return CancelReply(accepted=False, reason=f"task {req.goal_id} is not running on vehicle "
+                                                      f"{self.settings.vehicle_id}")
+        self.current[2].reason = f"{req.reason} (cancelled by {req.source})"
+        self.current[2].set()
+        return CancelReply(accepted=True)
+
     async def close(self) -> None:
         if self.current is not None and not self.current[1].done():
             self.current[2].reason = "reasoner shutting down"
@@ -208,8 +164,9 @@ class Reasoner:
 
 async def run(bus: Bus, settings: ReasonerSettings, stop: asyncio.Event) -> None:
     reasoner = Reasoner(bus, settings)
-    aborts = bus.subscribe(settings.keys.abort, Abort, maxsize=50)
-    bus.serve(settings.keys.start_task, reasoner.start_task, TaskRequest)
+    aborts = bus.subscribe(settings.keys.abort, maxsize=50)
+    bus.serve(settings.keys.start_task, reasoner.start_task)
+    bus.serve(settings.keys.cancel_task, reasoner.cancel_task)
     log.info("reasoner ready: backend %s, variant %s", reasoner.default_backend.name, settings.variant)
 
     async def abort_loop() -> None:

@@ -46,7 +46,7 @@ def static_metadata(settings: RecorderSettings) -> dict[str, str]:
 async def run(bus: Bus, settings: RecorderSettings, stop: asyncio.Event) -> None:
     writer = RecordWriter(settings, static_metadata(settings))
     writer.start()
-    sub = bus.subscribe(settings.key_expr, None, maxsize=settings.queue_size, overflow="drop_newest")
+    sub = bus.subscribe(settings.key_expr, maxsize=settings.queue_size, overflow="drop_newest")
     health_key = settings.keys.health("recorder")
 
     def health() -> Health:

@@ -15,7 +15,7 @@ from services.sim.settings import SimSettings
 from services.sim.vehicle import realism_params
 from shared.bus import Bus
 from shared.frames import DEFAULT_INTRINSICS, base_to_camera, base_to_gripper
-from shared.messages import Health, JudgeRequest, Scenario, SimLabels, now_ns
+from shared.messages import Health, JudgeRequest, ResetNotice, Scenario, SimLabels, now_ns
 from shared.sensors import (
     BODY_FRAME,
     CAMERA_FRAME,
@@ -92,12 +92,12 @@ class CameraPublisher:
         """Segmentation (ground truth: the oracle segmenter, debugging) is rendered only when subscribed."""
         if self.settings.render_always or self.bus is None:
             return True
-        return self.bus.has_subscribers(self.keys.camera_segmentation, reliable=False)
+        return self.bus.has_subscribers(self.keys.camera_segmentation)
 
     def watched(self) -> bool:
         if self.settings.render_always or self.bus is None:
             return True
-        return any(self.bus.has_subscribers(k, reliable=False) for k in (
+        return any(self.bus.has_subscribers(k) for k in (
             self.keys.camera_color, self.keys.camera_depth, self.keys.camera_segmentation))
 
     async def run(self, stop: asyncio.Event) -> None:
@@ -107,8 +107,7 @@ class CameraPublisher:
         while not stop.is_set():
             now = time.monotonic()
             if now - last_cal >= 1.0:
-                self.bus.publish(self.keys.camera_calibration, calibration_message(DEFAULT_INTRINSICS, now_ns()),
-                                 schema="foxglove.CameraCalibration")
+                self.bus.publish(self.keys.camera_calibration, calibration_message(DEFAULT_INTRINSICS, now_ns()))
                 last_cal = now
             version = self.core.world.version
             if now - last_labels >= 1.0 or version != self.last_labels_version:
@@ -121,8 +120,7 @@ class CameraPublisher:
                 # Nobody consumes images (e.g. a MAVLink-only test or many idle evaluation vehicles): skip the
                 # raycast, keep tf flowing.
                 self.idle_frames += 1
-                self.bus.publish(self.keys.tf, self.transforms(self.core.snapshot(), stamp),
-                                 schema="foxglove.FrameTransforms", reliable=False)
+                self.bus.publish(self.keys.tf, self.transforms(self.core.snapshot(), stamp), reliable=False)
             else:
                 try:
                     color, depth, seg, tf = await asyncio.to_thread(self.render_frame, stamp)
@@ -131,13 +129,11 @@ class CameraPublisher:
                     self.last_error = f"{type(exc).__name__}: {exc}"
                     log.exception("rendering failed; retrying next frame")
                 else:
-                    self.bus.publish(self.keys.camera_color, color, schema="foxglove.CompressedImage",
-                                     reliable=False)
-                    self.bus.publish(self.keys.camera_depth, depth, schema="foxglove.RawImage", reliable=False)
+                    self.bus.publish(self.keys.camera_color, color)
+                    self.bus.publish(self.keys.camera_depth, depth)
                     if seg is not None:
-                        self.bus.publish(self.keys.camera_segmentation, seg, schema="foxglove.RawImage",
-                                         reliable=False)
-                    self.bus.publish(self.keys.tf, tf, schema="foxglove.FrameTransforms", reliable=False)
+                        self.bus.publish(self.keys.camera_segmentation, seg)
+                    self.bus.publish(self.keys.tf, tf)
                     self.frames += 1
                     self.failures = 0
                     self.recent.append(time.monotonic())
@@ -191,10 +187,11 @@ async def run(bus: Bus, settings: SimSettings, stop: asyncio.Event, *, core: Sim
         result = await asyncio.to_thread(core.reset, req)
         if result.ok:
             bus.publish(keys.sim_labels, SimLabels(labels=core.labels()))
+            bus.publish(keys.sim_reset_notice, ResetNotice(seed=req.seed))
         return result
 
-    async def stats(req: bytes | None):
-        if req and b"reset" in req:
+    async def stats(req: object):
+        if req == "reset":
             with core.lock:
                 core.setpoint_arrivals_ns.clear()
             camera.reset_stats()
@@ -203,9 +200,9 @@ async def run(bus: Bus, settings: SimSettings, stop: asyncio.Event, *, core: Sim
         return {"setpoints": core.setpoint_stats(), "camera": camera.stats(), "mavlink": server.state_summary(),
                 "counters": counters, "resets": core.resets}
 
-    bus.serve(keys.sim_judge, judge, JudgeRequest)
-    bus.serve(keys.sim_reset, reset, Scenario, concurrent=False)
-    bus.serve(keys.sim_stats, stats, None)
+    bus.serve(keys.sim_judge, judge)
+    bus.serve(keys.sim_reset, reset, concurrent=False)
+    bus.serve(keys.sim_stats, stats)
     announce(bus, settings, "sim")
     log.info("sim ready: scenario %s", core.scenario.model_dump_json())
     try:

@@ -68,13 +68,13 @@ def render_cmd(
     console.print(f"wrote {out}")
 
 
-async def _query(connect: str, key_attr: str, vehicle: str, request, model):
+async def _query(connect: str, key_attr: str, vehicle: str, request):
     from shared.bus import Bus
     from shared.keys import Keys
 
     bus = await Bus.open(connect=[connect])
     try:
-        return await bus.query(getattr(Keys(vehicle), key_attr), request, model, timeout=20)
+        return await bus.query(getattr(Keys(vehicle), key_attr), request, timeout=20)
     finally:
         await bus.close()
 
@@ -88,10 +88,7 @@ def reset_cmd(
     vehicle: Vehicle = "am1",
 ) -> None:
     """Reset the running simulator to a scenario (vehicle back on the ground, disarmed)."""
-    from shared.messages import SimResetResult
-
-    res = asyncio.run(_query(connect, "sim_reset", vehicle, _scenario(seed, target, destination, out_of_view),
-                             SimResetResult))
+    res = asyncio.run(_query(connect, "sim_reset", vehicle, _scenario(seed, target, destination, out_of_view)))
     console.print(res.model_dump_json(indent=2))
     if not res.ok:
         raise typer.Exit(1)
@@ -104,14 +101,14 @@ def judge_cmd(
     vehicle: Vehicle = "am1",
 ) -> None:
     """Ground truth from the running simulator (evaluation only)."""
-    from shared.messages import JudgeRequest, JudgeResult
+    from shared.messages import JudgeRequest
 
     req = JudgeRequest(op="on_surface", object=obj, surface=surface) if obj else JudgeRequest(op="world")
-    res = asyncio.run(_query(connect, "sim_judge", vehicle, req, JudgeResult))
+    res = asyncio.run(_query(connect, "sim_judge", vehicle, req))
     console.print(res.model_dump_json(indent=2))
 
 
 def stats_cmd(connect: Connect = "tcp/127.0.0.1:7447", vehicle: Vehicle = "am1") -> None:
     """Frame rate, setpoint-stream intervals and MAVLink counters of the running simulator."""
-    raw = asyncio.run(_query(connect, "sim_stats", vehicle, None, None))
-    console.print_json(json.dumps(json.loads(raw)))
+    stats = asyncio.run(_query(connect, "sim_stats", vehicle, None))
+    console.print_json(json.dumps(stats))

@@ -16,7 +16,7 @@ from services.autopilot_bridge.settings import BridgeSettings
 from shared.bus import Bus
 from shared.errors import RemoteError
 from shared.keys import Keys
-from shared.messages import AutopilotResult, Health, TakeoffCommand, VehicleState
+from shared.messages import TakeoffCommand
 from shared.sensors import parse_transforms
 from tests.autopilot_bridge.fake_px4 import FakePX4
 from tests.helpers import arun, free_port, free_udp_port, wait_until
@@ -33,9 +33,9 @@ def test_state_health_commands_over_zenoh() -> None:
         s = BridgeSettings(connection=f"udpin:127.0.0.1:{uport}", vehicle_id="t1", offboard_warmup_s=0.3,
                            command_timeout_s=0.5, health_period_s=0.3, publish_tf=True)
         keys = Keys("t1")
-        states = client.subscribe(keys.autopilot_state, VehicleState, maxsize=1000)
-        health = client.subscribe(keys.health("autopilot_bridge"), Health)
-        tf = client.subscribe(keys.tf, None)
+        states = client.subscribe(keys.autopilot_state, maxsize=1000)
+        health = client.subscribe(keys.health("autopilot_bridge"))
+        tf = client.subscribe(keys.tf)
         stop = asyncio.Event()
         bridge = Bridge(bus, s, MavlinkLink(s.connection))
         task = asyncio.create_task(bridge.run(stop))
@@ -46,7 +46,7 @@ def test_state_health_commands_over_zenoh() -> None:
                 st = await states.recv(20)
             assert st.vehicle_id == "t1" and st.mode == "POSCTL"
 
-            res = await client.query(keys.autopilot_command, TakeoffCommand(altitude=1.2), AutopilotResult,
+            res = await client.query(keys.autopilot_command, TakeoffCommand(altitude=1.2),
                                      timeout=30)
             assert res.ok and res.command == "takeoff", res.message
             await wait_until(lambda: (states.latest_nowait() or st).offboard_ok or bridge.state().offboard_ok, 10)
@@ -56,9 +56,9 @@ def test_state_health_commands_over_zenoh() -> None:
             for bad in (b"{not json", json.dumps({"kind": "teleport"}).encode(),
                         json.dumps({"kind": "goto", "position": {"x": 1, "y": 0, "z": 1}}).encode()):
                 with pytest.raises(RemoteError):
-                    await client.query(keys.autopilot_command, bad, AutopilotResult, schema="aermani.Bad")
+                    await client.query(keys.autopilot_command, bad, schema="aermani.Bad")
             nan_goto = b'{"kind": "goto", "position": {"x": NaN, "y": 0, "z": 1}, "yaw": 0}'
-            res = await client.query(keys.autopilot_command, nan_goto, AutopilotResult, schema="aermani.Bad")
+            res = await client.query(keys.autopilot_command, nan_goto, schema="aermani.Bad")
             assert not res.ok and "non-finite" in res.message
             await asyncio.sleep(0.2)
             after = fake.setpoints[-1]

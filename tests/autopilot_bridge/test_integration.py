@@ -20,13 +20,10 @@ from shared.messages import (
     DisarmCommand,
     GotoCommand,
     GripperCommand,
-    Health,
     JudgeRequest,
-    JudgeResult,
     LandCommand,
     Scenario,
     SimObjectTruth,
-    SimResetResult,
     TakeoffCommand,
     Vec3,
     VehicleState,
@@ -43,7 +40,7 @@ ENV = {"AERMANI_SIM_FPS": "2", "AERMANI_SIM_SPEED_FACTOR": "2"}
 
 
 async def command(bus: Bus, cmd, timeout: float = 60.0) -> AutopilotResult:
-    return await bus.query(KEYS.autopilot_command, cmd, AutopilotResult, timeout=timeout)
+    return await bus.query(KEYS.autopilot_command, cmd, timeout=timeout)
 
 
 def yaw_err(a: float, b: float) -> float:
@@ -70,7 +67,7 @@ async def sim_ready(bus: Bus, timeout: float = 90.0) -> None:
 
     async def answered() -> bool:
         with contextlib.suppress(NoResponder):
-            await bus.query(KEYS.sim_judge, JudgeRequest(op="held"), JudgeResult, timeout=10)
+            await bus.query(KEYS.sim_judge, JudgeRequest(op="held"), timeout=10)
             return True
         return False
 
@@ -81,7 +78,7 @@ async def sim_ready(bus: Bus, timeout: float = 90.0) -> None:
 
 
 async def start_state(bus: Bus) -> tuple[Latest[VehicleState], asyncio.Task]:
-    state = Latest(bus.subscribe(KEYS.autopilot_state, VehicleState))
+    state = Latest(bus.subscribe(KEYS.autopilot_state))
     task = asyncio.create_task(state.run())
     await wait_until(lambda: state.value is not None and state.value.link_ok, 60, what="bridge link to the sim")
     return state, task
@@ -117,11 +114,10 @@ def test_pick_and_place_flight_over_real_udp(tmp_path) -> None:
     async def body(stack):
         async with bus_for(stack) as bus:
             await sim_ready(bus)
-            reset = await bus.query(KEYS.sim_reset, Scenario(seed=7, target_object="red cup", destination="table"),
-                                    SimResetResult, timeout=30)
+            reset = await bus.query(KEYS.sim_reset, Scenario(seed=7, target_object="red cup", destination="table"), timeout=30)
             assert reset.ok, reset.message
             state, task = await start_state(bus)
-            world = await bus.query(KEYS.sim_judge, JudgeRequest(op="world"), JudgeResult)
+            world = await bus.query(KEYS.sim_judge, JudgeRequest(op="world"))
             cup = next(o for o in world.objects if o.name == "red cup")
             table = next(o for o in world.objects if o.name == "table")
 
@@ -139,7 +135,7 @@ def test_pick_and_place_flight_over_real_udp(tmp_path) -> None:
             with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as junk:
                 for i in range(50):
                     junk.sendto(bytes([0xFD, 0x20, i]) + b"\x00garbage" * 4, ("127.0.0.1", port))
-            health = bus.subscribe(KEYS.health("autopilot_bridge"), Health)
+            health = bus.subscribe(KEYS.health("autopilot_bridge"))
             h = await health.recv(10)
             while h.details.get("bad_data", 0) < 1:
                 h = await health.recv(10)
@@ -153,7 +149,7 @@ def test_pick_and_place_flight_over_real_udp(tmp_path) -> None:
             await fly_to(bus, state, cup.position.x, cup.position.y, cup.top_z + GRIP_DROP - 0.01, 0.0, tol=0.03)
             res = await command(bus, GripperCommand(action="close"))
             assert res.ok and res.ack_name == "MAV_RESULT_ACCEPTED", res
-            held = await bus.query(KEYS.sim_judge, JudgeRequest(op="held"), JudgeResult)
+            held = await bus.query(KEYS.sim_judge, JudgeRequest(op="held"))
             assert held.held == "red cup", held.message
             await wait_until(lambda: state.value.gripper == "closed", 10, what="gripper state published")
 
@@ -165,7 +161,7 @@ def test_pick_and_place_flight_over_real_udp(tmp_path) -> None:
             res = await command(bus, GripperCommand(action="open"))
             assert res.ok, res
             judged = await bus.query(KEYS.sim_judge, JudgeRequest(op="on_surface", object="red cup",
-                                                                  surface="table"), JudgeResult)
+                                                                  surface="table"))
             assert judged.ok, judged.message
             assert not judged.collisions, judged.collisions
 
@@ -196,13 +192,13 @@ def test_bridge_death_makes_sim_hold_then_land_and_sim_death_is_link_loss(tmp_pa
 
             # The vehicle holds its altitude for a while ...
             await asyncio.sleep(1.5)
-            mid = await bus.query(KEYS.sim_judge, JudgeRequest(op="world"), JudgeResult)
+            mid = await bus.query(KEYS.sim_judge, JudgeRequest(op="world"))
             assert mid.vehicle is not None and abs(mid.vehicle.position.z - s.position.z) < 0.3
 
             # ... and a fresh bridge sees the failsafe: hold (AUTO.LOITER), then AUTO.LAND, then on the ground.
             stack.find("autopilot_bridge").start()
             modes: list[str] = []
-            state2 = bus.subscribe(KEYS.autopilot_state, VehicleState, maxsize=1000)
+            state2 = bus.subscribe(KEYS.autopilot_state, maxsize=1000)
 
             async def watch() -> VehicleState:
                 while True:

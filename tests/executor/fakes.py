@@ -14,10 +14,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from shared.bus import Bus
+from shared.frames import DEFAULT_INTRINSICS
 from shared.keys import Keys
 from shared.messages import (
-    AutopilotCommand,
     AutopilotResult,
+    Detection,
+    Detections,
     GripperState,
     LandedState,
     LocalizeRequest,
@@ -28,7 +30,9 @@ from shared.messages import (
     VehicleState,
     now_ns,
 )
-from shared.sensors import raw16_message
+from shared.sensors import calibration_message, color_message, encode_jpeg, raw16_message
+
+_GREY_JPEG = encode_jpeg(np.full((480, 640, 3), 128, np.uint8))
 
 
 @dataclass
@@ -126,8 +130,7 @@ class FakeAutopilot:
         if cmd.kind == "arm":
             self.armed = True
         elif cmd.kind == "takeoff":
-            if not self.armed:
-                return AutopilotResult(ok=False, command="takeoff", message="not armed")
+            self.armed = True  # like the bridge: takeoff arms (PX4 ACK) and returns once at altitude
             self.landed = LandedState.TAKEOFF
             self.target, self.speed = np.array([self.pos[0], self.pos[1], cmd.altitude]), 1.0
             while self.pos[2] < cmd.altitude - 1e-6:
@@ -173,7 +176,7 @@ class FakeAutopilot:
             self.world.carry(self.gripper_point())
 
     async def run(self) -> None:
-        self.bus.serve(self.keys.autopilot_command, self.handle, AutopilotCommand)
+        self.bus.serve(self.keys.autopilot_command, self.handle)
         while True:
             self.step()
             if self.publishing:
@@ -219,12 +222,22 @@ class FakePerception:
         return PlacementEstimate(query=req.query, found=False, reason="not_visible", message=f"{req.query} not visible")
 
     def serve(self) -> None:
-        self.bus.serve(self.keys.localize_object, self.localize_object, LocalizeRequest)
-        self.bus.serve(self.keys.localize_placement, self.localize_placement, LocalizeRequest)
+        self.bus.serve(self.keys.localize_object, self.localize_object)
+        self.bus.serve(self.keys.localize_placement, self.localize_placement)
+
+    async def run(self) -> None:
+        """Publish what is in view at 5 Hz, like perception's `perception/detections`."""
+        while True:
+            items = tuple(Detection(label=t.name, category="object", confidence=0.9,
+                                    centroid=Vec3(x=t.center[0], y=t.center[1], z=t.center[2]))
+                          for t in self.world.objects.values() if not t.attached and self.visible(t.center))
+            self.bus.publish(self.keys.detections, Detections(stamp_ns=now_ns(), items=items))
+            await asyncio.sleep(0.2)
 
 
 class FakeDepth:
-    """Publishes a uniform depth image (`distance_m` along the optical axis everywhere) at 10 Hz."""
+    """The camera: a uniform depth image (`distance_m` along the optical axis everywhere) at 10 Hz, with a
+    grey colour frame of the same stamp and the calibration, like the camera service."""
 
     def __init__(self, bus: Bus, keys: Keys, distance_m: float = 8.0) -> None:
         self.bus, self.keys, self.distance_m = bus, keys, distance_m
@@ -233,8 +246,11 @@ class FakeDepth:
     async def run(self) -> None:
         while True:
             if self.publishing:
+                stamp = time.time_ns()
                 img = np.full((480, 640), int(self.distance_m * 1000), dtype=np.uint16)
-                self.bus.publish(self.keys.camera_depth, raw16_message(img, time.time_ns()), schema="foxglove.RawImage")
+                self.bus.publish(self.keys.camera_depth, raw16_message(img, stamp))
+                self.bus.publish(self.keys.camera_color, color_message(None, stamp, jpeg=_GREY_JPEG))  # type: ignore[arg-type]
+                self.bus.publish(self.keys.camera_calibration, calibration_message(DEFAULT_INTRINSICS, stamp))
             await asyncio.sleep(0.1)
 
 

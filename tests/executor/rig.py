@@ -12,7 +12,7 @@ from shared.bus import Bus, Subscription
 from shared.errors import BusError
 from shared.keys import Keys
 from shared.launcher import free_port, open_router
-from shared.messages import SkillAccept, SkillLibrary, SkillRequest, SkillState, SkillStatus, WorkingMemory
+from shared.messages import SkillAccept, SkillRequest, SkillState, SkillStatus, WorkingMemory
 from tests.executor.fakes import FakeAutopilot, FakeDepth, FakePerception, ToyWorld, cancel_all
 from tests.helpers import wait_until
 
@@ -30,8 +30,7 @@ class Rig:
     memory: Subscription[WorkingMemory]
 
     async def request(self, skill: str, argument: str | None = None, task_id: str = "t1") -> SkillAccept:
-        return await self.bus.query(self.keys.run_skill, SkillRequest(skill=skill, argument=argument, task_id=task_id),
-                                    SkillAccept, timeout=5.0)
+        return await self.bus.query(self.keys.run_skill, SkillRequest(skill=skill, argument=argument, task_id=task_id), timeout=5.0)
 
     async def terminal(self, goal_id: str, timeout: float = 60.0) -> SkillStatus:
         async def loop() -> SkillStatus:
@@ -67,9 +66,9 @@ async def rig(airborne_at: float | None = 1.5, depth_m: float | None = 8.0, **se
     depth.publishing = depth_m is not None
     executor = Executor(ebus, settings)
     stop = asyncio.Event()
-    statuses = bus.subscribe(keys.skill_status, SkillStatus, maxsize=1000, overflow="drop_newest")
-    memory = bus.subscribe(keys.memory, WorkingMemory, maxsize=1000)
-    tasks = [asyncio.create_task(vehicle.run()), asyncio.create_task(depth.run()),
+    statuses = bus.subscribe(keys.skill_status, maxsize=1000, overflow="drop_newest")
+    memory = bus.subscribe(keys.memory, maxsize=1000)
+    tasks = [asyncio.create_task(vehicle.run()), asyncio.create_task(depth.run()), asyncio.create_task(perception.run()),
              asyncio.create_task(executor.run(stop))]
     try:
         await wait_until(lambda: executor.state.value is not None
@@ -77,7 +76,7 @@ async def rig(airborne_at: float | None = 1.5, depth_m: float | None = 8.0, **se
         # The executor's queryables must be reachable from the caller's session before the test starts.
         for _ in range(100):
             with contextlib.suppress(BusError):
-                await bus.query(keys.skills, None, SkillLibrary, timeout=1.0)
+                await bus.query(keys.skills, None, timeout=1.0)
                 break
             await asyncio.sleep(0.05)
         yield Rig(bus, executor, vehicle, perception, depth, world, keys, statuses, memory)

@@ -26,7 +26,6 @@ from shared.messages import (
     SkillRequest,
     SkillState,
     SkillStatus,
-    VehicleState,
 )
 from tests.helpers import arun, bus_for, run_stack
 
@@ -46,15 +45,15 @@ def stack(tmp_path_factory):
 class Client:
     def __init__(self, bus: Bus) -> None:
         self.bus = bus
-        self.statuses = bus.subscribe(KEYS.skill_status, SkillStatus, maxsize=1000)
-        self.states = bus.subscribe(KEYS.autopilot_state, VehicleState, maxsize=2)
+        self.statuses = bus.subscribe(KEYS.skill_status, maxsize=1000)
+        self.states = bus.subscribe(KEYS.autopilot_state, maxsize=2)
 
     async def reset(self, **kw) -> SimResetResult:
         # The sim announces liveliness before its queryables are up (its renderer starts in a child process).
         deadline = time.monotonic() + 90
         while True:
             try:
-                res = await self.bus.query(KEYS.sim_reset, Scenario(**kw), SimResetResult, timeout=30)
+                res = await self.bus.query(KEYS.sim_reset, Scenario(**kw), timeout=30)
                 break
             except NoResponder:
                 if time.monotonic() > deadline:
@@ -65,10 +64,10 @@ class Client:
         return res
 
     async def judge(self, **kw) -> JudgeResult:
-        return await self.bus.query(KEYS.sim_judge, JudgeRequest(**kw), JudgeResult, timeout=10)
+        return await self.bus.query(KEYS.sim_judge, JudgeRequest(**kw), timeout=10)
 
     async def request(self, skill: str, argument: str | None = None) -> SkillAccept:
-        return await self.bus.query(KEYS.run_skill, SkillRequest(skill=skill, argument=argument), SkillAccept,
+        return await self.bus.query(KEYS.run_skill, SkillRequest(skill=skill, argument=argument),
                                     timeout=10)
 
     async def terminal(self, goal_id: str, timeout: float = 150.0) -> SkillStatus:
@@ -175,7 +174,7 @@ def test_motion_primitives_and_operator_skills(stack):
 
 
 async def _abort(c: Client, goal_id: str) -> AbortAck:
-    acks = c.bus.subscribe(KEYS.abort_ack, AbortAck)
+    acks = c.bus.subscribe(KEYS.abort_ack)
     await asyncio.sleep(0.3)
     abort = Abort(reason="integration test", source="test")
     c.bus.publish(KEYS.abort, abort)

@@ -6,7 +6,8 @@ import asyncio
 
 import numpy as np
 
-from shared.messages import Abort, AbortAck, SkillState
+from services.reasoner.prompt import memory_summary
+from shared.messages import Abort, SkillState
 from tests.executor.rig import rig
 from tests.helpers import arun, wait_until
 
@@ -30,7 +31,7 @@ def test_localize_grasp_localize_placement_place():
             mem = await r.memory.recv(timeout=5)
             while not mem.objects:
                 mem = await r.memory.recv(timeout=5)
-            assert mem.objects[0].label == "red cup" and "red cup at (1.50" in mem.summary()
+            assert mem.objects[0].label == "red cup" and "red cup at (1.50" in memory_summary(mem)
 
             st = await r.run_skill("grasp")
             assert st.state == SkillState.SUCCEEDED, st.message
@@ -99,7 +100,7 @@ def test_grasp_that_closes_on_nothing_reports_a_miss():
 
 
 async def _abort_and_check(r, goal_id: str) -> None:
-    acks = r.bus.subscribe(r.keys.abort_ack, AbortAck)
+    acks = r.bus.subscribe(r.keys.abort_ack)
     await asyncio.sleep(0.2)
     abort = Abort(reason="test", source="test")
     r.bus.publish(r.keys.abort, abort)
@@ -148,7 +149,7 @@ def test_abort_during_grasp_holds_and_leaves_the_executor_ready():
 def test_abort_with_nothing_running_is_acknowledged():
     async def main():
         async with rig() as r:
-            acks = r.bus.subscribe(r.keys.abort_ack, AbortAck)
+            acks = r.bus.subscribe(r.keys.abort_ack)
             await asyncio.sleep(0.2)
             r.bus.publish(r.keys.abort, Abort())
             ack = await acks.recv(timeout=5)

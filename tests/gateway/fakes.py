@@ -19,6 +19,8 @@ from shared.keys import Keys
 from shared.messages import (
     Abort,
     AbortAck,
+    CancelGoal,
+    CancelReply,
     DescriptiveReasoningTrace,
     ModelCall,
     ReasoningStep,
@@ -36,7 +38,7 @@ from shared.messages import (
 from shared.sensors import color_message
 from tests.helpers import free_port
 
-SKILLS = ["takeoff", "obj_localization", "move_to_object", "grasp", "placement_localization", "release"]
+SKILLS = ["takeoff", "obj_localization", "forward", "grasp", "placement_localization", "place"]
 
 
 class FakeVehicle:
@@ -61,8 +63,9 @@ class FakeVehicle:
     async def start(self) -> None:
         for s in self.services:
             self.bus.declare_token(self.keys.alive(s))
-        self.bus.serve(self.keys.start_task, self._start, TaskRequest)
-        sub = self.bus.subscribe(self.keys.abort, Abort)
+        self.bus.serve(self.keys.start_task, self._start)
+        self.bus.serve(self.keys.cancel_task, self._cancel)
+        sub = self.bus.subscribe(self.keys.abort)
         self._tasks += [asyncio.create_task(self._aborts(sub)), asyncio.create_task(self._publish_sensors())]
 
     async def stop(self) -> None:
@@ -83,6 +86,14 @@ class FakeVehicle:
         self.current_req = req
         self.current = asyncio.create_task(self._run_task(req))
         return TaskAccept(accepted=True, task_id=req.task_id)
+
+    async def _cancel(self, req: CancelGoal) -> CancelReply:
+        if self.current is None or self.current.done() or self.current_req is None \
+                or self.current_req.task_id != req.goal_id:
+            return CancelReply(accepted=False, reason=f"task {req.goal_id} is not running")
+        self.current.cancel()
+        self.bus.publish(self.keys.task_status, self.status(self.current_req, TaskState.ABORTED, 0, req.reason))
+        return CancelReply(accepted=True)
 
     async def _run_task(self, req: TaskRequest) -> None:
         self.bus.publish(self.keys.task_status, self.status(req, TaskState.RUNNING, 0))
@@ -138,8 +149,7 @@ class FakeVehicle:
             img = np.zeros((48, 64, 3), np.uint8)
             img[:, :, 0] = (self.frames * 37) % 256
             img[: (self.frames % 48), :, 1] = 200
-            self.bus.publish(self.keys.camera_color, color_message(img, time.time_ns()),
-                             schema="foxglove.CompressedImage")
+            self.bus.publish(self.keys.camera_color, color_message(img, time.time_ns()))
             await asyncio.sleep(0.2)
 
 

@@ -185,7 +185,7 @@ def test_cli_task_command(gw, monkeypatch) -> None:
     monkeypatch.setenv("AERMANI_GATEWAY_TOKEN", TOKEN)
     result = CliRunner().invoke(app, ["task", "pick up the red cup", "--url", gw.base_url])
     assert result.exit_code == 0, result.output
-    assert "step 3: move_to_object -> succeeded" in result.output and "succeeded: task complete" in result.output
+    assert "step 3: forward -> succeeded" in result.output and "succeeded: task complete" in result.output
     monkeypatch.setenv("AERMANI_GATEWAY_TOKEN", "wrong-token")
     result = CliRunner().invoke(app, ["task", "again", "--url", gw.base_url])
     assert result.exit_code == 1 and "invalid bearer token" in result.output

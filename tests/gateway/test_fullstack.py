@@ -11,7 +11,7 @@ import httpx
 import pytest
 
 from shared.launcher import available_services
-from shared.messages import Scenario, SimResetResult
+from shared.messages import Scenario
 from tests.gateway.conftest import TOKEN, read_sse, wait_task
 from tests.gateway.test_process import GatewayProcess
 from tests.helpers import arun, bus_for, run_stack
@@ -32,7 +32,7 @@ def reset(stack, seed: int) -> None:
     async def body():
         async with bus_for(stack) as bus:
             res = await bus.query(stack_keys().sim_reset, Scenario(seed=seed, target_object="red cup",
-                                                                   destination="table"), SimResetResult, timeout=30)
+                                                                   destination="table"), timeout=30)
             assert res.ok, res.message
 
     arun(body(), 60)

@@ -19,6 +19,8 @@ from shared import skills as S  # noqa: N812
 from shared.bus import Bus
 from shared.keys import Keys
 from shared.messages import (
+    CancelGoal,
+    CancelReply,
     Detection,
     Detections,
     LandedState,
@@ -137,7 +139,6 @@ class MiniWorldPort(World):
     def __init__(self, world: MiniWorld, library: SkillLibrary | None = None) -> None:
         self.world = world
         self.library = library or default_library()
-        self.statuses: dict[str, SkillStatus] = {}
 
     async def skill_library(self) -> SkillLibrary:
         return self.library
@@ -146,17 +147,13 @@ class MiniWorldPort(World):
         return Observation(image_jpeg=b"\xff\xd8fake-jpeg\xff\xd9", image_stamp_ns=now_ns(), state=self.world.state(),
                            detections=self.world.detections(), memory=self.world.memory())
 
-    async def run_skill(self, request: SkillRequest) -> SkillAccept:
+    async def run_skill(self, request: SkillRequest, timeout: float) -> tuple[SkillAccept, SkillStatus | None]:
         goal = new_id("goal-")
         state, msg, perceived = self.world.apply(request)
-        self.statuses[goal] = SkillStatus(goal_id=goal, skill=request.skill, argument=request.argument, state=state,
-                                          message=msg, outcome=SkillOutcome(perceived=perceived,
-                                                                            held_object=self.world.held),
-                                          task_id=request.task_id, step=request.step, ended_ns=now_ns())
-        return SkillAccept(accepted=True, goal_id=goal)
-
-    async def wait_status(self, goal_id: str, timeout: float) -> SkillStatus | None:
-        return self.statuses.get(goal_id)
+        status = SkillStatus(goal_id=goal, skill=request.skill, argument=request.argument, state=state,
+                             message=msg, outcome=SkillOutcome(perceived=perceived, held_object=self.world.held),
+                             task_id=request.task_id, step=request.step, ended_ns=now_ns())
+        return SkillAccept(accepted=True, goal_id=goal), status
 
 
 async def serve_executor(bus: Bus, world: MiniWorld, keys: Keys, *, skill_delay: float = 0.0,
@@ -195,8 +192,12 @@ async def serve_executor(bus: Bus, world: MiniWorld, keys: Keys, *, skill_delay:
         bus.publish(keys.memory, world.memory())
         bus.publish(keys.autopilot_state, world.state())
 
-    bus.serve(keys.skills, skills, None)
-    bus.serve(keys.run_skill, run_skill, SkillRequest)
+    async def cancel_skill(req: CancelGoal) -> CancelReply:
+        return CancelReply(accepted=False, reason=f"goal {req.goal_id} is not running (skills here end at once)")
+
+    bus.serve(keys.skills, skills)
+    bus.serve(keys.run_skill, run_skill)
+    bus.serve(keys.cancel_skill, cancel_skill)
 
     async def ticker() -> None:
         while True:

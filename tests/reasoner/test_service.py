@@ -6,9 +6,9 @@ import asyncio
 
 import pytest
 
-from services.reasoner.client import submit_task
 from shared.keys import Keys
-from shared.messages import Abort, ReasoningStep, TaskAccept, TaskRequest, TaskState, TaskStatus
+from shared.messages import Abort, TaskRequest, TaskState
+from shared.tasks import submit_task
 from tests.helpers import arun, bus_for, run_stack
 from tests.reasoner.fake_vlm import FakeVLMServer
 from tests.reasoner.fake_world import MiniWorld, Thing, serve_executor
@@ -25,8 +25,8 @@ def world() -> MiniWorld:
 async def run_task(stack, w: MiniWorld, request: TaskRequest, *, skill_delay: float = 0.0, on_running=None):
     async with bus_for(stack) as bus:
         ticker = await serve_executor(bus, w, KEYS, skill_delay=skill_delay)
-        steps = bus.subscribe(KEYS.reasoning_step, ReasoningStep, maxsize=1000)
-        statuses = bus.subscribe(KEYS.task_status, TaskStatus, maxsize=100)
+        steps = bus.subscribe(KEYS.reasoning_step, maxsize=1000)
+        statuses = bus.subscribe(KEYS.task_status, maxsize=100)
         try:
             await asyncio.sleep(0.5)  # let the router propagate the new queryables and subscriptions
             accept = await submit_task(bus, KEYS, request)
@@ -50,7 +50,7 @@ def test_rules_task_over_the_bus_and_one_task_at_a_time(tmp_path) -> None:
     w = world()
     with run_stack(["reasoner"], tmp_path) as stack:
         async def second_rejected(bus) -> None:
-            other = await bus.query(KEYS.start_task, TaskRequest(command="pick up the apple"), TaskAccept, timeout=10)
+            other = await bus.query(KEYS.start_task, TaskRequest(command="pick up the apple"), timeout=10)
             assert not other.accepted and "already runs" in other.reason
 
         final, steps = arun(run_task(stack, w, TaskRequest(command=CMD), skill_delay=0.3,

@@ -36,7 +36,7 @@ def recorder_stack(tmp_path: Path, **env: str) -> Stack:
 
 
 async def wait_health(bus, pred, timeout: float = 60.0) -> Health:
-    sub = bus.subscribe(K.health("recorder"), Health, maxsize=50)
+    sub = bus.subscribe(K.health("recorder"), maxsize=50)
     try:
         deadline = time.monotonic() + timeout
         last = None
@@ -70,14 +70,13 @@ async def publish_demo(bus) -> Counter:
         key = K.key(f"test/{cls.__name__}")
         bus.publish(key, example(cls, i))
         sent[key] += 1
-    bus.publish(K.camera_calibration, calibration(time.time_ns()), schema="foxglove.CameraCalibration")
+    bus.publish(K.camera_calibration, calibration(time.time_ns()))
     sent[K.camera_calibration] += 1
     t0 = time.monotonic()
     for n in range(N_FRAMES):
         stamp = time.time_ns()
         for key, data in frames(stamp, n).items():
-            schema = "foxglove.CompressedImage" if key == K.camera_color else "foxglove.RawImage"
-            bus.publish(key, data, schema=schema)
+            bus.publish(key, data)
             sent[key] += 1
         bus.publish(K.autopilot_state, VehicleState(stamp_ns=stamp))
         sent[K.autopilot_state] += 1
@@ -146,7 +145,7 @@ def test_records_every_key_with_schemas_then_replays_the_steps(tmp_path: Path) -
     with replay_stack:
         async def replay() -> list:
             async with bus_for(replay_stack) as bus:
-                sub = bus.subscribe(K.reasoning_step, None, maxsize=1000)
+                sub = bus.subscribe(K.reasoning_step, maxsize=1000)
                 await asyncio.sleep(0.5)  # let the subscription reach the router
                 proc = await asyncio.create_subprocess_exec(
                     sys.executable, "-m", "shared.cli", "replay", str(path), "--speed", "0",

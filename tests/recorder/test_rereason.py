@@ -14,7 +14,7 @@ from services.reasoner.backends.base import Backend, ModelReply, ModelRequest
 from services.reasoner.backends.rules import RulesBackend
 from services.recorder.mcaplog import McapReplaySource, reasoning_steps
 from services.recorder.rereason import rereason_log
-from shared.messages import Health, TaskAccept, TaskRequest, TaskState, TaskStatus
+from shared.messages import TaskRequest, TaskState, TaskStatus
 from shared.sensors import color_message
 from tests.helpers import arun, bus_for, run_stack
 from tests.reasoner.fake_world import MiniWorld, Thing, serve_executor
@@ -32,21 +32,21 @@ async def camera(bus) -> None:
     jpeg = None
     while True:
         msg = color_message(rgb, time.time_ns(), jpeg=jpeg)
-        bus.publish(K.camera_color, msg, schema="foxglove.CompressedImage")
+        bus.publish(K.camera_color, msg)
         await asyncio.sleep(0.1)
 
 
 async def run_task(stack) -> TaskStatus:
     world = MiniWorld([Thing("red cup"), Thing("table", "surface", size=(1.2, 0.8, 0.75))])
     async with bus_for(stack) as bus:
-        health = bus.subscribe(K.health("recorder"), Health, maxsize=10)
+        health = bus.subscribe(K.health("recorder"), maxsize=10)
         await health.recv(timeout=60)  # the recorder is subscribed
         ticker = await serve_executor(bus, world, K, skill_delay=0.2)
         cam = asyncio.create_task(camera(bus))
-        statuses = bus.subscribe(K.task_status, TaskStatus, maxsize=100)
+        statuses = bus.subscribe(K.task_status, maxsize=100)
         try:
             await asyncio.sleep(0.5)  # let the router propagate the queryables
-            accept = await bus.query(K.start_task, TaskRequest(command=CMD), TaskAccept, timeout=10)
+            accept = await bus.query(K.start_task, TaskRequest(command=CMD), timeout=10)
             assert accept.accepted, accept.reason
             while True:
                 st = await statuses.recv(timeout=120)

@@ -46,4 +46,7 @@ def sample_messages() -> list[m.Message]:
         m.JudgeResult(objects=(m.SimObjectTruth(name="red cup", category="object", position=m.Vec3(),
                                                 size=m.Vec3(x=0.08, y=0.08, z=0.11)),), collisions=("vehicle-shelf",)),
         m.SimResetResult(ok=True, scenario=m.Scenario(seed=1)),
+        m.CancelGoal(goal_id="goal-1", reason="operator changed their mind"),
+        m.CancelReply(accepted=False, reason="goal goal-1 is not running"),
+        m.ResetNotice(seed=3),
     ]

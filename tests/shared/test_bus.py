@@ -15,6 +15,7 @@ import pytest
 from shared import messages as m
 from shared.bus import Bus, zenoh_config
 from shared.errors import NoResponder, QueryTimeout, RemoteError
+from shared.keys import Protobuf, Query, Topic
 from shared.launcher import free_port, open_router
 from tests.helpers import arun, wait_until
 from tests.shared.samples import sample_messages
@@ -26,6 +27,11 @@ def router():
     session = open_router(port)
     yield f"tcp/127.0.0.1:{port}"
     session.close()
+
+
+def topic(name: str, t: object, reliable: bool = True) -> object:
+    """A test topic declared like the real ones, bound to vehicle `t1`."""
+    return Topic(f"test/{name}", t, "test", "test", reliable=reliable).bind("t1")
 
 
 async def _pair(endpoint: str) -> tuple[Bus, Bus]:
@@ -42,10 +48,11 @@ def test_every_message_type_round_trips(router):
         a, b = await _pair(router)
         try:
             samples = sample_messages()
-            subs = {i: b.subscribe(f"test/rt/{i}", type(s)) for i, s in enumerate(samples)}
+            topics = {i: topic(f"rt/{i}", type(s)) for i, s in enumerate(samples)}
+            subs = {i: b.subscribe(topics[i]) for i, s in enumerate(samples)}
             await asyncio.sleep(0.3)
             for i, s in enumerate(samples):
-                a.publish(f"test/rt/{i}", s)
+                a.publish(topics[i], s)
             for i, s in enumerate(samples):
                 rec = await subs[i].recv_sample(timeout=5)
                 assert rec.value == s
@@ -61,11 +68,15 @@ def test_union_and_raw_bytes_subscriptions(router):
     async def main():
         a, b = await _pair(router)
         try:
-            cmds = b.subscribe("test/cmd", m.AutopilotCommand)
-            raw = b.subscribe("test/raw")
+            cmd_topic = topic("cmd", m.AutopilotCommand)
+            raw_topic = topic("raw", Protobuf("foxglove.RawImage"))
+            cmds = b.subscribe(cmd_topic)
+            raw = b.subscribe(raw_topic)
             await asyncio.sleep(0.3)
-            a.publish("test/cmd", m.TakeoffCommand(altitude=2.0))
-            a.publish("test/raw", b"\x00\x01binary", schema="foxglove.RawImage")
+            a.publish(cmd_topic, m.TakeoffCommand(altitude=2.0))
+            with pytest.raises(TypeError, match="carries"):
+                a.publish(cmd_topic, m.Health(service="s", ok=True))  # not what the key declares
+            a.publish(raw_topic, b"\x00\x01binary")
             got = await cmds.recv(timeout=5)
             assert isinstance(got, m.TakeoffCommand) and got.altitude == 2.0
             rec = await raw.recv_sample(timeout=5)
@@ -81,11 +92,12 @@ def test_malformed_payload_is_dropped_and_subscriber_keeps_working(router):
     async def main():
         a, b = await _pair(router)
         try:
-            sub = b.subscribe("test/state", m.VehicleState)
+            state = topic("state", m.VehicleState)
+            sub = b.subscribe(state)
             await asyncio.sleep(0.3)
-            a.publish("test/state", b"\xff\xfenot json", schema="aermani.VehicleState")
-            a.publish("test/state", {"kind": "vehicle_state", "armed": "maybe"})
-            a.publish("test/state", m.VehicleState(armed=True))
+            a.publish(state.key, b"\xff\xfenot json", schema="aermani.VehicleState")
+            a.publish(state.key, {"kind": "vehicle_state", "armed": "maybe"})
+            a.publish(state, m.VehicleState(armed=True))
             got = await sub.recv(timeout=5)
             assert got.armed is True
             assert sub.malformed == 2
@@ -107,20 +119,22 @@ def test_query_reply_errors_and_timeout(router):
                     raise RuntimeError("handler failed")
                 return m.SkillAccept(accepted=True, goal_id=f"g-{req.skill}")
 
-            a.serve("test/q", accept, m.SkillRequest)
+            q = Query("test/q", m.SkillRequest, m.SkillAccept, "test", "test").bind("t1")
+            nobody = Query("test/nobody", m.SkillRequest, m.SkillAccept, "test", "test").bind("t1")
+            a.serve(q, accept)
             await asyncio.sleep(0.3)
-            ok = await b.query("test/q", m.SkillRequest(skill="forward"), m.SkillAccept, timeout=5)
+            ok = await b.query(q, m.SkillRequest(skill="forward"), timeout=5)
             assert ok.goal_id == "g-forward"
             with pytest.raises(RemoteError, match="skill"):
-                await b.query("test/q", {"kind": "skill_request"}, m.SkillAccept, timeout=5)
+                await b.query(q, {"kind": "skill_request"}, timeout=5)
             with pytest.raises(RemoteError, match="handler failed"):
-                await b.query("test/q", m.SkillRequest(skill="boom"), m.SkillAccept, timeout=5)
+                await b.query(q, m.SkillRequest(skill="boom"), timeout=5)
             with pytest.raises(QueryTimeout):
-                await b.query("test/q", m.SkillRequest(skill="slow"), m.SkillAccept, timeout=0.5)
+                await b.query(q, m.SkillRequest(skill="slow"), timeout=0.5)
             with pytest.raises(NoResponder):
-                await b.query("test/nobody", m.SkillRequest(skill="x"), m.SkillAccept, timeout=1)
+                await b.query(nobody, m.SkillRequest(skill="x"), timeout=1)
             # The queryable survives all of that.
-            ok = await b.query("test/q", m.SkillRequest(skill="left"), m.SkillAccept, timeout=5)
+            ok = await b.query(q, m.SkillRequest(skill="left"), timeout=5)
             assert ok.goal_id == "g-left"
         finally:
             await a.close()
@@ -133,11 +147,12 @@ def test_burst_of_1000_arrives_in_order_or_is_counted(router):
     async def main():
         a, b = await _pair(router)
         try:
-            small = b.subscribe("test/burst", m.Health, maxsize=100)  # will overflow: drop_oldest
-            big = b.subscribe("test/burst", m.Health, maxsize=2000)  # will not
+            burst = topic("burst", m.Health)
+            small = b.subscribe(burst, maxsize=100)  # will overflow: drop_oldest
+            big = b.subscribe(burst, maxsize=2000)  # will not
             await asyncio.sleep(0.3)
             for i in range(1000):
-                a.publish("test/burst", m.Health(service="s", ok=True, details={"i": i}))
+                a.publish(burst, m.Health(service="s", ok=True, details={"i": i}))
             await wait_until(lambda: big.received == 1000, 20, what="1000 samples received")
             got = [(await big.recv(timeout=5)).details["i"] for _ in range(1000)]
             assert got == list(range(1000))
@@ -159,10 +174,11 @@ def test_drop_newest_policy_keeps_the_first(router):
     async def main():
         a, b = await _pair(router)
         try:
-            sub = b.subscribe("test/dn", m.Health, maxsize=10, overflow="drop_newest")
+            dn = topic("dn", m.Health)
+            sub = b.subscribe(dn, maxsize=10, overflow="drop_newest")
             await asyncio.sleep(0.3)
             for i in range(50):
-                a.publish("test/dn", m.Health(service="s", ok=True, details={"i": i}))
+                a.publish(dn, m.Health(service="s", ok=True, details={"i": i}))
             await wait_until(lambda: sub.received == 50, 10)
             kept = [(await sub.recv(timeout=1)).details["i"] for _ in range(sub.qsize())]
             assert kept == list(range(10)) and sub.dropped == 40
@@ -221,3 +237,25 @@ def test_publish_after_close_is_an_error(router):
             a.publish("test/x", m.Health(service="s", ok=True))
 
     arun(main())
+
+
+def test_newer_minor_version_is_accepted_and_newer_major_rejected(router):
+    """The versioning rule: unknown fields of a newer minor version are ignored; a newer major is refused
+    with an error naming both versions."""
+    from shared.bus import decoder
+
+    dec = decoder(m.VehicleState)
+    base = json.loads(m.VehicleState(armed=True).model_dump_json())
+    newer_minor = {**base, "schema_minor": m.SCHEMA_MINOR + 1, "wind_estimate": {"x": 1.0},
+                   "position": {**base["position"], "covariance": [0.1, 0.2]}}
+    got = dec(json.dumps(newer_minor).encode())
+    assert got.armed is True
+    same_minor = {**base, "wind_estimate": 1.0}
+    with pytest.raises(Exception, match="wind_estimate"):
+        dec(json.dumps(same_minor).encode())
+    newer_major = {**base, "schema_version": m.SCHEMA_VERSION + 1, "schema_minor": 0, "new": 1}
+    with pytest.raises(Exception, match=f"version {m.SCHEMA_VERSION + 1}.0.*version {m.SCHEMA_VERSION}"):
+        dec(json.dumps(newer_major).encode())
+    valid_newer_major = {**base, "schema_version": m.SCHEMA_VERSION + 1}
+    with pytest.raises(Exception, match="cannot be read"):
+        dec(json.dumps(valid_newer_major).encode())

@@ -25,7 +25,7 @@ from services.gateway.models import (
 )
 from shared.errors import NoResponder, QueryTimeout, RemoteError
 from shared.keys import Keys
-from shared.messages import TaskAccept, TaskRequest, TaskState, new_id
+from shared.messages import TaskRequest, TaskState, new_id
 
 router = APIRouter(prefix="/tasks", tags=["tasks"])
 
@@ -73,7 +73,7 @@ async def create_task(body: TaskCreate, request: Request, fleet: FleetDep, store
     # The row exists before the reasoner hears of the task, so no early step or status can miss it.
     await store.create_task(task_id, vehicle, body.command, body.model_dump(mode="json"))
     try:
-        accept = await fleet.bus.query(Keys(vehicle).start_task, req, TaskAccept, timeout=settings.start_timeout_s)
+        accept = await fleet.bus.query(Keys(vehicle).start_task, req, timeout=settings.start_timeout_s)
     except NoResponder:
         await store.delete_task(task_id)
         raise ApiError(503, f"the reasoner of {vehicle} did not answer; is it running?")

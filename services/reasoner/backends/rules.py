@@ -47,6 +47,7 @@ APPROACH_LIMIT = 12  # motion steps an "approach" may take before the policy dec
 SURFACE_RETRY_RADIUS = 2.0  # after a failed placement_localization, fly this close to the surface first
 ON_SURFACE_XY = 0.35  # a released object this close to its placement spot (and at its height) rests there
 _MOTION_SKILLS = (S.YAW_LEFT, S.YAW_RIGHT, S.FORWARD, S.BACKWARD, S.LEFT, S.RIGHT, S.UP, S.DOWN)
+_NOT_SEQUENCED = (S.OBJ_LOCALIZATION, S.GRASP, S.PLACEMENT_LOCALIZATION, S.PLACE, S.DONE)
 _APPROACH = "approach:"  # motion token: fly to the named thing, as many steps as it takes
 _VEC = r"\((-?[\d.]+), (-?[\d.]+), (-?[\d.]+)\)"
 _ACTION_WORDS = ("pick", "grab", "get", "take", "fetch", "find", "locate", "search", "bring", "place", "put",
@@ -86,7 +87,23 @@ def _clean_query(text: str) -> str:
     return re.sub(r"[^a-z0-9 \-]", "", text).strip()
 
 
-def _motions(clause: str) -> list[str]:
+def _named_skills(clause: str, skills: list[str]) -> list[tuple[int, str]]:
+    """Registered skills the clause names outright ("descend to inspect" -> descend_to_inspect), with their
+    position: a skill added to the library is usable in an explicit sequence without touching this file."""
+    found = []
+    for name in skills:
+        if name in _MOTION_SKILLS or name in _NOT_SEQUENCED:
+            continue
+        for phrase in {name, name.replace("_", " ")}:
+            for m in re.finditer(r"\b" + re.escape(phrase) + r"\b", clause):
+                found.append((m.start(), name))
+    return found
+
+
+def _motions(clause: str, skills: list[str] = ()) -> list[str]:  # type: ignore[assignment]
+    extra = _named_skills(clause, list(skills))
+    if extra:
+        return [name for _pos, name in sorted(extra)]
     out: list[str] = []
     for m in re.finditer(r"\b(?:(turn|rotate|yaw)\s+(left|right)|(?:move|go|fly|step)?\s*(forward|ahead|backward|"
                          r"backwards|back|left|right|up|down|closer|higher|lower)|(approach))"
@@ -120,8 +137,9 @@ def _motions(clause: str) -> list[str]:
     return out
 
 
-def parse_command(command: str) -> Plan:
-    """Read the plan out of a command in the paper's four suites."""
+def parse_command(command: str, skills: list[str] | tuple[str, ...] = ()) -> Plan:
+    """Read the plan out of a command in the paper's four suites; `skills` (the live library's policy skills)
+    lets a command name a registered skill outright."""
     plan = Plan()
     c = " ".join(command.lower().replace("’", "'").split())
     cond = re.search(r"if you (?:see|find|spot) (?:an?\s+|the\s+|any\s+)?([a-z0-9 \-]+?)\s*[,;]?\s*(?:then\s+)?"
@@ -150,7 +168,7 @@ def parse_command(command: str) -> Plan:
     for clause in clauses:
         is_action = any(w in clause for w in _ACTION_WORDS)
         if not is_action:
-            plan.motions.extend(_motions(clause))
+            plan.motions.extend(_motions(clause, list(skills)))
             continue
         if plan.target or plan.choices or plan.selector:
             continue
@@ -193,7 +211,7 @@ class RulesPolicy:
 
     def decide(self, ctx: PolicyContext) -> tuple[str, str | None, str]:
         """(skill, argument, reasoning)."""
-        plan = parse_command(ctx.command)
+        plan = parse_command(ctx.command, ctx.skills)
         steps = ctx.steps
         # 1. The motions the command spells out, in order (a motion that fails twice is skipped).
         first_free, pending = self._motions_left(ctx, plan, steps)

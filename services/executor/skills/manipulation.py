@@ -1,4 +1,4 @@
-"""The built-in skills: motion primitives (paper Table II), perception-driven routines (Table III), control."""
+"""Manipulation routines (paper Table III): grasp and place."""
 
 from __future__ import annotations
 
@@ -6,19 +6,16 @@ import contextlib
 import math
 
 from services.executor.context import SkillContext, SkillFailed
-from services.executor.envelope import airborne, altitude_problem, geofence_problem, outside_geofence, wrap
+from services.executor.envelope import geofence_problem, wrap
 from services.executor.memory import age_s, horizontal_distance
 from services.executor.registry import Category, Skill, SkillResult, register
+from services.executor.skills.common import fmt, not_found
 from shared import skills as names
 from shared.messages import (
-    ArmCommand,
     GripperState,
-    HoldCommand,
-    LandCommand,
     MemoryObject,
     ObjectEstimate,
     SkillParameter,
-    TakeoffCommand,
     Vec3,
     VehicleState,
 )
@@ -26,189 +23,6 @@ from shared.messages import (
 GRASP_SETTLE_M = 0.02  # the body must be this close to the grasp point before the gripper closes
 GRASP_SETTLE_TIMEOUT_S = 3.0  # ... or close anyway after this (the verification then tells)
 
-
-def fmt(p: Vec3) -> str:
-    return f"({p.x:.2f}, {p.y:.2f}, {p.z:.2f})"
-
-
-# --------------------------------------------------------------------------- motion primitives
-
-
-class _Step(Skill):
-    """A fixed body-frame step: translation (fx, fy, fz) times the step size, or a yaw turn."""
-
-    category: Category = "motion"
-    body: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    turn: float = 0.0  # +1 left (counter-clockwise), -1 right
-
-    def _distance(self) -> float:
-        return self.settings.vertical_step if self.body[2] else self.settings.horizontal_step
-
-    def parameters(self) -> tuple[SkillParameter, ...]:
-        s = self.settings
-        if self.turn:
-            return (SkillParameter(name="angle", value=s.yaw_step_deg, unit="deg"),)
-        return (SkillParameter(name="distance", value=self._distance(), unit="m"),
-                SkillParameter(name="speed", value=s.translation_speed, unit="m/s"))
-
-    def target(self, st: VehicleState) -> tuple[Vec3, float]:
-        if self.turn:
-            return st.position, wrap(st.yaw + self.turn * math.radians(self.settings.yaw_step_deg))
-        d = self._distance()
-        c, sn = math.cos(st.yaw), math.sin(st.yaw)
-        fx, fy, fz = self.body
-        p = st.position
-        return Vec3(x=p.x + d * (c * fx - sn * fy), y=p.y + d * (sn * fx + c * fy), z=p.z + d * fz), st.yaw
-
-    def check(self, ctx: SkillContext, argument: str | None) -> str | None:
-        st = ctx.state.value
-        assert st is not None
-        if self.turn:
-            return None
-        target, _ = self.target(st)
-        problem = geofence_problem(target, self.settings, f"{self.name} target") or altitude_problem(
-            target.z, self.settings, what=f"{self.name} target")
-        if problem:
-            return problem
-        if self.body[0] > 0:
-            # Only the forward direction is seen by the camera; other directions rely on the geofence.
-            return ctx.clearance.forward_problem(st.position.z, self._distance(), self.settings)
-        return None
-
-    def timeout_s(self, ctx: SkillContext, argument: str | None) -> float:
-        s = self.settings
-        if self.turn:
-            return math.radians(s.yaw_step_deg) / math.radians(30.0) + s.motion_slack_s
-        return self._distance() / s.translation_speed + s.motion_slack_s
-
-    async def run(self, ctx: SkillContext, argument: str | None) -> SkillResult:
-        st = ctx.current()
-        target, yaw = self.target(st)
-        end = await ctx.goto(target, yaw, self.settings.translation_speed, what=f"{self.name} target",
-                             timeout=self.timeout_s(ctx, argument))
-        return SkillResult(f"{self.name} done: now at {fmt(end.position)}, yaw {math.degrees(end.yaw):.0f} deg")
-
-
-@register
-class YawLeft(_Step):
-    name = names.YAW_LEFT
-    description = "Rotate left (counter-clockwise) about the body z-axis by {s.yaw_step_deg:g} deg, to look around."
-    turn = 1.0
-
-
-@register
-class YawRight(_Step):
-    name = names.YAW_RIGHT
-    description = "Rotate right (clockwise) about the body z-axis by {s.yaw_step_deg:g} deg, to look around."
-    turn = -1.0
-
-
-@register
-class Forward(_Step):
-    name = names.FORWARD
-    description = ("Translate forward along the body x-axis by {s.horizontal_step:g} m, to approach a target "
-                   "(refused when the depth image shows an obstacle in the way).")
-    body = (1.0, 0.0, 0.0)
-
-
-@register
-class Backward(_Step):
-    name = names.BACKWARD
-    description = "Translate backward along the body x-axis by {s.horizontal_step:g} m, to retreat."
-    body = (-1.0, 0.0, 0.0)
-
-
-@register
-class Left(_Step):
-    name = names.LEFT
-    description = "Translate left along the body y-axis by {s.horizontal_step:g} m, to correct lateral misalignment."
-    body = (0.0, 1.0, 0.0)
-
-
-@register
-class Right(_Step):
-    name = names.RIGHT
-    description = "Translate right along the body y-axis by {s.horizontal_step:g} m, to correct lateral misalignment."
-    body = (0.0, -1.0, 0.0)
-
-
-@register
-class Up(_Step):
-    name = names.UP
-    description = "Climb by {s.vertical_step:g} m, to gain clearance or see more of the scene."
-    body = (0.0, 0.0, 1.0)
-
-
-@register
-class Down(_Step):
-    name = names.DOWN
-    description = "Descend by {s.vertical_step:g} m, to reach manipulation height or see closer."
-    body = (0.0, 0.0, -1.0)
-
-
-# --------------------------------------------------------------------------- perception routines
-
-
-def _not_found(query: str, est) -> str:
-    why = {"not_visible": "not visible", "ambiguous": "ambiguous (several matches)",
-           "too_few_points": "seen but with too few depth points", "no_free_spot": "without a free spot"}
-    return f"{query} {why.get(est.reason, est.reason)}" + (f": {est.message}" if est.message else "")
-
-
-class _Localization(Skill):
-    """Perception routines: ask perception, store the estimate; they never move the vehicle."""
-
-    category: Category = "perception"
-    argument_required = True
-    moves = False
-    needs_airborne = False
-    needs_offboard = False
-
-    def timeout_s(self, ctx: SkillContext, argument: str | None) -> float:
-        return self.settings.localize_timeout_s + 2.0
-
-
-@register
-class ObjLocalization(_Localization):
-    name = names.OBJ_LOCALIZATION
-    description = ("Estimate the 3D pose of the queried object (open-vocabulary segmentation fused with depth) "
-                   "and store it in working memory. Fails when the object is not in view.")
-    argument = "object query"
-
-    async def run(self, ctx: SkillContext, argument: str | None) -> SkillResult:
-        assert argument
-        est = await ctx.localize_object(argument)
-        if not est.found or est.pose is None:
-            raise SkillFailed(_not_found(argument, est))
-        if outside_geofence(est.pose.position, self.settings, 0.05):
-            # e.g. depth through a gap or a pose/frame mismatch: never store a target no skill may fly to
-            raise SkillFailed(f"{argument} estimate {fmt(est.pose.position)} lies outside the flyable room: "
-                              "implausible, not stored; look again")
-        mo = ctx.memory.store_object(est, argument)
-        text = f"{mo.label} at {fmt(mo.position)}"
-        st = ctx.state.value
-        if st is not None:
-            text += f", {horizontal_distance(mo.position, st.position):.2f} m away horizontally"
-        ctx.note(text)
-        return SkillResult(f"localized {text} (confidence {est.confidence:.2f})")
-
-
-@register
-class PlacementLocalization(_Localization):
-    name = names.PLACEMENT_LOCALIZATION
-    description = ("Find the queried support surface in the point cloud and compute a collision-free placement "
-                   "pose with a vertical offset for the held object; store it in working memory.")
-    argument = "surface query"
-
-    async def run(self, ctx: SkillContext, argument: str | None) -> SkillResult:
-        assert argument
-        est = await ctx.localize_placement(argument, ctx.memory.held_size)
-        if not est.found or est.pose is None:
-            raise SkillFailed(_not_found(argument, est))
-        mo = ctx.memory.store_placement(est, argument)
-        text = f"placement spot on the {mo.label} at {fmt(mo.position)}"
-        ctx.note(text)
-        return SkillResult(f"found {text} (surface z {est.surface_z if est.surface_z is not None else 0:.2f})")
 
 
 # --------------------------------------------------------------------------- manipulation routines
@@ -316,7 +130,7 @@ class Grasp(_Manipulation):
             est = await ctx.localize_object(query)
             if not est.found or est.pose is None:
                 mem.forget_object(label)
-                raise SkillFailed(f"grasp aborted before contact: {_not_found(label, est)} from the standoff at its "
+                raise SkillFailed(f"grasp aborted before contact: {not_found(label, est)} from the standoff at its "
                                   f"remembered position {fmt(remembered)}; it may have moved: localize it again")
             shift = horizontal_distance(est.pose.position, remembered)
             if shift > s.max_object_shift:
@@ -423,7 +237,7 @@ class Place(_Manipulation):
         est = await ctx.localize_object(held)
         if not est.found or est.pose is None:
             raise SkillFailed(f"released the {held} over the {pl.label} but could not see it there afterwards: "
-                              f"{_not_found(held, est)}")
+                              f"{not_found(held, est)}")
         off = horizontal_distance(est.pose.position, pl.position)
         bottom_seen = est.pose.position.z - (est.size.z / 2 if est.size is not None else height / 2)
         mo = mem.store_object(est, held)
@@ -432,80 +246,3 @@ class Place(_Manipulation):
                               f"placement spot on the {pl.label}")
         ctx.note(f"{held} rests on the {pl.label} at {fmt(mo.position)}")
         return SkillResult(f"placed the {held} on the {pl.label} at {fmt(mo.position)}")
-
-
-# --------------------------------------------------------------------------- control and operator skills
-
-
-@register
-class Done(Skill):
-    name = names.DONE
-    category: Category = "control"
-    description = "Declare the task complete; the episode ends."
-    moves = False
-    needs_airborne = False
-    needs_offboard = False
-
-    async def run(self, ctx: SkillContext, argument: str | None) -> SkillResult:
-        return SkillResult("task declared complete")
-
-
-@register
-class Takeoff(Skill):
-    name = names.TAKEOFF
-    category: Category = "operator"
-    description = "Arm and take off to {s.flight_altitude:g} m."
-    policy_visible = False
-    needs_airborne = False
-    needs_offboard = False
-
-    def parameters(self) -> tuple[SkillParameter, ...]:
-        return (SkillParameter(name="altitude", value=self.settings.flight_altitude, unit="m"),)
-
-    def check(self, ctx: SkillContext, argument: str | None) -> str | None:
-        if airborne(ctx.state.value):
-            return "already airborne: takeoff is only possible from the ground"
-        return None
-
-    def timeout_s(self, ctx: SkillContext, argument: str | None) -> float:
-        return self.settings.takeoff_timeout_s
-
-    async def run(self, ctx: SkillContext, argument: str | None) -> SkillResult:
-        s = self.settings
-        if not ctx.current().armed:
-            await ctx.command(ArmCommand())
-        await ctx.command(TakeoffCommand(altitude=s.flight_altitude), timeout=s.takeoff_timeout_s)
-        st = await ctx.wait_for(lambda st: st.position.z >= s.flight_altitude - s.position_tolerance and st.offboard_ok,
-                                s.takeoff_timeout_s, "takeoff altitude")
-        return SkillResult(f"airborne at {fmt(st.position)}")
-
-
-@register
-class Land(Skill):
-    name = names.LAND
-    category: Category = "operator"
-    description = "Land at the current position."
-    policy_visible = False
-    needs_offboard = False
-
-    def timeout_s(self, ctx: SkillContext, argument: str | None) -> float:
-        return self.settings.land_timeout_s
-
-    async def run(self, ctx: SkillContext, argument: str | None) -> SkillResult:
-        await ctx.command(LandCommand())
-        st = await ctx.wait_for(lambda st: not airborne(st), self.settings.land_timeout_s, "touchdown")
-        return SkillResult(f"landed at {fmt(st.position)}")
-
-
-@register
-class Hold(Skill):
-    name = names.HOLD
-    category: Category = "operator"
-    description = "Hold the current position."
-    policy_visible = False
-    needs_airborne = False
-    needs_offboard = False
-
-    async def run(self, ctx: SkillContext, argument: str | None) -> SkillResult:
-        await ctx.command(HoldCommand())
-        return SkillResult(f"holding at {fmt(ctx.current().position)}")

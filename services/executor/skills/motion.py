@@ -1,0 +1,130 @@
+"""Motion primitives (paper Table II): fixed body-frame steps and yaw turns."""
+
+from __future__ import annotations
+
+import math
+
+from services.executor.context import SkillContext
+from services.executor.envelope import altitude_problem, geofence_problem, wrap
+from services.executor.registry import Category, Skill, SkillResult, register
+from services.executor.skills.common import fmt
+from shared import skills as names
+from shared.messages import (
+    SkillParameter,
+    Vec3,
+    VehicleState,
+)
+
+# --------------------------------------------------------------------------- motion primitives
+
+
+class _Step(Skill):
+    """A fixed body-frame step: translation (fx, fy, fz) times the step size, or a yaw turn."""
+
+    category: Category = "motion"
+    body: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    turn: float = 0.0  # +1 left (counter-clockwise), -1 right
+
+    def _distance(self) -> float:
+        return self.settings.vertical_step if self.body[2] else self.settings.horizontal_step
+
+    def parameters(self) -> tuple[SkillParameter, ...]:
+        s = self.settings
+        if self.turn:
+            return (SkillParameter(name="angle", value=s.yaw_step_deg, unit="deg"),)
+        return (SkillParameter(name="distance", value=self._distance(), unit="m"),
+                SkillParameter(name="speed", value=s.translation_speed, unit="m/s"))
+
+    def target(self, st: VehicleState) -> tuple[Vec3, float]:
+        if self.turn:
+            return st.position, wrap(st.yaw + self.turn * math.radians(self.settings.yaw_step_deg))
+        d = self._distance()
+        c, sn = math.cos(st.yaw), math.sin(st.yaw)
+        fx, fy, fz = self.body
+        p = st.position
+        return Vec3(x=p.x + d * (c * fx - sn * fy), y=p.y + d * (sn * fx + c * fy), z=p.z + d * fz), st.yaw
+
+    def check(self, ctx: SkillContext, argument: str | None) -> str | None:
+        st = ctx.state.value
+        assert st is not None
+        if self.turn:
+            return None
+        target, _ = self.target(st)
+        problem = geofence_problem(target, self.settings, f"{self.name} target") or altitude_problem(
+            target.z, self.settings, what=f"{self.name} target")
+        if problem:
+            return problem
+        if self.body[0] > 0:
+            # Only the forward direction is seen by the camera; other directions rely on the geofence.
+            return ctx.clearance.forward_problem(st.position.z, self._distance(), self.settings)
+        return None
+
+    def timeout_s(self, ctx: SkillContext, argument: str | None) -> float:
+        s = self.settings
+        if self.turn:
+            return math.radians(s.yaw_step_deg) / math.radians(30.0) + s.motion_slack_s
+        return self._distance() / s.translation_speed + s.motion_slack_s
+
+    async def run(self, ctx: SkillContext, argument: str | None) -> SkillResult:
+        st = ctx.current()
+        target, yaw = self.target(st)
+        end = await ctx.goto(target, yaw, self.settings.translation_speed, what=f"{self.name} target",
+                             timeout=self.timeout_s(ctx, argument))
+        return SkillResult(f"{self.name} done: now at {fmt(end.position)}, yaw {math.degrees(end.yaw):.0f} deg")
+
+
+@register
+class YawLeft(_Step):
+    name = names.YAW_LEFT
+    description = "Rotate left (counter-clockwise) about the body z-axis by {s.yaw_step_deg:g} deg, to look around."
+    turn = 1.0
+
+
+@register
+class YawRight(_Step):
+    name = names.YAW_RIGHT
+    description = "Rotate right (clockwise) about the body z-axis by {s.yaw_step_deg:g} deg, to look around."
+    turn = -1.0
+
+
+@register
+class Forward(_Step):
+    name = names.FORWARD
+    description = ("Translate forward along the body x-axis by {s.horizontal_step:g} m, to approach a target "
+                   "(refused when the depth image shows an obstacle in the way).")
+    body = (1.0, 0.0, 0.0)
+
+
+@register
+class Backward(_Step):
+    name = names.BACKWARD
+    description = "Translate backward along the body x-axis by {s.horizontal_step:g} m, to retreat."
+    body = (-1.0, 0.0, 0.0)
+
+
+@register
+class Left(_Step):
+    name = names.LEFT
+    description = "Translate left along the body y-axis by {s.horizontal_step:g} m, to correct lateral misalignment."
+    body = (0.0, 1.0, 0.0)
+
+
+@register
+class Right(_Step):
+    name = names.RIGHT
+    description = "Translate right along the body y-axis by {s.horizontal_step:g} m, to correct lateral misalignment."
+    body = (0.0, -1.0, 0.0)
+
+
+@register
+class Up(_Step):
+    name = names.UP
+    description = "Climb by {s.vertical_step:g} m, to gain clearance or see more of the scene."
+    body = (0.0, 0.0, 1.0)
+
+
+@register
+class Down(_Step):
+    name = names.DOWN
+    description = "Descend by {s.vertical_step:g} m, to reach manipulation height or see closer."
+    body = (0.0, 0.0, -1.0)

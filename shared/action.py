@@ -1,0 +1,207 @@
+"""The one action protocol of aermani, used for tasks (gateway, CLI, evaluation -> reasoner) and skills
+(reasoner, CLI, evaluation -> executor), after ROS 2 actions.
+
+A client sends a goal on the action's goal queryable and gets it accepted (with a goal id) or rejected
+(with a reason); the server then publishes feedback and, last, one terminal result on the action's status
+topic; a cancel request goes to the cancel queryable. `ActionClient.send_goal` returns a `GoalHandle`
+whose `result()` waits for the terminal status, `feedback` holds the statuses seen so far, and `cancel()`
+asks the server to stop. The client subscribes the status topic before it sends the goal, so no status
+is missed; it routes statuses to handles by goal id and keeps nothing once a goal has ended.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, Generic, TypeVar
+
+from shared.bus import Bus, Subscription, query_ready
+from shared.keys import (
+    EXECUTOR_CANCEL_SKILL,
+    EXECUTOR_RUN_SKILL,
+    EXECUTOR_SKILL_STATUS,
+    REASONER_CANCEL_TASK,
+    REASONER_START_TASK,
+    REASONER_TASK_STATUS,
+    Query,
+    Topic,
+)
+from shared.messages import (
+    CancelGoal,
+    CancelReply,
+    SkillAccept,
+    SkillRequest,
+    SkillStatus,
+    TaskAccept,
+    TaskRequest,
+    TaskStatus,
+)
+
+log = logging.getLogger("aermani.action")
+
+G = TypeVar("G")
+A = TypeVar("A")
+S = TypeVar("S")
+
+
+@dataclass(frozen=True)
+class ActionSpec(Generic[G, A, S]):
+    """One action: its goal, cancel and status keys, and where each message keeps the goal id."""
+
+    name: str
+    goal: Query[G, A]
+    cancel: Query[CancelGoal, CancelReply]
+    status: Topic[S]
+    accept_id: Callable[[A], str]
+    status_id: Callable[[S], str]
+    request_id: Callable[[G], str]
+    terminal: Callable[[S], bool]
+
+
+SKILL_ACTION: ActionSpec[SkillRequest, SkillAccept, SkillStatus] = ActionSpec(
+    "skill", EXECUTOR_RUN_SKILL, EXECUTOR_CANCEL_SKILL, EXECUTOR_SKILL_STATUS,
+    accept_id=lambda a: a.goal_id, status_id=lambda s: s.goal_id, request_id=lambda r: "",
+    terminal=lambda s: s.state.terminal)
+TASK_ACTION: ActionSpec[TaskRequest, TaskAccept, TaskStatus] = ActionSpec(
+    "task", REASONER_START_TASK, REASONER_CANCEL_TASK, REASONER_TASK_STATUS,
+    accept_id=lambda a: a.task_id, status_id=lambda s: s.task_id, request_id=lambda r: r.task_id,
+    terminal=lambda s: s.state.terminal)
+
+
+@dataclass
+class GoalHandle(Generic[A, S]):
+    """A goal sent by an `ActionClient`: its acceptance, the statuses seen so far, its terminal result."""
+
+    client: ActionClient[Any, A, S]
+    accept: A
+    goal_id: str
+    accepted: bool
+    reason: str
+    feedback: list[S] = field(default_factory=list)
+    _done: asyncio.Future[S] | None = None
+    _updated: asyncio.Event = field(default_factory=asyncio.Event)
+
+    async def result(self, timeout: float | None = None) -> S | None:
+        """The terminal status, or None when `timeout` passes first (or the goal was rejected)."""
+        if not self.accepted or self._done is None:
+            return None
+        try:
+            return await asyncio.wait_for(asyncio.shield(self._done), timeout)
+        except TimeoutError:
+            return None
+        finally:
+            if self._done.done():
+                self.client._forget(self.goal_id)
+
+    async def next_feedback(self, timeout: float | None = None) -> S | None:
+        """Wait for the next status of this goal (feedback or result); None on timeout."""
+        seen = len(self.feedback)
+        self._updated.clear()
+        if len(self.feedback) > seen:
+            return self.feedback[-1]
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(self._updated.wait(), timeout)
+        return self.feedback[-1] if len(self.feedback) > seen else None
+
+    async def cancel(self, reason: str = "cancelled", source: str = "client", timeout: float = 5.0) -> CancelReply:
+        """Ask the server to cancel this goal; the terminal status still arrives through `result()`."""
+        return await self.client.cancel(self.goal_id, reason=reason, source=source, timeout=timeout)
+
+    def close(self) -> None:
+        """Stop following this goal (its statuses are no longer kept)."""
+        self.client._forget(self.goal_id)
+
+
+class ActionClient(Generic[G, A, S]):
+    """Client side of one action on one vehicle. Open it (`async with` or `start()`) before sending goals."""
+
+    def __init__(self, bus: Bus, spec: ActionSpec[G, A, S], vehicle_id: str, *, maxsize: int = 1000) -> None:
+        self.bus = bus
+        self.spec = spec
+        self.vehicle_id = vehicle_id
+        self.maxsize = maxsize
+        self._handles: dict[str, GoalHandle[A, S]] = {}
+        self._early: dict[str, list[S]] = {}  # statuses that overtook the accept reply
+        self._sub: Subscription[S] | None = None
+        self._pump: asyncio.Task[None] | None = None
+
+    async def __aenter__(self) -> ActionClient[G, A, S]:
+        self.start()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+    def start(self) -> None:
+        if self._sub is None:
+            self._sub = self.bus.subscribe(self.spec.status.bind(self.vehicle_id), maxsize=self.maxsize)
+            self._pump = asyncio.create_task(self._route(), name=f"action.{self.spec.name}.{self.vehicle_id}")
+
+    async def close(self) -> None:
+        if self._pump is not None:
+            self._pump.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._pump
+        if self._sub is not None:
+            self._sub.close()
+        self._sub = self._pump = None
+
+    async def _route(self) -> None:
+        assert self._sub is not None
+        while True:
+            st = await self._sub.recv()
+            gid = self.spec.status_id(st)
+            handle = self._handles.get(gid)
+            if handle is None:
+                if gid in self._early or len(self._early) < 64:
+                    self._early.setdefault(gid, []).append(st)
+                continue
+            self._deliver(handle, st)
+
+    def _deliver(self, handle: GoalHandle[A, S], st: S) -> None:
+        handle.feedback.append(st)
+        handle._updated.set()
+        if self.spec.terminal(st) and handle._done is not None and not handle._done.done():
+            handle._done.set_result(st)
+
+    def _forget(self, goal_id: str) -> None:
+        self._handles.pop(goal_id, None)
+        self._early.pop(goal_id, None)
+
+    async def send_goal(self, goal: G, *, timeout: float = 10.0, ready_timeout: float = 0.0) -> GoalHandle[A, S]:
+        """Send `goal`; returns its handle, accepted or rejected. With `ready_timeout` > 0, waits that long
+        for a server to appear (start-up, supervised restart) before giving up with NoResponder."""
+        self.start()
+        target = self.spec.goal.bind(self.vehicle_id)
+        if ready_timeout > 0:
+            accept = await query_ready(self.bus, target, goal, timeout=timeout, ready_timeout=ready_timeout)
+        else:
+            accept = await self.bus.query(target, goal, timeout=timeout)
+        accepted = bool(getattr(accept, "accepted", False))
+        gid = self.spec.accept_id(accept) or self.spec.request_id(goal)
+        handle: GoalHandle[A, S] = GoalHandle(self, accept, gid, accepted, str(getattr(accept, "reason", "")))
+        if accepted:
+            handle._done = asyncio.get_running_loop().create_future()
+            self._handles[gid] = handle
+            for st in self._early.pop(gid, []):
+                self._deliver(handle, st)
+        self._early.clear()  # anything else that arrived early belongs to goals nobody here follows
+        return handle
+
+    async def cancel(self, goal_id: str, *, reason: str = "cancelled", source: str = "client",
+                     timeout: float = 5.0) -> CancelReply:
+        return await self.bus.query(self.spec.cancel.bind(self.vehicle_id),
+                                    CancelGoal(goal_id=goal_id, reason=reason, source=source), timeout=timeout)
+
+
+def skill_client(bus: Bus, vehicle_id: str) -> ActionClient[SkillRequest, SkillAccept, SkillStatus]:
+    """The skill action (executor) of one vehicle."""
+    return ActionClient(bus, SKILL_ACTION, vehicle_id)
+
+
+def task_client(bus: Bus, vehicle_id: str) -> ActionClient[TaskRequest, TaskAccept, TaskStatus]:
+    """The task action (reasoner) of one vehicle."""
+    return ActionClient(bus, TASK_ACTION, vehicle_id)

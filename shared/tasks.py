@@ -1,0 +1,147 @@
+"""Following a task from outside the reasoner (the demo, the CLI, evaluation): submit it through the task
+action (`shared.action`), collect its reasoning steps, wait for its terminal status; and the one episode
+judge that asks the simulator's ground truth whether the task's end state holds."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+from shared.action import GoalHandle, task_client
+from shared.bus import Bus, Subscription, query_ready
+from shared.keys import Keys
+from shared.messages import JudgeRequest, JudgeResult, ReasoningStep, TaskAccept, TaskRequest, TaskStatus
+
+
+async def submit_task(bus: Bus, keys: Keys, request: TaskRequest, timeout: float = 30.0) -> TaskAccept:
+    """Send the task goal, waiting up to `timeout` for the reasoner to serve it (its liveliness token appears
+    before its queryables are declared). Returns the accept/reject answer without following the task."""
+    async with task_client(bus, keys.vehicle_id) as client:
+        handle = await client.send_goal(request, ready_timeout=timeout)
+        handle.close()
+        return handle.accept
+
+
+class StepCollector:
+    """The reasoning steps of one task, in the order they arrive (subscribed before the goal is sent)."""
+
+    def __init__(self, bus: Bus, keys: Keys, on_step: Callable[[ReasoningStep], None] = lambda s: None) -> None:
+        self.sub: Subscription[ReasoningStep] = bus.subscribe(keys.reasoning_step, maxsize=10_000,
+                                                              overflow="drop_newest")
+        self.on_step = on_step
+        self.task_id = ""
+        self.steps: list[ReasoningStep] = []
+        self.foreign = 0
+
+    def drain(self) -> None:
+        """Move what is queued into `steps` (steps of other tasks are counted in `foreign`)."""
+        while (s := self.sub.recv_nowait()) is not None:
+            if s.task_id == self.task_id:
+                self.steps.append(s)
+                self.on_step(s)
+            else:
+                self.foreign += 1
+
+    async def until(self, count: int, timeout: float) -> None:
+        """Wait (bounded) until `count` steps of the task are in: steps are published before the terminal
+        status, but a loaded machine may deliver them later."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout
+        self.drain()
+        while len(self.steps) < count and loop.time() < deadline:
+            await asyncio.sleep(0.05)
+            self.drain()
+        self.steps.sort(key=lambda s: s.step)
+
+    def close(self) -> None:
+        self.sub.close()
+
+
+@dataclass
+class Followed:
+    """What following one task gave: the accept answer, the terminal status (None when none came in time),
+    the task's steps in order, and how many steps of other tasks arrived meanwhile."""
+
+    accept: TaskAccept
+    final: TaskStatus | None
+    steps: list[ReasoningStep]
+    foreign: int = 0
+
+
+async def follow_task(bus: Bus, keys: Keys, request: TaskRequest, *, on_step: Callable[[ReasoningStep], None] =
+                      lambda s: None, on_status: Callable[[TaskStatus], None] = lambda s: None,
+                      timeout: float = 3600.0, ready_timeout: float = 30.0, retry_rejected_s: float = 0.0,
+                      ) -> Followed:
+    """Submit `request` and stream its steps until the terminal status. A rejection is retried for
+    `retry_rejected_s` seconds (the previous task of the vehicle may still be ending)."""
+    steps = StepCollector(bus, keys, on_step)
+    steps.task_id = request.task_id
+    loop = asyncio.get_running_loop()
+    try:
+        async with task_client(bus, keys.vehicle_id) as client:
+            await asyncio.sleep(0.2)  # let the subscriptions reach the router before the first step
+            give_up = loop.time() + retry_rejected_s
+            while True:
+                handle: GoalHandle[TaskAccept, TaskStatus] = await client.send_goal(
+                    request, ready_timeout=ready_timeout)
+                if handle.accepted or loop.time() >= give_up:
+                    break
+                await asyncio.sleep(1.0)
+            if not handle.accepted:
+                return Followed(handle.accept, None, steps.steps)
+            final = await _follow(handle, steps, on_status, timeout)
+            if final is not None:
+                await steps.until(final.steps, 5.0)
+            return Followed(handle.accept, final, steps.steps, steps.foreign)
+    finally:
+        steps.close()
+
+
+async def _follow(handle: GoalHandle[TaskAccept, TaskStatus], steps: StepCollector,
+                  on_status: Callable[[TaskStatus], None], timeout: float) -> TaskStatus | None:
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + timeout
+    seen = 0
+    while True:
+        st = await handle.next_feedback(timeout=min(1.0, max(0.0, deadline - loop.time())))
+        steps.drain()
+        for s in handle.feedback[seen:]:
+            on_status(s)
+        seen = len(handle.feedback)
+        if st is not None and st.state.terminal:
+            return st
+        if loop.time() >= deadline:
+            return None
+
+
+@dataclass
+class Verdict:
+    """The judge's answer for one episode."""
+
+    success: bool
+    message: str
+    result: JudgeResult
+
+
+async def judge_episode(bus: Bus, keys: Keys, accepted: Sequence[str], destination: str | None, *,
+                        tolerance: float | None = None, timeout: float = 10.0) -> Verdict:
+    """The one episode judge, as the paper scores a trial: one of the `accepted` objects resting on the
+    `destination`, or, for a task without a destination, one of them in the gripper at the end."""
+    if destination:
+        first: JudgeResult | None = None
+        for obj in accepted:
+            req = JudgeRequest(op="on_surface", object=obj, surface=destination)
+            if tolerance is not None:
+                req = req.model_copy(update={"tolerance": tolerance})
+            j = await query_ready(bus, keys.sim_judge, req, timeout=timeout)
+            if j.ok:
+                return Verdict(True, j.message, j)
+            first = first or j
+        assert first is not None, "judge_episode needs at least one accepted object"
+        return Verdict(False, first.message, first)
+    j = await query_ready(bus, keys.sim_judge, JudgeRequest(op="held"), timeout=timeout)
+    want = " or ".join(accepted)
+    if j.held in accepted:
+        return Verdict(True, f"holding {j.held}", j)
+    return Verdict(False, f"holding {j.held}, expected {want}" if j.held else f"holding nothing, expected {want}", j)
