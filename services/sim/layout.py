@@ -75,7 +75,7 @@ FURNITURE: dict[str, FurnitureSpec] = {s.name: s for s in (
     FurnitureSpec("wooden table", "box", (1.1, 0.7), 0.75, "wood", (150, 100, 55), True),
     FurnitureSpec("shelf", "box", (1.0, 0.5), 0.9, "beige", (205, 190, 160), True),
     FurnitureSpec("sink", "box", (0.8, 0.6), 0.85, "blue steel", (140, 165, 200), True),
-    FurnitureSpec("counter", "box", (1.4, 0.6), 0.9, "dark grey", (90, 90, 95), True),
+    FurnitureSpec("counter", "box", (1.4, 0.6), 0.9, "dark grey", (70, 70, 75), True),
     FurnitureSpec("coffee machine", "box", (0.35, 0.35), 1.0, "black", (40, 35, 35), False),
 )}
 SURFACES = tuple(n for n, s in FURNITURE.items() if s.support)

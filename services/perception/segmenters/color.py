@@ -66,10 +66,10 @@ DEFAULT_OBJECTS = (
 DEFAULT_SURFACES = (
     SurfaceClass("table", "white", (225, 225, 220)),
     SurfaceClass("round table", "sage", (120, 165, 140)),
-    SurfaceClass("wooden table", "wood", (150, 100, 55)),
+    SurfaceClass("wooden table", "wood", (150, 100, 55), chroma_tol=0.045),
     SurfaceClass("shelf", "beige", (205, 190, 160)),
     SurfaceClass("sink", "blue steel", (140, 165, 200)),
-    SurfaceClass("counter", "dark grey", (90, 90, 95)),
+    SurfaceClass("counter", "dark grey", (70, 70, 75)),
 )
 SURFACE_HEIGHT = (0.3, 1.6)  # metres above the floor where furniture tops are
 
