@@ -105,6 +105,24 @@ class Client:
             await self.ok("yaw_left")
         raise AssertionError(f"{argument} never found: {st.message}")
 
+    async def approach(self, label: str, skill: str = "obj_localization", within: float = 1.6) -> SkillStatus:
+        """What a policy does after "too far: approach first": turn toward the localized object, fly forward
+        steps until it is within `within` m, and localize it again from there."""
+        loc = await self.search(skill, label)
+        for _ in range(16):
+            target = loc.outcome.estimate.pose.position
+            st = self.states.latest_nowait() or await self.states.recv(timeout=5)
+            dx, dy = target.x - st.position.x, target.y - st.position.y
+            if math.hypot(dx, dy) <= within:
+                return loc
+            bearing = math.atan2(math.sin(math.atan2(dy, dx) - st.yaw), math.cos(math.atan2(dy, dx) - st.yaw))
+            if abs(bearing) > math.radians(25):
+                await self.ok("yaw_left" if bearing > 0 else "yaw_right")
+            else:
+                await self.ok("forward")
+            loc = await self.search(skill, label)
+        raise AssertionError(f"could not approach the {label}")
+
     async def speed(self) -> float:
         s = await self.states.recv(timeout=5)
         s = self.states.latest_nowait() or s
@@ -118,9 +136,12 @@ def test_pick_and_place_sequence_judged_by_ground_truth(stack):
             # seed 5: the cup is on the shelf, 2.9 m from the table; both within perception range of the search
             await c.reset(seed=5, target_object="red cup", destination="table")
             await c.takeoff()
+            await c.search("obj_localization", "red cup")
+            far = await c.run("grasp")  # localized from the take-off spot, beyond the reach
+            assert far.state == SkillState.REJECTED and "too far: approach first" in far.message, far.message
             for _attempt in range(3):
                 # Like the policy after a failed grasp (paper Sec. III-D): re-localize, then grasp again.
-                await c.search("obj_localization", "red cup")
+                await c.approach("red cup")
                 st = await c.run("grasp")
                 if st.state == SkillState.SUCCEEDED:
                     break
@@ -199,7 +220,7 @@ def test_abort_during_translation_and_during_grasp(stack):
             await asyncio.sleep(0.2)
             await _abort(c, acc.goal_id)
             await c.ok("yaw_left")  # ready for the next skill
-            await c.search("obj_localization", "red cup")
+            await c.approach("red cup")
             acc = await c.request("grasp")
             assert acc.accepted, acc.reason
             await asyncio.sleep(1.0)
