@@ -80,10 +80,34 @@ class _Manipulation(Skill):
         if st.position.z < cross_z - s.position_tolerance:
             st = await ctx.goto(Vec3(x=st.position.x, y=st.position.y, z=cross_z), st.yaw, s.descent_speed,
                                 what=f"{what} (climb)")
+        problem = self.leg_problem(ctx, st, target, cross_z)
+        if problem:
+            raise SkillFailed(f"{what}: {problem}")
         st = await ctx.goto(Vec3(x=target.x, y=target.y, z=cross_z), yaw, s.approach_speed, what=what)
         if abs(st.position.z - target.z) > s.position_tolerance:
             st = await ctx.goto(target, yaw, s.descent_speed, what=f"{what} (height)")
         return st
+
+    def leg_problem(self, ctx: SkillContext, st: VehicleState, target: Vec3, cross_z: float) -> str | None:
+        """Clearance of a horizontal transit leg, with a held object's extent below the gripper: checked on the
+        latest depth image when the leg runs within the camera's view (the camera looks forward only); the
+        last `clearance_margin` + 0.3 m, where the routine descends onto its target, is not part of the leg."""
+        s = self.settings
+        dx, dy = target.x - st.position.x, target.y - st.position.y
+        length = math.hypot(dx, dy) - s.clearance_margin - 0.3
+        if length <= 0.1 or abs(wrap(math.atan2(dy, dx) - st.yaw)) > math.radians(30):
+            return None
+        clearance = ctx.clearance
+        if clearance.depth is None or clearance.age_s > s.depth_max_age_s:
+            return None  # nothing seen to check against (the geofence and altitude band still apply)
+        held = ctx.memory.held_size if ctx.memory.held else None
+        below = s.clearance_below if held is None else max(s.clearance_below, -s.gripper_offset_z + held.z + 0.05)
+        dist, _n = clearance.nearest_ahead(cross_z, s, length, below)
+        if dist is None:
+            return None
+        return (f"obstacle {dist:.2f} m ahead on a {length:.2f} m transit leg at {cross_z:.2f} m"
+                + (" (with the held object below the gripper)" if held is not None else "")
+                + "; nothing was moved past it: climb or go around first")
 
     def timeout_s(self, ctx: SkillContext, argument: str | None) -> float:
         return self.settings.grasp_timeout_s
