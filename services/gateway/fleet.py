@@ -18,6 +18,7 @@ from shared.keys import (
     AUTOPILOT_STATE,
     CAMERA_COLOR,
     EXECUTOR_SKILL_STATUS,
+    HEALTH,
     REASONER_STEP,
     REASONER_TASK_STATUS,
     ROOT,
@@ -25,7 +26,16 @@ from shared.keys import (
     Keys,
     parse_alive_key,
 )
-from shared.messages import AbortAck, ReasoningStep, SkillStatus, TaskState, TaskStatus, VehicleState, now_ns
+from shared.messages import (
+    AbortAck,
+    Health,
+    ReasoningStep,
+    SkillStatus,
+    TaskState,
+    TaskStatus,
+    VehicleState,
+    now_ns,
+)
 from shared.sensors import CompressedImage, decode_proto
 
 log = logging.getLogger("aermani.gateway.fleet")
@@ -61,6 +71,10 @@ class VehicleView:
     state_ns: int = 0
     frame: Frame | None = None
     acks: list[AbortAck] = field(default_factory=list)
+    segmenter: str | None = None
+    """Perception's segmenter, from its health (color, sam3, or sim: the simulator's ground-truth oracle)."""
+    realism: str | None = None
+    """The simulator's realism setting, from its health (absent on a real vehicle)."""
 
     @property
     def reasoner_alive(self) -> bool:
@@ -121,6 +135,8 @@ class Fleet:
         sub(AUTOPILOT_STATE, VehicleState, self._on_state, maxsize=10)
         sub(CAMERA_COLOR, None, self._on_frame, maxsize=2)
         sub(SAFETY_ABORT_ACK, AbortAck, self._on_ack, maxsize=100)
+        sub(f"{HEALTH}/perception", Health, self._on_health, maxsize=10)
+        sub(f"{HEALTH}/sim", Health, self._on_health, maxsize=10)
         queue = self.bus.watch_liveliness(f"{ROOT}/*/{ALIVE}/*", history=True)
         self._tasks.append(asyncio.create_task(self._liveliness(queue), name="gateway.liveliness"))
 
@@ -219,6 +235,13 @@ class Fleet:
         self.view(vehicle_of(key)).frame = Frame(payload, time.time_ns(), self.frame_seq)
         async with self.changed:
             self.changed.notify_all()
+
+    async def _on_health(self, key: str, h: Health) -> None:
+        v = self.view(vehicle_of(key))
+        if h.service == "perception" and "segmenter" in h.details:
+            v.segmenter = str(h.details["segmenter"])
+        elif h.service == "sim" and "realism" in h.details:
+            v.realism = str(h.details["realism"])
 
     async def _on_ack(self, key: str, ack: AbortAck) -> None:
         v = self.view(vehicle_of(key))
