@@ -349,16 +349,9 @@ class Subscription(Generic[T]):
     def latest_nowait(self) -> T | None:
         """Drain the queue and return the newest valid sample, or None."""
         newest = None
-        while True:
-            try:
-                key, data, _enc, _rns = self._queue.get_nowait()
-            except asyncio.QueueEmpty:
-                return newest
-            try:
-                newest = self._decode(data)
-            except DecodeError as exc:
-                self.malformed += 1
-                log.warning("dropped malformed sample on %s: %s", key, exc)
+        while (value := self.recv_nowait()) is not None:
+            newest = value
+        return newest
 
     def __aiter__(self) -> AsyncIterator[T]:
         return self._iter()

@@ -117,7 +117,7 @@ def health(
 
 def _register_service_commands() -> None:
     """Each service may add sub-commands with `services/<name>/cli.py: register(app)`."""
-    for name in [*SERVICE_ORDER, "evaluation"]:
+    for name in [*SERVICE_ORDER, "evaluation", "mcp"]:
         try:
             mod = importlib.import_module(f"services.{name}.cli")
         except ModuleNotFoundError as exc:

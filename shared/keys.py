@@ -10,13 +10,15 @@ takes the bound declaration and infers every type from it, so no call site names
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Generic, TypeVar
+from typing import Any, Generic, Self, TypeVar
 
 from pydantic import BaseModel
 
 from shared.messages import (
     Abort,
     AbortAck,
+    ApprovalDecision,
+    ApprovalStatus,
     AutopilotCommand,
     AutopilotResult,
     CancelGoal,
@@ -46,6 +48,8 @@ from shared.messages import (
 
 ROOT = "aermani/v1"
 DEFAULT_VEHICLE_ID = "am1"
+FLEET_ID = "fleet"
+"""Reserved in place of a vehicle id: keys under `aermani/v1/fleet/` address every vehicle at once."""
 ALIVE = "alive"
 HEALTH = "health"
 
@@ -165,55 +169,57 @@ class Token:
         return BoundToken(f"{vehicle_prefix(vehicle_id)}/{self.name.format(**params)}", self)
 
 
-@dataclass(frozen=True, eq=False)
-class BoundTopic(Generic[M]):
-    """A topic on one vehicle (or the fleet): the full key and its declaration."""
+class _Bound(str):
+    """A full key (a `str`, usable wherever a key string is) that also carries its declaration."""
 
-    key: str
+    decl: Any
+
+    def __new__(cls, key: str, decl: Any) -> Self:
+        obj = super().__new__(cls, key)
+        obj.decl = decl
+        return obj
+
+    @property
+    def key(self) -> str:
+        return str.__str__(self)
+
+
+class BoundTopic(_Bound, Generic[M]):
+    """A topic on one vehicle (or the fleet); the bus takes its types from `decl`."""
+
     decl: Topic[M]
 
-    def __str__(self) -> str:
-        return self.key
 
-    def __eq__(self, other: object) -> bool:  # a bound declaration is its key, also in dicts keyed by str
-        return self.key == (other.key if isinstance(other, BoundTopic | BoundQuery | BoundToken) else other)
+class BoundQuery(_Bound, Generic[Req, Rep]):
+    """A queryable on one vehicle; the bus takes its request and reply types from `decl`."""
 
-    def __hash__(self) -> int:
-        return hash(self.key)
-
-
-@dataclass(frozen=True, eq=False)
-class BoundQuery(Generic[Req, Rep]):
-    """A queryable on one vehicle: the full key and its declaration."""
-
-    key: str
     decl: Query[Req, Rep]
 
-    def __str__(self) -> str:
-        return self.key
 
-    def __eq__(self, other: object) -> bool:  # a bound declaration is its key, also in dicts keyed by str
-        return self.key == (other.key if isinstance(other, BoundTopic | BoundQuery | BoundToken) else other)
-
-    def __hash__(self) -> int:
-        return hash(self.key)
-
-
-@dataclass(frozen=True, eq=False)
-class BoundToken:
+class BoundToken(_Bound):
     """A liveliness token key on one vehicle."""
 
-    key: str
     decl: Token
 
-    def __str__(self) -> str:
-        return self.key
 
-    def __eq__(self, other: object) -> bool:  # a bound declaration is its key, also in dicts keyed by str
-        return self.key == (other.key if isinstance(other, BoundTopic | BoundQuery | BoundToken) else other)
+class _TopicOn(Generic[M]):
+    """`Keys(...).<name>` for a topic: the declaration bound to that vehicle."""
 
-    def __hash__(self) -> int:
-        return hash(self.key)
+    def __init__(self, decl: Topic[M]) -> None:
+        self.decl = decl
+
+    def __get__(self, keys: Keys, owner: type) -> BoundTopic[M]:
+        return self.decl.bind(keys.vehicle_id)
+
+
+class _QueryOn(Generic[Req, Rep]):
+    """`Keys(...).<name>` for a queryable: the declaration bound to that vehicle."""
+
+    def __init__(self, decl: Query[Req, Rep]) -> None:
+        self.decl = decl
+
+    def __get__(self, keys: Keys, owner: type) -> BoundQuery[Req, Rep]:
+        return self.decl.bind(keys.vehicle_id)
 
 
 # --------------------------------------------------------------------------- the declarations
@@ -277,18 +283,26 @@ REASONER_STEP: Topic[ReasoningStep] = Topic(
     "reasoner/step", ReasoningStep, "every reasoning step: DRT, STE, raw answer, latency", "reasoner")
 REASONER_TASK_STATUS: Topic[TaskStatus] = Topic(
     "reasoner/task_status", TaskStatus, "feedback and result of each task", "reasoner")
+REASONER_APPROVAL: Topic[ApprovalStatus] = Topic(
+    "reasoner/approval", ApprovalStatus, "operator approval of a critical skill: pending, then decided",
+    "reasoner")
+REASONER_DECIDE_APPROVAL: Query[ApprovalDecision, CancelReply] = Query(
+    "reasoner/decide_approval", ApprovalDecision, CancelReply, "approve or reject a pending skill", "reasoner")
 SAFETY_ABORT: Topic[Abort] = Topic("safety/abort", Abort, "stop: hold and end the task (anyone)", "any")
 SAFETY_ABORT_ACK: Topic[AbortAck] = Topic(
     "safety/abort_ack", AbortAck, "an abort was obeyed (vehicle commanded to hold)", "executor")
 HEALTH_TOPIC: Topic[Health] = Topic(f"{HEALTH}/{{service}}", Health, "a service's health, 1 Hz", "every service")
 ALIVE_TOKEN = Token(f"{ALIVE}/{{service}}", "presence of a service", "every service")
 
+FLEET_ABORT: BoundTopic[Abort] = BoundTopic(f"{ROOT}/{FLEET_ID}/{SAFETY_ABORT.name}", SAFETY_ABORT)
+"""The fleet-wide abort: every vehicle's executor, bridge and reasoner obey it as their own."""
+
 DECLARATIONS: tuple[Topic[Any] | Query[Any, Any] | Token, ...] = (
     CAMERA_COLOR, CAMERA_DEPTH, CAMERA_CALIBRATION, CAMERA_SEGMENTATION, TF, SIM_LABELS, SIM_JUDGE, SIM_RESET,
     SIM_STATS, SIM_RESET_NOTICE, AUTOPILOT_STATE, AUTOPILOT_COMMAND, PERCEPTION_LOCALIZE_OBJECT,
     PERCEPTION_LOCALIZE_PLACEMENT, PERCEPTION_DETECTIONS, EXECUTOR_RUN_SKILL, EXECUTOR_CANCEL_SKILL,
     EXECUTOR_SKILL_STATUS, EXECUTOR_SKILLS, EXECUTOR_MEMORY, REASONER_START_TASK, REASONER_CANCEL_TASK, REASONER_STEP,
-    REASONER_TASK_STATUS, SAFETY_ABORT, SAFETY_ABORT_ACK, HEALTH_TOPIC, ALIVE_TOKEN,
+    REASONER_TASK_STATUS, REASONER_APPROVAL, REASONER_DECIDE_APPROVAL, SAFETY_ABORT, SAFETY_ABORT_ACK, HEALTH_TOPIC, ALIVE_TOKEN,
 )
 BY_NAME: dict[str, Topic[Any] | Query[Any, Any] | Token] = {d.name: d for d in DECLARATIONS}
 
@@ -296,6 +310,8 @@ BY_NAME: dict[str, Topic[Any] | Query[Any, Any] | Token] = {d.name: d for d in D
 def vehicle_prefix(vehicle_id: str = DEFAULT_VEHICLE_ID) -> str:
     if not vehicle_id or "/" in vehicle_id or any(c in vehicle_id for c in "*$?#"):
         raise ValueError(f"invalid vehicle id {vehicle_id!r}: use letters, digits, '-' or '_'")
+    if vehicle_id == FLEET_ID:
+        raise ValueError(f"vehicle id {FLEET_ID!r} is reserved for fleet-wide keys (aermani/v1/{FLEET_ID}/...)")
     return f"{ROOT}/{vehicle_id}"
 
 
@@ -332,115 +348,34 @@ class Keys:
     def all(self) -> str:
         return f"{self.prefix}/**"
 
-    def _t(self, decl: Topic[M]) -> BoundTopic[M]:
-        return decl.bind(self.vehicle_id)
-
-    def _q(self, decl: Query[Req, Rep]) -> BoundQuery[Req, Rep]:
-        return decl.bind(self.vehicle_id)
-
-    @property
-    def camera_color(self) -> BoundTopic[bytes]:
-        return self._t(CAMERA_COLOR)
-
-    @property
-    def camera_depth(self) -> BoundTopic[bytes]:
-        return self._t(CAMERA_DEPTH)
-
-    @property
-    def camera_calibration(self) -> BoundTopic[bytes]:
-        return self._t(CAMERA_CALIBRATION)
-
-    @property
-    def camera_segmentation(self) -> BoundTopic[bytes]:
-        return self._t(CAMERA_SEGMENTATION)
-
-    @property
-    def tf(self) -> BoundTopic[bytes]:
-        return self._t(TF)
-
-    @property
-    def sim_labels(self) -> BoundTopic[SimLabels]:
-        return self._t(SIM_LABELS)
-
-    @property
-    def sim_judge(self) -> BoundQuery[JudgeRequest, JudgeResult]:
-        return self._q(SIM_JUDGE)
-
-    @property
-    def sim_reset(self) -> BoundQuery[Scenario, SimResetResult]:
-        return self._q(SIM_RESET)
-
-    @property
-    def sim_stats(self) -> BoundQuery[Any, dict[str, Any]]:
-        return self._q(SIM_STATS)
-
-    @property
-    def sim_reset_notice(self) -> BoundTopic[ResetNotice]:
-        return self._t(SIM_RESET_NOTICE)
-
-    @property
-    def autopilot_state(self) -> BoundTopic[VehicleState]:
-        return self._t(AUTOPILOT_STATE)
-
-    @property
-    def autopilot_command(self) -> BoundQuery[AutopilotCommand, AutopilotResult]:
-        return self._q(AUTOPILOT_COMMAND)
-
-    @property
-    def localize_object(self) -> BoundQuery[LocalizeRequest, ObjectEstimate]:
-        return self._q(PERCEPTION_LOCALIZE_OBJECT)
-
-    @property
-    def localize_placement(self) -> BoundQuery[LocalizeRequest, PlacementEstimate]:
-        return self._q(PERCEPTION_LOCALIZE_PLACEMENT)
-
-    @property
-    def detections(self) -> BoundTopic[Detections]:
-        return self._t(PERCEPTION_DETECTIONS)
-
-    @property
-    def run_skill(self) -> BoundQuery[SkillRequest, SkillAccept]:
-        return self._q(EXECUTOR_RUN_SKILL)
-
-    @property
-    def cancel_skill(self) -> BoundQuery[CancelGoal, CancelReply]:
-        return self._q(EXECUTOR_CANCEL_SKILL)
-
-    @property
-    def skill_status(self) -> BoundTopic[SkillStatus]:
-        return self._t(EXECUTOR_SKILL_STATUS)
-
-    @property
-    def skills(self) -> BoundQuery[None, SkillLibrary]:
-        return self._q(EXECUTOR_SKILLS)
-
-    @property
-    def memory(self) -> BoundTopic[WorkingMemory]:
-        return self._t(EXECUTOR_MEMORY)
-
-    @property
-    def start_task(self) -> BoundQuery[TaskRequest, TaskAccept]:
-        return self._q(REASONER_START_TASK)
-
-    @property
-    def cancel_task(self) -> BoundQuery[CancelGoal, CancelReply]:
-        return self._q(REASONER_CANCEL_TASK)
-
-    @property
-    def reasoning_step(self) -> BoundTopic[ReasoningStep]:
-        return self._t(REASONER_STEP)
-
-    @property
-    def task_status(self) -> BoundTopic[TaskStatus]:
-        return self._t(REASONER_TASK_STATUS)
-
-    @property
-    def abort(self) -> BoundTopic[Abort]:
-        return self._t(SAFETY_ABORT)
-
-    @property
-    def abort_ack(self) -> BoundTopic[AbortAck]:
-        return self._t(SAFETY_ABORT_ACK)
+    camera_color = _TopicOn(CAMERA_COLOR)
+    camera_depth = _TopicOn(CAMERA_DEPTH)
+    camera_calibration = _TopicOn(CAMERA_CALIBRATION)
+    camera_segmentation = _TopicOn(CAMERA_SEGMENTATION)
+    tf = _TopicOn(TF)
+    sim_labels = _TopicOn(SIM_LABELS)
+    sim_judge = _QueryOn(SIM_JUDGE)
+    sim_reset = _QueryOn(SIM_RESET)
+    sim_stats = _QueryOn(SIM_STATS)
+    sim_reset_notice = _TopicOn(SIM_RESET_NOTICE)
+    autopilot_state = _TopicOn(AUTOPILOT_STATE)
+    autopilot_command = _QueryOn(AUTOPILOT_COMMAND)
+    localize_object = _QueryOn(PERCEPTION_LOCALIZE_OBJECT)
+    localize_placement = _QueryOn(PERCEPTION_LOCALIZE_PLACEMENT)
+    detections = _TopicOn(PERCEPTION_DETECTIONS)
+    run_skill = _QueryOn(EXECUTOR_RUN_SKILL)
+    cancel_skill = _QueryOn(EXECUTOR_CANCEL_SKILL)
+    skill_status = _TopicOn(EXECUTOR_SKILL_STATUS)
+    skills = _QueryOn(EXECUTOR_SKILLS)
+    memory = _TopicOn(EXECUTOR_MEMORY)
+    start_task = _QueryOn(REASONER_START_TASK)
+    cancel_task = _QueryOn(REASONER_CANCEL_TASK)
+    reasoning_step = _TopicOn(REASONER_STEP)
+    task_status = _TopicOn(REASONER_TASK_STATUS)
+    approval = _TopicOn(REASONER_APPROVAL)
+    decide_approval = _QueryOn(REASONER_DECIDE_APPROVAL)
+    abort = _TopicOn(SAFETY_ABORT)
+    abort_ack = _TopicOn(SAFETY_ABORT_ACK)
 
     def health(self, service: str) -> BoundTopic[Health]:
         return HEALTH_TOPIC.bind(self.vehicle_id, service=service)

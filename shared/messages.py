@@ -605,6 +605,10 @@ class ModelCall(Part):
     """Prompt tokens, when the backend reports them."""
     tokens_out: int | None = None
     """Answer tokens, when the backend reports them."""
+    structured: bool = False
+    """The answer was decoded under the answer's JSON schema (schema-constrained output), not free text."""
+    tokens_cached: int | None = None
+    """Prompt tokens the server read from its prompt cache, when it reports them."""
 
 
 class ReasoningStep(Message):
@@ -669,6 +673,59 @@ class CancelReply(Message):
     """True when the goal was running and is being cancelled."""
     reason: str = ""
     """Why not (unknown goal, already ended)."""
+
+
+class ApprovalState(StrEnum):
+    """Life cycle of an operator approval request."""
+
+    PENDING = "pending"
+    APPROVED = "approved"
+    REJECTED = "rejected"
+    EXPIRED = "expired"
+
+
+class ApprovalStatus(Message):
+    """An operator approval of a critical skill: pending while the reasoner waits, then how it was decided."""
+
+    kind: Literal["approval_status"] = "approval_status"
+    stamp_ns: int = Field(default_factory=now_ns)
+    """Publish time."""
+    approval_id: str = Field(default_factory=lambda: new_id("appr-"))
+    """Id to decide it by."""
+    vehicle_id: str = "am1"
+    """Vehicle that waits."""
+    task_id: str = ""
+    """Task the skill belongs to."""
+    step: int = 0
+    """Reasoning step."""
+    skill: str
+    """The skill the policy chose."""
+    argument: str | None = None
+    """Its argument."""
+    reasoning: str = ""
+    """Why the policy chose it (its DRT reasoning), for the operator."""
+    state: ApprovalState = ApprovalState.PENDING
+    """pending, approved, rejected or expired."""
+    reason: str = ""
+    """The operator's reason (rejections), or why it expired."""
+    operator: str = ""
+    """Who decided."""
+    expires_ns: int = 0
+    """When a pending request expires (the step then fails and the vehicle holds)."""
+
+
+class ApprovalDecision(Message):
+    """The operator's answer to a pending approval."""
+
+    kind: Literal["approval_decision"] = "approval_decision"
+    approval_id: str = Field(..., max_length=64)
+    """The request decided."""
+    approved: bool
+    """True lets the skill run; False makes the policy choose again."""
+    reason: str = Field("", max_length=300)
+    """Why (shown to the policy in the History on a rejection)."""
+    operator: str = Field("operator", max_length=64)
+    """Who decides (gateway user, MCP client...)."""
 
 
 class ResetNotice(Message):
@@ -911,6 +968,6 @@ MESSAGE_TYPES: tuple[type[Message], ...] = (
     GripperCommand, AutopilotResult, LocalizeRequest, ObjectEstimate, PlacementEstimate, Detections,
     SkillLibrary, SkillRequest, SkillAccept, WorkingMemory, SkillStatus, Abort, AbortAck, ReasoningStep,
     TaskRequest, TaskAccept, TaskStatus, Health, Scenario, SimLabels, JudgeRequest, JudgeResult, SimResetResult,
-    CancelGoal, CancelReply, ResetNotice,
+    CancelGoal, CancelReply, ResetNotice, ApprovalStatus, ApprovalDecision,
 )
 MESSAGES_BY_SCHEMA: dict[str, type[Message]] = {m.full_schema_name(): m for m in MESSAGE_TYPES}

@@ -7,6 +7,7 @@ from typing import Annotated
 
 import typer
 
+from shared.action import skill_client
 from shared.bus import Bus
 from shared.keys import Keys
 from shared.messages import SkillAccept, SkillLibrary, SkillRequest, SkillStatus
@@ -14,18 +15,17 @@ from shared.settings import env_endpoints
 
 
 async def _run_skill(vehicle: str, skill: str, argument: str | None, timeout: float) -> SkillStatus | SkillAccept:
-    keys = Keys(vehicle)
     bus = await Bus.open(connect=env_endpoints())
     try:
-        statuses = bus.subscribe(keys.skill_status, maxsize=1000)
-        await asyncio.sleep(0.3)
-        acc = await bus.query(keys.run_skill, SkillRequest(skill=skill, argument=argument), timeout=10)
-        if not acc.accepted:
-            return acc
-        while True:
-            st = await statuses.recv(timeout=timeout)
-            if st.goal_id == acc.goal_id and st.state.terminal:
-                return st
+        async with skill_client(bus, vehicle) as skills:
+            await asyncio.sleep(0.3)  # the status subscription reaches the router before the goal
+            goal = await skills.send_goal(SkillRequest(skill=skill, argument=argument), timeout=10)
+            if not goal.accepted:
+                return goal.accept
+            result = await goal.result(timeout)
+            if result is None:
+                raise typer.Exit(f"no result within {timeout:.0f} s (goal {goal.goal_id})")
+            return result
     finally:
         await bus.close()
 

@@ -16,6 +16,7 @@ from services.executor.settings import ExecutorSettings
 from shared.bus import Bus
 from shared.errors import BusError, DecodeError
 from shared.frames import DEFAULT_INTRINSICS
+from shared.keys import FLEET_ABORT, BoundTopic
 from shared.messages import (
     Abort,
     AbortAck,
@@ -267,8 +268,8 @@ class Executor:
                 log.info("gripper reports open: no longer holding the %s", self.memory.held)
                 self.memory.set_held(None)
 
-    async def _pump_aborts(self) -> None:
-        sub = self.bus.subscribe(self.keys.abort, maxsize=16, overflow="drop_newest")
+    async def _pump_aborts(self, key: BoundTopic[Abort]) -> None:
+        sub = self.bus.subscribe(key, maxsize=16, overflow="drop_newest")
         while True:
             abort = await sub.recv()
             # Abort handling runs beside the pump so a second abort is not queued behind a slow hold.
@@ -315,7 +316,8 @@ class Executor:
         log.info("executor serving %d skills: %s", len(self.skills), ", ".join(self.skills))
         try:
             async with asyncio.TaskGroup() as tg:
-                for coro in (self._pump_state(), self._pump_aborts(), self._pump_depth(), self._pump_calibration(),
+                for coro in (self._pump_state(), self._pump_aborts(self.keys.abort), self._pump_aborts(FLEET_ABORT),
+                             self._pump_depth(), self._pump_calibration(),
                              self._pump_detections(), self._pump_resets(), self._memory_ticker()):
                     tg.create_task(coro)
                 await stop.wait()

@@ -14,7 +14,7 @@ from fastapi.staticfiles import StaticFiles
 
 from services.gateway import errors
 from services.gateway.fleet import Fleet
-from services.gateway.routes import abort, health, tasks, vehicles
+from services.gateway.routes import abort, approvals, health, tasks, vehicles
 from services.gateway.settings import GatewaySettings, check_safe
 from services.gateway.store import Store
 from shared.bus import Bus
@@ -59,7 +59,7 @@ def create_app(settings: GatewaySettings, bus: Bus | None = None) -> FastAPI:
     if settings.cors_origins:
         app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins, allow_methods=["GET", "POST"],
                            allow_headers=["Authorization", "Content-Type", "Last-Event-ID"])
-    for r in (tasks.router, abort.router, health.router, vehicles.router):
+    for r in (tasks.router, abort.router, health.router, vehicles.router, approvals.router):
         app.include_router(r, prefix=API)
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
 

@@ -18,16 +18,23 @@ from shared.keys import (
     AUTOPILOT_STATE,
     CAMERA_COLOR,
     EXECUTOR_SKILL_STATUS,
-    HEALTH,
+    FLEET_ABORT,
+    HEALTH_TOPIC,
+    PERCEPTION_DETECTIONS,
+    REASONER_APPROVAL,
     REASONER_STEP,
     REASONER_TASK_STATUS,
     ROOT,
     SAFETY_ABORT_ACK,
     Keys,
+    Topic,
     parse_alive_key,
 )
 from shared.messages import (
     AbortAck,
+    ApprovalState,
+    ApprovalStatus,
+    Detections,
     Health,
     ReasoningStep,
     SkillStatus,
@@ -41,10 +48,6 @@ from shared.sensors import CompressedImage, decode_proto
 log = logging.getLogger("aermani.gateway.fleet")
 
 FINISH_GRACE_S = 2.0
-
-
-def fleet_key(topic: str) -> str:
-    return f"{ROOT}/*/{topic}"
 
 
 def vehicle_of(key: str) -> str:
@@ -70,6 +73,9 @@ class VehicleView:
     state: VehicleState | None = None
     state_ns: int = 0
     frame: Frame | None = None
+    detections: Detections | None = None
+    approvals: dict[str, ApprovalStatus] = field(default_factory=dict)
+    """Pending operator approvals by id (decided or expired ones are dropped)."""
     acks: list[AbortAck] = field(default_factory=list)
     segmenter: str | None = None
     """Perception's segmenter, from its health (color, sam3, or sim: the simulator's ground-truth oracle)."""
@@ -119,24 +125,26 @@ class Fleet:
             if not self.view(task["vehicle_id"]).reasoner_alive:
                 await self._end_orphan(task, "the reasoner was not running when the gateway started")
 
-        def sub(topic: str, model: Any, handler: Callable[[str, Any], Awaitable[None]], maxsize: int = 1000,
-                ordered: bool = False):
-            s = self.bus.subscribe(fleet_key(topic), maxsize=maxsize)
+        def sub(topic: Topic[Any], handler: Callable[[str, Any], Awaitable[None]], maxsize: int = 1000,
+                ordered: bool = False, **params: str) -> None:
+            s = self.bus.subscribe(topic.fleet(**params), maxsize=maxsize)
             self._subs.append(s)
             run = self._forward(s, handler) if ordered else self._consume(s, handler)
-            self._tasks.append(asyncio.create_task(run, name=f"gateway.{topic}"))
+            self._tasks.append(asyncio.create_task(run, name=f"gateway.{topic.name}"))
 
         # Task events of all three topics go through one queue and one writer, so the database keeps the
         # order they arrived in: the final step is stored before the terminal status that ends the stream.
-        sub(REASONER_TASK_STATUS, TaskStatus, self._on_status, ordered=True)
-        sub(REASONER_STEP, ReasoningStep, self._on_step, ordered=True)
-        sub(EXECUTOR_SKILL_STATUS, SkillStatus, self._on_skill, ordered=True)
+        sub(REASONER_TASK_STATUS, self._on_status, ordered=True)
+        sub(REASONER_STEP, self._on_step, ordered=True)
+        sub(EXECUTOR_SKILL_STATUS, self._on_skill, ordered=True)
         self._tasks.append(asyncio.create_task(self._write_ordered(), name="gateway.writer"))
-        sub(AUTOPILOT_STATE, VehicleState, self._on_state, maxsize=10)
-        sub(CAMERA_COLOR, None, self._on_frame, maxsize=2)
-        sub(SAFETY_ABORT_ACK, AbortAck, self._on_ack, maxsize=100)
-        sub(f"{HEALTH}/perception", Health, self._on_health, maxsize=10)
-        sub(f"{HEALTH}/sim", Health, self._on_health, maxsize=10)
+        sub(AUTOPILOT_STATE, self._on_state, maxsize=10)
+        sub(CAMERA_COLOR, self._on_frame, maxsize=2)
+        sub(SAFETY_ABORT_ACK, self._on_ack, maxsize=100)
+        sub(PERCEPTION_DETECTIONS, self._on_detections, maxsize=4)
+        sub(REASONER_APPROVAL, self._on_approval, maxsize=100)
+        sub(HEALTH_TOPIC, self._on_health, maxsize=10, service="perception")
+        sub(HEALTH_TOPIC, self._on_health, maxsize=10, service="sim")
         queue = self.bus.watch_liveliness(f"{ROOT}/*/{ALIVE}/*", history=True)
         self._tasks.append(asyncio.create_task(self._liveliness(queue), name="gateway.liveliness"))
 
@@ -236,6 +244,25 @@ class Fleet:
         async with self.changed:
             self.changed.notify_all()
 
+    async def _on_approval(self, key: str, st: ApprovalStatus) -> None:
+        v = self.view(vehicle_of(key))
+        if st.state is ApprovalState.PENDING:
+            v.approvals[st.approval_id] = st
+        else:
+            v.approvals.pop(st.approval_id, None)
+        async with self.changed:
+            self.changed.notify_all()
+
+    def pending_approvals(self) -> list[ApprovalStatus]:
+        """Every pending approval of the fleet, oldest first (expired ones the reasoner did not report yet are
+        left out)."""
+        now = time.time_ns()
+        out = [a for v in self.vehicles.values() for a in v.approvals.values() if not a.expires_ns or a.expires_ns > now]
+        return sorted(out, key=lambda a: a.stamp_ns)
+
+    async def _on_detections(self, key: str, dets: Detections) -> None:
+        self.view(vehicle_of(key)).detections = dets
+
     async def _on_health(self, key: str, h: Health) -> None:
         v = self.view(vehicle_of(key))
         if h.service == "perception" and "segmenter" in h.details:
@@ -277,13 +304,18 @@ class Fleet:
     # ---- commands
 
     async def abort(self, vehicles: list[str], reason: str, task_id: str | None,
-                    wait_s: float) -> dict[str, str]:
-        """Publish an Abort to each vehicle; return {vehicle: executor's ack message} for those that
-        acknowledged within `wait_s`."""
+                    wait_s: float, *, fleet_wide: bool = False) -> dict[str, str]:
+        """Publish an Abort to each vehicle (or one on the fleet-wide key, which every vehicle obeys, even one
+        the gateway has not seen yet); return {vehicle: executor's ack message} for those that acknowledged
+        within `wait_s`."""
         from shared.messages import Abort
 
         stamps: dict[str, int] = {}
-        for vid in vehicles:
+        if fleet_wide:
+            msg = Abort(reason=reason, source="gateway")
+            self.bus.publish(FLEET_ABORT, msg)
+            stamps = dict.fromkeys(vehicles, msg.stamp_ns)
+        for vid in [] if fleet_wide else vehicles:
             msg = Abort(reason=reason, source="gateway", task_id=task_id)
             stamps[vid] = msg.stamp_ns
             self.bus.publish(Keys(vid).abort, msg)

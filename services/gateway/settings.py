@@ -37,6 +37,9 @@ class GatewaySettings(ServiceSettings):
     """Keep-alive comment interval on the event stream, seconds."""
     page_size_max: int = Field(100, ge=1, le=1000)
     """Largest page GET /tasks returns."""
+    skill_api: bool = False
+    """Allow POST /vehicles/{id}/skills (run one skill outside a task, through the executor's envelope).
+    Off by default: operators and agents drive tasks, not single motions."""
 
     @field_validator("cors_origins", mode="before")
     @classmethod

@@ -29,6 +29,8 @@ from services.reasoner.settings import ReasonerSettings
 from shared import skills as S  # noqa: N812
 from shared.errors import AermaniError, InvalidAnswer, ModelError
 from shared.messages import (
+    ApprovalState,
+    ApprovalStatus,
     LandedState,
     ModelCall,
     ReasoningStep,
@@ -59,6 +61,13 @@ class World(ABC):
     async def run_skill(self, request: SkillRequest, timeout: float) -> tuple[SkillAccept, SkillStatus | None]:
         """Send the skill goal (action protocol); when accepted, wait up to `timeout` for its terminal status
         (None when none came in time)."""
+
+    async def request_approval(self, request: ApprovalStatus, timeout: float) -> ApprovalStatus:
+        """Ask the operator whether `request.skill` may run; the decided status (approved, rejected, or
+        expired after `timeout`). A world without an operator channel refuses, so nothing that needs an
+        approval runs unapproved."""
+        return request.model_copy(update={"state": ApprovalState.REJECTED,
+                                          "reason": "no operator channel in this world"})
 
     async def hold(self, task_id: str, reason: str) -> None:
         """Command a hold (best effort): the failure path of a step."""
@@ -107,6 +116,7 @@ class TaskRunner:
         self.publish_step = publish_step
         self.publish_status = publish_status
         self.history = History(settings.history_full_steps, settings.history_max_chars)
+        self.categories: dict[str, str] = {}
         self.steps = 0
         self.calls = 0
         self.invalid = 0
@@ -153,6 +163,7 @@ class TaskRunner:
         except AermaniError as exc:
             return self.status(TaskState.FAILED, f"no skill library from the executor: {exc}")
         compiler = PromptCompiler(self.variant, library)
+        self.categories = {spec.name: spec.category for spec in library.skills}
         obs = await self.world.observe(0)
         if self.req.takeoff and obs.state is not None and obs.state.landed_state in (
                 LandedState.ON_GROUND, LandedState.UNKNOWN) and not obs.state.armed:
@@ -211,7 +222,8 @@ class TaskRunner:
             ste = parsed.ste
             t_skill = time.perf_counter()
             st = await self._execute(SkillRequest(skill=ste.skill, argument=ste.argument, task_id=self.req.task_id,
-                                                  step=self.steps), self.settings.skill_timeout_s)
+                                                  step=self.steps), self.settings.skill_timeout_s,
+                                     reasoning=parsed.drt.reasoning or "")
             skill_s = time.perf_counter() - t_skill
             t_upd = time.perf_counter()
             last_end_ns = now_ns()  # local clock: the next frame must arrive after this
@@ -250,12 +262,14 @@ class TaskRunner:
             try:
                 parsed = parse_answer(reply.text, self.variant, library, coverage=self.settings.prediction_coverage)
                 calls.append(ModelCall(raw_answer=reply.text, valid=True, latency_s=reply.latency_s,
-                                       tokens_in=reply.tokens_in, tokens_out=reply.tokens_out))
+                                       tokens_in=reply.tokens_in, tokens_out=reply.tokens_out,
+                                       structured=reply.structured, tokens_cached=reply.cached_tokens))
                 break
             except InvalidAnswer as exc:
                 self.invalid += 1
                 calls.append(ModelCall(raw_answer=reply.text, valid=False, error=str(exc), latency_s=reply.latency_s,
-                                       tokens_in=reply.tokens_in, tokens_out=reply.tokens_out))
+                                       tokens_in=reply.tokens_in, tokens_out=reply.tokens_out,
+                                       structured=reply.structured, tokens_cached=reply.cached_tokens))
                 feedback.append((reply.text, str(exc)))
                 log.info("invalid answer (step %d): %s", self.steps, exc)
         rec = ReasoningStep(
@@ -265,8 +279,37 @@ class TaskRunner:
             valid=parsed is not None, retries=len(calls) - 1)
         return StepResult(rec, parsed), model_time
 
-    async def _execute(self, req: SkillRequest, timeout: float) -> SkillStatus:
-        """Run one skill on the executor and wait for its terminal status (never raises)."""
+    def _needs_approval(self, skill: str) -> bool:
+        wanted = set(self.settings.approval)
+        return bool(wanted) and (skill in wanted or self.categories.get(skill, "") in wanted)
+
+    async def _approved(self, req: SkillRequest, reasoning: str) -> SkillStatus | None:
+        """None when the skill may run; else the status that ends the step (rejected, or failed on timeout)."""
+        timeout = self.settings.approval_timeout_s
+        ask = ApprovalStatus(vehicle_id=self.settings.vehicle_id, task_id=req.task_id, step=req.step, skill=req.skill,
+                             argument=req.argument, reasoning=reasoning, expires_ns=now_ns() + int(timeout * 1e9))
+        started = now_ns()
+        decided = await self.world.request_approval(ask, timeout)
+        log.info("approval of %s(%s): %s %s", req.skill, req.argument or "", decided.state.value, decided.reason)
+        base = {"goal_id": "", "skill": req.skill, "argument": req.argument, "task_id": req.task_id, "step": req.step,
+                "started_ns": started}
+        if decided.state is ApprovalState.APPROVED:
+            return None
+        if decided.state is ApprovalState.REJECTED:
+            return SkillStatus(**base, state=SkillState.REJECTED, ended_ns=now_ns(),
+                               message=f"rejected by the operator ({decided.operator or 'operator'}): "
+                                       f"{decided.reason or 'no reason given'}; choose another skill")
+        await self.world.hold(req.task_id, "approval timeout")
+        return SkillStatus(**base, state=SkillState.FAILED, ended_ns=now_ns(),
+                           message=f"no operator decision within {timeout:.0f} s; vehicle held")
+
+    async def _execute(self, req: SkillRequest, timeout: float, reasoning: str = "") -> SkillStatus:
+        """Run one skill on the executor and wait for its terminal status (never raises). A skill that needs
+        the operator's approval waits for it first."""
+        if self._needs_approval(req.skill):
+            refused = await self._approved(req, reasoning)
+            if refused is not None:
+                return refused
         started = now_ns()
         try:
             accept, st = await self.world.run_skill(req, timeout)

@@ -106,10 +106,10 @@ def recover_cmd(
 
 def rereason_cmd(
     log: LogArg,
-    backend: Annotated[str, typer.Option(help="Backend to re-run the decisions with (rules, openai, anthropic, "
-                                              "replay...).")] = "rules",
+    backend: Annotated[str, typer.Option(help="Backend to re-run the decisions with (`aermani vlm backends`; "
+                                              "replay reads --answers).")] = "rules",
     variant: Annotated[str | None, typer.Option(help="Prompt variant (default: the recorded one).")] = None,
-    model: Annotated[str | None, typer.Option(help="Model name for openai/anthropic backends.")] = None,
+    model: Annotated[str | None, typer.Option(help="Model name for a model backend.")] = None,
     task: Annotated[str | None, typer.Option(help="Only this task id.")] = None,
     answers: Annotated[Path | None, typer.Option(help="For --backend replay: the log whose recorded answers "
                                                      "to replay.")] = None,

@@ -27,6 +27,9 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 from pydantic import BaseModel
 
+from shared.bus import decoder
+from shared.errors import AermaniError
+from shared.keys import REASONER_STEP, REASONER_TASK_STATUS, BoundTopic, Topic
 from shared.messages import MESSAGES_BY_SCHEMA, ReasoningStep, TaskStatus
 from shared.sensors import PROTO_TYPES, stamp_to_ns
 
@@ -260,13 +263,30 @@ def read_messages(path: str | Path, model: type[T], keys: str | None = None) -> 
     return out
 
 
+def read_topic(path: str | Path, topic: BoundTopic[T]) -> list[tuple[LoggedSample, T]]:
+    """Every sample recorded on a declared topic (one vehicle's, or the fleet's), decoded to its declared
+    type (malformed ones are skipped)."""
+    decode = decoder(topic.decl.type)
+    out = []
+    for s in iter_samples(path, topic.key):
+        try:
+            out.append((s, decode(s.payload)))
+        except AermaniError as exc:
+            log.warning("skipped malformed sample on %s: %s", s.key, exc)
+    return out
+
+
+def topic_of(vehicle_id: str | None, decl: Topic[T]) -> BoundTopic[T]:
+    """`decl` on one vehicle, or on every vehicle when `vehicle_id` is None or '*'."""
+    return decl.fleet() if vehicle_id in (None, "*") else decl.bind(vehicle_id)  # type: ignore[arg-type]
+
+
 def reasoning_steps(path: str | Path, vehicle_id: str | None = None,
                     task_id: str | None = None) -> list[ReasoningStep]:
     """The recorded reasoning steps (last version of each (task, step)), in recording order. This is what
     the reasoner's replay backend reads its answers from."""
-    pattern = f"aermani/v1/{vehicle_id or '*'}/reasoner/step"
     latest: dict[tuple[str, int], ReasoningStep] = {}
-    for _, step in read_messages(path, ReasoningStep, pattern):
+    for _, step in read_topic(path, topic_of(vehicle_id, REASONER_STEP)):
         if task_id is None or step.task_id == task_id:
             latest[(step.task_id, step.step)] = step
     return list(latest.values())
@@ -291,8 +311,7 @@ class McapReplaySource:
 
 def task_statuses(path: str | Path, vehicle_id: str | None = None) -> dict[str, TaskStatus]:
     """The last recorded status of each task."""
-    pattern = f"aermani/v1/{vehicle_id or '*'}/reasoner/task_status"
-    return {st.task_id: st for _, st in read_messages(path, TaskStatus, pattern)}
+    return {st.task_id: st for _, st in read_topic(path, topic_of(vehicle_id, REASONER_TASK_STATUS))}
 
 
 def metadata(path: str | Path) -> dict[str, dict[str, str]]:

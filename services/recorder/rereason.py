@@ -22,6 +22,14 @@ from typing import Any
 from services.recorder.mcaplog import iter_samples, vehicle_of
 from services.recorder.timeline import percentile
 from shared.errors import AermaniError
+from shared.keys import (
+    AUTOPILOT_STATE,
+    CAMERA_COLOR,
+    EXECUTOR_MEMORY,
+    PERCEPTION_DETECTIONS,
+    REASONER_STEP,
+    REASONER_TASK_STATUS,
+)
 from shared.messages import (
     Detections,
     ModelCall,
@@ -194,23 +202,23 @@ class LogIndex:
             vid = vehicle_of(s.key) or ""
             topic = s.key.split("/", 3)[3] if s.key.count("/") >= 3 else s.key
             try:
-                if topic == "autopilot/state":
+                if topic == AUTOPILOT_STATE.name:
                     self.state.setdefault(vid, _Stream()).add(s.log_time_ns, VehicleState.model_validate_json(s.payload))
-                elif topic == "perception/detections":
+                elif topic == PERCEPTION_DETECTIONS.name:
                     self.detections.setdefault(vid, _Stream()).add(s.log_time_ns,
                                                                    Detections.model_validate_json(s.payload))
-                elif topic == "executor/memory":
+                elif topic == EXECUTOR_MEMORY.name:
                     self.memory.setdefault(vid, _Stream()).add(s.log_time_ns,
                                                                WorkingMemory.model_validate_json(s.payload))
-                elif topic == "camera/color":
+                elif topic == CAMERA_COLOR.name:
                     msg = img_cls()
                     msg.ParseFromString(s.payload)
                     self.frames.setdefault(vid, {})[stamp_to_ns(msg.timestamp)] = bytes(msg.data)
-                elif topic == "reasoner/step":
+                elif topic == REASONER_STEP.name:
                     st = ReasoningStep.model_validate_json(s.payload)
                     steps.setdefault(st.task_id, {})[st.step] = st
                     vehicles.setdefault(st.task_id, vid)
-                elif topic == "reasoner/task_status":
+                elif topic == REASONER_TASK_STATUS.name:
                     ts = TaskStatus.model_validate_json(s.payload)
                     statuses[ts.task_id] = ts
                     vehicles.setdefault(ts.task_id, vid)

@@ -8,7 +8,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from services.recorder.mcaplog import iter_samples, metadata, read_messages, vehicle_of
+from services.recorder.mcaplog import iter_samples, metadata, read_topic, topic_of, vehicle_of
+from shared.keys import CAMERA_COLOR, REASONER_STEP, REASONER_TASK_STATUS
 from shared.messages import ReasoningStep, TaskStatus
 from shared.sensors import PROTO_TYPES, stamp_to_ns
 
@@ -84,11 +85,11 @@ def timelines(path: str | Path, vehicle_id: str | None = None) -> list[TaskTimel
     vid = vehicle_id or "*"
     steps: dict[str, dict[int, ReasoningStep]] = {}
     vehicles: dict[str, str] = {}
-    for sample, s in read_messages(path, ReasoningStep, f"aermani/v1/{vid}/reasoner/step"):
+    for sample, s in read_topic(path, topic_of(vid, REASONER_STEP)):
         steps.setdefault(s.task_id, {})[s.step] = s  # a later version of a step replaces the earlier one
         vehicles.setdefault(s.task_id, vehicle_of(sample.key) or s.vehicle_id)
     statuses: dict[str, TaskStatus] = {}
-    for sample, st in read_messages(path, TaskStatus, f"aermani/v1/{vid}/reasoner/task_status"):
+    for sample, st in read_topic(path, topic_of(vid, REASONER_TASK_STATUS)):
         statuses[st.task_id] = st
         vehicles.setdefault(st.task_id, vehicle_of(sample.key) or st.vehicle_id)
     order = list(dict.fromkeys([*statuses, *steps]))
@@ -178,7 +179,7 @@ def color_frames(path: str | Path, vehicle_id: str) -> list[tuple[int, bytes, st
     """(stamp_ns, image bytes, format) of every colour frame of a vehicle."""
     out = []
     cls = PROTO_TYPES["foxglove.CompressedImage"]
-    for s in iter_samples(path, f"aermani/v1/{vehicle_id}/camera/color"):
+    for s in iter_samples(path, CAMERA_COLOR.bind(vehicle_id).key):
         msg = cls()
         try:
             msg.ParseFromString(s.payload)

@@ -56,9 +56,9 @@ def test_state_health_commands_over_zenoh() -> None:
             for bad in (b"{not json", json.dumps({"kind": "teleport"}).encode(),
                         json.dumps({"kind": "goto", "position": {"x": 1, "y": 0, "z": 1}}).encode()):
                 with pytest.raises(RemoteError):
-                    await client.query(keys.autopilot_command, bad, schema="aermani.Bad")
+                    await client.query(keys.autopilot_command, bad)
             nan_goto = b'{"kind": "goto", "position": {"x": NaN, "y": 0, "z": 1}, "yaw": 0}'
-            res = await client.query(keys.autopilot_command, nan_goto, schema="aermani.Bad")
+            res = await client.query(keys.autopilot_command, nan_goto)
             assert not res.ok and "non-finite" in res.message
             await asyncio.sleep(0.2)
             after = fake.setpoints[-1]

@@ -234,7 +234,9 @@ def test_abort_during_translation_and_during_grasp(stack):
     arun(main(), 400)
 
 
-def test_grasp_on_stale_memory_reports_failure(stack):
+def test_world_reset_clears_working_memory_so_no_grasp_runs_on_the_old_layout(stack):
+    """The simulator's reset notice makes the executor forget the old world: a grasp of what was localized
+    before the reset is refused (localize first) instead of flying to an empty spot; no process restart."""
     async def main():
         async with bus_for(stack) as bus:
             c = Client(bus)

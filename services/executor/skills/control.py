@@ -19,6 +19,8 @@ from shared.messages import (
 
 @register
 class Done(Skill):
+    """The policy declares the task complete."""
+
     name = names.DONE
     category: Category = "control"
     description = "Declare the task complete; the episode ends."
@@ -30,14 +32,21 @@ class Done(Skill):
         return SkillResult("task declared complete")
 
 
-@register
-class Takeoff(Skill):
-    name = names.TAKEOFF
+class _Operator(Skill):
+    """Skills the operator (or the loop itself) runs; never offered to the model."""
+
     category: Category = "operator"
-    description = "Arm and take off to {s.flight_altitude:g} m."
     policy_visible = False
-    needs_airborne = False
     needs_offboard = False
+
+
+@register
+class Takeoff(_Operator):
+    """Arm and climb to the flight altitude (the bridge arms and judges arrival)."""
+
+    name = names.TAKEOFF
+    description = "Arm and take off to {s.flight_altitude:g} m."
+    needs_airborne = False
 
     def parameters(self) -> tuple[SkillParameter, ...]:
         return (SkillParameter(name="altitude", value=self.settings.flight_altitude, unit="m"),)
@@ -61,12 +70,11 @@ class Takeoff(Skill):
 
 
 @register
-class Land(Skill):
+class Land(_Operator):
+    """Land where the vehicle is."""
+
     name = names.LAND
-    category: Category = "operator"
     description = "Land at the current position."
-    policy_visible = False
-    needs_offboard = False
 
     def timeout_s(self, ctx: SkillContext, argument: str | None) -> float:
         return self.settings.land_timeout_s
@@ -78,13 +86,12 @@ class Land(Skill):
 
 
 @register
-class Hold(Skill):
+class Hold(_Operator):
+    """Hold the current position (also the loop's failure path)."""
+
     name = names.HOLD
-    category: Category = "operator"
     description = "Hold the current position."
-    policy_visible = False
     needs_airborne = False
-    needs_offboard = False
 
     async def run(self, ctx: SkillContext, argument: str | None) -> SkillResult:
         await ctx.command(HoldCommand())

@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+from abc import abstractmethod
+
 from services.executor.context import SkillContext, SkillFailed
 from services.executor.envelope import outside_geofence
 from services.executor.memory import horizontal_distance
 from services.executor.registry import Category, Skill, SkillResult, register
 from services.executor.skills.common import fmt, not_found
 from shared import skills as names
+from shared.messages import ObjectEstimate, PlacementEstimate
 
 # --------------------------------------------------------------------------- perception routines
 
@@ -24,6 +27,23 @@ class _Localization(Skill):
     def timeout_s(self, ctx: SkillContext, argument: str | None) -> float:
         return self.settings.localize_timeout_s + 2.0
 
+    async def run(self, ctx: SkillContext, argument: str | None) -> SkillResult:
+        assert argument
+        est = await self.localize(ctx, argument)
+        if not est.found or est.pose is None:
+            raise SkillFailed(not_found(argument, est))
+        text, result = self.store(ctx, est, argument)
+        ctx.note(text)
+        return SkillResult(result)
+
+    @abstractmethod
+    async def localize(self, ctx: SkillContext, argument: str) -> ObjectEstimate | PlacementEstimate:
+        """Ask perception."""
+
+    @abstractmethod
+    def store(self, ctx: SkillContext, est: ObjectEstimate | PlacementEstimate, argument: str) -> tuple[str, str]:
+        """Put a found estimate into working memory; returns (what was perceived, the result message)."""
+
 
 @register
 class ObjLocalization(_Localization):
@@ -32,11 +52,11 @@ class ObjLocalization(_Localization):
                    "and store it in working memory. Fails when the object is not in view.")
     argument = "object query"
 
-    async def run(self, ctx: SkillContext, argument: str | None) -> SkillResult:
-        assert argument
-        est = await ctx.localize_object(argument)
-        if not est.found or est.pose is None:
-            raise SkillFailed(not_found(argument, est))
+    async def localize(self, ctx: SkillContext, argument: str) -> ObjectEstimate:
+        return await ctx.localize_object(argument)
+
+    def store(self, ctx: SkillContext, est: ObjectEstimate | PlacementEstimate, argument: str) -> tuple[str, str]:
+        assert isinstance(est, ObjectEstimate) and est.pose is not None
         if outside_geofence(est.pose.position, self.settings, 0.05):
             # e.g. depth through a gap or a pose/frame mismatch: never store a target no skill may fly to
             raise SkillFailed(f"{argument} estimate {fmt(est.pose.position)} lies outside the flyable room: "
@@ -46,8 +66,7 @@ class ObjLocalization(_Localization):
         st = ctx.state.value
         if st is not None:
             text += f", {horizontal_distance(mo.position, st.position):.2f} m away horizontally"
-        ctx.note(text)
-        return SkillResult(f"localized {text} (confidence {est.confidence:.2f})")
+        return text, f"localized {text} (confidence {est.confidence:.2f})"
 
 
 @register
@@ -57,12 +76,12 @@ class PlacementLocalization(_Localization):
                    "pose with a vertical offset for the held object; store it in working memory.")
     argument = "surface query"
 
-    async def run(self, ctx: SkillContext, argument: str | None) -> SkillResult:
-        assert argument
-        est = await ctx.localize_placement(argument, ctx.memory.held_size)
-        if not est.found or est.pose is None:
-            raise SkillFailed(not_found(argument, est))
+    async def localize(self, ctx: SkillContext, argument: str) -> PlacementEstimate:
+        return await ctx.localize_placement(argument, ctx.memory.held_size)
+
+    def store(self, ctx: SkillContext, est: ObjectEstimate | PlacementEstimate, argument: str) -> tuple[str, str]:
+        assert isinstance(est, PlacementEstimate)
         mo = ctx.memory.store_placement(est, argument)
         text = f"placement spot on the {mo.label} at {fmt(mo.position)}"
-        ctx.note(text)
-        return SkillResult(f"found {text} (surface z {est.surface_z if est.surface_z is not None else 0:.2f})")
+        surface_z = est.surface_z if est.surface_z is not None else 0.0
+        return text, f"found {text} (surface z {surface_z:.2f})"

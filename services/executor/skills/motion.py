@@ -84,58 +84,26 @@ class _Step(Skill):
         return SkillResult(f"{self.name} done: now at {fmt(end.position)}, yaw {math.degrees(end.yaw):.0f} deg")
 
 
-@register
-class YawLeft(_Step):
-    name = names.YAW_LEFT
-    description = "Rotate left (counter-clockwise) about the body z-axis by {s.yaw_step_deg:g} deg, to look around."
-    turn = 1.0
+# Paper Table II as a table: (name, Skill Library text, body-frame direction, turn).
+_PRIMITIVES: tuple[tuple[str, str, tuple[float, float, float], float], ...] = (
+    (names.YAW_LEFT, "Rotate left (counter-clockwise) about the body z-axis by {s.yaw_step_deg:g} deg, to look "
+     "around.", (0.0, 0.0, 0.0), 1.0),
+    (names.YAW_RIGHT, "Rotate right (clockwise) about the body z-axis by {s.yaw_step_deg:g} deg, to look around.",
+     (0.0, 0.0, 0.0), -1.0),
+    (names.FORWARD, "Translate forward along the body x-axis by {s.horizontal_step:g} m, to approach a target "
+     "(refused when the depth image shows an obstacle in the way).", (1.0, 0.0, 0.0), 0.0),
+    (names.BACKWARD, "Translate backward along the body x-axis by {s.horizontal_step:g} m, to retreat.",
+     (-1.0, 0.0, 0.0), 0.0),
+    (names.LEFT, "Translate left along the body y-axis by {s.horizontal_step:g} m, to correct lateral "
+     "misalignment.", (0.0, 1.0, 0.0), 0.0),
+    (names.RIGHT, "Translate right along the body y-axis by {s.horizontal_step:g} m, to correct lateral "
+     "misalignment.", (0.0, -1.0, 0.0), 0.0),
+    (names.UP, "Climb by {s.vertical_step:g} m, to gain clearance or see more of the scene.", (0.0, 0.0, 1.0), 0.0),
+    (names.DOWN, "Descend by {s.vertical_step:g} m, to reach manipulation height or see closer.", (0.0, 0.0, -1.0),
+     0.0),
+)
 
-
-@register
-class YawRight(_Step):
-    name = names.YAW_RIGHT
-    description = "Rotate right (clockwise) about the body z-axis by {s.yaw_step_deg:g} deg, to look around."
-    turn = -1.0
-
-
-@register
-class Forward(_Step):
-    name = names.FORWARD
-    description = ("Translate forward along the body x-axis by {s.horizontal_step:g} m, to approach a target "
-                   "(refused when the depth image shows an obstacle in the way).")
-    body = (1.0, 0.0, 0.0)
-
-
-@register
-class Backward(_Step):
-    name = names.BACKWARD
-    description = "Translate backward along the body x-axis by {s.horizontal_step:g} m, to retreat."
-    body = (-1.0, 0.0, 0.0)
-
-
-@register
-class Left(_Step):
-    name = names.LEFT
-    description = "Translate left along the body y-axis by {s.horizontal_step:g} m, to correct lateral misalignment."
-    body = (0.0, 1.0, 0.0)
-
-
-@register
-class Right(_Step):
-    name = names.RIGHT
-    description = "Translate right along the body y-axis by {s.horizontal_step:g} m, to correct lateral misalignment."
-    body = (0.0, -1.0, 0.0)
-
-
-@register
-class Up(_Step):
-    name = names.UP
-    description = "Climb by {s.vertical_step:g} m, to gain clearance or see more of the scene."
-    body = (0.0, 0.0, 1.0)
-
-
-@register
-class Down(_Step):
-    name = names.DOWN
-    description = "Descend by {s.vertical_step:g} m, to reach manipulation height or see closer."
-    body = (0.0, 0.0, -1.0)
+for _name, _text, _body, _turn in _PRIMITIVES:
+    register(type(_name.title().replace("_", ""), (_Step,), {
+        "name": _name, "description": _text, "body": _body, "turn": _turn, "__module__": __name__,
+        "__doc__": f"Motion primitive `{_name}` (paper Table II)."}))
