@@ -16,7 +16,6 @@ from services.reasoner.parse import parse_answer
 from services.reasoner.prompt import History, Observation, PromptCompiler
 from shared.errors import InvalidAnswer
 from tests.executor.rig import rig
-from tests.helpers import arun
 
 MODULE = "tests.extensions.inspect_skill"
 
@@ -34,7 +33,7 @@ def _full_answer(library, skill: str, drop: str | None = None) -> str:
     return json.dumps({"drt": drt, "ste": {"skill": skill, "argument": None}})
 
 
-def test_skill_from_a_test_module_reaches_every_consumer(no_leak):
+async def test_skill_from_a_test_module_reaches_every_consumer(no_leak):
     async def main():
         async with rig(skill_modules=[MODULE]) as r:
             lib = await r.bus.query(r.keys.skills, None, timeout=5)
@@ -45,7 +44,7 @@ def test_skill_from_a_test_module_reaches_every_consumer(no_leak):
             assert st.state.value == "succeeded", st.message
             return lib
 
-    lib = arun(main())
+    lib = await main()
     # The prompt's Skill Library part lists it with its parameter.
     prompt = PromptCompiler("full", lib).compile("inspect below the table", History(), Observation())
     assert "- inspect_below: Drop to" in prompt.parts["skill_library"]

@@ -27,7 +27,7 @@ from shared.messages import (
     SkillState,
     SkillStatus,
 )
-from tests.helpers import arun, bus_for, run_stack
+from tests.helpers import bus_for, run_stack
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
@@ -129,71 +129,65 @@ class Client:
         return math.sqrt(s.velocity.x ** 2 + s.velocity.y ** 2 + s.velocity.z ** 2)
 
 
-def test_pick_and_place_sequence_judged_by_ground_truth(stack):
-    async def main():
-        async with bus_for(stack) as bus:
-            c = Client(bus)
-            # seed 5: the cup is on the shelf, 2.9 m from the table; both within perception range of the search
-            await c.reset(seed=5, target_object="red cup", destination="table")
-            await c.takeoff()
-            await c.search("obj_localization", "red cup")
-            far = await c.run("grasp")  # localized from the take-off spot, beyond the reach
-            assert far.state == SkillState.REJECTED and "too far: approach first" in far.message, far.message
-            for _attempt in range(3):
-                # Like the policy after a failed grasp (paper Sec. III-D): re-localize, then grasp again.
-                await c.approach("red cup")
-                st = await c.run("grasp")
-                if st.state == SkillState.SUCCEEDED:
-                    break
-                assert "localize it again" in st.message or "grasp again" in st.message, st.message
-            assert st.state == SkillState.SUCCEEDED, st.message
-            # Verified by the gripper's own sensing (finger width and contact over MAVLink), not by looking.
-            assert "in contact" in st.message, st.message
-            assert st.outcome.held_object == "red cup"
-            assert (await c.judge(op="held")).held == "red cup"
-            await c.search("placement_localization", "table")
-            st = await c.ok("place")
-            verdict = await c.judge(op="on_surface", object="red cup", surface="table")
-            assert verdict.ok, verdict.message
-            world = await c.judge(op="world")
-            assert world.collisions == (), world.collisions
-            # land is the operator's call: the executor cannot see below, so it may sit over furniture
-            await c.ok("land")
-
-    arun(main(), 600)
+async def test_pick_and_place_sequence_judged_by_ground_truth(stack):
+    async with bus_for(stack) as bus:
+        c = Client(bus)
+        # seed 5: the cup is on the shelf, 2.9 m from the table; both within perception range of the search
+        await c.reset(seed=5, target_object="red cup", destination="table")
+        await c.takeoff()
+        await c.search("obj_localization", "red cup")
+        far = await c.run("grasp")  # localized from the take-off spot, beyond the reach
+        assert far.state == SkillState.REJECTED and "too far: approach first" in far.message, far.message
+        for _attempt in range(3):
+            # Like the policy after a failed grasp (paper Sec. III-D): re-localize, then grasp again.
+            await c.approach("red cup")
+            st = await c.run("grasp")
+            if st.state == SkillState.SUCCEEDED:
+                break
+            assert "localize it again" in st.message or "grasp again" in st.message, st.message
+        assert st.state == SkillState.SUCCEEDED, st.message
+        # Verified by the gripper's own sensing (finger width and contact over MAVLink), not by looking.
+        assert "in contact" in st.message, st.message
+        assert st.outcome.held_object == "red cup"
+        assert (await c.judge(op="held")).held == "red cup"
+        await c.search("placement_localization", "table")
+        st = await c.ok("place")
+        verdict = await c.judge(op="on_surface", object="red cup", surface="table")
+        assert verdict.ok, verdict.message
+        world = await c.judge(op="world")
+        assert world.collisions == (), world.collisions
+        # land is the operator's call: the executor cannot see below, so it may sit over furniture
+        await c.ok("land")
 
 
-def test_motion_primitives_and_operator_skills(stack):
-    async def main():
-        async with bus_for(stack) as bus:
-            c = Client(bus)
-            await c.reset(seed=3)
-            await c.takeoff()
-            for skill in ("up", "down", "yaw_left", "yaw_right", "backward", "left", "right", "hold", "done"):
-                st = await c.ok(skill)
-                a, b = st.outcome.start_pose, st.outcome.end_pose
-                moved = math.dist(a.position.as_tuple(), b.position.as_tuple())
-                if skill in ("up", "down"):
-                    assert abs(abs(b.position.z - a.position.z) - 0.3) < 0.1, (skill, a, b)
-                elif skill in ("backward", "left", "right"):
-                    assert abs(moved - 0.5) < 0.12, (skill, moved)
-                elif skill.startswith("yaw"):
-                    turn = math.degrees((b.yaw - a.yaw + math.pi) % (2 * math.pi) - math.pi)
-                    assert abs(abs(turn) - ExecutorSettings().yaw_step_deg) < 8, (skill, turn)
-            # forward needs free depth ahead: turn until the corridor is clear (a rejection moves nothing)
-            for _ in range(12):
-                acc = await c.request("forward")
-                if acc.accepted:
-                    st = await c.terminal(acc.goal_id)
-                    assert st.state == SkillState.SUCCEEDED, st.message
-                    break
-                assert "obstacle" in acc.reason or "geofence" in acc.reason, acc.reason
-                await c.ok("yaw_left")
-            else:
-                raise AssertionError("forward was never possible")
-            await c.ok("land")
-
-    arun(main(), 400)
+async def test_motion_primitives_and_operator_skills(stack):
+    async with bus_for(stack) as bus:
+        c = Client(bus)
+        await c.reset(seed=3)
+        await c.takeoff()
+        for skill in ("up", "down", "yaw_left", "yaw_right", "backward", "left", "right", "hold", "done"):
+            st = await c.ok(skill)
+            a, b = st.outcome.start_pose, st.outcome.end_pose
+            moved = math.dist(a.position.as_tuple(), b.position.as_tuple())
+            if skill in ("up", "down"):
+                assert abs(abs(b.position.z - a.position.z) - 0.3) < 0.1, (skill, a, b)
+            elif skill in ("backward", "left", "right"):
+                assert abs(moved - 0.5) < 0.12, (skill, moved)
+            elif skill.startswith("yaw"):
+                turn = math.degrees((b.yaw - a.yaw + math.pi) % (2 * math.pi) - math.pi)
+                assert abs(abs(turn) - ExecutorSettings().yaw_step_deg) < 8, (skill, turn)
+        # forward needs free depth ahead: turn until the corridor is clear (a rejection moves nothing)
+        for _ in range(12):
+            acc = await c.request("forward")
+            if acc.accepted:
+                st = await c.terminal(acc.goal_id)
+                assert st.state == SkillState.SUCCEEDED, st.message
+                break
+            assert "obstacle" in acc.reason or "geofence" in acc.reason, acc.reason
+            await c.ok("yaw_left")
+        else:
+            raise AssertionError("forward was never possible")
+        await c.ok("land")
 
 
 async def _abort(c: Client, goal_id: str) -> AbortAck:
@@ -214,52 +208,46 @@ async def _abort(c: Client, goal_id: str) -> AbortAck:
     return ack
 
 
-def test_abort_during_translation_and_during_grasp(stack):
-    async def main():
-        async with bus_for(stack) as bus:
-            c = Client(bus)
-            await c.reset(seed=1, target_object="red cup", destination="table")
-            await c.takeoff()
-            acc = await c.request("backward")
-            assert acc.accepted, acc.reason
-            await asyncio.sleep(0.2)
-            await _abort(c, acc.goal_id)
-            await c.ok("yaw_left")  # ready for the next skill
-            await c.approach("red cup")
-            acc = await c.request("grasp")
-            assert acc.accepted, acc.reason
-            await asyncio.sleep(1.0)
-            await _abort(c, acc.goal_id)
-            assert (await c.judge(op="held")).held is None
-            await c.ok("hold")
-            await c.ok("land")
-
-    arun(main(), 400)
+async def test_abort_during_translation_and_during_grasp(stack):
+    async with bus_for(stack) as bus:
+        c = Client(bus)
+        await c.reset(seed=1, target_object="red cup", destination="table")
+        await c.takeoff()
+        acc = await c.request("backward")
+        assert acc.accepted, acc.reason
+        await asyncio.sleep(0.2)
+        await _abort(c, acc.goal_id)
+        await c.ok("yaw_left")  # ready for the next skill
+        await c.approach("red cup")
+        acc = await c.request("grasp")
+        assert acc.accepted, acc.reason
+        await asyncio.sleep(1.0)
+        await _abort(c, acc.goal_id)
+        assert (await c.judge(op="held")).held is None
+        await c.ok("hold")
+        await c.ok("land")
 
 
-def test_world_reset_clears_working_memory_so_no_grasp_runs_on_the_old_layout(stack):
+async def test_world_reset_clears_working_memory_so_no_grasp_runs_on_the_old_layout(stack):
     """The simulator's reset notice makes the executor forget the old world: a grasp of what was localized
     before the reset is refused (localize first) instead of flying to an empty spot; no process restart."""
-    async def main():
-        async with bus_for(stack) as bus:
-            c = Client(bus)
-            await c.reset(seed=1, target_object="red cup", destination="table")
-            await c.takeoff()
-            loc = await c.search("obj_localization", "red cup")
-            await c.ok("land")
-            # The world changes under the executor: the cup is now elsewhere (a new layout).
-            await c.reset(seed=7, target_object="red cup", destination="table")
-            truth = {o.name: o for o in (await c.judge(op="world")).objects}
-            remembered = loc.outcome.estimate.pose.position
-            assert math.hypot(truth["red cup"].position.x - remembered.x,
-                              truth["red cup"].position.y - remembered.y) > 0.3
-            await c.takeoff()
-            # The reset notice cleared the executor's memory (the world it described is gone): the grasp is
-            # refused before anything moves instead of flying to where the cup was.
-            st = await c.run("grasp", "red cup")
-            assert st.state == SkillState.REJECTED, st.message
-            assert "run obj_localization first" in st.message, st.message
-            assert (await c.judge(op="held")).held is None
-            await c.ok("land")
-
-    arun(main(), 400)
+    async with bus_for(stack) as bus:
+        c = Client(bus)
+        await c.reset(seed=1, target_object="red cup", destination="table")
+        await c.takeoff()
+        loc = await c.search("obj_localization", "red cup")
+        await c.ok("land")
+        # The world changes under the executor: the cup is now elsewhere (a new layout).
+        await c.reset(seed=7, target_object="red cup", destination="table")
+        truth = {o.name: o for o in (await c.judge(op="world")).objects}
+        remembered = loc.outcome.estimate.pose.position
+        assert math.hypot(truth["red cup"].position.x - remembered.x,
+                          truth["red cup"].position.y - remembered.y) > 0.3
+        await c.takeoff()
+        # The reset notice cleared the executor's memory (the world it described is gone): the grasp is
+        # refused before anything moves instead of flying to where the cup was.
+        st = await c.run("grasp", "red cup")
+        assert st.state == SkillState.REJECTED, st.message
+        assert "run obj_localization first" in st.message, st.message
+        assert (await c.judge(op="held")).held is None
+        await c.ok("land")

@@ -9,7 +9,7 @@ import numpy as np
 from services.reasoner.prompt import memory_summary
 from shared.messages import Abort, SkillState
 from tests.executor.rig import rig
-from tests.helpers import arun, wait_until
+from tests.helpers import wait_until
 
 
 def _scene(r) -> None:
@@ -18,85 +18,73 @@ def _scene(r) -> None:
     r.world.add_surface("round table", -1.5, 1.5, 0.75, size=(0.9, 0.9))
 
 
-def test_localize_grasp_localize_placement_place():
-    async def main():
-        async with rig() as r:
-            _scene(r)
-            st = await r.run_skill("obj_localization", "blue box")
-            assert st.state == SkillState.FAILED and "blue box not visible" in st.message
-            st = await r.run_skill("obj_localization", "red cup")
-            assert st.state == SkillState.SUCCEEDED, st.message
-            assert st.outcome.estimate is not None and st.outcome.estimate.found
-            assert "red cup at (1.50, 0.10" in st.outcome.perceived
+async def test_localize_grasp_localize_placement_place():
+    async with rig() as r:
+        _scene(r)
+        st = await r.run_skill("obj_localization", "blue box")
+        assert st.state == SkillState.FAILED and "blue box not visible" in st.message
+        st = await r.run_skill("obj_localization", "red cup")
+        assert st.state == SkillState.SUCCEEDED, st.message
+        assert st.outcome.estimate is not None and st.outcome.estimate.found
+        assert "red cup at (1.50, 0.10" in st.outcome.perceived
+        mem = await r.memory.recv(timeout=5)
+        while not mem.objects:
             mem = await r.memory.recv(timeout=5)
-            while not mem.objects:
-                mem = await r.memory.recv(timeout=5)
-            assert mem.objects[0].label == "red cup" and "red cup at (1.50" in memory_summary(mem)
+        assert mem.objects[0].label == "red cup" and "red cup at (1.50" in memory_summary(mem)
 
-            st = await r.run_skill("grasp")
-            assert st.state == SkillState.SUCCEEDED, st.message
-            assert r.world.objects["red cup"].attached and st.outcome.held_object == "red cup"
-            assert r.vehicle.pos[2] >= 1.45  # retreated to flight altitude
-            assert r.executor.memory.held == "red cup" and "red cup" not in r.executor.memory.objects
+        st = await r.run_skill("grasp")
+        assert st.state == SkillState.SUCCEEDED, st.message
+        assert r.world.objects["red cup"].attached and st.outcome.held_object == "red cup"
+        assert r.vehicle.pos[2] >= 1.45  # retreated to flight altitude
+        assert r.executor.memory.held == "red cup" and "red cup" not in r.executor.memory.objects
 
-            st = await r.run_skill("placement_localization", "table")
-            assert st.state == SkillState.SUCCEEDED, st.message
-            st = await r.run_skill("place")
-            assert st.state == SkillState.SUCCEEDED, st.message
-            cup = r.world.objects["red cup"]
-            assert not cup.attached and abs(cup.center[2] - cup.size[2] / 2 - 0.75) < 1e-6
-            assert abs(cup.center[0] - 1.6) < 0.1 and abs(cup.center[1]) < 0.1
-            assert r.executor.memory.held is None and st.outcome.held_object is None
-            executed = r.executor.memory.snapshot().executed
-            assert [e.split(":")[0] for e in executed] == [
-                "obj_localization(blue box)", "obj_localization(red cup)", "grasp", "placement_localization(table)",
-                "place"]
-
-    arun(main(), 200)
+        st = await r.run_skill("placement_localization", "table")
+        assert st.state == SkillState.SUCCEEDED, st.message
+        st = await r.run_skill("place")
+        assert st.state == SkillState.SUCCEEDED, st.message
+        cup = r.world.objects["red cup"]
+        assert not cup.attached and abs(cup.center[2] - cup.size[2] / 2 - 0.75) < 1e-6
+        assert abs(cup.center[0] - 1.6) < 0.1 and abs(cup.center[1]) < 0.1
+        assert r.executor.memory.held is None and st.outcome.held_object is None
+        executed = r.executor.memory.snapshot().executed
+        assert [e.split(":")[0] for e in executed] == [
+            "obj_localization(blue box)", "obj_localization(red cup)", "grasp", "placement_localization(table)",
+            "place"]
 
 
-def test_grasp_fails_when_the_object_moved_after_localization():
-    async def main():
-        async with rig() as r:
-            _scene(r)
-            assert (await r.run_skill("obj_localization", "red cup")).state == SkillState.SUCCEEDED
-            r.world.objects["red cup"].center[:2] = (1.5, -0.35)  # nudged 0.45 m
-            st = await r.run_skill("grasp")
-            assert st.state == SkillState.FAILED and "moved since it was localized" in st.message
-            assert not r.world.objects["red cup"].attached and r.executor.memory.held is None
-            # memory now holds the new position: a second grasp picks it up
-            st = await r.run_skill("grasp")
-            assert st.state == SkillState.SUCCEEDED, st.message
-            assert r.world.objects["red cup"].attached
-
-    arun(main(), 200)
+async def test_grasp_fails_when_the_object_moved_after_localization():
+    async with rig() as r:
+        _scene(r)
+        assert (await r.run_skill("obj_localization", "red cup")).state == SkillState.SUCCEEDED
+        r.world.objects["red cup"].center[:2] = (1.5, -0.35)  # nudged 0.45 m
+        st = await r.run_skill("grasp")
+        assert st.state == SkillState.FAILED and "moved since it was localized" in st.message
+        assert not r.world.objects["red cup"].attached and r.executor.memory.held is None
+        # memory now holds the new position: a second grasp picks it up
+        st = await r.run_skill("grasp")
+        assert st.state == SkillState.SUCCEEDED, st.message
+        assert r.world.objects["red cup"].attached
 
 
-def test_grasp_fails_when_the_object_vanished():
-    async def main():
-        async with rig() as r:
-            _scene(r)
-            assert (await r.run_skill("obj_localization", "red cup")).state == SkillState.SUCCEEDED
-            r.world.objects["red cup"].center[:2] = (-3.0, -3.0)
-            st = await r.run_skill("grasp")
-            assert st.state == SkillState.FAILED and "not visible" in st.message and "localize it again" in st.message
-            assert "red cup" not in r.executor.memory.objects
-
-    arun(main(), 200)
+async def test_grasp_fails_when_the_object_vanished():
+    async with rig() as r:
+        _scene(r)
+        assert (await r.run_skill("obj_localization", "red cup")).state == SkillState.SUCCEEDED
+        r.world.objects["red cup"].center[:2] = (-3.0, -3.0)
+        st = await r.run_skill("grasp")
+        assert st.state == SkillState.FAILED and "not visible" in st.message and "localize it again" in st.message
+        assert "red cup" not in r.executor.memory.objects
 
 
-def test_grasp_that_closes_on_nothing_reports_a_miss():
-    async def main():
-        async with rig() as r:
-            _scene(r)
-            assert (await r.run_skill("obj_localization", "red cup")).state == SkillState.SUCCEEDED
-            r.world.grab = lambda g: None  # the object slips: closing catches nothing
-            st = await r.run_skill("grasp")
-            assert st.state == SkillState.FAILED and "grasp missed" in st.message, st.message
-            assert r.executor.memory.held is None and st.outcome.held_object is None
-            assert r.vehicle.gripper.value == "open"
-
-    arun(main(), 200)
+async def test_grasp_that_closes_on_nothing_reports_a_miss():
+    async with rig() as r:
+        _scene(r)
+        assert (await r.run_skill("obj_localization", "red cup")).state == SkillState.SUCCEEDED
+        r.world.grab = lambda g: None  # the object slips: closing catches nothing
+        st = await r.run_skill("grasp")
+        assert st.state == SkillState.FAILED and "grasp missed" in st.message, st.message
+        assert r.executor.memory.held is None and st.outcome.held_object is None
+        assert r.vehicle.gripper.value == "open"
 
 
 async def _abort_and_check(r, goal_id: str) -> None:
@@ -120,59 +108,47 @@ async def _abort_and_check(r, goal_id: str) -> None:
     assert (await r.terminal(nxt.goal_id)).state == SkillState.SUCCEEDED
 
 
-def test_abort_during_a_translation_holds_and_leaves_the_executor_ready():
-    async def main():
-        async with rig(translation_speed=0.2) as r:
-            acc = await r.request("forward")
-            assert acc.accepted
-            await wait_until(lambda: np.linalg.norm(r.vehicle.vel) > 0.1, 5, what="moving")
-            await _abort_and_check(r, acc.goal_id)
-            assert r.vehicle.pos[0] < 0.45  # stopped short of the full step
-
-    arun(main())
+async def test_abort_during_a_translation_holds_and_leaves_the_executor_ready():
+    async with rig(translation_speed=0.2) as r:
+        acc = await r.request("forward")
+        assert acc.accepted
+        await wait_until(lambda: np.linalg.norm(r.vehicle.vel) > 0.1, 5, what="moving")
+        await _abort_and_check(r, acc.goal_id)
+        assert r.vehicle.pos[0] < 0.45  # stopped short of the full step
 
 
-def test_abort_during_grasp_holds_and_leaves_the_executor_ready():
-    async def main():
-        async with rig() as r:
-            _scene(r)
-            assert (await r.run_skill("obj_localization", "red cup")).state == SkillState.SUCCEEDED
-            acc = await r.request("grasp")
-            assert acc.accepted
-            await wait_until(lambda: np.linalg.norm(r.vehicle.vel) > 0.1, 5, what="moving")
-            await _abort_and_check(r, acc.goal_id)
-            assert not r.world.objects["red cup"].attached
-
-    arun(main())
+async def test_abort_during_grasp_holds_and_leaves_the_executor_ready():
+    async with rig() as r:
+        _scene(r)
+        assert (await r.run_skill("obj_localization", "red cup")).state == SkillState.SUCCEEDED
+        acc = await r.request("grasp")
+        assert acc.accepted
+        await wait_until(lambda: np.linalg.norm(r.vehicle.vel) > 0.1, 5, what="moving")
+        await _abort_and_check(r, acc.goal_id)
+        assert not r.world.objects["red cup"].attached
 
 
-def test_abort_with_nothing_running_is_acknowledged():
-    async def main():
-        async with rig() as r:
-            acks = r.bus.subscribe(r.keys.abort_ack)
-            await asyncio.sleep(0.2)
-            r.bus.publish(r.keys.abort, Abort())
-            ack = await acks.recv(timeout=5)
-            assert ack.goal_id is None and "no skill running" in ack.message
-            assert r.vehicle.commands == ["hold"]
-
-    arun(main())
+async def test_abort_with_nothing_running_is_acknowledged():
+    async with rig() as r:
+        acks = r.bus.subscribe(r.keys.abort_ack)
+        await asyncio.sleep(0.2)
+        r.bus.publish(r.keys.abort, Abort())
+        ack = await acks.recv(timeout=5)
+        assert ack.goal_id is None and "no skill running" in ack.message
+        assert r.vehicle.commands == ["hold"]
 
 
-def test_grasp_beyond_reach_or_wider_than_the_fingers_is_refused_before_moving():
-    async def main():
-        async with rig() as r:
-            r.world.add_surface("table", 3.0, 0.0, 0.75)
-            r.world.add_object("red cup", 2.9, 0.1, 0.75)
-            r.world.add_object("cardboard box", 1.5, -1.0, 0.75, size=(0.30, 0.24, 0.20))
-            assert (await r.run_skill("obj_localization", "red cup")).state == SkillState.SUCCEEDED
-            before = r.vehicle.pos.copy()
-            st = await r.run_skill("grasp", "red cup")
-            assert st.state == SkillState.REJECTED and "too far: approach first" in st.message, st.message
-            assert np.allclose(r.vehicle.pos, before)
-            assert (await r.run_skill("obj_localization", "cardboard box")).state == SkillState.SUCCEEDED
-            st = await r.run_skill("grasp", "cardboard box")
-            assert st.state == SkillState.REJECTED and "wider than the gripper opens" in st.message, st.message
-            assert np.allclose(r.vehicle.pos, before) and not r.world.objects["cardboard box"].attached
-
-    arun(main(), 200)
+async def test_grasp_beyond_reach_or_wider_than_the_fingers_is_refused_before_moving():
+    async with rig() as r:
+        r.world.add_surface("table", 3.0, 0.0, 0.75)
+        r.world.add_object("red cup", 2.9, 0.1, 0.75)
+        r.world.add_object("cardboard box", 1.5, -1.0, 0.75, size=(0.30, 0.24, 0.20))
+        assert (await r.run_skill("obj_localization", "red cup")).state == SkillState.SUCCEEDED
+        before = r.vehicle.pos.copy()
+        st = await r.run_skill("grasp", "red cup")
+        assert st.state == SkillState.REJECTED and "too far: approach first" in st.message, st.message
+        assert np.allclose(r.vehicle.pos, before)
+        assert (await r.run_skill("obj_localization", "cardboard box")).state == SkillState.SUCCEEDED
+        st = await r.run_skill("grasp", "cardboard box")
+        assert st.state == SkillState.REJECTED and "wider than the gripper opens" in st.message, st.message
+        assert np.allclose(r.vehicle.pos, before) and not r.world.objects["cardboard box"].attached

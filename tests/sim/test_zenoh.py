@@ -12,7 +12,7 @@ from pymavlink.dialects.v20 import common as mav
 from shared.frames import DEFAULT_INTRINSICS
 from shared.messages import JudgeRequest, Pose, Scenario, Vec3
 from shared.sensors import backproject, parse_calibration, parse_color, parse_raw16, parse_transforms
-from tests.helpers import arun, bus_for, run_stack
+from tests.helpers import bus_for, run_stack
 from tests.sim.test_mavlink import Client
 
 pytestmark = pytest.mark.integration
@@ -62,7 +62,7 @@ def _world_points(depth, seg, tfs, intr, instance_id):
     return (world_cam[:3, :3] @ pc.T).T + world_cam[:3, 3], u, v
 
 
-def test_frames_match_ground_truth(tmp_path):
+async def test_frames_match_ground_truth(tmp_path):
     # Ideal realism: this checks the geometry of the published frames (calibration, tf, depth, segmentation)
     # against the truth to the millimetre; the realistic noise model has its own test.
     env = {"AERMANI_SIM_SEED": str(SEED), "AERMANI_SIM_TARGET_OBJECT": "red cup", "AERMANI_SIM_FPS": "10",
@@ -76,7 +76,7 @@ def test_frames_match_ground_truth(tmp_path):
             assert client.command(mav.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 1.5) == 0
             client.recv("EXTENDED_SYS_STATE", lambda m: m.landed_state == mav.MAV_LANDED_STATE_IN_AIR, 60)
             client.recv("LOCAL_POSITION_NED", lambda m: abs(m.vz) < 0.01 and m.z < -1.4, 30)
-            arun(_check_frames(stack, client))
+            await _check_frames(stack, client)
         finally:
             client.close()
 
