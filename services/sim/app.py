@@ -14,7 +14,7 @@ from services.sim.render_worker import FrameEncoder, RenderWorker
 from services.sim.settings import SimSettings
 from services.sim.vehicle import VehicleParams
 from shared.bus import Bus
-from shared.frames import DEFAULT_INTRINSICS, base_to_camera, base_to_gripper
+from shared.frames import DEFAULT_INTRINSICS, Mount
 from shared.messages import Health, JudgeRequest, ResetNotice, Scenario, SimLabels, now_ns
 from shared.sensors import (
     BODY_FRAME,
@@ -38,7 +38,8 @@ def scenario_from(settings: SimSettings) -> Scenario:
 
 def build(settings: SimSettings) -> tuple[SimCore, MavlinkServer]:
     params = VehicleParams(takeoff_alt=settings.takeoff_alt, offboard_loss_timeout=settings.offboard_loss_timeout,
-                           failsafe_land_delay=settings.failsafe_land_delay)
+                           failsafe_land_delay=settings.failsafe_land_delay,
+                           gripper_offset=settings.mount.gripper_offset)
     core = SimCore(scenario_from(settings), params)
     links = [LinkSettings("api", settings.api_local_port, settings.api_host, settings.api_port, settings.bind_host)]
     if settings.gcs_enabled:
@@ -56,7 +57,9 @@ class CameraPublisher:
         self.keys = settings.keys
         self.worker: RenderWorker | None = None
         self.encoder: FrameEncoder | None = None
-        if settings.render_process:
+        if not settings.camera:
+            pass  # no renderer at all: nothing is drawn
+        elif settings.render_process:
             self.worker = RenderWorker(settings.render_scale, settings.jpeg_quality)
         else:
             self.encoder = FrameEncoder(settings.render_scale, settings.jpeg_quality)
@@ -79,11 +82,11 @@ class CameraPublisher:
         self.render_s += enc.render_s
         return enc.color, enc.depth, enc.segmentation, self.transforms(snap, stamp_ns)
 
-    @staticmethod
-    def transforms(snap, stamp_ns: int) -> bytes:
+    def transforms(self, snap, stamp_ns: int) -> bytes:
         body = pose_matrix(float(snap.position[0]), float(snap.position[1]), float(snap.position[2]), snap.yaw)
-        return transforms_message([(WORLD_FRAME, BODY_FRAME, body), (BODY_FRAME, CAMERA_FRAME, base_to_camera()),
-                                   (BODY_FRAME, GRIPPER_FRAME, base_to_gripper())], stamp_ns)
+        mount: Mount = self.settings.mount
+        return transforms_message([(WORLD_FRAME, BODY_FRAME, body), (BODY_FRAME, CAMERA_FRAME, mount.base_to_camera()),
+                                   (BODY_FRAME, GRIPPER_FRAME, mount.base_to_gripper())], stamp_ns)
 
     def watched(self) -> bool:
         if self.settings.render_always or self.bus is None:
@@ -97,7 +100,7 @@ class CameraPublisher:
         last_cal = last_labels = 0.0
         while not stop.is_set():
             now = time.monotonic()
-            if now - last_cal >= 1.0:
+            if now - last_cal >= 1.0 and self.settings.camera:
                 self.bus.publish(self.keys.camera_calibration, calibration_message(DEFAULT_INTRINSICS, now_ns()))
                 last_cal = now
             version = self.core.world.version
@@ -107,7 +110,9 @@ class CameraPublisher:
                     self.bus.publish(self.keys.health("sim"), self.health())
                 last_labels, self.last_labels_version = now, version
             stamp = now_ns()
-            if not self.watched():
+            if not self.settings.camera:
+                pass  # the camera service publishes frames and tf; the bridge publishes world->base_link
+            elif not self.watched():
                 # Nobody consumes images (e.g. a MAVLink-only test or many idle evaluation vehicles): skip the
                 # raycast, keep tf flowing.
                 self.idle_frames += 1
@@ -142,7 +147,7 @@ class CameraPublisher:
             now = time.monotonic()
             fps = sum(1 for t in self.recent if now - t <= 5.0) / 5.0
             details = {"fps_5s": fps, "frames": st["frames"], "idle_frames": st["idle_frames"],
-                       "mode": v.mode_name, "armed": v.armed, "scenario_seed": self.core.scenario.seed,
+                       "camera": self.settings.camera, "mode": v.mode_name, "armed": v.armed, "scenario_seed": self.core.scenario.seed,
                        "setpoints_received": v.setpoints_received, **self.core.counters}
         ok = self.failures < 3
         return Health(service="sim", ok=ok, message="" if ok else f"rendering keeps failing: {self.last_error}",
@@ -163,6 +168,9 @@ async def run(bus: Bus, settings: SimSettings, stop: asyncio.Event, *, core: Sim
     if core is None or server is None:
         core, server = build(settings)
         server.start()
+    if not settings.camera:
+        # A camera service (or a real camera) owns the camera keys and tf: the simulator only flies.
+        log.info("sim camera off (AERMANI_SIM_CAMERA=0): no colour, depth, segmentation, calibration or tf")
     try:
         camera = await asyncio.to_thread(CameraPublisher, bus, core, settings)
     except BaseException:

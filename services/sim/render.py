@@ -10,7 +10,7 @@ import open3d as o3d
 
 from services.sim.core import Snapshot
 from services.sim.world import Entity, World
-from shared.frames import DEFAULT_INTRINSICS, base_to_camera
+from shared.frames import DEFAULT_INTRINSICS, Mount
 from shared.sensors import Intrinsics, pose_matrix
 
 MAX_DEPTH_M = 10.0
@@ -117,8 +117,11 @@ class Renderer:
     gathers; the scene is rebuilt only when the world's geometry changes (or while an object is carried).
     """
 
-    def __init__(self, intr: Intrinsics = DEFAULT_INTRINSICS) -> None:
+    def __init__(self, intr: Intrinsics = DEFAULT_INTRINSICS, mount: Mount | None = None) -> None:
         self.intr = intr
+        # The render worker is a child process with the parent's environment, so Mount() here is the
+        # simulator's settings.mount (AERMANI_MOUNT_*).
+        self.base_from_camera = (mount or Mount()).base_to_camera()
         u, v = np.meshgrid(np.arange(intr.width, dtype=np.float64), np.arange(intr.height, dtype=np.float64))
         self._xc = ((u - intr.cx) / intr.fx).astype(np.float32)
         self._yc = ((v - intr.cy) / intr.fy).astype(np.float32)
@@ -165,7 +168,7 @@ class Renderer:
         self.rebuilds += 1
 
     def camera_pose(self, position: np.ndarray, yaw: float) -> np.ndarray:
-        return pose_matrix(float(position[0]), float(position[1]), float(position[2]), yaw) @ base_to_camera()
+        return pose_matrix(float(position[0]), float(position[1]), float(position[2]), yaw) @ self.base_from_camera
 
     def render(self, snap: Snapshot) -> Frame:
         self._ensure_scene(snap.world)

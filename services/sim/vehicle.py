@@ -72,6 +72,7 @@ class VehicleParams:
     offboard_stream_min: float = 1.0  # s of setpoints before OFFBOARD is allowed
     battery_drain_per_s: float = 0.05  # % per second while armed (~33 min flight)
     kp: float = 1.5  # position gain, 1/s
+    gripper_offset: tuple[float, float, float] = GRIPPER_OFFSET_BODY  # body FLU, metres (settings.mount)
 
 
 class Vehicle:
@@ -147,7 +148,7 @@ class Vehicle:
 
     def gripper_enu(self) -> np.ndarray:
         y = self.yaw_enu()
-        gx, gy, gz = GRIPPER_OFFSET_BODY
+        gx, gy, gz = self.params.gripper_offset
         c, s = math.cos(y), math.sin(y)
         return self.position_enu() + np.array([c * gx - s * gy, s * gx + c * gy, gz])
 
