@@ -135,19 +135,25 @@ class CameraService:
         self.recent: deque[float] = deque(maxlen=1000)
         self.last_frame_mono: float | None = None
         self.last_stamp_ns = 0
+        self.last_calibration = -1e9
         self.started = time.monotonic()
 
     def _from_thread(self, enc: Encoded) -> None:  # capture thread
         self.loop.call_soon_threadsafe(self._publish, enc)
 
     def _publish(self, enc: Encoded) -> None:  # loop
+        now = time.monotonic()
+        if self.source.intrinsics is not None and now - self.last_calibration >= 1.0:
+            # With (not after) the first frame, then at 1 Hz: a consumer never holds a frame it cannot project.
+            self.bus.publish(self.keys.camera_calibration, calibration_message(self.source.intrinsics, enc.stamp_ns))
+            self.last_calibration = now
         self.bus.publish(self.keys.camera_color, enc.color)
         if enc.depth is not None:
             self.bus.publish(self.keys.camera_depth, enc.depth)
         if enc.tf is not None:
             self.bus.publish(self.keys.tf, enc.tf)
         self.frames += 1
-        self.last_frame_mono = time.monotonic()
+        self.last_frame_mono = now
         self.recent.append(self.last_frame_mono)
         self.last_stamp_ns = enc.stamp_ns
 
@@ -179,8 +185,6 @@ class CameraService:
         self.capturer.start()
         try:
             while not stop.is_set():
-                if self.source.intrinsics is not None and self.capturer.opened:
-                    self.bus.publish(self.keys.camera_calibration, calibration_message(self.source.intrinsics, now_ns()))
                 self.bus.publish(self.keys.health(SERVICE), self.health())
                 with contextlib.suppress(TimeoutError):
                     await asyncio.wait_for(stop.wait(), 1.0)
