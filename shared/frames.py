@@ -13,7 +13,7 @@ import math
 from typing import Annotated
 
 import numpy as np
-from pydantic import Field, field_validator
+from pydantic import Field, ValidationInfo, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from shared.sensors import Intrinsics
@@ -64,10 +64,12 @@ class Mount(BaseSettings):
     gripper_offset: Vec3Tuple = GRIPPER_OFFSET_BODY
     """Gripper capture point in the body frame, metres, e.g. `0,0,-0.22` (below the body origin)."""
 
-    @field_validator("camera_offset", "gripper_offset", mode="before")
+    @field_validator("camera_offset", "gripper_offset", "camera_pitch_deg", mode="before")
     @classmethod
-    def _vec3(cls, v: object) -> object:
-        if isinstance(v, str):
+    def _vec3(cls, v: object, info: ValidationInfo) -> object:
+        if isinstance(v, str) and not v.strip():  # compose passes unset variables as "": keep the default
+            return cls.model_fields[str(info.field_name)].default
+        if isinstance(v, str) and info.field_name != "camera_pitch_deg":
             parts = [p for p in v.replace("[", " ").replace("]", " ").replace(",", " ").split() if p]
             if len(parts) != 3:
                 raise ValueError(f"expected three numbers x,y,z (metres), got {v!r}")
