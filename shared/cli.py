@@ -87,7 +87,7 @@ def health(
 ) -> None:
     """List the live services (from their liveliness tokens) and what their health reports say (a stalled
     camera, a lost autopilot link...)."""
-    from shared.bus import Bus
+    from shared.bus import Bus, Subscription
     from shared.keys import HEALTH_TOPIC, alive_pattern, parse_alive_key
     from shared.launcher import OPTIONAL
     from shared.messages import Health
@@ -96,7 +96,7 @@ def health(
         bus = await Bus.open(connect=[connect], connect_timeout_s=timeout + 1)
         try:
             topic = HEALTH_TOPIC.bind(vehicle, service="*") if vehicle else HEALTH_TOPIC.fleet(service="*")
-            sub = bus.subscribe(topic, maxsize=200)
+            sub: Subscription[Health] = bus.subscribe(topic, maxsize=200)
             loop = asyncio.get_running_loop()
             deadline = loop.time() + 1.1  # health comes at about 1 Hz; listen while liveliness is asked
             keys = await bus.alive(alive_pattern(vehicle), timeout=timeout)

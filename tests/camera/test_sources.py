@@ -105,3 +105,22 @@ def test_mcap_source_refuses_a_log_without_frames(tmp_path):
     write_log(log, n=2, vehicle="am7")
     with pytest.raises(CameraError, match="no camera/color samples of vehicle 'am9'"):
         make_source(settings(source="mcap", path=str(log), mcap_vehicle="am9")).open()
+
+
+def test_video_file_loops_with_its_sidecar_calibration(tmp_path):
+    import cv2
+
+    video = tmp_path / "clip.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 10, (320, 240))
+    assert writer.isOpened()
+    for i in range(3):
+        writer.write(cv2.cvtColor(frame_pixels(i)[0], cv2.COLOR_RGB2BGR))
+    writer.release()
+    (tmp_path / "clip.yaml").write_text("width: 320\nheight: 240\nfx: 200\nfy: 201\ncx: 160\ncy: 120\n")
+    src = make_source(settings(source="file", path=str(video), width=320, height=240))
+    src.open()
+    assert not src.has_depth and (src.intrinsics.fx, src.intrinsics.fy) == (200.0, 201.0)
+    caps = [src.read() for _ in range(4)]
+    assert all(c.depth_mm is None and c.rgb.shape == (240, 320, 3) for c in caps)
+    red_x = [int(np.argmax(c.rgb[120, :, 0].astype(int) - c.rgb[120, :, 1])) for c in caps]
+    assert red_x[3] == red_x[0] and red_x[1] > red_x[0], f"loops back to the first frame: {red_x}"

@@ -115,7 +115,7 @@ class FileSource(CameraSource):
         self.index += 1
         rgb = read_color(c)
         depth = read_depth(d) if d is not None else None
-        if depth is not None and depth.shape != rgb.shape[:2]:
+        if d is not None and depth is not None and depth.shape != rgb.shape[:2]:
             raise CameraError(f"{d.name} is {depth.shape[1]}x{depth.shape[0]} but {c.name} is "
                               f"{rgb.shape[1]}x{rgb.shape[0]}: depth must be aligned to colour")
         return Capture(rgb=rgb, depth_mm=depth)
@@ -140,8 +140,9 @@ class FileSource(CameraSource):
         return fit(cap, self.settings.width, self.settings.height)
 
     def close(self) -> None:
-        if getattr(self, "video", None) is not None:
-            self.video.release()
+        video = getattr(self, "video", None)
+        if video is not None:
+            video.release()
 
     def describe(self) -> str:
         return f"file {self.settings.path}"
