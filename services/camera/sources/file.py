@@ -26,6 +26,7 @@ from services.camera.sources.base import (
 from shared.errors import CameraError
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp")
+CACHE_BYTES = 512 << 20  # decoded frames kept for the next loop (PNG decoding dominates the cost of a frame)
 DEPTH_SUFFIX = "_depth"
 
 
@@ -87,6 +88,8 @@ class FileSource(CameraSource):
         self.video: cv2.VideoCapture | None = None
         self.index = 0
         self.played = 0
+        self.cache: dict[int, Capture] = {}
+        self.cached_bytes = 0
         if p.is_dir():
             self.frames = folder_frames(p)
             self.has_depth = self.frames[0][1] is not None
@@ -111,14 +114,22 @@ class FileSource(CameraSource):
                 self.ended = f"the file source reached its end after {self.played} frames (loop off)"
                 return None
             self.index = 0
-        c, d = self.frames[self.index]
+        i = self.index
         self.index += 1
+        if i in self.cache:
+            return self.cache[i]
+        c, d = self.frames[i]
         rgb = read_color(c)
         depth = read_depth(d) if d is not None else None
         if d is not None and depth is not None and depth.shape != rgb.shape[:2]:
             raise CameraError(f"{d.name} is {depth.shape[1]}x{depth.shape[0]} but {c.name} is "
                               f"{rgb.shape[1]}x{rgb.shape[0]}: depth must be aligned to colour")
-        return Capture(rgb=rgb, depth_mm=depth)
+        cap = fit(Capture(rgb=rgb, depth_mm=depth), self.settings.width, self.settings.height)
+        size = cap.rgb.nbytes + (cap.depth_mm.nbytes if cap.depth_mm is not None else 0)  # type: ignore[union-attr]
+        if self.cached_bytes + size <= CACHE_BYTES:
+            self.cache[i] = cap
+            self.cached_bytes += size
+        return cap
 
     def _next_video(self) -> Capture | None:
         assert self.video is not None
@@ -137,7 +148,7 @@ class FileSource(CameraSource):
         if cap is None:
             return None
         self.played += 1
-        return fit(cap, self.settings.width, self.settings.height)
+        return fit(cap, self.settings.width, self.settings.height)  # a no-op for folder frames (fitted once)
 
     def close(self) -> None:
         video = getattr(self, "video", None)
