@@ -10,6 +10,7 @@ import logging
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from services.camera.settings import CameraSettings
@@ -44,7 +45,7 @@ class Encoded:
 class Capturer:
     """Owns the source on one daemon thread (device calls block; a hung device must not stall health)."""
 
-    def __init__(self, source: CameraSource, settings: CameraSettings, deliver) -> None:  # noqa: ANN001
+    def __init__(self, source: CameraSource, settings: CameraSettings, deliver: Callable[[Encoded], None]) -> None:
         self.source, self.s, self.deliver = source, settings, deliver
         self.stop = threading.Event()
         self.opened = False
@@ -87,6 +88,7 @@ class Capturer:
 
     def _run(self) -> None:
         period = 1.0 / self.s.fps
+        last_sent = -1e9
         try:
             while not self.stop.is_set():
                 if not self.opened and not self._open():
@@ -98,8 +100,11 @@ class Capturer:
                         self.ended = self.source.ended or "the source ended"
                         log.warning("%s", self.ended)
                         return
-                    self.deliver(self.encode(cap))
                     self.failures = 0
+                    if self.source.paced and time.monotonic() - last_sent < 0.9 * period:
+                        continue  # a device faster than `fps` (UVC cameras may ignore the request): drop
+                    last_sent = time.monotonic()
+                    self.deliver(self.encode(cap))
                 except Exception as exc:
                     self.failures += 1
                     self.last_error = str(exc) if isinstance(exc, CameraError) else f"{type(exc).__name__}: {exc}"
