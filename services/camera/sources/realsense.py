@@ -11,8 +11,9 @@ from services.camera.sources.base import CameraSource, Capture, register
 from shared.errors import CameraError
 from shared.sensors import Intrinsics
 
-INSTALL = ("the realsense source needs the `pyrealsense2` package: `pip install pyrealsense2` on x86_64; on a "
-           "Jetson (aarch64) build librealsense with -DBUILD_PYTHON_BINDINGS=ON (docs/hardware.md)")
+INSTALL = ("the realsense source needs the `pyrealsense2` package: `pip install pyrealsense2` (or `pip install "
+           "-e .[realsense]`); where no wheel exists for the platform (e.g. a Jetson), build librealsense with "
+           "-DBUILD_PYTHON_BINDINGS=ON (docs/hardware.md)")
 
 
 def _rs() -> Any:
