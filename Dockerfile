@@ -13,7 +13,7 @@ COPY services ./services
 RUN pip install --no-cache-dir .
 
 ENV PYTHONUNBUFFERED=1 \
-    AERMANI_ZENOH_CONNECT=tcp/zenoh:7447
+    AERMANI_ZENOH_CONNECT=tcp/127.0.0.1:7447
 # Unprivileged at run time; serial access for the bridge is granted with `group_add: dialout`.
 RUN useradd --create-home --uid 1000 aermani && mkdir -p /data && chown aermani /data
 USER aermani

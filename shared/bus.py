@@ -253,6 +253,32 @@ def _check_type(decl_type: Any, obj: Any, key: str) -> None:
         raise TypeError(f"{key} carries {getattr(decl_type, '__name__', decl_type)}, not {type(obj).__name__}")
 
 
+@dataclass(frozen=True)
+class Caller:
+    """Who sent a query, as the querier's attachment claims it: its service name and Zenoh session id.
+    Not authenticated by itself (the routers' access control decides who may query at all); logged so that
+    every command can be traced to a session."""
+
+    sender: str = "unknown"
+    zid: str = ""
+
+    @classmethod
+    def from_attachment(cls, data: bytes | None) -> Caller:
+        if not data:
+            return cls("unknown (no attachment)")
+        def clean(v: object) -> str:  # the text goes into logs: no newlines or control characters
+            return "".join(c for c in str(v)[:64] if c.isprintable())
+
+        try:
+            obj = json.loads(data)
+            return cls(clean(obj.get("sender", "unknown")), clean(obj.get("zid", "")))
+        except (ValueError, AttributeError):
+            return cls(f"unknown (attachment {bytes(data[:32])!r})")
+
+    def __str__(self) -> str:
+        return f"{self.sender} (zid {self.zid or '?'})"
+
+
 # --------------------------------------------------------------------------- subscription
 
 
@@ -383,6 +409,8 @@ class Bus:
         self._tasks: set[asyncio.Task[None]] = set()
         self._closed = False
         self._lock = threading.Lock()
+        self.name = ""
+        """This service's name, sent with every query so queryables can log who asked (see Caller)."""
 
     # ---- lifecycle
 
@@ -498,13 +526,13 @@ class Bus:
 
     # ---- query / reply
 
-    async def query(self, target: BoundQuery[Req, Rep], request: Req | None = None, *,
+    async def query(self, target: BoundQuery[Req, Rep] | str, request: Req | Any = None, *,
                     timeout: float = 5.0) -> Rep:
-        """Send a query to a declared queryable and return the first reply, decoded to its declared type.
-        Raises NoResponder (nobody serves the key), QueryTimeout, RemoteError (error reply) or DecodeError
-        (reply is malformed)."""
-        key = target.key
-        schema = schema_name(target.decl.request) if request is not None else None
+        """Send a query to a declared queryable and return the first reply, decoded to its declared type (to a
+        plain key expression: the reply's bytes). Raises NoResponder (nobody serves the key), QueryTimeout,
+        RemoteError (error reply) or DecodeError (reply is malformed)."""
+        key = target.key if isinstance(target, BoundQuery) else target
+        schema = schema_name(target.decl.request) if isinstance(target, BoundQuery) and request is not None else None
         replies = await self.query_all(key, request, timeout=timeout, schema=schema, first_only=True)
         if not replies:
             raise NoResponder(f"no service answers {key}: is it running?")
@@ -514,7 +542,7 @@ class Bus:
             if "timeout" in text.lower():
                 raise QueryTimeout(f"query {key} timed out after {timeout:.1f} s")
             raise RemoteError(f"{key} answered with an error: {text}", text)
-        return decoder(target.decl.reply)(data)  # type: ignore[no-any-return]
+        return decoder(target.decl.reply if isinstance(target, BoundQuery) else None)(data)  # type: ignore[no-any-return]
 
     async def query_all(self, key: str, request: Any = None, *, timeout: float = 5.0, schema: str | None = None,
                         first_only: bool = False) -> list[tuple[bool, bytes]]:
@@ -542,7 +570,7 @@ class Bus:
         def on_done() -> None:
             self._to_loop(finish)
 
-        kwargs: dict[str, Any] = {"timeout": timeout}
+        kwargs: dict[str, Any] = {"timeout": timeout, "attachment": self._caller_attachment()}
         if request is not None:
             data, enc = encode(request, schema)
             kwargs.update(payload=data, encoding=enc)
@@ -552,18 +580,25 @@ class Bus:
         except TimeoutError:
             raise QueryTimeout(f"query {key} timed out after {timeout:.1f} s")
 
-    def serve(self, target: BoundQuery[Req, Rep], handler: Callable[[Any], Awaitable[Rep]], *,
-              concurrent: bool = True, raw: bool = False) -> Any:
+    def _caller_attachment(self) -> bytes:
+        with contextlib.suppress(Exception):
+            return json.dumps({"sender": self.name or "anonymous", "zid": str(self.session.zid())}).encode()
+        return b""
+
+    def serve(self, target: BoundQuery[Req, Rep] | str, handler: Callable[..., Awaitable[Rep]], *,
+              concurrent: bool = True, raw: bool = False, with_caller: bool = False) -> Any:
         """Declare a queryable. `handler(request)` runs on the loop with the request decoded to its declared
         type (`raw=True`: the bytes, for a handler that answers a malformed request itself); its return
         value is the reply. A malformed request gets an error reply naming the problem and the handler is
-        not called; an exception in the handler becomes an error reply, never a crash."""
-        key = target.key
-        request_model = None if raw else target.decl.request
+        not called; an exception in the handler becomes an error reply, never a crash. With `with_caller`,
+        the handler is called as `handler(request, caller)` with the querier's Caller. A plain key expression
+        (not a declaration) serves raw bytes."""
+        key = target.key if isinstance(target, BoundQuery) else target
+        request_model = target.decl.request if isinstance(target, BoundQuery) and not raw else None
         decode = decoder(request_model)
         lock = asyncio.Lock()
 
-        async def answer(query: zenoh.Query, data: bytes | None) -> None:
+        async def answer(query: zenoh.Query, data: bytes | None, attachment: bytes | None) -> None:
             try:
                 try:
                     if request_model is None or isinstance(request_model, Json | Protobuf):
@@ -577,12 +612,13 @@ class Bus:
                     log.warning("rejected malformed query on %s: %s", key, exc)
                     query.reply_err(json.dumps({"error": str(exc)}).encode())
                     return
+                args = (req, Caller.from_attachment(attachment)) if with_caller else (req,)
                 try:
                     if concurrent:
-                        result = await handler(req)
+                        result = await handler(*args)
                     else:
                         async with lock:
-                            result = await handler(req)
+                            result = await handler(*args)
                 except asyncio.CancelledError:
                     query.reply_err(b'{"error": "service is shutting down"}')
                     raise
@@ -596,14 +632,16 @@ class Bus:
                 with contextlib.suppress(Exception):
                     query.drop()  # type: ignore[no-untyped-call]
 
-        def start(query: zenoh.Query, data: bytes | None) -> None:
-            task = self.loop.create_task(answer(query, data))
+        def start(query: zenoh.Query, data: bytes | None, attachment: bytes | None) -> None:
+            task = self.loop.create_task(answer(query, data, attachment))
             self._tasks.add(task)
             task.add_done_callback(self._tasks.discard)
 
         def on_query(query: zenoh.Query) -> None:
             payload = query.payload
-            self._to_loop(start, query, payload.to_bytes() if payload is not None else None)
+            attachment = query.attachment
+            self._to_loop(start, query, payload.to_bytes() if payload is not None else None,
+                          attachment.to_bytes() if attachment is not None else None)
 
         q = self.session.declare_queryable(key, on_query)
         self._declared.append(q)

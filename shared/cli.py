@@ -31,6 +31,13 @@ def up(
     log_dir: Annotated[str | None, typer.Option(help="Where service logs go (default runs/<time>/logs).")] = None,
     foxglove: Annotated[bool, typer.Option(help="Also serve Foxglove's live WebSocket (needs the recorder).")]
     = False,
+    secure: Annotated[bool, typer.Option(help="Ground and drone routers from shared/routers/ with mutual TLS "
+                                              "and access control (certificates from `aermani certs init`).")]
+    = False,
+    certs: Annotated[str, typer.Option(help="Certificate directory for --secure.")] = "certs",
+    tls_listen: Annotated[str, typer.Option(help="--secure: the ground router's mutual-TLS listener, the only "
+                                                 "one that may leave the host, e.g. tls/0.0.0.0:7448.")]
+    = "tls/127.0.0.1:7448",
 ) -> None:
     """Start the embedded stack: a Zenoh router on loopback and every service as a supervised process."""
     names = [s.strip() for s in services.split(",")] if services else default_services()
@@ -41,7 +48,19 @@ def up(
         console.print(f"[red]unknown services: {unknown}; available: {available_services()}[/red]")
         raise typer.Exit(2)
     env = {"AERMANI_RECORDER_FOXGLOVE": "1"} if foxglove else {}
-    stack = Stack(names, port=port, vehicle_id=vehicle, log_dir=log_dir, env=env)
+    from shared.errors import ConfigError
+
+    try:
+        stack = Stack(names, port=port, vehicle_id=vehicle, log_dir=log_dir, env=env,
+                      secure=certs if secure else None, tls_listen=[tls_listen] if secure else None)
+        if secure:
+            from shared.security import check_cert_files
+
+            check_cert_files(certs, "ground")
+            check_cert_files(certs, "drone")
+    except ConfigError as exc:
+        console.print(f"[red]{exc}[/red]")
+        raise typer.Exit(2)
     stopping = False
 
     def on_signal(signum: int, _frame: object) -> None:
@@ -50,6 +69,9 @@ def up(
 
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
+    if secure:
+        console.print(f"secure: ground router tcp/127.0.0.1:{port} (this host) + {tls_listen} (mutual TLS), "
+                      f"drone router {stack.drone_endpoint}; certificates in {certs}")
     console.print(f"router on tcp/127.0.0.1:{port}; starting {', '.join(names)}; logs in {stack.log_dir}")
     if "gateway" in names:
         import os
@@ -137,9 +159,73 @@ def health(
         raise typer.Exit(1)
 
 
+certs_app = typer.Typer(help="Certificates of a deployment (mutual TLS between routers).", no_args_is_help=True)
+app.add_typer(certs_app, name="certs")
+
+
+@certs_app.command("init")
+def certs_init(
+    out: Annotated[str, typer.Option(help="Directory for ca.pem/ca.key and <identity>.pem/.key.")] = "certs",
+    san: Annotated[list[str] | None, typer.Option(help="Extra host name or IP address in every certificate "
+                                                       "(repeatable), e.g. the ground station's address.")] = None,
+    days: Annotated[int, typer.Option(help="Validity in days.")] = 825,
+    force: Annotated[bool, typer.Option(help="Replace existing files.")] = False,
+) -> None:
+    """Make a CA and the ground, drone and client certificates (distinct common names) for a new deployment."""
+    from shared.errors import ConfigError
+    from shared.security import IDENTITIES, init_certs
+
+    try:
+        files = init_certs(out, sans=san or (), days=days, force=force)
+    except ConfigError as exc:
+        console.print(f"[red]{exc}[/red]")
+        raise typer.Exit(2)
+    for identity, f in files.items():
+        console.print(f"{identity:7s} CN={IDENTITIES[identity]:15s} {f.cert}  {f.key}")
+    console.print(f"CA {out}/ca.pem (keep {out}/ca.key offline: it signs new identities). Copy ca.pem + "
+                  "ground.* to the ground station, ca.pem + drone.* to the vehicle, ca.pem + client.* to observers.")
+
+
+@app.command()
+def router(
+    role: Annotated[str, typer.Option(help="ground or drone.")],
+    certs: Annotated[str, typer.Option(help="Certificate directory.")] = "/certs",
+    local: Annotated[str, typer.Option(help="Plain listener for this host's services (loopback only).")]
+    = "tcp/127.0.0.1:7447",
+    tls_listen: Annotated[str | None, typer.Option(help="Mutual-TLS listener (default: the template's).")] = None,
+    connect: Annotated[str | None, typer.Option(help="Routers to link to, comma-separated (drone: the ground "
+                                                     "router, tls/<address>:7448).")] = None,
+) -> None:
+    """Run one secure Zenoh router from its template in shared/routers/ until SIGINT/SIGTERM."""
+    import threading
+
+    import zenoh
+
+    from shared.bus import _init_zenoh_log
+    from shared.errors import ConfigError
+    from shared.security import router_config
+
+    try:
+        cfg = router_config(role, certs, local=local, tls_listen=[tls_listen] if tls_listen else None,
+                            connect=[c.strip() for c in connect.split(",") if c.strip()] if connect else None)
+    except ConfigError as exc:
+        console.print(f"[red]{exc}[/red]")
+        raise typer.Exit(2)
+    _init_zenoh_log()
+    done = threading.Event()
+    signal.signal(signal.SIGINT, lambda *_: done.set())
+    signal.signal(signal.SIGTERM, lambda *_: done.set())
+    session = zenoh.open(cfg)
+    console.print(f"{role} router up: {cfg.get_json('listen/endpoints')} -> {cfg.get_json('connect/endpoints')}")
+    try:
+        done.wait()
+    finally:
+        session.close()  # type: ignore[no-untyped-call]
+
+
 def _register_service_commands() -> None:
     """Each service may add sub-commands with `services/<name>/cli.py: register(app)`."""
-    for name in [*SERVICE_ORDER, "evaluation"]:
+    for name in [*SERVICE_ORDER, "evaluation", "mcp"]:
         try:
             mod = importlib.import_module(f"services.{name}.cli")
         except ModuleNotFoundError as exc:

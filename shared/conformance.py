@@ -116,7 +116,7 @@ async def _check_query(bus: Bus, keys: Keys, decl: Query[Any, Any], report: Repo
     key = target.key
     if decl.request is None:
         try:
-            reply = await bus.query(target, None, timeout=timeout)
+            reply: Any = await bus.query(target, None, timeout=timeout)
         except (NoResponder, QueryTimeout) as exc:
             report.add(key, False, f"no answer: {exc}")
             return

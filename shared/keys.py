@@ -17,6 +17,8 @@ from pydantic import BaseModel
 from shared.messages import (
     Abort,
     AbortAck,
+    ApprovalDecision,
+    ApprovalStatus,
     AutopilotCommand,
     AutopilotResult,
     CancelGoal,
@@ -46,6 +48,8 @@ from shared.messages import (
 
 ROOT = "aermani/v1"
 DEFAULT_VEHICLE_ID = "am1"
+FLEET_ID = "fleet"
+"""Reserved in place of a vehicle id: keys under `aermani/v1/fleet/` address every vehicle at once."""
 ALIVE = "alive"
 HEALTH = "health"
 
@@ -279,18 +283,26 @@ REASONER_STEP: Topic[ReasoningStep] = Topic(
     "reasoner/step", ReasoningStep, "every reasoning step: DRT, STE, raw answer, latency", "reasoner")
 REASONER_TASK_STATUS: Topic[TaskStatus] = Topic(
     "reasoner/task_status", TaskStatus, "feedback and result of each task", "reasoner")
+REASONER_APPROVAL: Topic[ApprovalStatus] = Topic(
+    "reasoner/approval", ApprovalStatus, "operator approval of a critical skill: pending, then decided",
+    "reasoner")
+REASONER_DECIDE_APPROVAL: Query[ApprovalDecision, CancelReply] = Query(
+    "reasoner/decide_approval", ApprovalDecision, CancelReply, "approve or reject a pending skill", "reasoner")
 SAFETY_ABORT: Topic[Abort] = Topic("safety/abort", Abort, "stop: hold and end the task (anyone)", "any")
 SAFETY_ABORT_ACK: Topic[AbortAck] = Topic(
-    "safety/abort_ack", AbortAck, "an abort was obeyed (vehicle commanded to hold)", "executor")
+    "safety/abort_ack", AbortAck, "an abort was obeyed (vehicle commanded to hold)", "executor, autopilot_bridge")
 HEALTH_TOPIC: Topic[Health] = Topic(f"{HEALTH}/{{service}}", Health, "a service's health, 1 Hz", "every service")
 ALIVE_TOKEN = Token(f"{ALIVE}/{{service}}", "presence of a service", "every service")
+
+FLEET_ABORT: BoundTopic[Abort] = BoundTopic(f"{ROOT}/{FLEET_ID}/{SAFETY_ABORT.name}", SAFETY_ABORT)
+"""The fleet-wide abort: every vehicle's executor, bridge and reasoner obey it as their own."""
 
 DECLARATIONS: tuple[Topic[Any] | Query[Any, Any] | Token, ...] = (
     CAMERA_COLOR, CAMERA_DEPTH, CAMERA_CALIBRATION, CAMERA_SEGMENTATION, TF, SIM_LABELS, SIM_JUDGE, SIM_RESET,
     SIM_STATS, SIM_RESET_NOTICE, AUTOPILOT_STATE, AUTOPILOT_COMMAND, PERCEPTION_LOCALIZE_OBJECT,
     PERCEPTION_LOCALIZE_PLACEMENT, PERCEPTION_DETECTIONS, EXECUTOR_RUN_SKILL, EXECUTOR_CANCEL_SKILL,
     EXECUTOR_SKILL_STATUS, EXECUTOR_SKILLS, EXECUTOR_MEMORY, REASONER_START_TASK, REASONER_CANCEL_TASK, REASONER_STEP,
-    REASONER_TASK_STATUS, SAFETY_ABORT, SAFETY_ABORT_ACK, HEALTH_TOPIC, ALIVE_TOKEN,
+    REASONER_TASK_STATUS, REASONER_APPROVAL, REASONER_DECIDE_APPROVAL, SAFETY_ABORT, SAFETY_ABORT_ACK, HEALTH_TOPIC, ALIVE_TOKEN,
 )
 BY_NAME: dict[str, Topic[Any] | Query[Any, Any] | Token] = {d.name: d for d in DECLARATIONS}
 
@@ -298,6 +310,8 @@ BY_NAME: dict[str, Topic[Any] | Query[Any, Any] | Token] = {d.name: d for d in D
 def vehicle_prefix(vehicle_id: str = DEFAULT_VEHICLE_ID) -> str:
     if not vehicle_id or "/" in vehicle_id or any(c in vehicle_id for c in "*$?#"):
         raise ValueError(f"invalid vehicle id {vehicle_id!r}: use letters, digits, '-' or '_'")
+    if vehicle_id == FLEET_ID:
+        raise ValueError(f"vehicle id {FLEET_ID!r} is reserved for fleet-wide keys (aermani/v1/{FLEET_ID}/...)")
     return f"{ROOT}/{vehicle_id}"
 
 
@@ -358,6 +372,8 @@ class Keys:
     cancel_task = _QueryOn(REASONER_CANCEL_TASK)
     reasoning_step = _TopicOn(REASONER_STEP)
     task_status = _TopicOn(REASONER_TASK_STATUS)
+    approval = _TopicOn(REASONER_APPROVAL)
+    decide_approval = _QueryOn(REASONER_DECIDE_APPROVAL)
     abort = _TopicOn(SAFETY_ABORT)
     abort_ack = _TopicOn(SAFETY_ABORT_ACK)
 

@@ -28,6 +28,7 @@ import zenoh
 
 from shared.bus import _init_zenoh_log, zenoh_config
 from shared.keys import DEFAULT_VEHICLE_ID, alive_pattern, parse_alive_key
+from shared.security import require_loopback
 
 log = logging.getLogger("aermani.launcher")
 
@@ -53,6 +54,8 @@ def default_services(env: dict[str, str] | os._Environ[str] | None = None) -> li
     """What `aermani up` starts without --services: every service in this checkout, the optional ones only
     when configured."""
     return [s for s in available_services() if s not in OPTIONAL or (s == "camera" and camera_configured(env))]
+# Services that run on the vehicle (behind the drone router in a --secure stack); the rest are the ground's.
+DRONE_SIDE = ("sim", "camera", "autopilot_bridge", "perception", "executor")
 
 
 def free_port() -> int:
@@ -84,7 +87,9 @@ def _set_pdeathsig() -> None:  # runs in the child between fork and exec
 
 
 def open_router(port: int, host: str = "127.0.0.1") -> zenoh.Session:
-    """A Zenoh session in router mode listening on tcp/<host>:<port>, multicast scouting off."""
+    """A Zenoh session in router mode listening on tcp/<host>:<port>, multicast scouting off. Plain TCP
+    without access control: only on loopback (`--secure` routers come from `shared.security`)."""
+    require_loopback([f"tcp/{host}:{port}"])
     _init_zenoh_log()
     return zenoh.open(zenoh_config(mode="router", listen=[f"tcp/{host}:{port}"]))
 
@@ -133,10 +138,20 @@ class Stack:
 
     def __init__(self, services: list[str] | None = None, *, port: int | None = None, vehicle_id: str =
                  DEFAULT_VEHICLE_ID, env: dict[str, str] | None = None, log_dir: str | Path | None = None,
-                 supervise: bool = True, host: str = "127.0.0.1", router: bool = True) -> None:
+                 supervise: bool = True, host: str = "127.0.0.1", router: bool = True,
+                 secure: str | Path | None = None, tls_listen: list[str] | None = None) -> None:
+        """`secure` is a certificate directory (`aermani certs init`): the stack then runs a ground and a drone
+        router from `shared/routers/` linked by mutual TLS, ground services on the ground router's loopback
+        listener, vehicle services on the drone router's, and outsiders reach the ground router only through
+        `tls_listen` (default tls/127.0.0.1:<free port>) with a certificate."""
+        require_loopback([f"tcp/{host}:0"])
         self.port = port or free_port()
         self.host = host
         self.endpoint = f"tcp/{host}:{self.port}"
+        self.secure = Path(secure) if secure else None
+        self.tls_listen = list(tls_listen) if tls_listen else [f"tls/127.0.0.1:{free_port()}"]
+        self.drone_endpoint = f"tcp/127.0.0.1:{free_port()}" if secure else self.endpoint
+        self.drone_router: zenoh.Session | None = None
         self.log_dir = Path(log_dir) if log_dir else Path("runs") / time.strftime("%Y%m%d-%H%M%S") / "logs"
         self.supervise = supervise
         self.with_router = router
@@ -165,7 +180,8 @@ class Stack:
                 continue
             if (name, vehicle_id) in have:
                 continue
-            child_env = {**os.environ, "AERMANI_ZENOH_CONNECT": self.endpoint, "AERMANI_VEHICLE_ID": vehicle_id,
+            endpoint = self.drone_endpoint if name in DRONE_SIDE else self.endpoint
+            child_env = {**os.environ, "AERMANI_ZENOH_CONNECT": endpoint, "AERMANI_VEHICLE_ID": vehicle_id,
                          "PYTHONUNBUFFERED": "1", **env}
             suffix = f"-{vehicle_id}" if name in PER_VEHICLE else ""
             self.procs.append(ServiceProcess(name, vehicle_id, child_env, self.log_dir / f"{name}{suffix}.log"))
@@ -180,7 +196,10 @@ class Stack:
 
     def start(self, wait: bool = True, timeout: float = 90.0) -> Stack:
         if self.with_router and self.router is None:
-            self.router = open_router(self.port, self.host)
+            if self.secure is None:
+                self.router = open_router(self.port, self.host)
+            else:
+                self._open_secure_routers()
         for p in self.procs:
             p.start()
             self._event(f"started {p.label} (pid {p.proc.pid if p.proc else '?'})")
@@ -190,6 +209,22 @@ class Stack:
         if wait:
             self.wait_alive(timeout=timeout)
         return self
+
+    def _open_secure_routers(self) -> None:
+        from shared.security import router_config
+
+        _init_zenoh_log()
+        assert self.secure is not None
+        self.router = zenoh.open(router_config("ground", self.secure, local=self.endpoint, tls_listen=self.tls_listen))
+        if any(p.name in DRONE_SIDE for p in self.procs):
+            link = [e.replace("0.0.0.0", "127.0.0.1").replace("[::]", "127.0.0.1") for e in self.tls_listen[:1]]
+            try:
+                self.drone_router = zenoh.open(router_config("drone", self.secure, local=self.drone_endpoint,
+                                                             connect=link))
+            except BaseException:
+                self.router.close()  # type: ignore[no-untyped-call]
+                self.router = None
+                raise
 
     def wait_alive(self, names: list[str] | None = None, timeout: float = 90.0) -> None:
         """Block until every (or the named) service has declared its liveliness token."""
@@ -271,6 +306,10 @@ class Stack:
                 with contextlib.suppress(ProcessLookupError):
                     os.killpg(p.proc.pid, signal.SIGKILL)
                 p.proc.wait(timeout=5)
+        if self.drone_router is not None:
+            with contextlib.suppress(Exception):
+                self.drone_router.close()  # type: ignore[no-untyped-call]
+            self.drone_router = None
         if self.router is not None:
             with contextlib.suppress(Exception):
                 self.router.close()  # type: ignore[no-untyped-call]

@@ -7,12 +7,13 @@ times in integer nanoseconds since the epoch. Every model has a `kind` literal (
 
 from __future__ import annotations
 
+import math
 import time
 import uuid
 from enum import StrEnum
 from typing import Annotated, Any, ClassVar, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
 SCHEMA_VERSION = 1
 """Major version of the message schemas. A receiver rejects a message of a newer major version with an
@@ -22,6 +23,15 @@ SCHEMA_MINOR = 1
 ignoring the fields it does not know (logged once per field)."""
 MAX_COMMAND_CHARS = 500
 MAX_QUERY_CHARS = 200
+# Physical bounds: a value beyond them is a broken estimate or a forged message, never a state to act on.
+MAX_COORDINATE_M = 10_000.0
+"""Largest |x|, |y|, |z| of any position or extent, metres (a local frame of +-10 km)."""
+MAX_VEHICLE_SPEED_MS = 50.0
+"""Largest |velocity| component a multirotor state may report, m/s."""
+MAX_ANGLE_RAD = 2 * math.pi + 1e-6
+"""Largest |yaw|, |roll|, |pitch|, radians."""
+MAX_BATTERY_VOLTAGE_V = 100.0
+"""Largest battery voltage, volts (a 12S pack is ~50 V)."""
 
 
 def now_ns() -> int:
@@ -34,9 +44,9 @@ def new_id(prefix: str = "") -> str:
 
 
 class Message(BaseModel):
-    """Base of every bus message: frozen, strict about unknown fields, versioned."""
+    """Base of every bus message: frozen, strict about unknown fields, versioned, finite numbers only."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid", use_attribute_docstrings=True)
+    model_config = ConfigDict(frozen=True, extra="forbid", use_attribute_docstrings=True, allow_inf_nan=False)
     schema_name: ClassVar[str] = ""
 
     schema_version: int = SCHEMA_VERSION
@@ -53,7 +63,7 @@ class Message(BaseModel):
 class Part(BaseModel):
     """Base of nested value objects (not published on their own)."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid", use_attribute_docstrings=True)
+    model_config = ConfigDict(frozen=True, extra="forbid", use_attribute_docstrings=True, allow_inf_nan=False)
 
 
 # --------------------------------------------------------------------------- geometry
@@ -62,11 +72,11 @@ class Part(BaseModel):
 class Vec3(Part):
     """A 3-vector in metres (a position or an extent), in the frame the field names."""
 
-    x: float = 0.0
+    x: float = Field(default=0.0, ge=-MAX_COORDINATE_M, le=MAX_COORDINATE_M)
     """x in metres (world ENU: east/forward at start; body FLU: forward)."""
-    y: float = 0.0
+    y: float = Field(default=0.0, ge=-MAX_COORDINATE_M, le=MAX_COORDINATE_M)
     """y in metres (world ENU: north/left at start; body FLU: left)."""
-    z: float = 0.0
+    z: float = Field(default=0.0, ge=-MAX_COORDINATE_M, le=MAX_COORDINATE_M)
     """z in metres (up)."""
 
     def as_tuple(self) -> tuple[float, float, float]:
@@ -120,19 +130,19 @@ class VehicleState(Message):
     """The vehicle as the autopilot bridge sees it, at >= 20 Hz: pose, motion, PX4 mode, health."""
 
     kind: Literal["vehicle_state"] = "vehicle_state"
-    stamp_ns: int = Field(default_factory=now_ns)
+    stamp_ns: int = Field(default_factory=now_ns, ge=0)
     """When the bridge produced this state (ns since epoch)."""
     vehicle_id: str = "am1"
     """Vehicle this state belongs to."""
     position: Vec3 = Vec3()
     """Body origin in the world frame (ENU), metres."""
     velocity: Vec3 = Vec3()
-    """Velocity in the world frame (ENU), m/s."""
-    yaw: float = 0.0
+    """Velocity in the world frame (ENU), m/s; each component within +-50 m/s."""
+    yaw: float = Field(default=0.0, ge=-MAX_ANGLE_RAD, le=MAX_ANGLE_RAD)
     """Heading, radians, ENU."""
-    roll: float = 0.0
+    roll: float = Field(default=0.0, ge=-MAX_ANGLE_RAD, le=MAX_ANGLE_RAD)
     """Roll, radians (FLU)."""
-    pitch: float = 0.0
+    pitch: float = Field(default=0.0, ge=-MAX_ANGLE_RAD, le=MAX_ANGLE_RAD)
     """Pitch, radians (FLU, positive nose up)."""
     armed: bool = False
     """Whether the motors are armed."""
@@ -140,9 +150,9 @@ class VehicleState(Message):
     """PX4 flight mode name, e.g. OFFBOARD, POSCTL, AUTO.TAKEOFF, AUTO.LOITER, AUTO.LAND."""
     landed_state: LandedState = LandedState.UNKNOWN
     """Landed state from EXTENDED_SYS_STATE."""
-    battery_voltage: float | None = None
+    battery_voltage: float | None = Field(None, ge=0.0, le=MAX_BATTERY_VOLTAGE_V)
     """Battery voltage in volts, if reported."""
-    battery_remaining: float | None = None
+    battery_remaining: float | None = Field(None, ge=0.0, le=100.0)
     """Battery remaining in percent (0-100), if reported."""
     gripper: GripperState = GripperState.UNKNOWN
     """Last commanded/acknowledged gripper state."""
@@ -150,16 +160,45 @@ class VehicleState(Message):
     """True while heartbeats arrive (none for 2 s means link lost)."""
     offboard_ok: bool = False
     """True while in OFFBOARD with the setpoint stream running."""
-    last_heartbeat_ns: int = 0
+    last_heartbeat_ns: int = Field(0, ge=0)
     """Receive time of the last autopilot HEARTBEAT."""
     message: str = ""
     """Latest human-readable status (STATUSTEXT, link loss...)."""
+    override: str = ""
+    """Why PX4, the pilot or an abort has taken control from the stack ("PX4 switched from OFFBOARD to AUTO.RTL",
+    "aborted by <source>: <reason>"); while set, the bridge neither re-enters OFFBOARD nor takes off for the task
+    that was flying. Empty: the stack may fly."""
+    override_ns: int = 0
+    """Bridge time when `override` was set (0 when empty): a change tells a new takeover from an old one."""
+
+    # What the bridge always sends: a state on the wire without these does not say where the vehicle is.
+    WIRE_FIELDS: ClassVar[tuple[str, ...]] = ("kind", "stamp_ns", "vehicle_id", "position", "velocity", "armed",
+                                              "landed_state", "link_ok")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _complete_on_the_wire(cls, data: Any, info: ValidationInfo) -> Any:
+        if info.mode == "json" and isinstance(data, dict):
+            missing = [f for f in cls.WIRE_FIELDS if f not in data]
+            if missing:
+                raise ValueError(f"a vehicle state on the bus must carry {list(cls.WIRE_FIELDS)}; missing {missing}")
+        return data
+
+    @field_validator("velocity")
+    @classmethod
+    def _physical_speed(cls, v: Vec3) -> Vec3:
+        if max(abs(v.x), abs(v.y), abs(v.z)) > MAX_VEHICLE_SPEED_MS:
+            raise ValueError(f"velocity ({v.x:.1f}, {v.y:.1f}, {v.z:.1f}) m/s exceeds {MAX_VEHICLE_SPEED_MS:.0f} m/s "
+                             "per axis: not a multirotor state")
+        return v
 
 
 class ArmCommand(Message):
     """Arm the motors (PX4 arming checks apply)."""
 
     kind: Literal["arm"] = "arm"
+    task_id: str | None = None
+    """Task on whose behalf (set by the executor); None for an operator's direct command."""
 
 
 class DisarmCommand(Message):
@@ -167,7 +206,10 @@ class DisarmCommand(Message):
 
     kind: Literal["disarm"] = "disarm"
     force: bool = False
-    """Force disarm even in the air (emergency only)."""
+    """Force the disarm past PX4's pre-checks (on the ground)."""
+    kill: bool = False
+    """Required to disarm while airborne: the motors stop and the vehicle falls. Emergency only; the bridge
+    refuses an in-air disarm without it and logs every kill with its sender."""
 
 
 class TakeoffCommand(Message):
@@ -176,6 +218,8 @@ class TakeoffCommand(Message):
     kind: Literal["takeoff"] = "takeoff"
     altitude: float = Field(1.5, gt=0.0, le=50.0)
     """Target altitude above the home position, metres."""
+    task_id: str | None = None
+    """Task on whose behalf (set by the executor); None for an operator's direct command."""
 
 
 class GotoCommand(Message):
@@ -186,8 +230,10 @@ class GotoCommand(Message):
     """Target position, world ENU, metres."""
     yaw: float
     """Target heading, radians ENU."""
-    max_speed: float | None = Field(None, gt=0.0)
+    max_speed: float | None = Field(None, gt=0.0, le=MAX_VEHICLE_SPEED_MS)
     """Optional speed limit for this motion, m/s (the bridge ramps the setpoint)."""
+    task_id: str | None = None
+    """Task on whose behalf (set by the executor); None for an operator's direct command."""
 
 
 class HoldCommand(Message):
@@ -550,6 +596,8 @@ class AbortAck(Message):
     """The skill that was stopped, if any."""
     message: str = ""
     """What was done."""
+    service: str = "executor"
+    """Which service acknowledges (executor, autopilot_bridge)."""
 
 
 # --------------------------------------------------------------------------- reasoner
@@ -601,6 +649,10 @@ class ModelCall(Part):
     """Prompt tokens, when the backend reports them."""
     tokens_out: int | None = None
     """Answer tokens, when the backend reports them."""
+    structured: bool = False
+    """The answer was decoded under the answer's JSON schema (schema-constrained output), not free text."""
+    tokens_cached: int | None = None
+    """Prompt tokens the server read from its prompt cache, when it reports them."""
 
 
 class ReasoningStep(Message):
@@ -665,6 +717,59 @@ class CancelReply(Message):
     """True when the goal was running and is being cancelled."""
     reason: str = ""
     """Why not (unknown goal, already ended)."""
+
+
+class ApprovalState(StrEnum):
+    """Life cycle of an operator approval request."""
+
+    PENDING = "pending"
+    APPROVED = "approved"
+    REJECTED = "rejected"
+    EXPIRED = "expired"
+
+
+class ApprovalStatus(Message):
+    """An operator approval of a critical skill: pending while the reasoner waits, then how it was decided."""
+
+    kind: Literal["approval_status"] = "approval_status"
+    stamp_ns: int = Field(default_factory=now_ns)
+    """Publish time."""
+    approval_id: str = Field(default_factory=lambda: new_id("appr-"))
+    """Id to decide it by."""
+    vehicle_id: str = "am1"
+    """Vehicle that waits."""
+    task_id: str = ""
+    """Task the skill belongs to."""
+    step: int = 0
+    """Reasoning step."""
+    skill: str
+    """The skill the policy chose."""
+    argument: str | None = None
+    """Its argument."""
+    reasoning: str = ""
+    """Why the policy chose it (its DRT reasoning), for the operator."""
+    state: ApprovalState = ApprovalState.PENDING
+    """pending, approved, rejected or expired."""
+    reason: str = ""
+    """The operator's reason (rejections), or why it expired."""
+    operator: str = ""
+    """Who decided."""
+    expires_ns: int = 0
+    """When a pending request expires (the step then fails and the vehicle holds)."""
+
+
+class ApprovalDecision(Message):
+    """The operator's answer to a pending approval."""
+
+    kind: Literal["approval_decision"] = "approval_decision"
+    approval_id: str = Field(..., max_length=64)
+    """The request decided."""
+    approved: bool
+    """True lets the skill run; False makes the policy choose again."""
+    reason: str = Field("", max_length=300)
+    """Why (shown to the policy in the History on a rejection)."""
+    operator: str = Field("operator", max_length=64)
+    """Who decides (gateway user, MCP client...)."""
 
 
 class ResetNotice(Message):
@@ -907,6 +1012,6 @@ MESSAGE_TYPES: tuple[type[Message], ...] = (
     GripperCommand, AutopilotResult, LocalizeRequest, ObjectEstimate, PlacementEstimate, Detections,
     SkillLibrary, SkillRequest, SkillAccept, WorkingMemory, SkillStatus, Abort, AbortAck, ReasoningStep,
     TaskRequest, TaskAccept, TaskStatus, Health, Scenario, SimLabels, JudgeRequest, JudgeResult, SimResetResult,
-    CancelGoal, CancelReply, ResetNotice,
+    CancelGoal, CancelReply, ResetNotice, ApprovalStatus, ApprovalDecision,
 )
 MESSAGES_BY_SCHEMA: dict[str, type[Message]] = {m.full_schema_name(): m for m in MESSAGE_TYPES}

@@ -45,6 +45,7 @@ async def serve_forever(name: str, run: RunFn[S], settings: S, stop: asyncio.Eve
         return
     stopper.cancel()
     bus = opening.result()
+    bus.name = name
     try:
         if announce_at_start:
             announce(bus, settings, name)

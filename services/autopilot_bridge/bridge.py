@@ -16,8 +16,12 @@ from services.autopilot_bridge import px4
 from services.autopilot_bridge.link import MavlinkLink
 from services.autopilot_bridge.settings import BridgeSettings
 from services.autopilot_bridge.stream import SetpointStream, Target
-from shared.bus import Bus
+from shared.bus import Bus, Caller
+from shared.envelope import altitude_problem, geofence_problem, speed_problem
+from shared.keys import FLEET_ABORT, BoundTopic
 from shared.messages import (
+    Abort,
+    AbortAck,
     ArmCommand,
     AutopilotResult,
     DisarmCommand,
@@ -95,6 +99,15 @@ class Bridge:
         self.last_statustext_mono = 0.0
         # control
         self.offboard_expected = False  # we put PX4 in OFFBOARD and have not asked it to leave
+        # PX4's authority: the mode we last asked for; a switch to anything else while armed means PX4 (a
+        # failsafe) or the pilot took over, and latches `override` until a new operator command.
+        self.mode_requested: str | None = None
+        self.mode_pending: str | None = None  # asked for, not yet seen in a HEARTBEAT
+        self.override = ""
+        self.override_ns = 0
+        self.override_task: str | None = None  # the task that was flying when control was taken
+        self.last_task: str | None = None  # task id of the newest motion command
+        self.aborted_tasks: set[str] = set()  # tasks named by an abort (or flying at one): never command again
         self.link_was_ok = False
         self.epoch = 0  # bumped by every motion command so a running takeoff knows it was superseded
         self._pending: dict[int, asyncio.Future[int]] = {}
@@ -222,11 +235,21 @@ class Bridge:
             mode = "UNKNOWN"
         if mode != self.mode:
             log.info("mode %s -> %s", self.mode, mode)
-        self.mode = mode
+        previous, self.mode = self.mode, mode
+        if not self.armed:
+            self.mode_requested = None
         if self.offboard_expected and mode != "OFFBOARD":
             self.offboard_expected = False
+            self.mode_requested = None
+            self.stream.stop()  # PX4 ignores our setpoints outside OFFBOARD; stopping them keeps it that way
             self.message = f"offboard lost: PX4 switched to {mode}{self._status_hint()}"
             log.warning("%s", self.message)
+            self.take_over(f"PX4 switched from OFFBOARD to {mode}{self._status_hint()}")
+        elif mode == self.mode_pending:
+            self.mode_requested, self.mode_pending = mode, None  # the switch we asked for
+        elif self.armed and mode != previous and previous == self.mode_requested and mode != self.mode_requested:
+            self.mode_requested = None
+            self.take_over(f"PX4 switched from {previous} to {mode}{self._status_hint()}")
 
     def _finite(self, msg: Any, *values: float) -> bool:
         if px4.all_finite(*values):
@@ -263,8 +286,9 @@ class Bridge:
         log.info("PX4: %s", text)
 
     def _on_command_ack(self, msg: Any) -> None:
-        if getattr(msg, "target_system", 0) not in (0, self.s.source_system):
-            return  # an answer to another ground station on the same link
+        if getattr(msg, "target_system", 0) not in (0, self.s.source_system) or \
+                getattr(msg, "target_component", 0) not in (0, self.s.source_component):
+            return  # an answer to a ground station or another component on the same link
         fut = self._pending.get(msg.command)
         if fut is None or fut.done():
             self.counters["unexpected_acks"] += 1
@@ -274,6 +298,83 @@ class Bridge:
         if msg.result == px4.MAV_RESULT_IN_PROGRESS:
             return  # the final ACK follows
         fut.set_result(int(msg.result))
+
+    # ------------------------------------------------------------------ PX4's authority
+
+    def take_over(self, why: str, task_id: str | None = None) -> None:
+        """PX4, the pilot or an abort took control: latch it. Nothing re-enters OFFBOARD, arms or takes off
+        for the task that was flying; a command of another task, or an operator's own (no task), clears it."""
+        if self.override:
+            return
+        self.override = why
+        self.override_ns = now_ns()
+        self.override_task = task_id or self.last_task
+        if not self.message.startswith("offboard lost"):
+            self.message = why
+        log.warning("control taken from the stack: %s (task %s); waiting for a new operator command", why,
+                    self.override_task or "-")
+
+    def authority_refusal(self, command: str, task_id: str | None) -> AutopilotResult | None:
+        """None when `command` may take control; else the refusal. A new task or an operator's direct command
+        (task_id None) is the new operator command that ends a takeover."""
+        if task_id is not None and task_id in self.aborted_tasks:
+            return self._result(command, False, f"{command} refused: task {task_id} was aborted; a new operator "
+                                "command is needed")
+        if self.override and task_id is not None and task_id == self.override_task:
+            return self._result(command, False, f"{command} refused: the autopilot has control ({self.override}); "
+                                "the stack does not take it back within this task, a new operator command is needed")
+        if self.override:
+            log.info("new operator command (%s, task %s): the stack may fly again after: %s", command,
+                     task_id or "operator", self.override)
+            self.override, self.override_ns, self.override_task = "", 0, None
+        if task_id is not None:
+            self.last_task = task_id
+        return None
+
+    async def on_abort(self, abort: Abort) -> AbortAck:
+        """Obey an abort without the executor: hold (`abort_hold`: our own setpoint frozen in OFFBOARD, or PX4's
+        AUTO.LOITER), latch a takeover, and refuse every later command of the aborted task."""
+        for task in (abort.task_id, None if abort.task_id else self.last_task):
+            if task:
+                self.aborted_tasks.add(task)
+        if abort.task_id and self.last_task and abort.task_id != self.last_task:
+            ack = AbortAck(abort_stamp_ns=abort.stamp_ns, service=SERVICE,
+                           message=f"not flying for task {abort.task_id} (its commands are refused from now on); "
+                                   "nothing else done")
+        else:
+            self.epoch += 1  # ends a takeoff that is waiting for its altitude
+            self.take_over(f"aborted by {abort.source}: {abort.reason}", abort.task_id)
+            ack = AbortAck(abort_stamp_ns=abort.stamp_ns, service=SERVICE, message=await self.hold_through_px4())
+        log.warning("abort from %s (%s): %s", abort.source, abort.reason, ack.message)
+        if self.bus is not None:
+            self.bus.publish(self.keys.abort_ack, ack)
+        return ack
+
+    async def hold_through_px4(self) -> str:
+        if not self.link_ok:
+            return "no link to PX4: cannot command a hold"
+        if not self.armed:
+            self.stream.stop()
+            return "disarmed: nothing to hold"
+        in_our_hands = self.offboard_expected or (self.mode_requested is not None and self.mode == self.mode_requested)
+        if not in_our_hands:
+            return f"PX4 has control in {self.mode}: left to it"
+        if self.stream.running:
+            t = self.current_target()
+            self.stream.set_target(t)  # hold here at once, whatever PX4 answers next
+            if self.s.abort_hold == "offboard" and self.mode == "OFFBOARD":
+                return f"holding at ({t.x:.2f}, {t.y:.2f}, {t.z:.2f}) in OFFBOARD (the bridge's own setpoints)"
+        if self.mode == "AUTO.LOITER":
+            return "holding in AUTO.LOITER (PX4 Hold)"
+        self.offboard_expected = False
+        code = await self.set_mode("AUTO.LOITER")
+        if code == px4.MAV_RESULT_ACCEPTED:
+            self.mode_requested = "AUTO.LOITER"
+            self.stream.stop()
+            return "holding in AUTO.LOITER (PX4 Hold)"
+        self.offboard_expected = self.stream.running and self.mode == "OFFBOARD"
+        what = "no answer" if code is None else px4.result_name(code)
+        return f"AUTO.LOITER refused ({what}{self._status_hint()}); holding the position in OFFBOARD"
 
     # ------------------------------------------------------------------ MAVLink output
 
@@ -332,10 +433,48 @@ class Bridge:
         return self._result(command, False, f"{what} {px4.result_words(code)} by PX4 ({px4.result_name(code)})"
                             f"{self._status_hint()}", code)
 
-    async def handle(self, cmd: Any) -> AutopilotResult:
-        """Serve one AutopilotCommand; never raises for a bad command, answers ok=False instead."""
+    def envelope_problem(self, cmd: Any) -> str | None:
+        """Why `cmd` would leave the flight envelope (geofence, altitude band, speed) or drop the vehicle, or
+        None. Checked here too, not only in the executor, so a command that bypasses it cannot leave it."""
+        if isinstance(cmd, GotoCommand):
+            p = cmd.position
+            if not px4.all_finite(p.x, p.y, p.z, cmd.yaw):
+                return None  # goto() answers non-finite input with its own message
+            return (geofence_problem(p, self.s, "goto target") or altitude_problem(p.z, self.s, what="goto target")
+                    or speed_problem(cmd.max_speed, self.s, "goto"))
+        if isinstance(cmd, TakeoffCommand):
+            x, y, _z = self.position
+            target = Vec3(x=x, y=y, z=cmd.altitude)
+            return (altitude_problem(cmd.altitude, self.s, what="takeoff")
+                    or geofence_problem(target, self.s, "takeoff target"))
+        if isinstance(cmd, DisarmCommand) and not cmd.kill and (self.airborne or (
+                self.armed and self.offboard_expected and self.position[2] > 0.15)):
+            return (f"disarm refused: the vehicle is in the air (landed_state={self.landed_state.value}, "
+                    f"z={self.position[2]:.2f} m) and would fall; land first, or send kill=true to stop the "
+                    "motors in an emergency")
+        return None
+
+    async def handle(self, cmd: Any, caller: Caller | str = "local") -> AutopilotResult:
+        """Serve one AutopilotCommand; never raises for a bad command, answers ok=False instead. Every
+        command is logged with `caller` (who sent it) and its outcome."""
         kind = getattr(cmd, "kind", type(cmd).__name__)
         self.counters["commands"] += 1
+        what = cmd.model_dump_json(exclude={"schema_version"}) if hasattr(cmd, "model_dump_json") else repr(cmd)
+        problem = self.envelope_problem(cmd)
+        if problem is not None:
+            self.counters["refused_envelope"] += 1
+            log.warning("REFUSED %s from %s: %s", what, caller, problem)
+            return self._result(str(kind), False, problem)
+        if isinstance(cmd, DisarmCommand) and cmd.kill:
+            log.critical("KILL: disarm with kill=true from %s (armed=%s, landed_state=%s, z=%.2f m)", caller,
+                         self.armed, self.landed_state.value, self.position[2])
+        else:
+            log.info("command %s from %s", what, caller)
+        res = await self._dispatch(cmd, kind)
+        log.info("command %s from %s -> %s: %s", kind, caller, "ok" if res.ok else "failed", res.message)
+        return res
+
+    async def _dispatch(self, cmd: Any, kind: str) -> AutopilotResult:
         if not self.link_ok:
             age = time.monotonic() - self.last_hb_mono if self.last_hb_mono else None
             why = "no HEARTBEAT received yet" if age is None else f"no HEARTBEAT for {age:.1f} s"
@@ -348,7 +487,10 @@ class Bridge:
             return self._result(str(kind), False, f"unknown autopilot command {kind!r}")
         return await handler(cmd)
 
-    async def arm(self, _cmd: ArmCommand) -> AutopilotResult:
+    async def arm(self, cmd: ArmCommand) -> AutopilotResult:
+        refused = self.authority_refusal("arm", cmd.task_id)
+        if refused is not None:
+            return refused
         code = await self.command_long(px4.MAV_CMD_COMPONENT_ARM_DISARM, 1)
         if code == px4.MAV_RESULT_ACCEPTED:
             self.armed = True  # PX4 acks after arming; its next HEARTBEAT (1 Hz) confirms
@@ -357,7 +499,7 @@ class Bridge:
     async def disarm(self, cmd: DisarmCommand) -> AutopilotResult:
         self.epoch += 1
         code = await self.command_long(px4.MAV_CMD_COMPONENT_ARM_DISARM, 0,
-                                       px4.FORCE_ARM_MAGIC if cmd.force else 0)
+                                       px4.FORCE_ARM_MAGIC if cmd.force or cmd.kill else 0)
         if code == px4.MAV_RESULT_ACCEPTED:
             self.armed = False
             self.offboard_expected = False
@@ -365,7 +507,11 @@ class Bridge:
         return self._ack_result("disarm", code, "disarm", "disarmed")
 
     async def set_mode(self, name: str) -> int | None:
-        return await self.command_long(px4.MAV_CMD_DO_SET_MODE, *px4.set_mode_params(name))
+        self.mode_pending = name
+        code = await self.command_long(px4.MAV_CMD_DO_SET_MODE, *px4.set_mode_params(name))
+        if code != px4.MAV_RESULT_ACCEPTED and self.mode_pending == name:
+            self.mode_pending = None
+        return code
 
     async def enter_offboard(self, target: Target) -> AutopilotResult | None:
         """Stream `target`, and once the stream has run long enough, switch to OFFBOARD. None on success."""
@@ -385,12 +531,16 @@ class Bridge:
             return self._result("offboard", False, f"OFFBOARD accepted but PX4 still reports {self.mode} after "
                                 f"{self.s.mode_timeout_s:.0f} s", px4.MAV_RESULT_ACCEPTED)
         self.offboard_expected = True
+        self.mode_requested = "OFFBOARD"
         return None
 
     async def takeoff(self, cmd: TakeoffCommand) -> AutopilotResult:
         if not self.have_position:
             return self._result("takeoff", False, "no LOCAL_POSITION_NED from PX4 yet: cannot take off without "
                                 "a position estimate")
+        refused = self.authority_refusal("takeoff", cmd.task_id)
+        if refused is not None:
+            return refused
         async with self._flight_lock:
             self.epoch += 1
             epoch = self.epoch
@@ -410,6 +560,8 @@ class Bridge:
                 if failed is not None:
                     return failed.model_copy(update={"command": "takeoff"})
                 code = px4.MAV_RESULT_ACCEPTED
+            if epoch != self.epoch or self.override:
+                return self._result("takeoff", False, f"takeoff stopped: {self.override or 'superseded'}", code)
             alt = cmd.altitude
             self.stream.set_target(Target(x, y, alt, yaw))
             tol = self.s.arrival_tolerance_m
@@ -420,6 +572,8 @@ class Bridge:
                 return there or epoch != self.epoch or not self.offboard_expected or not self.armed
 
             reached = await self.wait_for(settled, self.s.takeoff_timeout_s)
+            if self.override:
+                return self._result("takeoff", False, f"takeoff stopped: {self.override}", code)
             if epoch != self.epoch:
                 return self._result("takeoff", False, "takeoff superseded by a newer command", code)
             if not self.armed:
@@ -443,12 +597,19 @@ class Bridge:
         if not (self.armed and (self.airborne or (self.offboard_expected and self.stream.running))):
             return self._result("goto", False, f"goto rejected: the vehicle is not airborne (armed={self.armed}, "
                                 f"landed_state={self.landed_state.value}); take off first")
+        refused = self.authority_refusal("goto", cmd.task_id)
+        if refused is not None:
+            return refused
         self.epoch += 1
         if not (self.offboard_ok and self.offboard_expected):
             failed = await self.enter_offboard(self.current_target())
             if failed is not None:
                 return failed.model_copy(update={"command": "goto"})
-        speed = None if cmd.max_speed is None else min(cmd.max_speed, self.s.max_speed)
+            if self.override:
+                return self._result("goto", False, f"goto stopped: {self.override}")
+        # The envelope check already refused a faster max_speed; none given means the envelope's limit, so a
+        # goto never jumps the setpoint and flies at the autopilot's own (higher) speed.
+        speed = self.s.max_speed if cmd.max_speed is None else min(cmd.max_speed, self.s.max_speed)
         start = None
         if speed is not None:
             # Ramp from where the setpoint is now (not the measured position) so the setpoint never jumps.
@@ -466,9 +627,17 @@ class Bridge:
             t = self.current_target()
             self.stream.set_target(t)
             return self._result("hold", True, f"holding at ({t.x:.2f}, {t.y:.2f}, {t.z:.2f}) in OFFBOARD")
-        if self.airborne:
+        if self.airborne and self.mode == "AUTO.LOITER":
+            return self._result("hold", True, "holding in AUTO.LOITER")
+        if self.airborne and self.mode_requested is not None and self.mode == self.mode_requested:
             code = await self.set_mode("AUTO.LOITER")
+            if code == px4.MAV_RESULT_ACCEPTED:
+                self.mode_requested = "AUTO.LOITER"
             return self._ack_result("hold", code, "AUTO.LOITER", "holding in AUTO.LOITER")
+        if self.airborne:
+            # PX4 (a failsafe, RTL) or the pilot (POSCTL) chose this mode: holding would override them.
+            return self._result("hold", True, f"PX4 has control in {self.mode}: not overriding it"
+                                + (f" ({self.override})" if self.override else ""))
         return self._result("hold", True, f"on the ground (landed_state={self.landed_state.value}): nothing to hold")
 
     async def land(self, _cmd: LandCommand) -> AutopilotResult:
@@ -478,13 +647,21 @@ class Bridge:
         code = await self.set_mode("AUTO.LAND")
         if code == px4.MAV_RESULT_ACCEPTED:
             self.stream.stop()
+            self.mode_requested = "AUTO.LAND"
         else:
             self.offboard_expected = was_expected
         return self._ack_result("land", code, "AUTO.LAND", "landing (AUTO.LAND)")
 
     async def gripper_cmd(self, cmd: GripperCommand) -> AutopilotResult:
         grab = cmd.action == "close"
-        code = await self.command_long(px4.MAV_CMD_DO_GRIPPER, self.s.gripper_id, 1 if grab else 0)
+        if self.s.gripper_actuation == "actuator":
+            # DO_SET_ACTUATOR: params 1-6 drive "Peripheral via Actuator Set 1..6"; NaN leaves an output alone.
+            values = [math.nan] * 6 + [0.0]  # param 7: index of the actuator set (0 = 1..6)
+            values[self.s.gripper_actuator_index - 1] = (self.s.gripper_actuator_closed if grab
+                                                         else self.s.gripper_actuator_open)
+            code = await self.command_long(px4.MAV_CMD_DO_SET_ACTUATOR, *values)
+        else:
+            code = await self.command_long(px4.MAV_CMD_DO_GRIPPER, self.s.gripper_id, 1 if grab else 0)
         if code == px4.MAV_RESULT_ACCEPTED:
             self.gripper = GripperState.CLOSED if grab else GripperState.OPEN
         return self._ack_result("gripper", code, f"gripper {cmd.action}",
@@ -504,12 +681,14 @@ class Bridge:
             roll=self.roll, pitch=self.pitch, armed=self.armed, mode=self.mode, landed_state=self.landed_state,
             battery_voltage=self.battery_voltage, battery_remaining=self.battery_remaining, gripper=self.gripper,
             link_ok=link_ok, offboard_ok=self.offboard_ok and self.offboard_expected,
-            last_heartbeat_ns=self.last_hb_ns, message=self.message,
+            last_heartbeat_ns=self.last_hb_ns, message=self.message, override=self.override,
+            override_ns=self.override_ns,
         )
 
     def health(self) -> Health:
         details: dict[str, Any] = {**self.stream.stats(), **self.counters, "mavlink_sent": self.link.sent,
                                    "target_system": self.target_system, "mode": self.mode,
+                                   "override": self.override,
                                    "peer": f"{self.link.peer[0]}:{self.link.peer[1]}" if self.link.peer else None,
                                    "connection": self.s.connection}
         ok = self.link_ok
@@ -544,17 +723,27 @@ class Bridge:
             self.bus.publish(self.keys.health(SERVICE), self.health())
             await asyncio.sleep(self.s.health_period_s)
 
-    async def serve_command(self, cmd: Any) -> AutopilotResult:
-        return await self.handle(cmd)
+    async def abort_loop(self, stop: asyncio.Event, key: BoundTopic[Abort]) -> None:
+        """Aborts reach the bridge directly (not only through the executor), so a dead executor cannot leave
+        the vehicle flying to its last target; the fleet-wide key is obeyed like the vehicle's own."""
+        assert self.bus is not None
+        sub = self.bus.subscribe(key, maxsize=16, overflow="drop_newest")
+        while not stop.is_set():
+            abort = await sub.recv()
+            self._spawn(self.on_abort(abort))
+
+    async def serve_command(self, cmd: Any, caller: Caller) -> AutopilotResult:
+        return await self.handle(cmd, caller)
 
     async def run(self, stop: asyncio.Event) -> None:
         assert self.bus is not None
         self.loop = asyncio.get_running_loop()
         self.link.start(self.loop, self.on_message)
-        self.bus.serve(self.keys.autopilot_command, self.serve_command)
+        self.bus.serve(self.keys.autopilot_command, self.serve_command, with_caller=True)
         log.info("bridge on %s; serving %s", self.s.connection, self.keys.autopilot_command)
         loops = [asyncio.create_task(c) for c in (self.publish_state_loop(stop), self.heartbeat_loop(stop),
-                                                  self.health_loop(stop))]
+                                                  self.health_loop(stop), self.abort_loop(stop, self.keys.abort),
+                                                  self.abort_loop(stop, FLEET_ABORT))]
         stopper = asyncio.create_task(stop.wait())
         try:
             done, _ = await asyncio.wait([*loops, stopper], return_when=asyncio.FIRST_COMPLETED)
@@ -573,5 +762,6 @@ async def run(bus: Bus, settings: BridgeSettings, stop: asyncio.Event) -> None:
     # The setpoint thread waits for the GIL whenever another thread holds it; Python's default 5 ms switch
     # interval would show up directly as stream jitter.
     sys.setswitchinterval(settings.gil_switch_interval_s)
-    link = MavlinkLink(settings.connection, baud=settings.baud, source_system=settings.source_system)
+    link = MavlinkLink(settings.connection, baud=settings.baud, source_system=settings.source_system,
+                       source_component=settings.source_component)
     await Bridge(bus, settings, link).run(stop)

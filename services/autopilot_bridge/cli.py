@@ -96,9 +96,11 @@ def arm(connect: Connect = "tcp/127.0.0.1:7447", vehicle: Vehicle = "am1") -> No
 
 @autopilot.command()
 def disarm(connect: Connect = "tcp/127.0.0.1:7447", vehicle: Vehicle = "am1",
-           force: Annotated[bool, typer.Option(help="Force, even in the air (emergency only).")] = False) -> None:
-    """Disarm the motors."""
-    _run(connect, vehicle, DisarmCommand(force=force))
+           force: Annotated[bool, typer.Option(help="Force past PX4's pre-checks (on the ground).")] = False,
+           kill: Annotated[bool, typer.Option(help="Stop the motors even in the air: the vehicle falls "
+                                                   "(emergency only; logged).")] = False) -> None:
+    """Disarm the motors (in the air only with --kill)."""
+    _run(connect, vehicle, DisarmCommand(force=force, kill=kill))
 
 
 @autopilot.command()

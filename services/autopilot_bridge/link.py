@@ -26,6 +26,34 @@ mavutil.set_dialect("common")
 mavlink = mavutil.mavlink
 
 
+UDP_TCP_SCHEMES = ("udpin:", "udpout:", "udp:", "udpbcast:", "tcp:", "tcpin:")
+
+
+def parse_connection(spec: str, baud: int = 921600) -> tuple[str, int]:
+    """A connection setting -> (pymavlink device, baud). Accepted: `udpin:HOST:PORT` (and udpout:, udp:, tcp:,
+    tcpin:), `serial:DEVICE[:BAUD]` (e.g. `serial:/dev/ttyACM0:921600`), or a bare device path (`/dev/ttyAMA0`,
+    `COM3`) at `baud`. Anything else is a clear error, before any port is opened."""
+    s = spec.strip()
+    if not s:
+        raise MavlinkError("empty MAVLink connection: use udpin:0.0.0.0:14540 or serial:/dev/ttyACM0:921600")
+    if s.startswith(UDP_TCP_SCHEMES):
+        return s, baud
+    if s.startswith("serial:"):
+        rest = s[len("serial:"):]
+        device, sep, rate = rest.rpartition(":")
+        if not sep or not rate.isdigit():
+            device, rate = rest, ""
+        if not device:
+            raise MavlinkError(f"MAVLink connection {spec!r}: no serial device (e.g. serial:/dev/ttyACM0:921600)")
+        if rate and not 0 < int(rate) <= 12_000_000:
+            raise MavlinkError(f"MAVLink connection {spec!r}: baud rate {rate} out of range")
+        return device, int(rate) if rate else baud
+    if s.startswith("/dev/") or s.upper().startswith("COM"):
+        return s, baud
+    raise MavlinkError(f"unknown MAVLink connection {spec!r}: use udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT, "
+                       "serial:/dev/DEVICE[:BAUD] or a device path")
+
+
 class _PeerWriter:
     """Stands in for `mav.file`: on UDP server links, send only to the peer we locked onto.
 
@@ -48,11 +76,12 @@ class MavlinkLink:
     """Owns the pymavlink connection. `start(loop, on_message)` runs the reader thread; `send(...)` is safe
     from any thread."""
 
-    def __init__(self, connection: str, *, baud: int = 921600, source_system: int = 255,
+    def __init__(self, connection: str, *, baud: int = 921600, source_system: int = 1,
                  source_component: int = px4.MAV_COMP_ID_ONBOARD_COMPUTER) -> None:
         self.connection = connection
+        device, baud = parse_connection(connection, baud)
         try:
-            self.conn = mavutil.mavlink_connection(connection, baud=baud, source_system=source_system,
+            self.conn = mavutil.mavlink_connection(device, baud=baud, source_system=source_system,
                                                    source_component=source_component, autoreconnect=True)
         except Exception as exc:
             raise MavlinkError(f"could not open MAVLink connection {connection!r}: {exc}. Check the port is "

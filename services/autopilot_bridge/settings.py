@@ -2,10 +2,19 @@
 
 from __future__ import annotations
 
-from pydantic import Field
+from typing import Literal
+
+from pydantic import AliasChoices, Field, field_validator, model_validator
 from pydantic_settings import SettingsConfigDict
 
+from shared import envelope
 from shared.settings import ServiceSettings
+
+
+def _env(field: str, executor_field: str | None = None) -> AliasChoices:
+    """The bridge's own variable first, then the executor's: one setting moves both fences."""
+    return AliasChoices(field, f"AERMANI_AUTOPILOT_BRIDGE_{field.upper()}",
+                        f"AERMANI_EXECUTOR_{(executor_field or field).upper()}")
 
 
 class BridgeSettings(ServiceSettings):
@@ -13,14 +22,17 @@ class BridgeSettings(ServiceSettings):
                                       use_attribute_docstrings=True)
 
     connection: str = "udpin:0.0.0.0:14540"
-    """pymavlink connection string: udpin:0.0.0.0:14540 for PX4 SITL's offboard link, a serial device such as
-    /dev/ttyACM0 (or /dev/serial/by-id/...) for hardware."""
+    """MAVLink link: udpin:0.0.0.0:14540 for PX4 SITL's offboard link (also udpout:, udp:, tcp:), or
+    serial:/dev/ttyACM0:921600 (device and optional baud; /dev/serial/by-id/... paths work) for hardware."""
     baud: int = Field(921600, gt=0)
-    """Serial baud rate (ignored for UDP)."""
+    """Serial baud rate when the connection names none (ignored for UDP)."""
     target_system: int = Field(0, ge=0, le=255)
     """PX4 system id to talk to; 0 = learn it from the first PX4 HEARTBEAT (others are then ignored)."""
-    source_system: int = Field(255, ge=1, le=255)
-    """Our MAVLink system id (255 is the usual ground/companion id PX4 accepts)."""
+    source_system: int = Field(1, ge=1, le=255)
+    """Our MAVLink system id. MAVLink's routing guide puts a companion computer in its autopilot's system (PX4's
+    MAV_SYS_ID, 1 by default) under its own component id; 255 belongs to ground stations, so is not the default."""
+    source_component: int = Field(191, ge=1, le=255)
+    """Our MAVLink component id (191 = MAV_COMP_ID_ONBOARD_COMPUTER; 192-194 for further companions)."""
     heartbeat_timeout_s: float = Field(2.0, gt=0.0)
     """No autopilot HEARTBEAT for this long means the link is lost."""
     stream_rate_hz: float = Field(20.0, ge=2.0, le=100.0)
@@ -35,16 +47,44 @@ class BridgeSettings(ServiceSettings):
     """Takeoff fails when the altitude is not reached within this time."""
     arrival_tolerance_m: float = Field(0.1, gt=0.0)
     """Takeoff counts as done within this distance of the target altitude."""
-    max_speed: float = Field(3.0, gt=0.0)
-    """Upper bound of a goto's max_speed ramp, m/s."""
+    # ---- the envelope, checked on every command whoever sent it (shared/envelope.py)
+    geofence_min: tuple[float, float, float] = Field(envelope.GEOFENCE_MIN, validation_alias=_env("geofence_min"))
+    """Geofence box lower corner (world ENU), metres; a goto or takeoff target outside is refused.
+    Also read from AERMANI_EXECUTOR_GEOFENCE_MIN."""
+    geofence_max: tuple[float, float, float] = Field(envelope.GEOFENCE_MAX, validation_alias=_env("geofence_max"))
+    """Geofence box upper corner, metres (also AERMANI_EXECUTOR_GEOFENCE_MAX)."""
+    min_altitude: float = Field(envelope.MANIPULATION_MIN_ALTITUDE,
+                                validation_alias=_env("min_altitude", "manipulation_min_altitude"))
+    """Lowest goto/takeoff target altitude, metres: the executor's grasp/place floor (also
+    AERMANI_EXECUTOR_MANIPULATION_MIN_ALTITUDE). Landing goes through `land`, not goto."""
+    max_altitude: float = Field(envelope.MAX_ALTITUDE, validation_alias=_env("max_altitude"))
+    """Highest goto/takeoff target altitude, metres (also AERMANI_EXECUTOR_MAX_ALTITUDE)."""
+    max_speed: float = Field(envelope.MAX_SPEED, gt=0.0, validation_alias=_env("max_speed"))
+    """Speed limit of a goto, m/s (also AERMANI_EXECUTOR_MAX_SPEED): a faster max_speed is refused and a goto
+    without one is ramped at this speed."""
     command_timeout_s: float = Field(1.5, gt=0.0)
     """Time to wait for a COMMAND_ACK before resending (MAVLink command protocol)."""
     command_attempts: int = Field(3, ge=1, le=10)
     """Sends of one COMMAND_LONG before giving up."""
     mode_timeout_s: float = Field(3.0, gt=0.0)
     """After an accepted mode change, time to see the new mode in HEARTBEAT."""
+    abort_hold: Literal["offboard", "px4_hold"] = "offboard"
+    """How the bridge holds on safety/abort (also when the executor is dead): `offboard` freezes its own setpoint
+    stream at the current position (PX4 holds there; a new task continues from the air), `px4_hold` switches
+    PX4 to AUTO.LOITER and stops the stream (holds even if the bridge dies next; a new task must land and take
+    off again, or an operator re-enters OFFBOARD by hand)."""
     gripper_id: int = Field(1, ge=1, le=6)
     """Gripper instance for MAV_CMD_DO_GRIPPER param 1."""
+    gripper_actuation: Literal["gripper", "actuator"] = "gripper"
+    """How the gripper is driven: `gripper` = MAV_CMD_DO_GRIPPER (PX4's payload deliverer, PD_GRIPPER_EN=1);
+    `actuator` = MAV_CMD_DO_SET_ACTUATOR on output function "Peripheral via Actuator Set N" (a servo on any
+    PWM/AUX output; N = gripper_actuator_index)."""
+    gripper_actuator_index: int = Field(1, ge=1, le=6)
+    """N of "Peripheral via Actuator Set N" (DO_SET_ACTUATOR param N) for gripper_actuation=actuator."""
+    gripper_actuator_open: float = Field(-1.0, ge=-1.0, le=1.0)
+    """Actuator value (-1..1) that opens the gripper."""
+    gripper_actuator_closed: float = Field(1.0, ge=-1.0, le=1.0)
+    """Actuator value (-1..1) that closes the gripper."""
     publish_tf: bool = False
     """Publish tf world->base_link from LOCAL_POSITION_NED/ATTITUDE. Off by default because the simulator
     publishes tf itself; turn it on for real hardware and PX4 SITL."""
@@ -54,3 +94,22 @@ class BridgeSettings(ServiceSettings):
     """Python thread switch interval for this process; small so the setpoint thread gets the GIL quickly."""
     stream_realtime_priority: int = Field(10, ge=0, le=99)
     """SCHED_FIFO priority of the setpoint thread when the OS allows it (root or CAP_SYS_NICE); 0 = never."""
+
+    @model_validator(mode="after")
+    def _check_envelope(self) -> BridgeSettings:
+        if any(lo >= hi for lo, hi in zip(self.geofence_min, self.geofence_max, strict=True)):
+            raise ValueError("geofence_min must be below geofence_max on every axis")
+        if not 0 < self.min_altitude < self.max_altitude:
+            raise ValueError("need 0 < min_altitude < max_altitude")
+        return self
+
+    @field_validator("connection")
+    @classmethod
+    def _connection(cls, v: str) -> str:
+        from services.autopilot_bridge.link import parse_connection  # noqa: PLC0415 (pymavlink import cost)
+
+        try:
+            parse_connection(v)
+        except Exception as exc:
+            raise ValueError(str(exc)) from exc
+        return v.strip()

@@ -27,7 +27,7 @@ def _interrupt(_signum: int, _frame: object) -> None:
 
 
 def eval_command(
-    backend: Annotated[str, typer.Option(help="Reasoner backend: rules, openai, anthropic, replay.")] = "rules",
+    backend: Annotated[str, typer.Option(help="Reasoner backend (`aermani vlm backends` lists them).")] = "rules",
     variant: Annotated[str, typer.Option(help="Prompt variant, or a comma list for a sweep, or 'all' "
                                               f"({', '.join(VARIANTS)}).")] = "full",
     episodes: Annotated[int | None, typer.Option(help="Episodes per suite (cycling through its tasks); "
@@ -43,7 +43,10 @@ def eval_command(
     speed_factor: Annotated[float, typer.Option(help="Simulator speed versus wall clock.")] = 4.0,
     t_max: Annotated[float, typer.Option(help="T_max per episode, seconds (paper: 600).")] = 600.0,
     tolerance: Annotated[float, typer.Option(help="Placement tolerance for the ground-truth judge, m.")] = 0.05,
-    model: Annotated[str, typer.Option(help="Model name for openai/anthropic backends.")] = "",
+    model: Annotated[str, typer.Option(help="Model name for a model backend.")] = "",
+    output_mode: Annotated[str, typer.Option(help="Answer decoding: auto, schema, text, or both (the same episodes "
+                                                  "once per mode into OUT/schema and OUT/text, compared in "
+                                                  "OUT/modes.md).")] = "auto",
     base_url: Annotated[str | None, typer.Option(help="Base URL of an OpenAI-compatible endpoint.")] = None,
     connect: Annotated[str | None, typer.Option(help="Use vehicles already running behind this Zenoh router "
                                                      "instead of launching a stack (with --vehicles).")] = None,
@@ -69,8 +72,12 @@ def eval_command(
     if connect and not vehicles:
         console.print("[red]--connect needs --vehicles (the ids of the simulated vehicles to use)[/red]")
         raise typer.Exit(2)
+    if output_mode not in ("auto", "schema", "text", "both"):
+        console.print(f"[red]unknown output mode {output_mode!r}; use auto, schema, text or both[/red]")
+        raise typer.Exit(2)
     api_key = os.environ.get("AERMANI_REASONER_API_KEY")
-    cfg = RunConfig(out=out, backend=backend, variants=variants, model=model, base_url=base_url, api_key=api_key,
+    modes = ["schema", "text"] if output_mode == "both" else [output_mode]
+    cfg = RunConfig(out=out, backend=backend, output_mode=modes[0], variants=variants, model=model, base_url=base_url, api_key=api_key,
                     episodes=episodes if episodes is not None else (None if tasks else 10),
                     suites=_split(suites), tasks_file=tasks, seed=seed, parallel=parallel,
                     speed_factor=speed_factor, t_max_s=t_max, tolerance=tolerance, connect=connect,
@@ -78,16 +85,22 @@ def eval_command(
     # SIGTERM (and SIGINT, which a background job ignores) stop the run cleanly: finished episodes are kept.
     signal.signal(signal.SIGTERM, _interrupt)
     signal.signal(signal.SIGINT, _interrupt)
-    try:
-        summary = run(cfg)
-    except ConfigError as exc:
-        console.print(f"[red]{exc}[/red]")
-        raise typer.Exit(2)
-    console.print(f"{summary.ran} episodes run, {summary.skipped} already finished (resumed), "
-                  f"{summary.wall_s:.0f} s; report: {out / 'report.md'}")
-    if summary.interrupted:
-        console.print("[yellow]interrupted: rerun the same command to resume[/yellow]")
-        raise typer.Exit(130)
+    for mode in modes:
+        mode_cfg = cfg if len(modes) == 1 else cfg.model_copy(update={"out": out / mode, "output_mode": mode})
+        try:
+            summary = run(mode_cfg)
+        except ConfigError as exc:
+            console.print(f"[red]{exc}[/red]")
+            raise typer.Exit(2)
+        console.print(f"{summary.ran} episodes run ({mode} answers), {summary.skipped} already finished (resumed), "
+                      f"{summary.wall_s:.0f} s; report: {mode_cfg.out / 'report.md'}")
+        if summary.interrupted:
+            console.print("[yellow]interrupted: rerun the same command to resume[/yellow]")
+            raise typer.Exit(130)
+    if len(modes) > 1:
+        from services.evaluation.report import write_mode_comparison
+
+        console.print(f"modes compared: {write_mode_comparison(out, modes)}")
 
 
 def register(app: typer.Typer) -> None:

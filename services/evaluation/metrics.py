@@ -205,6 +205,20 @@ class Metrics(BaseModel):
     invalid: int = 0
 
 
+def iar_by_mode(records: Iterable[EpisodeRecord]) -> dict[str, tuple[int, int]]:
+    """(invalid, calls) per answer decoding: `schema` (schema-constrained) and `text` (free text)."""
+    out: dict[str, tuple[int, int]] = {}
+    for r in records:
+        if r.harness_error:
+            continue
+        for s in r.steps:
+            for c in s.calls:
+                mode = "schema" if c.structured else "text"
+                bad, n = out.get(mode, (0, 0))
+                out[mode] = (bad + (not c.valid), n + 1)
+    return out
+
+
 def compute(records: Iterable[EpisodeRecord]) -> Metrics:
     records = list(records)
     ran = [r for r in records if not r.harness_error]

@@ -24,7 +24,7 @@ class EpisodeRecord(BaseModel):
     suite: str
     """Task category."""
     backend: str
-    """Reasoner backend (rules, openai, anthropic, replay)."""
+    """Reasoner backend (a registered kind, see `aermani vlm backends`)."""
     variant: str
     """Prompt variant."""
     model: str = ""

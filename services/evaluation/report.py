@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import urlparse
 
-from services.evaluation.metrics import compute, reasoning_steps
+from services.evaluation.metrics import compute, iar_by_mode, reasoning_steps
 from services.evaluation.records import RESULTS_FILE, EpisodeRecord, ResultsFile
 from services.evaluation.tasks import PAPER_RS, PAPER_SUITES, SUITE_TITLES
 from shared.messages import VARIANTS
@@ -98,7 +98,8 @@ def markdown(records: list[EpisodeRecord], config: dict[str, Any], plots: list[s
     lines = ["# aermani evaluation report", "",
              f"Generated {time.strftime('%Y-%m-%d %H:%M:%S %Z')} from `{RESULTS_FILE}` ({len(records)} episodes).", "",
              f"**Backend.** {backend_note(config, records)}", ""]
-    settings = {k: config.get(k) for k in ("backend", "variants", "model", "base_url", "episodes", "suites", "seed",
+    settings = {k: config.get(k) for k in ("backend", "output_mode", "variants", "model", "base_url", "episodes",
+                                           "suites", "seed",
                                            "parallel", "speed_factor", "t_max_s", "tolerance", "tasks_file")
                 if config.get(k) not in (None, "", [])}
     if settings:
@@ -122,6 +123,13 @@ def markdown(records: list[EpisodeRecord], config: dict[str, Any], plots: list[s
         m = compute(r for r in records if r.backend == b and r.variant == v)
         lines.append(f"| {method_name(b, v, multi)} | {m.episodes} | {_fmt(m.sr)} | {_fmt(m.arr)} | {_fmt(m.rs)} | "
                      f"{_fmt(m.iar)} | {_fmt(m.rt_median, 3)} | {_fmt(m.rt_p95, 3)} | {_fmt(m.tt)} |")
+    lines += ["", "IAR by answer decoding (schema-constrained: the request carried the answer's JSON schema; free "
+              "text: read by the lenient parser):", ""]
+    for b, v in configs:
+        modes = iar_by_mode(r for r in records if r.backend == b and r.variant == v)
+        lines.append(f"- {method_name(b, v, multi)}: " + ("; ".join(
+            f"{'schema-constrained' if m == 'schema' else 'free text'} IAR {100 * bad / n:.1f} % of {n} calls"
+            for m, (bad, n) in sorted(modes.items())) or "no model calls"))
     lines += ["", "How the episodes ended (reasoner's terminal state; success above is the simulator's ground truth):", ""]
     for b, v in configs:
         recs = [r for r in records if r.backend == b and r.variant == v and not r.harness_error]
@@ -268,3 +276,21 @@ def write_report(out: Path, config: dict[str, Any] | None = None) -> dict[str, P
     (out / "report.json").write_text(json.dumps(doc, indent=1))
     (out / "report.md").write_text(markdown(records, config, plots))
     return {"json": out / "report.json", "markdown": out / "report.md", "plots": out / "plots"}
+
+
+def write_mode_comparison(out: Path, modes: list[str]) -> Path:
+    """OUT/modes.md: the same episodes run once per answer decoding mode (OUT/<mode>/), side by side."""
+    lines = ["# Answer decoding modes compared", "",
+             "The same episodes, once with the answer's JSON schema sent with every request (schema) and once as "
+             "free text read by the lenient parser (text). Each mode's full report is in its folder.", "",
+             "| Mode | Method | N | SR ↑ | IAR ↓ | model calls | RT median (s) ↓ |", "|---|---|---|---|---|---|---|"]
+    for mode in modes:
+        records = ResultsFile(Path(out) / mode / RESULTS_FILE).load()
+        configs = _config_order(records)
+        for b, v in configs:
+            m = compute(r for r in records if r.backend == b and r.variant == v)
+            lines.append(f"| [{mode}]({mode}/report.md) | {method_name(b, v)} | {m.episodes} | {_fmt(m.sr)} | "
+                         f"{_fmt(m.iar)} | {m.queries} | {_fmt(m.rt_median, 3)} |")
+    path = Path(out) / "modes.md"
+    path.write_text("\n".join(lines) + "\n")
+    return path

@@ -63,6 +63,8 @@ class RunConfig(BaseModel):
 
     out: Path = Path("runs/eval")
     backend: str = "rules"
+    output_mode: str = "auto"
+    """Answer decoding of the reasoner (AERMANI_REASONER_OUTPUT_MODE): auto, schema or text."""
     variants: list[str] = ["full"]
     model: str = ""
     base_url: str | None = None
@@ -115,6 +117,7 @@ def vehicle_env(cfg: RunConfig) -> dict[str, str]:
         "AERMANI_AUTOPILOT_BRIDGE_CONNECTION": f"udpin:127.0.0.1:{api}",
         "AERMANI_SIM_SPEED_FACTOR": str(cfg.speed_factor),
         "AERMANI_REASONER_BACKEND": cfg.backend,
+        "AERMANI_REASONER_OUTPUT_MODE": cfg.output_mode,
         "AERMANI_REASONER_T_MAX_S": str(cfg.t_max_s),
     }
     if cfg.model:

@@ -40,6 +40,11 @@ class SkillFailed(SkillError):
     """A skill could not reach its termination condition; the message is for the policy."""
 
 
+class AuthorityLost(SkillFailed):
+    """PX4, the pilot or an abort took control while the skill ran: the stack must not fight it (no hold, no
+    retry); the task ends with this reason."""
+
+
 class StateTracker:
     """Newest VehicleState with its receive time, and a way to wait for the next one."""
 
@@ -89,11 +94,16 @@ class SkillContext:
         self.stop_requested = False  # set by an abort: a skill that missed its cancellation stops at the next check
         self.perceived: list[str] = []  # filled by the running skill, reported in its outcome
         self.estimate: ObjectEstimate | PlacementEstimate | None = None
+        self.task_id = ""  # the running skill's task: sent with motion commands so the bridge knows whose they are
+        self.override_ns_at_start = 0  # a takeover older than the skill is the bridge's business, not the skill's
 
-    def reset_outcome(self) -> None:
+    def reset_outcome(self, task_id: str = "") -> None:
         self.stop_requested = False
         self.perceived = []
         self.estimate = None
+        self.task_id = task_id
+        st = self.state.value
+        self.override_ns_at_start = st.override_ns if st is not None else 0
 
     # ---- state
 
@@ -109,6 +119,9 @@ class SkillContext:
 
     def _monitor(self, st: VehicleState) -> None:
         """Envelope rules checked on every state sample while a skill waits on the vehicle."""
+        if st.override and st.override_ns != self.override_ns_at_start and not st.override.startswith("aborted by "):
+            # (an abort's takeover is this executor's own abort too: it cancels the skill itself)
+            raise AuthorityLost(f"the autopilot took control: {st.override}")
         s = self.settings
         if outside_geofence(st.position, s, s.geofence_exit_margin):
             p = st.position
@@ -136,6 +149,8 @@ class SkillContext:
         if self.stop_requested:
             raise asyncio.CancelledError("aborted")
         t = timeout or self.settings.command_timeout_s
+        if self.task_id and "task_id" in type(cmd).model_fields and getattr(cmd, "task_id", None) is None:
+            cmd = cmd.model_copy(update={"task_id": self.task_id})
         try:
             res = await self.bus.query(self.keys.autopilot_command, cmd, timeout=t)
         except BusError as exc:

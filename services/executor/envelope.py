@@ -12,9 +12,14 @@ import time
 import numpy as np
 
 from services.executor.settings import ExecutorSettings
+from shared.envelope import altitude_problem, geofence_problem, outside_geofence, speed_problem
 from shared.frames import Mount
-from shared.messages import LandedState, Vec3, VehicleState
+from shared.messages import LandedState, VehicleState
 from shared.sensors import Intrinsics, backproject
+
+# The geometric rules live in shared/ because the autopilot bridge applies them too.
+__all__ = ["DepthClearance", "airborne", "altitude_problem", "geofence_problem", "offboard_problem",
+           "outside_geofence", "speed_problem", "state_problem", "wrap"]
 
 
 def airborne(state: VehicleState | None) -> bool:
@@ -41,32 +46,6 @@ def offboard_problem(state: VehicleState) -> str | None:
         return (f"autopilot is not in healthy OFFBOARD control (mode {state.mode}): cannot send setpoints; "
                 "nothing was moved")
     return None
-
-
-def geofence_problem(p: Vec3, s: ExecutorSettings, what: str = "target") -> str | None:
-    lo, hi = s.geofence_min, s.geofence_max
-    for axis, v, a, b in (("x", p.x, lo[0], hi[0]), ("y", p.y, lo[1], hi[1]), ("z", p.z, lo[2], hi[2])):
-        if not a <= v <= b:
-            return (f"{what} ({p.x:.2f}, {p.y:.2f}, {p.z:.2f}) is outside the geofence ({axis} must stay in "
-                    f"[{a:.2f}, {b:.2f}]); nothing was moved, choose another direction")
-    return None
-
-
-def altitude_problem(z: float, s: ExecutorSettings, low: float | None = None, what: str = "target") -> str | None:
-    low = s.min_altitude if low is None else low
-    if z < low - 1e-6:
-        return (f"{what} altitude {z:.2f} m is below the minimum {low:.2f} m; nothing was moved, "
-                "do not descend further")
-    if z > s.max_altitude + 1e-6:
-        return (f"{what} altitude {z:.2f} m is above the maximum {s.max_altitude:.2f} m; nothing was moved, "
-                "do not climb further")
-    return None
-
-
-def outside_geofence(p: Vec3, s: ExecutorSettings, margin: float) -> bool:
-    lo, hi = s.geofence_min, s.geofence_max
-    return any(v < a - margin or v > b + margin for v, a, b in
-               ((p.x, lo[0], hi[0]), (p.y, lo[1], hi[1]), (p.z, lo[2], hi[2])))
 
 
 class DepthClearance:

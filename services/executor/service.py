@@ -8,7 +8,7 @@ import logging
 import time
 from dataclasses import dataclass, field
 
-from services.executor.context import SkillContext, SkillFailed, StateTracker, pose_of
+from services.executor.context import AuthorityLost, SkillContext, SkillFailed, StateTracker, pose_of
 from services.executor.envelope import DepthClearance, airborne, offboard_problem, state_problem
 from services.executor.memory import Memory
 from services.executor.registry import Skill, build_library
@@ -16,6 +16,7 @@ from services.executor.settings import ExecutorSettings
 from shared.bus import Bus
 from shared.errors import BusError, DecodeError
 from shared.frames import DEFAULT_INTRINSICS
+from shared.keys import FLEET_ABORT, BoundTopic
 from shared.messages import (
     Abort,
     AbortAck,
@@ -142,7 +143,7 @@ class Executor:
             return SkillAccept(accepted=False, goal_id=goal_id, reason=reason)
         goal = Goal(goal_id, req, skill, start_pose=pose_of(self.state.value))
         self.goal = goal  # set before any await: one skill at a time
-        self.ctx.reset_outcome()
+        self.ctx.reset_outcome(req.task_id)
         self._status(goal_id, req, SkillState.RUNNING, f"{skill.name} started", started_ns=goal.started_ns,
                      outcome=SkillOutcome(start_pose=goal.start_pose))
         goal.task = asyncio.create_task(skill.run(self.ctx, arg), name=f"skill.{skill.name}")
@@ -185,6 +186,12 @@ class Executor:
                     state, message = SkillState.TIMEOUT, f"{skill.name}: {exc}; holding"
                     if skill.moves:
                         await self._hold()
+                elif isinstance(exc, AuthorityLost) and goal.aborted_by:
+                    # The bridge saw the abort first (it holds on its own): still this executor's abort.
+                    state = SkillState.ABORTED
+                    message = f"{skill.name} aborted ({goal.aborted_by}); holding position"
+                elif isinstance(exc, AuthorityLost):
+                    state, message = SkillState.FAILED, str(exc)  # no hold: PX4 or the pilot is in charge
                 elif isinstance(exc, SkillFailed):
                     state, message = SkillState.FAILED, str(exc)
                     if skill.moves:
@@ -267,8 +274,8 @@ class Executor:
                 log.info("gripper reports open: no longer holding the %s", self.memory.held)
                 self.memory.set_held(None)
 
-    async def _pump_aborts(self) -> None:
-        sub = self.bus.subscribe(self.keys.abort, maxsize=16, overflow="drop_newest")
+    async def _pump_aborts(self, key: BoundTopic[Abort]) -> None:
+        sub = self.bus.subscribe(key, maxsize=16, overflow="drop_newest")
         while True:
             abort = await sub.recv()
             # Abort handling runs beside the pump so a second abort is not queued behind a slow hold.
@@ -315,7 +322,8 @@ class Executor:
         log.info("executor serving %d skills: %s", len(self.skills), ", ".join(self.skills))
         try:
             async with asyncio.TaskGroup() as tg:
-                for coro in (self._pump_state(), self._pump_aborts(), self._pump_depth(), self._pump_calibration(),
+                for coro in (self._pump_state(), self._pump_aborts(self.keys.abort), self._pump_aborts(FLEET_ABORT),
+                             self._pump_depth(), self._pump_calibration(),
                              self._pump_detections(), self._pump_resets(), self._memory_ticker()):
                     tg.create_task(coro)
                 await stop.wait()

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pydantic import model_validator
 from pydantic_settings import SettingsConfigDict
 
+from shared import envelope
 from shared.settings import ServiceSettings
 
 
@@ -33,17 +34,17 @@ class ExecutorSettings(ServiceSettings):
     """Speed of the controlled descent and ascent of grasp and place, m/s."""
 
     # ---- safety envelope
-    geofence_min: tuple[float, float, float] = (-3.8, -3.8, 0.0)
+    geofence_min: tuple[float, float, float] = envelope.GEOFENCE_MIN
     """Geofence box lower corner (world ENU x, y, z), metres. Every target and the vehicle stay inside."""
-    geofence_max: tuple[float, float, float] = (3.8, 3.8, 2.5)
+    geofence_max: tuple[float, float, float] = envelope.GEOFENCE_MAX
     """Geofence box upper corner (world ENU x, y, z), metres."""
-    min_altitude: float = 0.3
+    min_altitude: float = envelope.MIN_ALTITUDE
     """Lowest altitude of motion primitives and transit legs, metres."""
-    max_altitude: float = 2.4
+    max_altitude: float = envelope.MAX_ALTITUDE
     """Highest altitude allowed, metres."""
-    manipulation_min_altitude: float = 0.2
+    manipulation_min_altitude: float = envelope.MANIPULATION_MIN_ALTITUDE
     """Lowest body altitude of the grasp/place descent (the gripper hangs 0.22 m below), metres."""
-    max_speed: float = 1.0
+    max_speed: float = envelope.MAX_SPEED
     """Speed limit sent with every setpoint, m/s; a measured speed above max_speed + overspeed_margin aborts."""
     overspeed_margin: float = 0.6
     """Tolerance above max_speed before the monitor declares an overspeed, m/s."""

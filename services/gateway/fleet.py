@@ -18,6 +18,9 @@ from shared.keys import (
     AUTOPILOT_STATE,
     CAMERA_COLOR,
     EXECUTOR_SKILL_STATUS,
+    FLEET_ABORT,
+    PERCEPTION_DETECTIONS,
+    REASONER_APPROVAL,
     REASONER_STEP,
     REASONER_TASK_STATUS,
     ROOT,
@@ -26,7 +29,18 @@ from shared.keys import (
     Topic,
     parse_alive_key,
 )
-from shared.messages import AbortAck, ReasoningStep, SkillStatus, TaskState, TaskStatus, VehicleState, now_ns
+from shared.messages import (
+    AbortAck,
+    ApprovalState,
+    ApprovalStatus,
+    Detections,
+    ReasoningStep,
+    SkillStatus,
+    TaskState,
+    TaskStatus,
+    VehicleState,
+    now_ns,
+)
 from shared.sensors import CompressedImage, decode_proto
 
 log = logging.getLogger("aermani.gateway.fleet")
@@ -50,6 +64,9 @@ class Frame:
         return msg.timestamp.seconds * 1_000_000_000 + msg.timestamp.nanos, bytes(msg.data)
 
 
+ABORT_SERVICES = ("executor", "autopilot_bridge")  # the services that act on safety/abort and acknowledge it
+
+
 @dataclass
 class VehicleView:
     vehicle_id: str
@@ -57,6 +74,9 @@ class VehicleView:
     state: VehicleState | None = None
     state_ns: int = 0
     frame: Frame | None = None
+    detections: Detections | None = None
+    approvals: dict[str, ApprovalStatus] = field(default_factory=dict)
+    """Pending operator approvals by id (decided or expired ones are dropped)."""
     acks: list[AbortAck] = field(default_factory=list)
 
     @property
@@ -118,6 +138,8 @@ class Fleet:
         sub(AUTOPILOT_STATE, self._on_state, maxsize=10)
         sub(CAMERA_COLOR, self._on_frame, maxsize=2)
         sub(SAFETY_ABORT_ACK, self._on_ack, maxsize=100)
+        sub(PERCEPTION_DETECTIONS, self._on_detections, maxsize=4)
+        sub(REASONER_APPROVAL, self._on_approval, maxsize=100)
         queue = self.bus.watch_liveliness(f"{ROOT}/*/{ALIVE}/*", history=True)
         self._tasks.append(asyncio.create_task(self._liveliness(queue), name="gateway.liveliness"))
 
@@ -217,6 +239,25 @@ class Fleet:
         async with self.changed:
             self.changed.notify_all()
 
+    async def _on_approval(self, key: str, st: ApprovalStatus) -> None:
+        v = self.view(vehicle_of(key))
+        if st.state is ApprovalState.PENDING:
+            v.approvals[st.approval_id] = st
+        else:
+            v.approvals.pop(st.approval_id, None)
+        async with self.changed:
+            self.changed.notify_all()
+
+    def pending_approvals(self) -> list[ApprovalStatus]:
+        """Every pending approval of the fleet, oldest first (expired ones the reasoner did not report yet are
+        left out)."""
+        now = time.time_ns()
+        out = [a for v in self.vehicles.values() for a in v.approvals.values() if not a.expires_ns or a.expires_ns > now]
+        return sorted(out, key=lambda a: a.stamp_ns)
+
+    async def _on_detections(self, key: str, dets: Detections) -> None:
+        self.view(vehicle_of(key)).detections = dets
+
     async def _on_ack(self, key: str, ack: AbortAck) -> None:
         v = self.view(vehicle_of(key))
         v.acks = [*v.acks[-19:], ack]
@@ -251,24 +292,42 @@ class Fleet:
     # ---- commands
 
     async def abort(self, vehicles: list[str], reason: str, task_id: str | None,
-                    wait_s: float) -> dict[str, str]:
-        """Publish an Abort to each vehicle; return {vehicle: executor's ack message} for those that
-        acknowledged within `wait_s`."""
+                    wait_s: float, *, fleet_wide: bool = False) -> dict[str, dict[str, str]]:
+        """Publish an Abort to each vehicle (or one on the fleet-wide key, which every vehicle obeys, even one
+        the gateway has not seen yet); return {vehicle: {service: what it did}} for the services (executor,
+        autopilot_bridge) that acknowledged within `wait_s`. Waits for every such service that is alive on
+        the vehicle, so a dead executor does not hold the answer up and is visibly missing."""
         from shared.messages import Abort
 
         stamps: dict[str, int] = {}
-        for vid in vehicles:
+        if fleet_wide:
+            msg = Abort(reason=reason, source="gateway")
+            self.bus.publish(FLEET_ABORT, msg)
+            stamps = dict.fromkeys(vehicles, msg.stamp_ns)
+        for vid in [] if fleet_wide else vehicles:
             msg = Abort(reason=reason, source="gateway", task_id=task_id)
             stamps[vid] = msg.stamp_ns
             self.bus.publish(Keys(vid).abort, msg)
 
-        def acked() -> dict[str, str]:
-            return {vid: a.message for vid in vehicles for a in self.view(vid).acks
-                    if a.abort_stamp_ns == stamps[vid]}
+        def acked() -> dict[str, dict[str, str]]:
+            out: dict[str, dict[str, str]] = {}
+            for vid in vehicles:
+                for a in self.view(vid).acks:
+                    if a.abort_stamp_ns == stamps[vid]:
+                        out.setdefault(vid, {})[a.service] = a.message
+            return out
+
+        def complete() -> bool:
+            got = acked()
+            for vid in vehicles:
+                alive = {svc for svc, up in self.view(vid).services.items() if up and svc in ABORT_SERVICES}
+                if not got.get(vid) or not alive <= set(got[vid]):
+                    return False
+            return True
 
         deadline = time.monotonic() + wait_s
         async with self.changed:
-            while len(acked()) < len(vehicles) and not self.closing.is_set():
+            while not complete() and not self.closing.is_set():
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
                     break

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
@@ -49,8 +49,9 @@ class TaskCreate(ApiModel):
     """Natural-language command (printable text, at most 500 characters)."""
     vehicle_id: str | None = Field(None, pattern=VEHICLE_ID_PATTERN)
     """Target vehicle; omitted picks the gateway's default vehicle, or the only one whose reasoner is alive."""
-    backend: Literal["rules", "openai", "anthropic", "replay"] | None = None
-    """Override of the reasoner's policy backend."""
+    backend: str | None = Field(None, pattern=r"^[a-z][a-z0-9_]{0,31}$")
+    """Override of the reasoner's policy backend: a kind registered in the reasoner (`aermani vlm backends`);
+    the reasoner refuses an unknown one, or one it cannot build, with the reason (409)."""
     variant: Variant | None = None
     """Override of the prompt variant."""
     t_max_s: float | None = Field(None, gt=0, le=3600)
@@ -180,21 +181,35 @@ class AbortIn(ApiModel):
 
     reason: str = Field("operator abort via gateway", min_length=1, max_length=200)
     """Why (recorded by the executor and the reasoner)."""
+    vehicle_id: str | None = Field(None, pattern=r"^[A-Za-z0-9_-]{1,32}$")
+    """Only this vehicle (POST /abort); every vehicle when omitted."""
+
+
+def abort_summary(acked: dict[str, dict[str, str]]) -> dict[str, str]:
+    """One line per vehicle for AbortOut.messages: the executor's answer, else the bridge's."""
+    return {vid: by.get("executor") or by.get("autopilot_bridge") or next(iter(by.values()), "")
+            for vid, by in acked.items()}
 
 
 class AbortOut(ApiModel):
     model_config = ConfigDict(json_schema_extra={"examples": [
         {"vehicles": ["am1"], "acknowledged": ["am1"], "task_id": "task-1a2b3c4d5e6f",
-         "messages": {"am1": "stopped grasp (goal goal-0123456789ab), holding position"}}]})
+         "messages": {"am1": "stopped grasp (goal goal-0123456789ab), holding position"},
+         "services": {"am1": {"executor": "stopped grasp (goal goal-0123456789ab), holding position",
+                              "autopilot_bridge": "holding in AUTO.LOITER (PX4 Hold)"}}}]})
 
     vehicles: list[str]
     """Vehicles the abort was sent to."""
     acknowledged: list[str]
-    """Vehicles whose executor acknowledged the hold in time."""
+    """Vehicles where at least one service (executor or autopilot bridge) acknowledged the abort in time."""
     task_id: str | None = None
     """Task aborted, when one was named."""
     messages: dict[str, str] = {}
-    """What each acknowledging executor did (e.g. "holding position")."""
+    """What each acknowledging vehicle did: its executor's answer (e.g. "holding position"), else its
+    autopilot bridge's."""
+    services: dict[str, dict[str, str]] = {}
+    """Per vehicle, which services acknowledged and what each did ({"am1": {"executor": ...,
+    "autopilot_bridge": ...}}); a service missing here did not answer in time (dead or unreachable)."""
 
 
 # --------------------------------------------------------------------------- health
@@ -241,3 +256,85 @@ class HealthOut(ApiModel):
 
 
 SkillStatusOut = SkillStatus
+
+
+class SkillsOut(ApiModel):
+    """The skill library a vehicle's executor serves."""
+
+    vehicle_id: str
+    """Vehicle."""
+    skills: list[dict[str, Any]]
+    """Every skill (see shared.messages.SkillSpec): name, category, description, argument, policy_visible."""
+
+
+class DetectionsOut(ApiModel):
+    """What perception sees now on one vehicle."""
+
+    vehicle_id: str
+    """Vehicle."""
+    stamp_ns: int
+    """Time of the frame the detections come from."""
+    items: list[dict[str, Any]]
+    """Detections (see shared.messages.Detection): label, category, centroid, size, confidence."""
+
+
+class SkillRunIn(ApiModel):
+    """Run one skill outside a task (only when the gateway allows it)."""
+
+    skill: str = Field(..., min_length=1, max_length=64, pattern=r"^[a-z][a-z0-9_]*$")
+    """Registered skill name, e.g. `yaw_left` or `obj_localization`."""
+    argument: str | None = Field(None, max_length=200)
+    """Object or surface query, for skills that take one."""
+    timeout_s: float = Field(120.0, gt=0, le=600)
+    """How long to wait for the result."""
+
+
+class SkillRunOut(ApiModel):
+    """How a single skill ended."""
+
+    vehicle_id: str
+    skill: str
+    state: str
+    """succeeded, failed, timeout or aborted."""
+    message: str
+    """The executor's explanation."""
+    perceived: str = ""
+    """What perception reported during the skill."""
+
+
+class ApprovalOut(ApiModel):
+    """A skill waiting for the operator (see shared.messages.ApprovalStatus)."""
+
+    approval_id: str
+    vehicle_id: str
+    task_id: str
+    step: int
+    skill: str
+    argument: str | None = None
+    reasoning: str = ""
+    """Why the policy chose it."""
+    stamp_ns: int
+    expires_ns: int = 0
+    """When it expires (the vehicle then holds and the step fails)."""
+
+
+class ApprovalDecisionIn(ApiModel):
+    """The operator's decision."""
+
+    model_config = ConfigDict(extra="forbid", use_attribute_docstrings=True,
+                              json_schema_extra={"examples": [{"approve": False, "reason": "wrong cup"}]})
+
+    approve: bool
+    """True runs the skill; False makes the policy choose again."""
+    reason: str = Field("", max_length=300)
+    """Why (the policy reads it on a rejection)."""
+    operator: str = Field("operator", min_length=1, max_length=64)
+    """Who decides."""
+
+
+class ApprovalDecisionOut(ApiModel):
+    """The decision was delivered to the reasoner."""
+
+    approval_id: str
+    vehicle_id: str
+    approved: bool

@@ -26,11 +26,13 @@ class _Server(uvicorn.Server):
 async def run(bus: Bus, settings: GatewaySettings, stop: asyncio.Event) -> None:
     app = create_app(settings, bus)
     config = uvicorn.Config(app, host=settings.host, port=settings.port, log_config=None, lifespan="on",
-                            timeout_graceful_shutdown=3, proxy_headers=False, server_header=False)
+                            timeout_graceful_shutdown=3, proxy_headers=False, server_header=False,
+                            ssl_certfile=settings.tls_certfile, ssl_keyfile=settings.tls_keyfile)
     server = _Server(config)
     serving = asyncio.create_task(server.serve(), name="gateway.http")
     stopping = asyncio.create_task(stop.wait(), name="gateway.stop")
-    log.info("gateway on http://%s:%d (token %s)", settings.host, settings.port,
+    log.info("gateway on %s://%s:%d (token %s)", "https" if settings.tls_certfile else "http", settings.host,
+             settings.port,
              "required" if settings.token is not None else "not set: loopback only, no auth")
     try:
         await asyncio.wait({serving, stopping}, return_when=asyncio.FIRST_COMPLETED)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ipaddress
+from pathlib import Path
 from typing import Annotated
 
 from pydantic import AliasChoices, Field, SecretStr, field_validator
@@ -23,8 +24,9 @@ class GatewaySettings(ServiceSettings):
     db_path: str = "runs/gateway.sqlite3"
     """SQLite file that keeps tasks, steps and skill statuses across restarts (`:memory:` for none)."""
     token: SecretStr | None = Field(None, validation_alias=AliasChoices("token", "AERMANI_GATEWAY_TOKEN"))
-    """Bearer token required by every mutating endpoint and by the event and camera streams. Optional only
-    on a loopback bind. Never logged or returned."""
+    """Bearer token required by every /api/v1 endpoint except the liveness check /api/v1/live. Optional only
+    on a loopback bind (then browser requests are checked for Host, Origin and JSON instead). Never logged or
+    returned."""
     cors_origins: Annotated[list[str], NoDecode] = []
     """Origins allowed by CORS (JSON list or comma-separated); empty keeps CORS closed."""
     start_timeout_s: float = Field(10.0, gt=0)
@@ -37,6 +39,15 @@ class GatewaySettings(ServiceSettings):
     """Keep-alive comment interval on the event stream, seconds."""
     page_size_max: int = Field(100, ge=1, le=1000)
     """Largest page GET /tasks returns."""
+    skill_api: bool = False
+    """Allow POST /vehicles/{id}/skills (run one skill outside a task, through the executor's envelope).
+    Off by default: operators and agents drive tasks, not single motions."""
+    max_body_bytes: int = Field(65536, ge=1024, le=16 * 1024 * 1024)
+    """Largest request body accepted; bigger ones get 413 before they are read."""
+    tls_certfile: str | None = None
+    """PEM certificate (chain) for HTTPS; with tls_keyfile the gateway serves https:// only."""
+    tls_keyfile: str | None = None
+    """PEM private key of tls_certfile."""
 
     @field_validator("cors_origins", mode="before")
     @classmethod
@@ -77,3 +88,8 @@ def check_safe(settings: GatewaySettings) -> None:
             "AERMANI_GATEWAY_HOST=127.0.0.1.")
     if settings.token is not None and len(settings.token.get_secret_value()) < 8:
         raise ConfigError("AERMANI_GATEWAY_TOKEN is shorter than 8 characters; use a long random token.")
+    if bool(settings.tls_certfile) != bool(settings.tls_keyfile):
+        raise ConfigError("set both AERMANI_GATEWAY_TLS_CERTFILE and AERMANI_GATEWAY_TLS_KEYFILE, or neither")
+    for path in (settings.tls_certfile, settings.tls_keyfile):
+        if path and not Path(path).is_file():
+            raise ConfigError(f"TLS file {path} does not exist (AERMANI_GATEWAY_TLS_CERTFILE/_KEYFILE)")

@@ -85,6 +85,10 @@ def check_command(
             rejected += 1
             console.print(f"{n}: rejected: {exc}", markup=False)
             continue
+        except Exception as exc:  # the parser promises InvalidAnswer only; a bug still must not stop the file
+            rejected += 1
+            console.print(f"{n}: rejected: parser error {type(exc).__name__}: {exc} (please report)", markup=False)
+            continue
         call = f"{p.ste.skill}({p.ste.argument})" if p.ste.argument else p.ste.skill
         console.print(f"{n}: accepted: {call}" + (" (recovered leniently)" if p.recovered else ""), markup=False)
     console.print(f"{total - rejected}/{total} accepted, {rejected} rejected")
@@ -125,7 +129,7 @@ def scenario_for(command: str, target: str | None, destination: str | None, seed
 def demo_command(
     command: Annotated[str, typer.Argument(help="The natural-language command, e.g. \"pick up the red cup and "
                                                 "place it on the table\".")],
-    backend: Annotated[str, typer.Option(help="rules, openai, anthropic or replay.")] = "rules",
+    backend: Annotated[str, typer.Option(help="Policy backend (`aermani vlm backends` lists them).")] = "rules",
     variant: Annotated[str, typer.Option(help=f"Prompt variant ({', '.join(VARIANTS)}).")] = "full",
     seed: Annotated[int, typer.Option(help="Layout seed of the simulated room.")] = 0,
     target: Annotated[str | None, typer.Option(help="Scenario target object (default: read from the command).")]
@@ -133,8 +137,8 @@ def demo_command(
     destination: Annotated[str | None, typer.Option(help="Scenario destination surface (default: from the command).")]
     = None,
     speed_factor: Annotated[float, typer.Option(help="Simulator speed versus wall clock.")] = 2.0,
-    model: Annotated[str, typer.Option(help="Model for openai/anthropic.")] = "",
-    base_url: Annotated[str | None, typer.Option(help="Endpoint for openai/anthropic (e.g. a local vLLM).")] = None,
+    model: Annotated[str, typer.Option(help="Model name for a model backend (empty: the backend's default).")] = "",
+    base_url: Annotated[str | None, typer.Option(help="Endpoint of a model backend (e.g. a local vLLM).")] = None,
     t_max: Annotated[float, typer.Option(help="T_max, seconds.")] = 600.0,
     log_dir: Annotated[Path | None, typer.Option(help="Service logs directory (default runs/<time>/logs).")] = None,
 ) -> None:
@@ -269,9 +273,90 @@ async def _demo_task(stack, command: str, scenario, accepted: tuple[str, ...], t
         await bus.close()
 
 
+def probe_command(
+    base_url: Annotated[str | None, typer.Option(help="Endpoint base URL (e.g. http://127.0.0.1:8000/v1 for vLLM; "
+                                                      "unset: the provider's).")] = None,
+    model: Annotated[str, typer.Option(help="Model name (empty: the backend's default).")] = "",
+    backend: Annotated[str, typer.Option(help="Backend kind (`aermani vlm backends`).")] = "openai",
+    calls: Annotated[int, typer.Option(min=1, max=200, help="Timed calls for RT median/p95.")] = 5,
+    api_key: Annotated[str | None, typer.Option(help="API key (default: AERMANI_REASONER_API_KEY or the "
+                                                     "provider's variable).", envvar="AERMANI_REASONER_API_KEY")]
+    = None,
+    profile: Annotated[str, typer.Option(help="Model profile (auto: from the model name).")] = "auto",
+    connect: Annotated[str, typer.Option(help="Zenoh router of a running stack to take the camera frame from.")]
+    = "tcp/127.0.0.1:7447",
+    vehicle: Annotated[str, typer.Option(help="Vehicle whose camera to use on --connect.")] = "am1",
+    sim: Annotated[bool, typer.Option(help="Without a running stack, start the simulator for one frame.")] = True,
+    timeout: Annotated[float, typer.Option(help="Request timeout per call, seconds.")] = 60.0,
+    out: Annotated[Path, typer.Option(help="JSON report path.")] = Path("vlm-probe.json"),
+) -> None:
+    """Check an endpoint with a real camera frame: image accepted, schema mode supported, answers parse and
+    validate; RT median and p95 over N calls and tokens per call. Prints a table and writes JSON."""
+    from rich.table import Table
+
+    from services.reasoner.probe import frame_from_new_sim, frame_from_stack, generated_frame, probe
+    from services.reasoner.settings import ReasonerSettings
+    from shared.errors import AermaniError
+
+    try:
+        settings = ReasonerSettings(backend=backend, base_url=base_url, model=model, api_key=api_key,
+                                    profile=profile, request_timeout_s=timeout, transport_retries=1)
+    except ValueError as exc:
+        console.print(f"[red]bad option: {exc}[/red]")
+        raise typer.Exit(2)
+    jpeg, source = asyncio.run(frame_from_stack(connect, vehicle, 2.0)), f"running stack's camera ({connect})"
+    if jpeg is None and sim:
+        console.print("no running stack answered; starting the simulator for one camera frame...")
+        jpeg, source = frame_from_new_sim(), "simulator started for the probe (camera/color)"
+    if jpeg is None:
+        jpeg, source = generated_frame(), "generated room-like frame (no simulator frame available)"
+    console.print(f"frame: {source}, {len(jpeg) / 1024:.0f} KiB JPEG")
+    try:
+        rep = asyncio.run(probe(settings, jpeg, source, calls=calls))
+    except AermaniError as exc:
+        console.print(f"[red]{exc}[/red]")
+        raise typer.Exit(2)
+    out.write_text(json.dumps(rep.to_json(), indent=1))
+
+    def yes(v: bool | None) -> str:
+        return "-" if v is None else "yes" if v else "NO"
+
+    def num(v: float | None, fmt: str) -> str:
+        return "-" if v is None else format(v, fmt)
+
+    t = Table(title=f"{rep.backend}:{rep.model} at {rep.base_url} (profile {rep.profile})")
+    t.add_column("check")
+    t.add_column("result")
+    for k, v in (("image accepted", yes(rep.image_accepted)), ("schema mode supported", yes(rep.schema_supported)),
+                 ("free-text answer valid", yes(rep.text_mode_valid)), ("mode timed", rep.mode_used or "-"),
+                 ("answers valid", "-" if rep.valid_rate is None else f"{100 * rep.valid_rate:.0f} %"),
+                 (f"RT median over {calls} calls", num(rep.rt_median_s, ".3f") + " s"),
+                 ("RT p95", num(rep.rt_p95_s, ".3f") + " s"),
+                 ("tokens in / out per call", f"{num(rep.tokens_in_mean, '.0f')} / {num(rep.tokens_out_mean, '.0f')}"),
+                 ("frame", rep.frame_source)):
+        t.add_row(k, v)
+    console.print(t)
+    for n in rep.notes:
+        console.print(f"note: {n}", markup=False)
+    console.print(f"JSON: {out}")
+    raise typer.Exit(0 if rep.image_accepted and rep.valid_rate else 1)
+
+
+def backends_command() -> None:
+    """List the registered policy backends (the values of AERMANI_REASONER_BACKEND and --backend)."""
+    from services.reasoner.backends import BACKENDS, load_backend_modules
+    from services.reasoner.settings import ReasonerSettings
+
+    load_backend_modules(ReasonerSettings().backend_modules)
+    for kind, cls in BACKENDS.items():
+        console.print(f"{kind:<12} {cls.summary}", markup=False)
+
+
 def register(app: typer.Typer) -> None:
-    vlm = typer.Typer(help="Tools for VLM answers.", no_args_is_help=True)
+    vlm = typer.Typer(help="Tools for VLM answers and backends.", no_args_is_help=True)
     vlm.command("check")(check_command)
+    vlm.command("backends")(backends_command)
+    vlm.command("probe")(probe_command)
     app.add_typer(vlm, name="vlm")
     app.command("demo")(demo_command)
 

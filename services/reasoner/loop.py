@@ -29,6 +29,8 @@ from services.reasoner.settings import ReasonerSettings
 from shared import skills as S  # noqa: N812
 from shared.errors import AermaniError, InvalidAnswer, ModelError
 from shared.messages import (
+    ApprovalState,
+    ApprovalStatus,
     LandedState,
     ModelCall,
     ReasoningStep,
@@ -59,6 +61,13 @@ class World(ABC):
     async def run_skill(self, request: SkillRequest, timeout: float) -> tuple[SkillAccept, SkillStatus | None]:
         """Send the skill goal (action protocol); when accepted, wait up to `timeout` for its terminal status
         (None when none came in time)."""
+
+    async def request_approval(self, request: ApprovalStatus, timeout: float) -> ApprovalStatus:
+        """Ask the operator whether `request.skill` may run; the decided status (approved, rejected, or
+        expired after `timeout`). A world without an operator channel refuses, so nothing that needs an
+        approval runs unapproved."""
+        return request.model_copy(update={"state": ApprovalState.REJECTED,
+                                          "reason": "no operator channel in this world"})
 
     async def hold(self, task_id: str, reason: str) -> None:
         """Command a hold (best effort): the failure path of a step."""
@@ -107,11 +116,14 @@ class TaskRunner:
         self.publish_step = publish_step
         self.publish_status = publish_status
         self.history = History(settings.history_full_steps, settings.history_max_chars)
+        self.categories: dict[str, str] = {}
         self.steps = 0
         self.calls = 0
         self.invalid = 0
         self.started_ns = now_ns()
         self.records: list[ReasoningStep] = []
+        self._abort: asyncio.Event | None = None
+        self._override_ns = 0  # takeover seen when the task started (the bridge's; a new one ends the task)
 
     def status(self, state: TaskState, message: str = "") -> TaskStatus:
         return TaskStatus(vehicle_id=self.settings.vehicle_id, task_id=self.req.task_id, command=self.req.command,
@@ -122,6 +134,7 @@ class TaskRunner:
     async def run(self, abort: asyncio.Event) -> TaskStatus:
         """Run until done/failure/abort/T_max; always returns (and publishes) the terminal status."""
         self.publish_status(self.status(TaskState.RUNNING, "task started"))
+        self._abort = abort
         body = asyncio.create_task(self._run())
         aborter = asyncio.create_task(abort.wait())
         try:
@@ -153,7 +166,10 @@ class TaskRunner:
         except AermaniError as exc:
             return self.status(TaskState.FAILED, f"no skill library from the executor: {exc}")
         compiler = PromptCompiler(self.variant, library)
+        self.categories = {spec.name: spec.category for spec in library.skills}
         obs = await self.world.observe(0)
+        if obs.state is not None:
+            self._override_ns = obs.state.override_ns
         if self.req.takeoff and obs.state is not None and obs.state.landed_state in (
                 LandedState.ON_GROUND, LandedState.UNKNOWN) and not obs.state.armed:
             st = await self._execute(SkillRequest(skill=S.TAKEOFF, task_id=self.req.task_id, step=0),
@@ -161,7 +177,7 @@ class TaskRunner:
             if st.state is not SkillState.SUCCEEDED:
                 return self.status(TaskState.FAILED, f"takeoff {st.state.value}: {st.message}")
         failed_in_row = 0
-        retakeoffs = 0
+        last_skill = S.TAKEOFF
         last_end_ns = 0
         while True:
             if self.steps >= self.settings.max_steps:
@@ -170,20 +186,9 @@ class TaskRunner:
                                                      "vehicle held")
             t_step = time.perf_counter()
             obs = await self.world.observe(last_end_ns)
-            if (self.req.takeoff and retakeoffs < 2 and obs.state is not None
-                    and obs.state.landed_state is LandedState.ON_GROUND):
-                # A failsafe landed the vehicle mid-task (e.g. offboard lost): the reasoner owns takeoff, so
-                # it takes off again (bounded) instead of offering the model skills that cannot run.
-                retakeoffs += 1
-                st = await self._execute(SkillRequest(skill=S.TAKEOFF, task_id=self.req.task_id, step=self.steps),
-                                         self.settings.takeoff_timeout_s)
-                self.history.append(HistoryEntry(self.steps, S.TAKEOFF, None, st.state.value,
-                                                 "the vehicle had landed (failsafe); took off again: " + st.message))
-                last_end_ns = now_ns()
-                if st.state is not SkillState.SUCCEEDED:
-                    return self.status(TaskState.FAILED, f"vehicle landed mid-task and takeoff {st.state.value}: "
-                                                         f"{st.message}")
-                continue
+            ended = self._authority_end(obs, last_skill)
+            if ended is not None:
+                return ended
             self.steps += 1
             try:
                 result, model_time = await self._decide(compiler, library, obs)
@@ -211,10 +216,12 @@ class TaskRunner:
             ste = parsed.ste
             t_skill = time.perf_counter()
             st = await self._execute(SkillRequest(skill=ste.skill, argument=ste.argument, task_id=self.req.task_id,
-                                                  step=self.steps), self.settings.skill_timeout_s)
+                                                  step=self.steps), self.settings.skill_timeout_s,
+                                     reasoning=parsed.drt.reasoning or "")
             skill_s = time.perf_counter() - t_skill
             t_upd = time.perf_counter()
             last_end_ns = now_ns()  # local clock: the next frame must arrive after this
+            last_skill = ste.skill
             self.history.append(HistoryEntry(
                 self.steps, ste.skill, ste.argument, st.state.value, st.message, st.outcome.perceived,
                 parsed.drt.summary or "", parsed.drt.reasoning or ""))
@@ -228,6 +235,22 @@ class TaskRunner:
                 log.warning("done was %s: %s", st.state.value, st.message)
             if st.state is SkillState.ABORTED:
                 return self.status(TaskState.ABORTED, f"skill {ste.skill} aborted: {st.message}")
+
+    def _authority_end(self, obs: Observation, last_skill: str) -> TaskStatus | None:
+        """PX4's authority: when PX4, the pilot or an abort took control during this task, or the vehicle came
+        down without being asked, the task ends with that reason. Nothing takes off again on its own: that
+        needs a new operator command (a new task)."""
+        st = obs.state
+        if st is None or (self._abort is not None and self._abort.is_set()):
+            return None
+        if st.override and st.override_ns != self._override_ns:
+            return self.status(TaskState.FAILED, f"the autopilot took control: {st.override}; the task ends "
+                                                 "here, a new command is needed to fly again")
+        if self.req.takeoff and st.landed_state is LandedState.ON_GROUND and last_skill != S.LAND:
+            return self.status(TaskState.FAILED, f"the vehicle landed without being asked (mode {st.mode}"
+                                                 f"{': ' + st.message if st.message else ''}); the task ends "
+                                                 "here, a new command is needed to fly again")
+        return None
 
     def _publish(self, rec: ReasoningStep) -> None:
         self.records.append(rec)
@@ -250,12 +273,14 @@ class TaskRunner:
             try:
                 parsed = parse_answer(reply.text, self.variant, library, coverage=self.settings.prediction_coverage)
                 calls.append(ModelCall(raw_answer=reply.text, valid=True, latency_s=reply.latency_s,
-                                       tokens_in=reply.tokens_in, tokens_out=reply.tokens_out))
+                                       tokens_in=reply.tokens_in, tokens_out=reply.tokens_out,
+                                       structured=reply.structured, tokens_cached=reply.cached_tokens))
                 break
             except InvalidAnswer as exc:
                 self.invalid += 1
                 calls.append(ModelCall(raw_answer=reply.text, valid=False, error=str(exc), latency_s=reply.latency_s,
-                                       tokens_in=reply.tokens_in, tokens_out=reply.tokens_out))
+                                       tokens_in=reply.tokens_in, tokens_out=reply.tokens_out,
+                                       structured=reply.structured, tokens_cached=reply.cached_tokens))
                 feedback.append((reply.text, str(exc)))
                 log.info("invalid answer (step %d): %s", self.steps, exc)
         rec = ReasoningStep(
@@ -265,8 +290,37 @@ class TaskRunner:
             valid=parsed is not None, retries=len(calls) - 1)
         return StepResult(rec, parsed), model_time
 
-    async def _execute(self, req: SkillRequest, timeout: float) -> SkillStatus:
-        """Run one skill on the executor and wait for its terminal status (never raises)."""
+    def _needs_approval(self, skill: str) -> bool:
+        wanted = set(self.settings.approval)
+        return bool(wanted) and (skill in wanted or self.categories.get(skill, "") in wanted)
+
+    async def _approved(self, req: SkillRequest, reasoning: str) -> SkillStatus | None:
+        """None when the skill may run; else the status that ends the step (rejected, or failed on timeout)."""
+        timeout = self.settings.approval_timeout_s
+        ask = ApprovalStatus(vehicle_id=self.settings.vehicle_id, task_id=req.task_id, step=req.step, skill=req.skill,
+                             argument=req.argument, reasoning=reasoning, expires_ns=now_ns() + int(timeout * 1e9))
+        started = now_ns()
+        decided = await self.world.request_approval(ask, timeout)
+        log.info("approval of %s(%s): %s %s", req.skill, req.argument or "", decided.state.value, decided.reason)
+        base = {"goal_id": "", "skill": req.skill, "argument": req.argument, "task_id": req.task_id, "step": req.step,
+                "started_ns": started}
+        if decided.state is ApprovalState.APPROVED:
+            return None
+        if decided.state is ApprovalState.REJECTED:
+            return SkillStatus(**base, state=SkillState.REJECTED, ended_ns=now_ns(),
+                               message=f"rejected by the operator ({decided.operator or 'operator'}): "
+                                       f"{decided.reason or 'no reason given'}; choose another skill")
+        await self.world.hold(req.task_id, "approval timeout")
+        return SkillStatus(**base, state=SkillState.FAILED, ended_ns=now_ns(),
+                           message=f"no operator decision within {timeout:.0f} s; vehicle held")
+
+    async def _execute(self, req: SkillRequest, timeout: float, reasoning: str = "") -> SkillStatus:
+        """Run one skill on the executor and wait for its terminal status (never raises). A skill that needs
+        the operator's approval waits for it first."""
+        if self._needs_approval(req.skill):
+            refused = await self._approved(req, reasoning)
+            if refused is not None:
+                return refused
         started = now_ns()
         try:
             accept, st = await self.world.run_skill(req, timeout)

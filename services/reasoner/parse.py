@@ -5,6 +5,13 @@ trailing commas, single-quoted (Python-style) objects, and the case/spacing of s
 "obj localization"). Anything that still does not name one valid skill with valid arguments raises
 InvalidAnswer with one specific sentence that is sent back to the model on re-prompt.
 
+Bounded: at most MAX_ANSWER_CHARS characters and MAX_NESTING bracket levels are read, one pass finds the
+candidate objects, each character reaches a decoder a constant number of times (linear time), and every
+failure, whatever the input, is an InvalidAnswer (re-prompted), never another exception.
+
+Exact: ReAct takes the object after the last `Action:` line (never one quoted in the Thought); the
+unstructured variant takes the skill the answer commits to, not the first one it mentions.
+
 Decisions (documented in docs/reasoner.md):
 - an argument given to a skill that takes none is ignored (dropped), not rejected: it cannot change
   what the skill does, and rejecting it would only inflate IAR;
@@ -26,10 +33,24 @@ from services.reasoner.prompt import DRT_FIELDS
 from shared.errors import InvalidAnswer
 from shared.messages import MAX_QUERY_CHARS, DescriptiveReasoningTrace, SkillLibrary, SkillToExecute
 
-_FENCE = re.compile(r"```[a-zA-Z0-9_-]*\s*\n?(.*?)```", re.S)
 _TRAILING_COMMA = re.compile(r",\s*([}\]])")
 _ALIASES = {"object_localization": "obj_localization", "obj_localisation": "obj_localization",
             "object_localisation": "obj_localization", "placement_localisation": "placement_localization"}
+
+MAX_ANSWER_CHARS = 32_000
+"""Longest answer read: a full DRT/STE answer is 1-4 kB; anything longer is rejected with the reason."""
+MAX_NESTING = 16
+"""Deepest bracket nesting read: the answer format needs 3 levels (drt -> action_predictions -> value)."""
+_SPECIAL = re.compile(r"[{}\[\]\"'\\]")
+_ACTION_LINE = re.compile(r"^[ \t>*#_`-]*action[ \t*_`]*:", re.I | re.M)
+
+
+class Work:
+    """Characters the parser examined for one answer (scans plus decoder input): the property test bounds
+    it by a constant times the answer's length, which is what "linear time" means without a clock."""
+
+    def __init__(self) -> None:
+        self.chars = 0
 
 
 @dataclass(frozen=True)
@@ -51,112 +72,240 @@ def norm_skill(name: str) -> str:
     return _ALIASES.get(s, s)
 
 
-def _matching_brace(text: str, start: int) -> int:
-    """Index of the brace closing the one at `start`, skipping strings; -1 if unbalanced."""
-    depth, in_str, quote, esc = 0, False, "", False
-    for i in range(start, len(text)):
+def _object_spans(text: str, quotes: str, work: Work) -> list[tuple[int, int]]:
+    """Outermost balanced `{...}` spans of `text`, in order, found in one pass with a bracket stack.
+
+    Quotes open strings only inside brackets (prose apostrophes are not strings); an unclosed `{` in the
+    prose does not hide a later object, because every matched pair is recorded and the outermost ones kept.
+    Raises InvalidAnswer when brackets nest deeper than MAX_NESTING."""
+    stack: list[tuple[str, int]] = []
+    pairs: list[tuple[int, int]] = []
+    quote = ""
+    skip = 0  # inside a string, the character after a backslash is escaped
+    work.chars += len(text)
+    for m in _SPECIAL.finditer(text):  # visits only brackets, quotes and backslashes
+        i = m.start()
         c = text[i]
-        if in_str:
-            if esc:
-                esc = False
-            elif c == "\\":
-                esc = True
+        if quote:
+            if i < skip:
+                continue
+            if c == "\\":
+                skip = i + 2
             elif c == quote:
-                in_str = False
-        elif c in "\"'":
-            in_str, quote = True, c
-        elif c == "{":
-            depth += 1
+                quote = ""
+            continue
+        if c == "{" or (c == "[" and stack):
+            stack.append((c, i))
+            if len(stack) > MAX_NESTING:
+                raise InvalidAnswer(f"The answer nests brackets deeper than {MAX_NESTING} levels; reply with one "
+                                    "flat JSON object in the format given in the Rules.")
         elif c == "}":
-            depth -= 1
-            if depth == 0:
-                return i
-    return -1
+            while stack:  # a `[` left open inside an object is dropped with it
+                kind, start = stack.pop()
+                if kind == "{":
+                    pairs.append((start, i + 1))
+                    break
+        elif c == "]":
+            if stack and stack[-1][0] == "[":
+                stack.pop()
+        elif stack and c in quotes:
+            quote = c
+    # `pairs` is in closing order and brackets nest, so walking it backwards a pair is outermost exactly when it
+    # ends before the start of the last outermost one kept (otherwise that one contains it): linear, no sort.
+    out: list[tuple[int, int]] = []
+    for start, end in reversed(pairs):
+        if not out or end <= out[-1][0]:
+            out.append((start, end))
+    out.reverse()
+    return out
 
 
-def _loads_lenient(text: str) -> dict | None:
-    for candidate in (text, _TRAILING_COMMA.sub(r"\1", text)):
+def _loads_lenient(text: str, work: Work) -> dict | None:
+    for candidate in dict.fromkeys((text, _TRAILING_COMMA.sub(r"\1", text))):
+        work.chars += 2 * len(candidate)
         try:
-            obj = json.loads(candidate)
+            obj = json.loads(candidate, strict=False)
             return obj if isinstance(obj, dict) else None
-        except ValueError:
+        except (ValueError, RecursionError):
             pass
         try:  # single quotes, True/None: a Python literal
             obj = ast.literal_eval(candidate)
             if isinstance(obj, dict):
                 return obj
-        except (ValueError, SyntaxError, MemoryError, RecursionError):
+        except (ValueError, TypeError, SyntaxError, MemoryError, RecursionError):
             pass
     return None
 
 
-def extract_json(raw: str) -> tuple[dict | None, bool, int]:
-    """(object, recovered, start index of the JSON in raw) or (None, True, -1)."""
+def _first_object(text: str, work: Work) -> tuple[dict | None, int]:
+    """The first decodable outermost object of `text` and its start, or (None, -1). Each character is in at
+    most one outermost span, so the decoders read at most 2 x 2 x len(text) characters per quoting mode."""
+    for quotes in ("\"'", "\"") if "'" in text else ("\"",):  # 2nd pass: an apostrophe in an object is prose
+        for start, end in _object_spans(text, quotes, work):
+            obj = _loads_lenient(text[start:end], work)
+            if obj is not None:
+                return obj, start
+    return None, -1
+
+
+def extract_json(raw: str, work: Work | None = None) -> tuple[dict | None, bool, int]:
+    """(object, recovered, start index of the JSON in raw) or (None, True, -1). Linear in len(raw)."""
+    work = work or Work()
     text = raw.strip()
-    try:
-        obj = json.loads(text)
-        if isinstance(obj, dict):
-            return obj, False, raw.find("{")
-    except ValueError:
-        pass
-    candidates = [m.group(1) for m in _FENCE.finditer(text)]
-    for c in candidates:
-        obj = _loads_lenient(c.strip())
+    work.chars += len(raw)
+    if text.startswith("{"):
+        _object_spans(text, "\"'", work)  # depth check first: the decoders must never see deep nesting
+        try:
+            obj = json.loads(text)
+            if isinstance(obj, dict):
+                return obj, False, raw.find("{")
+        except (ValueError, RecursionError):
+            pass
+    # Fenced blocks first (```json ... ```): the odd pieces of a split on the fence.
+    pieces = text.split("```")
+    for n in range(1, len(pieces) - 1, 2):
+        obj, _ = _first_object(pieces[n], work)  # a language tag (json) before the object is prose
         if obj is not None:
-            return obj, True, raw.find(c)
-    # Text around the JSON: try each '{' whose braces balance, outermost first.
-    for m in re.finditer(r"\{", text):
-        end = _matching_brace(text, m.start())
-        if end < 0:
-            continue
-        obj = _loads_lenient(text[m.start(): end + 1])
-        if obj is not None:
-            return obj, True, raw.find(text[m.start(): end + 1])
-    return None, True, -1
+            return obj, True, raw.find(pieces[n])
+    obj, start = _first_object(text, work)
+    if obj is None:
+        return None, True, -1
+    return obj, True, raw.index(text) + start
 
 
-def _bare_skill(raw: str, names: list[str]) -> tuple[str, str | None] | None:
-    """For the unstructured variant: the first skill named in free text, with `(arg)` or `: arg`."""
-    text = raw.strip().strip("`").strip()
-    norm = norm_skill(text.split("\n")[0].split("(")[0].split(":")[0])
-    spaced = {n: re.compile(r"\b" + n.replace("_", r"[\s_-]?") + r"\b", re.I) for n in names}
-    found: list[tuple[int, str]] = []
-    if norm in names:
-        found.append((0, norm))
-    else:
-        for n, rx in spaced.items():
-            m = rx.search(text)
-            if m:
-                found.append((m.start(), n))
-    if not found:
+# ---------------------------------------------------------------- the unstructured variant: a skill in prose
+
+# Cues in the words just before a mention. Strong cues state the answer; weak ones state an intention.
+_STRONG = re.compile(r"(final answer|answer\s*(is)?\s*:?|action\s*:|skill\s*:|choice\s*:|decision\s*:|next skill"
+                     r"( is)?\s*:?)\s*[`'\"*]*\s*$", re.I)
+_WEAK = re.compile(r"\b(i\s*(will|'ll|shall|would|am going to|'m going to)( now)?( (choose|select|pick|use|execute|"
+                   r"run|go with|do|perform))?|i (choose|select|pick|execute|run|go with)|let's|let me|(so|therefore"
+                   r"|thus|hence)|next(,)?( i)?|(best|right|next) (skill|action|step)( is| would be)?|should|"
+                   r"choose|select|execute|->|=>)\b[^.;!?\n]{0,24}$", re.I)
+_NEG_BEFORE = re.compile(r"\b(not|no|never|instead of|rather than|avoid|n't|without|before|after|than)\s*[`'\"*]*$",
+                         re.I)
+_NEG_AFTER = re.compile(r"^[`'\"*)]*\s*(would|will|could|might|may|is|isn't|can't|cannot|won't|wouldn't)?\s*(be\s+)?"
+                        r"(not|fail|fails|failed|hit|crash|collide|useless|pointless|impossible|blocked|premature|"
+                        r"too early|unsafe|wrong|won't work|isn't possible)\b", re.I)
+_INSTEAD_AFTER = re.compile(r"^[`'\"*)]*\s*instead\b", re.I)
+
+
+def _skill_pattern(names: list[str]) -> re.Pattern[str]:
+    """One alternation over every skill name and alias, longest first, spaces/hyphens for underscores."""
+    spelled = {n: n for n in names}
+    spelled.update({a: n for a, n in _ALIASES.items() if n in names})
+    alts = sorted(spelled, key=len, reverse=True)
+    return re.compile(r"(?<![\w-])(" + "|".join(a.replace("_", r"[\s_-]?") for a in alts) + r")(?![\w-])", re.I)
+
+
+def _argument_after(text: str, end: int) -> str | None:
+    """`(red cup)` or `: red cup` right after a mention (same line)."""
+    rest = text[end: end + 2 * MAX_QUERY_CHARS].split("\n", 1)[0]
+    m = re.match(r"\s*[`'\"]*\s*\(([^)]*)\)", rest) or re.match(r"\s*[`'\"]*\s*:\s*([^.;\n]+)", rest)
+    if not m:
         return None
-    pos, name = min(found)
-    rest = text[pos:].split("\n")[0]
-    m = re.search(r"\(([^)]*)\)", rest) or re.search(r":\s*(.+)$", rest)
-    arg = m.group(1).strip().strip("'\"") if m else None
-    return name, (arg or None)
+    return m.group(1).strip().strip("`'\"") or None
 
 
-def parse_answer(raw: str, variant: str, library: SkillLibrary, *, coverage: float = 1.0) -> ParsedAnswer:
-    """Parse and validate one raw model answer. Raises InvalidAnswer with the reason."""
-    if not raw or not raw.strip():
+def _bare_skill(raw: str, names: list[str], work: Work) -> tuple[str, str | None]:
+    """The skill an unstructured answer commits to: a first line that is a skill call; else the skill a
+    strong cue names ("Final answer: yaw_left", last one wins); else the first skill an intention names
+    ("... so I will yaw_left"), skipping negated mentions ("grasp would fail", "not grasp"); else the only
+    skill mentioned. Several skills without a commitment is an invalid answer, never a guess."""
+    text = raw.strip()
+    work.chars += 4 * len(text)
+    first_line = text.split("\n", 1)[0].strip().strip("`*").strip()
+    head = re.match(r"[\w\s-]+", first_line)
+    if head and norm_skill(head.group(0)) in names and len(first_line) <= len(head.group(0)) + MAX_QUERY_CHARS + 4:
+        rest = first_line[head.end():].strip().rstrip(".")
+        if not rest or rest.startswith(("(", ":")):
+            return norm_skill(head.group(0)), _argument_after(first_line, head.end())
+    mentions = []
+    prev_end = 0
+    for m in _skill_pattern(names).finditer(text):
+        before = text[max(prev_end, m.start() - 80): m.start()]
+        after = text[m.end(): m.end() + 40]
+        negated = bool(_NEG_BEFORE.search(before[-24:]) or _NEG_AFTER.search(after))
+        strong = bool(_STRONG.search(before[-40:]))
+        weak = bool(_WEAK.search(before) or _INSTEAD_AFTER.search(after))
+        mentions.append((norm_skill(m.group(0)), m.end(), negated, strong, weak))
+        prev_end = m.end()
+    if not mentions:
+        raise InvalidAnswer(f"The answer names no skill; answer with one of: {', '.join(names)}.")
+    live = [x for x in mentions if not x[2]]
+    chosen = ([x for x in live if x[3]][-1:] or [x for x in live if x[4]][:1]
+              or (live[:1] if len({x[0] for x in live}) == 1 else []))
+    if not chosen:
+        distinct = list(dict.fromkeys(x[0] for x in mentions))
+        raise InvalidAnswer(f"The answer mentions {', '.join(distinct)} without committing to one; answer with "
+                            "exactly one skill, e.g. yaw_left or obj_localization(red cup).")
+    name, end = chosen[0][0], chosen[0][1]
+    return name, _argument_after(text, end)
+
+
+def _react_action(raw: str, work: Work) -> tuple[dict, str | None, bool]:
+    """(the JSON object after the last `Action:` line, the Thought text before it, whether the lenient reader
+    was needed). A JSON object inside the Thought is never taken for the action."""
+    work.chars += len(raw)
+    marks = list(_ACTION_LINE.finditer(raw))
+    if not marks:
+        obj, recovered, _ = extract_json(raw, work)
+        if obj is not None and not recovered:
+            return obj, None, False  # a bare JSON object is an action without thoughts
+        raise InvalidAnswer("No 'Action:' line found; end with one line 'Action: {\"skill\": <name>, "
+                            "\"argument\": <string or null>}'.")
+    mark = marks[-1]
+    tail = raw[mark.end():].strip()
+    _object_spans(tail, "\"'", work)  # depth check first: the decoders must never see deep nesting
+    try:  # the format asked for: nothing but the object after `Action:`
+        strict = json.loads(tail)
+        if isinstance(strict, dict):
+            return strict, _clean_thought(raw[: mark.start()]), False
+    except (ValueError, RecursionError):
+        pass
+    obj, _ = _first_object(tail, work)
+    if obj is None:
+        raise InvalidAnswer("The 'Action:' line has no JSON object; write 'Action: {\"skill\": <name>, "
+                            "\"argument\": <string or null>}'.")
+    return obj, _clean_thought(raw[: mark.start()]), True
+
+
+def parse_answer(raw: str, variant: str, library: SkillLibrary, *, coverage: float = 1.0,
+                 work: Work | None = None) -> ParsedAnswer:
+    """Parse and validate one raw model answer. Raises InvalidAnswer with the reason, and nothing else."""
+    if not isinstance(raw, str) or not raw.strip():
         raise InvalidAnswer("The answer is empty.")
+    if len(raw) > MAX_ANSWER_CHARS:
+        raise InvalidAnswer(f"The answer is {len(raw)} characters long, more than the {MAX_ANSWER_CHARS} read; "
+                            "reply with one short answer in the format given in the Rules.")
+    work = work or Work()
+    try:
+        return _parse(raw, variant, library, coverage, work)
+    except InvalidAnswer:
+        raise
+    except (RecursionError, MemoryError, ValueError, TypeError) as exc:  # a reader bug must not end the task
+        raise InvalidAnswer(f"The answer could not be read ({type(exc).__name__}); reply with one JSON object "
+                            "in the format given in the Rules.") from exc
+
+
+def _parse(raw: str, variant: str, library: SkillLibrary, coverage: float, work: Work) -> ParsedAnswer:
     specs = {s.name: s for s in policy_skills(library)}
     names = list(specs)
-    obj, recovered, start = extract_json(raw)
     thought: str | None = None
-    if variant == "react" and start > 0:
-        thought = _clean_thought(raw[:start])
+    if variant == "react":
+        obj, thought, recovered = _react_action(raw, work)
+    else:
+        obj, recovered, _start = extract_json(raw, work)
     if obj is None:
         if variant == "unstructured":
-            bare = _bare_skill(raw, names)
-            if bare is None:
-                raise InvalidAnswer(f"The answer names no skill; answer with one of: {', '.join(names)}.")
-            return _validate(bare[0], bare[1], {}, variant, specs, coverage, True, thought)
+            skill, arg = _bare_skill(raw, names, work)
+            return _validate(skill, arg, {}, variant, specs, coverage, True, thought)
         raise InvalidAnswer("No JSON object found in the answer; reply with exactly one JSON object in the "
                             "format given in the Rules.")
     obj = {norm_key(k): v for k, v in obj.items()}
-    ste_obj = next((obj[k] for k in ("ste", "skill_to_execute") if isinstance(obj.get(k), dict)), None)
+    ste_obj = next((obj[k] for k in ("ste", "skill_to_execute", "action") if isinstance(obj.get(k), dict)), None)
+    if variant == "react" and isinstance(obj.get("thought"), str) and not thought:
+        thought = obj["thought"].strip() or None  # the schema-constrained form {"thought", "action"}
     ste = {norm_key(k): v for k, v in ste_obj.items()} if ste_obj is not None else obj
     drt_obj = next((obj[k] for k in ("drt", "descriptive_reasoning_trace") if isinstance(obj.get(k), dict)), None)
     drt = {norm_key(k): v for k, v in drt_obj.items()} if drt_obj is not None else obj

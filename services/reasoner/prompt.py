@@ -2,6 +2,11 @@
 
 Parts are plain text with fixed section headers so that every backend (and the fake VLM used in tests)
 sees exactly the same prompt; `CompiledPrompt.parts` is what the reasoning step records.
+
+Layout for prompt caches (vLLM prefix caching, OpenAI automatic caching, Anthropic `cache_control`): the
+parts that depend only on the variant and the skill library (Preamble, Skill Library, Rules) come first
+and are byte-identical across the steps and tasks of a vehicle (`CompiledPrompt.prefix`); the task
+command, the History with the current observation, and the image come after (`suffix`).
 """
 
 from __future__ import annotations
@@ -32,6 +37,8 @@ DRT_FIELDS: dict[str, tuple[str, ...]] = {
     "full": ("image_description", "summary", "action_predictions", "reasoning"),
     "react": (),
 }
+CONSTANT_PARTS = ("preamble", "skill_library", "rules")
+"""Parts that depend only on the variant and the skill library: the cacheable prefix, in this order."""
 SECTION_TITLES = {
     "command": "Task command",
     "preamble": "Preamble",
@@ -114,7 +121,17 @@ class CompiledPrompt:
     variant: str
     parts: dict[str, str]
     text: str
+    """The whole prompt text: `prefix + suffix`."""
     image_jpeg: bytes | None = None
+    prefix: str = ""
+    """The constant head of `text` (Preamble, Skill Library, Rules): identical for every step and task of a
+    vehicle with this variant and skill library, so prompt caches reuse it."""
+    schema: dict | None = None
+    """JSON schema of a valid answer for schema-constrained decoding (schema.py)."""
+
+    @property
+    def suffix(self) -> str:
+        return self.text[len(self.prefix):]
 
     @property
     def has_image(self) -> bool:
@@ -162,12 +179,14 @@ class History:
         return len(self.entries)
 
     def render(self, obs: Observation) -> str:
+        """Executed steps first (oldest first), the current observation last: between two steps the text up to
+        the newest entries repeats, so a prefix cache reuses it (vLLM, OpenAI automatic caching)."""
         head = [describe_state(obs), describe_detections(obs)]
         if obs.memory is not None:
             head.append("Working memory: " + memory_summary(obs.memory))
-        if not self.entries:
-            return _fit("\n".join([*head, "No skill executed yet."]), self.max_chars)
         head_text = "\n".join(head)
+        if not self.entries:
+            return _fit_tail("No skill executed yet.", head_text, self.max_chars)
         # Budget: keep as many full entries as fit (at least the last one), then fill what is left with
         # condensed lines, newest first; whatever does not fit is counted as omitted. Linear in what fits.
         reserve = 60  # "Earlier steps:" and "(N earlier steps omitted)"
@@ -196,7 +215,18 @@ class History:
             body.extend(condensed)
         body.append("Recent steps:")
         body.extend(full)
-        return _fit("\n".join([head_text, *body]), self.max_chars)
+        return _fit_tail("\n".join(body), head_text, self.max_chars)
+
+
+def _fit_tail(body: str, tail: str, n: int) -> str:
+    """body + tail within n characters, cutting the start of the body (the oldest steps), never the tail."""
+    text = f"{body}\n{tail}"
+    if len(text) <= n:
+        return text
+    if len(tail) + 4 >= n:
+        return _fit(tail, n)
+    keep = n - len(tail) - 4  # "..." + "\n"
+    return "..." + body[len(body) - keep:] + "\n" + tail
 
 
 def _fit(text: str, n: int) -> str:
@@ -242,6 +272,18 @@ def rules_text(variant: str, library: SkillLibrary) -> str:
     return "\n".join(lines)
 
 
+def layout(variant: str, parts: dict[str, str]) -> tuple[str, str]:
+    """(constant prefix, whole text) of a prompt from its parts: Preamble, Skill Library and Rules first (they
+    depend only on the variant and the skill library), then the command and the History."""
+    if variant == "unstructured":
+        prefix = f"Skills:\n{parts['skill_library']}\n\n"
+        return prefix, prefix + f"Command: {parts['command']}"
+    wanted = PROMPT_PARTS[variant]
+    prefix = "".join(f"# {SECTION_TITLES[k]}\n{parts[k]}\n\n" for k in CONSTANT_PARTS if k in wanted)
+    rest = "\n\n".join(f"# {SECTION_TITLES[k]}\n{parts[k]}" for k in wanted if k not in CONSTANT_PARTS)
+    return prefix, prefix + rest
+
+
 class PromptCompiler:
     """Builds P_t for one variant from the command, the History, the observation and the skill registry."""
 
@@ -250,9 +292,12 @@ class PromptCompiler:
             raise ValueError(f"unknown prompt variant {variant!r}; use one of {', '.join(PROMPT_PARTS)}")
         self.variant = variant
         self.library = library
-        # The fixed parts depend only on the variant and the registry: compile them once.
+        # The fixed parts depend only on the variant and the registry: compile them once, as the prefix.
+        from services.reasoner.schema import answer_schema
+
         self._library_text = library_text(library)
         self._rules = rules_text(variant, library)
+        self.schema = answer_schema(variant, library)
 
     def compile(self, command: str, history: History, obs: Observation) -> CompiledPrompt:
         wanted = PROMPT_PARTS[self.variant]
@@ -268,11 +313,8 @@ class PromptCompiler:
                 parts[name] = self._library_text
             elif name == "rules":
                 parts[name] = self._rules
-        if self.variant == "unstructured":
-            text = f"{command}\n\nSkills:\n{self._library_text}"
-        else:
-            text = "\n\n".join(f"# {SECTION_TITLES[k]}\n{v}" for k, v in parts.items())
-        return CompiledPrompt(self.variant, parts, text, obs.image_jpeg)
+        prefix, text = layout(self.variant, parts)
+        return CompiledPrompt(self.variant, parts, text, obs.image_jpeg, prefix, self.schema)
 
 
 REPROMPT = ("Your previous answer was invalid: {error} Answer again with one valid skill, following the Rules "

@@ -8,15 +8,20 @@ import logging
 
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 
+from services.reasoner import tracing
 from services.reasoner.backends import Backend, make_backend
 from services.reasoner.loop import TaskRunner, World
 from services.reasoner.prompt import Observation
 from services.reasoner.settings import ReasonerSettings
 from shared.action import skill_client
-from shared.bus import Bus, Latest
+from shared.bus import Bus, Latest, Subscription
 from shared.errors import ConfigError
+from shared.keys import FLEET_ABORT
 from shared.messages import (
     Abort,
+    ApprovalDecision,
+    ApprovalState,
+    ApprovalStatus,
     CancelGoal,
     CancelReply,
     Detections,
@@ -30,6 +35,7 @@ from shared.messages import (
     TaskStatus,
     VehicleState,
     WorkingMemory,
+    now_ns,
 )
 from shared.sensors import decode_proto, stamp_to_ns
 
@@ -54,6 +60,7 @@ class BusWorld(World):
         self.detections: Latest[Detections] = Latest(bus.subscribe(self.keys.detections, maxsize=5))
         self.memory: Latest[WorkingMemory] = Latest(bus.subscribe(self.keys.memory, maxsize=5))
         self.skills = skill_client(bus, settings.vehicle_id)
+        self.approvals: dict[str, tuple[ApprovalStatus, asyncio.Future[ApprovalDecision]]] = {}
 
     async def pump(self) -> None:
         """Keep the latest values up to date and route skill statuses (runs for the service's lifetime)."""
@@ -83,6 +90,36 @@ class BusWorld(World):
             return goal.accept, await goal.result(timeout) if goal.accepted and timeout > 0 else None
         finally:
             goal.close()
+
+
+    async def request_approval(self, request: ApprovalStatus, timeout: float) -> ApprovalStatus:
+        """Publish the pending request, wait for the operator's decision (`decide`) or the timeout, publish
+        the outcome."""
+        fut: asyncio.Future[ApprovalDecision] = asyncio.get_running_loop().create_future()
+        self.approvals[request.approval_id] = (request, fut)
+        self.bus.publish(self.keys.approval, request)
+        try:
+            decision = await asyncio.wait_for(fut, timeout)
+        except TimeoutError:
+            done = request.model_copy(update={"state": ApprovalState.EXPIRED, "stamp_ns": now_ns(),
+                                              "reason": f"no decision within {timeout:.0f} s"})
+        else:
+            done = request.model_copy(update={
+                "state": ApprovalState.APPROVED if decision.approved else ApprovalState.REJECTED,
+                "reason": decision.reason, "operator": decision.operator, "stamp_ns": now_ns()})
+        finally:
+            self.approvals.pop(request.approval_id, None)
+        self.bus.publish(self.keys.approval, done)
+        return done
+
+    async def decide(self, decision: ApprovalDecision) -> CancelReply:
+        """`reasoner/decide_approval`: settle a pending request (once)."""
+        pending = self.approvals.get(decision.approval_id)
+        if pending is None or pending[1].done():
+            return CancelReply(accepted=False, reason=f"approval {decision.approval_id} is not pending on vehicle "
+                                                      f"{self.settings.vehicle_id} (decided, expired or unknown)")
+        pending[1].set_result(decision)
+        return CancelReply(accepted=True)
 
 
 def _jpeg(payload: bytes) -> tuple[bytes, int]:
@@ -129,6 +166,7 @@ class Reasoner:
             if backend is not self.default_backend:
                 with contextlib.suppress(Exception):
                     await backend.aclose()
+            await asyncio.to_thread(tracing.flush)  # a no-op unless AERMANI_REASONER_OTLP_ENDPOINT is set
 
     def _pub_step(self, rec) -> None:
         self.bus.publish(self.settings.keys.reasoning_step, rec)
@@ -160,24 +198,28 @@ class Reasoner:
             with contextlib.suppress(Exception):
                 await asyncio.wait_for(self.current[1], 5.0)
         await self.default_backend.aclose()
+        await asyncio.to_thread(tracing.flush)
 
 
 async def run(bus: Bus, settings: ReasonerSettings, stop: asyncio.Event) -> None:
     reasoner = Reasoner(bus, settings)
-    aborts = bus.subscribe(settings.keys.abort, maxsize=50)
+    aborts = [bus.subscribe(settings.keys.abort, maxsize=50), bus.subscribe(FLEET_ABORT, maxsize=50)]
     bus.serve(settings.keys.start_task, reasoner.start_task)
     bus.serve(settings.keys.cancel_task, reasoner.cancel_task)
+    if isinstance(reasoner.world, BusWorld):
+        bus.serve(settings.keys.decide_approval, reasoner.world.decide)
     log.info("reasoner ready: backend %s, variant %s", reasoner.default_backend.name, settings.variant)
 
-    async def abort_loop() -> None:
+    async def abort_loop(sub: Subscription[Abort]) -> None:
         while True:
-            reasoner.on_abort(await aborts.recv())
+            reasoner.on_abort(await sub.recv())
 
     try:
         async with asyncio.TaskGroup() as tg:
             if isinstance(reasoner.world, BusWorld):
                 tg.create_task(reasoner.world.pump())
-            tg.create_task(abort_loop())
+            for sub in aborts:
+                tg.create_task(abort_loop(sub))
             await stop.wait()
             raise _Stop
     except* _Stop:

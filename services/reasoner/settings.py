@@ -10,20 +10,21 @@ from pydantic_settings import SettingsConfigDict
 from shared.messages import Variant
 from shared.settings import ServiceSettings
 
-BackendName = Literal["rules", "openai", "anthropic", "replay"]
-
 
 class ReasonerSettings(ServiceSettings):
     model_config = SettingsConfigDict(env_prefix="AERMANI_REASONER_", extra="ignore", populate_by_name=True,
                                       use_attribute_docstrings=True)
 
-    backend: BackendName = "rules"
-    """Policy backend: rules (deterministic non-VLM baseline), openai (any OpenAI-compatible endpoint),
-    anthropic (Messages API) or replay (answers from a recorded log)."""
+    backend: str = Field("rules", pattern=r"^[a-z][a-z0-9_]{0,31}$")
+    """Policy backend: a kind registered in services/reasoner/backends (`aermani vlm backends` lists them with
+    what each reads); the deterministic non-VLM baseline `rules` is the default."""
+    backend_modules: str = ""
+    """Comma-separated Python modules imported before the backend is looked up; each registers backends with
+    `@register` (a backend kept outside this repository)."""
     variant: Variant = "full"
     """Prompt variant (paper Table IV + ReAct): unstructured, no_drt, drt_v1, drt_v2, drt_v3, full, react."""
     model: str = ""
-    """Model name; empty picks gpt-4o for openai and claude-3-5-sonnet-latest for anthropic."""
+    """Model name; empty picks the backend's default model."""
     base_url: str | None = None
     """Endpoint base URL, e.g. http://127.0.0.1:8000/v1 for vLLM/Ollama/llama.cpp, or the Anthropic URL."""
     api_key: SecretStr | None = None
@@ -32,10 +33,20 @@ class ReasonerSettings(ServiceSettings):
     """Timeout of one model HTTP request, seconds."""
     transport_retries: int = Field(3, ge=0, le=10)
     """Retries with exponential backoff on transport errors (5xx, 429, connection, timeout) per model call."""
-    max_tokens: int = Field(1024, ge=16)
-    """Answer token limit per model call."""
-    temperature: float = Field(0.0, ge=0.0, le=2.0)
-    """Sampling temperature."""
+    max_tokens: int | None = Field(None, ge=16)
+    """Answer token limit per model call; unset takes the model profile's."""
+    temperature: float | None = Field(None, ge=0.0, le=2.0)
+    """Sampling temperature; unset takes the model profile's (0 for every built-in profile)."""
+    profile: str = "auto"
+    """Model profile (profiles.py: gpt-4o, gemini, claude, qwen2-vl, llava-next, generic); auto picks it from
+    the model name."""
+    output_mode: Literal["auto", "schema", "text"] = "auto"
+    """Answer decoding: schema sends the answer's JSON schema (strict) with every request and fails when the
+    server rejects it; text never sends it (free text, lenient reader); auto sends it when the profile says
+    the model supports it and falls back to text, remembered per endpoint and logged once, on rejection."""
+    otlp_endpoint: str = ""
+    """OpenTelemetry collector base URL (OTLP/HTTP, e.g. http://127.0.0.1:4318) to send one GenAI span per model
+    call to; empty (the default) traces nothing. Needs the `otel` extra."""
     replay_path: str = ""
     """JSONL file of recorded ReasoningStep records or raw answers, for backend=replay."""
     t_max_s: float = Field(600.0, gt=0)
@@ -52,6 +63,11 @@ class ReasonerSettings(ServiceSettings):
     """Character budget of the History part; the oldest entries are condensed, then dropped, to stay under."""
     prediction_coverage: float = Field(1.0, ge=0.0, le=1.0)
     """Fraction of the available skills the DRT's action predictions must cover (paper: every skill)."""
+    approval: list[str] = []
+    """Skills that wait for an operator's approval before they run: skill names (`grasp`, `takeoff`) or
+    categories (`motion`, `manipulation`, `perception`), e.g. `["grasp", "place"]`. Empty: none."""
+    approval_timeout_s: float = Field(120.0, gt=0)
+    """How long a skill waits for the operator; then the vehicle holds and the step fails."""
     skill_timeout_s: float = Field(180.0, gt=0)
     """Longest wait for one skill's terminal status before the reasoner holds and records a timeout."""
     frame_wait_s: float = Field(1.0, ge=0)

@@ -35,22 +35,46 @@ def replay_cmd(
     start: Annotated[float | None, typer.Option(help="Start this many seconds into the log.")] = None,
     end: Annotated[float | None, typer.Option(help="Stop this many seconds into the log.")] = None,
     connect: Annotated[str, typer.Option(help="Zenoh endpoint of the router.")] = "tcp/127.0.0.1:7447",
+    include_control: Annotated[bool, typer.Option(help="Also republish abort and command keys (off: on a live "
+                                                       "bus they would stop or move a vehicle).")] = False,
+    vehicle: Annotated[str | None, typer.Option(help="Republish every vehicle's samples under this vehicle id.")]
+    = None,
+    remap: Annotated[list[str] | None, typer.Option(help="OLD=NEW vehicle id (repeatable).")] = None,
 ) -> None:
     """Republish a log on Zenoh verbatim (same keys, bytes, encodings) so the web page, Foxglove and any
-    service see the flight again."""
+    service see the flight again. Abort and command keys are left out unless --include-control."""
     from services.recorder.replay import replay
     from shared.bus import Bus
+    from shared.keys import vehicle_prefix
+
+    mapping: dict[str, str] = {"*": vehicle} if vehicle else {}
+    for item in remap or []:
+        old, sep, new = item.partition("=")
+        if not sep or not old or not new:
+            err.print(f"[red]--remap {item!r}: use OLD=NEW, e.g. am1=replay1[/red]")
+            raise typer.Exit(2)
+        mapping[old] = new
+    try:
+        for new in mapping.values():
+            vehicle_prefix(new)
+    except ValueError as exc:
+        err.print(f"[red]{exc}[/red]")
+        raise typer.Exit(2)
 
     async def run() -> None:
         bus = await Bus.open(connect=[connect])
         try:
-            res = await replay(bus, log, speed=speed, keys=keys, start_s=start, end_s=end)
+            res = await replay(bus, log, speed=speed, keys=keys, start_s=start, end_s=end,
+                               include_control=include_control, remap=mapping or None)
             # Let the last samples leave the session before it closes.
             await asyncio.sleep(0.5)
         finally:
             await bus.close()
         console.print(f"replayed {res.published} samples from {log} in {res.wall_s:.1f} s "
                       f"({(res.last_log_ns - res.first_log_ns) / 1e9:.1f} s of log)")
+        if res.skipped_control:
+            console.print(f"left out {sum(res.skipped_control.values())} control samples "
+                          f"({', '.join(sorted(res.skipped_control))}); --include-control republishes them")
 
     try:
         asyncio.run(run())
@@ -106,10 +130,10 @@ def recover_cmd(
 
 def rereason_cmd(
     log: LogArg,
-    backend: Annotated[str, typer.Option(help="Backend to re-run the decisions with (rules, openai, anthropic, "
-                                              "replay...).")] = "rules",
+    backend: Annotated[str, typer.Option(help="Backend to re-run the decisions with (`aermani vlm backends`; "
+                                              "replay reads --answers).")] = "rules",
     variant: Annotated[str | None, typer.Option(help="Prompt variant (default: the recorded one).")] = None,
-    model: Annotated[str | None, typer.Option(help="Model name for openai/anthropic backends.")] = None,
+    model: Annotated[str | None, typer.Option(help="Model name for a model backend.")] = None,
     task: Annotated[str | None, typer.Option(help="Only this task id.")] = None,
     answers: Annotated[Path | None, typer.Option(help="For --backend replay: the log whose recorded answers "
                                                      "to replay.")] = None,

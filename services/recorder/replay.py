@@ -1,15 +1,53 @@
-"""Replay: republish a recorded log on Zenoh verbatim (same key, bytes, encoding) with its original timing."""
+"""Replay: republish a recorded log on Zenoh verbatim (same key, bytes, encoding) with its original timing.
+
+Control keys (commands and abort) are left out unless asked: republished onto a live bus, a recorded abort
+would stop a flight and a recorded command could move a vehicle. `remap` moves samples to other vehicle ids
+(key and the payload's top-level `vehicle_id`), so a log can be watched beside the live fleet."""
 
 from __future__ import annotations
 
 import asyncio
+import json
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from services.recorder.mcaplog import iter_samples
+from shared import keys as k
 from shared.bus import Bus
+
+# Keys (after aermani/v1/<vehicle>/) that act on a vehicle or a task when they arrive.
+CONTROL_SUFFIXES = tuple(d.name for d in (
+    k.SAFETY_ABORT, k.AUTOPILOT_COMMAND, k.EXECUTOR_RUN_SKILL, k.EXECUTOR_CANCEL_SKILL, k.REASONER_START_TASK,
+    k.REASONER_CANCEL_TASK, k.REASONER_DECIDE_APPROVAL, k.SIM_RESET))
+
+
+def is_control_key(key: str) -> bool:
+    parts = str(key).split("/", 3)
+    return len(parts) == 4 and f"{parts[0]}/{parts[1]}" == k.ROOT and parts[3] in CONTROL_SUFFIXES
+
+
+def remap_sample(key: str, payload: bytes, encoding: str, remap: dict[str, str]) -> tuple[str, bytes]:
+    """Move a sample to the vehicle id `remap` names for its own (or "*" for any)."""
+    parts = str(key).split("/", 3)
+    if len(parts) < 3 or f"{parts[0]}/{parts[1]}" != k.ROOT:
+        return key, payload
+    old = parts[2]
+    new = remap.get(old, remap.get("*"))
+    if new is None or new == old:
+        return key, payload
+    k.vehicle_prefix(new)  # validates
+    parts[2] = new
+    if encoding.startswith("application/json"):
+        try:
+            obj = json.loads(payload)
+        except ValueError:
+            obj = None
+        if isinstance(obj, dict) and obj.get("vehicle_id") == old:
+            obj["vehicle_id"] = new
+            payload = json.dumps(obj, separators=(",", ":")).encode()
+    return "/".join(parts), payload
 
 
 @dataclass
@@ -18,6 +56,8 @@ class ReplayResult:
     first_log_ns: int
     last_log_ns: int
     wall_s: float
+    skipped_control: dict[str, int] = field(default_factory=dict)
+    """Control samples left out, per key."""
 
 
 def log_bounds(path: str | Path) -> tuple[int, int]:
@@ -40,9 +80,15 @@ def log_bounds(path: str | Path) -> tuple[int, int]:
 
 async def replay(bus: Bus, path: str | Path, *, speed: float = 1.0, keys: str | None = None,
                  start_s: float | None = None, end_s: float | None = None,
-                 on_sample: Callable[[int], None] | None = None) -> ReplayResult:
+                 on_sample: Callable[[int], None] | None = None, include_control: bool = False,
+                 remap: dict[str, str] | None = None) -> ReplayResult:
     """Publish the samples of `path` in log-time order. `speed` 1 keeps the original timing, 2 is twice as
-    fast, 0 (or less) as fast as possible. `start_s`/`end_s` are seconds from the start of the log."""
+    fast, 0 (or less) as fast as possible. `start_s`/`end_s` are seconds from the start of the log.
+    Abort and command keys are skipped unless `include_control`; `remap` maps old vehicle ids to new ones
+    ("*" for every vehicle)."""
+    for new in (remap or {}).values():
+        k.vehicle_prefix(new)  # a bad id fails before anything is published
+    skipped: dict[str, int] = {}
     first, _ = log_bounds(path)
     start_ns = first + int(start_s * 1e9) if start_s is not None else None
     end_ns = first + int(end_s * 1e9) if end_s is not None else None
@@ -58,11 +104,15 @@ async def replay(bus: Bus, path: str | Path, *, speed: float = 1.0, keys: str | 
             delay = due - time.monotonic()
             if delay > 0:
                 await asyncio.sleep(delay)
-        bus.publish_raw(s.key, s.payload, s.encoding)
+        if not include_control and is_control_key(s.key):
+            skipped[s.key] = skipped.get(s.key, 0) + 1
+            continue
+        key, payload = remap_sample(s.key, s.payload, s.encoding, remap) if remap else (s.key, s.payload)
+        bus.publish_raw(key, payload, s.encoding)
         n += 1
         last = s.log_time_ns
         if on_sample is not None:
             on_sample(n)
         elif n % 200 == 0:
             await asyncio.sleep(0)  # keep the loop responsive when replaying as fast as possible
-    return ReplayResult(n, t_log0 or 0, last, time.monotonic() - t_wall0)
+    return ReplayResult(n, t_log0 or 0, last, time.monotonic() - t_wall0, skipped)

@@ -23,6 +23,7 @@ from services.sim.vehicle import (
     MAIN_OFFBOARD,
     MAIN_POSCTL,
     SUB_LOITER,
+    SUB_RTL,
     UNSUPPORTED,
     yaw_ned_to_enu,
 )
@@ -67,7 +68,23 @@ PARAMS: dict[str, float] = {
     "MPC_Z_VEL_MAX_DN": 1.0,
     "MPC_LAND_SPEED": 0.7,
     "MPC_YAWRAUTO_MAX": 90.0,
+    "RTL_RETURN_ALT": 2.0,
+    "SYS_FAILURE_EN": 0.0,  # PX4 answers MAV_CMD_INJECT_FAILURE only when this is 1
+    "SIM_GRIP_ACT_SET": 1.0,  # the gripper is on "Peripheral via Actuator Set N" for MAV_CMD_DO_SET_ACTUATOR
 }
+
+# MAV_CMD_INJECT_FAILURE units that take the local position estimate away (GPS outdoors, VIO indoors).
+POSITION_SENSORS = {mav.FAILURE_UNIT_SENSOR_GPS, mav.FAILURE_UNIT_SENSOR_VIO}
+INT32_MAX = 2**31 - 1
+
+
+def command_arg(p: list[float], i: int, default: float) -> float:
+    """Param i of a COMMAND_LONG/COMMAND_INT, or `default` where the sender left it NaN (PX4: "use the
+    default"; MAVSDK sends NaN in every parameter it does not set) or INT32_MAX (COMMAND_INT x/y unset)."""
+    v = p[i]
+    if not math.isfinite(v) or (i in (4, 5) and v == INT32_MAX):
+        return default
+    return v
 
 
 @dataclass
@@ -199,9 +216,6 @@ class MavlinkServer:
                     sec, nsec = struct.unpack("qq", cdata[:16])
                     rx_ns = sec * 1_000_000_000 + nsec
             link.received += 1
-            if addr != link.remote:
-                log.info("MAVLink %s link: peer at %s:%d, answering there", link.cfg.name, *addr)
-                link.remote = addr
             try:
                 msgs = link.mav.parse_buffer(data) or []
             except Exception as exc:  # pymavlink raises on some malformed frames even when robust
@@ -215,6 +229,11 @@ class MavlinkServer:
             link.mav.buf_index = 0
             link.mav.expected_length = mav.HEADER_LEN_V1 + 2
             link.mav.have_prefix_error = False
+            if addr != link.remote and any(m.get_type() != "BAD_DATA" for m in msgs):
+                # Like PX4's UDP links: telemetry goes to the configured remote until a peer speaks valid
+                # MAVLink (a whole frame with a good CRC) from elsewhere. Garbage never redirects it.
+                log.info("MAVLink %s link: peer at %s:%d, answering there", link.cfg.name, *addr)
+                link.remote = addr
             for msg in msgs:
                 try:
                     self._handle(link, msg, rx_ns)
@@ -319,27 +338,45 @@ class MavlinkServer:
         out = None
         now = time.monotonic()
         v = self.core.vehicle
+
+        def arg(i: int, default: float = 0.0) -> float:
+            return command_arg(p, i, default)
+
         with self.core.lock:
             if cmd == mav.MAV_CMD_COMPONENT_ARM_DISARM:
-                result = v.arm(p[0] >= 0.5, force=int(round(p[1])) == FORCE_MAGIC)
+                action = arg(0, -1.0)
+                if round(action) not in (0, 1):
+                    v._event(mav.MAV_SEVERITY_CRITICAL, f"Unsupported ARM_DISARM param: {action:.3f}")
+                else:
+                    result = v.arm(round(action) == 1, force=round(arg(1)) == FORCE_MAGIC)
             elif cmd == mav.MAV_CMD_DO_SET_MODE:
-                if int(p[0]) & mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
-                    result = v.set_mode(int(p[1]), int(p[2]), now)
+                if int(arg(0)) & mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
+                    result = v.set_mode(int(arg(1)), int(arg(2)), now)
                 else:
                     result = DENIED
             elif cmd == mav.MAV_CMD_NAV_TAKEOFF:
-                result = v.takeoff(p[6])
+                result = v.takeoff(arg(6, math.nan))
             elif cmd == mav.MAV_CMD_NAV_LAND:
                 result = v.land()
+            elif cmd == mav.MAV_CMD_NAV_RETURN_TO_LAUNCH:
+                result = v.set_mode(MAIN_AUTO, SUB_RTL, now)
             elif cmd == mav.MAV_CMD_NAV_LOITER_UNLIM:
                 result = v.set_mode(MAIN_AUTO, SUB_LOITER, now)
             elif cmd == mav.MAV_CMD_DO_GRIPPER:
-                result = v.gripper(int(round(p[1])) == mav.GRIPPER_ACTION_GRAB)
+                result = v.gripper(round(arg(1, mav.GRIPPER_ACTION_RELEASE)) == mav.GRIPPER_ACTION_GRAB)
+            elif cmd == mav.MAV_CMD_DO_SET_ACTUATOR:
+                # The gripper servo sits on output function "Peripheral via Actuator Set N" (SIM_GRIP_ACT_SET):
+                # > 0 closes, < 0 opens, NaN leaves it alone (PX4's semantics for params 1-6).
+                n = int(self.params.get("SIM_GRIP_ACT_SET", 1.0))
+                value = p[n - 1] if 1 <= n <= 6 and int(arg(6)) == 0 else math.nan
+                result = ACCEPTED if not math.isfinite(value) or value == 0.0 else v.gripper(value > 0.0)
+            elif cmd == mav.MAV_CMD_INJECT_FAILURE:
+                result = self._inject_failure(int(arg(0, -1)), int(arg(1, -1)))
             elif cmd == mav.MAV_CMD_SET_MESSAGE_INTERVAL:
-                result = self._set_interval(link, int(p[0]), p[1])
+                result = self._set_interval(link, int(arg(0, -1)), arg(1))
             elif cmd in (mav.MAV_CMD_REQUEST_MESSAGE, mav.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES,
                          mav.MAV_CMD_GET_HOME_POSITION):
-                want = {mav.MAV_CMD_REQUEST_MESSAGE: int(p[0]),
+                want = {mav.MAV_CMD_REQUEST_MESSAGE: int(arg(0, -1)),
                         mav.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES: mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION,
                         mav.MAV_CMD_GET_HOME_POSITION: mav.MAVLINK_MSG_ID_HOME_POSITION}[cmd]
                 out = self._build(link, want)
@@ -352,9 +389,26 @@ class MavlinkServer:
         if result == UNSUPPORTED:
             self._log_limited(f"cmd-{cmd}", logging.INFO, "unsupported command %d", cmd)
         else:
-            log.info("command %d %s -> result %d", cmd, [round(x, 3) for x in p[:3]], result)
+            log.info("command %d %s from %d/%d -> result %d", cmd, [round(x, 3) for x in p[:3]],
+                     msg.get_srcSystem(), msg.get_srcComponent(), result)
         for sev, text in events:
             self._statustext(sev, text)
+
+    def _inject_failure(self, unit: int, kind: int) -> int:
+        """MAV_CMD_INJECT_FAILURE as PX4 SITL answers it (only with SYS_FAILURE_EN = 1)."""
+        v = self.core.vehicle
+        if self.params.get("SYS_FAILURE_EN", 0.0) < 0.5:
+            v._event(mav.MAV_SEVERITY_CRITICAL, "Failure injection disabled (SYS_FAILURE_EN)")
+            return DENIED
+        if kind not in (mav.FAILURE_TYPE_OK, mav.FAILURE_TYPE_OFF):
+            return UNSUPPORTED
+        if unit in POSITION_SENSORS:
+            v.set_estimate_valid(kind == mav.FAILURE_TYPE_OK)
+            return ACCEPTED
+        if unit == mav.FAILURE_UNIT_SYSTEM_BATTERY and kind == mav.FAILURE_TYPE_OFF:
+            v.battery_failsafe()
+            return ACCEPTED
+        return UNSUPPORTED
 
     def _set_interval(self, link: Link, msg_id: int, interval_us: float) -> int:
         if msg_id not in STREAMABLE:
@@ -403,6 +457,7 @@ class MavlinkServer:
             p.max_speed_down = self.params["MPC_Z_VEL_MAX_DN"]
             p.land_speed = self.params["MPC_LAND_SPEED"]
             p.yaw_rate = math.radians(self.params["MPC_YAWRAUTO_MAX"])
+            p.rtl_alt = self.params["RTL_RETURN_ALT"]
 
     # ------------------------------------------------------------------ send
 
@@ -438,6 +493,9 @@ class MavlinkServer:
                     base |= mav.MAV_MODE_FLAG_SAFETY_ARMED
                 status = mav.MAV_STATE_ACTIVE if v.armed else mav.MAV_STATE_STANDBY
                 return m.heartbeat_encode(mav.MAV_TYPE_QUADROTOR, mav.MAV_AUTOPILOT_PX4, base, v.custom_mode, status)
+            if msg_id in (mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED, mav.MAVLINK_MSG_ID_GLOBAL_POSITION_INT) \
+                    and not v.estimate_valid:
+                return None  # PX4 publishes no position it does not have
             if msg_id == mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED:
                 return m.local_position_ned_encode(boot_ms, *(float(x) for x in v.p), *(float(x) for x in v.v))
             if msg_id == mav.MAVLINK_MSG_ID_ATTITUDE:
@@ -445,8 +503,12 @@ class MavlinkServer:
             if msg_id == mav.MAVLINK_MSG_ID_EXTENDED_SYS_STATE:
                 return m.extended_sys_state_encode(mav.MAV_VTOL_STATE_UNDEFINED, v.landed_state)
             if msg_id == mav.MAVLINK_MSG_ID_SYS_STATUS:
-                sensors = 0x3FFFFF
-                return m.sys_status_encode(sensors, sensors, sensors, 200, int(v.battery_voltage * 1000),
+                # PREARM_CHECK healthy = the arming checks pass (MAVSDK's health.is_armable reads it).
+                sensors = 0x3FFFFF | mav.MAV_SYS_STATUS_PREARM_CHECK
+                health = sensors if v.estimate_valid else sensors & ~mav.MAV_SYS_STATUS_SENSOR_GPS
+                if v.armed or v.arming_check() is not None:
+                    health &= ~mav.MAV_SYS_STATUS_PREARM_CHECK
+                return m.sys_status_encode(sensors, sensors, health, 200, int(v.battery_voltage * 1000),
                                            800 if v.armed else 50, int(v.battery), 0, 0, 0, 0, 0, 0)
             if msg_id == mav.MAVLINK_MSG_ID_BATTERY_STATUS:
                 cell = int(v.battery_voltage * 1000 / 3)

@@ -21,6 +21,7 @@ MAIN_OFFBOARD = mavutil.PX4_CUSTOM_MAIN_MODE_OFFBOARD
 SUB_TAKEOFF = mavutil.PX4_CUSTOM_SUB_MODE_AUTO_TAKEOFF
 SUB_LOITER = mavutil.PX4_CUSTOM_SUB_MODE_AUTO_LOITER
 SUB_LAND = mavutil.PX4_CUSTOM_SUB_MODE_AUTO_LAND
+SUB_RTL = mavutil.PX4_CUSTOM_SUB_MODE_AUTO_RTL
 
 MODE_NAMES = {
     (MAIN_POSCTL, 0): "POSCTL",
@@ -28,6 +29,7 @@ MODE_NAMES = {
     (MAIN_AUTO, SUB_TAKEOFF): "AUTO.TAKEOFF",
     (MAIN_AUTO, SUB_LOITER): "AUTO.LOITER",
     (MAIN_AUTO, SUB_LAND): "AUTO.LAND",
+    (MAIN_AUTO, SUB_RTL): "AUTO.RTL",
 }
 
 ACCEPTED = mav.MAV_RESULT_ACCEPTED
@@ -69,9 +71,10 @@ class VehicleParams:
     offboard_loss_timeout: float = 0.5  # s (COM_OF_LOSS_T)
     failsafe_land_delay: float = 3.0  # s in hold after offboard loss before landing
     disarm_after_land: float = 2.0  # s (COM_DISARM_LAND)
-    offboard_stream_min: float = 1.0  # s of setpoints before OFFBOARD is allowed
+    offboard_stream_min: float = 0.0  # s of setpoints before OFFBOARD is allowed (PX4: one within COM_OF_LOSS_T)
     battery_drain_per_s: float = 0.05  # % per second while armed (~33 min flight)
     kp: float = 1.5  # position gain, 1/s
+    rtl_alt: float = 2.0  # m above home (RTL_RETURN_ALT; PX4's 60 m default makes no sense indoors)
     gripper_offset: tuple[float, float, float] = GRIPPER_OFFSET_BODY  # body FLU, metres (settings.mount)
 
 
@@ -117,6 +120,7 @@ class Vehicle:
         self.battery = 100.0
         self.sim_time = 0.0
         self.setpoints_received = 0
+        self.estimate_valid = True  # PX4's local position estimate (cleared by an injected sensor failure)
 
     @property
     def mode_name(self) -> str:
@@ -167,15 +171,15 @@ class Vehicle:
     # ------------------------------------------------------------------ commands
 
     def arm(self, arm: bool, force: bool = False) -> int:
+        """MAV_CMD_COMPONENT_ARM_DISARM as PX4's commander answers it: a refused transition is
+        MAV_RESULT_TEMPORARILY_REJECTED with the reason in a STATUSTEXT; param2 = 21196 skips the checks."""
         if arm:
             if self.armed:
                 return ACCEPTED
-            if not self.on_ground and not force:
-                self._event(mav.MAV_SEVERITY_CRITICAL, "Arming denied: not landed")
-                return DENIED
-            if self.battery < 5.0 and not force:
-                self._event(mav.MAV_SEVERITY_CRITICAL, "Arming denied: battery critically low")
-                return DENIED
+            reason = None if force else self.arming_check()
+            if reason is not None:
+                self._event(mav.MAV_SEVERITY_CRITICAL, reason)
+                return TEMPORARILY_REJECTED
             self.armed = True
             self.landing_touch_wall = None
             self.hold_pos, self.hold_yaw = self.p.copy(), self.yaw
@@ -185,10 +189,54 @@ class Vehicle:
             return ACCEPTED
         if not self.on_ground and not force:
             self._event(mav.MAV_SEVERITY_CRITICAL, "Disarming denied: not landed")
-            return DENIED
-        self.armed = False
+            return TEMPORARILY_REJECTED
+        self._disarmed()
         self._event(mav.MAV_SEVERITY_INFO, "Disarmed by external command")
         return ACCEPTED
+
+    def battery_failsafe(self) -> None:
+        """The battery dropped to its critical level (an injected battery failure): PX4's low-battery failsafe
+        (COM_LOW_BAT_ACT = Return at critical) takes over from whatever mode flies, OFFBOARD included."""
+        self.battery = min(self.battery, 8.0)
+        self._event(mav.MAV_SEVERITY_CRITICAL, "Critical battery level!")
+        if self.armed and not self.on_ground and not (self.main_mode == MAIN_AUTO
+                                                      and self.sub_mode in (SUB_RTL, SUB_LAND)):
+            self._set_mode(MAIN_AUTO, SUB_RTL)
+            self._event(mav.MAV_SEVERITY_CRITICAL, "Failsafe activated: critical battery, returning to launch")
+
+    def _disarmed(self) -> None:
+        self.armed = False
+        if self.main_mode == MAIN_AUTO and self.sub_mode in (SUB_LAND, SUB_RTL):
+            self._set_mode(MAIN_AUTO, SUB_LOITER)  # a finished landing leaves the vehicle in Hold, ready to arm
+
+    def arming_check(self) -> str | None:
+        """PX4's preflight/arming checks that this simulator models; None when arming is allowed."""
+        if not self.on_ground:
+            return "Arming denied: not landed"
+        if self.battery < 5.0:
+            return "Arming denied: battery critically low"
+        if not self.estimate_valid:
+            return "Preflight Fail: No valid local position estimate"
+        if self.main_mode == MAIN_AUTO and self.sub_mode in (SUB_LAND, SUB_RTL):
+            return f"Arming denied: not possible in {self.mode_name}"
+        if self.main_mode == MAIN_OFFBOARD and self.last_sp_wall is None:
+            return "Arming denied: no offboard setpoints"
+        return None
+
+    def set_estimate_valid(self, valid: bool) -> None:
+        """A sensor failure (MAV_CMD_INJECT_FAILURE) took the position estimate away, or gave it back. In the
+        air, every mode that needs a position fails over to landing, as PX4's failsafe does."""
+        if valid == self.estimate_valid:
+            return
+        self.estimate_valid = valid
+        if valid:
+            self._event(mav.MAV_SEVERITY_INFO, "Local position estimate valid again")
+            return
+        self._event(mav.MAV_SEVERITY_CRITICAL, "No valid local position estimate")
+        if self.armed and not self.on_ground and not (self.main_mode == MAIN_AUTO and self.sub_mode == SUB_LAND):
+            self.hold_pos = self.p.copy()
+            self._set_mode(MAIN_AUTO, SUB_LAND)
+            self._event(mav.MAV_SEVERITY_CRITICAL, "Failsafe activated: no position estimate, landing")
 
     def offboard_stream_ok(self, now: float) -> bool:
         return (self.last_sp_wall is not None and self.stream_start_wall is not None
@@ -196,6 +244,13 @@ class Vehicle:
                 and now - self.stream_start_wall >= self.params.offboard_stream_min)
 
     def set_mode(self, main: int, sub: int, now: float) -> int:
+        """DO_SET_MODE / SET_MODE; a refused switch is TEMPORARILY_REJECTED, as PX4's commander answers."""
+        needs_position = main in (MAIN_OFFBOARD, MAIN_POSCTL) or (
+            main == MAIN_AUTO and sub in (SUB_LOITER, SUB_TAKEOFF, SUB_RTL))
+        if needs_position and not self.estimate_valid:
+            self._event(mav.MAV_SEVERITY_CRITICAL, f"Switching to {MODE_NAMES.get((main, sub), 'this mode')} "
+                        "is currently not possible: no valid local position estimate")
+            return TEMPORARILY_REJECTED
         if main == MAIN_OFFBOARD:
             if not self.offboard_stream_ok(now):
                 self._event(mav.MAV_SEVERITY_WARNING, "Switching to Offboard is currently not available: "
@@ -213,8 +268,19 @@ class Vehicle:
             return self.takeoff(None)
         if main == MAIN_AUTO and sub == SUB_LAND:
             return self.land()
+        if main == MAIN_AUTO and sub == SUB_RTL:
+            return self.rtl()
         self._event(mav.MAV_SEVERITY_WARNING, f"Mode {main}.{sub} is not available in this simulator")
         return UNSUPPORTED
+
+    def rtl(self) -> int:
+        """AUTO.RTL: climb to rtl_alt above home (or stay higher), fly home, land there."""
+        if not self.armed or self.on_ground:
+            self._event(mav.MAV_SEVERITY_CRITICAL, "Return mode: not in air, nothing to return")
+            return TEMPORARILY_REJECTED
+        self._set_mode(MAIN_AUTO, SUB_RTL)
+        self._event(mav.MAV_SEVERITY_INFO, "Returning to launch")
+        return ACCEPTED
 
     def takeoff(self, altitude: float | None) -> int:
         if not self.armed:
@@ -279,7 +345,7 @@ class Vehicle:
             if self.landing_touch_wall is None:
                 self.landing_touch_wall = now
             elif now - self.landing_touch_wall >= p.disarm_after_land:
-                self.armed = False
+                self._disarmed()
                 self.landing_touch_wall = None
                 self._event(mav.MAV_SEVERITY_INFO, "Landing detected, disarmed")
 
@@ -318,6 +384,8 @@ class Vehicle:
         elif self.main_mode == MAIN_AUTO and self.sub_mode == SUB_LAND:
             target = np.array([self.hold_pos[0], self.hold_pos[1], 1.0])  # below ground: descend to it
             vmax_down = p.land_speed
+        elif self.main_mode == MAIN_AUTO and self.sub_mode == SUB_RTL:
+            target = self._rtl_target()
 
         if self.on_ground and vel_cmd is None and target[2] > self.p[2] - 0.05:
             # A target at or below the ground keeps a landed vehicle on the ground (idle spin).
@@ -346,6 +414,17 @@ class Vehicle:
             self._yaw_step(yaw_target, dt)
         self._move(dt)
         self._carry(prev_yaw)
+
+    def _rtl_target(self) -> np.ndarray:
+        z_rtl = min(self.p[2], self.home[2] - self.params.rtl_alt)  # NED: never descend on the way home
+        if self.p[2] > z_rtl + 0.1:  # climb first
+            return np.array([self.p[0], self.p[1], z_rtl])
+        if math.hypot(self.p[0] - self.home[0], self.p[1] - self.home[1]) > 0.1:
+            return np.array([self.home[0], self.home[1], z_rtl])
+        self.hold_pos = np.array([self.home[0], self.home[1], self.p[2]])
+        self._set_mode(MAIN_AUTO, SUB_LAND)
+        self._event(mav.MAV_SEVERITY_INFO, "RTL: home reached, landing")
+        return np.array([self.home[0], self.home[1], 1.0])
 
     def _position_control(self, target: np.ndarray, vmax_up: float, vmax_down: float) -> np.ndarray:
         p = self.params

@@ -32,7 +32,7 @@ async def bridge_and_fake(**overrides):
     port = free_udp_port()
     s = BridgeSettings(connection=f"udpin:127.0.0.1:{port}", command_timeout_s=0.5, offboard_warmup_s=0.3,
                        heartbeat_timeout_s=1.0, takeoff_timeout_s=20.0, **overrides)
-    link = MavlinkLink(s.connection, source_system=s.source_system)
+    link = MavlinkLink(s.connection, source_system=s.source_system, source_component=s.source_component)
     bridge = Bridge(None, s, link)
     stop = asyncio.Event()
     link.start(asyncio.get_running_loop(), bridge.on_message)
@@ -59,7 +59,8 @@ def test_handshake_heartbeat_and_message_rates() -> None:
             await wait_until(lambda: "HEARTBEAT" in fake.names(), 10, what="our heartbeat")
             hb = next(m for m in fake.received if m.get_type() == "HEARTBEAT")
             assert (hb.type, hb.autopilot) == (px4.MAV_TYPE_ONBOARD_CONTROLLER, px4.MAV_AUTOPILOT_INVALID)
-            assert (hb.get_srcSystem(), hb.get_srcComponent()) == (255, px4.MAV_COMP_ID_ONBOARD_COMPUTER)
+            # Its own identity: a companion component of the vehicle's system, never a ground station's 255.
+            assert (hb.get_srcSystem(), hb.get_srcComponent()) == (1, px4.MAV_COMP_ID_ONBOARD_COMPUTER)
 
             def intervals() -> dict[int, float]:
                 return {int(c.param1): c.param2 for c in list(fake.commands)
@@ -85,6 +86,30 @@ def test_arm_ack_accepted_and_denied() -> None:
             res = await bridge.handle(ArmCommand())
             assert res.ok and res.ack_code == 0 and res.ack_name == "MAV_RESULT_ACCEPTED"
             await wait_until(lambda: bridge.state().armed, 10, what="armed in HEARTBEAT")
+
+    arun(body(), 60)
+
+
+def test_configured_identity_is_used_and_acks_for_others_are_ignored() -> None:
+    async def body():
+        async with bridge_and_fake(source_system=7, source_component=192) as (bridge, fake):
+            await wait_until(lambda: "HEARTBEAT" in fake.names(), 10, what="our heartbeat")
+            hb = next(m for m in fake.received if m.get_type() == "HEARTBEAT")
+            assert (hb.get_srcSystem(), hb.get_srcComponent()) == (7, 192)
+            # An ACK addressed to another component of our system (or to a GCS) does not answer our command.
+            fake.ack_commands = False
+            task = asyncio.create_task(bridge.handle(GripperCommand(action="close")))
+            await wait_until(lambda: any(c.command == px4.MAV_CMD_DO_GRIPPER for c in fake.commands), 5,
+                             what="gripper command")
+            cmd = next(c for c in fake.commands if c.command == px4.MAV_CMD_DO_GRIPPER)
+            assert (cmd.get_srcSystem(), cmd.get_srcComponent()) == (7, 192)
+            fake.send(fake.mav.command_ack_encode(px4.MAV_CMD_DO_GRIPPER, 0, 0, 0, 7, 191))
+            fake.send(fake.mav.command_ack_encode(px4.MAV_CMD_DO_GRIPPER, 0, 0, 0, 255, 190))
+            await asyncio.sleep(0.2)
+            assert not task.done()
+            fake.send(fake.mav.command_ack_encode(px4.MAV_CMD_DO_GRIPPER, 0, 0, 0, 7, 192))
+            res = await task
+            assert res.ok, res.message
 
     arun(body(), 60)
 
@@ -124,8 +149,10 @@ def test_takeoff_goto_hold_gripper_land_in_ned() -> None:
             assert sp.yaw == pytest.approx(math.pi / 2)
             await wait_until(lambda: math.isclose(bridge.state().yaw, 0.0, abs_tol=1e-6), 10, what="yaw ENU")
 
-            res = await bridge.handle(GotoCommand(position=Vec3(x=3.0, y=2.0, z=1.2), yaw=1.0, max_speed=100.0))
-            assert res.ok and "3.00 m/s" in res.message  # clamped to settings.max_speed
+            res = await bridge.handle(GotoCommand(position=Vec3(x=3.0, y=2.0, z=1.2), yaw=1.0, max_speed=20.0))
+            assert not res.ok and "above the limit 1.00 m/s" in res.message  # the envelope's speed limit
+            res = await bridge.handle(GotoCommand(position=Vec3(x=3.0, y=2.0, z=1.2), yaw=1.0, max_speed=0.5))
+            assert res.ok and "0.50 m/s" in res.message
 
             res = await bridge.handle(HoldCommand())
             assert res.ok and "OFFBOARD" in res.message
@@ -152,8 +179,12 @@ def test_bad_commands_change_nothing() -> None:
             res = await bridge.handle(TakeoffCommand(altitude=1.0))
             assert res.ok
             before = list(fake.setpoints)[-1]
-            for bad in (GotoCommand(position=Vec3(x=float("nan"), y=0.0, z=1.0), yaw=0.0),
-                        GotoCommand(position=Vec3(x=1.0, y=0.0, z=1.0), yaw=float("inf"))):
+            # The message models refuse non-finite numbers at the bus; the bridge still checks, for a caller that
+            # builds the command without validation (model_construct) in the same process.
+            for bad in (GotoCommand.model_construct(position=Vec3.model_construct(x=float("nan"), y=0.0, z=1.0),
+                                                    yaw=0.0, max_speed=None),
+                        GotoCommand.model_construct(position=Vec3(x=1.0, y=0.0, z=1.0), yaw=float("inf"),
+                                                    max_speed=None)):
                 res = await bridge.handle(bad)
                 assert not res.ok and "non-finite" in res.message
             await asyncio.sleep(0.2)
@@ -185,7 +216,7 @@ def test_bad_mavlink_input_changes_nothing() -> None:
                 intruder.sendto(spoof.local_position_ned_encode(0, 7.0, 7.0, -7.0, 0, 0, 0).pack(spoof),
                                 ("127.0.0.1", port))
                 # From the real autopilot: an ACK for a command we never sent, and a message we do not use.
-                fake.send(fake.mav.command_ack_encode(px4.MAV_CMD_DO_GRIPPER, 0, 0, 0, 255, 191))
+                fake.send(fake.mav.command_ack_encode(px4.MAV_CMD_DO_GRIPPER, 0, 0, 0, 1, 191))
                 fake.send(fake.mav.vibration_encode(0, 0.1, 0.1, 0.1, 0, 0, 0))
                 await wait_until(lambda: bridge.counters["unexpected_acks"] >= 1 and bridge.counters["bad_data"] >= 1
                                  and bridge.counters["wrong_system"] >= 2 and bridge.counters["wrong_address"] >= 1,
@@ -226,6 +257,39 @@ def test_link_loss_and_offboard_loss_are_reported() -> None:
     arun(body(), 60)
 
 
+def test_pilot_takeover_is_respected_until_a_new_operator_command() -> None:
+    async def body():
+        async with bridge_and_fake() as (bridge, fake):
+            assert (await bridge.handle(TakeoffCommand(altitude=1.0, task_id="task-a"))).ok
+            assert (await bridge.handle(GotoCommand(position=Vec3(x=1, y=0, z=1), yaw=0.0, task_id="task-a"))).ok
+            fake.mode = "POSCTL"  # the pilot flips the mode switch
+            await wait_until(lambda: bridge.state().override != "", 10, what="takeover latched")
+            st = bridge.state()
+            assert st.override.startswith("PX4 switched from OFFBOARD to POSCTL") and st.override_ns > 0
+            assert not bridge.stream.running  # no setpoints fighting the pilot
+            # Hold does not take the pilot's mode away, and the task cannot fly on.
+            n_modes = sum(1 for c in fake.commands if c.command == px4.MAV_CMD_DO_SET_MODE)
+            res = await bridge.handle(HoldCommand())
+            assert res.ok and "not overriding" in res.message
+            for cmd in (GotoCommand(position=Vec3(x=0, y=0, z=1), yaw=0.0, task_id="task-a"),
+                        TakeoffCommand(altitude=1.0, task_id="task-a"), ArmCommand(task_id="task-a")):
+                res = await bridge.handle(cmd)
+                assert not res.ok and "a new operator command is needed" in res.message, res
+            await asyncio.sleep(0.3)
+            assert fake.mode == "POSCTL"  # nothing asked PX4 for another mode, nothing armed
+            assert sum(1 for c in fake.commands if c.command == px4.MAV_CMD_DO_SET_MODE) == n_modes
+            # A new task is a new operator command: it may take control again.
+            res = await bridge.handle(GotoCommand(position=Vec3(x=0, y=0, z=1), yaw=0.0, task_id="task-b"))
+            assert res.ok, res.message
+            assert bridge.state().override == "" and fake.mode == "OFFBOARD"
+            assert sum(1 for c in fake.commands if c.command == px4.MAV_CMD_DO_SET_MODE) == n_modes + 1
+            # PX4 leaving OFFBOARD again (an RTL failsafe) latches again.
+            fake.mode = "AUTO.RTL"
+            await wait_until(lambda: "AUTO.RTL" in bridge.state().override, 10, what="RTL takeover")
+
+    arun(body(), 60)
+
+
 def test_offboard_refusal_carries_ack_and_px4_reason() -> None:
     async def body():
         async with bridge_and_fake() as (bridge, fake):
@@ -237,5 +301,29 @@ def test_offboard_refusal_carries_ack_and_px4_reason() -> None:
             assert not bridge.stream.running and fake.mode == "POSCTL"
             st = bridge.state()
             assert not st.offboard_ok
+
+    arun(body(), 60)
+
+
+def test_abort_without_executor_holds_through_px4_hold_mode() -> None:
+    from shared.messages import Abort
+
+    async def body():
+        async with bridge_and_fake(abort_hold="px4_hold") as (bridge, fake):
+            assert (await bridge.handle(TakeoffCommand(altitude=1.0, task_id="task-a"))).ok
+            ack = await bridge.on_abort(Abort(reason="stop", source="test", task_id="task-a"))
+            assert ack.service == "autopilot_bridge" and ack.message == "holding in AUTO.LOITER (PX4 Hold)", ack
+            await wait_until(lambda: bridge.state().mode == "AUTO.LOITER", 5, what="PX4 in Hold")
+            assert not bridge.stream.running
+            st = bridge.state()
+            assert st.override == "aborted by test: stop" and not st.offboard_ok
+            # The aborted task stays grounded in Hold; a new task takes control again, and that switch (asked
+            # for by the bridge itself) is not mistaken for a takeover.
+            res = await bridge.handle(GotoCommand(position=Vec3(x=0, y=0, z=1), yaw=0.0, task_id="task-a"))
+            assert not res.ok and "a new operator command is needed" in res.message
+            res = await bridge.handle(GotoCommand(position=Vec3(x=0, y=0, z=1), yaw=0.0, task_id="task-b"))
+            assert res.ok, res.message
+            await asyncio.sleep(0.5)
+            assert bridge.state().override == "" and bridge.state().mode == "OFFBOARD"
 
     arun(body(), 60)

@@ -26,6 +26,9 @@ def test_every_python_service_runs_a_real_module():
         if svc.get("image", "").startswith(("eclipse/zenoh", "px4io/")):
             continue
         cmd = svc["command"]
+        if cmd[:2] == ["shared.cli", "router"]:  # a secure router from shared/routers/
+            assert name.startswith("zenoh-"), name
+            continue
         assert len(cmd) == 1 and cmd[0].startswith("services."), (name, cmd)
         module = cmd[0]
         assert importlib.util.find_spec(module) is not None, f"{name}: no module {module}"
@@ -40,17 +43,32 @@ def test_profiles_are_complete():
 
 
 def test_services_connect_to_a_router_in_their_profile():
+    """Services share their router's network namespace and reach it on loopback: no plain Zenoh link leaves
+    the host (the routers' only outside listener is mutual TLS)."""
     for name, svc in SERVICES.items():
         env = svc.get("environment", {})
         endpoint = env.get("AERMANI_ZENOH_CONNECT")
         if endpoint is None:
             continue
-        router = re.match(r"tcp/([\w-]+):\d+", endpoint).group(1)
-        assert router in SERVICES, (name, endpoint)
+        assert endpoint == "tcp/127.0.0.1:7447", (name, endpoint)
+        router = svc["network_mode"].removeprefix("service:")
+        assert router in SERVICES and router.startswith("zenoh-"), (name, svc["network_mode"])
         profiles = set(svc["profiles"])
         router_profiles = set(SERVICES[router]["profiles"])
         # A service either shares its router's profile or is meant to run beside it (sim rides on drone).
         assert profiles & router_profiles or (profiles == {"sim"} and "drone" in router_profiles), name
+
+
+def test_routers_run_the_secure_templates():
+    for name in ("zenoh-ground", "zenoh-drone"):
+        cmd = SERVICES[name]["command"]
+        role = cmd[cmd.index("--role") + 1]
+        assert (ROOT / "shared" / "routers" / f"{role}.json5").is_file()
+        assert any(v.endswith(":/certs:ro") for v in SERVICES[name]["volumes"])
+        assert "--rest-http-port" not in cmd
+    ground_ports = SERVICES["zenoh-ground"]["ports"]
+    assert "7448:7448" in ground_ports and not any(p.startswith("7447") for p in ground_ports)
+    assert "ports" not in SERVICES["zenoh-drone"] or all("7447" not in p for p in SERVICES["zenoh-drone"]["ports"])
 
 
 def test_restart_policies_and_healthchecks():
@@ -70,7 +88,8 @@ def test_secrets_are_required_not_defaulted():
 
 def test_drone_router_links_to_ground_router():
     cmd = SERVICES["zenoh-drone"]["command"]
-    assert "--connect" in cmd and "AERMANI_GROUND_ROUTER" in cmd[cmd.index("--connect") + 1]
+    link = cmd[cmd.index("--connect") + 1]
+    assert "AERMANI_GROUND_ROUTER" in link and "tls/" in link
 
 
 def test_dockerfile_installs_open3d_runtime_libraries():

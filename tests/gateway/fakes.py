@@ -15,15 +15,21 @@ from typing import Any
 import numpy as np
 
 from shared.bus import Bus
-from shared.keys import Keys
+from shared.keys import FLEET_ABORT, Keys
 from shared.messages import (
     Abort,
     AbortAck,
+    ApprovalDecision,
+    ApprovalState,
+    ApprovalStatus,
     CancelGoal,
     CancelReply,
     DescriptiveReasoningTrace,
+    Detection,
+    Detections,
     ModelCall,
     ReasoningStep,
+    SkillLibrary,
     SkillState,
     SkillStatus,
     SkillToExecute,
@@ -58,6 +64,8 @@ class FakeVehicle:
         self.current_req: TaskRequest | None = None
         self.aborts: list[Abort] = []
         self.frames = 0
+        self.decisions: list[ApprovalDecision] = []
+        self._pending: dict[str, asyncio.Future[ApprovalDecision]] = {}
         self._tasks: list[asyncio.Task] = []
 
     async def start(self) -> None:
@@ -65,8 +73,12 @@ class FakeVehicle:
             self.bus.declare_token(self.keys.alive(s))
         self.bus.serve(self.keys.start_task, self._start)
         self.bus.serve(self.keys.cancel_task, self._cancel)
-        sub = self.bus.subscribe(self.keys.abort)
-        self._tasks += [asyncio.create_task(self._aborts(sub)), asyncio.create_task(self._publish_sensors())]
+        self.bus.serve(self.keys.decide_approval, self._decide)
+        if "executor" in self.services:
+            self.bus.serve(self.keys.skills, self._skills)
+        self._tasks += [asyncio.create_task(self._aborts(self.bus.subscribe(key))) for key in (self.keys.abort,
+                                                                                                FLEET_ABORT)]
+        self._tasks.append(asyncio.create_task(self._publish_sensors()))
 
     async def stop(self) -> None:
         for t in [*self._tasks, *([self.current] if self.current else [])]:
@@ -87,6 +99,11 @@ class FakeVehicle:
         self.current = asyncio.create_task(self._run_task(req))
         return TaskAccept(accepted=True, task_id=req.task_id)
 
+    async def _skills(self, _req: object) -> SkillLibrary:
+        from services.reasoner.library import default_library
+
+        return default_library()
+
     async def _cancel(self, req: CancelGoal) -> CancelReply:
         if self.current is None or self.current.done() or self.current_req is None \
                 or self.current_req.task_id != req.goal_id:
@@ -94,6 +111,30 @@ class FakeVehicle:
         self.current.cancel()
         self.bus.publish(self.keys.task_status, self.status(self.current_req, TaskState.ABORTED, 0, req.reason))
         return CancelReply(accepted=True)
+
+    async def _decide(self, d: ApprovalDecision) -> CancelReply:
+        fut = self._pending.pop(d.approval_id, None)
+        if fut is None or fut.done():
+            return CancelReply(accepted=False, reason=f"approval {d.approval_id} is not pending")
+        fut.set_result(d)
+        return CancelReply(accepted=True)
+
+    async def _approved(self, req: TaskRequest, step: int, skill: str) -> None:
+        """Like the reasoner with approval on: wait for the operator; a rejection makes it ask again (the
+        policy chooses the same skill again here)."""
+        while True:
+            ask = ApprovalStatus(vehicle_id=self.vehicle_id, task_id=req.task_id, step=step, skill=skill,
+                                 reasoning=f"{skill} is the next step of the plan",
+                                 expires_ns=time.time_ns() + 60_000_000_000)
+            fut: asyncio.Future[ApprovalDecision] = asyncio.get_running_loop().create_future()
+            self._pending[ask.approval_id] = fut
+            self.bus.publish(self.keys.approval, ask)
+            d = await fut
+            self.decisions.append(d)
+            self.bus.publish(self.keys.approval, ask.model_copy(update={
+                "state": ApprovalState.APPROVED if d.approved else ApprovalState.REJECTED, "reason": d.reason}))
+            if d.approved:
+                return
 
     async def _run_task(self, req: TaskRequest) -> None:
         self.bus.publish(self.keys.task_status, self.status(req, TaskState.RUNNING, 0))
@@ -103,6 +144,8 @@ class FakeVehicle:
             step += 1
             await asyncio.sleep(self.step_delay_s)
             skill = SKILLS[(step - 1) % len(SKILLS)]
+            if "with approval" in req.command and skill == "grasp":
+                await self._approved(req, step, skill)
             goal = new_id("goal-")
             started = time.time_ns()
             self.bus.publish(self.keys.skill_status, SkillStatus(goal_id=goal, task_id=req.task_id, step=step,
@@ -150,6 +193,9 @@ class FakeVehicle:
             img[:, :, 0] = (self.frames * 37) % 256
             img[: (self.frames % 48), :, 1] = 200
             self.bus.publish(self.keys.camera_color, color_message(img, time.time_ns()))
+            self.bus.publish(self.keys.detections, Detections(items=(
+                Detection(label="red cup", centroid=Vec3(x=1.2, y=0.3, z=0.8), size=Vec3(x=0.08, y=0.08, z=0.11),
+                          confidence=0.9),)))
             await asyncio.sleep(0.2)
 
 

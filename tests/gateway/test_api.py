@@ -65,7 +65,7 @@ def test_conflict_abort_and_restart(gw, client: httpx.Client) -> None:
     ab = client.post(f"/tasks/{tid}/abort", json={"reason": "test abort"})
     assert ab.status_code == 202, ab.text
     assert ab.json() == {"vehicles": ["am1"], "acknowledged": ["am1"], "task_id": tid,
-                         "messages": {"am1": "holding"}}
+                         "messages": {"am1": "holding"}, "services": {"am1": {"executor": "holding"}}}
     assert gw.fake.aborts[-1].task_id == tid and gw.fake.aborts[-1].reason == "test abort"
     end = read_sse(client, f"/tasks/{tid}/events")[-1]
     assert end["event"] == "task_status" and end["data"]["state"] == "aborted"

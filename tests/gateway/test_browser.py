@@ -37,17 +37,20 @@ def test_page_runs_a_task_and_aborts(page_url) -> None:
             page = browser.new_page()
             errors: list[str] = []
             page.on("pageerror", lambda e: errors.append(str(e)))
+            # The gateway's Content-Security-Policy must not block anything the page itself does.
+            page.on("console", lambda m: errors.append(m.text) if "Content Security Policy" in m.text else None)
             page.goto(url)
             expect = sync_api.expect
-            expect(page.locator("#vehicle option")).to_have_count(1, timeout=30_000)
+            # Fleet health needs the token too (it carries the vehicle's position): type it first.
             page.fill("#token", TOKEN)
             assert page.evaluate("sessionStorage.getItem('aermani.token')") == TOKEN
+            expect(page.locator("#vehicle option")).to_have_count(1, timeout=30_000)
 
             # The camera updates: two different frame stamps over time.
-            page.wait_for_function("document.getElementById('camera').dataset.stamp", timeout=30_000)
+            # Locator assertions, not wait_for_function: the page's Content-Security-Policy (no eval) stays on.
+            expect(page.locator("#camera")).to_have_attribute("data-stamp", re.compile(r"\d+"), timeout=30_000)
             first = page.get_attribute("#camera", "data-stamp")
-            page.wait_for_function(f"(s => document.getElementById('camera').dataset.stamp !== s)('{first}')",
-                                   timeout=30_000)
+            expect(page.locator("#camera")).not_to_have_attribute("data-stamp", first, timeout=30_000)
             assert page.evaluate("document.getElementById('camera').naturalWidth") == 64
 
             page.fill("#command", "search the room until abort")
@@ -63,6 +66,59 @@ def test_page_runs_a_task_and_aborts(page_url) -> None:
             expect(page.locator("#task-state")).to_have_text("aborted", timeout=30_000)
             expect(page.locator("#message")).to_contain_text(re.compile("acknowledged by am1|aborted: abort button"))
             assert h.fake.aborts and h.fake.aborts[-1].reason == "abort button"
+            # ABORT ALL VEHICLES: one fleet-wide publication, acknowledged by the vehicle.
+            page.click("#abort-all")
+            expect(page.locator("#message")).to_contain_text("fleet abort sent (1 vehicles); acknowledged by am1",
+                                                             timeout=10_000)
+            assert h.fake.aborts[-1].reason == "abort-all button" and h.fake.aborts[-1].task_id is None
             assert errors == []
+        finally:
+            browser.close()
+
+
+@pytest.fixture()
+def approval_page(tmp_path) -> Iterator[tuple[str, Harness]]:
+    h = Harness(tmp_path, gateway_settings={"token": TOKEN}, steps=5, step_delay_s=0.2).start()
+    try:
+        yield h.base_url + "/", h
+    finally:
+        h.stop()
+
+
+def test_page_approves_and_rejects_a_waiting_skill(approval_page) -> None:
+    """Operator approval through the real page: a grasp waits; Reject (with a reason) makes the policy ask
+    again; Approve lets it run and the task completes."""
+    sync_api = pytest.importorskip("playwright.sync_api", reason="playwright is not installed")
+    url, h = approval_page
+    with sync_api.sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, args=ARGS, headless=True)
+        try:
+            page = browser.new_page()
+            errors: list[str] = []
+            page.on("pageerror", lambda e: errors.append(str(e)))
+            page.on("dialog", lambda d: d.accept("that is the wrong cup"))
+            page.goto(url)
+            expect = sync_api.expect
+            page.fill("#token", TOKEN)  # every API route needs it, the vehicle list too
+            expect(page.locator("#vehicle option")).to_have_count(1, timeout=30_000)
+            page.fill("#command", "pick up the red cup with approval")
+            page.click("#send")
+            item = page.locator("#approval-list li.approval")
+            expect(item).to_have_count(1, timeout=30_000)
+            expect(item.first).to_contain_text("grasp")
+            expect(item.first).to_contain_text("is the next step of the plan")
+            first_id = item.first.get_attribute("data-id")
+            item.first.locator("button.reject").click()
+            expect(page.locator("#message")).to_contain_text("rejected", timeout=10_000)
+            # The policy asks again: a new request appears; approve it.
+            expect(page.locator(f"#approval-list li.approval:not([data-id='{first_id}'])")).to_have_count(
+                1, timeout=30_000)
+            page.locator("#approval-list li.approval button.approve").first.click()
+            expect(page.locator("#task-state")).to_have_text("succeeded", timeout=30_000)
+            expect(page.locator("#approvals")).to_be_hidden()
+            assert [d.approved for d in h.fake.decisions] == [False, True]
+            assert h.fake.decisions[0].reason == "that is the wrong cup"
+            assert h.fake.decisions[0].operator == "web page"
+            assert not errors, errors
         finally:
             browser.close()

@@ -56,7 +56,7 @@ class GatewayProcess:
         while True:
             assert self.proc.poll() is None, self.log.read_text()
             try:
-                h = httpx.get(f"{self.url}/health", timeout=5).json()
+                h = httpx.get(f"{self.url}/health", timeout=5, headers={"Authorization": f"Bearer {TOKEN}"}).json()
                 if any(v["services"].get("reasoner") for v in h["vehicles"]):
                     return
             except httpx.HTTPError:
@@ -85,7 +85,8 @@ def test_restart_mid_task_keeps_task_and_steps(tmp_path: Path) -> None:
         with httpx.Client(base_url=gw.url, timeout=30, headers={"Authorization": f"Bearer {TOKEN}"}) as c:
             tid = c.post("/tasks", json={"command": "inspect the shelf until abort"}).json()["task_id"]
             before = read_sse(c, f"/tasks/{tid}/events", stop=6)
-            assert c.get("/tasks", params={"limit": 1}, headers={"Authorization": "Bearer wrong"}).status_code == 200
+            # Reads need the token too (commands, reasoning and position are sensitive).
+            assert c.get("/tasks", params={"limit": 1}, headers={"Authorization": "Bearer wrong"}).status_code == 401
             assert c.post("/abort", headers={"Authorization": "Bearer wrong-token"}).status_code == 401
         assert gw.stop() == 0, gw.log.read_text()
 

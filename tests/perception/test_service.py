@@ -24,17 +24,14 @@ from shared.keys import Keys
 from shared.launcher import free_port
 from shared.messages import (
     ArmCommand,
-    AutopilotResult,
     GotoCommand,
     JudgeRequest,
-    JudgeResult,
     LocalizeRequest,
     ObjectEstimate,
     PlacementEstimate,
     Scenario,
     SimLabel,
     SimLabels,
-    SimResetResult,
     TakeoffCommand,
     Vec3,
 )
@@ -47,7 +44,7 @@ pytestmark = pytest.mark.integration
 KEYS = Keys("am1")
 
 
-async def ask(bus: Bus, key: str, payload, model, timeout: float = 20.0):
+async def ask(bus: Bus, key, payload, timeout: float = 20.0):
     """Query; a queryable may be declared a moment after its service's liveliness token: retry NoResponder."""
     deadline = time.monotonic() + 30
     while True:
@@ -78,18 +75,17 @@ async def _fly_and_check(stack, segmenter: str) -> None:
         tasks = [asyncio.create_task(state.run()), asyncio.create_task(dets.run())]
         try:
             scenario = Scenario(seed=11, target_object="red cup")
-            reset = await ask(bus, KEYS.sim_reset, scenario, SimResetResult, 30)
+            reset = await ask(bus, KEYS.sim_reset, scenario, 30)
             assert reset.ok, reset.message
             world, _, _ = generate(scenario)  # the same input the sim got: the same layout
             await wait_until(lambda: state.value is not None and state.value.link_ok, 60, what="bridge link")
-            res = await ask(bus, KEYS.autopilot_command, ArmCommand(), AutopilotResult, 60)
+            res = await ask(bus, KEYS.autopilot_command, ArmCommand(), 60)
             assert res.ok, res.message
-            res = await ask(bus, KEYS.autopilot_command, TakeoffCommand(altitude=1.5), AutopilotResult, 120)
+            res = await ask(bus, KEYS.autopilot_command, TakeoffCommand(altitude=1.5), 120)
             assert res.ok, res.message
             target = world.by_name("red cup")
             x, y, z, yaw = aim_at(world, target.center, 1.1, np.random.default_rng(0))
-            res = await ask(bus, KEYS.autopilot_command, GotoCommand(position=Vec3(x=x, y=y, z=z), yaw=yaw),
-                            AutopilotResult, 60)
+            res = await ask(bus, KEYS.autopilot_command, GotoCommand(position=Vec3(x=x, y=y, z=z), yaw=yaw), 60)
             assert res.ok, res.message
 
             def settled() -> bool:
@@ -99,7 +95,7 @@ async def _fly_and_check(stack, segmenter: str) -> None:
 
             await wait_until(settled, 90, what=f"hover at the viewpoint: {state.value}")
             await asyncio.sleep(1.0)  # a fresh frame from the settled pose
-            judge = await ask(bus, KEYS.sim_judge, JudgeRequest(op="world"), JudgeResult)
+            judge = await ask(bus, KEYS.sim_judge, JudgeRequest(op="world"))
             v = judge.vehicle
             view = render_view(world, v.position.x, v.position.y, v.position.z, v.yaw)
             checked = 0
@@ -107,8 +103,7 @@ async def _fly_and_check(stack, segmenter: str) -> None:
                 e = world.by_name(truth.name)
                 px = int((view.instance == e.id).sum())
                 if truth.category == "object":
-                    est = await ask(bus, KEYS.localize_object, LocalizeRequest(query=truth.name, max_frame_age_s=2.0),
-                                    ObjectEstimate)
+                    est = await ask(bus, KEYS.localize_object, LocalizeRequest(query=truth.name, max_frame_age_s=2.0))
                     assert est.reason not in ("no_frame", "stale_frame", "error", "bad_query"), est
                     in_view = (px >= 100 and projected_corners_in_view(e, view.frame)
                                and px >= 0.5 * unoccluded_pixels(view, e)
@@ -123,8 +118,7 @@ async def _fly_and_check(stack, segmenter: str) -> None:
                         checked += 1
                 elif truth.category == "surface":
                     est = await ask(bus, KEYS.localize_placement, LocalizeRequest(
-                        query=truth.name, object_size=Vec3(x=0.08, y=0.08, z=0.11), max_frame_age_s=2.0),
-                        PlacementEstimate)
+                        query=truth.name, object_size=Vec3(x=0.08, y=0.08, z=0.11), max_frame_age_s=2.0))
                     if px == 0:
                         assert not est.found and est.reason == "not_visible", est
                     elif est.found:
@@ -161,9 +155,9 @@ def test_bad_queries_no_frame_stale_frame(tmp_path) -> None:
 async def _bad_and_stale(stack) -> None:
     async with bus_for(stack) as bus:
         # Nothing publishes frames yet.
-        est = await ask(bus, KEYS.localize_object, LocalizeRequest(query="red cup"), ObjectEstimate)
+        est = await ask(bus, KEYS.localize_object, LocalizeRequest(query="red cup"))
         assert not est.found and est.reason == "no_frame" and "colour" in est.message
-        est = await ask(bus, KEYS.localize_placement, LocalizeRequest(query="table"), PlacementEstimate)
+        est = await ask(bus, KEYS.localize_placement, LocalizeRequest(query="table"))
         assert est.reason == "no_frame"
 
         bad = [b"", b"not json", b"[1, 2]", json.dumps({"query": ""}).encode(),
@@ -196,8 +190,7 @@ async def _bad_and_stale(stack) -> None:
         bus.publish(KEYS.camera_color, color_message(rgb, stamp))
 
         async def fresh() -> ObjectEstimate:
-            return await ask(bus, KEYS.localize_object, LocalizeRequest(query="red cup", max_frame_age_s=30),
-                             ObjectEstimate)
+            return await ask(bus, KEYS.localize_object, LocalizeRequest(query="red cup", max_frame_age_s=30))
 
         deadline = time.monotonic() + 30
         est = await fresh()
@@ -206,14 +199,12 @@ async def _bad_and_stale(stack) -> None:
             est = await fresh()
         assert est.found and est.label == "red cup" and est.frame_stamp_ns == stamp, est
         await asyncio.sleep(1.2)
-        est = await ask(bus, KEYS.localize_object, LocalizeRequest(query="red cup", max_frame_age_s=0.5),
-                        ObjectEstimate)
+        est = await ask(bus, KEYS.localize_object, LocalizeRequest(query="red cup", max_frame_age_s=0.5))
         assert not est.found and est.reason == "stale_frame" and "old" in est.message
         # Unknown words with a frame present: still a clear bad_query.
         est = await fresh()
         assert est.found
-        est = await ask(bus, KEYS.localize_object, LocalizeRequest(query="flux capacitor", max_frame_age_s=30),
-                        ObjectEstimate)
+        est = await ask(bus, KEYS.localize_object, LocalizeRequest(query="flux capacitor", max_frame_age_s=30))
         assert est.reason == "bad_query" and "no known object" in est.message
 
 

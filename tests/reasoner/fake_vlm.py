@@ -14,7 +14,18 @@ faults, one per HTTP request, in the order queued:
     500             HTTP 500                                        -> transport retry
     none / ok       a normal answer
 
-`outage=True` answers HTTP 503 to everything. Reuse (e.g. the evaluation engineer):
+`outage=True` answers HTTP 503 to everything.
+
+Schema-constrained output: a request with an answer schema (OpenAI `response_format` of type
+`json_schema`, Anthropic `output_config.format`) is checked (a valid JSON schema, strict: every object
+closed and all its properties required, `strict: true` on OpenAI) and answered with JSON in the schema's
+shape (ReAct as {"thought", "action"}); every problem found, and every answer that does not validate
+against the schema it came with, is appended to `schema_errors` (tests assert it stays empty).
+`reject_schema=True` answers such requests HTTP 400, like a server without structured outputs.
+Prompt caching is imitated: a first text block seen before (OpenAI) or marked `cache_control` (Anthropic)
+is reported as cached prompt tokens (tokens here are characters / 4: the stand-in has no tokenizer).
+
+Reuse (e.g. the evaluation engineer):
 
     from tests.reasoner.fake_vlm import FakeVLMServer
     with FakeVLMServer() as vlm:                   # or vlm.start() / vlm.stop()
@@ -37,6 +48,7 @@ import time
 from collections import deque
 from typing import Any
 
+import jsonschema
 import uvicorn
 from fastapi import FastAPI, Request
 from fastapi.responses import JSONResponse
@@ -84,18 +96,64 @@ def _prompt_text(content: Any) -> tuple[str, bool]:
     return text, image
 
 
+def strict_problems(schema: Any, where: str = "$") -> list[str]:
+    """What OpenAI's strict mode would refuse: open objects, optional properties, unsupported keywords."""
+    out: list[str] = []
+    if isinstance(schema, dict):
+        if schema.get("type") == "object":
+            props = schema.get("properties", {})
+            if schema.get("additionalProperties") is not False:
+                out.append(f"{where}: object without additionalProperties: false")
+            if sorted(schema.get("required", [])) != sorted(props):
+                out.append(f"{where}: not every property is required")
+        for bad in ("minLength", "maxLength", "oneOf", "allOf", "not", "if"):
+            if bad in schema:
+                out.append(f"{where}: {bad} is not supported in strict mode")
+        for k, v in schema.items():
+            out += strict_problems(v, f"{where}.{k}")
+    elif isinstance(schema, list):
+        for i, v in enumerate(schema):
+            out += strict_problems(v, f"{where}[{i}]")
+    return out
+
+
+def shaped_answer(answer: str, schema: dict) -> str:
+    """The rules answer in the schema's JSON shape, as a constrained decoder would emit it."""
+    props = schema.get("properties", {})
+    if answer.startswith("Thought:"):  # react
+        thought, _, action = answer.partition("\nAction: ")
+        return json.dumps({"thought": thought.removeprefix("Thought: "), "action": json.loads(action)})
+    if not answer.startswith("{"):  # unstructured: skill or skill(arg)
+        skill, _, arg = answer.partition("(")
+        ste = {"skill": skill, "argument": arg[:-1] if arg else None}
+        return json.dumps({"ste": ste} if "ste" in props else ste)
+    return answer
+
+
 class FakeVLMServer:
-    def __init__(self, *, timeout_delay: float = 3.0, outage: bool = False, model: str = "fake-vlm") -> None:
+    def __init__(self, *, timeout_delay: float = 3.0, outage: bool = False, model: str = "fake-vlm",
+                 reject_schema: bool = False, fault_every: int = 0, periodic_fault: str = "invalid_json",
+                 port: int = 0) -> None:
         self.faults: deque[str | None] = deque()
+        self.fault_every = fault_every
+        """When > 0 and no fault is queued, every fault_every-th answer gets `periodic_fault` (a standing schedule
+        for evaluation runs, e.g. docs/eval/variants: every 20th answer truncated)."""
+        self.periodic_fault = periodic_fault
+        self._answered = 0
         self.requests: list[dict] = []
         self.images: list[bool] = []
+        self.schemas: list[dict | None] = []
+        """The answer schema of each request (None: free text), in order."""
+        self.schema_errors: list[str] = []
+        self.reject_schema = reject_schema
+        self._seen_prefixes: set[str] = set()
         self.timeout_delay = timeout_delay
         self.outage = outage
         self.model = model
         self.app = self._build()
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        self._sock.bind(("127.0.0.1", 0))
+        self._sock.bind(("127.0.0.1", port))
         self.port = self._sock.getsockname()[1]
         self._server = uvicorn.Server(uvicorn.Config(self.app, log_level="warning", lifespan="off"))
         self._thread: threading.Thread | None = None
@@ -113,7 +171,49 @@ class FakeVLMServer:
         return self.url
 
     def _next_fault(self) -> str | None:
-        return self.faults.popleft() if self.faults else None
+        self._answered += 1
+        if self.faults:
+            return self.faults.popleft()
+        if self.fault_every and self._answered % self.fault_every == 0:
+            return self.periodic_fault
+        return None
+
+    def _schema_of(self, body: dict) -> dict | None:
+        """The answer schema a request carries (checked), or None for free text."""
+        rf = body.get("response_format")
+        if rf is not None:  # OpenAI-compatible
+            if rf.get("type") != "json_schema":
+                self.schema_errors.append(f"response_format type {rf.get('type')!r}, expected json_schema")
+                return None
+            js = rf.get("json_schema", {})
+            if js.get("strict") is not True or not js.get("name"):
+                self.schema_errors.append("json_schema without strict: true or a name")
+            schema = js.get("schema")
+        else:
+            fmt = (body.get("output_config") or {}).get("format")
+            if fmt is None:
+                return None
+            if fmt.get("type") != "json_schema":
+                self.schema_errors.append(f"output_config.format type {fmt.get('type')!r}")
+            schema = fmt.get("schema")
+        try:
+            jsonschema.Draft202012Validator.check_schema(schema)
+        except jsonschema.SchemaError as exc:
+            self.schema_errors.append(f"not a JSON schema: {exc.message}")
+            return None
+        self.schema_errors.extend(strict_problems(schema))
+        return schema
+
+    def _cached(self, content: Any, anthropic: bool) -> int:
+        """Prompt 'tokens' (chars / 4) of the first text block that a prompt cache would hold."""
+        if isinstance(content, str) or not content or content[0].get("type") != "text":
+            return 0
+        first = content[0]
+        if anthropic and "cache_control" not in first:
+            return 0
+        hit = first["text"] in self._seen_prefixes
+        self._seen_prefixes.add(first["text"])
+        return len(first["text"]) // 4 if hit else 0
 
     async def _answer(self, body: dict, messages: list[dict]) -> tuple[str | None, int, str]:
         """(answer text or None for an HTTP error, status, fault)."""
@@ -121,14 +221,23 @@ class FakeVLMServer:
         first_user = next((m for m in messages if m.get("role") == "user"), {"content": ""})
         text, image = _prompt_text(first_user.get("content", ""))
         self.images.append(image)
+        schema = self._schema_of(body)
+        self.schemas.append(schema)
         if self.outage:
             return None, 503, "outage"
+        if schema is not None and self.reject_schema:
+            return None, 400, "schema_rejected"
         fault = self._next_fault()
         if fault == "500":
             return None, 500, fault
         if fault == "timeout":
             await asyncio.sleep(self.timeout_delay)
-        return apply_fault(answer_for_prompt(text), fault), 200, fault or "none"
+        answer = answer_for_prompt(text)
+        if schema is not None:
+            answer = shaped_answer(answer, schema)
+            for err in jsonschema.Draft202012Validator(schema).iter_errors(json.loads(answer)):
+                self.schema_errors.append(f"the policy's answer does not fit the schema: {err.message}")
+        return apply_fault(answer, fault), 200, fault or "none"
 
     def _build(self) -> FastAPI:
         app = FastAPI()
@@ -138,15 +247,18 @@ class FakeVLMServer:
             body = await request.json()
             answer, status, _fault = await self._answer(body, body.get("messages", []))
             if answer is None:
-                return JSONResponse({"error": {"message": "injected server error", "type": "server_error"}},
-                                    status_code=status)
+                kind = "invalid_request_error" if status == 400 else "server_error"
+                msg = "response_format json_schema is not supported" if status == 400 else "injected server error"
+                return JSONResponse({"error": {"message": msg, "type": kind}}, status_code=status)
+            cached = self._cached(body["messages"][0].get("content", ""), anthropic=False)
             return JSONResponse({
                 "id": f"chatcmpl-{len(self.requests)}", "object": "chat.completion", "created": int(time.time()),
                 "model": body.get("model", self.model),
                 "choices": [{"index": 0, "message": {"role": "assistant", "content": answer},
                              "finish_reason": "stop"}],
                 "usage": {"prompt_tokens": len(json.dumps(body)) // 4, "completion_tokens": len(answer) // 4,
-                          "total_tokens": (len(json.dumps(body)) + len(answer)) // 4},
+                          "total_tokens": (len(json.dumps(body)) + len(answer)) // 4,
+                          "prompt_tokens_details": {"cached_tokens": cached}},
             })
 
         @app.post("/v1/messages")
@@ -154,13 +266,16 @@ class FakeVLMServer:
             body = await request.json()
             answer, status, _fault = await self._answer(body, body.get("messages", []))
             if answer is None:
-                return JSONResponse({"type": "error", "error": {"type": "api_error", "message": "injected"}},
+                kind = "invalid_request_error" if status == 400 else "api_error"
+                return JSONResponse({"type": "error", "error": {"type": kind, "message": "injected"}},
                                     status_code=status)
+            cached = self._cached(body["messages"][0].get("content", ""), anthropic=True)
             return JSONResponse({
                 "id": f"msg_{len(self.requests)}", "type": "message", "role": "assistant",
                 "model": body.get("model", self.model), "content": [{"type": "text", "text": answer}],
                 "stop_reason": "end_turn", "stop_sequence": None,
-                "usage": {"input_tokens": len(json.dumps(body)) // 4, "output_tokens": len(answer) // 4},
+                "usage": {"input_tokens": len(json.dumps(body)) // 4 - cached, "output_tokens": len(answer) // 4,
+                          "cache_read_input_tokens": cached, "cache_creation_input_tokens": 0},
             })
 
         @app.post("/control/faults")
@@ -196,7 +311,16 @@ class FakeVLMServer:
 
 
 if __name__ == "__main__":  # `python -m tests.reasoner.fake_vlm`: serve until Ctrl-C, print the URLs
-    srv = FakeVLMServer().start()
+    import argparse
+
+    ap = argparse.ArgumentParser(description="Serve the local VLM stand-in (not a model: the rules policy).")
+    ap.add_argument("--port", type=int, default=0, help="loopback port (0: a free one)")
+    ap.add_argument("--fault-every", type=int, default=0, help="every N-th answer gets --fault")
+    ap.add_argument("--fault", default="invalid_json", choices=FAULTS)
+    ap.add_argument("--reject-schema", action="store_true", help="answer HTTP 400 to requests with a schema")
+    a = ap.parse_args()
+    srv = FakeVLMServer(port=a.port, fault_every=a.fault_every, periodic_fault=a.fault,
+                        reject_schema=a.reject_schema).start()
     print(f"OpenAI-compatible: {srv.openai_base_url}   Anthropic: {srv.anthropic_base_url}", flush=True)
     try:
         while True:

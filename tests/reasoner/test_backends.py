@@ -31,8 +31,8 @@ def vlm():
 
 def settings_for(kind: str, vlm: FakeVLMServer, **kw: object) -> ReasonerSettings:
     base = vlm.openai_base_url if kind == "openai" else vlm.anthropic_base_url
-    return ReasonerSettings(backend=kind, base_url=base, api_key="none", model="fake-vlm", request_timeout_s=1.0,
-                            transport_retries=3, max_steps=20, **kw)
+    return ReasonerSettings(**{"backend": kind, "base_url": base, "api_key": "none", "model": "fake-vlm",
+                               "request_timeout_s": 1.0, "transport_retries": 3, "max_steps": 20, **kw})
 
 
 def run(settings: ReasonerSettings, w: MiniWorld):
@@ -60,10 +60,20 @@ def test_clean_run_sends_image_and_counts_tokens(kind: str, vlm: FakeVLMServer) 
     assert all(vlm.images[n0:]) and len(vlm.requests) - n0 == final.model_calls == len(steps)
     assert all(c.tokens_in and c.tokens_out and c.latency_s > 0 for s in steps for c in s.calls)
     body = vlm.requests[n0]
+    content = body["messages"][0]["content"]
+    # constant prefix first (cache_control on Anthropic), then the rest of the prompt, the image last
+    assert content[0]["text"].startswith("# Preamble") and "# Task command" in content[1]["text"]
     if kind == "openai":
-        assert body["messages"][0]["content"][1]["image_url"]["url"].startswith("data:image/jpeg;base64,")
+        assert content[2]["image_url"]["url"].startswith("data:image/jpeg;base64,")
+        assert body["response_format"]["json_schema"]["strict"] is True
     else:
-        assert body["messages"][0]["content"][0]["source"]["media_type"] == "image/jpeg"
+        assert content[2]["source"]["media_type"] == "image/jpeg"
+        assert content[0]["cache_control"] == {"type": "ephemeral"} and "output_config" in body
+    # every request carried the skill-enum schema; the stand-in found nothing to object to
+    assert all(sc is not None for sc in vlm.schemas[n0:]) and vlm.schema_errors == []
+    assert all(c.structured for s in steps for c in s.calls)
+    assert len({r["messages"][0]["content"][0]["text"] for r in vlm.requests[n0:]}) == 1  # byte-identical prefix
+    assert all(c.tokens_cached for s in steps[1:] for c in s.calls)  # the prefix came from the prompt cache
 
 
 @pytest.mark.parametrize("kind", ["openai", "anthropic"])
@@ -137,3 +147,56 @@ def test_replay_backend_reproduces_a_run(tmp_path) -> None:
     final3 = asyncio.run(TaskRunner(TaskRequest(command=CMD), ReasonerSettings(), backend, MiniWorldPort(w3),
                                     publish_step=out.append, publish_status=lambda s: None).run(asyncio.Event()))
     assert final3.state is TaskState.FAILED and "no more answers" in final3.message
+
+
+@pytest.mark.parametrize("kind", ["openai", "anthropic"])
+def test_schema_rejected_falls_back_to_text_once_per_endpoint(kind: str, caplog: pytest.LogCaptureFixture) -> None:
+    with FakeVLMServer(reject_schema=True) as srv:
+        w = world()
+        with caplog.at_level("WARNING", logger="aermani.reasoner.backends"):
+            final, steps = run(settings_for(kind, srv), w)
+    assert final.state is TaskState.SUCCEEDED, final.message
+    # the first request carried the schema and was refused; every later one is free text
+    assert srv.schemas[0] is not None and all(sc is None for sc in srv.schemas[1:])
+    assert len(srv.requests) == final.model_calls + 1
+    assert not any(c.structured for s in steps for c in s.calls)
+    warned = [r for r in caplog.records if "rejected schema-constrained output" in r.getMessage()]
+    assert len(warned) == 1 and srv.url.split("//")[1] in warned[0].getMessage()
+
+
+def test_forced_modes(vlm: FakeVLMServer) -> None:
+    n0 = len(vlm.requests)
+    final, steps = run(settings_for("openai", vlm, output_mode="text"), world())
+    assert final.state is TaskState.SUCCEEDED and all(sc is None for sc in vlm.schemas[n0:])
+    assert "response_format" not in vlm.requests[n0] and not any(c.structured for s in steps for c in s.calls)
+    with FakeVLMServer(reject_schema=True) as srv:
+        final, _ = run(settings_for("openai", srv, output_mode="schema"), world())
+    assert final.state is TaskState.FAILED and "rejected the answer schema" in final.message
+    assert "AERMANI_REASONER_OUTPUT_MODE" in final.message
+
+
+@pytest.mark.parametrize("variant", ["unstructured", "no_drt", "drt_v1", "drt_v3", "full", "react"])
+def test_each_variant_answers_in_its_format_under_its_schema(variant: str, vlm: FakeVLMServer) -> None:
+    n0 = len(vlm.requests)
+    final, steps = run(settings_for("openai", vlm, variant=variant, max_steps=8), world())
+    # unstructured has no History: from the prompt alone the stand-in cannot tell how far the task got
+    assert final.state is (TaskState.FAILED if variant == "unstructured" else TaskState.SUCCEEDED), final.message
+    assert vlm.schema_errors == [] and final.invalid_answers == 0 and steps
+    answers = [c.raw_answer for s in steps for c in s.calls]
+    if variant == "react":
+        assert all(set(json.loads(a)) == {"thought", "action"} for a in answers)
+        assert all(s.drt.reasoning for s in steps)
+    elif variant == "full":
+        assert all(set(json.loads(a)["drt"]) == {"image_description", "summary", "action_predictions", "reasoning"}
+                   for a in answers)
+    props = vlm.schemas[n0]["properties"]
+    assert ("drt" in props) == (variant.startswith("drt") or variant == "full")
+
+
+def test_standing_fault_schedule() -> None:
+    """The schedule of the committed variants run (every 20th answer truncated), reproducible from the repo."""
+    with FakeVLMServer(fault_every=3) as srv:
+        final, steps = run(settings_for("openai", srv), world())
+    calls = [c for s in steps for c in s.calls]
+    assert final.state is TaskState.SUCCEEDED
+    assert [i for i, c in enumerate(calls, 1) if not c.valid] == [i for i in range(1, len(calls) + 1) if i % 3 == 0]

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import pytest
 
 from services.reasoner.cli import run_demo, scenario_for
@@ -32,13 +34,30 @@ def test_demo_rules(tmp_path) -> None:
     assert skills[-1] == "done" and "grasp" in skills and "place" in skills
 
 
-def test_demo_openai_compatible_with_injected_faults(tmp_path) -> None:
+@pytest.mark.parametrize("kind", ["openai", "anthropic"])
+def test_demo_model_backend_with_schema_reprompt_and_done(tmp_path, kind: str) -> None:
+    """The demo through a model backend against the local stand-in (OpenAI-compatible chat completions, or the
+    Anthropic Messages API): every request carries the camera image and the skill-enum answer schema, an
+    invalid answer is re-prompted with its error, and the task ends on the model's `done`."""
     with FakeVLMServer() as vlm:
         vlm.faults.extend(["invalid_json", None, "fences", "500", None, "unknown_skill"])
-        code, result = demo(tmp_path, {"AERMANI_REASONER_BACKEND": "openai", "AERMANI_REASONER_API_KEY": "none",
-                                       "AERMANI_REASONER_BASE_URL": vlm.openai_base_url,
-                                       "AERMANI_REASONER_MODEL": "fake-vlm"})
+        base = vlm.openai_base_url if kind == "openai" else vlm.anthropic_base_url
+        code, result = demo(tmp_path, {"AERMANI_REASONER_BACKEND": kind, "AERMANI_REASONER_API_KEY": "none",
+                                       "AERMANI_REASONER_BASE_URL": base, "AERMANI_REASONER_MODEL": "fake-vlm"})
     assert code == 0 and result["success"], result.get("verdict")
     final, steps = result["final"], result["steps"]
     assert [s.retries for s in steps[:4]] == [1, 0, 0, 1]
     assert final.invalid_answers == 2 and final.model_calls == sum(len(s.calls) for s in steps)
+    assert steps[-1].ste.skill == "done" and final.state.value == "succeeded"
+    assert all(s.image_stamp_ns for s in steps)  # the simulator's camera frame went with every step
+    # every request: the image and a schema whose skill enum is the executor's policy skills
+    assert len(vlm.requests) == final.model_calls + 1  # + the injected 500, retried by the transport
+    assert all(vlm.images) and all(sc is not None for sc in vlm.schemas) and vlm.schema_errors == []
+    enum = json.dumps(vlm.schemas[0])
+    assert all(f'"{n}"' in enum for n in ("yaw_left", "obj_localization", "grasp", "place", "done"))
+    assert '"takeoff"' not in enum
+    reprompts = [r for r in vlm.requests if len(r["messages"]) > 1]
+    assert len(reprompts) == 2
+    first_error = steps[0].calls[0].error
+    assert first_error and first_error in json.dumps(reprompts[0]["messages"][-1])
+    assert all(c.structured for s in steps for c in s.calls)

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from services.reasoner.library import default_library
 from services.reasoner.parse import parse_answer
@@ -99,3 +102,152 @@ def test_unstructured_bare_names(raw: str, skill: str, arg: str | None) -> None:
 
 def test_no_drt_accepts_extra_drt_fields() -> None:
     assert parse_answer(full("up", None), "no_drt", LIB).drt.summary == "nothing yet"
+
+
+# --------------------------------------------------------------------------- exact: the skill the answer chose
+
+
+@pytest.mark.parametrize(("raw", "skill", "arg"), [
+    ("grasp would fail, so I will yaw_left", "yaw_left", None),
+    ("The cup is not localized yet, so grasp is pointless. I will use obj_localization(red cup).",
+     "obj_localization", "red cup"),
+    ("Forward would hit the wall; yaw right instead.", "yaw_right", None),
+    ("I should not grasp yet. Next skill: obj_localization(red cup)", "obj_localization", "red cup"),
+    ("Placing needs a spot; rather than place, I choose placement_localization: table",
+     "placement_localization", "table"),
+    ("After forward and yaw_left the cup is visible.\nFinal answer: grasp", "grasp", None),
+])
+def test_unstructured_takes_the_committed_skill(raw: str, skill: str, arg: str | None) -> None:
+    p = parse_answer(raw, "unstructured", LIB)
+    assert (p.ste.skill, p.ste.argument) == (skill, arg)
+
+
+@pytest.mark.parametrize("raw", ["forward or backward, both look fine", "up, down, left: hard to say"])
+def test_unstructured_several_skills_without_commitment_is_invalid(raw: str) -> None:
+    with pytest.raises(InvalidAnswer, match="without committing to one"):
+        parse_answer(raw, "unstructured", LIB)
+
+
+def test_react_takes_the_action_not_json_quoted_in_the_thought() -> None:
+    raw = ('Thought: answering {"skill": "grasp", "argument": "red cup"} now would fail: nothing is localized.\n'
+           'Thought: localize first.\nAction: {"skill": "obj_localization", "argument": "red cup"}')
+    p = parse_answer(raw, "react", LIB)
+    assert (p.ste.skill, p.ste.argument) == ("obj_localization", "red cup")
+    assert "would fail" in (p.drt.reasoning or "")
+
+
+def test_react_without_action_line_is_invalid_even_with_json_in_the_thought() -> None:
+    with pytest.raises(InvalidAnswer, match="No 'Action:' line"):
+        parse_answer('Thought: maybe {"skill": "grasp"} is right.', "react", LIB)
+    with pytest.raises(InvalidAnswer, match="'Action:' line has no JSON"):
+        parse_answer('Thought: {"skill": "grasp"}\nAction: grasp', "react", LIB)
+    # a bare JSON object is an action without thoughts
+    assert parse_answer('{"skill": "up", "argument": null}', "react", LIB).ste.skill == "up"
+
+
+def test_json_after_an_unclosed_brace_in_prose_is_found() -> None:
+    p = parse_answer('Let me think { about it. I\'ll answer: {"ste": {"skill": "up", "argument": null}}', "no_drt", LIB)
+    assert p.ste.skill == "up" and p.recovered
+
+
+# --------------------------------------------------------------------------- bounded: size, depth, linear work
+
+
+@pytest.mark.parametrize(("raw", "reason"), [
+    ("{" * 20_000, "deeper than"),
+    ("{" * 200_000, "characters long"),
+    ('{"a": ' * 1000 + "1" + "}" * 1000, "deeper than"),
+    ('{"ste": {"skill": "up", "argument": ' + "[" * 1000 + "]" * 1000 + "}}", "deeper than"),
+    ("[" * 5000 + "]" * 5000, "No JSON object"),
+    ('{"ste": {"skill": "' + "9" * 5000 + '"}}', "Unknown skill"),
+    ("{'ste': {'skill': " + "(" * 500 + "'up'" + ")" * 500 + "}}", "No JSON object"),
+])
+@pytest.mark.parametrize("variant", ["full", "react", "unstructured"])
+def test_pathological_answers_are_invalid_with_a_reason(raw: str, reason: str, variant: str) -> None:
+    """Each is rejected with a reason (the unstructured variant may still read a lone skill name in it)."""
+    try:
+        p = parse_answer(raw, variant, LIB)
+    except InvalidAnswer as exc:
+        assert reason in str(exc) or variant != "full"
+    else:
+        assert variant == "unstructured" and p.ste.skill in NAMES
+
+
+class _Counting:
+    """Wraps the decoders the parser calls and sums the characters they are given."""
+
+    def __init__(self, monkeypatch: pytest.MonkeyPatch) -> None:
+        import ast as _ast
+        import json as _json
+        import types
+
+        from services.reasoner import parse as mod
+
+        self.chars = 0
+
+        def loads(s, *a, **k):
+            self.chars += len(s)
+            return _json.loads(s, *a, **k)
+
+        def literal_eval(s):
+            self.chars += len(s)
+            return _ast.literal_eval(s)
+
+        monkeypatch.setattr(mod, "json", types.SimpleNamespace(loads=loads, dumps=_json.dumps))
+        monkeypatch.setattr(mod, "ast", types.SimpleNamespace(literal_eval=literal_eval))
+
+
+_PIECES = st.sampled_from(["{", "}", "[", "]", '"', "'", "\\", ":", ",", "\n", " ", "Action:", "Thought:", "```",
+                           "```json\n", '"ste"', '"skill"', '"drt"', "yaw_left", "grasp", "obj_localization",
+                           " so I will ", " would fail", "null", "1", "true", "(red cup)"])
+_JSONISH = st.recursive(st.none() | st.booleans() | st.integers() | st.text(max_size=8),
+                        lambda kids: st.lists(kids, max_size=4) | st.dictionaries(st.text(max_size=6), kids, max_size=4),
+                        max_leaves=40)
+
+
+@given(pieces=st.lists(_PIECES, max_size=400), text=st.text(max_size=200), nested=_JSONISH,
+       depth=st.integers(0, 60), variant=st.sampled_from(["full", "react", "unstructured", "no_drt"]))
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+def test_any_text_is_parsed_or_rejected_with_linear_work(pieces, text, nested, depth, variant) -> None:
+    """Arbitrary text and nesting: the only failure is InvalidAnswer, and the characters scanned and handed to
+    the decoders are bounded by a constant times the answer's length (no clock involved)."""
+    from services.reasoner.parse import Work
+
+    raw = "".join(pieces) + text + "{" * depth + json.dumps({"ste": nested}) + "}" * depth
+    mp = pytest.MonkeyPatch()
+    try:
+        counting = _Counting(mp)
+        work = Work()
+        with contextlib.suppress(InvalidAnswer):
+            parse_answer(raw, variant, LIB, work=work)
+    finally:
+        mp.undo()
+    n = len(raw) + 1
+    # strict read 1n, fenced blocks and then the whole text each <= 2 quoting modes x 2 texts x 2 decoders = 8n
+    assert counting.chars <= 17 * n, (counting.chars, n)
+    assert work.chars <= 24 * n, (work.chars, n)
+
+
+def test_vlm_check_reads_the_whole_file_past_pathological_lines(tmp_path) -> None:
+    """`aermani vlm check` (a real process) reports every line, the hostile ones as rejected with a reason."""
+    import subprocess
+    import sys
+
+    lines = [full(), "{" * 20_000, '{"a": ' * 1000 + "1" + "}" * 1000, "x" * 40_000, full("yaw_left", None)]
+    f = tmp_path / "answers.jsonl"
+    f.write_text("".join(json.dumps(x) + "\n" for x in lines))
+    res = subprocess.run([sys.executable, "-m", "shared.cli", "vlm", "check", str(f), "--offline"],
+                         capture_output=True, text=True, timeout=120)
+    out = res.stdout
+    assert res.returncode == 1, res.stderr
+    assert "1: accepted: obj_localization(red cup)" in out and "5: accepted: yaw_left" in out
+    assert "2: rejected: The answer nests brackets deeper than 16" in out
+    assert "3: rejected: The answer nests brackets deeper than 16" in out
+    assert "4: rejected: The answer is 40000 characters long" in out
+    assert "2/5 accepted, 3 rejected" in out
+
+
+def test_braces_and_escaped_quotes_inside_strings_do_not_split_the_object() -> None:
+    raw = 'Sure: {"ste": {"skill": "obj_localization", "argument": "the \\"red\\" cup {left} \\\\"}} ok'
+    p = parse_answer(raw, "no_drt", LIB)
+    assert (p.ste.skill, p.ste.argument) == ("obj_localization", 'the "red" cup {left} \\')

@@ -89,3 +89,60 @@ def test_vlm_backend_process_with_injected_faults(tmp_path, kind: str) -> None:
     assert final.backend == f"{kind}:fake-vlm"
     assert [s.retries for s in steps[:3]] == [1, 0, 1]
     assert final.invalid_answers == 2 and final.model_calls == sum(len(s.calls) for s in steps)
+
+
+def test_operator_approval_rejection_replans_and_approval_runs(tmp_path) -> None:
+    """With approval on for grasp: the grasp waits; a rejection is recorded as rejected by the operator and
+    the policy chooses again; an approval lets it run."""
+    from shared.messages import ApprovalDecision, ApprovalState
+
+    w = world()
+    env = {"AERMANI_REASONER_APPROVAL": '["grasp"]', "AERMANI_REASONER_APPROVAL_TIMEOUT_S": "60"}
+    decisions: list[str] = []
+
+    async def operator(bus) -> None:
+        approvals = bus.subscribe(KEYS.approval, maxsize=100)
+        while True:
+            st = await approvals.recv(timeout=60)
+            if st.state is not ApprovalState.PENDING:
+                continue
+            assert st.skill == "grasp" and st.reasoning  # the operator sees what and why
+            await asyncio.sleep(0.5)
+            assert not any(e.startswith("grasp") for e in w.executed)  # it waits: nothing ran while pending
+            approve = bool(decisions)  # reject the first request, approve the next
+            decisions.append("approve" if approve else "reject")
+            reply = await bus.query(KEYS.decide_approval, ApprovalDecision(
+                approval_id=st.approval_id, approved=approve, reason="" if approve else "wrong cup",
+                operator="test"), timeout=10)
+            assert reply.accepted, reply.reason
+            again = await bus.query(KEYS.decide_approval, ApprovalDecision(approval_id=st.approval_id, approved=True),
+                                    timeout=10)
+            assert not again.accepted  # decided once
+            if approve:
+                return
+
+    async def start_operator(bus) -> None:
+        asyncio.get_running_loop().create_task(operator(bus))
+
+    with run_stack(["reasoner"], tmp_path, env=env) as stack:
+        final, steps = arun(run_task(stack, w, TaskRequest(command=CMD), on_running=start_operator))
+    assert decisions == ["reject", "approve"]
+    assert final.state is TaskState.SUCCEEDED, final.message
+    grasps = [s for s in steps if s.ste and s.ste.skill == "grasp"]
+    assert grasps[0].skill_state.value == "rejected" and "rejected by the operator (test): wrong cup" in \
+        grasps[0].skill_message
+    assert grasps[-1].skill_state.value == "succeeded"
+    assert sum(e.startswith("grasp") for e in w.executed) == 1 and w.placed_on == {"red cup": "table"}
+
+
+def test_approval_timeout_holds_and_fails_the_step(tmp_path) -> None:
+    w = world()
+    env = {"AERMANI_REASONER_APPROVAL": '["manipulation"]', "AERMANI_REASONER_APPROVAL_TIMEOUT_S": "1",
+           "AERMANI_REASONER_MAX_STEPS": "6"}
+    with run_stack(["reasoner"], tmp_path, env=env) as stack:
+        final, steps = arun(run_task(stack, w, TaskRequest(command=CMD)))
+    grasps = [s for s in steps if s.ste and s.ste.skill == "grasp"]
+    assert grasps and all(s.skill_state.value == "failed" and "no operator decision within 1 s; vehicle held"
+                          in s.skill_message for s in grasps)
+    assert not any(e.startswith("grasp") for e in w.executed) and "hold" in w.executed
+    assert final.state is TaskState.FAILED

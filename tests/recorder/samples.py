@@ -50,6 +50,8 @@ def example(cls: type[m.Message], i: int = 0) -> m.Message:
         m.CancelGoal: lambda: m.CancelGoal(goal_id=f"g{i}"),
         m.CancelReply: lambda: m.CancelReply(accepted=True),
         m.ResetNotice: lambda: m.ResetNotice(seed=i),
+        m.ApprovalStatus: lambda: m.ApprovalStatus(skill="grasp", step=i),
+        m.ApprovalDecision: lambda: m.ApprovalDecision(approval_id=f"a{i}", approved=True),
     }
     return examples[cls]()
 

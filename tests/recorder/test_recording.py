@@ -75,10 +75,12 @@ async def publish_demo(bus) -> Counter:
     t0 = time.monotonic()
     for n in range(N_FRAMES):
         stamp = time.time_ns()
+        # Frames and state are declared best effort (late is worse than lost); here every sample must reach the
+        # recorder so the counts can be compared, so they go reliably.
         for key, data in frames(stamp, n).items():
-            bus.publish(key, data)
+            bus.publish(key, data, reliable=True)
             sent[key] += 1
-        bus.publish(K.autopilot_state, VehicleState(stamp_ns=stamp))
+        bus.publish(K.autopilot_state, VehicleState(stamp_ns=stamp), reliable=True)
         sent[K.autopilot_state] += 1
         if n % 5 == 4:
             bus.publish(K.reasoning_step, step_message("task-1", n // 5 + 1, "forward", image_stamp_ns=stamp))

@@ -55,7 +55,7 @@ def test_replay_shows_the_steps_in_the_gateway_sse(tmp_path: Path) -> None:
         deadline = time.monotonic() + 90
         while True:
             try:
-                if httpx.get(f"{url}/health", timeout=5).status_code == 200:
+                if httpx.get(f"{url}/live", timeout=5).status_code == 200:
                     break
             except httpx.HTTPError:
                 pass

@@ -49,4 +49,7 @@ def sample_messages() -> list[m.Message]:
         m.CancelGoal(goal_id="goal-1", reason="operator changed their mind"),
         m.CancelReply(accepted=False, reason="goal goal-1 is not running"),
         m.ResetNotice(seed=3),
+        m.ApprovalStatus(skill="grasp", argument="red cup", reasoning="the cup is within reach", task_id="t1", step=4,
+                         expires_ns=1),
+        m.ApprovalDecision(approval_id="appr-1", approved=False, reason="wrong cup"),
     ]

@@ -16,17 +16,8 @@ from shared import messages as m
 from shared.bus import Bus, zenoh_config
 from shared.errors import NoResponder, QueryTimeout, RemoteError
 from shared.keys import Protobuf, Query, Topic
-from shared.launcher import free_port, open_router
-from tests.helpers import arun, wait_until
+from tests.helpers import wait_until
 from tests.shared.samples import sample_messages
-
-
-@pytest.fixture()
-def router():
-    port = free_port()
-    session = open_router(port)
-    yield f"tcp/127.0.0.1:{port}"
-    session.close()
 
 
 def topic(name: str, t: object, reliable: bool = True) -> object:
@@ -43,150 +34,132 @@ def test_config_turns_multicast_off():
     assert json.loads(cfg.get_json("scouting/multicast/enabled")) is False
 
 
-def test_every_message_type_round_trips(router):
-    async def main():
-        a, b = await _pair(router)
-        try:
-            samples = sample_messages()
-            topics = {i: topic(f"rt/{i}", type(s)) for i, s in enumerate(samples)}
-            subs = {i: b.subscribe(topics[i]) for i, s in enumerate(samples)}
-            await asyncio.sleep(0.3)
-            for i, s in enumerate(samples):
-                a.publish(topics[i], s)
-            for i, s in enumerate(samples):
-                rec = await subs[i].recv_sample(timeout=5)
-                assert rec.value == s
-                assert rec.encoding.endswith(s.full_schema_name())
-        finally:
-            await a.close()
-            await b.close()
-
-    arun(main())
+async def test_every_message_type_round_trips(router):
+    a, b = await _pair(router)
+    try:
+        samples = sample_messages()
+        topics = {i: topic(f"rt/{i}", type(s)) for i, s in enumerate(samples)}
+        subs = {i: b.subscribe(topics[i]) for i, s in enumerate(samples)}
+        await asyncio.sleep(0.3)
+        for i, s in enumerate(samples):
+            a.publish(topics[i], s)
+        for i, s in enumerate(samples):
+            rec = await subs[i].recv_sample(timeout=5)
+            assert rec.value == s
+            assert rec.encoding.endswith(s.full_schema_name())
+    finally:
+        await a.close()
+        await b.close()
 
 
-def test_union_and_raw_bytes_subscriptions(router):
-    async def main():
-        a, b = await _pair(router)
-        try:
-            cmd_topic = topic("cmd", m.AutopilotCommand)
-            raw_topic = topic("raw", Protobuf("foxglove.RawImage"))
-            cmds = b.subscribe(cmd_topic)
-            raw = b.subscribe(raw_topic)
-            await asyncio.sleep(0.3)
-            a.publish(cmd_topic, m.TakeoffCommand(altitude=2.0))
-            with pytest.raises(TypeError, match="carries"):
-                a.publish(cmd_topic, m.Health(service="s", ok=True))  # not what the key declares
-            a.publish(raw_topic, b"\x00\x01binary")
-            got = await cmds.recv(timeout=5)
-            assert isinstance(got, m.TakeoffCommand) and got.altitude == 2.0
-            rec = await raw.recv_sample(timeout=5)
-            assert rec.value == b"\x00\x01binary" and "foxglove.RawImage" in rec.encoding
-        finally:
-            await a.close()
-            await b.close()
-
-    arun(main())
+async def test_union_and_raw_bytes_subscriptions(router):
+    a, b = await _pair(router)
+    try:
+        cmd_topic = topic("cmd", m.AutopilotCommand)
+        raw_topic = topic("raw", Protobuf("foxglove.RawImage"))
+        cmds = b.subscribe(cmd_topic)
+        raw = b.subscribe(raw_topic)
+        await asyncio.sleep(0.3)
+        a.publish(cmd_topic, m.TakeoffCommand(altitude=2.0))
+        with pytest.raises(TypeError, match="carries"):
+            a.publish(cmd_topic, m.Health(service="s", ok=True))  # not what the key declares
+        a.publish(raw_topic, b"\x00\x01binary")
+        got = await cmds.recv(timeout=5)
+        assert isinstance(got, m.TakeoffCommand) and got.altitude == 2.0
+        rec = await raw.recv_sample(timeout=5)
+        assert rec.value == b"\x00\x01binary" and "foxglove.RawImage" in rec.encoding
+    finally:
+        await a.close()
+        await b.close()
 
 
-def test_malformed_payload_is_dropped_and_subscriber_keeps_working(router):
-    async def main():
-        a, b = await _pair(router)
-        try:
-            state = topic("state", m.VehicleState)
-            sub = b.subscribe(state)
-            await asyncio.sleep(0.3)
-            a.publish(state.key, b"\xff\xfenot json", schema="aermani.VehicleState")
-            a.publish(state.key, {"kind": "vehicle_state", "armed": "maybe"})
-            a.publish(state, m.VehicleState(armed=True))
-            got = await sub.recv(timeout=5)
-            assert got.armed is True
-            assert sub.malformed == 2
-        finally:
-            await a.close()
-            await b.close()
-
-    arun(main())
+async def test_malformed_payload_is_dropped_and_subscriber_keeps_working(router):
+    a, b = await _pair(router)
+    try:
+        state = topic("state", m.VehicleState)
+        sub = b.subscribe(state)
+        await asyncio.sleep(0.3)
+        a.publish(state.key, b"\xff\xfenot json", schema="aermani.VehicleState")
+        a.publish(state.key, {"kind": "vehicle_state", "armed": "maybe"})
+        a.publish(state, m.VehicleState(armed=True))
+        got = await sub.recv(timeout=5)
+        assert got.armed is True
+        assert sub.malformed == 2
+    finally:
+        await a.close()
+        await b.close()
 
 
-def test_query_reply_errors_and_timeout(router):
-    async def main():
-        a, b = await _pair(router)
-        try:
-            async def accept(req: m.SkillRequest) -> m.SkillAccept:
-                if req.skill == "slow":
-                    await asyncio.sleep(3)
-                if req.skill == "boom":
-                    raise RuntimeError("handler failed")
-                return m.SkillAccept(accepted=True, goal_id=f"g-{req.skill}")
+async def test_query_reply_errors_and_timeout(router):
+    a, b = await _pair(router)
+    try:
+        async def accept(req: m.SkillRequest) -> m.SkillAccept:
+            if req.skill == "slow":
+                await asyncio.sleep(3)
+            if req.skill == "boom":
+                raise RuntimeError("handler failed")
+            return m.SkillAccept(accepted=True, goal_id=f"g-{req.skill}")
 
-            q = Query("test/q", m.SkillRequest, m.SkillAccept, "test", "test").bind("t1")
-            nobody = Query("test/nobody", m.SkillRequest, m.SkillAccept, "test", "test").bind("t1")
-            a.serve(q, accept)
-            await asyncio.sleep(0.3)
-            ok = await b.query(q, m.SkillRequest(skill="forward"), timeout=5)
-            assert ok.goal_id == "g-forward"
-            with pytest.raises(RemoteError, match="skill"):
-                await b.query(q, {"kind": "skill_request"}, timeout=5)
-            with pytest.raises(RemoteError, match="handler failed"):
-                await b.query(q, m.SkillRequest(skill="boom"), timeout=5)
-            with pytest.raises(QueryTimeout):
-                await b.query(q, m.SkillRequest(skill="slow"), timeout=0.5)
-            with pytest.raises(NoResponder):
-                await b.query(nobody, m.SkillRequest(skill="x"), timeout=1)
-            # The queryable survives all of that.
-            ok = await b.query(q, m.SkillRequest(skill="left"), timeout=5)
-            assert ok.goal_id == "g-left"
-        finally:
-            await a.close()
-            await b.close()
-
-    arun(main())
+        q = Query("test/q", m.SkillRequest, m.SkillAccept, "test", "test").bind("t1")
+        nobody = Query("test/nobody", m.SkillRequest, m.SkillAccept, "test", "test").bind("t1")
+        a.serve(q, accept)
+        await asyncio.sleep(0.3)
+        ok = await b.query(q, m.SkillRequest(skill="forward"), timeout=5)
+        assert ok.goal_id == "g-forward"
+        with pytest.raises(RemoteError, match="skill"):
+            await b.query(q, {"kind": "skill_request"}, timeout=5)
+        with pytest.raises(RemoteError, match="handler failed"):
+            await b.query(q, m.SkillRequest(skill="boom"), timeout=5)
+        with pytest.raises(QueryTimeout):
+            await b.query(q, m.SkillRequest(skill="slow"), timeout=0.5)
+        with pytest.raises(NoResponder):
+            await b.query(nobody, m.SkillRequest(skill="x"), timeout=1)
+        # The queryable survives all of that.
+        ok = await b.query(q, m.SkillRequest(skill="left"), timeout=5)
+        assert ok.goal_id == "g-left"
+    finally:
+        await a.close()
+        await b.close()
 
 
-def test_burst_of_1000_arrives_in_order_or_is_counted(router):
-    async def main():
-        a, b = await _pair(router)
-        try:
-            burst = topic("burst", m.Health)
-            small = b.subscribe(burst, maxsize=100)  # will overflow: drop_oldest
-            big = b.subscribe(burst, maxsize=2000)  # will not
-            await asyncio.sleep(0.3)
-            for i in range(1000):
-                a.publish(burst, m.Health(service="s", ok=True, details={"i": i}))
-            await wait_until(lambda: big.received == 1000, 20, what="1000 samples received")
-            got = [(await big.recv(timeout=5)).details["i"] for _ in range(1000)]
-            assert got == list(range(1000))
-            assert big.dropped == 0
-            kept = []
-            while small.qsize():
-                kept.append((await small.recv(timeout=1)).details["i"])
-            assert small.received == 1000
-            assert len(kept) + small.dropped == 1000
-            assert kept == sorted(kept) and kept[-1] == 999  # newest kept, order preserved
-        finally:
-            await a.close()
-            await b.close()
-
-    arun(main())
+async def test_burst_of_1000_arrives_in_order_or_is_counted(router):
+    a, b = await _pair(router)
+    try:
+        burst = topic("burst", m.Health)
+        small = b.subscribe(burst, maxsize=100)  # will overflow: drop_oldest
+        big = b.subscribe(burst, maxsize=2000)  # will not
+        await asyncio.sleep(0.3)
+        for i in range(1000):
+            a.publish(burst, m.Health(service="s", ok=True, details={"i": i}))
+        await wait_until(lambda: big.received == 1000, 20, what="1000 samples received")
+        got = [(await big.recv(timeout=5)).details["i"] for _ in range(1000)]
+        assert got == list(range(1000))
+        assert big.dropped == 0
+        kept = []
+        while small.qsize():
+            kept.append((await small.recv(timeout=1)).details["i"])
+        assert small.received == 1000
+        assert len(kept) + small.dropped == 1000
+        assert kept == sorted(kept) and kept[-1] == 999  # newest kept, order preserved
+    finally:
+        await a.close()
+        await b.close()
 
 
-def test_drop_newest_policy_keeps_the_first(router):
-    async def main():
-        a, b = await _pair(router)
-        try:
-            dn = topic("dn", m.Health)
-            sub = b.subscribe(dn, maxsize=10, overflow="drop_newest")
-            await asyncio.sleep(0.3)
-            for i in range(50):
-                a.publish(dn, m.Health(service="s", ok=True, details={"i": i}))
-            await wait_until(lambda: sub.received == 50, 10)
-            kept = [(await sub.recv(timeout=1)).details["i"] for _ in range(sub.qsize())]
-            assert kept == list(range(10)) and sub.dropped == 40
-        finally:
-            await a.close()
-            await b.close()
-
-    arun(main())
+async def test_drop_newest_policy_keeps_the_first(router):
+    a, b = await _pair(router)
+    try:
+        dn = topic("dn", m.Health)
+        sub = b.subscribe(dn, maxsize=10, overflow="drop_newest")
+        await asyncio.sleep(0.3)
+        for i in range(50):
+            a.publish(dn, m.Health(service="s", ok=True, details={"i": i}))
+        await wait_until(lambda: sub.received == 50, 10)
+        kept = [(await sub.recv(timeout=1)).details["i"] for _ in range(sub.qsize())]
+        assert kept == list(range(10)) and sub.dropped == 40
+    finally:
+        await a.close()
+        await b.close()
 
 
 OWNER = textwrap.dedent("""
@@ -201,42 +174,36 @@ OWNER = textwrap.dedent("""
 """)
 
 
-def test_liveliness_appears_and_disappears_after_sigkill(router):
-    async def main():
-        watcher = await Bus.open(connect=[router])
-        proc = subprocess.Popen([sys.executable, "-c", OWNER, router], stdout=subprocess.PIPE, text=True,
-                                env={**os.environ})
-        try:
-            events = watcher.watch_liveliness("aermani/v1/*/alive/*")
-            assert (await asyncio.to_thread(proc.stdout.readline)).strip() == "ready"
-            key, alive = await asyncio.wait_for(events.get(), 10)
-            assert key == "aermani/v1/t1/alive/owner" and alive
-            assert await watcher.alive("aermani/v1/*/alive/*") == [key]
-            proc.send_signal(signal.SIGKILL)
-            key, alive = await asyncio.wait_for(events.get(), 15)
-            assert key == "aermani/v1/t1/alive/owner" and not alive
-            # The router's view converges right after the DELETE event (not always in the same instant).
-            for _ in range(50):
-                if await watcher.alive("aermani/v1/*/alive/*") == []:
-                    break
-                await asyncio.sleep(0.1)
-            assert await watcher.alive("aermani/v1/*/alive/*") == []
-        finally:
-            proc.kill()
-            proc.wait()
-            await watcher.close()
-
-    arun(main())
+async def test_liveliness_appears_and_disappears_after_sigkill(router):
+    watcher = await Bus.open(connect=[router])
+    proc = subprocess.Popen([sys.executable, "-c", OWNER, router], stdout=subprocess.PIPE, text=True,
+                            env={**os.environ})
+    try:
+        events = watcher.watch_liveliness("aermani/v1/*/alive/*")
+        assert (await asyncio.to_thread(proc.stdout.readline)).strip() == "ready"
+        key, alive = await asyncio.wait_for(events.get(), 10)
+        assert key == "aermani/v1/t1/alive/owner" and alive
+        assert await watcher.alive("aermani/v1/*/alive/*") == [key]
+        proc.send_signal(signal.SIGKILL)
+        key, alive = await asyncio.wait_for(events.get(), 15)
+        assert key == "aermani/v1/t1/alive/owner" and not alive
+        # The router's view converges right after the DELETE event (not always in the same instant).
+        for _ in range(50):
+            if await watcher.alive("aermani/v1/*/alive/*") == []:
+                break
+            await asyncio.sleep(0.1)
+        assert await watcher.alive("aermani/v1/*/alive/*") == []
+    finally:
+        proc.kill()
+        proc.wait()
+        await watcher.close()
 
 
-def test_publish_after_close_is_an_error(router):
-    async def main():
-        a = await Bus.open(connect=[router])
-        await a.close()
-        with pytest.raises(Exception, match="closed"):
-            a.publish("test/x", m.Health(service="s", ok=True))
-
-    arun(main())
+async def test_publish_after_close_is_an_error(router):
+    a = await Bus.open(connect=[router])
+    await a.close()
+    with pytest.raises(Exception, match="closed"):
+        a.publish("test/x", m.Health(service="s", ok=True))
 
 
 def test_newer_minor_version_is_accepted_and_newer_major_rejected(router):

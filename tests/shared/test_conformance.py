@@ -13,17 +13,8 @@ import pytest
 from shared.bus import Bus
 from shared.conformance import check_service, declared_by
 from shared.keys import Keys
-from shared.launcher import free_port, open_router
 from tests.executor.fakes import FakeAutopilot, FakeDepth, FakePerception, ToyWorld, cancel_all
-from tests.helpers import arun, bus_for, run_stack
-
-
-@pytest.fixture()
-def router():
-    port = free_port()
-    session = open_router(port)
-    yield f"tcp/127.0.0.1:{port}"
-    session.close()
+from tests.helpers import bus_for, run_stack
 
 
 def test_declarations_name_what_each_service_does():
@@ -31,124 +22,109 @@ def test_declarations_name_what_each_service_does():
     assert {t.name for t in topics} >= {"executor/skill_status", "executor/memory", "safety/abort_ack"}
     assert {q.name for q in queries} == {"executor/run_skill", "executor/cancel_skill", "executor/skills"}
     topics, queries = declared_by("reasoner")
-    assert {q.name for q in queries} == {"reasoner/start_task", "reasoner/cancel_task"}
+    assert {q.name for q in queries} == {"reasoner/start_task", "reasoner/cancel_task", "reasoner/decide_approval"}
 
 
-def test_a_silent_or_wrong_fake_fails_the_check(router):
+async def test_a_silent_or_wrong_fake_fails_the_check(router):
     """The check can fail: a queryable nobody serves and a topic with the wrong payload are reported."""
-    async def main():
-        async with await Bus.open(connect=[router]) as bus:
-            keys = Keys("bad")
-            bus.declare_token(keys.alive("executor"))
+    async with await Bus.open(connect=[router]) as bus:
+        keys = Keys("bad")
+        bus.declare_token(keys.alive("executor"))
 
-            async def ticker():
-                while True:  # memory key carrying a Health: not what the key declares
-                    bus.publish(keys.memory.key, b'{"kind": "health", "service": "x", "ok": true}',
-                                schema="aermani.Health")
-                    await asyncio.sleep(0.1)
+        async def ticker():
+            while True:  # memory key carrying a Health: not what the key declares
+                bus.publish(keys.memory.key, b'{"kind": "health", "service": "x", "ok": true}',
+                            schema="aermani.Health")
+                await asyncio.sleep(0.1)
 
-            task = asyncio.create_task(ticker())
-            try:
-                report = await check_service(bus, "executor", "bad", timeout=1.5)
-            finally:
-                await cancel_all([task])
-            failed = {f.key.split("/", 3)[3] for f in report.findings if not f.ok}
-            assert not report.ok
-            assert {"executor/memory", "executor/run_skill", "executor/skills"} <= failed, report.summary()
-
-    arun(main())
+        task = asyncio.create_task(ticker())
+        try:
+            report = await check_service(bus, "executor", "bad", timeout=1.5)
+        finally:
+            await cancel_all([task])
+        failed = {f.key.split("/", 3)[3] for f in report.findings if not f.ok}
+        assert not report.ok
+        assert {"executor/memory", "executor/run_skill", "executor/skills"} <= failed, report.summary()
 
 
-def test_executor_test_fakes_conform(router):
-    async def main():
-        async with await Bus.open(connect=[router]) as bus:
-            keys = Keys("fk")
-            world = ToyWorld()
-            world.add_object("red cup", 2.0, 0.0, 0.75)
-            vehicle = FakeAutopilot(bus, keys, world, airborne_at=1.5)
-            perception = FakePerception(bus, keys, world, vehicle)
-            perception.serve()
-            depth = FakeDepth(bus, keys)
-            tasks = [asyncio.create_task(vehicle.run()), asyncio.create_task(depth.run()),
-                     asyncio.create_task(perception.run())]
-            try:
-                # The fakes declare no liveliness (tests start them in-process); tf comes from the simulator or
-                # a bridge with publish_tf, and the segmentation oracle only from the simulator.
-                for name, skip in (("autopilot_bridge", ("tf",)), ("perception", ()),
-                                   ("camera", ("tf",))):
-                    report = await check_service(bus, name, "fk", expect_alive=False, timeout=3.0, skip=skip)
-                    report.raise_for_failures()
-            finally:
-                await cancel_all(tasks)
-
-    arun(main())
+async def test_executor_test_fakes_conform(router):
+    async with await Bus.open(connect=[router]) as bus:
+        keys = Keys("fk")
+        world = ToyWorld()
+        world.add_object("red cup", 2.0, 0.0, 0.75)
+        vehicle = FakeAutopilot(bus, keys, world, airborne_at=1.5)
+        perception = FakePerception(bus, keys, world, vehicle)
+        perception.serve()
+        depth = FakeDepth(bus, keys)
+        tasks = [asyncio.create_task(vehicle.run()), asyncio.create_task(depth.run()),
+                 asyncio.create_task(perception.run())]
+        try:
+            # The fakes declare no liveliness (tests start them in-process); tf comes from the simulator or
+            # a bridge with publish_tf, and the segmentation oracle only from the simulator.
+            for name, skip in (("autopilot_bridge", ("tf",)), ("perception", ()),
+                               ("camera", ("tf",))):
+                report = await check_service(bus, name, "fk", expect_alive=False, timeout=3.0, skip=skip)
+                report.raise_for_failures()
+        finally:
+            await cancel_all(tasks)
 
 
-def test_reasoner_world_fake_conforms_as_an_executor(router):
+async def test_reasoner_world_fake_conforms_as_an_executor(router):
     from services.reasoner.library import default_library
     from tests.reasoner.fake_world import MiniWorld, Thing, serve_executor
 
-    async def main():
-        async with await Bus.open(connect=[router]) as bus:
-            keys = Keys("fw")
-            task = await serve_executor(bus, MiniWorld([Thing("red cup")]), keys)
-            try:
-                report = await check_service(bus, "executor", "fw", expect_alive=False, timeout=3.0,
-                                             library=default_library())
-                report.raise_for_failures()
-            finally:
-                await cancel_all([task])
-
-    arun(main())
+    async with await Bus.open(connect=[router]) as bus:
+        keys = Keys("fw")
+        task = await serve_executor(bus, MiniWorld([Thing("red cup")]), keys)
+        try:
+            report = await check_service(bus, "executor", "fw", expect_alive=False, timeout=3.0,
+                                         library=default_library())
+            report.raise_for_failures()
+        finally:
+            await cancel_all([task])
 
 
-def test_gateway_fake_conforms_as_a_reasoner(router):
+async def test_gateway_fake_conforms_as_a_reasoner(router):
     from services.reasoner.library import default_library
     from shared.messages import TaskRequest
     from tests.gateway.fakes import FakeVehicle
 
-    async def main():
-        async with await Bus.open(connect=[router]) as bus:
-            fake = FakeVehicle(bus, "gw", steps=30, step_delay_s=0.1, services=("reasoner",))
-            await fake.start()
-            try:
-                lib = default_library()
-                # Its steps and skill statuses (it stands in for the executor too) name only real skills.
-                skills = asyncio.create_task(check_service(
-                    bus, "executor", "gw", expect_alive=False, timeout=2.0, require_periodic=False, library=lib,
-                    skip=("executor/memory", "executor/run_skill", "executor/cancel_skill", "executor/skills")))
-                await asyncio.sleep(0.3)
-                accept = await bus.query(Keys("gw").start_task, TaskRequest(command="pick up the red cup"))
-                assert accept.accepted
-                report = await check_service(bus, "reasoner", "gw", timeout=2.0, library=lib)
-                report.raise_for_failures()
-                skills_report = await skills
-                assert any(f.key.endswith("executor/skill_status") for f in skills_report.findings)
-                skills_report.raise_for_failures()
-            finally:
-                await fake.stop()
-
-    arun(main())
+    async with await Bus.open(connect=[router]) as bus:
+        fake = FakeVehicle(bus, "gw", steps=30, step_delay_s=0.1, services=("reasoner", "executor"))
+        await fake.start()
+        try:
+            lib = default_library()
+            # Its steps and skill statuses (it stands in for the executor too) name only real skills.
+            skills = asyncio.create_task(check_service(
+                bus, "executor", "gw", expect_alive=False, timeout=2.0, require_periodic=False, library=lib,
+                skip=("executor/memory", "executor/run_skill", "executor/cancel_skill")))
+            await asyncio.sleep(0.3)
+            accept = await bus.query(Keys("gw").start_task, TaskRequest(command="pick up the red cup"))
+            assert accept.accepted
+            report = await check_service(bus, "reasoner", "gw", timeout=2.0, library=lib)
+            report.raise_for_failures()
+            skills_report = await skills
+            assert any(f.key.endswith("executor/skill_status") for f in skills_report.findings)
+            skills_report.raise_for_failures()
+        finally:
+            await fake.stop()
 
 
 @pytest.mark.integration
-def test_every_real_service_conforms(tmp_path):
+async def test_every_real_service_conforms(tmp_path):
     services = ["sim", "autopilot_bridge", "perception", "executor", "reasoner", "recorder"]
     with run_stack(services, tmp_path, env={"AERMANI_RECORDER_OUT_DIR": str(tmp_path / "rec")}) as stack:
-        async def main():
-            async with bus_for(stack) as bus:
-                reports = []
-                for name, health, skip in (
-                    ("sim", True, ()),
-                    ("autopilot_bridge", True, ("tf",)),  # tf comes from the sim here (publish_tf off)
-                    ("perception", True, ()),
-                    ("executor", False, ()),
-                    ("reasoner", False, ()),
-                    ("recorder", True, ()),
-                ):
-                    reports.append(await check_service(bus, name, stack.procs[0].vehicle_id, timeout=5.0,
-                                                       expect_health=health, skip=skip))
-                failures = [r.summary() for r in reports if not r.ok]
-                assert not failures, "\n".join(failures)
-
-        arun(main())
+        async with bus_for(stack) as bus:
+            reports = []
+            for name, health, skip in (
+                ("sim", True, ()),
+                ("autopilot_bridge", True, ("tf",)),  # tf comes from the sim here (publish_tf off)
+                ("perception", True, ()),
+                ("executor", False, ()),
+                ("reasoner", False, ()),
+                ("recorder", True, ()),
+            ):
+                reports.append(await check_service(bus, name, stack.procs[0].vehicle_id, timeout=5.0,
+                                                   expect_health=health, skip=skip))
+            failures = [r.summary() for r in reports if not r.ok]
+            assert not failures, "\n".join(failures)

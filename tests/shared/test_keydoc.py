@@ -29,7 +29,7 @@ def test_no_call_site_names_a_declared_type_again():
     offenders = []
     for path in [*root.glob("services/**/*.py"), *root.glob("shared/*.py"), *root.glob("benchmarks/*.py")]:
         text = path.read_text()
-        target = r"[\w.]+(?:\([^()]*\))?"
+        target = r"[\w.]+(?:\([^()]*\)[\w.]*)*"
         for pattern in (rf"\.subscribe\({target}, (?:[A-Z]\w*|None)\s*[,)]",
                         rf"\.query\({target}, [^,=]+, (?:[A-Z]\w*|None)\s*[,)]",
                         rf"\.serve\({target}, [\w.]+, (?:[A-Z]\w*|None)\s*[,)]"):

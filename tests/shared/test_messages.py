@@ -57,3 +57,68 @@ def test_keys():
         vehicle_prefix("a/b")
     with pytest.raises(ValueError):
         vehicle_prefix("**")
+
+
+def test_non_finite_and_unphysical_values_are_refused():
+    for bad in ('{"x": NaN}', '{"x": Infinity}', '{"z": -Infinity}', '{"x": 1e9}'):
+        with pytest.raises(ValidationError):
+            m.Vec3.model_validate_json(bad)
+    with pytest.raises(ValidationError):
+        m.VehicleState(position=m.Vec3(x=float("nan")))
+    with pytest.raises(ValidationError, match="exceeds 50 m/s"):
+        m.VehicleState(velocity=m.Vec3(x=120.0))
+    for field, value in (("battery_remaining", 140.0), ("battery_remaining", -1.0), ("battery_voltage", 400.0),
+                         ("yaw", 40.0), ("stamp_ns", -5)):
+        with pytest.raises(ValidationError):
+            m.VehicleState(**{field: value})
+    with pytest.raises(ValidationError):
+        m.GotoCommand(position=m.Vec3(x=1.0), yaw=float("nan"))
+    with pytest.raises(ValidationError):
+        m.GotoCommand(position=m.Vec3(x=1.0), yaw=0.0, max_speed=500.0)
+
+
+def test_an_empty_or_partial_vehicle_state_is_refused_on_the_wire():
+    ta = TypeAdapter(m.VehicleState)
+    with pytest.raises(ValidationError, match="must carry"):
+        ta.validate_json(b"{}")
+    with pytest.raises(ValidationError, match="missing \\['position'"):
+        ta.validate_json(b'{"kind": "vehicle_state", "stamp_ns": 1, "vehicle_id": "am1", "velocity": {}, '
+                         b'"armed": true, "landed_state": "in_air", "link_ok": true}')
+    good = m.VehicleState(position=m.Vec3(z=1.0), armed=True)
+    assert ta.validate_json(good.model_dump_json()) == good
+
+
+def test_empty_and_nan_vehicle_states_are_dropped_at_the_bus():
+    """Over a real router: `{}`, a NaN position and a 300 m/s state are counted as malformed and never reach
+    the subscriber; the valid state behind them does."""
+    import asyncio
+
+    from shared.bus import Bus
+    from shared.launcher import free_port, open_router
+    from tests.helpers import arun
+
+    port = free_port()
+    router = open_router(port)
+
+    async def main():
+        a = await Bus.open(connect=[f"tcp/127.0.0.1:{port}"])
+        b = await Bus.open(connect=[f"tcp/127.0.0.1:{port}"])
+        try:
+            sub = b.subscribe("test/state", m.VehicleState)
+            await asyncio.sleep(0.3)
+            good = m.VehicleState(position=m.Vec3(z=1.2), armed=True)
+            nan = good.model_dump_json().replace('"z":1.2', '"z":NaN')
+            fast = good.model_dump_json().replace('"velocity":{"x":0.0', '"velocity":{"x":300.0')
+            assert nan != good.model_dump_json() and fast != good.model_dump_json()
+            for raw in (b"{}", nan.encode(), fast.encode(), good.model_dump_json().encode()):
+                a.publish_raw("test/state", raw, "application/json;aermani.VehicleState")
+            assert await sub.recv(timeout=5) == good
+            assert sub.malformed == 3
+        finally:
+            await a.close()
+            await b.close()
+
+    try:
+        arun(main())
+    finally:
+        router.close()

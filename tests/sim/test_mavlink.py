@@ -156,7 +156,7 @@ def test_arm_offboard_takeoff_goto_gripper_and_land(sim):
     client.recv("EXTENDED_SYS_STATE", lambda m: m.landed_state == mav.MAV_LANDED_STATE_IN_AIR, 30)
     pos = client.recv("LOCAL_POSITION_NED", lambda m: abs(m.z + 1.5) < 0.1, 30)
     # Disarm in the air is denied unless forced.
-    assert client.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 0) == mav.MAV_RESULT_DENIED
+    assert client.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 0) == mav.MAV_RESULT_TEMPORARILY_REJECTED
     # Stream for > 1 s, then OFFBOARD is accepted.
     n0, e0 = pos.x, pos.y
     deadline = time.monotonic() + 1.3
@@ -258,3 +258,103 @@ def test_bad_input_changes_nothing(sim):
     assert counters.get("wrong_target", 0) >= 3
     assert counters.get("unknown_messages", 0) >= 1
     assert core.vehicle.setpoints_received == 0
+
+
+def test_garbage_never_redirects_telemetry(sim):
+    """Telemetry goes to the configured remote, or to a peer that sent valid MAVLink; garbage from a third
+    address moves nothing, on both links."""
+    core, server, client, gcs = sim
+    stranger = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    stranger.bind(("127.0.0.1", 0))
+    stranger.settimeout(0.5)
+    try:
+        remotes = [lk.remote for lk in server.links]
+        for lk in server.links:
+            target = lk.sock.getsockname()
+            stranger.sendto(b"\xfd\x09garbage-bytes\x00\xff" * 20, target)
+            stranger.sendto(bytes(range(256)), target)
+            stranger.sendto(b"\xfe\x05\x00\x01\x01\x00hello", target)  # a v1 header with a broken CRC
+        assert client.command(mav.MAV_CMD_REQUEST_MESSAGE, mav.MAVLINK_MSG_ID_HOME_POSITION) == 0
+        assert [lk.remote for lk in server.links] == remotes
+        with pytest.raises(TimeoutError):  # the stranger gets no telemetry
+            stranger.recv(2048)
+        assert core.counters.get("bad_input", 0) >= 3
+        client.recv("LOCAL_POSITION_NED", timeout=2)  # the real peer still does
+
+        # A peer that speaks valid MAVLink from a new address is answered there (as PX4's UDP links do).
+        peer = mav.MAVLink(None, srcSystem=250, srcComponent=mav.MAV_COMP_ID_MISSIONPLANNER)
+        stranger.sendto(peer.heartbeat_encode(mav.MAV_TYPE_GCS, mav.MAV_AUTOPILOT_INVALID, 0, 0, 0).pack(peer),
+                        server.links[1].sock.getsockname())
+        stranger.settimeout(5)
+        assert stranger.recv(2048)
+        assert server.links[1].remote == stranger.getsockname() and server.links[0].remote == remotes[0]
+    finally:
+        stranger.close()
+
+
+def test_nan_params_mean_default_and_arming_checks(sim):
+    core, server, client, _ = sim
+    nan = math.nan
+    # MAVSDK-style arm: param1 = 1, everything else NaN ("use the default"): accepted, then disarm likewise.
+    assert client.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 1, nan, nan, nan, nan, nan, nan) == 0
+    assert client.armed()
+    assert client.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 0, nan, nan, nan, nan, nan, nan) == 0
+    assert not client.armed()
+    # An arming action that is neither 0 nor 1 is refused as PX4 does, and explained.
+    assert client.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 3) == mav.MAV_RESULT_UNSUPPORTED
+    client.recv("STATUSTEXT", lambda m: "Unsupported ARM_DISARM param" in m.text, 5)
+    # COMMAND_INT with NaN in params 3-4 and INT32_MAX ("unset") in x/y.
+    client.conn.mav.command_int_send(1, 1, 0, mav.MAV_CMD_DO_SET_MODE, 0, 0, 1, *LOITER, nan, 2**31 - 1,
+                                     2**31 - 1, nan)
+    assert client.recv("COMMAND_ACK", lambda m: m.command == mav.MAV_CMD_DO_SET_MODE).result == 0
+    # NaN interval = default rate; NaN message id = nothing to stream (denied, not a crash).
+    assert client.command(mav.MAV_CMD_SET_MESSAGE_INTERVAL, mav.MAVLINK_MSG_ID_ATTITUDE, nan) == 0
+    assert client.command(mav.MAV_CMD_SET_MESSAGE_INTERVAL, nan, 1e5) == mav.MAV_RESULT_DENIED
+
+    # No position estimate: failure injection is refused until SYS_FAILURE_EN = 1, then arming is
+    # TEMPORARILY_REJECTED with PX4's reason, OFFBOARD too, and LOCAL_POSITION_NED stops.
+    vio_off = (mav.FAILURE_UNIT_SENSOR_VIO, mav.FAILURE_TYPE_OFF)
+    assert client.command(mav.MAV_CMD_INJECT_FAILURE, *vio_off) == mav.MAV_RESULT_DENIED
+    client.conn.mav.param_set_send(1, 1, b"SYS_FAILURE_EN", 1.0, mav.MAV_PARAM_TYPE_REAL32)
+    client.recv("PARAM_VALUE", lambda m: m.param_id == "SYS_FAILURE_EN" and m.param_value == 1.0)
+    assert client.command(mav.MAV_CMD_INJECT_FAILURE, *vio_off) == 0
+    assert client.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 1) == mav.MAV_RESULT_TEMPORARILY_REJECTED
+    client.recv("STATUSTEXT", lambda m: m.text == "Preflight Fail: No valid local position estimate", 5)
+    status = client.recv("SYS_STATUS")
+    assert not status.onboard_control_sensors_health & mav.MAV_SYS_STATUS_PREARM_CHECK
+    while client.conn.recv_match(blocking=False) is not None:
+        pass
+    with pytest.raises(TimeoutError):
+        client.recv("LOCAL_POSITION_NED", timeout=0.5)
+    assert not client.armed()
+    # Forcing (21196) skips the checks, as in PX4; the estimate back, arming works normally.
+    assert client.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 1, 21196) == 0
+    assert client.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 0) == 0
+    assert client.command(mav.MAV_CMD_INJECT_FAILURE, mav.FAILURE_UNIT_SENSOR_VIO, mav.FAILURE_TYPE_OK) == 0
+    client.recv("LOCAL_POSITION_NED", timeout=2)
+    assert client.recv("SYS_STATUS").onboard_control_sensors_health & mav.MAV_SYS_STATUS_PREARM_CHECK
+    assert client.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 1) == 0
+    # Losing the estimate in the air is a failsafe: PX4 lands.
+    assert client.command(mav.MAV_CMD_NAV_TAKEOFF, nan, nan, nan, nan, nan, nan, 1.0) == 0
+    client.recv("EXTENDED_SYS_STATE", lambda m: m.landed_state == mav.MAV_LANDED_STATE_IN_AIR, 30)
+    assert client.command(mav.MAV_CMD_INJECT_FAILURE, *vio_off) == 0
+    client.wait_mode(LAND, 5)
+    # ...and nothing that needs a position can be entered meanwhile.
+    assert client.command(mav.MAV_CMD_DO_SET_MODE, 1, *LOITER) == mav.MAV_RESULT_TEMPORARILY_REJECTED
+    with core.lock:
+        assert core.counters.get("handler_errors", 0) == 0
+
+
+def test_gripper_on_an_actuator_output(sim):
+    core, server, client, _ = sim
+    nan = math.nan
+    assert client.command(mav.MAV_CMD_DO_SET_ACTUATOR, 1.0, nan, nan, nan, nan, nan, 0) == 0
+    client.recv("STATUSTEXT", lambda m: m.text.startswith("Gripper closed"), 5)
+    with core.lock:
+        assert core.vehicle.gripper_closed
+    assert client.command(mav.MAV_CMD_DO_SET_ACTUATOR, nan, 1.0, nan, nan, nan, nan, 0) == 0  # another output
+    with core.lock:
+        assert core.vehicle.gripper_closed
+    assert client.command(mav.MAV_CMD_DO_SET_ACTUATOR, -1.0, nan, nan, nan, nan, nan, 0) == 0
+    with core.lock:
+        assert not core.vehicle.gripper_closed

@@ -11,7 +11,6 @@ from pymavlink.dialects.v20 import common as mav
 from services.sim.core import SimCore
 from services.sim.vehicle import (
     ACCEPTED,
-    DENIED,
     MAIN_AUTO,
     MAIN_OFFBOARD,
     SUB_LAND,
@@ -50,10 +49,9 @@ def to_offboard(core: SimCore, clock: Clock, alt: float = 1.5) -> None:
     v = core.vehicle
     assert v.arm(True) == ACCEPTED
     sp = ([0.0, 0.0, -alt], math.pi / 2)
+    assert v.set_mode(MAIN_OFFBOARD, 0, clock.now) == TEMPORARILY_REJECTED  # no setpoint yet
     clock.run(0.3, sp)
-    assert v.set_mode(MAIN_OFFBOARD, 0, clock.now) == TEMPORARILY_REJECTED  # stream < 1 s
-    clock.run(0.9, sp)
-    assert v.set_mode(MAIN_OFFBOARD, 0, clock.now) == ACCEPTED
+    assert v.set_mode(MAIN_OFFBOARD, 0, clock.now) == ACCEPTED  # PX4: a setpoint within COM_OF_LOSS_T
     clock.run(5.0, sp)
     assert abs(v.p[2] + alt) < 0.02 and not v.on_ground
 
@@ -85,7 +83,7 @@ def test_arming_rules_and_offboard_failsafe(core):
     assert v.arm(False) == ACCEPTED  # already disarmed
     to_offboard(core, clock)
     assert v.arm(True) == ACCEPTED
-    assert v.arm(False) == DENIED  # in the air
+    assert v.arm(False) == TEMPORARILY_REJECTED  # in the air (PX4: "Disarming denied: not landed")
     assert v.takeoff(2.0) == ACCEPTED and v.set_mode(MAIN_OFFBOARD, 0, clock.now) in (ACCEPTED,
                                                                                         TEMPORARILY_REJECTED)
     clock.run(0.4)  # stream stops
@@ -175,3 +173,42 @@ def test_reset_restores_everything(core):
     assert core.world.by_name("apple") is not None
     assert not core.reset(Scenario(destination="moon")).ok
     assert core.scenario.target_object == "apple"  # a failed reset leaves the world alone
+
+
+def test_px4_arming_checks_rtl_and_estimate_failsafe(core):
+    clock, v = Clock(core), core.vehicle
+    v.set_estimate_valid(False)
+    assert v.arm(True) == TEMPORARILY_REJECTED and not v.armed
+    assert v.events[-1][1] == "Preflight Fail: No valid local position estimate"
+    assert v.arm(True, force=True) == ACCEPTED and v.arm(False) == ACCEPTED
+    v.set_estimate_valid(True)
+    v.battery = 3.0
+    assert v.arm(True) == TEMPORARILY_REJECTED and "battery" in v.events[-1][1]
+    v.battery = 80.0
+    assert v.rtl() == TEMPORARILY_REJECTED  # nothing to return from on the ground
+    # RTL from a point away from home: climbs to RTL_RETURN_ALT, flies home, lands there; the disarm after it
+    # leaves the vehicle in Hold, where it can arm again.
+    to_offboard(core, clock, alt=1.0)
+    clock.run(6.0, ([2.0, 1.0, -1.0], 0.0))
+    assert np.linalg.norm(v.p[:2] - [2.0, 1.0]) < 0.05
+    assert v.rtl() == ACCEPTED and v.mode_name == "AUTO.RTL"
+    clock.run(3.0)
+    assert v.p[2] < -1.9 and v.mode_name == "AUTO.RTL"  # climbed before going home
+    clock.run(20.0)
+    assert v.on_ground and np.linalg.norm(v.p[:2] - v.home[:2]) < 0.15 and not v.armed
+    assert v.mode_name == "AUTO.LOITER" and v.arm(True) == ACCEPTED
+    # Losing the estimate in the air lands at once (PX4's failsafe for modes that need a position).
+    to_offboard(core, clock, alt=1.0)
+    v.set_estimate_valid(False)
+    assert v.mode_name == "AUTO.LAND" and "Failsafe" in v.events[-1][1]
+    assert v.set_mode(MAIN_OFFBOARD, 0, clock.now) == TEMPORARILY_REJECTED
+
+
+def test_battery_failsafe_takes_over_offboard_but_offboard_stays_possible(core):
+    clock, v = Clock(core), core.vehicle
+    to_offboard(core, clock, alt=1.0)
+    v.battery_failsafe()
+    assert v.mode_name == "AUTO.RTL" and "critical battery" in v.events[-1][1]
+    # PX4 would let a stack switch back (a setpoint stream is there): not re-entering is the stack's duty.
+    clock.run(0.2, ([0.0, 0.0, -1.0], 0.0))
+    assert v.set_mode(MAIN_OFFBOARD, 0, clock.now) == ACCEPTED

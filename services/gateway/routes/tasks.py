@@ -22,6 +22,7 @@ from services.gateway.models import (
     TaskLinks,
     TaskPage,
     TaskSummary,
+    abort_summary,
 )
 from shared.errors import NoResponder, QueryTimeout, RemoteError
 from shared.keys import Keys
@@ -221,5 +222,5 @@ async def abort_task(task_id: TaskId, store: StoreDep, fleet: FleetDep, settings
                             "every vehicle")
     reason = (body or AbortIn()).reason
     acked = await fleet.abort([row["vehicle_id"]], reason, task_id, settings.abort_ack_timeout_s)
-    return AbortOut(vehicles=[row["vehicle_id"]], acknowledged=sorted(acked), messages=acked,
-                    task_id=task_id)
+    return AbortOut(vehicles=[row["vehicle_id"]], acknowledged=sorted(acked), messages=abort_summary(acked),
+                    services=acked, task_id=task_id)

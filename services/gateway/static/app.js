@@ -21,8 +21,10 @@ function say(text, isError = false) {
 }
 
 async function api(method, path, body) {
-  const opts = { method, headers: authHeaders(body ? { "Content-Type": "application/json" } : {}) };
-  if (body) opts.body = JSON.stringify(body);
+  // Every state-changing request is JSON (the gateway refuses anything else: no cross-site form posts).
+  const changes = method !== "GET";
+  const opts = { method, headers: authHeaders(changes ? { "Content-Type": "application/json" } : {}) };
+  if (changes) opts.body = JSON.stringify(body ?? {});
   const r = await fetch(API + path, opts);
   const data = r.headers.get("content-type")?.includes("json") ? await r.json() : null;
   if (!r.ok) throw new Error(data?.detail || `${r.status} ${r.statusText}`);
@@ -51,6 +53,13 @@ $("abort").addEventListener("click", async () => {
     }
     if (!out) out = await api("POST", "/abort", { reason: "abort button" });
     say(`abort sent to ${out.vehicles.join(", ")}; acknowledged by ${out.acknowledged.join(", ") || "nobody yet"}`);
+  } catch (e) { say(`abort failed: ${e.message}`, true); }
+});
+
+$("abort-all").addEventListener("click", async () => {
+  try {
+    const out = await api("POST", "/abort", { reason: "abort-all button" });
+    say(`fleet abort sent (${out.vehicles.length} vehicles); acknowledged by ${out.acknowledged.join(", ") || "nobody yet"}`);
   } catch (e) { say(`abort failed: ${e.message}`, true); }
 });
 
@@ -237,5 +246,42 @@ async function pollCamera() {
   setTimeout(pollCamera, 250);
 }
 
+// ---- operator approvals: skills the policy chose that wait for Approve or Reject
+
+async function decide(id, approve) {
+  const reason = approve ? "" : (prompt("Why reject? (the policy reads this)") || "rejected by the operator");
+  try {
+    await api("POST", `/approvals/${id}`, { approve, reason, operator: "web page" });
+    say(`${approve ? "approved" : "rejected"} ${id}`);
+  } catch (e) { say(`decision failed: ${e.message}`, true); }
+  pollApprovals(false);
+}
+
+async function pollApprovals(again = true) {
+  try {
+    const pending = await api("GET", "/approvals");
+    const list = $("approval-list");
+    list.innerHTML = "";
+    for (const a of pending) {
+      const call = a.argument ? `${a.skill}(${a.argument})` : a.skill;
+      const left = a.expires_ns ? Math.max(0, Math.round((a.expires_ns / 1e6 - Date.now()) / 1000)) : null;
+      const approve = el("button", { className: "approve", type: "button", textContent: "Approve" });
+      const reject = el("button", { className: "reject", type: "button", textContent: "Reject" });
+      approve.addEventListener("click", () => decide(a.approval_id, true));
+      reject.addEventListener("click", () => decide(a.approval_id, false));
+      const item = el("li", { className: "approval" },
+        el("strong", { textContent: `${a.vehicle_id} step ${a.step}: ${call}` }),
+        el("div", { className: "muted", textContent: a.reasoning || "" }),
+        el("div", { className: "muted", textContent: left == null ? "" : `holds and fails the step in ${left} s` }),
+        approve, reject);
+      item.dataset.id = a.approval_id;
+      list.append(item);
+    }
+    $("approvals").hidden = pending.length === 0;
+  } catch (e) { /* no token yet, or the gateway restarts: the next poll retries */ }
+  if (again) setTimeout(pollApprovals, 700);
+}
+
 pollHealth();
 pollCamera();
+pollApprovals();

@@ -1,11 +1,20 @@
-"""The one interface every policy backend implements: raw text in, raw text + tokens + latency out."""
+"""The one interface every policy backend implements (raw text in, raw text + tokens + latency out) and the
+backend registry: a backend is one module with a `Backend` subclass decorated with `@register`; its `kind`
+is the value of `AERMANI_REASONER_BACKEND` and of a task's `backend` override, and nothing else names it."""
 
 from __future__ import annotations
 
+import logging
+import os
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, ClassVar
 
 from services.reasoner.prompt import CompiledPrompt, reprompt_text
+from shared.errors import ConfigError, ModelError
+
+if TYPE_CHECKING:
+    from services.reasoner.settings import ReasonerSettings
 
 
 @dataclass
@@ -59,6 +68,10 @@ class ModelReply:
     latency_s: float
     tokens_in: int | None = None
     tokens_out: int | None = None
+    structured: bool = False
+    """The answer was decoded under the answer's JSON schema (schema-constrained output)."""
+    cached_tokens: int | None = None
+    """Prompt tokens the server read from its prompt cache, when it says."""
 
 
 def conversation(request: ModelRequest, first_user_content: list[dict]) -> list[dict]:
@@ -72,12 +85,176 @@ def conversation(request: ModelRequest, first_user_content: list[dict]) -> list[
 
 
 class Backend(ABC):
-    """A policy pi(o_t, P_t). Transport retries happen inside; after the budget it raises ModelError."""
+    """A policy pi(o_t, P_t). Transport retries happen inside; after the budget it raises ModelError.
 
+    Subclasses set `kind` (the registry name) and `summary` (one line for `aermani vlm backends`), and build
+    themselves from the reasoner settings in `from_settings`."""
+
+    kind: ClassVar[str] = ""
+    """Registry name: AERMANI_REASONER_BACKEND, TaskRequest.backend, `--backend`."""
+    summary: ClassVar[str] = ""
+    """One line saying what the backend is and which settings it reads."""
     name: str = ""
+    """Label of this instance in records, e.g. `openai:gpt-4o` (the kind plus the model when there is one)."""
+
+    @classmethod
+    def from_settings(cls, settings: ReasonerSettings) -> Backend:
+        """Build from the reasoner settings; raise ConfigError naming the setting to fix."""
+        return cls()
 
     @abstractmethod
     async def complete(self, request: ModelRequest) -> ModelReply: ...
 
     async def aclose(self) -> None:
         return None
+
+
+BACKENDS: dict[str, type[Backend]] = {}
+
+
+def register(cls: type[Backend]) -> type[Backend]:
+    """Class decorator: make a backend selectable by its `kind`."""
+    if not cls.kind:
+        raise ValueError(f"{cls.__name__} has no `kind`")
+    BACKENDS[cls.kind] = cls
+    return cls
+
+
+def api_key(settings: ReasonerSettings, kind: str, env_var: str) -> str:
+    """The key for backend `kind`: AERMANI_REASONER_API_KEY, else `env_var`; a ConfigError naming both."""
+    if settings.api_key is not None:
+        return settings.api_key.get_secret_value()
+    key = os.environ.get(env_var)
+    if not key:
+        raise ConfigError(f"backend {kind} needs an API key: set AERMANI_REASONER_API_KEY or {env_var} "
+                          "(a local server that ignores keys still needs a placeholder such as 'none')")
+    return key
+
+
+# --------------------------------------------------------------------------- chat-model backends
+
+log = logging.getLogger("aermani.reasoner.backends")
+_SCHEMA_REJECTED: dict[tuple[str, str, str], str] = {}
+"""(backend kind, base URL, model) -> why the server rejected schema-constrained output (auto mode)."""
+
+
+class SchemaRejected(Exception):
+    """The server refused the request because of the answer schema (HTTP 400/422 with a schema sent)."""
+
+
+def jpeg_size(jpeg: bytes) -> tuple[int, int] | None:
+    """(width, height) from the JPEG's start-of-frame marker, without decoding the image."""
+    i = 2
+    while i + 9 < len(jpeg):
+        if jpeg[i] != 0xFF:
+            return None
+        marker = jpeg[i + 1]
+        seg = int.from_bytes(jpeg[i + 2: i + 4], "big")
+        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
+            return int.from_bytes(jpeg[i + 7: i + 9], "big"), int.from_bytes(jpeg[i + 5: i + 7], "big")
+        i += 2 + seg
+    return None
+
+
+def fit_image(jpeg: bytes, max_side: int) -> bytes:
+    """The JPEG, downscaled so its longest side is at most `max_side` (unchanged when it already fits)."""
+    size = jpeg_size(jpeg)
+    if size is not None and max(size) <= max_side:
+        return jpeg
+    import cv2
+    import numpy as np
+
+    img = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
+    if img is None:
+        return jpeg
+    h, w = img.shape[:2]
+    scale = max_side / max(h, w)
+    if scale >= 1:
+        return jpeg
+    small = cv2.resize(img, (max(1, round(w * scale)), max(1, round(h * scale))), interpolation=cv2.INTER_AREA)
+    ok, buf = cv2.imencode(".jpg", small, [cv2.IMWRITE_JPEG_QUALITY, 90])
+    return buf.tobytes() if ok else jpeg
+
+
+class ChatBackend(Backend):
+    """A hosted or local chat model: model profile, output mode (schema-constrained or free text) with the
+    per-endpoint fallback, and the settings every such backend reads. Subclasses implement `_call`."""
+
+    default_model: ClassVar[str] = ""
+    key_env: ClassVar[str] = ""
+
+    def __init__(self, *, model: str, api_key: str, base_url: str | None = None, timeout_s: float = 30.0,
+                 retries: int = 3, max_tokens: int | None = None, temperature: float | None = None,
+                 output_mode: str = "auto", profile: str = "auto") -> None:
+        from services.reasoner.profiles import profile_for
+
+        self.model = model
+        self.name = f"{self.kind}:{model}"
+        self.profile = profile_for(model, profile)
+        self.max_tokens = max_tokens or self.profile.max_tokens
+        self.temperature = self.profile.temperature if temperature is None else temperature
+        self.output_mode = output_mode
+        self.base_url = base_url or ""
+        self.api_key = api_key
+        self.timeout_s = timeout_s
+        self.retries = retries
+        self.tracer = None
+        """OpenTelemetry tracer for model-call spans (tracing.py), None when tracing is off."""
+
+    @classmethod
+    def from_settings(cls, settings: ReasonerSettings) -> ChatBackend:
+        from services.reasoner.tracing import tracer_for
+
+        backend = cls(model=settings.model or cls.default_model, api_key=api_key(settings, cls.kind, cls.key_env),
+                      base_url=settings.base_url, timeout_s=settings.request_timeout_s,
+                      retries=settings.transport_retries, max_tokens=settings.max_tokens,
+                      temperature=settings.temperature, output_mode=settings.output_mode, profile=settings.profile)
+        backend.tracer = tracer_for(settings.otlp_endpoint)
+        return backend
+
+    @property
+    def _endpoint(self) -> tuple[str, str, str]:
+        return self.kind, self.base_url, self.model
+
+    def schema_for(self, request: ModelRequest) -> dict | None:
+        """The answer schema to send with this request, or None for free text."""
+        if request.prompt.schema is None or self.output_mode == "text":
+            return None
+        if self.output_mode == "auto" and (not self.profile.schema or self._endpoint in _SCHEMA_REJECTED):
+            return None
+        return request.prompt.schema
+
+    def image(self, request: ModelRequest) -> bytes | None:
+        jpeg = request.prompt.image_jpeg
+        return None if jpeg is None else fit_image(jpeg, self.profile.image_max_side)
+
+    async def complete(self, request: ModelRequest) -> ModelReply:
+        from services.reasoner import tracing
+
+        schema = self.schema_for(request)
+        with tracing.model_call_span(self.tracer, provider=self.kind, model=self.model, base_url=self.base_url,
+                                     max_tokens=self.max_tokens, temperature=self.temperature,
+                                     structured=schema is not None) as span:
+            reply = await self._complete(request, schema)
+            tracing.record_usage(span, reply.tokens_in, reply.tokens_out, reply.structured)
+            return reply
+
+    async def _complete(self, request: ModelRequest, schema: dict | None) -> ModelReply:
+        try:
+            return await self._call(request, schema)
+        except SchemaRejected as exc:
+            if self.output_mode == "schema":
+                raise ModelError(f"{self.kind} endpoint {self.base_url or '(default)'} rejected the answer schema "
+                                 f"for model {self.model}: {exc}; set AERMANI_REASONER_OUTPUT_MODE=text or auto")
+            reply = await self._call(request, None)
+            if self._endpoint not in _SCHEMA_REJECTED:  # remembered per endpoint, logged once
+                _SCHEMA_REJECTED[self._endpoint] = str(exc)
+                log.warning("%s endpoint %s rejected schema-constrained output for model %s (%s); using free "
+                            "text and the lenient reader from now on", self.kind, self.base_url or "(default)",
+                            self.model, str(exc)[:200])
+            return reply
+
+    @abstractmethod
+    async def _call(self, request: ModelRequest, schema: dict | None) -> ModelReply:
+        """One model call (transport retries inside); raise SchemaRejected when a schema was sent and the
+        server refused the request for it, ModelError after the retry budget."""

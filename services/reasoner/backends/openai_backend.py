@@ -1,5 +1,9 @@
 """`openai`: any OpenAI-compatible chat-completions endpoint (GPT-4o, Gemini's compatible endpoint, vLLM,
-Ollama, llama.cpp server, LM Studio) through the official `openai` SDK; the image goes as a JPEG data URL."""
+Ollama, llama.cpp server, LM Studio) through the official `openai` SDK; the image goes as a JPEG data URL.
+
+The user turn is [constant prompt prefix, the rest of the prompt, image]: the first text part is identical
+for every step, which is what automatic prefix caching (OpenAI, vLLM) reuses. With a schema the request
+carries `response_format: {type: json_schema, json_schema: {name, strict: true, schema}}`."""
 
 from __future__ import annotations
 
@@ -8,7 +12,15 @@ import time
 
 import openai
 
-from services.reasoner.backends.base import Backend, ModelReply, ModelRequest, conversation
+from services.reasoner.backends.base import (
+    ChatBackend,
+    ModelReply,
+    ModelRequest,
+    SchemaRejected,
+    conversation,
+    register,
+)
+from services.reasoner.schema import SCHEMA_NAME
 from shared.errors import ModelError
 
 
@@ -16,29 +28,46 @@ def image_data_url(jpeg: bytes) -> str:
     return "data:image/jpeg;base64," + base64.b64encode(jpeg).decode("ascii")
 
 
-class OpenAIBackend(Backend):
-    def __init__(self, *, model: str, api_key: str, base_url: str | None, timeout_s: float, retries: int,
-                 max_tokens: int, temperature: float) -> None:
-        self.model = model
-        self.name = f"openai:{model}"
-        self.max_tokens = max_tokens
-        self.temperature = temperature
+def response_format(schema: dict) -> dict:
+    return {"type": "json_schema", "json_schema": {"name": SCHEMA_NAME, "strict": True, "schema": schema}}
+
+
+@register
+class OpenAIBackend(ChatBackend):
+    kind = "openai"
+    summary = ("any OpenAI-compatible chat-completions endpoint (GPT-4o, Gemini, vLLM, Ollama, llama.cpp); "
+               "MODEL, BASE_URL, API_KEY or OPENAI_API_KEY")
+    default_model = "gpt-4o"
+    key_env = "OPENAI_API_KEY"
+
+    def __init__(self, **kw: object) -> None:
+        super().__init__(**kw)  # type: ignore[arg-type]
         # The SDK retries 408/409/429/5xx, connection errors and timeouts with exponential backoff and jitter;
         # max_retries is our bounded budget per call.
-        self.client = openai.AsyncOpenAI(api_key=api_key, base_url=base_url, timeout=timeout_s, max_retries=retries)
+        self.client = openai.AsyncOpenAI(api_key=self.api_key, base_url=self.base_url or None,
+                                         timeout=self.timeout_s, max_retries=self.retries)
 
     def messages(self, request: ModelRequest) -> list[dict]:
-        content: list[dict] = [{"type": "text", "text": request.prompt.text}]
-        if request.prompt.image_jpeg is not None:
-            content.append({"type": "image_url", "image_url": {"url": image_data_url(request.prompt.image_jpeg)}})
+        p = request.prompt
+        content: list[dict] = [{"type": "text", "text": p.prefix}] if p.prefix else []
+        content.append({"type": "text", "text": p.suffix})
+        jpeg = self.image(request)
+        if jpeg is not None:
+            content.append({"type": "image_url", "image_url": {"url": image_data_url(jpeg)}})
         return conversation(request, content)
 
-    async def complete(self, request: ModelRequest) -> ModelReply:
+    async def _call(self, request: ModelRequest, schema: dict | None) -> ModelReply:
         t0 = time.perf_counter()
+        extra = {"response_format": response_format(schema)} if schema is not None else {}
         try:
             resp = await self.client.chat.completions.create(
                 model=self.model, messages=self.messages(request), max_tokens=self.max_tokens,
-                temperature=self.temperature)
+                temperature=self.temperature, **extra)
+        except (openai.BadRequestError, openai.UnprocessableEntityError) as exc:
+            if schema is not None:
+                raise SchemaRejected(f"HTTP {exc.status_code}: {str(exc)[:200]}") from exc
+            raise ModelError(f"OpenAI-compatible endpoint refused the request for model {self.model} (HTTP "
+                             f"{exc.status_code}): {str(exc)[:200]}") from exc
         except openai.APIStatusError as exc:
             raise ModelError(f"OpenAI-compatible endpoint answered HTTP {exc.status_code} for model {self.model}"
                              f" after the retry budget: {str(exc)[:200]}") from exc
@@ -48,8 +77,10 @@ class OpenAIBackend(Backend):
         latency = time.perf_counter() - t0
         text = (resp.choices[0].message.content or "") if resp.choices else ""
         usage = resp.usage
+        details = getattr(usage, "prompt_tokens_details", None) if usage else None
         return ModelReply(text=text, latency_s=latency, tokens_in=usage.prompt_tokens if usage else None,
-                          tokens_out=usage.completion_tokens if usage else None)
+                          tokens_out=usage.completion_tokens if usage else None, structured=schema is not None,
+                          cached_tokens=getattr(details, "cached_tokens", None))
 
     async def aclose(self) -> None:
         await self.client.close()

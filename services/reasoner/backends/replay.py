@@ -14,7 +14,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Protocol
 
-from services.reasoner.backends.base import Backend, ModelReply, ModelRequest
+from services.reasoner.backends.base import Backend, ModelReply, ModelRequest, register
 from shared.errors import ConfigError, ModelError
 
 
@@ -56,8 +56,17 @@ class ListReplaySource:
         return iter(self._answers)
 
 
+@register
 class ReplayBackend(Backend):
+    kind = "replay"
+    summary = "answers from a JSONL of recorded ReasoningSteps, {\"raw\": ...} objects or strings; REPLAY_PATH"
     name = "replay"
+
+    @classmethod
+    def from_settings(cls, settings) -> ReplayBackend:
+        if not settings.replay_path:
+            raise ConfigError("backend replay needs AERMANI_REASONER_REPLAY_PATH (a JSONL of recorded answers)")
+        return cls(JsonlReplaySource(settings.replay_path))
 
     def __init__(self, source: ReplaySource) -> None:
         self._it = source.answers()

@@ -25,7 +25,15 @@ import re
 import time
 from dataclasses import dataclass, field
 
-from services.reasoner.backends.base import Backend, ModelReply, ModelRequest, PastStep, PolicyContext, Seen
+from services.reasoner.backends.base import (
+    Backend,
+    ModelReply,
+    ModelRequest,
+    PastStep,
+    PolicyContext,
+    Seen,
+    register,
+)
 from services.reasoner.prompt import DRT_FIELDS
 from shared import skills as S  # noqa: N812 - reads like the paper tables
 
@@ -619,7 +627,10 @@ def render_answer(ctx: PolicyContext, skill: str, argument: str | None, reasonin
     return json.dumps(out)
 
 
+@register
 class RulesBackend(Backend):
+    kind = "rules"
+    summary = "the deterministic non-VLM baseline policy (reads the prompt's context, never pixels)"
     name = "rules"
 
     def __init__(self) -> None:
@@ -654,7 +665,7 @@ def context_from_prompt(text: str) -> PolicyContext:
             variant = next((v for v, fs in DRT_FIELDS.items() if fs == present and v not in ("unstructured", "react")),
                            "full")
     else:
-        command, _, lib = text.partition("\n\nSkills:\n")
+        lib, _, command = text.removeprefix("Skills:\n").rpartition("\n\nCommand: ")
         command, rules, history, variant = command.strip(), "", "", "unstructured"
     skills = re.findall(r"^- ([a-z_]+)", lib, re.M)
     steps = [PastStep(m.group(2), m.group(3), m.group(4), m.group(5) or "") for m in _STEP_LINE.finditer(history)]

@@ -1,0 +1,1 @@
+"""MCP server: agents drive aermani tasks through the gateway."""

@@ -1,0 +1,182 @@
+"""The MCP server: tasks, not raw flight. Every tool is a call to the gateway's HTTP API, so an agent gets
+exactly what an operator gets (the same task store, the same abort, the executor's safety envelope) and
+nothing more; single skills only when both this server and the gateway allow them."""
+
+from __future__ import annotations
+
+import hmac
+import json
+from typing import Any
+
+import httpx
+from mcp.server.mcpserver import MCPServer
+from mcp.server.mcpserver.exceptions import ToolError
+from mcp.server.mcpserver.utilities.types import Image
+
+from services.mcp.settings import McpSettings
+
+INSTRUCTIONS = """\
+aermani flies a PX4 multirotor with a gripper (real or simulated). You give it a task in plain language, e.g.
+"pick up the red cup and place it on the table"; an on-board policy (a vision-language model or the rule-based
+baseline) chooses one flight-safe skill per step (move, turn, localize, grasp, place) and the executor runs it
+inside a geofence with altitude and speed limits. You cannot fly the vehicle directly: start a task, follow it
+with task_status, look through its camera with get_camera_frame, and abort it when needed. One task runs per
+vehicle at a time. Aborting makes the vehicle hold its position."""
+
+
+class GatewayError(ToolError):
+    """The gateway answered with an error; the message is its own explanation."""
+
+
+class Gateway:
+    """A small client of the gateway's /api/v1."""
+
+    def __init__(self, settings: McpSettings) -> None:
+        headers = {"Accept": "application/json"}
+        if settings.gateway_token is not None:
+            headers["Authorization"] = f"Bearer {settings.gateway_token.get_secret_value()}"
+        self.http = httpx.AsyncClient(base_url=settings.gateway_url.rstrip("/"), headers=headers,
+                                      timeout=settings.request_timeout_s)
+
+    async def call(self, method: str, path: str, **kwargs: Any) -> httpx.Response:
+        try:
+            r = await self.http.request(method, path, **kwargs)
+        except httpx.HTTPError as exc:
+            raise GatewayError(f"the aermani gateway at {self.http.base_url} did not answer ({exc}); is "
+                               "`aermani up` (or the ground station) running?") from exc
+        if r.status_code >= 400:
+            try:
+                detail = r.json().get("detail", r.text)
+            except ValueError:
+                detail = r.text
+            raise GatewayError(f"{method} {path}: {r.status_code}: {detail}")
+        return r
+
+    async def json(self, method: str, path: str, **kwargs: Any) -> Any:
+        return (await self.call(method, path, **kwargs)).json()
+
+
+def _step_summary(step: dict[str, Any]) -> dict[str, Any]:
+    ste = step.get("ste") or {}
+    drt = step.get("drt") or {}
+    return {"step": step.get("step"), "skill": ste.get("skill"), "argument": ste.get("argument"),
+            "skill_state": step.get("skill_state"), "skill_message": step.get("skill_message"),
+            "reasoning": drt.get("reasoning"), "summary": drt.get("summary"), "valid": step.get("valid")}
+
+
+def build_server(settings: McpSettings) -> MCPServer:
+    """The MCP server with its tools and resources, talking to the gateway named in `settings`."""
+    gw = Gateway(settings)
+    server = MCPServer(name="aermani", instructions=INSTRUCTIONS, version="1")
+
+    @server.tool()
+    async def list_vehicles() -> list[dict[str, Any]]:
+        """The vehicles the ground station knows: which services answer, link and offboard health, battery,
+        and the task each one runs now (if any)."""
+        health = await gw.json("GET", "/health")
+        return [{"vehicle_id": v["vehicle_id"], "services": v["services"], "link_ok": v.get("link_ok"),
+                 "armed": v.get("armed"), "mode": v.get("mode"), "battery_remaining": v.get("battery_remaining"),
+                 "running_task": v.get("running_task")} for v in health["vehicles"]]
+
+    @server.tool()
+    async def start_task(command: str, vehicle: str | None = None) -> dict[str, Any]:
+        """Start a task from a natural-language command (e.g. "pick up the red cup and place it on the
+        table") on a vehicle (default: the only one). Returns the task id; follow it with task_status.
+        Refused while another task runs on that vehicle."""
+        body: dict[str, Any] = {"command": command}
+        if vehicle:
+            body["vehicle_id"] = vehicle
+        created = await gw.json("POST", "/tasks", json=body)
+        return {"task_id": created["task_id"], "vehicle_id": created["vehicle_id"], "state": created["state"]}
+
+    @server.tool()
+    async def task_status(task_id: str, last_steps: int = 5) -> dict[str, Any]:
+        """A task's state (pending, running, succeeded, failed, aborted, timeout), its explanation, and its
+        last reasoning steps: the skill chosen, the model's reasoning and how the skill ended."""
+        t = await gw.json("GET", f"/tasks/{task_id}")
+        steps = [_step_summary(s["step"]) for s in t.get("reasoning_steps", [])]
+        status = t.get("status") or {}
+        return {"task_id": task_id, "vehicle_id": t.get("vehicle_id"), "command": t.get("command"),
+                "state": t.get("state"), "message": status.get("message", ""), "steps": len(steps),
+                "last_steps": steps[-max(0, min(last_steps, 50)):] if last_steps else []}
+
+    @server.tool()
+    async def abort(task_id: str | None = None, vehicle: str | None = None) -> dict[str, Any]:
+        """Stop now: the named task (or every task on every vehicle when neither is given); the vehicle holds
+        its position. Says which vehicles acknowledged."""
+        if task_id:
+            return dict(await gw.json("POST", f"/tasks/{task_id}/abort", json={}))
+        body = {"vehicle_id": vehicle} if vehicle else {}
+        return dict(await gw.json("POST", "/abort", json=body))
+
+    @server.tool()
+    async def list_skills(vehicle: str = "am1") -> list[dict[str, Any]]:
+        """The skills the on-board policy chooses from (what a task can make the vehicle do)."""
+        lib = await gw.json("GET", f"/vehicles/{vehicle}/skills")
+        return [{"name": s["name"], "category": s["category"], "description": s["description"],
+                 "argument": s.get("argument")} for s in lib["skills"] if s.get("policy_visible", True)]
+
+    @server.tool()
+    async def get_camera_frame(vehicle: str = "am1") -> Image:
+        """The newest colour frame of the vehicle's camera, as a JPEG image."""
+        r = await gw.call("GET", f"/vehicles/{vehicle}/camera.jpg")
+        return Image(data=r.content, format="jpeg")
+
+    @server.tool()
+    async def list_approvals() -> list[dict[str, Any]]:
+        """Skills the on-board policy chose that wait for an operator's approval (set per vehicle and skill
+        class on the reasoner), with the policy's reasoning and when the request expires."""
+        return list(await gw.json("GET", "/approvals"))
+
+    @server.tool()
+    async def decide_approval(approval_id: str, approve: bool, reason: str = "") -> dict[str, Any]:
+        """Approve (the skill runs) or reject (the policy reads your reason and chooses again) a pending
+        approval."""
+        return dict(await gw.json("POST", f"/approvals/{approval_id}",
+                                  json={"approve": approve, "reason": reason, "operator": "mcp"}))
+
+    if settings.allow_skills:
+        @server.tool()
+        async def run_skill(skill: str, argument: str | None = None, vehicle: str = "am1") -> dict[str, Any]:
+            """Run one skill outside a task (e.g. yaw_left, obj_localization "red cup") and wait for its result.
+            The executor's preconditions and safety envelope apply; the gateway must allow single skills."""
+            return dict(await gw.json("POST", f"/vehicles/{vehicle}/skills",
+                                      json={"skill": skill, "argument": argument}))
+
+    @server.resource("aermani://tasks", mime_type="application/json")
+    async def task_history() -> str:
+        """The most recent tasks with their states and commands."""
+        return json.dumps(await gw.json("GET", "/tasks"))
+
+    @server.resource("aermani://vehicles/{vehicle}/detections", mime_type="application/json")
+    async def current_detections(vehicle: str) -> str:
+        """What perception sees now on a vehicle: labels, 3D centroids, sizes, confidence."""
+        return json.dumps(await gw.json("GET", f"/vehicles/{vehicle}/detections"))
+
+    return server
+
+
+class BearerAuth:
+    """ASGI middleware: every HTTP request must carry `Authorization: Bearer <token>` (constant-time check)."""
+
+    def __init__(self, app: Any, token: str) -> None:
+        self.app = app
+        self.token = token.encode()
+
+    async def __call__(self, scope: dict[str, Any], receive: Any, send: Any) -> None:
+        if scope["type"] == "http":
+            headers = dict(scope.get("headers") or [])
+            given = headers.get(b"authorization", b"")
+            if not (given.startswith(b"Bearer ") and hmac.compare_digest(given[7:], self.token)):
+                body = b'{"error": "missing or invalid bearer token (AERMANI_MCP_TOKEN)"}'
+                await send({"type": "http.response.start", "status": 401,
+                            "headers": [(b"content-type", b"application/json"), (b"www-authenticate", b"Bearer")]})
+                await send({"type": "http.response.body", "body": body})
+                return
+        await self.app(scope, receive, send)
+
+
+def http_app(settings: McpSettings) -> Any:
+    """The streamable-HTTP app at /mcp, behind the bearer token when one is set."""
+    app = build_server(settings).streamable_http_app(host=settings.host)
+    return BearerAuth(app, settings.token.get_secret_value()) if settings.token is not None else app

@@ -1,0 +1,49 @@
+"""Settings of the MCP server (env AERMANI_MCP_*): which gateway it drives and how it is reached."""
+
+from __future__ import annotations
+
+import ipaddress
+from typing import Literal
+
+from pydantic import AliasChoices, Field, SecretStr
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from shared.errors import ConfigError
+
+
+class McpSettings(BaseSettings):
+    """`aermani mcp`: a Model Context Protocol server that drives tasks through the gateway's HTTP API."""
+
+    model_config = SettingsConfigDict(env_prefix="AERMANI_MCP_", extra="ignore", populate_by_name=True,
+                                      use_attribute_docstrings=True)
+
+    gateway_url: str = "http://127.0.0.1:8080/api/v1"
+    """The gateway's API root; every tool goes through it (its token, its task store, its envelope)."""
+    gateway_token: SecretStr | None = Field(None, validation_alias=AliasChoices("gateway_token",
+                                                                                "AERMANI_GATEWAY_TOKEN"))
+    """Bearer token of the gateway (environment only; never logged)."""
+    transport: Literal["stdio", "http"] = "stdio"
+    """stdio (an MCP client starts `aermani mcp`) or http (streamable HTTP on host:port/mcp)."""
+    host: str = "127.0.0.1"
+    """Bind address for the HTTP transport; anything but loopback requires `token`."""
+    port: int = Field(8765, ge=0, le=65535)
+    """Port for the HTTP transport."""
+    token: SecretStr | None = Field(None, validation_alias=AliasChoices("token", "AERMANI_MCP_TOKEN"))
+    """Bearer token MCP clients must send over HTTP (environment only)."""
+    allow_skills: bool = False
+    """Also offer `run_skill` (one skill outside a task). Off by default: agents drive tasks, not raw motion;
+    the gateway must allow it too (AERMANI_GATEWAY_SKILL_API) and the executor's envelope still applies."""
+    request_timeout_s: float = Field(30.0, gt=0)
+    """HTTP timeout towards the gateway."""
+
+    def check_safe(self) -> None:
+        """Refuse an HTTP bind beyond loopback without a token."""
+        if self.transport != "http" or self.token is not None:
+            return
+        try:
+            loopback = ipaddress.ip_address(self.host).is_loopback
+        except ValueError:
+            loopback = self.host == "localhost"
+        if not loopback:
+            raise ConfigError(f"AERMANI_MCP_HOST={self.host} is not loopback: set AERMANI_MCP_TOKEN so only clients "
+                              "holding it can start tasks")

@@ -1,0 +1,189 @@
+"""The MCP server driven by the SDK's real client, over stdio (a subprocess) and streamable HTTP, against a
+real gateway on loopback with a stand-in vehicle on a real Zenoh bus."""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import json
+import os
+import sys
+import threading
+import time
+from collections.abc import Iterator
+
+import httpx
+import pytest
+from mcp import Client
+from mcp.client.stdio import StdioServerParameters
+
+from services.reasoner.library import default_library
+from tests.gateway.fakes import Harness
+from tests.helpers import free_port
+
+pytestmark = pytest.mark.integration
+
+GW_TOKEN = "gw-token-for-mcp-tests-41c2"
+MCP_TOKEN = "mcp-token-for-tests-9d0e"
+
+
+@pytest.fixture(scope="module")
+def gw(tmp_path_factory) -> Iterator[Harness]:
+    h = Harness(tmp_path_factory.mktemp("mcp"), gateway_settings={"token": GW_TOKEN}, steps=3,
+                step_delay_s=0.2).start()
+    try:
+        yield h
+    finally:
+        h.stop()
+
+
+def _env(gw: Harness, **extra: str) -> dict[str, str]:
+    env = {"AERMANI_MCP_GATEWAY_URL": gw.base_url + "/api/v1", "AERMANI_GATEWAY_TOKEN": GW_TOKEN, **extra}
+    if os.environ.get("PYTHONPATH"):
+        env["PYTHONPATH"] = os.environ["PYTHONPATH"]
+    return env
+
+
+def _json(result) -> object:
+    assert not result.is_error, result.content
+    if result.structured_content is not None:
+        sc = result.structured_content
+        return sc.get("result", sc) if isinstance(sc, dict) else sc
+    return json.loads(result.content[0].text)
+
+
+async def _wait_state(client: Client, task_id: str, states: set[str], timeout: float = 60.0) -> dict:
+    deadline = time.monotonic() + timeout
+    while True:
+        st = _json(await client.call_tool("task_status", {"task_id": task_id}))
+        if st["state"] in states:
+            return st
+        assert time.monotonic() < deadline, st
+        await asyncio.sleep(0.2)
+
+
+async def _drive(client: Client) -> None:
+    names = {t.name for t in (await client.list_tools()).tools}
+    assert {"list_vehicles", "start_task", "task_status", "abort", "list_skills", "get_camera_frame"} <= names
+    assert "run_skill" not in names  # task level only by default
+    vehicles = _json(await client.call_tool("list_vehicles", {}))
+    assert [v["vehicle_id"] for v in vehicles] == ["am1"]
+
+    started = _json(await client.call_tool("start_task", {"command": "pick up the red cup"}))
+    final = await _wait_state(client, started["task_id"], {"succeeded", "failed", "aborted", "timeout"})
+    assert final["state"] == "succeeded" and final["steps"] == 3
+    real = {s.name for s in default_library().skills}
+    assert [s["skill"] for s in final["last_steps"]] and all(s["skill"] in real for s in final["last_steps"])
+    assert all(s["reasoning"] for s in final["last_steps"])
+
+    skills = _json(await client.call_tool("list_skills", {"vehicle": "am1"}))
+    assert "grasp" in {s["name"] for s in skills} and "takeoff" not in {s["name"] for s in skills}
+
+    frame = await client.call_tool("get_camera_frame", {"vehicle": "am1"})
+    image = next(c for c in frame.content if c.type == "image")
+    assert image.mime_type == "image/jpeg" and base64.b64decode(image.data)[:2] == b"\xff\xd8"
+
+    endless = _json(await client.call_tool("start_task", {"command": "look around until abort"}))
+    await _wait_state(client, endless["task_id"], {"running"})
+    aborted = _json(await client.call_tool("abort", {"task_id": endless["task_id"]}))
+    assert aborted["acknowledged"] == ["am1"]
+    final = await _wait_state(client, endless["task_id"], {"aborted"})
+    assert final["state"] == "aborted"
+
+    history = await client.read_resource("aermani://tasks")
+    assert endless["task_id"] in history.contents[0].text
+    bad = await client.call_tool("task_status", {"task_id": "task-doesnotexist"})
+    assert bad.is_error and "404" in bad.content[0].text
+
+
+def test_stdio_client_starts_follows_sees_and_aborts(gw):
+    params = StdioServerParameters(command=sys.executable, args=["-m", "shared.cli", "mcp"], env=_env(gw))
+
+    async def main():
+        async with Client(params) as client:
+            await _drive(client)
+
+    asyncio.run(asyncio.wait_for(main(), 180))
+
+
+def test_http_client_needs_the_token_then_drives_a_task(gw):
+    import uvicorn
+
+    from services.mcp.server import http_app
+    from services.mcp.settings import McpSettings
+
+    port = free_port()
+    settings = McpSettings(transport="http", port=port, gateway_url=gw.base_url + "/api/v1", gateway_token=GW_TOKEN,
+                           token=MCP_TOKEN)
+    server = uvicorn.Server(uvicorn.Config(http_app(settings), host="127.0.0.1", port=port, log_config=None))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    try:
+        deadline = time.monotonic() + 20
+        while not server.started:
+            assert time.monotonic() < deadline, "MCP HTTP server did not start"
+            time.sleep(0.05)
+        url = f"http://127.0.0.1:{port}/mcp"
+        r = httpx.post(url, json={"jsonrpc": "2.0", "id": 1, "method": "tools/list"})
+        assert r.status_code == 401
+        r = httpx.post(url, json={"jsonrpc": "2.0", "id": 1, "method": "tools/list"},
+                       headers={"Authorization": "Bearer wrong"})
+        assert r.status_code == 401
+
+        async def main():
+            import httpx2
+            from mcp.client.streamable_http import streamable_http_client
+
+            http = httpx2.AsyncClient(headers={"Authorization": f"Bearer {MCP_TOKEN}"}, timeout=30)
+            async with http, Client(streamable_http_client(url, http_client=http)) as client:
+                await _drive(client)
+
+        asyncio.run(asyncio.wait_for(main(), 180))
+    finally:
+        server.should_exit = True
+        thread.join(10)
+
+
+def test_refuses_an_open_http_bind_without_a_token():
+    from services.mcp.settings import McpSettings
+    from shared.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="AERMANI_MCP_TOKEN"):
+        McpSettings(transport="http", host="0.0.0.0").check_safe()
+
+
+def test_stdio_client_decides_approvals(tmp_path):
+    h = Harness(tmp_path, gateway_settings={"token": GW_TOKEN}, steps=5, step_delay_s=0.2).start()
+    params = StdioServerParameters(command=sys.executable, args=["-m", "shared.cli", "mcp"], env=_env(h))
+
+    async def pending(client: Client) -> list[dict]:
+        deadline = time.monotonic() + 30
+        while True:
+            items = _json(await client.call_tool("list_approvals", {}))
+            if items:
+                return items
+            assert time.monotonic() < deadline, "no approval request appeared"
+            await asyncio.sleep(0.2)
+
+    async def main():
+        async with Client(params) as client:
+            started = _json(await client.call_tool("start_task", {"command": "pick up the red cup with approval"}))
+            first = (await pending(client))[0]
+            assert first["skill"] == "grasp" and first["reasoning"]
+            out = _json(await client.call_tool("decide_approval", {"approval_id": first["approval_id"],
+                                                                  "approve": False, "reason": "not that one"}))
+            assert out["approved"] is False
+            again = await client.call_tool("decide_approval", {"approval_id": first["approval_id"], "approve": True})
+            assert again.is_error  # decided once
+            second = (await pending(client))[0]
+            assert second["approval_id"] != first["approval_id"]
+            _json(await client.call_tool("decide_approval", {"approval_id": second["approval_id"], "approve": True}))
+            final = await _wait_state(client, started["task_id"], {"succeeded", "failed", "aborted", "timeout"})
+            assert final["state"] == "succeeded"
+
+    try:
+        asyncio.run(asyncio.wait_for(main(), 120))
+        assert [(d.approved, d.reason, d.operator) for d in h.fake.decisions] == [(False, "not that one", "mcp"),
+                                                                                  (True, "", "mcp")]
+    finally:
+        h.stop()
