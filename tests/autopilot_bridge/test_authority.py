@@ -34,7 +34,7 @@ from shared.messages import (
 )
 from tests.gateway.conftest import TOKEN
 from tests.gateway.test_process import GatewayProcess
-from tests.helpers import arun, bus_for, run_stack, wait_until
+from tests.helpers import bus_for, run_stack, wait_until
 from tests.sim.test_mavlink import Client
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
@@ -56,7 +56,7 @@ async def reset(bus: Bus, seed: int) -> None:
 
 
 @pytest.mark.timeout(900)
-def test_px4_failsafe_mid_task_ends_the_task_and_nothing_reenters_offboard(tmp_path: Path) -> None:
+async def test_px4_failsafe_mid_task_ends_the_task_and_nothing_reenters_offboard(tmp_path: Path) -> None:
     gcs_port = free_udp_port()
     env = {**RULES, "AERMANI_SIM_SPEED_FACTOR": "3", "AERMANI_SIM_GCS_PORT": str(gcs_port)}
     services = ["sim", "autopilot_bridge", "perception", "executor", "reasoner"]
@@ -162,71 +162,68 @@ def test_px4_failsafe_mid_task_ends_the_task_and_nothing_reenters_offboard(tmp_p
                         t.cancel()
 
         try:
-            arun(body(), 600)
+            await body()
         finally:
             if gcs is not None:
                 gcs.close()
 
 
 @pytest.mark.timeout(600)
-def test_abort_through_the_api_holds_the_vehicle_with_the_executor_dead(tmp_path: Path) -> None:
+async def test_abort_through_the_api_holds_the_vehicle_with_the_executor_dead(tmp_path: Path) -> None:
     env = {**RULES, "AERMANI_SIM_SPEED_FACTOR": "2"}
     with run_stack(["sim", "autopilot_bridge", "executor", "reasoner"], tmp_path, env=env, timeout=180) as stack:
         gw = GatewayProcess(tmp_path, stack.endpoint)
         try:
             gw.start(timeout=120)
 
-            async def body() -> None:
-                async with bus_for(stack) as bus:
-                    state = Latest(bus.subscribe(KEYS.autopilot_state))
-                    pump = asyncio.create_task(state.run())
-                    try:
-                        await reset(bus, seed=1)
-                        await wait_until(lambda: state.value is not None and state.value.link_ok
-                                         and not state.value.armed, 60, what="grounded after the reset")
-                        # An operator flies by hand: take off, then a slow climb that takes ~10 s.
-                        res = await bus.query(KEYS.autopilot_command, TakeoffCommand(altitude=1.0), timeout=60)
-                        assert res.ok, res.message
-                        p = state.value.position
-                        goal = Vec3(x=p.x, y=p.y, z=2.4)
-                        res = await bus.query(KEYS.autopilot_command,
-                                              GotoCommand(position=goal, yaw=state.value.yaw, max_speed=0.12), timeout=10)
-                        assert res.ok, res.message
-                        await wait_until(lambda: state.value.position.z > 1.15, 20, what="climbing")
+            async with bus_for(stack) as bus:
+                state = Latest(bus.subscribe(KEYS.autopilot_state))
+                pump = asyncio.create_task(state.run())
+                try:
+                    await reset(bus, seed=1)
+                    await wait_until(lambda: state.value is not None and state.value.link_ok
+                                     and not state.value.armed, 60, what="grounded after the reset")
+                    # An operator flies by hand: take off, then a slow climb that takes ~10 s.
+                    res = await bus.query(KEYS.autopilot_command, TakeoffCommand(altitude=1.0), timeout=60)
+                    assert res.ok, res.message
+                    p = state.value.position
+                    goal = Vec3(x=p.x, y=p.y, z=2.4)
+                    res = await bus.query(KEYS.autopilot_command,
+                                          GotoCommand(position=goal, yaw=state.value.yaw, max_speed=0.12), timeout=10)
+                    assert res.ok, res.message
+                    await wait_until(lambda: state.value.position.z > 1.15, 20, what="climbing")
 
-                        stack.kill("executor")  # SIGKILL: no goodbye, nothing holds on its behalf
-                        with httpx.Client(base_url=gw.url, timeout=30,
-                                          headers={"Authorization": f"Bearer {TOKEN}"}) as c:
-                            await wait_until(lambda: not next(v for v in c.get("/health").json()["vehicles"]
-                                                              if v["vehicle_id"] == "am1")["services"].get("executor"),
-                                             30, what="the gateway sees the executor gone")
-                            ab = c.post("/abort", json={"reason": "executor dead, stop now"})
-                        assert ab.status_code == 202, ab.text
-                        out = ab.json()
-                        assert out["acknowledged"] == ["am1"], out
-                        assert set(out["services"]["am1"]) == {"autopilot_bridge"}, out
-                        assert "holding" in out["services"]["am1"]["autopilot_bridge"], out
-                        # The vehicle stops climbing and stays put, well short of the goal.
-                        await asyncio.sleep(1.5)
-                        z0 = state.value.position.z
-                        samples = []
-                        t_end = time.monotonic() + 3.0
-                        while time.monotonic() < t_end:
-                            st = await state.wait(2.0)
-                            samples.append((st.position.z, abs(st.velocity.z)))
-                        assert all(abs(z - z0) < 0.05 for z, _ in samples), samples[-5:]
-                        assert all(vz < 0.05 for _, vz in samples), samples[-5:]
-                        assert z0 < goal.z - 0.5, f"the vehicle kept climbing to {z0:.2f} m"
-                        st = state.value
-                        assert st.armed and st.landed_state == "in_air"
-                        assert st.override.startswith("aborted by gateway: executor dead, stop now"), st.override
-                        # The bridge's own hold stays in force: the old goto is not resumed.
-                        await asyncio.sleep(2.0)
-                        assert abs(state.value.position.z - z0) < 0.05
-                    finally:
-                        pump.cancel()
-
-            arun(body(), 300)
+                    stack.kill("executor")  # SIGKILL: no goodbye, nothing holds on its behalf
+                    with httpx.Client(base_url=gw.url, timeout=30,
+                                      headers={"Authorization": f"Bearer {TOKEN}"}) as c:
+                        await wait_until(lambda: not next(v for v in c.get("/health").json()["vehicles"]
+                                                          if v["vehicle_id"] == "am1")["services"].get("executor"),
+                                         30, what="the gateway sees the executor gone")
+                        ab = c.post("/abort", json={"reason": "executor dead, stop now"})
+                    assert ab.status_code == 202, ab.text
+                    out = ab.json()
+                    assert out["acknowledged"] == ["am1"], out
+                    assert set(out["services"]["am1"]) == {"autopilot_bridge"}, out
+                    assert "holding" in out["services"]["am1"]["autopilot_bridge"], out
+                    # The vehicle stops climbing and stays put, well short of the goal.
+                    await asyncio.sleep(1.5)
+                    z0 = state.value.position.z
+                    samples = []
+                    t_end = time.monotonic() + 3.0
+                    while time.monotonic() < t_end:
+                        st = await state.wait(2.0)
+                        samples.append((st.position.z, abs(st.velocity.z)))
+                    assert all(abs(z - z0) < 0.05 for z, _ in samples), samples[-5:]
+                    assert all(vz < 0.05 for _, vz in samples), samples[-5:]
+                    assert z0 < goal.z - 0.5, f"the vehicle kept climbing to {z0:.2f} m"
+                    st = state.value
+                    assert st.armed and st.landed_state == "in_air"
+                    assert st.override.startswith("aborted by gateway: executor dead, stop now"), st.override
+                    # The bridge's own hold stays in force: the old goto is not resumed.
+                    await asyncio.sleep(2.0)
+                    assert abs(state.value.position.z - z0) < 0.05
+                finally:
+                    pump.cancel()
         finally:
             if gw.proc is not None and gw.proc.poll() is None:
                 gw.stop()

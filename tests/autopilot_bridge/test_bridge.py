@@ -24,7 +24,7 @@ from shared.messages import (
     Vec3,
 )
 from tests.autopilot_bridge.fake_px4 import FakePX4, mavlink
-from tests.helpers import arun, free_udp_port, wait_until
+from tests.helpers import free_udp_port, wait_until
 
 
 @contextlib.asynccontextmanager
@@ -51,279 +51,246 @@ async def bridge_and_fake(**overrides):
         fake.stop()
 
 
-def test_handshake_heartbeat_and_message_rates() -> None:
-    async def body():
-        async with bridge_and_fake() as (bridge, fake):
-            assert bridge.target_system == 1 and bridge.target_component == 1
-            assert bridge.link.peer == ("127.0.0.1", fake.port)
-            await wait_until(lambda: "HEARTBEAT" in fake.names(), 10, what="our heartbeat")
-            hb = next(m for m in fake.received if m.get_type() == "HEARTBEAT")
-            assert (hb.type, hb.autopilot) == (px4.MAV_TYPE_ONBOARD_CONTROLLER, px4.MAV_AUTOPILOT_INVALID)
-            # Its own identity: a companion component of the vehicle's system, never a ground station's 255.
-            assert (hb.get_srcSystem(), hb.get_srcComponent()) == (1, px4.MAV_COMP_ID_ONBOARD_COMPUTER)
+async def test_handshake_heartbeat_and_message_rates() -> None:
+    async with bridge_and_fake() as (bridge, fake):
+        assert bridge.target_system == 1 and bridge.target_component == 1
+        assert bridge.link.peer == ("127.0.0.1", fake.port)
+        await wait_until(lambda: "HEARTBEAT" in fake.names(), 10, what="our heartbeat")
+        hb = next(m for m in fake.received if m.get_type() == "HEARTBEAT")
+        assert (hb.type, hb.autopilot) == (px4.MAV_TYPE_ONBOARD_CONTROLLER, px4.MAV_AUTOPILOT_INVALID)
+        # Its own identity: a companion component of the vehicle's system, never a ground station's 255.
+        assert (hb.get_srcSystem(), hb.get_srcComponent()) == (1, px4.MAV_COMP_ID_ONBOARD_COMPUTER)
 
-            def intervals() -> dict[int, float]:
-                return {int(c.param1): c.param2 for c in list(fake.commands)
-                        if c.command == px4.MAV_CMD_SET_MESSAGE_INTERVAL}
+        def intervals() -> dict[int, float]:
+            return {int(c.param1): c.param2 for c in list(fake.commands)
+                    if c.command == px4.MAV_CMD_SET_MESSAGE_INTERVAL}
 
-            await wait_until(lambda: len(intervals()) >= 4, 10, what="rate requests")
-            assert intervals()[px4.MSG_LOCAL_POSITION_NED] == 20000.0
-            assert intervals()[px4.MSG_ATTITUDE] == 20000.0
-            st = bridge.state()
-            assert st.link_ok and st.mode == "POSCTL" and not st.armed and st.landed_state == "on_ground"
-
-    arun(body(), 60)
+        await wait_until(lambda: len(intervals()) >= 4, 10, what="rate requests")
+        assert intervals()[px4.MSG_LOCAL_POSITION_NED] == 20000.0
+        assert intervals()[px4.MSG_ATTITUDE] == 20000.0
+        st = bridge.state()
+        assert st.link_ok and st.mode == "POSCTL" and not st.armed and st.landed_state == "on_ground"
 
 
-def test_arm_ack_accepted_and_denied() -> None:
-    async def body():
-        async with bridge_and_fake() as (bridge, fake):
-            fake.deny_arm = True
-            res = await bridge.handle(ArmCommand())
-            assert not res.ok and res.ack_code == 2 and res.ack_name == "MAV_RESULT_DENIED"
-            assert "denied" in res.message
-            fake.deny_arm = False
-            res = await bridge.handle(ArmCommand())
-            assert res.ok and res.ack_code == 0 and res.ack_name == "MAV_RESULT_ACCEPTED"
-            await wait_until(lambda: bridge.state().armed, 10, what="armed in HEARTBEAT")
-
-    arun(body(), 60)
+async def test_arm_ack_accepted_and_denied() -> None:
+    async with bridge_and_fake() as (bridge, fake):
+        fake.deny_arm = True
+        res = await bridge.handle(ArmCommand())
+        assert not res.ok and res.ack_code == 2 and res.ack_name == "MAV_RESULT_DENIED"
+        assert "denied" in res.message
+        fake.deny_arm = False
+        res = await bridge.handle(ArmCommand())
+        assert res.ok and res.ack_code == 0 and res.ack_name == "MAV_RESULT_ACCEPTED"
+        await wait_until(lambda: bridge.state().armed, 10, what="armed in HEARTBEAT")
 
 
-def test_configured_identity_is_used_and_acks_for_others_are_ignored() -> None:
-    async def body():
-        async with bridge_and_fake(source_system=7, source_component=192) as (bridge, fake):
-            await wait_until(lambda: "HEARTBEAT" in fake.names(), 10, what="our heartbeat")
-            hb = next(m for m in fake.received if m.get_type() == "HEARTBEAT")
-            assert (hb.get_srcSystem(), hb.get_srcComponent()) == (7, 192)
-            # An ACK addressed to another component of our system (or to a GCS) does not answer our command.
-            fake.ack_commands = False
-            task = asyncio.create_task(bridge.handle(GripperCommand(action="close")))
-            await wait_until(lambda: any(c.command == px4.MAV_CMD_DO_GRIPPER for c in fake.commands), 5,
-                             what="gripper command")
-            cmd = next(c for c in fake.commands if c.command == px4.MAV_CMD_DO_GRIPPER)
-            assert (cmd.get_srcSystem(), cmd.get_srcComponent()) == (7, 192)
-            fake.send(fake.mav.command_ack_encode(px4.MAV_CMD_DO_GRIPPER, 0, 0, 0, 7, 191))
-            fake.send(fake.mav.command_ack_encode(px4.MAV_CMD_DO_GRIPPER, 0, 0, 0, 255, 190))
-            await asyncio.sleep(0.2)
-            assert not task.done()
-            fake.send(fake.mav.command_ack_encode(px4.MAV_CMD_DO_GRIPPER, 0, 0, 0, 7, 192))
-            res = await task
-            assert res.ok, res.message
-
-    arun(body(), 60)
+async def test_configured_identity_is_used_and_acks_for_others_are_ignored() -> None:
+    async with bridge_and_fake(source_system=7, source_component=192) as (bridge, fake):
+        await wait_until(lambda: "HEARTBEAT" in fake.names(), 10, what="our heartbeat")
+        hb = next(m for m in fake.received if m.get_type() == "HEARTBEAT")
+        assert (hb.get_srcSystem(), hb.get_srcComponent()) == (7, 192)
+        # An ACK addressed to another component of our system (or to a GCS) does not answer our command.
+        fake.ack_commands = False
+        task = asyncio.create_task(bridge.handle(GripperCommand(action="close")))
+        await wait_until(lambda: any(c.command == px4.MAV_CMD_DO_GRIPPER for c in fake.commands), 5,
+                         what="gripper command")
+        cmd = next(c for c in fake.commands if c.command == px4.MAV_CMD_DO_GRIPPER)
+        assert (cmd.get_srcSystem(), cmd.get_srcComponent()) == (7, 192)
+        fake.send(fake.mav.command_ack_encode(px4.MAV_CMD_DO_GRIPPER, 0, 0, 0, 7, 191))
+        fake.send(fake.mav.command_ack_encode(px4.MAV_CMD_DO_GRIPPER, 0, 0, 0, 255, 190))
+        await asyncio.sleep(0.2)
+        assert not task.done()
+        fake.send(fake.mav.command_ack_encode(px4.MAV_CMD_DO_GRIPPER, 0, 0, 0, 7, 192))
+        res = await task
+        assert res.ok, res.message
 
 
-def test_no_ack_gives_clear_failure_after_retries() -> None:
-    async def body():
-        async with bridge_and_fake(command_attempts=2) as (bridge, fake):
-            fake.ack_commands = False
-            res = await bridge.handle(GripperCommand(action="close"))
-            assert not res.ok and res.ack_code is None and "no COMMAND_ACK" in res.message
-            sent = [c for c in fake.commands if c.command == px4.MAV_CMD_DO_GRIPPER]
-            assert [c.confirmation for c in sent] == [0, 1]
-
-    arun(body(), 60)
+async def test_no_ack_gives_clear_failure_after_retries() -> None:
+    async with bridge_and_fake(command_attempts=2) as (bridge, fake):
+        fake.ack_commands = False
+        res = await bridge.handle(GripperCommand(action="close"))
+        assert not res.ok and res.ack_code is None and "no COMMAND_ACK" in res.message
+        sent = [c for c in fake.commands if c.command == px4.MAV_CMD_DO_GRIPPER]
+        assert [c.confirmation for c in sent] == [0, 1]
 
 
-def test_takeoff_goto_hold_gripper_land_in_ned() -> None:
-    async def body():
-        async with bridge_and_fake() as (bridge, fake):
-            res = await bridge.handle(TakeoffCommand(altitude=1.5))
-            assert res.ok, res.message
-            assert fake.mode == "OFFBOARD" and fake.armed
-            # OFFBOARD was requested only after setpoints had been streaming.
-            mode_cmd = next(c for c in fake.commands if c.command == px4.MAV_CMD_DO_SET_MODE)
-            assert mode_cmd is not None and fake.setpoints
-            sp = fake.setpoints[-1]
-            assert (sp.coordinate_frame, sp.type_mask) == (px4.MAV_FRAME_LOCAL_NED, 2552)
-            assert math.isclose(sp.z, -1.5)
-            st = bridge.state()
-            assert st.offboard_ok and st.mode == "OFFBOARD" and math.isclose(st.position.z, 1.5)
+async def test_takeoff_goto_hold_gripper_land_in_ned() -> None:
+    async with bridge_and_fake() as (bridge, fake):
+        res = await bridge.handle(TakeoffCommand(altitude=1.5))
+        assert res.ok, res.message
+        assert fake.mode == "OFFBOARD" and fake.armed
+        # OFFBOARD was requested only after setpoints had been streaming.
+        mode_cmd = next(c for c in fake.commands if c.command == px4.MAV_CMD_DO_SET_MODE)
+        assert mode_cmd is not None and fake.setpoints
+        sp = fake.setpoints[-1]
+        assert (sp.coordinate_frame, sp.type_mask) == (px4.MAV_FRAME_LOCAL_NED, 2552)
+        assert math.isclose(sp.z, -1.5)
+        st = bridge.state()
+        assert st.offboard_ok and st.mode == "OFFBOARD" and math.isclose(st.position.z, 1.5)
 
-            res = await bridge.handle(GotoCommand(position=Vec3(x=1.0, y=2.0, z=1.2), yaw=0.0))
-            assert res.ok, res.message
-            await wait_until(lambda: math.dist(bridge.position, (1.0, 2.0, 1.2)) < 1e-5, 10, what="fake follows the goto")
-            sp = fake.setpoints[-1]
-            assert (sp.x, sp.y, sp.z) == pytest.approx((2.0, 1.0, -1.2))  # north, east, down (float32)
-            assert sp.yaw == pytest.approx(math.pi / 2)
-            await wait_until(lambda: math.isclose(bridge.state().yaw, 0.0, abs_tol=1e-6), 10, what="yaw ENU")
+        res = await bridge.handle(GotoCommand(position=Vec3(x=1.0, y=2.0, z=1.2), yaw=0.0))
+        assert res.ok, res.message
+        await wait_until(lambda: math.dist(bridge.position, (1.0, 2.0, 1.2)) < 1e-5, 10, what="fake follows the goto")
+        sp = fake.setpoints[-1]
+        assert (sp.x, sp.y, sp.z) == pytest.approx((2.0, 1.0, -1.2))  # north, east, down (float32)
+        assert sp.yaw == pytest.approx(math.pi / 2)
+        await wait_until(lambda: math.isclose(bridge.state().yaw, 0.0, abs_tol=1e-6), 10, what="yaw ENU")
 
-            res = await bridge.handle(GotoCommand(position=Vec3(x=3.0, y=2.0, z=1.2), yaw=1.0, max_speed=20.0))
-            assert not res.ok and "above the limit 1.00 m/s" in res.message  # the envelope's speed limit
-            res = await bridge.handle(GotoCommand(position=Vec3(x=3.0, y=2.0, z=1.2), yaw=1.0, max_speed=0.5))
-            assert res.ok and "0.50 m/s" in res.message
+        res = await bridge.handle(GotoCommand(position=Vec3(x=3.0, y=2.0, z=1.2), yaw=1.0, max_speed=20.0))
+        assert not res.ok and "above the limit 1.00 m/s" in res.message  # the envelope's speed limit
+        res = await bridge.handle(GotoCommand(position=Vec3(x=3.0, y=2.0, z=1.2), yaw=1.0, max_speed=0.5))
+        assert res.ok and "0.50 m/s" in res.message
 
-            res = await bridge.handle(HoldCommand())
-            assert res.ok and "OFFBOARD" in res.message
+        res = await bridge.handle(HoldCommand())
+        assert res.ok and "OFFBOARD" in res.message
 
-            res = await bridge.handle(GripperCommand(action="close"))
-            assert res.ok and res.ack_name == "MAV_RESULT_ACCEPTED" and bridge.state().gripper == "closed"
-            grip = [c for c in fake.commands if c.command == px4.MAV_CMD_DO_GRIPPER][-1]
-            assert (grip.param1, grip.param2) == (1.0, 1.0)
+        res = await bridge.handle(GripperCommand(action="close"))
+        assert res.ok and res.ack_name == "MAV_RESULT_ACCEPTED" and bridge.state().gripper == "closed"
+        grip = [c for c in fake.commands if c.command == px4.MAV_CMD_DO_GRIPPER][-1]
+        assert (grip.param1, grip.param2) == (1.0, 1.0)
 
-            res = await bridge.handle(LandCommand())
-            assert res.ok and fake.mode == "AUTO.LAND"
-            assert not bridge.stream.running
-            await asyncio.sleep(0.3)
-            assert "offboard lost" not in bridge.state().message
-
-    arun(body(), 90)
+        res = await bridge.handle(LandCommand())
+        assert res.ok and fake.mode == "AUTO.LAND"
+        assert not bridge.stream.running
+        await asyncio.sleep(0.3)
+        assert "offboard lost" not in bridge.state().message
 
 
-def test_bad_commands_change_nothing() -> None:
-    async def body():
-        async with bridge_and_fake() as (bridge, fake):
-            res = await bridge.handle(GotoCommand(position=Vec3(x=1.0, y=0.0, z=1.0), yaw=0.0))
-            assert not res.ok and "not airborne" in res.message
-            res = await bridge.handle(TakeoffCommand(altitude=1.0))
-            assert res.ok
-            before = list(fake.setpoints)[-1]
-            # The message models refuse non-finite numbers at the bus; the bridge still checks, for a caller that
-            # builds the command without validation (model_construct) in the same process.
-            for bad in (GotoCommand.model_construct(position=Vec3.model_construct(x=float("nan"), y=0.0, z=1.0),
-                                                    yaw=0.0, max_speed=None),
-                        GotoCommand.model_construct(position=Vec3(x=1.0, y=0.0, z=1.0), yaw=float("inf"),
-                                                    max_speed=None)):
-                res = await bridge.handle(bad)
-                assert not res.ok and "non-finite" in res.message
-            await asyncio.sleep(0.2)
-            after = fake.setpoints[-1]
-            assert (after.x, after.y, after.z, after.yaw) == (before.x, before.y, before.z, before.yaw)
-
-    arun(body(), 60)
+async def test_bad_commands_change_nothing() -> None:
+    async with bridge_and_fake() as (bridge, fake):
+        res = await bridge.handle(GotoCommand(position=Vec3(x=1.0, y=0.0, z=1.0), yaw=0.0))
+        assert not res.ok and "not airborne" in res.message
+        res = await bridge.handle(TakeoffCommand(altitude=1.0))
+        assert res.ok
+        before = list(fake.setpoints)[-1]
+        # The message models refuse non-finite numbers at the bus; the bridge still checks, for a caller that
+        # builds the command without validation (model_construct) in the same process.
+        for bad in (GotoCommand.model_construct(position=Vec3.model_construct(x=float("nan"), y=0.0, z=1.0),
+                                                yaw=0.0, max_speed=None),
+                    GotoCommand.model_construct(position=Vec3(x=1.0, y=0.0, z=1.0), yaw=float("inf"),
+                                                max_speed=None)):
+            res = await bridge.handle(bad)
+            assert not res.ok and "non-finite" in res.message
+        await asyncio.sleep(0.2)
+        after = fake.setpoints[-1]
+        assert (after.x, after.y, after.z, after.yaw) == (before.x, before.y, before.z, before.yaw)
 
 
-def test_bad_mavlink_input_changes_nothing() -> None:
-    async def body():
-        async with bridge_and_fake() as (bridge, fake):
-            peer = bridge.link.peer
-            port = int(bridge.s.connection.rsplit(":", 1)[1])
-            st0 = bridge.state()
-            intruder = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-            other = mavlink.MAVLink(None, srcSystem=42, srcComponent=1)
-            try:
-                for _ in range(20):
-                    intruder.sendto(b"\xfd\x09garbage\x00\xff" * 5, ("127.0.0.1", port))
-                # Another system claiming to be armed in OFFBOARD somewhere else.
-                intruder.sendto(other.heartbeat_encode(2, px4.MAV_AUTOPILOT_PX4, 129,
-                                                       px4.encode_custom_mode("OFFBOARD"), 4).pack(other),
-                                ("127.0.0.1", port))
-                intruder.sendto(other.local_position_ned_encode(0, 9.0, 9.0, -9.0, 0, 0, 0).pack(other),
-                                ("127.0.0.1", port))
-                # Our system id but from a stranger's address.
-                spoof = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
-                intruder.sendto(spoof.local_position_ned_encode(0, 7.0, 7.0, -7.0, 0, 0, 0).pack(spoof),
-                                ("127.0.0.1", port))
-                # From the real autopilot: an ACK for a command we never sent, and a message we do not use.
-                fake.send(fake.mav.command_ack_encode(px4.MAV_CMD_DO_GRIPPER, 0, 0, 0, 1, 191))
-                fake.send(fake.mav.vibration_encode(0, 0.1, 0.1, 0.1, 0, 0, 0))
-                await wait_until(lambda: bridge.counters["unexpected_acks"] >= 1 and bridge.counters["bad_data"] >= 1
-                                 and bridge.counters["wrong_system"] >= 2 and bridge.counters["wrong_address"] >= 1,
-                                 10, what=f"bad input counted: {dict(bridge.counters)}")
-            finally:
-                intruder.close()
-            await asyncio.sleep(0.2)
-            st = bridge.state()
-            assert bridge.link.peer == peer and bridge.target_system == 1
-            assert (st.armed, st.mode, st.position, st.gripper) == (st0.armed, st0.mode, st0.position, st0.gripper)
-            assert st.link_ok
-            # Our writes still go to the autopilot, not to the intruder.
-            res = await bridge.handle(ArmCommand())
-            assert res.ok, res.message
-
-    arun(body(), 60)
+async def test_bad_mavlink_input_changes_nothing() -> None:
+    async with bridge_and_fake() as (bridge, fake):
+        peer = bridge.link.peer
+        port = int(bridge.s.connection.rsplit(":", 1)[1])
+        st0 = bridge.state()
+        intruder = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        other = mavlink.MAVLink(None, srcSystem=42, srcComponent=1)
+        try:
+            for _ in range(20):
+                intruder.sendto(b"\xfd\x09garbage\x00\xff" * 5, ("127.0.0.1", port))
+            # Another system claiming to be armed in OFFBOARD somewhere else.
+            intruder.sendto(other.heartbeat_encode(2, px4.MAV_AUTOPILOT_PX4, 129,
+                                                   px4.encode_custom_mode("OFFBOARD"), 4).pack(other),
+                            ("127.0.0.1", port))
+            intruder.sendto(other.local_position_ned_encode(0, 9.0, 9.0, -9.0, 0, 0, 0).pack(other),
+                            ("127.0.0.1", port))
+            # Our system id but from a stranger's address.
+            spoof = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+            intruder.sendto(spoof.local_position_ned_encode(0, 7.0, 7.0, -7.0, 0, 0, 0).pack(spoof),
+                            ("127.0.0.1", port))
+            # From the real autopilot: an ACK for a command we never sent, and a message we do not use.
+            fake.send(fake.mav.command_ack_encode(px4.MAV_CMD_DO_GRIPPER, 0, 0, 0, 1, 191))
+            fake.send(fake.mav.vibration_encode(0, 0.1, 0.1, 0.1, 0, 0, 0))
+            await wait_until(lambda: bridge.counters["unexpected_acks"] >= 1 and bridge.counters["bad_data"] >= 1
+                             and bridge.counters["wrong_system"] >= 2 and bridge.counters["wrong_address"] >= 1,
+                             10, what=f"bad input counted: {dict(bridge.counters)}")
+        finally:
+            intruder.close()
+        await asyncio.sleep(0.2)
+        st = bridge.state()
+        assert bridge.link.peer == peer and bridge.target_system == 1
+        assert (st.armed, st.mode, st.position, st.gripper) == (st0.armed, st0.mode, st0.position, st0.gripper)
+        assert st.link_ok
+        # Our writes still go to the autopilot, not to the intruder.
+        res = await bridge.handle(ArmCommand())
+        assert res.ok, res.message
 
 
-def test_link_loss_and_offboard_loss_are_reported() -> None:
-    async def body():
-        async with bridge_and_fake() as (bridge, fake):
-            assert (await bridge.handle(TakeoffCommand(altitude=1.0))).ok
-            fake.mode = "AUTO.LOITER"  # e.g. an RC override or a failsafe
-            await wait_until(lambda: "offboard lost" in bridge.state().message, 10, what="offboard loss")
-            st = bridge.state()
-            assert not st.offboard_ok and "AUTO.LOITER" in st.message
-            res = await bridge.handle(HoldCommand())
-            assert res.ok and "AUTO.LOITER" in res.message
-            fake.heartbeats = False
-            await wait_until(lambda: not bridge.state().link_ok, 10, what="link loss")
-            st = bridge.state()
-            assert "link lost" in st.message and not st.offboard_ok
-            res = await bridge.handle(ArmCommand())
-            assert not res.ok and "no link" in res.message
-            fake.heartbeats = True
-            await wait_until(lambda: bridge.state().link_ok, 10, what="link restored")
-
-    arun(body(), 60)
+async def test_link_loss_and_offboard_loss_are_reported() -> None:
+    async with bridge_and_fake() as (bridge, fake):
+        assert (await bridge.handle(TakeoffCommand(altitude=1.0))).ok
+        fake.mode = "AUTO.LOITER"  # e.g. an RC override or a failsafe
+        await wait_until(lambda: "offboard lost" in bridge.state().message, 10, what="offboard loss")
+        st = bridge.state()
+        assert not st.offboard_ok and "AUTO.LOITER" in st.message
+        res = await bridge.handle(HoldCommand())
+        assert res.ok and "AUTO.LOITER" in res.message
+        fake.heartbeats = False
+        await wait_until(lambda: not bridge.state().link_ok, 10, what="link loss")
+        st = bridge.state()
+        assert "link lost" in st.message and not st.offboard_ok
+        res = await bridge.handle(ArmCommand())
+        assert not res.ok and "no link" in res.message
+        fake.heartbeats = True
+        await wait_until(lambda: bridge.state().link_ok, 10, what="link restored")
 
 
-def test_pilot_takeover_is_respected_until_a_new_operator_command() -> None:
-    async def body():
-        async with bridge_and_fake() as (bridge, fake):
-            assert (await bridge.handle(TakeoffCommand(altitude=1.0, task_id="task-a"))).ok
-            assert (await bridge.handle(GotoCommand(position=Vec3(x=1, y=0, z=1), yaw=0.0, task_id="task-a"))).ok
-            fake.mode = "POSCTL"  # the pilot flips the mode switch
-            await wait_until(lambda: bridge.state().override != "", 10, what="takeover latched")
-            st = bridge.state()
-            assert st.override.startswith("PX4 switched from OFFBOARD to POSCTL") and st.override_ns > 0
-            assert not bridge.stream.running  # no setpoints fighting the pilot
-            # Hold does not take the pilot's mode away, and the task cannot fly on.
-            n_modes = sum(1 for c in fake.commands if c.command == px4.MAV_CMD_DO_SET_MODE)
-            res = await bridge.handle(HoldCommand())
-            assert res.ok and "not overriding" in res.message
-            for cmd in (GotoCommand(position=Vec3(x=0, y=0, z=1), yaw=0.0, task_id="task-a"),
-                        TakeoffCommand(altitude=1.0, task_id="task-a"), ArmCommand(task_id="task-a")):
-                res = await bridge.handle(cmd)
-                assert not res.ok and "a new operator command is needed" in res.message, res
-            await asyncio.sleep(0.3)
-            assert fake.mode == "POSCTL"  # nothing asked PX4 for another mode, nothing armed
-            assert sum(1 for c in fake.commands if c.command == px4.MAV_CMD_DO_SET_MODE) == n_modes
-            # A new task is a new operator command: it may take control again.
-            res = await bridge.handle(GotoCommand(position=Vec3(x=0, y=0, z=1), yaw=0.0, task_id="task-b"))
-            assert res.ok, res.message
-            assert bridge.state().override == "" and fake.mode == "OFFBOARD"
-            assert sum(1 for c in fake.commands if c.command == px4.MAV_CMD_DO_SET_MODE) == n_modes + 1
-            # PX4 leaving OFFBOARD again (an RTL failsafe) latches again.
-            fake.mode = "AUTO.RTL"
-            await wait_until(lambda: "AUTO.RTL" in bridge.state().override, 10, what="RTL takeover")
-
-    arun(body(), 60)
+async def test_pilot_takeover_is_respected_until_a_new_operator_command() -> None:
+    async with bridge_and_fake() as (bridge, fake):
+        assert (await bridge.handle(TakeoffCommand(altitude=1.0, task_id="task-a"))).ok
+        assert (await bridge.handle(GotoCommand(position=Vec3(x=1, y=0, z=1), yaw=0.0, task_id="task-a"))).ok
+        fake.mode = "POSCTL"  # the pilot flips the mode switch
+        await wait_until(lambda: bridge.state().override != "", 10, what="takeover latched")
+        st = bridge.state()
+        assert st.override.startswith("PX4 switched from OFFBOARD to POSCTL") and st.override_ns > 0
+        assert not bridge.stream.running  # no setpoints fighting the pilot
+        # Hold does not take the pilot's mode away, and the task cannot fly on.
+        n_modes = sum(1 for c in fake.commands if c.command == px4.MAV_CMD_DO_SET_MODE)
+        res = await bridge.handle(HoldCommand())
+        assert res.ok and "not overriding" in res.message
+        for cmd in (GotoCommand(position=Vec3(x=0, y=0, z=1), yaw=0.0, task_id="task-a"),
+                    TakeoffCommand(altitude=1.0, task_id="task-a"), ArmCommand(task_id="task-a")):
+            res = await bridge.handle(cmd)
+            assert not res.ok and "a new operator command is needed" in res.message, res
+        await asyncio.sleep(0.3)
+        assert fake.mode == "POSCTL"  # nothing asked PX4 for another mode, nothing armed
+        assert sum(1 for c in fake.commands if c.command == px4.MAV_CMD_DO_SET_MODE) == n_modes
+        # A new task is a new operator command: it may take control again.
+        res = await bridge.handle(GotoCommand(position=Vec3(x=0, y=0, z=1), yaw=0.0, task_id="task-b"))
+        assert res.ok, res.message
+        assert bridge.state().override == "" and fake.mode == "OFFBOARD"
+        assert sum(1 for c in fake.commands if c.command == px4.MAV_CMD_DO_SET_MODE) == n_modes + 1
+        # PX4 leaving OFFBOARD again (an RTL failsafe) latches again.
+        fake.mode = "AUTO.RTL"
+        await wait_until(lambda: "AUTO.RTL" in bridge.state().override, 10, what="RTL takeover")
 
 
-def test_offboard_refusal_carries_ack_and_px4_reason() -> None:
-    async def body():
-        async with bridge_and_fake() as (bridge, fake):
-            fake.deny_offboard = True
-            res = await bridge.handle(TakeoffCommand(altitude=1.5))
-            assert not res.ok and res.command == "takeoff"
-            assert res.ack_code == 2 and res.ack_name == "MAV_RESULT_DENIED"
-            assert "OFFBOARD denied" in res.message and "not available" in res.message
-            assert not bridge.stream.running and fake.mode == "POSCTL"
-            st = bridge.state()
-            assert not st.offboard_ok
-
-    arun(body(), 60)
+async def test_offboard_refusal_carries_ack_and_px4_reason() -> None:
+    async with bridge_and_fake() as (bridge, fake):
+        fake.deny_offboard = True
+        res = await bridge.handle(TakeoffCommand(altitude=1.5))
+        assert not res.ok and res.command == "takeoff"
+        assert res.ack_code == 2 and res.ack_name == "MAV_RESULT_DENIED"
+        assert "OFFBOARD denied" in res.message and "not available" in res.message
+        assert not bridge.stream.running and fake.mode == "POSCTL"
+        st = bridge.state()
+        assert not st.offboard_ok
 
 
-def test_abort_without_executor_holds_through_px4_hold_mode() -> None:
+async def test_abort_without_executor_holds_through_px4_hold_mode() -> None:
     from shared.messages import Abort
 
-    async def body():
-        async with bridge_and_fake(abort_hold="px4_hold") as (bridge, fake):
-            assert (await bridge.handle(TakeoffCommand(altitude=1.0, task_id="task-a"))).ok
-            ack = await bridge.on_abort(Abort(reason="stop", source="test", task_id="task-a"))
-            assert ack.service == "autopilot_bridge" and ack.message == "holding in AUTO.LOITER (PX4 Hold)", ack
-            await wait_until(lambda: bridge.state().mode == "AUTO.LOITER", 5, what="PX4 in Hold")
-            assert not bridge.stream.running
-            st = bridge.state()
-            assert st.override == "aborted by test: stop" and not st.offboard_ok
-            # The aborted task stays grounded in Hold; a new task takes control again, and that switch (asked
-            # for by the bridge itself) is not mistaken for a takeover.
-            res = await bridge.handle(GotoCommand(position=Vec3(x=0, y=0, z=1), yaw=0.0, task_id="task-a"))
-            assert not res.ok and "a new operator command is needed" in res.message
-            res = await bridge.handle(GotoCommand(position=Vec3(x=0, y=0, z=1), yaw=0.0, task_id="task-b"))
-            assert res.ok, res.message
-            await asyncio.sleep(0.5)
-            assert bridge.state().override == "" and bridge.state().mode == "OFFBOARD"
-
-    arun(body(), 60)
+    async with bridge_and_fake(abort_hold="px4_hold") as (bridge, fake):
+        assert (await bridge.handle(TakeoffCommand(altitude=1.0, task_id="task-a"))).ok
+        ack = await bridge.on_abort(Abort(reason="stop", source="test", task_id="task-a"))
+        assert ack.service == "autopilot_bridge" and ack.message == "holding in AUTO.LOITER (PX4 Hold)", ack
+        await wait_until(lambda: bridge.state().mode == "AUTO.LOITER", 5, what="PX4 in Hold")
+        assert not bridge.stream.running
+        st = bridge.state()
+        assert st.override == "aborted by test: stop" and not st.offboard_ok
+        # The aborted task stays grounded in Hold; a new task takes control again, and that switch (asked
+        # for by the bridge itself) is not mistaken for a takeover.
+        res = await bridge.handle(GotoCommand(position=Vec3(x=0, y=0, z=1), yaw=0.0, task_id="task-a"))
+        assert not res.ok and "a new operator command is needed" in res.message
+        res = await bridge.handle(GotoCommand(position=Vec3(x=0, y=0, z=1), yaw=0.0, task_id="task-b"))
+        assert res.ok, res.message
+        await asyncio.sleep(0.5)
+        assert bridge.state().override == "" and bridge.state().mode == "OFFBOARD"

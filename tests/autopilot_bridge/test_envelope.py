@@ -12,12 +12,12 @@ import pytest
 
 from shared.messages import DisarmCommand, GotoCommand, TakeoffCommand, Vec3
 from tests.autopilot_bridge.test_integration import ENV, command, sim_ready, start_state, take_off
-from tests.helpers import arun, bus_for, run_stack, wait_until
+from tests.helpers import bus_for, run_stack, wait_until
 
 pytestmark = pytest.mark.integration
 
 
-def test_out_of_envelope_commands_and_in_air_disarm_are_refused_at_the_bridge(tmp_path) -> None:
+async def test_out_of_envelope_commands_and_in_air_disarm_are_refused_at_the_bridge(tmp_path) -> None:
     async def body(stack):
         async with bus_for(stack) as bus:
             bus.name = "envelope-test-intruder"
@@ -67,5 +67,5 @@ def test_out_of_envelope_commands_and_in_air_disarm_are_refused_at_the_bridge(tm
         assert "KILL: disarm with kill=true from envelope-test-intruder" in log
 
     with run_stack(["sim", "autopilot_bridge"], tmp_path, env=ENV) as stack:
-        arun(body(stack), 240)
+        await body(stack)
 

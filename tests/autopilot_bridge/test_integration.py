@@ -28,7 +28,7 @@ from shared.messages import (
     Vec3,
     VehicleState,
 )
-from tests.helpers import arun, bus_for, run_stack, wait_until
+from tests.helpers import bus_for, run_stack, wait_until
 
 pytestmark = pytest.mark.integration
 
@@ -110,7 +110,7 @@ def free_spot(surface: SimObjectTruth, things: tuple[SimObjectTruth, ...]) -> tu
     return best
 
 
-def test_pick_and_place_flight_over_real_udp(tmp_path) -> None:
+async def test_pick_and_place_flight_over_real_udp(tmp_path) -> None:
     async def body(stack):
         async with bus_for(stack) as bus:
             await sim_ready(bus)
@@ -178,10 +178,10 @@ def test_pick_and_place_flight_over_real_udp(tmp_path) -> None:
             task.cancel()
 
     with run_stack(["sim", "autopilot_bridge"], tmp_path, env=ENV) as stack:
-        arun(body(stack), 400)
+        await body(stack)
 
 
-def test_bridge_death_makes_sim_hold_then_land_and_sim_death_is_link_loss(tmp_path) -> None:
+async def test_bridge_death_makes_sim_hold_then_land_and_sim_death_is_link_loss(tmp_path) -> None:
     async def body(stack):
         async with bus_for(stack) as bus:
             await sim_ready(bus)
@@ -225,4 +225,4 @@ def test_bridge_death_makes_sim_hold_then_land_and_sim_death_is_link_loss(tmp_pa
     # A long failsafe hold so the restarted bridge surely sees AUTO.LOITER before AUTO.LAND.
     env = {**ENV, "AERMANI_SIM_FAILSAFE_LAND_DELAY": "8"}
     with run_stack(["sim", "autopilot_bridge"], tmp_path, env=env) as stack:
-        arun(body(stack), 300)
+        await body(stack)

@@ -21,7 +21,7 @@ from shared.errors import MavlinkError
 from shared.messages import ArmCommand, GripperCommand, GripperState
 from tests.autopilot_bridge.fake_px4 import FakePX4, mavlink
 from tests.autopilot_bridge.test_bridge import bridge_and_fake
-from tests.helpers import arun, wait_until
+from tests.helpers import wait_until
 
 
 def test_connection_strings() -> None:
@@ -93,78 +93,69 @@ class SerialPX4:
                 os.close(fd)
 
 
-def test_bridge_over_a_serial_link() -> None:
+async def test_bridge_over_a_serial_link() -> None:
     fc = SerialPX4()
 
-    async def body() -> None:
-        s = BridgeSettings(connection=f"serial:{fc.device}:921600", command_timeout_s=0.5, heartbeat_timeout_s=1.0)
-        link = MavlinkLink(s.connection, baud=s.baud, source_system=s.source_system,
-                           source_component=s.source_component)
-        assert not link.is_udp
-        bridge = Bridge(None, s, link)
-        stop = asyncio.Event()
-        fc.start()
-        link.start(asyncio.get_running_loop(), bridge.on_message)
-        hb = asyncio.create_task(bridge.heartbeat_loop(stop))
+    s = BridgeSettings(connection=f"serial:{fc.device}:921600", command_timeout_s=0.5, heartbeat_timeout_s=1.0)
+    link = MavlinkLink(s.connection, baud=s.baud, source_system=s.source_system,
+                       source_component=s.source_component)
+    assert not link.is_udp
+    bridge = Bridge(None, s, link)
+    stop = asyncio.Event()
+    fc.start()
+    link.start(asyncio.get_running_loop(), bridge.on_message)
+    hb = asyncio.create_task(bridge.heartbeat_loop(stop))
+    try:
+        await wait_until(lambda: bridge.link_ok and bridge.have_position, 20, what="PX4 over the serial link")
+        assert bridge.target_system == 1 and bridge.state().mode == "POSCTL"
+        res = await bridge.handle(ArmCommand())
+        assert res.ok and res.ack_name == "MAV_RESULT_ACCEPTED", res
+        await wait_until(lambda: any(m.get_type() == "HEARTBEAT" for m in fc.received), 5, what="our heartbeat")
+        ours = next(m for m in fc.received if m.get_type() == "HEARTBEAT")
+        assert (ours.get_srcSystem(), ours.get_srcComponent()) == (1, px4.MAV_COMP_ID_ONBOARD_COMPUTER)
+        await wait_until(lambda: bridge.armed, 5, what="armed over serial")
+    finally:
+        stop.set()
+        hb.cancel()
+        for t in list(bridge._tasks):
+            t.cancel()
+        link.close()
+        fc.stop()
+
+
+async def test_after_link_loss_only_the_same_system_is_locked_onto_again() -> None:
+    async with bridge_and_fake() as (bridge, fake):
+        first_peer = bridge.link.peer
+        fake.heartbeats = False
+        await wait_until(lambda: not bridge.link_ok, 10, what="link loss")
+        port = int(bridge.s.connection.rsplit(":", 1)[1])
+        other = FakePX4(port, system=2).start()  # another vehicle appears on the link
         try:
-            await wait_until(lambda: bridge.link_ok and bridge.have_position, 20, what="PX4 over the serial link")
-            assert bridge.target_system == 1 and bridge.state().mode == "POSCTL"
-            res = await bridge.handle(ArmCommand())
-            assert res.ok and res.ack_name == "MAV_RESULT_ACCEPTED", res
-            await wait_until(lambda: any(m.get_type() == "HEARTBEAT" for m in fc.received), 5, what="our heartbeat")
-            ours = next(m for m in fc.received if m.get_type() == "HEARTBEAT")
-            assert (ours.get_srcSystem(), ours.get_srcComponent()) == (1, px4.MAV_COMP_ID_ONBOARD_COMPUTER)
-            await wait_until(lambda: bridge.armed, 5, what="armed over serial")
-        finally:
-            stop.set()
-            hb.cancel()
-            for t in list(bridge._tasks):
-                t.cancel()
-            link.close()
-            fc.stop()
-
-    arun(body(), 60)
-
-
-def test_after_link_loss_only_the_same_system_is_locked_onto_again() -> None:
-    async def body():
-        async with bridge_and_fake() as (bridge, fake):
-            first_peer = bridge.link.peer
-            fake.heartbeats = False
-            await wait_until(lambda: not bridge.link_ok, 10, what="link loss")
-            port = int(bridge.s.connection.rsplit(":", 1)[1])
-            other = FakePX4(port, system=2).start()  # another vehicle appears on the link
+            await asyncio.sleep(1.5)
+            assert not bridge.link_ok and bridge.target_system == 1 and bridge.link.peer == first_peer
+            assert bridge.counters["wrong_system"] > 0
+            same = FakePX4(port, system=1).start()  # our PX4 comes back, from a new address
             try:
-                await asyncio.sleep(1.5)
-                assert not bridge.link_ok and bridge.target_system == 1 and bridge.link.peer == first_peer
-                assert bridge.counters["wrong_system"] > 0
-                same = FakePX4(port, system=1).start()  # our PX4 comes back, from a new address
-                try:
-                    await wait_until(lambda: bridge.link_ok, 10, what="our system back")
-                    assert bridge.link.peer == ("127.0.0.1", same.port) != first_peer
-                    assert bridge.target_system == 1
-                finally:
-                    same.stop()
+                await wait_until(lambda: bridge.link_ok, 10, what="our system back")
+                assert bridge.link.peer == ("127.0.0.1", same.port) != first_peer
+                assert bridge.target_system == 1
             finally:
-                other.stop()
+                same.stop()
+        finally:
+            other.stop()
 
-    arun(body(), 60)
 
-
-def test_gripper_through_an_actuator_output() -> None:
-    async def body():
-        async with bridge_and_fake(gripper_actuation="actuator", gripper_actuator_index=3,
-                                   gripper_actuator_closed=0.8, gripper_actuator_open=-0.6) as (bridge, fake):
-            for action, want in (("close", 0.8), ("open", -0.6)):
-                res = await bridge.handle(GripperCommand(action=action))
-                assert res.ok, res.message
-                cmd = [c for c in fake.commands if c.command == px4.MAV_CMD_DO_SET_ACTUATOR][-1]
-                params = [cmd.param1, cmd.param2, cmd.param3, cmd.param4, cmd.param5, cmd.param6]
-                assert params[2] == pytest.approx(want)
-                assert all(math.isnan(v) for i, v in enumerate(params) if i != 2)  # other outputs untouched
-                assert cmd.param7 == 0
-            assert bridge.state().gripper == GripperState.OPEN
-            assert not [c for c in fake.commands if c.command == px4.MAV_CMD_DO_GRIPPER]
-
-    arun(body(), 60)
+async def test_gripper_through_an_actuator_output() -> None:
+    async with bridge_and_fake(gripper_actuation="actuator", gripper_actuator_index=3,
+                               gripper_actuator_closed=0.8, gripper_actuator_open=-0.6) as (bridge, fake):
+        for action, want in (("close", 0.8), ("open", -0.6)):
+            res = await bridge.handle(GripperCommand(action=action))
+            assert res.ok, res.message
+            cmd = [c for c in fake.commands if c.command == px4.MAV_CMD_DO_SET_ACTUATOR][-1]
+            params = [cmd.param1, cmd.param2, cmd.param3, cmd.param4, cmd.param5, cmd.param6]
+            assert params[2] == pytest.approx(want)
+            assert all(math.isnan(v) for i, v in enumerate(params) if i != 2)  # other outputs untouched
+            assert cmd.param7 == 0
+        assert bridge.state().gripper == GripperState.OPEN
+        assert not [c for c in fake.commands if c.command == px4.MAV_CMD_DO_GRIPPER]
 

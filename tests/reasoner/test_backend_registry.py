@@ -19,7 +19,7 @@ from services.reasoner.settings import ReasonerSettings
 from shared.errors import ConfigError
 from shared.keys import Keys
 from shared.messages import TaskAccept, TaskRequest, TaskState
-from tests.helpers import arun, bus_for, run_stack
+from tests.helpers import bus_for, run_stack
 from tests.reasoner.test_service import CMD, run_task, world
 
 THIS_MODULE = __name__
@@ -68,7 +68,7 @@ def test_cli_lists_a_backend_from_a_module_setting() -> None:
 
 
 @pytest.mark.integration
-def test_reasoner_process_runs_a_task_on_the_registered_backend_and_names_a_missing_key(tmp_path, monkeypatch) -> None:
+async def test_reasoner_process_runs_a_task_on_the_registered_backend_and_names_a_missing_key(tmp_path, monkeypatch) -> None:
     monkeypatch.delenv("OPENAI_API_KEY", raising=False)
     monkeypatch.delenv("AERMANI_REASONER_API_KEY", raising=False)
     keys = Keys("am1")
@@ -80,8 +80,8 @@ def test_reasoner_process_runs_a_task_on_the_registered_backend_and_names_a_miss
                 return await bus.query(keys.start_task, TaskRequest(command=CMD, backend="openai"), TaskAccept,
                                        timeout=10)
 
-        final, steps = arun(run_task(stack, w, TaskRequest(command=CMD, backend="counting_test")))
-        refused = arun(missing_key())
+        final, steps = await run_task(stack, w, TaskRequest(command=CMD, backend="counting_test"))
+        refused = await missing_key()
     assert not refused.accepted
     assert "backend openai needs an API key" in refused.reason and "OPENAI_API_KEY" in refused.reason
     assert "rules" not in refused.reason

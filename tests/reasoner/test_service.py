@@ -9,7 +9,7 @@ import pytest
 from shared.keys import Keys
 from shared.messages import Abort, TaskRequest, TaskState
 from shared.tasks import submit_task
-from tests.helpers import arun, bus_for, run_stack
+from tests.helpers import bus_for, run_stack
 from tests.reasoner.fake_vlm import FakeVLMServer
 from tests.reasoner.fake_world import MiniWorld, Thing, serve_executor
 
@@ -46,15 +46,15 @@ async def run_task(stack, w: MiniWorld, request: TaskRequest, *, skill_delay: fl
             ticker.cancel()
 
 
-def test_rules_task_over_the_bus_and_one_task_at_a_time(tmp_path) -> None:
+async def test_rules_task_over_the_bus_and_one_task_at_a_time(tmp_path) -> None:
     w = world()
     with run_stack(["reasoner"], tmp_path) as stack:
         async def second_rejected(bus) -> None:
             other = await bus.query(KEYS.start_task, TaskRequest(command="pick up the apple"), timeout=10)
             assert not other.accepted and "already runs" in other.reason
 
-        final, steps = arun(run_task(stack, w, TaskRequest(command=CMD), skill_delay=0.3,
-                                     on_running=second_rejected))
+        final, steps = await run_task(stack, w, TaskRequest(command=CMD), skill_delay=0.3,
+                                     on_running=second_rejected)
     assert final.state is TaskState.SUCCEEDED, final.message
     assert w.placed_on == {"red cup": "table"} and w.executed[0] == "takeoff"
     assert [s.ste.skill for s in steps] == ["obj_localization", "grasp", "placement_localization", "place", "done"]
@@ -63,20 +63,20 @@ def test_rules_task_over_the_bus_and_one_task_at_a_time(tmp_path) -> None:
     assert steps[2].outcome is not None and steps[1].skill_state.value == "succeeded"
 
 
-def test_abort_stops_the_task(tmp_path) -> None:
+async def test_abort_stops_the_task(tmp_path) -> None:
     w = MiniWorld([Thing("table", "surface")])  # the cup is never found: the task would scan forever
     with run_stack(["reasoner"], tmp_path) as stack:
         async def abort(bus) -> None:
             await asyncio.sleep(1.0)
             bus.publish(KEYS.abort, Abort(reason="test abort", source="test"))
 
-        final, _steps = arun(run_task(stack, w, TaskRequest(command="find the purple cup"), skill_delay=0.2,
-                                      on_running=abort))
+        final, _steps = await run_task(stack, w, TaskRequest(command="find the purple cup"), skill_delay=0.2,
+                                      on_running=abort)
     assert final.state is TaskState.ABORTED and "test abort" in final.message
 
 
 @pytest.mark.parametrize("kind", ["openai", "anthropic"])
-def test_vlm_backend_process_with_injected_faults(tmp_path, kind: str) -> None:
+async def test_vlm_backend_process_with_injected_faults(tmp_path, kind: str) -> None:
     with FakeVLMServer() as vlm:
         vlm.faults.extend(["invalid_json", None, "500", None, "unknown_skill"])
         env = {"AERMANI_REASONER_BACKEND": kind, "AERMANI_REASONER_API_KEY": "none",
@@ -84,14 +84,14 @@ def test_vlm_backend_process_with_injected_faults(tmp_path, kind: str) -> None:
                "AERMANI_REASONER_BASE_URL": vlm.openai_base_url if kind == "openai" else vlm.anthropic_base_url}
         w = world()
         with run_stack(["reasoner"], tmp_path, env=env) as stack:
-            final, steps = arun(run_task(stack, w, TaskRequest(command=CMD)))
+            final, steps = await run_task(stack, w, TaskRequest(command=CMD))
     assert final.state is TaskState.SUCCEEDED, final.message
     assert final.backend == f"{kind}:fake-vlm"
     assert [s.retries for s in steps[:3]] == [1, 0, 1]
     assert final.invalid_answers == 2 and final.model_calls == sum(len(s.calls) for s in steps)
 
 
-def test_operator_approval_rejection_replans_and_approval_runs(tmp_path) -> None:
+async def test_operator_approval_rejection_replans_and_approval_runs(tmp_path) -> None:
     """With approval on for grasp: the grasp waits; a rejection is recorded as rejected by the operator and
     the policy chooses again; an approval lets it run."""
     from shared.messages import ApprovalDecision, ApprovalState
@@ -125,7 +125,7 @@ def test_operator_approval_rejection_replans_and_approval_runs(tmp_path) -> None
         asyncio.get_running_loop().create_task(operator(bus))
 
     with run_stack(["reasoner"], tmp_path, env=env) as stack:
-        final, steps = arun(run_task(stack, w, TaskRequest(command=CMD), on_running=start_operator))
+        final, steps = await run_task(stack, w, TaskRequest(command=CMD), on_running=start_operator)
     assert decisions == ["reject", "approve"]
     assert final.state is TaskState.SUCCEEDED, final.message
     grasps = [s for s in steps if s.ste and s.ste.skill == "grasp"]
@@ -135,12 +135,12 @@ def test_operator_approval_rejection_replans_and_approval_runs(tmp_path) -> None
     assert sum(e.startswith("grasp") for e in w.executed) == 1 and w.placed_on == {"red cup": "table"}
 
 
-def test_approval_timeout_holds_and_fails_the_step(tmp_path) -> None:
+async def test_approval_timeout_holds_and_fails_the_step(tmp_path) -> None:
     w = world()
     env = {"AERMANI_REASONER_APPROVAL": '["manipulation"]', "AERMANI_REASONER_APPROVAL_TIMEOUT_S": "1",
            "AERMANI_REASONER_MAX_STEPS": "6"}
     with run_stack(["reasoner"], tmp_path, env=env) as stack:
-        final, steps = arun(run_task(stack, w, TaskRequest(command=CMD)))
+        final, steps = await run_task(stack, w, TaskRequest(command=CMD))
     grasps = [s for s in steps if s.ste and s.ste.skill == "grasp"]
     assert grasps and all(s.skill_state.value == "failed" and "no operator decision within 1 s; vehicle held"
                           in s.skill_message for s in grasps)

@@ -21,7 +21,7 @@ from mcap.reader import make_reader
 
 from services.recorder import mcaplog
 from shared.messages import MESSAGE_TYPES, Health, ReasoningStep, VehicleState
-from tests.helpers import Stack, arun, bus_for
+from tests.helpers import Stack, bus_for
 from tests.recorder.samples import K, calibration, example, frames, step_message
 
 pytestmark = pytest.mark.integration
@@ -89,7 +89,7 @@ async def publish_demo(bus) -> Counter:
     return sent
 
 
-def test_records_every_key_with_schemas_then_replays_the_steps(tmp_path: Path) -> None:
+async def test_records_every_key_with_schemas_then_replays_the_steps(tmp_path: Path) -> None:
     stack = recorder_stack(tmp_path)
     with stack:
         async def record() -> Counter:
@@ -101,7 +101,7 @@ def test_records_every_key_with_schemas_then_replays_the_steps(tmp_path: Path) -
                 await wait_health(bus, lambda h: h.details["written"] - h.details["received"] == 0
                                   and h.details["received"] >= total)
                 return sent
-        sent = arun(record())
+        sent = await record()
     path = single_file(tmp_path)
     with path.open("rb") as f:
         reader = make_reader(f)
@@ -157,7 +157,7 @@ def test_records_every_key_with_schemas_then_replays_the_steps(tmp_path: Path) -
                 while len(out) < sent[K.reasoning_step]:
                     out.append(await sub.recv_sample(timeout=30))
                 return out
-        replayed = arun(replay())
+        replayed = await replay()
     originals = list(mcaplog.iter_samples(path, K.reasoning_step))
     assert [r.payload for r in replayed] == [s.payload for s in originals]
     assert all(r.encoding == "application/json;aermani.ReasoningStep" for r in replayed)
@@ -173,7 +173,7 @@ def test_records_every_key_with_schemas_then_replays_the_steps(tmp_path: Path) -
     assert html.count("<img") == sent[K.reasoning_step]
 
 
-def test_sigkill_then_recover_salvages_every_complete_chunk(tmp_path: Path) -> None:
+async def test_sigkill_then_recover_salvages_every_complete_chunk(tmp_path: Path) -> None:
     n_sent = 300
     stack = recorder_stack(tmp_path, AERMANI_RECORDER_CHUNK_SIZE="4096",
                            AERMANI_RECORDER_KEY_EXPR="aermani/*/*/autopilot/**")
@@ -188,7 +188,7 @@ def test_sigkill_then_recover_salvages_every_complete_chunk(tmp_path: Path) -> N
                 stack.kill("recorder", signal.SIGKILL)
                 await asyncio.to_thread(stack.find("recorder").proc.wait, 30)
                 return h
-        health = arun(record_then_kill())
+        health = await record_then_kill()
     broken = single_file(tmp_path)
     durable = health.details["durable"]
     # Some complete chunks; the chunk in progress (if the last message did not happen to close one) is lost.
@@ -203,7 +203,7 @@ def test_sigkill_then_recover_salvages_every_complete_chunk(tmp_path: Path) -> N
     assert [s.message for s in msgs] == [f"#{i}" for i in range(durable)]  # a prefix, in order
 
 
-def test_unwritable_path_is_reported_on_health(tmp_path: Path) -> None:
+async def test_unwritable_path_is_reported_on_health(tmp_path: Path) -> None:
     blocker = tmp_path / "not-a-dir"
     blocker.write_text("x")
     stack = recorder_stack(tmp_path, AERMANI_RECORDER_OUT_DIR=str(blocker / "rec"))
@@ -212,7 +212,7 @@ def test_unwritable_path_is_reported_on_health(tmp_path: Path) -> None:
             async with bus_for(stack) as bus:
                 bus.publish(K.autopilot_state, VehicleState())
                 return await wait_health(bus, lambda h: not h.ok)
-        health = arun(check())
+        health = await check()
         assert stack.find("recorder").running  # reported, not crashed
     assert "cannot open a recording" in health.message
     assert str(blocker) in health.message

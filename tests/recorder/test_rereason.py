@@ -16,7 +16,7 @@ from services.recorder.mcaplog import McapReplaySource, reasoning_steps
 from services.recorder.rereason import rereason_log
 from shared.messages import TaskRequest, TaskState, TaskStatus
 from shared.sensors import color_message
-from tests.helpers import arun, bus_for, run_stack
+from tests.helpers import bus_for, run_stack
 from tests.reasoner.fake_world import MiniWorld, Thing, serve_executor
 from tests.recorder.samples import K
 from tests.recorder.test_recording import aermani
@@ -82,23 +82,23 @@ class Scripted(Backend):
         return await self.rules.complete(request)
 
 
-def test_rereason_agrees_with_itself_and_finds_scripted_differences(tmp_path: Path) -> None:
+async def test_rereason_agrees_with_itself_and_finds_scripted_differences(tmp_path: Path) -> None:
     env = {"AERMANI_RECORDER_OUT_DIR": str(tmp_path / "rec"), "AERMANI_RECORDER_HEALTH_PERIOD_S": "0.5"}
     with run_stack(["reasoner", "recorder"], tmp_path, env=env) as stack:
-        final = arun(run_task(stack))
+        final = await run_task(stack)
     assert final.state is TaskState.SUCCEEDED, final.message
     [log] = sorted((tmp_path / "rec").glob("*.mcap"))
     recorded = reasoning_steps(log)
     assert [s.ste.skill for s in recorded] == EXPECTED
     assert all(s.image_stamp_ns > 0 for s in recorded)
 
-    same = arun(rereason_log(log, backend="rules"))
+    same = await rereason_log(log, backend="rules")
     assert [s.step for s in same.steps] == [1, 2, 3, 4, 5]
     assert same.agreement_rate == 1.0 and same.invalid_rate == 0.0 and same.differing == []
     assert all(s.observation_exact for s in same.steps), [s.observation_exact for s in same.steps]
 
     scripted = Scripted(differ={2: "yaw_left", 4: "forward"}, invalid_at=3)
-    res = arun(rereason_log(log, backend_obj=scripted))
+    res = await rereason_log(log, backend_obj=scripted)
     task_id = recorded[0].task_id
     assert res.differing == [(task_id, 2), (task_id, 4)]
     assert res.agreement_rate == pytest.approx(3 / 5)
@@ -116,5 +116,5 @@ def test_rereason_agrees_with_itself_and_finds_scripted_differences(tmp_path: Pa
     assert replayed.returncode == 0, replayed.stderr
     assert "agreement 100%" in replayed.stdout
     # Another variant works on the same observations (no DRT asked: the rules policy still agrees).
-    other = arun(rereason_log(log, backend="rules", variant="no_drt"))
+    other = await rereason_log(log, backend="rules", variant="no_drt")
     assert other.variant == "no_drt" and other.agreement_rate == 1.0

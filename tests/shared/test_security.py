@@ -29,7 +29,6 @@ from shared.security import (
     require_loopback,
     router_config,
 )
-from tests.helpers import arun
 
 K = Keys("am1")
 
@@ -159,7 +158,7 @@ def test_a_session_without_a_certificate_cannot_connect(routers, tmp_path):
         zenoh.open(foreign)
 
 
-def test_drone_certificate_cannot_start_tasks_or_command_the_autopilot(routers):
+async def test_drone_certificate_cannot_start_tasks_or_command_the_autopilot(routers):
     async def main():
         async with Deployment(routers) as dep:
             for identity in ("drone", "client"):
@@ -173,10 +172,10 @@ def test_drone_certificate_cannot_start_tasks_or_command_the_autopilot(routers):
                     await outsider.close()
             assert dep.calls == {"start_task": [], "autopilot_command": [], "run_skill": []}
 
-    arun(main())
+    await main()
 
 
-def test_ground_certificate_starts_tasks_and_commands_the_autopilot(routers):
+async def test_ground_certificate_starts_tasks_and_commands_the_autopilot(routers):
     async def main():
         async with Deployment(routers) as dep:
             ground = await dep.outsider("ground")
@@ -194,10 +193,10 @@ def test_ground_certificate_starts_tasks_and_commands_the_autopilot(routers):
             assert len(dep.calls["start_task"]) == 1 and len(dep.calls["autopilot_command"]) == 1
             assert len(dep.calls["run_skill"]) == 1
 
-    arun(main())
+    await main()
 
 
-def test_abort_works_from_every_identity_and_state_only_from_the_drone(routers):
+async def test_abort_works_from_every_identity_and_state_only_from_the_drone(routers):
     async def main():
         async with Deployment(routers) as dep:
             for identity in ("ground", "drone", "client"):
@@ -225,11 +224,11 @@ def test_abort_works_from_every_identity_and_state_only_from_the_drone(routers):
             assert sorted(at_ground) == ["bridge", "drone"], at_ground
             assert at_drone == ["bridge"], at_drone
 
-    arun(main())
+    await main()
 
 
 @pytest.mark.integration
-def test_secure_stack_real_bridge_obeys_the_ground_only(tmp_path):
+async def test_secure_stack_real_bridge_obeys_the_ground_only(tmp_path):
     """`aermani up --secure` in miniature: the launcher's two routers, the real simulator and bridge as
     processes on the drone side; an outsider with the drone certificate cannot command, the ground can."""
     from shared.launcher import Stack, free_udp_port
@@ -258,10 +257,10 @@ def test_secure_stack_real_bridge_obeys_the_ground_only(tmp_path):
 
     with stack:
         assert {("am1", "sim"), ("am1", "autopilot_bridge")} <= stack.alive()  # tokens cross the TLS link
-        arun(main())
+        await main()
 
 
-def test_queries_carry_the_senders_name_and_session_id():
+async def test_queries_carry_the_senders_name_and_session_id():
     """What the bridge logs as a command's sender: the querier's Bus.name and Zenoh session id (claimed in
     the query's attachment; sanitised for the log)."""
     from shared.bus import Caller
@@ -289,7 +288,7 @@ def test_queries_carry_the_senders_name_and_session_id():
             await server.close()
 
     try:
-        arun(main())
+        await main()
     finally:
         router.close()
     assert str(Caller.from_attachment(b'{"sender": "a\\nINFO forged line", "zid": "z"}')) == "aINFO forged line (zid z)"
@@ -297,7 +296,7 @@ def test_queries_carry_the_senders_name_and_session_id():
 
 
 @pytest.mark.integration
-def test_router_command_used_by_compose(tmp_path, certs):
+async def test_router_command_used_by_compose(tmp_path, certs):
     """`aermani router --role ground|drone` (the compose routers) as real processes: the drone router links
     to the ground router over mutual TLS, the ground identity reaches the vehicle, a drone certificate does
     not, and SIGTERM stops both cleanly."""
@@ -348,7 +347,7 @@ def test_router_command_used_by_compose(tmp_path, certs):
             await bridge.close()
 
     try:
-        arun(main())
+        await main()
     finally:
         for p in procs:
             p.send_signal(signal.SIGTERM)
