@@ -33,7 +33,7 @@ from shared.messages import (
     TakeoffCommand,
 )
 from shared.sensors import CompressedImage, decode_proto, stamp_to_ns
-from tests.helpers import arun, bus_for, run_stack, wait_until
+from tests.helpers import bus_for, run_stack, wait_until
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
@@ -53,12 +53,12 @@ def write_view(folder, world, x: float, y: float, z: float, yaw: float) -> None:
         f"width: {i.width}\nheight: {i.height}\nfx: {i.fx}\nfy: {i.fy}\ncx: {i.cx}\ncy: {i.cy}\n")
 
 
-def test_camera_service_feeds_perception_with_the_bridge_on_sim_mavlink(tmp_path):
+async def test_camera_service_feeds_perception_with_the_bridge_on_sim_mavlink(tmp_path):
     env = {"AERMANI_SIM_CAMERA": "false", "AERMANI_AUTOPILOT_BRIDGE_PUBLISH_TF": "true",
            "AERMANI_PERCEPTION_SEGMENTER": "color", "AERMANI_SIM_SEED": str(SEED),
            "AERMANI_SIM_TARGET_OBJECT": TARGET, "AERMANI_SIM_SPEED_FACTOR": "3"}
     with run_stack(["sim", "autopilot_bridge", "perception"], tmp_path, env=env, timeout=180) as stack:
-        arun(_fly_render_localize(stack, tmp_path), timeout=400)
+        await _fly_render_localize(stack, tmp_path)
 
 
 async def _fly_render_localize(stack, tmp_path) -> None:
@@ -105,7 +105,7 @@ async def _fly_render_localize(stack, tmp_path) -> None:
                     stamps.add(stamp_to_ns(decode_proto(CompressedImage, c).timestamp))
                 health = await bus.subscribe(K.health("camera")).recv(timeout=10)
             finally:
-                camera.stop()
+                await asyncio.to_thread(camera.stop)
             assert est is not None and est.found, (est, camera.find("camera").tail(20))
             assert est.frame_stamp_ns in stamps, "the estimate comes from a frame the camera service published"
             judge = await bus.query(K.sim_judge, JudgeRequest(op="world"), timeout=20)
