@@ -53,6 +53,8 @@ class Capturer:
         self.last_error = ""
         self.failures = 0
         self.ended = ""
+        self.fatal = ""
+        """Set when the source cannot work at all (a file source that does not open): the service exits."""
         self.thread = threading.Thread(target=self._run, name="camera-capture", daemon=True)
         mount = settings.mount
         self.mounts = [(BODY_FRAME, CAMERA_FRAME, mount.base_to_camera()),
@@ -74,6 +76,9 @@ class Capturer:
                 self.open_error = str(exc)
             except Exception as exc:  # a driver's own exception: report it the same way
                 self.open_error = f"{type(exc).__name__}: {exc}"
+            if not self.source.retry_open:
+                self.fatal = f"cannot open {self.source.describe()}: {self.open_error}"
+                return False
             log.warning("cannot open %s: %s; retrying in %.0f s", self.source.describe(), self.open_error, delay)
             self.stop.wait(delay)
             delay = min(MAX_REOPEN_S, delay * 2)
@@ -190,6 +195,8 @@ class CameraService:
         self.capturer.start()
         try:
             while not stop.is_set():
+                if self.capturer.fatal:
+                    raise CameraError(self.capturer.fatal)
                 self.bus.publish(self.keys.health(SERVICE), self.health())
                 with contextlib.suppress(TimeoutError):
                     await asyncio.wait_for(stop.wait(), 1.0)

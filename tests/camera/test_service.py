@@ -218,3 +218,21 @@ async def test_idle_camera_says_it_publishes_nothing(tmp_path):
             await asyncio.sleep(1.0)
             frame = color.recv_nowait()
     assert h.ok and "AERMANI_CAMERA_SOURCE=none" in h.message and frame is None
+
+
+@pytest.mark.parametrize("case", ["unknown source", "calibration for another size", "empty log"])
+def test_a_misconfigured_camera_exits_with_the_reason(case, router, tmp_path):
+    """Configuration errors end the process (non-zero, the reason in its log) instead of idling as 'absent'."""
+    folder = write_folder(tmp_path / "frames", n=1)
+    if case == "unknown source":
+        cfg, says = camera_env(source="kinect"), "unknown camera source 'kinect'"
+    elif case == "calibration for another size":
+        (folder / "calibration.yaml").write_text("width: 640\nheight: 480\nfx: 350\nfy: 350\ncx: 319.5\ncy: 239.5\n")
+        cfg, says = camera_env(source="file", path=folder), "is for 640x480 but the frames are 320x240"
+    else:
+        write_log(tmp_path / "x.mcap", n=2, vehicle="am7")
+        cfg, says = camera_env(source="mcap", path=tmp_path / "x.mcap", mcap_vehicle="am9"), "no camera/color samples"
+    env = {**os.environ, **cfg, "AERMANI_ZENOH_CONNECT": router, "PYTHONPATH": os.getcwd()}
+    out = subprocess.run([sys.executable, "-m", "services.camera"], env=env, capture_output=True, text=True,
+                         timeout=60)
+    assert out.returncode != 0 and says in out.stderr + out.stdout, out.stderr[-2000:]

@@ -36,6 +36,9 @@ class CameraSource(ABC):
     type: ClassVar[str] = ""
     paced: ClassVar[bool] = False
     """True: `read()` itself waits for the device's next frame; False: the service paces reads to `fps`."""
+    retry_open: ClassVar[bool] = True
+    """True for devices (unplugged now, plugged in later: keep trying); False for files, where a failed open
+    is a configuration error and the service exits with it."""
 
     def __init__(self, settings: CameraSettings) -> None:
         self.settings = settings

@@ -63,6 +63,7 @@ def folder_frames(folder: Path) -> list[tuple[Path, Path | None]]:
 @register
 class FileSource(CameraSource):
     type = "file"
+    retry_open = False
 
     def check(self) -> None:
         if not self.settings.path:

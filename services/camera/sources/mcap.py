@@ -31,6 +31,7 @@ def _vehicles_with_color(path: Path) -> list[str]:
 @register
 class McapSource(CameraSource):
     type = "mcap"
+    retry_open = False
 
     def check(self) -> None:
         if not self.settings.path:
