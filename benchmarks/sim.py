@@ -1,9 +1,12 @@
-"""Simulator figures: render fps standalone and on Zenoh with the stack running, and setpoint-stream jitter.
+"""Simulator figures: MuJoCo physics real-time factor with 15 objects, render fps at 640x480 (colour + depth, and
+with segmentation) on one core, CPU per frame, the same on Zenoh with the stack running, and setpoint jitter.
 
 Usage: .venv/bin/python benchmarks/sim.py [--seconds 10] [--services sim,autopilot_bridge,...] [--scale 1]
+       [--no-stack]
 
-Prints figures only (targets from issue 3: >= 15 fps, p99 setpoint interval jitter <= 5 ms); never fails on
-them. The jitter is measured by the sim itself from kernel receive timestamps of SET_POSITION_TARGET_LOCAL_NED
+Prints figures only (targets from issue 13: physics >= 20x real time with 15 objects, >= 15 fps colour+depth
+on one core; issue 3: p99 setpoint interval jitter <= 5 ms); never fails on them. Pin to one core with
+`taskset -c 0` for the one-core figures (software OpenGL would otherwise use every core). The jitter is measured by the sim itself from kernel receive timestamps of SET_POSITION_TARGET_LOCAL_NED
 (queryable sim/stats), so it is what the vehicle sees, independent of the sim's own scheduling.
 """
 
@@ -22,6 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from services.sim.app import CameraPublisher  # noqa: E402
 from services.sim.core import SimCore, Snapshot  # noqa: E402
+from services.sim.layout import OBJECTS  # noqa: E402
 from services.sim.settings import SimSettings  # noqa: E402
 from shared.bus import Bus  # noqa: E402
 from shared.keys import Keys  # noqa: E402
@@ -29,26 +33,63 @@ from shared.launcher import Stack, available_services, free_udp_port  # noqa: E4
 from shared.messages import ArmCommand, Scenario, TakeoffCommand  # noqa: E402
 
 
+def physics(seconds: float) -> None:
+    """One vehicle and all 14 catalogue objects + 1 more step (15 objects asked for: the catalogue has 14, each
+    once), the vehicle flying a square at 1.5 m and then a grasp-height pass over a table, objects awake."""
+    core = SimCore(Scenario(seed=3, distractors=(), extra_objects=tuple(n for n in OBJECTS if n != "red cup"),
+                            target_object="red cup"))
+    v = core.vehicle
+    n_obj = len(core.world.objects)
+    dt, now = 0.005, 100.0
+    v.arm(True)
+    for _ in range(int(1.2 / dt)):
+        now += dt
+        v.setpoint(now, np.array([v.p[0], v.p[1], -1.5]), None, v.yaw, None)
+        v.update_modes(now)
+        v.step(dt)
+    from services.sim.vehicle import MAIN_OFFBOARD
+
+    v.set_mode(MAIN_OFFBOARD, 0, now)
+    corners = [np.array([1.0, 1.0, -1.5]), np.array([1.0, -1.0, -1.5]), np.array([-1.0, -1.0, -1.5]),
+               np.array([-1.0, 1.0, -1.5])]
+    steps = int(seconds / dt)
+    t0, c0 = time.perf_counter(), time.process_time()
+    for i in range(steps):
+        now += dt
+        v.setpoint(now, corners[(i * 4) // steps], None, v.yaw, None)
+        v.update_modes(now)
+        v.step(dt)
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    print(f"physics: {n_obj} objects + vehicle (2 ms MuJoCo steps, controller at {1 / dt:.0f} Hz): {seconds:.0f} s "
+          f"simulated in {wall:.2f} s wall = {seconds / wall:.0f}x real time (CPU {cpu:.2f} s, one thread)")
+
+
 def standalone(frames: int, scale: int) -> None:
     core = SimCore(Scenario(seed=1))
     settings = SimSettings(render_scale=scale, render_process=False)
     cam = CameraPublisher(None, core, settings)  # rendering needs no bus
     with core.lock:
-        core.vehicle.p[2] = -1.5  # airborne view: tables and objects in the frame
+        core.world.set_vehicle(np.array([core.vehicle.true_position_enu()[0], core.vehicle.true_position_enu()[1],
+                                         1.5]), core.vehicle.true_yaw_enu())  # airborne view: tables in frame
     cam.render_frame(time.time_ns())
-    t0, c0 = time.perf_counter(), time.process_time()
-    for _ in range(frames):
-        cam.render_frame(time.time_ns())
-    dt = (time.perf_counter() - t0) / frames
-    cpu = (time.process_time() - c0) / frames
+    for seg in (False, True):
+        cam.segmentation_watched = lambda seg=seg: seg  # type: ignore[method-assign]
+        t0, c0 = time.perf_counter(), time.process_time()
+        for _ in range(frames):
+            cam.render_frame(time.time_ns())
+        dt = (time.perf_counter() - t0) / frames
+        cpu = (time.process_time() - c0) / frames
+        what = "colour+depth+segmentation" if seg else "colour+depth"
+        print(f"render {what} 640x480 (scale {scale}, realistic camera model, JPEG, tf): {dt * 1000:.1f} ms/frame "
+              f"= {1 / dt:.1f} fps; CPU {cpu * 1000:.1f} ms/frame (all threads of this process)")
     snap: Snapshot = core.snapshot()
+    r = cam.encoder.renderer
+    r.segmentation = False
     t1 = time.perf_counter()
     for _ in range(frames):
-        cam.encoder.renderer.render(snap)
+        r.render(snap)
     rt = (time.perf_counter() - t1) / frames
-    print(f"standalone (scale {scale}): raycast+shade {rt * 1000:.1f} ms, full frame (render, JPEG, depth, "
-          f"segmentation, tf) {dt * 1000:.1f} ms = {1 / dt:.1f} fps max; CPU {cpu * 1000:.1f} ms/frame (all "
-          f"threads; on an idle 2-core box the raycast splits over both cores)")
+    print(f"  of which MuJoCo colour+depth rendering and the noise model: {rt * 1000:.1f} ms")
 
 
 async def on_stack(services: list[str], seconds: float, scale: int) -> None:
@@ -103,11 +144,16 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=40)
     ap.add_argument("--scale", type=int, default=1)
     ap.add_argument("--services", default="", help="comma-separated; default: every service in this checkout")
+    ap.add_argument("--physics-seconds", type=float, default=20.0)
+    ap.add_argument("--no-stack", action="store_true", help="standalone figures only")
     args = ap.parse_args()
     services = [s for s in args.services.split(",") if s] or list(available_services())
     if "sim" not in services:
         services.insert(0, "sim")
+    physics(args.physics_seconds)
     standalone(args.frames, args.scale)
+    if args.no_stack:
+        return
     np.random.seed(0)
     asyncio.run(on_stack(services, args.seconds, args.scale))
 

@@ -8,8 +8,10 @@ PYTHON="${PYTHON:-python3}"
 want_browser=0
 [[ "${1:-}" == "--browser" ]] && want_browser=1
 
-# Open3D links libusb, libGL/EGL and X11 even headless; OpenCV and Open3D want libgomp.
-pkgs=(libusb-1.0-0 libgl1 libegl1 libgomp1 libx11-6)
+# Open3D links libusb, libGL/EGL and X11 even headless; OpenCV and Open3D want libgomp. The simulator renders
+# with MuJoCo headless: EGL through Mesa's software rasterizer (libegl-mesa0 + libgl1-mesa-dri), or OSMesa
+# (libosmesa6) with MUJOCO_GL=osmesa.
+pkgs=(libusb-1.0-0 libgl1 libegl1 libegl-mesa0 libgl1-mesa-dri libosmesa6 libgomp1 libx11-6)
 [[ $want_browser == 1 ]] && pkgs+=(chromium)
 missing=()
 for p in "${pkgs[@]}"; do

@@ -156,6 +156,10 @@ class VehicleState(Message):
     """Battery remaining in percent (0-100), if reported."""
     gripper: GripperState = GripperState.UNKNOWN
     """Last commanded/acknowledged gripper state."""
+    gripper_width: float | None = None
+    """Opening between the gripper's fingers, metres, if the gripper reports it."""
+    gripper_holding: bool | None = None
+    """Whether the gripper senses an object between its fingers (contact on both), if it reports it."""
     link_ok: bool = False
     """True while heartbeats arrive (none for 2 s means link lost)."""
     offboard_ok: bool = False

@@ -94,6 +94,8 @@ class Bridge:
         self.battery_voltage: float | None = None
         self.battery_remaining: float | None = None
         self.gripper = GripperState.UNKNOWN
+        self.gripper_width: float | None = None
+        self.gripper_holding: bool | None = None
         self.message = ""
         self.last_statustext = ""
         self.last_statustext_mono = 0.0
@@ -277,6 +279,15 @@ class Bridge:
     def _on_sys_status(self, msg: Any) -> None:
         self.battery_voltage = None if msg.voltage_battery in (0, UINT16_MAX) else msg.voltage_battery / 1000.0
         self.battery_remaining = None if msg.battery_remaining < 0 else float(msg.battery_remaining)
+
+    def _on_debug_vect(self, msg: Any) -> None:
+        """The gripper's sensing (the simulator's payload, or a real gripper reporting the same way): DEBUG_VECT
+        named GRIPPER, x = finger opening (m), y = holding (1/0)."""
+        name = msg.name.rstrip("\x00") if isinstance(msg.name, str) else bytes(msg.name).rstrip(b"\x00").decode()
+        if name != "GRIPPER" or not self._finite(msg, msg.x, msg.y):
+            return
+        self.gripper_width = float(msg.x)
+        self.gripper_holding = msg.y > 0.5
 
     def _on_statustext(self, msg: Any) -> None:
         text = msg.text.rstrip("\x00") if isinstance(msg.text, str) else str(msg.text)
@@ -680,7 +691,8 @@ class Bridge:
             velocity=Vec3(x=self.velocity[0], y=self.velocity[1], z=self.velocity[2]), yaw=self.yaw,
             roll=self.roll, pitch=self.pitch, armed=self.armed, mode=self.mode, landed_state=self.landed_state,
             battery_voltage=self.battery_voltage, battery_remaining=self.battery_remaining, gripper=self.gripper,
-            link_ok=link_ok, offboard_ok=self.offboard_ok and self.offboard_expected,
+            gripper_width=self.gripper_width, gripper_holding=self.gripper_holding, link_ok=link_ok,
+            offboard_ok=self.offboard_ok and self.offboard_expected,
             last_heartbeat_ns=self.last_hb_ns, message=self.message, override=self.override,
             override_ns=self.override_ns,
         )

@@ -52,6 +52,9 @@ def eval_command(
                                                      "instead of launching a stack (with --vehicles).")] = None,
     vehicles: Annotated[str | None, typer.Option(help="Comma list of vehicle ids to use with --connect.")] = None,
     note: Annotated[str, typer.Option(help="Sentence put at the top of the report (what the backend is).")] = "",
+    segmenter: Annotated[str, typer.Option(help="Perception segmenter: color (default, real computer vision), "
+                                                "sam3, or sim (ground-truth oracle).")] = "color",
+    realism: Annotated[str, typer.Option(help="Simulator realism: realistic (default) or ideal.")] = "realistic",
     report_only: Annotated[bool, typer.Option(help="Rebuild the report from OUT/episodes.jsonl, run nothing.")]
     = False,
     progress: Annotated[bool, typer.Option(help="Show the progress bar.")] = True,
@@ -81,7 +84,8 @@ def eval_command(
                     episodes=episodes if episodes is not None else (None if tasks else 10),
                     suites=_split(suites), tasks_file=tasks, seed=seed, parallel=parallel,
                     speed_factor=speed_factor, t_max_s=t_max, tolerance=tolerance, connect=connect,
-                    vehicles=_split(vehicles), progress=progress, note=note)
+                    vehicles=_split(vehicles), progress=progress, note=note, segmenter=segmenter,
+                    realism=realism)
     # SIGTERM (and SIGINT, which a background job ignores) stop the run cleanly: finished episodes are kept.
     signal.signal(signal.SIGTERM, _interrupt)
     signal.signal(signal.SIGINT, _interrupt)

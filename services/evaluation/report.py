@@ -72,6 +72,10 @@ def backend_note(config: dict[str, Any], records: list[EpisodeRecord]) -> str:
                       "(tests/reasoner/fake_vlm.py) the numbers reflect the test server, not a real VLM")
             parts.append(p)
     note = "; ".join(parts) + "."
+    seg = config.get("segmenter") or "sim (runs from before the segmenter was recorded used the oracle)"
+    oracle = " -- the simulator's ground-truth masks, an oracle, not real perception" if seg == "sim" else ""
+    note += (f" Perception: `{seg}` segmenter{oracle}; simulator: MuJoCo physics, realism "
+             f"`{config.get('realism') or 'unrecorded'}`.")
     if config.get("note"):
         note = f"{config['note']} {note}"
     return note

@@ -83,6 +83,11 @@ class RunConfig(BaseModel):
     startup_timeout_s: float = 240.0
     extra_env: dict[str, str] = {}
     progress: bool = True
+    # Perception segmenter of every vehicle: color (real computer vision on the rendered pixels, the default),
+    # sam3, or sim (the simulator's ground-truth masks: an oracle, not perception). Named in the report.
+    segmenter: str = "color"
+    # Simulator realism: realistic (depth noise, exposure, pose drift; the default) or ideal.
+    realism: str = "realistic"
     # What the backend is, stated at the top of the report (e.g. "numbers reflect the local test server").
     note: str = ""
     # Testing hook: stop (as if interrupted) after this many episodes have finished in this run.
@@ -119,6 +124,8 @@ def vehicle_env(cfg: RunConfig) -> dict[str, str]:
         "AERMANI_REASONER_BACKEND": cfg.backend,
         "AERMANI_REASONER_OUTPUT_MODE": cfg.output_mode,
         "AERMANI_REASONER_T_MAX_S": str(cfg.t_max_s),
+        "AERMANI_PERCEPTION_SEGMENTER": cfg.segmenter,
+        "AERMANI_SIM_REALISM": cfg.realism,
     }
     if cfg.model:
         env["AERMANI_REASONER_MODEL"] = cfg.model

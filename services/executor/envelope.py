@@ -68,7 +68,8 @@ class DepthClearance:
     def age_s(self) -> float:
         return float("inf") if not self.receive_ns else (time.time_ns() - self.receive_ns) / 1e9
 
-    def nearest_ahead(self, altitude: float, s: ExecutorSettings, length: float) -> tuple[float | None, int]:
+    def nearest_ahead(self, altitude: float, s: ExecutorSettings, length: float,
+                      below: float | None = None) -> tuple[float | None, int]:
         """Nearest forward distance (body x) of an obstacle within `length` in the corridor, and the count of
         corridor points. None when the corridor is free. Points near the floor are ignored: the floor is not
         an obstacle to a level translation."""
@@ -84,7 +85,7 @@ class DepthClearance:
         pts = backproject(u[valid].astype(np.float64), v[valid].astype(np.float64), d[valid], self.intr)
         body = pts @ self.base_from_camera[:3, :3].T + self.base_from_camera[:3, 3]
         floor_body_z = -altitude + 0.05
-        lower = max(-s.clearance_below, floor_body_z)
+        lower = max(-(s.clearance_below if below is None else below), floor_body_z)
         inside = ((body[:, 0] > 0.0) & (body[:, 0] <= length) & (np.abs(body[:, 1]) <= s.clearance_half_width)
                   & (body[:, 2] >= lower) & (body[:, 2] <= s.clearance_above))
         n = int(inside.sum())
@@ -92,12 +93,15 @@ class DepthClearance:
             return None, n
         return float(np.min(body[inside, 0])), n
 
-    def forward_problem(self, altitude: float, step: float, s: ExecutorSettings) -> str | None:
+    def forward_problem(self, altitude: float, step: float, s: ExecutorSettings,
+                        below: float | None = None) -> str | None:
+        """A forward step's corridor; `below` (m under the body origin) overrides `clearance_below`, e.g. to
+        include a held object hanging from the gripper."""
         if self.depth is None or self.age_s > s.depth_max_age_s:
             age = "never received" if self.depth is None else f"{self.age_s:.1f} s old"
             return (f"no fresh depth image ({age}): forward clearance cannot be verified; nothing was moved")
         need = step + s.clearance_margin
-        dist, _n = self.nearest_ahead(altitude, s, need)
+        dist, _n = self.nearest_ahead(altitude, s, need, below)
         if dist is not None:
             return (f"obstacle {dist:.2f} m ahead (a forward step of {step:.2f} m needs {need:.2f} m free); "
                     "nothing was moved: yaw, climb or move sideways first")

@@ -96,10 +96,18 @@ class ExecutorSettings(ServiceSettings):
     """Takeoff and transit altitude; grasp and place retreat to it, metres."""
     standoff_distance: float = 0.75
     """Horizontal distance from the object at which grasp/place re-localize, facing it, metres."""
-    reach: float = 4.0
-    """Grasp refuses an object farther than this horizontally, metres (long legs on one far estimate)."""
+    reach: float = 2.0
+    """Grasp starts only for an object within this horizontal distance, metres; beyond it the skill is
+    rejected with "too far: approach first". Default from the measured localization error against distance
+    under the realistic depth noise (docs/skills.md, benchmarks/localization_reach.py)."""
     place_reach: float = 6.0
-    """Place refuses a placement spot farther than this horizontally, metres."""
+    """Place starts only for a placement spot within this horizontal distance, metres (not yet from a measured
+    curve: the placement estimate is re-used as is, and the rules baseline approaches a surface by where it
+    saw it, not by the spot)."""
+    gripper_max_opening: float = 0.18
+    """Widest opening of the gripper's fingers, metres: objects wider across their narrow side are refused."""
+    final_descent_speed: float = 0.1
+    """Speed of the last part of the descent onto an object, m/s (closing while descending fast fails)."""
     localization_max_age_s: float = 120.0
     """A grasp needs a localization of the object younger than this, seconds (memory is in world frame)."""
     relocalize_iterations: int = 3

@@ -19,6 +19,7 @@ from shared.keys import (
     CAMERA_COLOR,
     EXECUTOR_SKILL_STATUS,
     FLEET_ABORT,
+    HEALTH_TOPIC,
     PERCEPTION_DETECTIONS,
     REASONER_APPROVAL,
     REASONER_STEP,
@@ -34,6 +35,7 @@ from shared.messages import (
     ApprovalState,
     ApprovalStatus,
     Detections,
+    Health,
     ReasoningStep,
     SkillStatus,
     TaskState,
@@ -78,6 +80,10 @@ class VehicleView:
     approvals: dict[str, ApprovalStatus] = field(default_factory=dict)
     """Pending operator approvals by id (decided or expired ones are dropped)."""
     acks: list[AbortAck] = field(default_factory=list)
+    segmenter: str | None = None
+    """Perception's segmenter, from its health (color, sam3, or sim: the simulator's ground-truth oracle)."""
+    realism: str | None = None
+    """The simulator's realism setting, from its health (absent on a real vehicle)."""
 
     @property
     def reasoner_alive(self) -> bool:
@@ -123,8 +129,8 @@ class Fleet:
                 await self._end_orphan(task, "the reasoner was not running when the gateway started")
 
         def sub(topic: Topic[Any], handler: Callable[[str, Any], Awaitable[None]], maxsize: int = 1000,
-                ordered: bool = False) -> None:
-            s = self.bus.subscribe(topic.fleet(), maxsize=maxsize)
+                ordered: bool = False, **params: str) -> None:
+            s = self.bus.subscribe(topic.fleet(**params), maxsize=maxsize)
             self._subs.append(s)
             run = self._forward(s, handler) if ordered else self._consume(s, handler)
             self._tasks.append(asyncio.create_task(run, name=f"gateway.{topic.name}"))
@@ -140,6 +146,8 @@ class Fleet:
         sub(SAFETY_ABORT_ACK, self._on_ack, maxsize=100)
         sub(PERCEPTION_DETECTIONS, self._on_detections, maxsize=4)
         sub(REASONER_APPROVAL, self._on_approval, maxsize=100)
+        sub(HEALTH_TOPIC, self._on_health, maxsize=10, service="perception")
+        sub(HEALTH_TOPIC, self._on_health, maxsize=10, service="sim")
         queue = self.bus.watch_liveliness(f"{ROOT}/*/{ALIVE}/*", history=True)
         self._tasks.append(asyncio.create_task(self._liveliness(queue), name="gateway.liveliness"))
 
@@ -257,6 +265,13 @@ class Fleet:
 
     async def _on_detections(self, key: str, dets: Detections) -> None:
         self.view(vehicle_of(key)).detections = dets
+
+    async def _on_health(self, key: str, h: Health) -> None:
+        v = self.view(vehicle_of(key))
+        if h.service == "perception" and "segmenter" in h.details:
+            v.segmenter = str(h.details["segmenter"])
+        elif h.service == "sim" and "realism" in h.details:
+            v.realism = str(h.details["realism"])
 
     async def _on_ack(self, key: str, ack: AbortAck) -> None:
         v = self.view(vehicle_of(key))

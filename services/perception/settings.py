@@ -12,9 +12,10 @@ class PerceptionSettings(ServiceSettings):
     model_config = SettingsConfigDict(env_prefix="AERMANI_PERCEPTION_", extra="ignore", populate_by_name=True,
                                       use_attribute_docstrings=True)
 
-    segmenter: str = "sim"
-    """Segmenter type: sim (simulator instance ids), color (OpenCV HSV, no GPU) or sam3 (Meta SAM3 via
-    transformers; install with `pip install -e .[sam3]`)."""
+    segmenter: str = "color"
+    """Segmenter type: color (OpenCV colour classes on the camera's pixels + depth; the default, no GPU), sam3
+    (Meta SAM3 via transformers; install with `pip install -e .[sam3]`) or sim (the simulator's ground-truth
+    instance masks: an opt-in oracle for debugging and upper-bound evaluations, never real perception)."""
     detections_hz: float = Field(5.0, ge=0.0, le=30.0)
     """Rate of perception/detections (0 disables); never faster than frames arrive."""
     frame_wait_s: float = Field(0.5, ge=0.0, le=5.0)

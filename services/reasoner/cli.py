@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import time
 from pathlib import Path
@@ -112,7 +113,8 @@ def scenario_for(command: str, target: str | None, destination: str | None, seed
         if plan.choices:
             target, extra = plan.choices[0], (plan.choices[1],)
         elif plan.selector:
-            big, small = "large box", "small box"
+            # Two real boxes of different measured sizes (4.9 vs 2.4 litres); no object is named after the answer.
+            big, small = "cardboard box", "cracker box"
             target, extra = (big, (small,)) if plan.selector == "larger" else (small, (big,))
         elif plan.category == "snack":
             target, accept = "apple", ("banana", "orange", "cracker box")
@@ -137,6 +139,11 @@ def demo_command(
     destination: Annotated[str | None, typer.Option(help="Scenario destination surface (default: from the command).")]
     = None,
     speed_factor: Annotated[float, typer.Option(help="Simulator speed versus wall clock.")] = 2.0,
+    segmenter: Annotated[str, typer.Option(help="Perception segmenter: color (real computer vision on the rendered "
+                                                "pixels), sam3, or sim (ground-truth oracle, debugging only).")]
+    = "color",
+    realism: Annotated[str, typer.Option(help="Simulator realism: realistic (depth noise, exposure, pose drift) "
+                                              "or ideal (debugging).")] = "realistic",
     model: Annotated[str, typer.Option(help="Model name for a model backend (empty: the backend's default).")] = "",
     base_url: Annotated[str | None, typer.Option(help="Endpoint of a model backend (e.g. a local vLLM).")] = None,
     t_max: Annotated[float, typer.Option(help="T_max, seconds.")] = 600.0,
@@ -149,7 +156,8 @@ def demo_command(
         raise typer.Exit(2)
     scenario, accepted = scenario_for(command, target, destination, seed)
     env = {"AERMANI_REASONER_BACKEND": backend, "AERMANI_REASONER_VARIANT": variant,
-           "AERMANI_SIM_SPEED_FACTOR": str(speed_factor), "AERMANI_SIM_SEED": str(seed)}
+           "AERMANI_SIM_SPEED_FACTOR": str(speed_factor), "AERMANI_SIM_SEED": str(seed),
+           "AERMANI_PERCEPTION_SEGMENTER": segmenter, "AERMANI_SIM_REALISM": realism}
     if scenario.target_object:
         env["AERMANI_SIM_TARGET_OBJECT"] = scenario.target_object
     if scenario.destination:
@@ -217,6 +225,8 @@ async def _demo_task(stack, command: str, scenario, accepted: tuple[str, ...], t
     bus = await Bus.open(connect=[stack.endpoint])
     try:
         health = bus.subscribe(keys.health("recorder"), maxsize=5)
+        perception_health = bus.subscribe(keys.health("perception"), maxsize=5)
+        sim_health = bus.subscribe(keys.health("sim"), maxsize=5)
         reset = await query_ready(bus, keys.sim_reset, scenario, timeout=30)
         if not reset.ok:
             console.print(f"[red]the simulator refused the scenario: {reset.message} (use --target/--destination)"
@@ -224,6 +234,16 @@ async def _demo_task(stack, command: str, scenario, accepted: tuple[str, ...], t
             return 2
         sc = reset.scenario or scenario
         console.print(f"scenario: seed {sc.seed}, target {sc.target_object}, destination {sc.destination}")
+        # What actually runs, from the services' own health reports (not from what was asked for).
+        seg, real = "unknown", "unknown"
+        with contextlib.suppress(TimeoutError):
+            seg = str((await perception_health.recv(timeout=10)).details.get("segmenter", "unknown"))
+        with contextlib.suppress(TimeoutError):
+            real = str((await sim_health.recv(timeout=10)).details.get("realism", "unknown"))
+        note = " (ground-truth oracle: the simulator's masks, not real perception)" if seg == "sim" else ""
+        console.print(f"perception: {seg}{note}")
+        console.print(f"simulator: MuJoCo physics, realism {real}")
+        result.update(segmenter=seg, realism=real)
         console.print(f"[bold]task:[/bold] {command}")
         request = TaskRequest(command=command, t_max_s=t_max)
         with Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(), console=console,

@@ -8,12 +8,15 @@ import logging
 import time
 from collections import deque
 
+import numpy as np
+
 from services.sim.core import SimCore
 from services.sim.mavlink_server import LinkSettings, MavlinkServer
 from services.sim.render_worker import FrameEncoder, RenderWorker
 from services.sim.settings import SimSettings
-from services.sim.vehicle import VehicleParams
+from services.sim.vehicle import realism_params
 from shared.bus import Bus
+from shared.errors import ConfigError
 from shared.frames import DEFAULT_INTRINSICS, Mount
 from shared.messages import Health, JudgeRequest, ResetNotice, Scenario, SimLabels, now_ns
 from shared.sensors import (
@@ -36,11 +39,27 @@ def scenario_from(settings: SimSettings) -> Scenario:
                     target_out_of_view=settings.target_out_of_view, extra_objects=tuple(settings.extra_objects))
 
 
+# The simulated airframe: its MuJoCo model puts the camera and the gripper at the default mount.
+AIRFRAME = Mount.model_construct()
+
+
+def check_airframe(settings: SimSettings) -> None:
+    """AERMANI_MOUNT_* describes a real airframe; the simulator's is fixed, and a stack told otherwise would
+    localize and grasp with the wrong geometry. Refuse rather than disagree silently."""
+    m = settings.mount
+    if not (np.allclose(m.base_to_camera(), AIRFRAME.base_to_camera(), atol=1e-6)
+            and np.allclose(m.base_to_gripper(), AIRFRAME.base_to_gripper(), atol=1e-6)):
+        raise ConfigError(f"the simulator's airframe has its camera at {AIRFRAME.camera_offset} pitched "
+                          f"{AIRFRAME.camera_pitch_deg:.0f} deg down and its gripper at {AIRFRAME.gripper_offset}, "
+                          f"but AERMANI_MOUNT_* says {settings.mount}; unset AERMANI_MOUNT_* when flying the simulator")
+
+
 def build(settings: SimSettings) -> tuple[SimCore, MavlinkServer]:
-    params = VehicleParams(takeoff_alt=settings.takeoff_alt, offboard_loss_timeout=settings.offboard_loss_timeout,
-                           failsafe_land_delay=settings.failsafe_land_delay,
-                           gripper_offset=settings.mount.gripper_offset)
-    core = SimCore(scenario_from(settings), params)
+    check_airframe(settings)
+    params = realism_params(settings.realism, takeoff_alt=settings.takeoff_alt,
+                            offboard_loss_timeout=settings.offboard_loss_timeout,
+                            failsafe_land_delay=settings.failsafe_land_delay, seed=settings.seed)
+    core = SimCore(scenario_from(settings), params, realism=settings.realism)
     links = [LinkSettings("api", settings.api_local_port, settings.api_host, settings.api_port, settings.bind_host)]
     if settings.gcs_enabled:
         links.append(LinkSettings("gcs", settings.gcs_local_port, settings.gcs_host, settings.gcs_port,
@@ -60,9 +79,9 @@ class CameraPublisher:
         if not settings.camera:
             pass  # no renderer at all: nothing is drawn
         elif settings.render_process:
-            self.worker = RenderWorker(settings.render_scale, settings.jpeg_quality)
+            self.worker = RenderWorker(settings.render_scale, settings.jpeg_quality, settings.realism)
         else:
-            self.encoder = FrameEncoder(settings.render_scale, settings.jpeg_quality)
+            self.encoder = FrameEncoder(settings.render_scale, settings.jpeg_quality, settings.realism)
         self.frames = 0
         self.recent: deque[float] = deque(maxlen=600)
         self.failures = 0
@@ -76,17 +95,26 @@ class CameraPublisher:
         if self.worker is not None:
             self.worker.close()
 
-    def render_frame(self, stamp_ns: int) -> tuple[bytes, bytes, bytes, bytes]:
+    def render_frame(self, stamp_ns: int) -> tuple[bytes, bytes, bytes | None, bytes]:
         snap = self.core.snapshot()
-        enc = self.worker.render(snap, stamp_ns) if self.worker is not None else self.encoder(snap, stamp_ns)
+        seg = self.segmentation_watched()
+        enc = self.worker.render(snap, stamp_ns, seg) if self.worker is not None else self.encoder(snap, stamp_ns, seg)
         self.render_s += enc.render_s
         return enc.color, enc.depth, enc.segmentation, self.transforms(snap, stamp_ns)
 
-    def transforms(self, snap, stamp_ns: int) -> bytes:
+    @staticmethod
+    def transforms(snap, stamp_ns: int) -> bytes:
+        """world -> body from the estimated pose (as a real stack gets it from its EKF), not the truth; the
+        camera and gripper frames of the simulated airframe (the default mount, see check_airframe)."""
         body = pose_matrix(float(snap.position[0]), float(snap.position[1]), float(snap.position[2]), snap.yaw)
-        mount: Mount = self.settings.mount
-        return transforms_message([(WORLD_FRAME, BODY_FRAME, body), (BODY_FRAME, CAMERA_FRAME, mount.base_to_camera()),
-                                   (BODY_FRAME, GRIPPER_FRAME, mount.base_to_gripper())], stamp_ns)
+        return transforms_message([(WORLD_FRAME, BODY_FRAME, body), (BODY_FRAME, CAMERA_FRAME, AIRFRAME.base_to_camera()),
+                                   (BODY_FRAME, GRIPPER_FRAME, AIRFRAME.base_to_gripper())], stamp_ns)
+
+    def segmentation_watched(self) -> bool:
+        """Segmentation (ground truth: the oracle segmenter, debugging) is rendered only when subscribed."""
+        if self.settings.render_always or self.bus is None:
+            return True
+        return self.bus.has_subscribers(self.keys.camera_segmentation)
 
     def watched(self) -> bool:
         if self.settings.render_always or self.bus is None:
@@ -127,7 +155,8 @@ class CameraPublisher:
                 else:
                     self.bus.publish(self.keys.camera_color, color)
                     self.bus.publish(self.keys.camera_depth, depth)
-                    self.bus.publish(self.keys.camera_segmentation, seg)
+                    if seg is not None:
+                        self.bus.publish(self.keys.camera_segmentation, seg)
                     self.bus.publish(self.keys.tf, tf)
                     self.frames += 1
                     self.failures = 0
@@ -147,7 +176,8 @@ class CameraPublisher:
             now = time.monotonic()
             fps = sum(1 for t in self.recent if now - t <= 5.0) / 5.0
             details = {"fps_5s": fps, "frames": st["frames"], "idle_frames": st["idle_frames"],
-                       "camera": self.settings.camera, "mode": v.mode_name, "armed": v.armed, "scenario_seed": self.core.scenario.seed,
+                       "camera": self.settings.camera, "mode": v.mode_name, "armed": v.armed,
+                       "realism": self.core.realism, "scenario_seed": self.core.scenario.seed,
                        "setpoints_received": v.setpoints_received, **self.core.counters}
         ok = self.failures < 3
         return Health(service="sim", ok=ok, message="" if ok else f"rendering keeps failing: {self.last_error}",

@@ -37,6 +37,7 @@ def render_cmd(
     destination: Annotated[str | None, typer.Option(help="Destination surface.")] = None,
     out_of_view: Annotated[bool, typer.Option(help="Put the target out of the initial view.")] = False,
     altitude: Annotated[float, typer.Option(help="Camera height above the start point, metres.")] = 1.5,
+    realism: Annotated[str, typer.Option(help="realistic (noise, exposure) or ideal.")] = "realistic",
     out: Annotated[Path, typer.Option(help="PNG to write (a _seg.png with instance colours goes beside it).")]
     = Path("sim_view.png"),
 ) -> None:
@@ -44,8 +45,7 @@ def render_cmd(
     import cv2
     import numpy as np
 
-    from services.sim.core import Snapshot
-    from services.sim.render import Renderer
+    from services.sim.render import preview
     from services.sim.scenarios import ScenarioError, generate
 
     try:
@@ -53,7 +53,7 @@ def render_cmd(
     except ScenarioError as exc:
         console.print(f"[red]{exc}[/red]")
         raise typer.Exit(2)
-    frame = Renderer().render(Snapshot(world, np.array([start.position.x, start.position.y, altitude]), start.yaw))
+    frame = preview(world, np.array([start.position.x, start.position.y, altitude]), start.yaw, realism)
     cv2.imwrite(str(out), cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR))
     palette = np.random.default_rng(0).integers(40, 255, (int(frame.instance.max()) + 1, 3), dtype=np.uint8)
     palette[0] = 0

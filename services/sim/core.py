@@ -12,7 +12,6 @@ import numpy as np
 
 from services.sim.scenarios import ScenarioError, generate
 from services.sim.vehicle import Vehicle, VehicleParams, enu_to_ned, wrap
-from services.sim.world import World
 from shared.messages import (
     JudgeRequest,
     JudgeResult,
@@ -29,17 +28,22 @@ log = logging.getLogger("aermani.sim")
 
 @dataclass(frozen=True)
 class Snapshot:
-    """What one camera frame needs, copied under the lock so rendering runs without it."""
+    """What one camera frame needs, copied under the lock so rendering runs without it (or in another process:
+    the MJCF text rebuilds the model there when `version` changes, `qpos` poses it)."""
 
-    world: World
-    position: np.ndarray  # ENU body origin
-    yaw: float  # ENU
+    version: int
+    xml: str
+    qpos: np.ndarray  # MuJoCo's state: the true poses the camera sees
+    geom_instance: np.ndarray  # geom id -> instance id (segmentation)
+    position: np.ndarray  # ENU body origin as estimated (what tf publishes)
+    yaw: float  # ENU, estimated
 
 
 class SimCore:
-    def __init__(self, scenario: Scenario, params: VehicleParams | None = None) -> None:
+    def __init__(self, scenario: Scenario, params: VehicleParams | None = None, realism: str = "realistic") -> None:
         self.lock = threading.RLock()
-        world, filled, start = generate(scenario)
+        self.realism = realism
+        world, filled, start = generate(scenario, light_variation=realism != "ideal")
         self.world = world
         self.scenario = filled
         self.vehicle = Vehicle(world, params)
@@ -56,7 +60,7 @@ class SimCore:
 
     def reset(self, scenario: Scenario) -> SimResetResult:
         try:
-            world, filled, start = generate(scenario)
+            world, filled, start = generate(scenario, light_variation=self.realism != "ideal")
         except ScenarioError as exc:
             return SimResetResult(ok=False, message=str(exc))
         with self.lock:
@@ -71,7 +75,7 @@ class SimCore:
     def judge(self, req: JudgeRequest) -> JudgeResult:
         with self.lock:
             w, v = self.world, self.vehicle
-            held = w.attached()
+            held = w.holding()
             common = {"held": held.name if held else None, "vehicle": self.vehicle_pose(),
                       "collisions": tuple(w.collisions), "scenario": self.scenario}
             if req.op == "held":
@@ -83,7 +87,7 @@ class SimCore:
                 if obj is None or obj.category != "object":
                     return JudgeResult(ok=False, message=f"unknown object {req.object!r}", **common)
                 if req.surface and req.surface.strip().lower() == "floor":
-                    ok = not obj.attached and obj.support == "floor"
+                    ok = not obj.attached and obj.support == "floor" and obj.tilt <= math.radians(20)
                     return JudgeResult(ok=ok, message=f"{obj.name} {'is' if ok else 'is not'} on the floor",
                                        **common)
                 if surf is None or surf.category not in ("surface", "furniture"):
@@ -104,13 +108,16 @@ class SimCore:
                                   size=Vec3(x=e.size[0], y=e.size[1], z=e.size[2])) for e in self.world.entities)
 
     def vehicle_pose(self) -> Pose:
+        """The true pose (the judge's; the autopilot reports its estimate)."""
         with self.lock:
-            p = self.vehicle.position_enu()
-            return Pose(position=Vec3(x=p[0], y=p[1], z=p[2]), yaw=self.vehicle.yaw_enu())
+            p = self.vehicle.true_position_enu()
+            return Pose(position=Vec3(x=p[0], y=p[1], z=p[2]), yaw=self.vehicle.true_yaw_enu())
 
     def snapshot(self) -> Snapshot:
         with self.lock:
-            return Snapshot(self.world.copy(), self.vehicle.position_enu(), self.vehicle.yaw_enu())
+            w = self.world
+            return Snapshot(w.version, w.xml, w.state_vector(), w.geom_instance, self.vehicle.position_enu(),
+                            self.vehicle.yaw_enu())
 
     # ---- statistics
 

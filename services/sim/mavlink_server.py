@@ -45,7 +45,11 @@ DEFAULT_RATES: dict[int, float] = {
     mav.MAVLINK_MSG_ID_BATTERY_STATUS: 1.0,
     mav.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 10.0,
     mav.MAVLINK_MSG_ID_HOME_POSITION: 0.5,
+    # The gripper's own sensing (finger opening, both pads in contact), as a payload reports it: DEBUG_VECT
+    # "GRIPPER" x = opening (m), y = holding (1/0), z = closing commanded (1/0).
+    mav.MAVLINK_MSG_ID_DEBUG_VECT: 10.0,
 }
+GRIPPER_DEBUG_NAME = b"GRIPPER"
 STREAMABLE = set(DEFAULT_RATES)
 
 # Types of SET_POSITION_TARGET_LOCAL_NED.type_mask bits (set = ignore that field).
@@ -500,6 +504,9 @@ class MavlinkServer:
                 return m.local_position_ned_encode(boot_ms, *(float(x) for x in v.p), *(float(x) for x in v.v))
             if msg_id == mav.MAVLINK_MSG_ID_ATTITUDE:
                 return m.attitude_encode(boot_ms, 0.0, 0.0, float(v.yaw), 0.0, 0.0, 0.0)
+            if msg_id == mav.MAVLINK_MSG_ID_DEBUG_VECT:
+                return m.debug_vect_encode(GRIPPER_DEBUG_NAME, boot_ms * 1000, float(v.finger_width),
+                                           1.0 if v.holding else 0.0, 1.0 if v.gripper_closed else 0.0)
             if msg_id == mav.MAVLINK_MSG_ID_EXTENDED_SYS_STATE:
                 return m.extended_sys_state_encode(mav.MAV_VTOL_STATE_UNDEFINED, v.landed_state)
             if msg_id == mav.MAVLINK_MSG_ID_SYS_STATUS:

@@ -1,195 +1,154 @@
-"""CPU RGB-D camera: Open3D raycasting gives z-depth, instance ids and normals; colour is Lambert-shaded albedo."""
+"""The RGB-D camera, rendered by MuJoCo (OpenGL, headless through EGL or OSMesa: `MUJOCO_GL`).
+
+Colour, metric z-depth and per-geom segmentation from the vehicle's camera at its true pose. With
+`realism="realistic"` the frames carry what a stereo RGB-D camera delivers: depth error growing with the square
+of the distance (spatially correlated, as block matching gives), no depth beyond range or too close, holes at
+depth discontinuities (occlusion edges), and colour with exposure that drifts frame to frame, sensor noise,
+and the per-layout lighting of the scene. `ideal` gives the clean buffers.
+"""
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
+import cv2
+import mujoco
 import numpy as np
-import open3d as o3d
 
 from services.sim.core import Snapshot
-from services.sim.world import Entity, World
-from shared.frames import DEFAULT_INTRINSICS, Mount
+from shared.frames import DEFAULT_INTRINSICS, base_to_camera
 from shared.sensors import Intrinsics, pose_matrix
 
-MAX_DEPTH_M = 10.0
-INVALID_ID = o3d.t.geometry.RaycastingScene.INVALID_ID
-_SUN = np.array([0.35, 0.25, 1.0]) / np.linalg.norm([0.35, 0.25, 1.0])
-_FILL = np.array([-0.6, -0.75, 0.3]) / np.linalg.norm([-0.6, -0.75, 0.3])
-TILE = 0.5  # floor/wall tile size, metres: texture for the eye and for feature-based consumers
-SINK_CELL = 0.05
-SINK_RIM = 0.1  # the basin is drawn inside this rim (visual only: objects still rest on the top plane)
-BASIN_RGB = (105, 115, 125)
+MAX_DEPTH_M = 6.0  # stereo range: farther pixels carry no depth
+MIN_DEPTH_M = 0.2  # closer than this the stereo pair cannot match
+DEPTH_K = 0.004  # sigma of the depth error = DEPTH_K * z^2 (m; ~1.6 cm at 2 m, like a 5 cm-baseline camera)
+EDGE_JUMP = 0.06  # relative depth jump between neighbours that makes an occlusion edge
+REALISM = ("realistic", "ideal")
 
 
 @dataclass
 class Frame:
     rgb: np.ndarray  # HxWx3 uint8
     depth_mm: np.ndarray  # HxW uint16, 0 = no return
-    instance: np.ndarray  # HxW uint16, 0 = nothing
-    camera_to_world: np.ndarray  # 4x4 pose of the optical frame
-
-
-def _unit_mesh(shape: str) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices (centred on the origin, unit extent) and triangles of a primitive."""
-    if shape == "box":
-        m = o3d.geometry.TriangleMesh.create_box(1.0, 1.0, 1.0)
-        m.translate((-0.5, -0.5, -0.5))
-    elif shape == "cylinder":
-        m = o3d.geometry.TriangleMesh.create_cylinder(radius=0.5, height=1.0, resolution=24)
-    else:
-        m = o3d.geometry.TriangleMesh.create_sphere(radius=0.5, resolution=10)
-    return np.asarray(m.vertices, dtype=np.float64), np.asarray(m.triangles, dtype=np.uint32)
-
-
-_UNIT = {s: _unit_mesh(s) for s in ("box", "cylinder", "sphere")}
-
-
-def _tiled_box(size: tuple[float, float, float], cell: float = TILE) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A box centred on the origin whose faces are split into about TILE-sized quads (outward triangles),
-    with a checkerboard parity per triangle."""
-    half = np.array(size) / 2
-    verts: list[np.ndarray] = []
-    tris: list[np.ndarray] = []
-    parity: list[np.ndarray] = []
-    n = 0
-    for axis in range(3):
-        a1, a2 = [i for i in range(3) if i != axis]
-        k1 = max(1, int(math.ceil(size[a1] / cell)))
-        k2 = max(1, int(math.ceil(size[a2] / cell)))
-        g1 = np.linspace(-half[a1], half[a1], k1 + 1)
-        g2 = np.linspace(-half[a2], half[a2], k2 + 1)
-        for sign in (-1.0, 1.0):
-            m1, m2 = np.meshgrid(g1, g2, indexing="ij")
-            v = np.zeros((k1 + 1, k2 + 1, 3))
-            v[..., a1], v[..., a2], v[..., axis] = m1, m2, sign * half[axis]
-            idx = np.arange((k1 + 1) * (k2 + 1)).reshape(k1 + 1, k2 + 1) + n
-            a, b, c, d = idx[:-1, :-1], idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]
-            t = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3), np.stack([a, c, d], -1).reshape(-1, 3)])
-            i1, i2 = np.meshgrid(np.arange(k1), np.arange(k2), indexing="ij")
-            parity.append(np.tile(((i1 + i2) % 2).reshape(-1), 2))
-            # Orient every face outward: (e_a1 x e_a2) points along +axis for a cyclic (a1, a2, axis).
-            if (sign > 0) != ((a1, a2, axis) in ((0, 1, 2), (1, 2, 0), (2, 0, 1))):
-                t = t[:, ::-1]
-            verts.append(v.reshape(-1, 3))
-            tris.append(t)
-            n += (k1 + 1) * (k2 + 1)
-    return np.concatenate(verts), np.concatenate(tris).astype(np.uint32), np.concatenate(parity)
-
-
-def entity_mesh(e: Entity) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """World-frame vertices, triangles and (structure only) tile parity of one entity."""
-    parity = None
-    if e.category == "structure" and e.shape == "box":
-        v, t, parity = _tiled_box(e.size)
-    elif e.name == "sink":
-        v, t, _ = _tiled_box(e.size, SINK_CELL)  # fine top grid so the basin can be drawn in it
-    else:
-        v, t = _UNIT[e.shape]
-        v = v * np.array(e.size)
-    c, s = math.cos(e.yaw), math.sin(e.yaw)
-    rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    return (v @ rot.T + e.center).astype(np.float32), t, parity
-
-
-def _triangle_colors(e: Entity, verts: np.ndarray, tris: np.ndarray, parity: np.ndarray | None) -> np.ndarray:
-    """Flat-shaded colour of every triangle: albedo x (ambient + sun + fill), tiles on structure."""
-    p = verts[tris.astype(np.int64)]
-    n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
-    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-    shade = 0.38 + 0.55 * np.clip(n @ _SUN, 0, None) + 0.22 * np.clip(n @ _FILL, 0, None)
-    if parity is not None:
-        shade = shade * (1.0 - 0.09 * parity)
-    albedo = np.tile(np.array(e.rgb, dtype=np.float64), (len(tris), 1))
-    if e.name == "sink":
-        cen = p.mean(axis=1) - e.center
-        basin = (n[:, 2] > 0.9) & (np.abs(cen[:, 0]) < e.size[0] / 2 - SINK_RIM) & (
-            np.abs(cen[:, 1]) < e.size[1] / 2 - SINK_RIM)
-        albedo[basin] = BASIN_RGB
-    return np.clip(albedo * shade[:, None], 0, 255).astype(np.uint8)
+    instance: np.ndarray  # HxW uint16, 0 = nothing (or the vehicle itself)
+    camera_to_world: np.ndarray  # 4x4 pose of the optical frame (true)
 
 
 class Renderer:
-    """Casts one ray per pixel (directions cached in the camera frame with z = 1, so t_hit is z-depth).
+    """One MuJoCo offscreen context; the model is rebuilt from the snapshot's MJCF when its version changes."""
 
-    Colour is a lookup of a per-triangle flat-shaded colour table, so a frame costs one raycast plus a few
-    gathers; the scene is rebuilt only when the world's geometry changes (or while an object is carried).
-    """
+    def __init__(self, intr: Intrinsics = DEFAULT_INTRINSICS, realism: str = "realistic", seed: int = 0,
+                 segmentation: bool = True) -> None:
+        if realism not in REALISM:
+            raise ValueError(f"unknown realism {realism!r}: {' or '.join(REALISM)}")
+        self.intr, self.realism, self.segmentation = intr, realism, segmentation
+        self.rng = np.random.default_rng(seed)
+        self._version: tuple[int, int] | None = None
+        self._renderer: mujoco.Renderer | None = None
+        self.exposure = 1.0
 
-    def __init__(self, intr: Intrinsics = DEFAULT_INTRINSICS, mount: Mount | None = None) -> None:
-        self.intr = intr
-        # The render worker is a child process with the parent's environment, so Mount() here is the
-        # simulator's settings.mount (AERMANI_MOUNT_*).
-        self.base_from_camera = (mount or Mount()).base_to_camera()
-        u, v = np.meshgrid(np.arange(intr.width, dtype=np.float64), np.arange(intr.height, dtype=np.float64))
-        self._xc = ((u - intr.cx) / intr.fx).astype(np.float32)
-        self._yc = ((v - intr.cy) / intr.fy).astype(np.float32)
-        self._tmp = np.empty_like(self._xc)
-        self._rays = np.empty((intr.height, intr.width, 6), dtype=np.float32)
-        self._scene: o3d.t.geometry.RaycastingScene | None = None
-        self._key: tuple | None = None
-        self._lut = np.zeros(1, dtype=np.uint16)
-        self._offsets = np.zeros(1, dtype=np.int64)
-        self._colors = np.zeros((1, 3), dtype=np.uint8)
-        self.rebuilds = 0
-        self._mesh_cache: dict[tuple, tuple] = {}
-
-    def _ensure_scene(self, world: World) -> None:
-        held = world.attached()
-        key = (world.version, None if held is None else (tuple(np.round(held.center, 4)), round(held.yaw, 4)))
-        if key == self._key and self._scene is not None:
+    def _model(self, snap: Snapshot) -> None:
+        key = (snap.version, hash(snap.xml))  # distinct layouts may share a version number (offline previews)
+        if self._version == key and self._renderer is not None:
             return
-        scene = o3d.t.geometry.RaycastingScene()
-        lut, offsets, colors = [], [], []
-        total = 0
-        cache: dict[tuple, tuple] = {}
-        for e in world.entities:
-            # Meshes are cached by pose, so carrying an object re-meshes only that object.
-            ekey = (e.id, e.shape, tuple(np.round(e.center, 5)), tuple(e.size), round(e.yaw, 5), e.rgb)
-            entry = self._mesh_cache.get(ekey)
-            if entry is None:
-                verts, tris, parity = entity_mesh(e)
-                entry = (o3d.core.Tensor(verts), o3d.core.Tensor(tris), _triangle_colors(e, verts, tris, parity))
-            cache[ekey] = entry
-            vt, tt, col = entry
-            scene.add_triangles(vt, tt)
-            lut.append(e.id)
-            offsets.append(total)
-            colors.append(col)
-            total += len(col)
-        self._mesh_cache = cache
-        colors.append(np.zeros((1, 3), dtype=np.uint8))  # misses: black
-        self._scene = scene
-        self._lut = np.array(lut + [0], dtype=np.uint16)  # last entry: misses
-        self._offsets = np.array(offsets + [total], dtype=np.int64)
-        self._colors = np.concatenate(colors)
-        self._key = key
-        self.rebuilds += 1
+        if self._renderer is not None:
+            self._renderer.close()
+        self.model = mujoco.MjModel.from_xml_string(snap.xml)
+        scale = self.intr.height / DEFAULT_INTRINSICS.height
+        if scale != 1.0:  # a coarse camera keeps the field of view
+            self.model.vis.global_.offwidth, self.model.vis.global_.offheight = self.intr.width, self.intr.height
+        self.data = mujoco.MjData(self.model)
+        self._renderer = mujoco.Renderer(self.model, self.intr.height, self.intr.width)
+        self._opt = mujoco.MjvOption()
+        self._opt.geomgroup[3] = 0  # the gripper's fingers are out of the camera's view anyway
+        self._version = key
 
-    def camera_pose(self, position: np.ndarray, yaw: float) -> np.ndarray:
-        return pose_matrix(float(position[0]), float(position[1]), float(position[2]), yaw) @ self.base_from_camera
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
 
     def render(self, snap: Snapshot) -> Frame:
-        self._ensure_scene(snap.world)
-        assert self._scene is not None
-        cam = self.camera_pose(snap.position, snap.yaw)
-        rot = cam[:3, :3].astype(np.float32)
-        self._rays[..., :3] = cam[:3, 3].astype(np.float32)
-        # d_world = R @ (x, y, 1), written axis by axis: cheaper than a BLAS call on 300k tiny vectors.
-        for i in range(3):
-            np.multiply(self._xc, rot[i, 0], out=self._tmp)
-            self._tmp += self._yc * rot[i, 1]
-            self._tmp += rot[i, 2]
-            self._rays[..., 3 + i] = self._tmp
-        ans = self._scene.cast_rays(o3d.core.Tensor.from_numpy(self._rays))
-        t = ans["t_hit"].numpy()
-        gid = ans["geometry_ids"].numpy()
-        prim = ans["primitive_ids"].numpy()
-        valid = (t <= MAX_DEPTH_M) & (gid != INVALID_ID)  # inf fails the first test
-        depth = np.where(valid, t * 1000.0 + 0.5, 0).astype(np.uint16)
-        g = np.where(valid, gid, len(self._lut) - 1).astype(np.int64)
-        inst = self._lut[g]
-        tri = self._offsets[g] + np.where(valid, prim, 0)
-        rgb = self._colors[tri]
-        return Frame(rgb, depth, inst, cam)
+        self._model(snap)
+        r, d, m = self._renderer, self.data, self.model
+        d.qpos[:] = snap.qpos
+        mujoco.mj_kinematics(m, d)
+        mujoco.mj_camlight(m, d)
+        r.update_scene(d, camera="camera", scene_option=self._opt)
+        rgb = r.render().copy()
+        r.enable_depth_rendering()
+        depth = r.render().copy()
+        r.disable_depth_rendering()
+        if self.segmentation:
+            r.enable_segmentation_rendering()
+            seg = r.render()
+            r.disable_segmentation_rendering()
+            ids, types = seg[..., 0], seg[..., 1]
+            lut = snap.geom_instance
+            ok = (types == int(mujoco.mjtObj.mjOBJ_GEOM)) & (ids >= 0) & (ids < len(lut) - 1)
+            instance = np.where(ok, lut[np.clip(ids, 0, len(lut) - 1)], 0).astype(np.uint16)
+        else:
+            instance = np.zeros(depth.shape, np.uint16)
+        cam = pose_matrix(*(float(x) for x in d.xpos[m.body("vehicle").id]),
+                          float(np.arctan2(d.xmat[m.body("vehicle").id][3], d.xmat[m.body("vehicle").id][0]))) \
+            @ base_to_camera()
+        if self.realism == "realistic":
+            rgb, depth = self._camera_model(rgb, depth)
+        valid = (depth > MIN_DEPTH_M) & (depth < MAX_DEPTH_M) & np.isfinite(depth)
+        depth_mm = np.where(valid, depth * 1000.0 + 0.5, 0).astype(np.uint16)
+        return Frame(rgb, depth_mm, instance, cam)
+
+    def _noise_banks(self, h: int, w: int) -> None:
+        """Noise drawn once and cropped at a random offset per frame (drawing 1M normals costs 20 ms)."""
+        if getattr(self, "_bank_shape", None) == (h, w):
+            return
+        rng, pad = self.rng, 64
+        read = rng.normal(0.0, 2.0, (h + pad, w + pad, 3))
+        self._read_pos = np.clip(read, 0, 255).astype(np.uint8)
+        self._read_neg = np.clip(-read, 0, 255).astype(np.uint8)
+        self._fine = rng.normal(0.0, 0.35, (h + pad, w + pad)).astype(np.float32)
+        self._drop = rng.random((h + pad, w + pad)) < 0.8
+        self._bank_shape = (h, w)
+
+    def _crop(self, bank: np.ndarray, h: int, w: int) -> np.ndarray:
+        oy, ox = (int(v) for v in self.rng.integers(0, 64, 2))
+        return bank[oy:oy + h, ox:ox + w]
+
+    def _camera_model(self, rgb: np.ndarray, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        h, w = depth.shape
+        rng = self.rng
+        self._noise_banks(h, w)
+        # Exposure: auto-exposure hunting around the right value, slowly (a random walk pulled back to 1).
+        self.exposure = float(np.clip(self.exposure + 0.1 * (1.0 - self.exposure) + rng.normal(0, 0.03),
+                                      0.75, 1.25))
+        img = cv2.convertScaleAbs(rgb, alpha=self.exposure)
+        img = cv2.subtract(cv2.add(img, self._crop(self._read_pos, h, w)), self._crop(self._read_neg, h, w))
+        # Depth: correlated error ~ z^2 (disparity noise of block matching, coarse blocks), plus fine noise.
+        z = depth.astype(np.float32)
+        coarse = rng.normal(0.0, 1.0, (h // 8 + 1, w // 8 + 1)).astype(np.float32)
+        field = cv2.resize(coarse, (w, h), interpolation=cv2.INTER_LINEAR)
+        noisy = z + DEPTH_K * z * z * (field + self._crop(self._fine, h, w))
+        # Holes at occlusion edges: a relative jump to a neighbour (dilated max - eroded min over 3x3), mostly
+        # lost.
+        k = np.ones((3, 3), np.uint8)
+        jump = cv2.dilate(z, k) - cv2.erode(z, k)
+        edge = jump > EDGE_JUMP * np.maximum(z, 1e-3)
+        noisy[edge & self._crop(self._drop, h, w)] = 0.0
+        return img, noisy
+
+
+def snapshot_at(world, position: np.ndarray, yaw: float) -> Snapshot:
+    """Put the vehicle of `world` at `position` (ENU body origin) with `yaw` and take a camera snapshot."""
+    world.set_vehicle(np.asarray(position, float), yaw)
+    return Snapshot(world.version, world.xml, world.state_vector(), world.geom_instance,
+                    np.asarray(position, float), yaw)
+
+
+def preview(world, position: np.ndarray, yaw: float, realism: str = "ideal") -> Frame:
+    """Render `world` from a vehicle standing at `position` (ENU body origin) with `yaw`, offline."""
+    snap = snapshot_at(world, position, yaw)
+    r = Renderer(realism=realism)
+    try:
+        return r.render(snap)
+    finally:
+        r.close()

@@ -1,5 +1,6 @@
-"""Rendering in a child process: Open3D's cast_rays holds the GIL for the whole raycast, which would stall the
-MAVLink/physics thread and the event loop for tens of milliseconds every frame."""
+"""Rendering in a child process: MuJoCo's OpenGL rendering (software GL on most machines here) and the camera
+model take tens of milliseconds per frame and own an OpenGL context; in the simulator's process they would
+compete with the MAVLink/physics thread for the GIL and the core."""
 
 from __future__ import annotations
 
@@ -27,7 +28,7 @@ log = logging.getLogger("aermani.sim.render")
 class Encoded:
     color: bytes  # serialized foxglove.CompressedImage
     depth: bytes  # serialized foxglove.RawImage 16UC1 (mm)
-    segmentation: bytes  # serialized foxglove.RawImage 16UC1 (instance ids)
+    segmentation: bytes | None  # serialized foxglove.RawImage 16UC1 (instance ids); None when not asked for
     render_s: float  # time spent in the renderer and encoders
 
 
@@ -44,14 +45,15 @@ def coarse_intrinsics(scale: int, full: Intrinsics = DEFAULT_INTRINSICS) -> Intr
 class FrameEncoder:
     """Render + upsample + encode one frame (runs in the worker process, or in-process for tests)."""
 
-    def __init__(self, scale: int = 1, jpeg_quality: int = 85) -> None:
+    def __init__(self, scale: int = 1, jpeg_quality: int = 85, realism: str = "realistic", seed: int = 0) -> None:
         from services.sim.render import Renderer
 
         self.scale, self.quality = scale, jpeg_quality
-        self.renderer = Renderer(coarse_intrinsics(scale))
+        self.renderer = Renderer(coarse_intrinsics(scale), realism=realism, seed=seed)
 
-    def __call__(self, snap: Snapshot, stamp_ns: int) -> Encoded:
+    def __call__(self, snap: Snapshot, stamp_ns: int, segmentation: bool = True) -> Encoded:
         t0 = time.perf_counter()
+        self.renderer.segmentation = segmentation
         frame = self.renderer.render(snap)
         rgb, depth, inst = frame.rgb, frame.depth_mm, frame.instance
         if self.scale > 1:
@@ -60,12 +62,12 @@ class FrameEncoder:
             depth = cv2.resize(depth, full, interpolation=cv2.INTER_NEAREST)
             inst = cv2.resize(inst, full, interpolation=cv2.INTER_NEAREST)
         color = color_message(rgb, stamp_ns, jpeg=encode_jpeg(rgb, self.quality))
-        return Encoded(color, raw16_message(depth, stamp_ns), raw16_message(inst, stamp_ns),
+        return Encoded(color, raw16_message(depth, stamp_ns), raw16_message(inst, stamp_ns) if segmentation else None,
                        time.perf_counter() - t0)
 
 
-def _worker(conn, scale: int, quality: int) -> None:  # runs in the child
-    encoder = FrameEncoder(scale, quality)
+def _worker(conn, scale: int, quality: int, realism: str) -> None:  # runs in the child
+    encoder = FrameEncoder(scale, quality, realism)
     conn.send("ready")
     while True:
         try:
@@ -74,9 +76,9 @@ def _worker(conn, scale: int, quality: int) -> None:  # runs in the child
             return  # parent gone
         if job is None:
             return
-        snap, stamp = job
+        snap, stamp, seg = job
         try:
-            conn.send(encoder(snap, stamp))
+            conn.send(encoder(snap, stamp, seg))
         except Exception as exc:  # report, keep serving
             conn.send(exc)
 
@@ -86,10 +88,12 @@ class RenderWorker:
     socketpair; call `render` from a worker thread. A plain subprocess rather than multiprocessing's spawn,
     which would re-import whatever script happens to be the parent's __main__."""
 
-    def __init__(self, scale: int = 1, jpeg_quality: int = 85, start_timeout: float = 120.0) -> None:
+    def __init__(self, scale: int = 1, jpeg_quality: int = 85, realism: str = "realistic",
+                 start_timeout: float = 120.0) -> None:
         parent, child = socket.socketpair()
         self._proc = subprocess.Popen(
-            [sys.executable, "-m", "services.sim.render_worker", str(child.fileno()), str(scale), str(jpeg_quality)],
+            [sys.executable, "-m", "services.sim.render_worker", str(child.fileno()), str(scale), str(jpeg_quality),
+             realism],
             pass_fds=(child.fileno(),), cwd=str(Path(__file__).resolve().parents[2]))
         child.close()
         self._conn = Connection(parent.detach())
@@ -102,9 +106,9 @@ class RenderWorker:
             self.close()
             raise RuntimeError(f"the render worker process did not start (exit code {self._proc.poll()})")
 
-    def render(self, snap: Snapshot, stamp_ns: int) -> Encoded:
+    def render(self, snap: Snapshot, stamp_ns: int, segmentation: bool = True) -> Encoded:
         with self._lock:
-            self._conn.send((snap, stamp_ns))
+            self._conn.send((snap, stamp_ns, segmentation))
             out = self._conn.recv()
         if isinstance(out, Exception):
             raise out
@@ -125,4 +129,4 @@ if __name__ == "__main__":
     # Import by name so pickled frames reference services.sim.render_worker.Encoded, not __main__.Encoded.
     from services.sim.render_worker import _worker as worker
 
-    worker(Connection(int(sys.argv[1])), int(sys.argv[2]), int(sys.argv[3]))
+    worker(Connection(int(sys.argv[1])), int(sys.argv[2]), int(sys.argv[3]), sys.argv[4])

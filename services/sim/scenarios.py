@@ -7,7 +7,7 @@ import random
 
 import numpy as np
 
-from services.sim.world import (
+from services.sim.layout import (
     FLOOR_Z,
     FURNITURE,
     OBJECTS,
@@ -15,8 +15,8 @@ from services.sim.world import (
     SURFACES,
     WALL_HEIGHT,
     Entity,
-    World,
 )
+from services.sim.physics import World
 from shared.frames import DEFAULT_INTRINSICS, base_to_camera
 from shared.messages import Pose, Scenario, Vec3
 from shared.sensors import pose_matrix
@@ -135,8 +135,9 @@ def visible_from(entity: Entity, start: Pose, altitudes: tuple[float, ...] = VIE
     return False
 
 
-def generate(scenario: Scenario) -> tuple[World, Scenario, Pose]:
-    """Build the world for `scenario`; returns it, the scenario with every choice filled in, and the start."""
+def generate(scenario: Scenario, light_variation: bool = True) -> tuple[World, Scenario, Pose]:
+    """Build the world for `scenario` (a MuJoCo simulation, objects settled on their supports); returns it, the
+    scenario with every choice filled in, and the start."""
     rng = random.Random(scenario.seed)
     target = canonical(scenario.target_object, OBJECTS, "object") if scenario.target_object else None
     dest = canonical(scenario.destination, FURNITURE, "surface") if scenario.destination else None
@@ -222,7 +223,8 @@ def generate(scenario: Scenario) -> tuple[World, Scenario, Pose]:
 
     if dest is None:
         dest = rng.choice([s for s in surfaces if s != placed[0].support])
-    world = World(entities=_structure() + furniture + placed)
+    world = World(entities=_structure() + furniture + placed, light_seed=scenario.seed,
+                  light_variation=light_variation)
     filled = Scenario(seed=scenario.seed, target_object=target, destination=dest, distractors=distractors,
                       target_out_of_view=scenario.target_out_of_view, extra_objects=extras, start=start,
                       placements=fixed or None)

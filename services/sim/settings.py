@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Literal
 
 from pydantic import Field, field_validator
 from pydantic_settings import NoDecode, SettingsConfigDict
@@ -36,11 +36,14 @@ class SimSettings(ServiceSettings):
     jpeg_quality: int = Field(85, ge=10, le=100)
     """JPEG quality of the colour frames."""
     render_scale: int = Field(1, ge=1, le=4)
-    """Cast one ray per render_scale x render_scale pixels and upsample (1 = full resolution)."""
+    """Render at 1/render_scale of the resolution and upsample (1 = full resolution)."""
+    realism: Literal["realistic", "ideal"] = "realistic"
+    """realistic: stereo depth noise and holes, exposure and lighting variation, a drifting pose estimate;
+    ideal: clean buffers and the true pose (debugging)."""
     render_always: bool = False
     """Render even when nobody subscribes to the camera keys (by default idle frames publish tf only)."""
     render_process: bool = True
-    """Render in a child process (Open3D holds the GIL while raycasting, which would stall MAVLink)."""
+    """Render in a child process (rendering and the camera model would compete with MAVLink for the GIL)."""
 
     api_host: str = "127.0.0.1"
     """Host the offboard/API link sends to (where the autopilot bridge listens)."""

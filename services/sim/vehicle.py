@@ -1,4 +1,6 @@
-"""A PX4-like multirotor: mode logic, offboard failsafe, point-mass dynamics in NED, gripper and collisions."""
+"""A PX4-like multirotor: mode logic, offboard failsafe, a position/velocity controller with PX4's limits that
+drives the vehicle body of the MuJoCo world (services.sim.physics), the gripper, crashes, and the estimated pose
+(truth plus a drifting bias and noise, as an EKF's)."""
 
 from __future__ import annotations
 
@@ -10,7 +12,7 @@ import numpy as np
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mav
 
-from services.sim.world import World
+from services.sim.physics import FINGER_MAX_HALF, VEHICLE_YAW_INERTIA, World
 from shared.frames import GRIPPER_OFFSET_BODY
 
 log = logging.getLogger("aermani.sim.vehicle")
@@ -40,6 +42,7 @@ FAILED = mav.MAV_RESULT_FAILED
 FORCE_MAGIC = 21196
 
 GRAVITY = 9.81
+VEHICLE_YAW_INERTIA_TOTAL = VEHICLE_YAW_INERTIA + 0.01  # + finger armature/mass
 
 
 def ned_to_enu(p: np.ndarray) -> np.ndarray:
@@ -75,7 +78,27 @@ class VehicleParams:
     battery_drain_per_s: float = 0.05  # % per second while armed (~33 min flight)
     kp: float = 1.5  # position gain, 1/s
     rtl_alt: float = 2.0  # m above home (RTL_RETURN_ALT; PX4's 60 m default makes no sense indoors)
-    gripper_offset: tuple[float, float, float] = GRIPPER_OFFSET_BODY  # body FLU, metres (settings.mount)
+    vel_tau: float = 0.12  # s, velocity loop time constant (force = mass * velocity error / tau + integral)
+    vel_ki: float = 4.0  # 1/s^2, integral gain of the velocity loop (carries a payload without sagging)
+    max_tilt_accel: float = 6.0  # m/s^2: horizontal acceleration the airframe can produce (thrust limit)
+    max_thrust_accel: float = 2.2 * GRAVITY  # m/s^2: thrust-to-weight
+    pose_noise: float = 0.0  # m, white noise on the estimated position
+    pose_drift: float = 0.0  # m/sqrt(s): random walk of the estimate's horizontal bias (visual odometry drift)
+    pose_drift_max: float = 0.0  # m: the bias is bounded (loop closures / fused references)
+    yaw_drift: float = 0.0  # rad/sqrt(s): random walk of the estimated yaw's bias
+    yaw_drift_max: float = 0.0  # rad
+    seed: int = 0
+
+
+def realism_params(realism: str, **kw) -> VehicleParams:
+    """`realistic`: a VIO-grade estimate (2 mm noise, bias drifting ~1 cm/min up to 3 cm, yaw up to 1 deg);
+    `ideal`: the estimate is the truth."""
+    if realism == "ideal":
+        return VehicleParams(**kw)
+    if realism != "realistic":
+        raise ValueError(f"unknown realism {realism!r}: realistic or ideal")
+    return VehicleParams(pose_noise=0.002, pose_drift=0.0015, pose_drift_max=0.03, yaw_drift=0.0005,
+                         yaw_drift_max=math.radians(1.0), **kw)
 
 
 class Vehicle:
@@ -97,11 +120,16 @@ class Vehicle:
     def reset(self, p_ned: np.ndarray, yaw_ned: float, world: World | None = None) -> None:
         if world is not None:
             self.world = world
-        self.p = np.array(p_ned, dtype=float)
-        self.p[2] = 0.0
+        p0 = np.array(p_ned, dtype=float)
+        p0[2] = 0.0
+        self.world.set_vehicle(ned_to_enu(p0), yaw_ned_to_enu(wrap(yaw_ned)))
+        self.rng = np.random.default_rng(self.params.seed)
+        self.bias = np.zeros(3)  # NED, estimate - truth
+        self.yaw_bias = 0.0
+        self.v_int = np.zeros(3)
+        self.crashed = False
+        self._read_state()
         self.home = self.p.copy()
-        self.v = np.zeros(3)
-        self.yaw = wrap(yaw_ned)
         self.armed = False
         self.main_mode, self.sub_mode = MAIN_AUTO, SUB_LOITER
         self.on_ground = True
@@ -117,6 +145,7 @@ class Vehicle:
         self.hold_yaw = self.yaw
         self.takeoff_target = self.p.copy()
         self.gripper_closed = False
+        self.held_name: str | None = None
         self.battery = 100.0
         self.sim_time = 0.0
         self.setpoints_received = 0
@@ -151,10 +180,36 @@ class Vehicle:
         return yaw_ned_to_enu(self.yaw)
 
     def gripper_enu(self) -> np.ndarray:
+        """Gripper point from the estimated pose (what the autopilot believes)."""
         y = self.yaw_enu()
-        gx, gy, gz = self.params.gripper_offset
+        gx, gy, gz = GRIPPER_OFFSET_BODY
         c, s = math.cos(y), math.sin(y)
         return self.position_enu() + np.array([c * gx - s * gy, s * gx + c * gy, gz])
+
+    def true_position_enu(self) -> np.ndarray:
+        return self.world.vehicle_position()
+
+    def true_yaw_enu(self) -> float:
+        return wrap(self.world.vehicle_yaw())
+
+    @property
+    def finger_width(self) -> float:
+        return self.world.finger_width()
+
+    @property
+    def holding(self) -> bool:
+        """Both finger pads touch the same object (the gripper's contact sensing)."""
+        return self.world.holding() is not None
+
+    def _read_state(self) -> None:
+        """Estimated state = MuJoCo's truth + bias (+ noise on the position)."""
+        w = self.world
+        noise = self.rng.normal(0.0, self.params.pose_noise, 3) if self.params.pose_noise > 0 else 0.0
+        self.p_true = enu_to_ned(w.vehicle_position())
+        self.p = self.p_true + self.bias + noise
+        self.v = enu_to_ned(w.vehicle_velocity())
+        self.yaw = wrap(yaw_ned_to_enu(w.vehicle_yaw()) + self.yaw_bias)  # ENU<->NED yaw map is its own inverse
+        self.yaw_rate = -w.vehicle_yaw_rate()
 
     def _event(self, severity: int, text: str) -> None:
         log.info("STATUSTEXT: %s", text)
@@ -303,18 +358,10 @@ class Vehicle:
         return ACCEPTED
 
     def gripper(self, grab: bool) -> int:
-        if grab:
-            self.gripper_closed = True
-            obj = self.world.try_grab(self.gripper_enu())
-            if obj is not None:
-                self._event(mav.MAV_SEVERITY_INFO, f"Gripper closed: holding {obj.name}")
-            else:
-                self._event(mav.MAV_SEVERITY_INFO, "Gripper closed: nothing grasped")
-        else:
-            self.gripper_closed = False
-            obj = self.world.release()
-            if obj is not None:
-                self._event(mav.MAV_SEVERITY_INFO, f"Gripper opened: {obj.name} dropped onto {obj.support}")
+        """Close (grab) or open (release) the fingers; what is held follows from the contacts."""
+        self.gripper_closed = grab
+        self.world.set_fingers(0.0 if grab else FINGER_MAX_HALF)
+        self._event(mav.MAV_SEVERITY_INFO, "Gripper closing" if grab else "Gripper opening")
         return ACCEPTED
 
     def setpoint(self, now: float, pos: np.ndarray | None, vel: np.ndarray | None, yaw: float | None,
@@ -350,49 +397,83 @@ class Vehicle:
                 self._event(mav.MAV_SEVERITY_INFO, "Landing detected, disarmed")
 
     def step(self, dt: float) -> None:
-        """Integrate `dt` seconds of simulated time."""
+        """Run the controller once and advance the physics `dt` seconds of simulated time."""
         if dt <= 0:
             return
         self.sim_time += dt
         p = self.params
-        prev_yaw = self.yaw
         if self.armed:
             self.battery = max(0.0, self.battery - p.battery_drain_per_s * dt)
-        if not self.armed:
-            if self.on_ground:
-                self.v[:] = 0.0
-            else:  # forced disarm in the air: it falls
-                self.v[:2] *= max(0.0, 1.0 - dt)
-                self.v[2] += GRAVITY * dt
-                self._move(dt)
-            self._carry(prev_yaw)
-            return
+        self._drift(dt)
+        force, torque = np.zeros(3), 0.0
+        if self.armed and not self.crashed:
+            force, torque = self._control(dt)
+        self.world.apply_vehicle_force(force, torque)
+        for c in self.world.step(dt):
+            if c.crash and self.armed:
+                self.crashed = True
+                self.armed = False
+                self._event(mav.MAV_SEVERITY_EMERGENCY,
+                            f"Crash: hit the {c.name} at {c.speed:.1f} m/s, motors stopped")
+            else:
+                self._event(mav.MAV_SEVERITY_CRITICAL, f"Collision with {c.name} at {c.speed:.2f} m/s")
+        self._read_state()
+        held = self.world.holding()
+        name = held.name if held is not None else None
+        if name != self.held_name:
+            if name is not None:
+                self._event(mav.MAV_SEVERITY_INFO, f"Gripper: holding {name} (width {self.finger_width:.3f} m)")
+            else:
+                self._event(mav.MAV_SEVERITY_INFO, f"Gripper: no longer holding {self.held_name}")
+            self.held_name = name
+        was = self.on_ground
+        resting = self.world.gear_on_something() or self.world.vehicle_position()[2] < 0.003
+        self.on_ground = resting and abs(self.v[2]) < 0.15 and (
+            not self.armed or not self._climbing())
+        if was and not self.on_ground:
+            self.landing_touch_wall = None
 
+    def _drift(self, dt: float) -> None:
+        p = self.params
+        if p.pose_drift > 0:
+            self.bias[:2] += self.rng.normal(0.0, p.pose_drift * math.sqrt(dt), 2)
+            n = float(np.linalg.norm(self.bias[:2]))
+            if n > p.pose_drift_max:
+                self.bias[:2] *= p.pose_drift_max / n
+        if p.yaw_drift > 0:
+            self.yaw_bias = min(max(self.yaw_bias + float(self.rng.normal(0.0, p.yaw_drift * math.sqrt(dt))),
+                                    -p.yaw_drift_max), p.yaw_drift_max)
+
+    def _control(self, dt: float) -> tuple[np.ndarray, float]:
+        """PX4-like cascade on the estimated state: position -> velocity setpoint (speed and acceleration
+        limits, sqrt braking profile) -> force (PI on velocity, gravity feed-forward, thrust limits)."""
+        p = self.params
         target, yaw_target, vmax_up, vmax_down = self.hold_pos, self.hold_yaw, p.max_speed_up, p.max_speed_down
         vel_cmd: np.ndarray | None = None
+        yaw_rate_cmd: float | None = None
         if self.main_mode == MAIN_OFFBOARD:
             if self.sp_pos is not None:
                 target = self.sp_pos
             elif self.sp_vel is not None:
                 vel_cmd = self.sp_vel
             yaw_target = self.sp_yaw
+            if self.sp_yaw is None and self.sp_yaw_rate is not None:
+                yaw_rate_cmd = min(max(self.sp_yaw_rate, -p.yaw_rate), p.yaw_rate)
         elif self.main_mode == MAIN_AUTO and self.sub_mode == SUB_TAKEOFF:
             target, yaw_target = self.takeoff_target, self.hold_yaw
             if abs(self.p[2] - self.takeoff_target[2]) < 0.05:
                 self._set_mode(MAIN_AUTO, SUB_LOITER)
                 self._event(mav.MAV_SEVERITY_INFO, "Takeoff complete, holding")
         elif self.main_mode == MAIN_AUTO and self.sub_mode == SUB_LAND:
-            target = np.array([self.hold_pos[0], self.hold_pos[1], 1.0])  # below ground: descend to it
+            target = np.array([self.hold_pos[0], self.hold_pos[1], self.p[2] + 1.0])  # keep descending
             vmax_down = p.land_speed
         elif self.main_mode == MAIN_AUTO and self.sub_mode == SUB_RTL:
             target = self._rtl_target()
 
         if self.on_ground and vel_cmd is None and target[2] > self.p[2] - 0.05:
             # A target at or below the ground keeps a landed vehicle on the ground (idle spin).
-            self.v[:] = 0.0
-            self._yaw_step(yaw_target, dt)
-            self._carry(prev_yaw)
-            return
+            self.v_int[:] = 0.0
+            return np.zeros(3), 0.0
 
         if vel_cmd is None:
             vel_cmd = self._position_control(target, vmax_up, vmax_down)
@@ -401,19 +482,35 @@ class Vehicle:
         if h > p.max_speed_h:
             vel_cmd[:2] *= p.max_speed_h / h
         vel_cmd[2] = min(max(vel_cmd[2], -vmax_up), vmax_down)
+        # Acceleration limits on the velocity setpoint's change relative to the current velocity.
         dv = vel_cmd - self.v
-        dh = np.linalg.norm(dv[:2])
-        if dh > p.accel_h * dt:
-            dv[:2] *= p.accel_h * dt / dh
-        dv[2] = min(max(dv[2], -p.accel_v * dt), p.accel_v * dt)
-        self.v += dv
-        if self.main_mode == MAIN_OFFBOARD and self.sp_yaw is None and self.sp_yaw_rate is not None:
-            rate = min(max(self.sp_yaw_rate, -p.yaw_rate), p.yaw_rate)
-            self.yaw = wrap(self.yaw + rate * dt)
-        else:
-            self._yaw_step(yaw_target, dt)
-        self._move(dt)
-        self._carry(prev_yaw)
+        a = dv / p.vel_tau
+        ah = float(np.linalg.norm(a[:2]))
+        if ah > p.accel_h:
+            a[:2] *= p.accel_h / ah
+        a[2] = min(max(a[2], -p.accel_v), p.accel_v)
+        # Integral on the vertical axis only: it carries a payload's weight (the horizontal axes have no
+        # steady disturbance here, and an integral there would break the acceleration limit).
+        self.v_int[2] = min(max(self.v_int[2] + dv[2] * dt * p.vel_ki, -3.0), 3.0)
+        a_ned = a + self.v_int
+        m = self.world.vehicle_mass
+        force_enu = ned_to_enu(a_ned) * m
+        force_enu[2] += m * GRAVITY
+        fh = float(np.linalg.norm(force_enu[:2]))
+        if fh > m * p.max_tilt_accel:
+            force_enu[:2] *= m * p.max_tilt_accel / fh
+        force_enu[2] = min(max(force_enu[2], 0.0), m * p.max_thrust_accel)
+        # Yaw: rate-limited towards the target, then a torque tracking that rate.
+        if yaw_rate_cmd is None:
+            if yaw_target is None or not math.isfinite(yaw_target):
+                yaw_rate_cmd = 0.0
+            else:
+                err = wrap(yaw_target - self.yaw)
+                yaw_rate_cmd = min(max(3.0 * err, -p.yaw_rate), p.yaw_rate)
+                if abs(err) > 1e-4:
+                    yaw_rate_cmd = math.copysign(min(abs(yaw_rate_cmd), math.sqrt(2 * 6.0 * abs(err))), err)
+        torque = VEHICLE_YAW_INERTIA_TOTAL * (-yaw_rate_cmd - self.world.vehicle_yaw_rate()) / 0.05
+        return force_enu, torque
 
     def _rtl_target(self) -> np.ndarray:
         z_rtl = min(self.p[2], self.home[2] - self.params.rtl_alt)  # NED: never descend on the way home
@@ -440,45 +537,6 @@ class Vehicle:
         out[2] = min(max(vz, -vmax_up), vmax_down)
         return out
 
-    def _yaw_step(self, yaw_target: float | None, dt: float) -> None:
-        if yaw_target is None or not math.isfinite(yaw_target):
-            return
-        err = wrap(yaw_target - self.yaw)
-        step = self.params.yaw_rate * dt
-        self.yaw = wrap(self.yaw + min(max(err, -step), step))
-
-    def _move(self, dt: float) -> None:
-        """Advance the position axis by axis; an axis whose motion would hit furniture or a wall stops."""
-        new = self.p + self.v * dt
-        if new[2] >= 0.0:  # ground contact
-            new[2] = 0.0
-            if self.v[2] > 0:
-                self.v[2] = 0.0
-            self.v[:2] = 0.0 if self.on_ground or not self.armed else self.v[:2]
-        cur = self.p.copy()
-        blocked_down = False
-        before = set(self.world.vehicle_contacts(ned_to_enu(cur)))
-        for i in range(3):
-            cand = cur.copy()
-            cand[i] = new[i]
-            hits = set(self.world.vehicle_contacts(ned_to_enu(cand))) - before
-            if hits:
-                for h in sorted(hits):
-                    if f"vehicle-{h}" not in self.world.collisions:
-                        self._event(mav.MAV_SEVERITY_CRITICAL, f"Collision with {h}")
-                        self.world.record_collision(h)
-                blocked_down = blocked_down or (i == 2 and self.v[2] > 0)
-                self.v[i] = 0.0
-            else:
-                cur = cand
-        self.p = cur
-        was = self.on_ground
-        # Sitting on top of furniture counts as landed too (PX4's land detector sees no descent).
-        self.on_ground = (self.p[2] >= -0.01 or blocked_down) and self.v[2] >= -1e-6 and (
-            not self.armed or not self._climbing())
-        if was and not self.on_ground:
-            self.landing_touch_wall = None
-
     def _climbing(self) -> bool:
         if self.main_mode == MAIN_AUTO and self.sub_mode == SUB_TAKEOFF:
             return True
@@ -486,7 +544,3 @@ class Vehicle:
             (self.sp_pos is not None and self.sp_pos[2] < self.p[2] - 0.05)
             or (self.sp_vel is not None and self.sp_vel[2] < 0))
 
-    def _carry(self, prev_yaw: float) -> None:
-        obj = self.world.attached()
-        if obj is not None:
-            self.world.carry(self.gripper_enu(), -wrap(self.yaw - prev_yaw))

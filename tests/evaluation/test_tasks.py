@@ -10,7 +10,7 @@ from services.evaluation.records import EpisodeRecord, ResultsFile
 from services.evaluation.report import backend_note, write_report
 from services.evaluation.runner import RunConfig, episode_specs
 from services.evaluation.tasks import PAPER_SUITES, derive_seed, expand, load_jsonl, load_suites
-from services.sim.world import OBJECTS, SURFACES
+from services.sim.layout import OBJECTS, SURFACES
 from shared.errors import ConfigError
 from shared.messages import ModelCall, ReasoningStep, SkillState, SkillToExecute
 

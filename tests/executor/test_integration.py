@@ -105,6 +105,24 @@ class Client:
             await self.ok("yaw_left")
         raise AssertionError(f"{argument} never found: {st.message}")
 
+    async def approach(self, label: str, skill: str = "obj_localization", within: float = 1.6) -> SkillStatus:
+        """What a policy does after "too far: approach first": turn toward the localized object, fly forward
+        steps until it is within `within` m, and localize it again from there."""
+        loc = await self.search(skill, label)
+        for _ in range(16):
+            target = loc.outcome.estimate.pose.position
+            st = self.states.latest_nowait() or await self.states.recv(timeout=5)
+            dx, dy = target.x - st.position.x, target.y - st.position.y
+            if math.hypot(dx, dy) <= within:
+                return loc
+            bearing = math.atan2(math.sin(math.atan2(dy, dx) - st.yaw), math.cos(math.atan2(dy, dx) - st.yaw))
+            if abs(bearing) > math.radians(25):
+                await self.ok("yaw_left" if bearing > 0 else "yaw_right")
+            else:
+                await self.ok("forward")
+            loc = await self.search(skill, label)
+        raise AssertionError(f"could not approach the {label}")
+
     async def speed(self) -> float:
         s = await self.states.recv(timeout=5)
         s = self.states.latest_nowait() or s
@@ -118,14 +136,19 @@ def test_pick_and_place_sequence_judged_by_ground_truth(stack):
             # seed 5: the cup is on the shelf, 2.9 m from the table; both within perception range of the search
             await c.reset(seed=5, target_object="red cup", destination="table")
             await c.takeoff()
+            await c.search("obj_localization", "red cup")
+            far = await c.run("grasp")  # localized from the take-off spot, beyond the reach
+            assert far.state == SkillState.REJECTED and "too far: approach first" in far.message, far.message
             for _attempt in range(3):
                 # Like the policy after a failed grasp (paper Sec. III-D): re-localize, then grasp again.
-                await c.search("obj_localization", "red cup")
+                await c.approach("red cup")
                 st = await c.run("grasp")
                 if st.state == SkillState.SUCCEEDED:
                     break
                 assert "localize it again" in st.message or "grasp again" in st.message, st.message
             assert st.state == SkillState.SUCCEEDED, st.message
+            # Verified by the gripper's own sensing (finger width and contact over MAVLink), not by looking.
+            assert "in contact" in st.message, st.message
             assert st.outcome.held_object == "red cup"
             assert (await c.judge(op="held")).held == "red cup"
             await c.search("placement_localization", "table")
@@ -202,7 +225,7 @@ def test_abort_during_translation_and_during_grasp(stack):
             await asyncio.sleep(0.2)
             await _abort(c, acc.goal_id)
             await c.ok("yaw_left")  # ready for the next skill
-            await c.search("obj_localization", "red cup")
+            await c.approach("red cup")
             acc = await c.request("grasp")
             assert acc.accepted, acc.reason
             await asyncio.sleep(1.0)
@@ -231,9 +254,11 @@ def test_world_reset_clears_working_memory_so_no_grasp_runs_on_the_old_layout(st
             assert math.hypot(truth["red cup"].position.x - remembered.x,
                               truth["red cup"].position.y - remembered.y) > 0.3
             await c.takeoff()
+            # The reset notice cleared the executor's memory (the world it described is gone): the grasp is
+            # refused before anything moves instead of flying to where the cup was.
             st = await c.run("grasp", "red cup")
             assert st.state == SkillState.REJECTED, st.message
-            assert "run obj_localization first" in st.message
+            assert "run obj_localization first" in st.message, st.message
             assert (await c.judge(op="held")).held is None
             await c.ok("land")
 

@@ -157,3 +157,22 @@ def test_abort_with_nothing_running_is_acknowledged():
             assert r.vehicle.commands == ["hold"]
 
     arun(main())
+
+
+def test_grasp_beyond_reach_or_wider_than_the_fingers_is_refused_before_moving():
+    async def main():
+        async with rig() as r:
+            r.world.add_surface("table", 3.0, 0.0, 0.75)
+            r.world.add_object("red cup", 2.9, 0.1, 0.75)
+            r.world.add_object("cardboard box", 1.5, -1.0, 0.75, size=(0.30, 0.24, 0.20))
+            assert (await r.run_skill("obj_localization", "red cup")).state == SkillState.SUCCEEDED
+            before = r.vehicle.pos.copy()
+            st = await r.run_skill("grasp", "red cup")
+            assert st.state == SkillState.REJECTED and "too far: approach first" in st.message, st.message
+            assert np.allclose(r.vehicle.pos, before)
+            assert (await r.run_skill("obj_localization", "cardboard box")).state == SkillState.SUCCEEDED
+            st = await r.run_skill("grasp", "cardboard box")
+            assert st.state == SkillState.REJECTED and "wider than the gripper opens" in st.message, st.message
+            assert np.allclose(r.vehicle.pos, before) and not r.world.objects["cardboard box"].attached
+
+    arun(main(), 200)

@@ -9,10 +9,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from services.perception.frames import Frame
-from services.sim.core import Snapshot
-from services.sim.render import Renderer
+from services.sim.layout import ROOM_HALF, Entity
+from services.sim.physics import World
+from services.sim.render import Renderer, snapshot_at
 from services.sim.scenarios import generate
-from services.sim.world import ROOM_HALF, Entity, World
 from shared.frames import CAMERA_PITCH_DOWN, DEFAULT_INTRINSICS
 from shared.messages import Scenario, SimLabel, SimLabels, Vec3
 from shared.sensors import encode_jpeg
@@ -21,9 +21,10 @@ _renderer: Renderer | None = None
 
 
 def renderer() -> Renderer:
+    """MuJoCo's camera with the realistic stereo-depth and exposure model (seeded: reproducible frames)."""
     global _renderer
     if _renderer is None:
-        _renderer = Renderer()
+        _renderer = Renderer(realism="realistic", seed=7)
     return _renderer
 
 
@@ -45,7 +46,7 @@ def render_view(world: World, x: float, y: float, z: float, yaw: float, stamp_ns
                 jpeg_quality: int = 85) -> View:
     """Render the world from a body pose into a perception Frame (colour goes through JPEG like on the bus)."""
     r = renderer()
-    f = r.render(Snapshot(world, np.array([x, y, z]), yaw))
+    f = r.render(snapshot_at(world, np.array([x, y, z]), yaw))
     stamp = stamp_ns or time.time_ns()
     frame = Frame(stamp, f.depth_mm, DEFAULT_INTRINSICS, f.camera_to_world, time.time_ns(),
                   None, f.instance, labels_of(world))
@@ -102,15 +103,15 @@ def projected_corners_in_view(e: Entity, frame: Frame, margin: int = 2) -> bool:
 
 def unoccluded_pixels(view: View, entity: Entity) -> int:
     """Pixels `entity` would cover from the view's pose with nothing in front of it (to judge occlusion)."""
-    alone = World(entities=[entity], version=next(_versions))
+    alone = World(entities=[entity], version=next(_versions), settle_s=0.0)
     x, y, z, yaw = view.body
-    f = renderer().render(Snapshot(alone, np.array([x, y, z]), yaw))
+    f = Renderer(realism="ideal").render(snapshot_at(alone, np.array([x, y, z]), yaw))
     return int((f.instance == entity.id).sum())
 
 
 def furniture(name: str, x: float, y: float) -> Entity:
+    from services.sim.layout import FURNITURE
     from services.sim.scenarios import FURNITURE_IDS
-    from services.sim.world import FURNITURE
 
     spec = FURNITURE[name]
     cat = "surface" if spec.support else "furniture"
@@ -119,8 +120,8 @@ def furniture(name: str, x: float, y: float) -> Entity:
 
 
 def thing(name: str, x: float, y: float, on: Entity, yaw: float = 0.0) -> Entity:
+    from services.sim.layout import OBJECTS
     from services.sim.scenarios import OBJECT_IDS
-    from services.sim.world import OBJECTS
 
     spec = OBJECTS[name]
     return Entity(OBJECT_IDS[name], name, "object", spec.shape, np.array([x, y, on.top_z + spec.size[2] / 2]),

@@ -148,7 +148,10 @@ COLOR_SET = {"red cup", "green bottle", "purple cup", "orange", "banana", "coke 
 
 
 def test_bad_queries_no_frame_stale_frame(tmp_path) -> None:
-    with run_stack(["perception"], tmp_path, env={"AERMANI_PERCEPTION_FRAME_WAIT_S": "0.3"}) as stack:
+    # The oracle segmenter: the synthetic frame below marks the cup by its instance id (the default colour
+    # segmenter would need rendered pixels of a cup).
+    with run_stack(["perception"], tmp_path, env={"AERMANI_PERCEPTION_FRAME_WAIT_S": "0.3",
+                                                  "AERMANI_PERCEPTION_SEGMENTER": "sim"}) as stack:
         arun(_bad_and_stale(stack), timeout=200)
 
 

@@ -32,6 +32,9 @@ def test_demo_rules(tmp_path) -> None:
     assert code == 0 and result["success"], result.get("verdict")
     skills = [s.ste.skill for s in result["steps"]]
     assert skills[-1] == "done" and "grasp" in skills and "place" in skills
+    # The default demo: real computer vision on the rendered pixels, realistic camera and pose noise, as the
+    # running services report it.
+    assert result["segmenter"] == "color" and result["realism"] == "realistic", result
 
 
 @pytest.mark.parametrize("kind", ["openai", "anthropic"])

@@ -39,27 +39,39 @@ def test_bad_values_name_the_field(monkeypatch):
         Mount()
 
 
-def test_every_consumer_uses_the_one_mount(mount_env):
+def test_executor_and_camera_service_use_the_one_mount(mount_env):
+    from services.camera.service import Capturer
+    from services.camera.settings import CameraSettings
+    from services.camera.sources import make_source
     from services.executor.envelope import DepthClearance
     from services.executor.settings import ExecutorSettings
-    from services.sim.app import CameraPublisher, build
-    from services.sim.settings import SimSettings
     from shared.frames import DEFAULT_INTRINSICS
 
     m = Mount()
     ex = ExecutorSettings()
     assert ex.gripper_offset_z == -0.3 and ex.camera_pitch_deg == 50.0
     assert np.allclose(DepthClearance(DEFAULT_INTRINSICS, mount=ex.mount).base_from_camera, m.base_to_camera())
+    cam = CameraSettings(source="mcap", path=__file__)
+    mounts = Capturer(make_source(cam), cam, lambda _: None).mounts
+    assert np.allclose(mounts[0][2], m.base_to_camera()) and np.allclose(mounts[1][2][:3, 3], (0.05, 0.0, -0.3))
+    assert math.isclose(math.degrees(math.asin(-m.base_to_camera()[2, 2])), 50.0, abs_tol=1e-6)  # 50 deg down
 
-    sim = SimSettings(camera=False, api_local_port=free_udp_port(), gcs_enabled=False)
-    core, server = build(sim)  # binds its MAVLink socket: a free port, closed below
-    try:
-        assert core.vehicle.params.gripper_offset == (0.05, 0.0, -0.3)
-        publisher = CameraPublisher(None, core, sim)  # camera off: no renderer is started
-        tf = parse_transforms(publisher.transforms(core.snapshot(), 1))
-    finally:
-        server.stop()
-    assert np.allclose(tf[("base_link", "camera")][1], m.base_to_camera())
-    assert np.allclose(tf[("base_link", "gripper")][1][:3, 3], (0.05, 0.0, -0.3))
-    cam = m.base_to_camera()
-    assert math.isclose(math.degrees(math.asin(-cam[2, 2])), 50.0, abs_tol=1e-6)  # optical axis 50 deg down
+
+def test_the_simulator_refuses_a_mount_its_airframe_does_not_have(mount_env):
+    from services.sim.app import build
+    from services.sim.settings import SimSettings
+    from shared.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="unset AERMANI_MOUNT_\\* when flying the simulator"):
+        build(SimSettings(camera=False, api_local_port=free_udp_port(), gcs_enabled=False))
+
+
+def test_the_simulator_publishes_its_airframe_on_tf(monkeypatch):
+    from services.sim.app import AIRFRAME, CameraPublisher
+
+    for k in MOUNT_ENV:
+        monkeypatch.setenv(k, "")  # compose's empty variables are the defaults
+    tf = parse_transforms(CameraPublisher.transforms(
+        type("Snap", (), {"position": np.zeros(3), "yaw": 0.0})(), 1))
+    assert np.allclose(tf[("base_link", "camera")][1], Mount().base_to_camera())
+    assert np.allclose(tf[("base_link", "gripper")][1], AIRFRAME.base_to_gripper())

@@ -6,6 +6,7 @@ import math
 import socket
 import time
 
+import numpy as np
 import pytest
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mav
@@ -167,33 +168,36 @@ def test_arm_offboard_takeoff_goto_gripper_and_land(sim):
     assert client.command(mav.MAV_CMD_DO_SET_MODE, 1, *OFFBOARD) == 0
     client.setpoint(n0, e0, -1.5, 0.0)
 
-    # Fly to the target object (ground truth) with the gripper point inside its capture region.
+    # Fly to the target object (ground truth) with the gripper point 3 cm below its top, between the open
+    # fingers; the estimate drifts a few cm from the truth (realistic), well inside the fingers' reach.
     with core.lock:
         cup = core.world.by_name("red cup")
         cx, cy, top = float(cup.center[0]), float(cup.center[1]), cup.top_z
-    hover_z = -(top + 0.02 + 0.22)  # gripper 2 cm above the cup top
+    hover_z = -(top - 0.03 + 0.22)
     client.stream_until(cy, cx, -2.0, math.pi / 2,
                         lambda p, a: math.hypot(p.x - cy, p.y - cx) < 0.03 and abs(a.yaw - math.pi / 2) < 0.05)
     client.stream_until(cy, cx, hover_z, math.pi / 2,
                         lambda p, a: abs(p.z - hover_z) < 0.02 and math.hypot(p.x - cy, p.y - cx) < 0.02)
     client.setpoint(cy, cx, hover_z, math.pi / 2)
     assert client.command(mav.MAV_CMD_DO_GRIPPER, 1, mav.GRIPPER_ACTION_GRAB) == 0
+    # The fingers close on it: held by contact, announced with the measured width.
+    client.stream_until(cy, cx, hover_z, math.pi / 2, lambda p, a: core.world.holding() is not None, 10)
     with core.lock:
-        assert core.world.attached() is not None and core.world.attached().name == "red cup"
-    client.recv("STATUSTEXT", lambda m: "holding red cup" in m.text, 5)
+        assert core.world.holding().name == "red cup"
+        assert abs(core.vehicle.finger_width - cup.size[0]) < 0.01
 
-    # Carry it to a table and release above it: it lands on the table.
+    # Carry it to a table and release just above it: it lands on the table.
     with core.lock:
         table = next(s for s in core.world.surfaces if s.name != cup.support)
         tx, ty, ttop, tname = float(table.center[0]), float(table.center[1]), table.top_z, table.name
     client.stream_until(ty, tx, -2.0, 0.0, lambda p, a: math.hypot(p.x - ty, p.y - tx) < 0.03)
-    drop_z = -(ttop + 0.11 + 0.22 + 0.05)
+    drop_z = -(ttop + 0.11 + 0.02 - 0.03 + 0.22)
     client.stream_until(ty, tx, drop_z, 0.0, lambda p, a: abs(p.z - drop_z) < 0.03)
     assert client.command(mav.MAV_CMD_DO_GRIPPER, 1, mav.GRIPPER_ACTION_RELEASE) == 0
     from shared.messages import JudgeRequest
 
-    res = core.judge(JudgeRequest(op="on_surface", object="red cup", surface=tname))
-    assert res.ok, res.message
+    client.stream_until(ty, tx, drop_z, 0.0, lambda p, a: core.judge(
+        JudgeRequest(op="on_surface", object="red cup", surface=tname)).ok, 10)
     assert not core.judge(JudgeRequest(op="held")).ok
 
     client.stream_until(n0, e0, -1.5, 0.0, lambda p, a: math.hypot(p.x - n0, p.y - e0) < 0.05)
@@ -233,7 +237,7 @@ def test_offboard_loss_holds_then_lands(sim):
 def test_bad_input_changes_nothing(sim):
     core, server, client, _ = sim
     with core.lock:
-        before = (core.vehicle.p.copy(), core.vehicle.armed, core.vehicle.mode_name)
+        before = (core.vehicle.true_position_enu(), core.vehicle.armed, core.vehicle.mode_name)
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     target = server.links[0].sock.getsockname()
     sock.sendto(b"\xfd\x09garbage-bytes\x00\xff" * 20, target)
@@ -251,9 +255,10 @@ def test_bad_input_changes_nothing(sim):
     client.recv("HOME_POSITION")
     assert not client.armed()
     with core.lock:
-        after = (core.vehicle.p.copy(), core.vehicle.armed, core.vehicle.mode_name)
+        after = (core.vehicle.true_position_enu(), core.vehicle.armed, core.vehicle.mode_name)
         counters = dict(core.counters)
-    assert (after[0] == before[0]).all() and after[1:] == before[1:]
+    # The landed vehicle does not move (the physics settles it on its gear by micrometres).
+    assert np.abs(after[0] - before[0]).max() < 1e-3 and after[1:] == before[1:]
     assert counters.get("bad_input", 0) >= 1
     assert counters.get("wrong_target", 0) >= 3
     assert counters.get("unknown_messages", 0) >= 1
@@ -349,7 +354,7 @@ def test_gripper_on_an_actuator_output(sim):
     core, server, client, _ = sim
     nan = math.nan
     assert client.command(mav.MAV_CMD_DO_SET_ACTUATOR, 1.0, nan, nan, nan, nan, nan, 0) == 0
-    client.recv("STATUSTEXT", lambda m: m.text.startswith("Gripper closed"), 5)
+    client.recv("STATUSTEXT", lambda m: m.text.startswith("Gripper closing"), 5)
     with core.lock:
         assert core.vehicle.gripper_closed
     assert client.command(mav.MAV_CMD_DO_SET_ACTUATOR, nan, 1.0, nan, nan, nan, nan, 0) == 0  # another output

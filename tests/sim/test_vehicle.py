@@ -1,4 +1,5 @@
-"""Point-mass dynamics, mode logic, failsafes, collisions, gripper physics and the judge, without sockets."""
+"""The vehicle on MuJoCo: PX4-like limits and settling, mode logic, failsafes, collisions and crashes, the
+two-finger gripper and the judge, in-process (no sockets), with the real physics."""
 
 from __future__ import annotations
 
@@ -8,7 +9,6 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import common as mav
 
-from services.sim.core import SimCore
 from services.sim.vehicle import (
     ACCEPTED,
     MAIN_AUTO,
@@ -19,41 +19,12 @@ from services.sim.vehicle import (
     enu_to_ned,
 )
 from shared.messages import JudgeRequest, Pose, Scenario, Vec3
-
-DT = 0.01
-
-
-class Clock:
-    def __init__(self, core: SimCore) -> None:
-        self.core, self.now = core, 100.0
-
-    def run(self, seconds: float, setpoint=None, record=None) -> None:
-        v = self.core.vehicle
-        for i in range(int(round(seconds / DT))):
-            self.now += DT
-            if setpoint is not None and i % 5 == 0:  # a 20 Hz stream
-                pos, yaw = setpoint
-                v.setpoint(self.now, np.array(pos, float), None, yaw, None)
-            v.update_modes(self.now)
-            v.step(DT)
-            if record is not None:
-                record.append((v.p.copy(), v.v.copy(), v.yaw))
+from tests.sim.flight import DT, Clock, approach_point, grasp, make_core, to_offboard
 
 
 @pytest.fixture
 def core():
-    return SimCore(Scenario(seed=2, target_object="red cup", start=Pose(position=Vec3(x=0.0, y=0.0), yaw=0.0)))
-
-
-def to_offboard(core: SimCore, clock: Clock, alt: float = 1.5) -> None:
-    v = core.vehicle
-    assert v.arm(True) == ACCEPTED
-    sp = ([0.0, 0.0, -alt], math.pi / 2)
-    assert v.set_mode(MAIN_OFFBOARD, 0, clock.now) == TEMPORARILY_REJECTED  # no setpoint yet
-    clock.run(0.3, sp)
-    assert v.set_mode(MAIN_OFFBOARD, 0, clock.now) == ACCEPTED  # PX4: a setpoint within COM_OF_LOSS_T
-    clock.run(5.0, sp)
-    assert abs(v.p[2] + alt) < 0.02 and not v.on_ground
+    return make_core(Scenario(seed=2, target_object="red cup", start=Pose(position=Vec3(x=0.0, y=0.0), yaw=0.0)))
 
 
 def test_limits_and_convergence(core):
@@ -66,12 +37,13 @@ def test_limits_and_convergence(core):
     pos = np.array([t[0] for t in trace])
     vel = np.array([t[1] for t in trace])
     yaw = np.array([t[2] for t in trace])
-    assert np.linalg.norm(vel[:, :2], axis=1).max() <= 2.0 + 1e-9
-    assert np.abs(vel[:, 2]).max() <= 1.0 + 1e-9
+    # A body pushed by forces tracks the limits within a percent (the velocity loop lags its setpoint).
+    assert np.linalg.norm(vel[:, :2], axis=1).max() <= 2.0 * 1.01
+    assert np.abs(vel[:, 2]).max() <= 1.0 * 1.01
     acc = np.diff(vel[:, :2], axis=0) / DT
-    assert np.linalg.norm(acc, axis=1).max() <= 3.0 + 1e-6
+    assert np.linalg.norm(acc, axis=1).max() <= 3.0 * 1.01
     yaw_rate = np.abs(np.diff(np.unwrap(yaw))) / DT
-    assert yaw_rate.max() <= math.radians(90) + 1e-6
+    assert yaw_rate.max() <= math.radians(90) * 1.01
     assert np.linalg.norm(pos[-1] - goal) < 0.02
     overshoot = (pos[:, 0] - goal[0]).max()
     assert overshoot < 0.05
@@ -84,8 +56,6 @@ def test_arming_rules_and_offboard_failsafe(core):
     to_offboard(core, clock)
     assert v.arm(True) == ACCEPTED
     assert v.arm(False) == TEMPORARILY_REJECTED  # in the air (PX4: "Disarming denied: not landed")
-    assert v.takeoff(2.0) == ACCEPTED and v.set_mode(MAIN_OFFBOARD, 0, clock.now) in (ACCEPTED,
-                                                                                        TEMPORARILY_REJECTED)
     clock.run(0.4)  # stream stops
     clock.run(0.3)
     assert (v.main_mode, v.sub_mode) == (MAIN_AUTO, SUB_LOITER)
@@ -98,77 +68,88 @@ def test_arming_rules_and_offboard_failsafe(core):
     clock.run(6.0)
     assert v.on_ground and v.landed_state == mav.MAV_LANDED_STATE_ON_GROUND
     assert not v.armed  # auto-disarm after landing
+    assert abs(v.p[2]) < 0.01  # landed on the gear: body origin at the autopilot's ground
     assert v.arm(True) == ACCEPTED
     assert v.arm(False, force=True) == ACCEPTED
 
 
-def test_collision_stops_and_is_reported(core):
+def test_fast_contact_with_furniture_is_a_crash(core):
     clock, v = Clock(core), core.vehicle
     to_offboard(core, clock, alt=0.5)  # below table height
-    table = core.world.by_name("table")
-    goal_enu = np.array([table.center[0], table.center[1], 0.5])
-    clock.run(12.0, (enu_to_ned(goal_enu), math.pi / 2))
+    start, into, table = approach_point(core, "table", 0.5)
+    clock.fly(start, 0.0, 8.0)
+    goal = np.array([table.center[0], table.center[1], 0.5])
+    clock.fly(goal, 0.0, 6.0)
     assert "vehicle-table" in core.judge(JudgeRequest()).collisions
-    assert core.world.vehicle_contacts(v.position_enu()) == []  # stopped at contact, not inside
-    assert np.linalg.norm(v.position_enu()[:2] - goal_enu[:2]) > 0.25
+    assert v.crashed and not v.armed
+    assert any("Crash" in t for _, t in v.events)
+    clock.run(3.0)
+    assert v.true_position_enu()[2] < 0.05  # motors stopped: it fell to the floor
+
+
+def test_slow_contact_is_recorded_and_stops_the_vehicle(core):
+    clock, v = Clock(core), core.vehicle
+    to_offboard(core, clock, alt=0.5)
+    start, into, table = approach_point(core, "table", 0.5)
+    clock.fly(start, 0.0, 8.0)
+    vel = np.array([into[0], into[1], 0.0]) * 0.3  # ENU, 0.3 m/s towards the table
+    clock.run(6.0, velocity=(enu_to_ned(vel), v.yaw))
+    assert "vehicle-table" in core.judge(JudgeRequest()).collisions
+    assert not v.crashed and v.armed
+    # Stopped at the table's side, not inside it: the airframe's centre stays a radius away from the top.
+    p = v.true_position_enu()
+    assert not table.contains_xy(p[0], p[1], -0.2)
     # Above the table there is no contact: climbing and flying over works.
-    clock.run(4.0, (v.p + np.array([0, 0, -1.0]), math.pi / 2))
-    clock.run(8.0, (enu_to_ned(np.array([table.center[0], table.center[1], 1.5])), math.pi / 2))
-    assert np.linalg.norm(v.position_enu()[:2] - goal_enu[:2]) < 0.05
+    clock.fly([p[0], p[1], 1.5], 0.0, 4.0)
+    clock.fly([table.center[0], table.center[1], 1.5], 0.0, 8.0)
+    assert np.linalg.norm(v.true_position_enu()[:2] - table.center[:2]) < 0.05
 
 
-def test_gripper_capture_carry_release_and_judge(core):
+def test_gripper_holds_by_contact_carries_and_releases(core):
     clock, v = Clock(core), core.vehicle
     to_offboard(core, clock)
     cup = core.world.by_name("red cup")
     home_support = cup.support
-    above = np.array([cup.center[0], cup.center[1], 2.0])
-    clock.run(10.0, (enu_to_ned(above), math.pi / 2))
-    # Gripper 10 cm off the axis: nothing is captured.
-    off = np.array([cup.center[0] + 0.10, cup.center[1], cup.top_z + 0.02 + 0.22])
-    clock.run(6.0, (enu_to_ned(off), math.pi / 2))
-    v.gripper(True)
-    assert core.world.attached() is None and not core.judge(JudgeRequest(op="held")).ok
+    # Gripper 10 cm off the axis along the pads' width: they close in front of the cup, nothing is held.
+    assert not grasp(core, clock, "red cup", 0.0, offset=(0.10, 0.0))
+    assert core.world.holding() is None and v.finger_width < 0.01
     v.gripper(False)
-    on = np.array([cup.center[0], cup.center[1], cup.top_z + 0.02 + 0.22])
-    clock.run(4.0, (enu_to_ned(on), math.pi / 2))
-    v.gripper(True)
+    clock.fly(v.true_position_enu(), 0.0, 1.0)
+    assert core.judge(JudgeRequest(op="on_surface", object="red cup", surface=home_support)).ok
+    assert grasp(core, clock, "red cup", 0.0)
     held = core.judge(JudgeRequest(op="held"))
     assert held.ok and held.held == "red cup"
+    assert abs(v.finger_width - cup.size[0]) < 0.01  # the fingers rest on the cup's sides
     assert not core.judge(JudgeRequest(op="on_surface", object="red cup", surface=home_support)).ok
-    # It moves with the vehicle.
+    # It moves with the vehicle, hanging in the fingers.
     dest = next(s for s in core.world.surfaces if s.name != home_support)
-    clock.run(12.0, (enu_to_ned(np.array([dest.center[0], dest.center[1], 1.6])), math.pi / 2))
+    clock.fly([dest.center[0], dest.center[1], 1.6], 0.0, 12.0)
     assert np.linalg.norm(cup.center[:2] - dest.center[:2]) < 0.03
-    assert abs(cup.top_z - (v.gripper_enu()[2])) < 1e-9
+    release_z = dest.top_z + cup.size[2] + 0.02 - 0.03 + 0.22
+    clock.fly([dest.center[0], dest.center[1], release_z], 0.0, 5.0)
     v.gripper(False)
+    clock.run(2.0, (enu_to_ned(np.array([dest.center[0], dest.center[1], release_z])), v.yaw))
     res = core.judge(JudgeRequest(op="on_surface", object="red cup", surface=dest.name))
     assert res.ok, res.message
     assert not core.judge(JudgeRequest(op="on_surface", object="red cup", surface=home_support)).ok
     truth = {o.name: o for o in core.judge(JudgeRequest()).objects}
     assert truth["red cup"].support == dest.name and not truth["red cup"].attached
-    # A tighter tolerance than the gap fails; a lifted object is not "on" anything.
-    cup.center[2] += 0.1
-    assert not core.judge(JudgeRequest(op="on_surface", object="red cup", surface=dest.name)).ok
-    # Dropped over open floor, an object lands on the floor.
-    cup.center[2] -= 0.1
-    clock.run(8.0, (enu_to_ned(np.array([cup.center[0], cup.center[1], cup.top_z + 0.24])), 0.0))
-    v.gripper(True)
-    assert core.world.attached() is cup
-    clock.run(10.0, (enu_to_ned(np.array([0.0, 0.0, 1.0])), 0.0))
+    # Dropped from 1 m over open floor, it falls and lands on the floor (upright or not).
+    assert grasp(core, clock, "red cup", 0.0)
+    clock.fly([0.0, 0.0, 1.2], 0.0, 10.0)
     v.gripper(False)
-    assert cup.support == "floor" and abs(cup.bottom_z - core.world.support_below(0, 0, 5)[1]) < 1e-9
-    assert core.judge(JudgeRequest(op="on_surface", object="red cup", surface="floor")).ok
+    clock.fly([0.0, 0.0, 1.2], 0.0, 3.0)
+    assert cup.support == "floor" and abs(cup.center[0]) < 0.3 and abs(cup.center[1]) < 0.3
 
 
 def test_reset_restores_everything(core):
     clock, v = Clock(core), core.vehicle
     to_offboard(core, clock)
-    core.world.record_collision("wall")
+    core.world.collisions.append("vehicle-wall")
     res = core.reset(Scenario(seed=9, target_object="apple"))
     assert res.ok and res.scenario.target_object == "apple"
     v = core.vehicle
-    assert not v.armed and v.on_ground and not v.gripper_closed and v.p[2] == 0.0
+    assert not v.armed and v.on_ground and not v.gripper_closed and abs(v.p[2]) < 0.005
     assert core.judge(JudgeRequest()).collisions == ()
     assert core.world.by_name("apple") is not None
     assert not core.reset(Scenario(destination="moon")).ok

@@ -63,7 +63,10 @@ def _world_points(depth, seg, tfs, intr, instance_id):
 
 
 def test_frames_match_ground_truth(tmp_path):
-    env = {"AERMANI_SIM_SEED": str(SEED), "AERMANI_SIM_TARGET_OBJECT": "red cup", "AERMANI_SIM_FPS": "10"}
+    # Ideal realism: this checks the geometry of the published frames (calibration, tf, depth, segmentation)
+    # against the truth to the millimetre; the realistic noise model has its own test.
+    env = {"AERMANI_SIM_SEED": str(SEED), "AERMANI_SIM_TARGET_OBJECT": "red cup", "AERMANI_SIM_FPS": "10",
+           "AERMANI_SIM_REALISM": "ideal"}
     with run_stack(["sim"], tmp_path, env=env) as stack:
         api_port = int(stack.find("sim").env["AERMANI_SIM_API_PORT"])
         client = Client(api_port)
@@ -125,7 +128,7 @@ async def _check_frames(stack, client: Client) -> None:
         assert res.ok and res.scenario.target_object == "orange" and res.scenario.destination == "sink"
         assert res.scenario.distractors is not None
         truth2 = await bus.query(keys.sim_judge, JudgeRequest(op="world"), timeout=10)
-        assert abs(truth2.vehicle.position.x - 0.2) < 1e-6 and truth2.vehicle.position.z == 0
+        assert abs(truth2.vehicle.position.x - 0.2) < 1e-4 and abs(truth2.vehicle.position.z) < 1e-3  # on its gear
         assert truth2.scenario == res.scenario and truth2.collisions == ()
         orange = next(o for o in truth2.objects if o.name == "orange")
         on = await bus.query(keys.sim_judge, JudgeRequest(op="on_surface", object="orange", surface=orange.support))

@@ -22,6 +22,25 @@ from shared.messages import (
 
 GRASP_SETTLE_M = 0.02  # the body must be this close to the grasp point before the gripper closes
 GRASP_SETTLE_TIMEOUT_S = 3.0  # ... or close anyway after this (the verification then tells)
+FINAL_DESCENT_M = 0.10  # the last part of the descent onto an object runs at final_descent_speed
+PAD_BELOW_M = 0.03  # the finger pads reach this far below the gripper point (plus a few mm of margin)
+ROUND_TOLERANCE_M = 0.015  # footprint sides closer than this: a round object, any yaw grasps it
+
+
+def grip_depth(height: float, fraction: float) -> float:
+    """How far below an object's top the gripper point goes: a fraction of its height, but the pads must stay
+    above the surface it stands on (a flat wrench is gripped near its middle, pads just above the table)."""
+    return max(0.0, min(fraction * height, height - PAD_BELOW_M))
+
+
+def grasp_yaw(size: Vec3 | None, est_yaw: float, current_yaw: float) -> float:
+    """Vehicle yaw that closes the fingers (along the body's y axis) across the object's short side: body x
+    along the estimate's long axis (its yaw, modulo pi: the nearer of the two). Round objects: keep the yaw."""
+    if size is None or abs(size.x - size.y) < ROUND_TOLERANCE_M:
+        return current_yaw
+    a = wrap(est_yaw)
+    b = wrap(est_yaw + math.pi)
+    return a if abs(wrap(a - current_yaw)) <= abs(wrap(b - current_yaw)) else b
 
 
 
@@ -61,10 +80,34 @@ class _Manipulation(Skill):
         if st.position.z < cross_z - s.position_tolerance:
             st = await ctx.goto(Vec3(x=st.position.x, y=st.position.y, z=cross_z), st.yaw, s.descent_speed,
                                 what=f"{what} (climb)")
+        problem = self.leg_problem(ctx, st, target, cross_z)
+        if problem:
+            raise SkillFailed(f"{what}: {problem}")
         st = await ctx.goto(Vec3(x=target.x, y=target.y, z=cross_z), yaw, s.approach_speed, what=what)
         if abs(st.position.z - target.z) > s.position_tolerance:
             st = await ctx.goto(target, yaw, s.descent_speed, what=f"{what} (height)")
         return st
+
+    def leg_problem(self, ctx: SkillContext, st: VehicleState, target: Vec3, cross_z: float) -> str | None:
+        """Clearance of a horizontal transit leg, with a held object's extent below the gripper: checked on the
+        latest depth image when the leg runs within the camera's view (the camera looks forward only); the
+        last `clearance_margin` + 0.3 m, where the routine descends onto its target, is not part of the leg."""
+        s = self.settings
+        dx, dy = target.x - st.position.x, target.y - st.position.y
+        length = math.hypot(dx, dy) - s.clearance_margin - 0.3
+        if length <= 0.1 or abs(wrap(math.atan2(dy, dx) - st.yaw)) > math.radians(30):
+            return None
+        clearance = ctx.clearance
+        if clearance.depth is None or clearance.age_s > s.depth_max_age_s:
+            return None  # nothing seen to check against (the geofence and altitude band still apply)
+        held = ctx.memory.held_size if ctx.memory.held else None
+        below = s.clearance_below if held is None else max(s.clearance_below, -s.gripper_offset_z + held.z + 0.05)
+        dist, _n = clearance.nearest_ahead(cross_z, s, length, below)
+        if dist is None:
+            return None
+        return (f"obstacle {dist:.2f} m ahead on a {length:.2f} m transit leg at {cross_z:.2f} m"
+                + (" (with the held object below the gripper)" if held is not None else "")
+                + "; nothing was moved past it: climb or go around first")
 
     def timeout_s(self, ctx: SkillContext, argument: str | None) -> float:
         return self.settings.grasp_timeout_s
@@ -108,7 +151,11 @@ class Grasp(_Manipulation):
         assert st is not None
         d = horizontal_distance(obj.position, st.position)
         if d > s.reach:
-            return f"the {obj.label} is {d:.2f} m away (reach {s.reach:.2f} m): move closer first"
+            return (f"the {obj.label} is {d:.2f} m away (reach {s.reach:.2f} m, where localization is accurate "
+                    "enough for the gripper): too far: approach first")
+        if obj.size is not None and min(obj.size.x, obj.size.y) > s.gripper_max_opening - 0.01:
+            return (f"the {obj.label} measures {100 * min(obj.size.x, obj.size.y):.0f} cm across its narrow side: "
+                    f"wider than the gripper opens ({100 * s.gripper_max_opening:.0f} cm)")
         return None
 
     async def run(self, ctx: SkillContext, argument: str | None) -> SkillResult:
@@ -145,25 +192,55 @@ class Grasp(_Manipulation):
                 break
         ctx.note(f"{label} re-localized at {fmt(est_pos)}")
 
-        # Above the object, then a controlled descent to put the gripper point inside the object's top part.
+        # Align the fingers with the object's estimated yaw (they close across its short side), above it, then
+        # a controlled descent, slower for the last part, that puts the pads around the object's top part.
         height = size.z if size is not None else 0.1
-        grip_z = est_top - s.grasp_depth_fraction * height
+        est_yaw = mo.yaw if isinstance(mo, MemoryObject) else 0.0
+        yaw = grasp_yaw(size, est_yaw, yaw)
+        grip_z = est_top - grip_depth(height, s.grasp_depth_fraction)
         body_z = grip_z - s.gripper_offset_z
-        hover = Vec3(x=est_pos.x, y=est_pos.y, z=ctx.current().position.z)
+        hover = Vec3(x=est_pos.x, y=est_pos.y, z=max(ctx.current().position.z, body_z + FINAL_DESCENT_M))
         await ctx.goto(hover, yaw, s.approach_speed, what=f"above the {label}")
+        near = Vec3(x=est_pos.x, y=est_pos.y, z=body_z + FINAL_DESCENT_M)
+        if hover.z > near.z + s.position_tolerance:
+            await ctx.goto(near, yaw, s.descent_speed, low=s.manipulation_min_altitude,
+                           what=f"above the {label} (descent)")
         grip = Vec3(x=est_pos.x, y=est_pos.y, z=body_z)
-        await ctx.goto(grip, yaw, s.descent_speed, low=s.manipulation_min_altitude,
+        await ctx.goto(grip, yaw, s.final_descent_speed, low=s.manipulation_min_altitude,
                        what=f"grasp height over the {label}")
-        # Arrival (position_tolerance) is looser than the gripper's capture region (a few cm around the
-        # object's axis, from its centre to just above its top): closing at once often closed on air.
         with contextlib.suppress(TimeoutError):
             await ctx.wait_for(lambda st: math.dist(st.position.as_tuple(), grip.as_tuple()) <= GRASP_SETTLE_M,
                                GRASP_SETTLE_TIMEOUT_S, "grasp point")
         await ctx.gripper("close")
+        sensed = ctx.current().gripper_width is not None
+        if sensed:
+            # The gripper's own sensing: both pads in contact at an opening that fits the object.
+            try:
+                st = await ctx.wait_for(lambda st: bool(st.gripper_holding), s.gripper_timeout_s, "fingers closing")
+            except TimeoutError:
+                st = ctx.current()
+            if not st.gripper_holding:
+                await ctx.gripper("open")
+                raise SkillFailed(f"grasp missed: the fingers closed to {100 * (st.gripper_width or 0):.1f} cm "
+                                  f"without holding the {label}; gripper reopened, localize it again and retry")
+            ctx.note(f"fingers hold the {label} at {100 * (st.gripper_width or 0):.1f} cm")
         up = max(s.flight_altitude, hover.z)
         await ctx.goto(Vec3(x=est_pos.x, y=est_pos.y, z=up), yaw, s.descent_speed, what="retreat height")
+        if sensed:
+            st = ctx.current()
+            if not st.gripper_holding:
+                await ctx.gripper("open")
+                mem.forget_object(label)
+                raise SkillFailed(f"grasp failed: the {label} slipped out of the fingers while lifting (opening "
+                                  f"{100 * (st.gripper_width or 0):.1f} cm); gripper reopened, localize it again")
+            mem.forget_object(label)
+            mem.set_held(label, size)
+            end = ctx.current()
+            return SkillResult(f"grasped the {label} (fingers at {100 * (end.gripper_width or 0):.1f} cm, in "
+                               f"contact); holding it at {fmt(end.position)}")
 
-        # Verify without ground truth: from the standoff, the old spot must now be empty.
+        # No gripper sensing (an autopilot that does not report it): from the standoff, the old spot must now
+        # be empty.
         sp, yaw = self.standoff(ctx, est_pos, ctx.current())
         await self.travel(ctx, Vec3(x=sp.x, y=sp.y, z=max(sp.z, ctx.current().position.z)), yaw, "verification view")
         check = await ctx.localize_object(query)
@@ -205,7 +282,7 @@ class Place(_Manipulation):
         d = horizontal_distance(pl.position, st.position)
         if d > s.place_reach:
             return (f"the placement spot on the {pl.label} is {d:.2f} m away (reach {s.place_reach:.2f} m): "
-                    "move closer")
+                    "too far: approach first")
         return None
 
     async def run(self, ctx: SkillContext, argument: str | None) -> SkillResult:
@@ -217,7 +294,8 @@ class Place(_Manipulation):
         height = mem.held_size.z if mem.held_size is not None else 0.1
         surface_z = pl.top_z if pl.top_z is not None else pl.position.z
         bottom = max(pl.position.z, surface_z + s.place_vertical_offset)
-        body_z = bottom + height - s.gripper_offset_z
+        # The object hangs with the gripper point grip_depth below its top (as grasp took it).
+        body_z = bottom + height - grip_depth(height, s.grasp_depth_fraction) - s.gripper_offset_z
         st = ctx.current()
         transit = max(st.position.z, s.flight_altitude, body_z)
         yaw = st.yaw
@@ -226,6 +304,12 @@ class Place(_Manipulation):
         await ctx.goto(Vec3(x=spot.x, y=spot.y, z=body_z), yaw, s.descent_speed, low=s.manipulation_min_altitude,
                        what=f"release height over the {pl.label}")
         await ctx.gripper("open")
+        if ctx.current().gripper_width is not None:
+            # Verify the release with the gripper's sensing: no pad in contact any more.
+            try:
+                await ctx.wait_for(lambda st: st.gripper_holding is False, s.gripper_timeout_s, "release")
+            except TimeoutError as exc:
+                raise SkillFailed(f"the {held} did not come free of the opened fingers") from exc
         mem.set_held(None)
         await ctx.goto(Vec3(x=spot.x, y=spot.y, z=max(s.flight_altitude, body_z)), yaw, s.descent_speed,
                        what="retreat height")

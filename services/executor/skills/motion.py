@@ -54,9 +54,20 @@ class _Step(Skill):
             target.z, self.settings, what=f"{self.name} target")
         if problem:
             return problem
+        held = ctx.memory.held_size if ctx.memory.held else None
+        if self.body[2] < 0 and held is not None:
+            # Down with an object in the fingers: it hangs below the gripper point and must stay off the floor.
+            bottom = target.z + self.settings.gripper_offset_z - held.z
+            if bottom < 0.05:
+                return (f"{self.name} would put the held object's bottom at {bottom:.2f} m, at the floor; nothing "
+                        "was moved")
         if self.body[0] > 0:
-            # Only the forward direction is seen by the camera; other directions rely on the geofence.
-            return ctx.clearance.forward_problem(st.position.z, self._distance(), self.settings)
+            # Only the forward direction is seen by the camera; other directions rely on the geofence. The
+            # corridor reaches down to the bottom of a held object (it hangs below the gripper point).
+            below = self.settings.clearance_below
+            if held is not None:
+                below = max(below, -self.settings.gripper_offset_z + held.z + 0.05)
+            return ctx.clearance.forward_problem(st.position.z, self._distance(), self.settings, below=below)
         return None
 
     def timeout_s(self, ctx: SkillContext, argument: str | None) -> float:

@@ -22,7 +22,8 @@ def vehicle_health(v: VehicleView, running: str | None) -> VehicleHealth:
         armed=st.armed if st else None, mode=st.mode if st else None,
         battery_remaining=st.battery_remaining if st else None, battery_voltage=st.battery_voltage if st else None,
         state_age_s=(now - v.state_ns) / 1e9 if st else None, state=st,
-        camera_age_s=(now - v.frame.receive_ns) / 1e9 if v.frame else None, running_task=running)
+        camera_age_s=(now - v.frame.receive_ns) / 1e9 if v.frame else None, running_task=running,
+        segmenter=v.segmenter, realism=v.realism)
 
 
 @router.get("/health", response_model=HealthOut, summary="Fleet and gateway health")

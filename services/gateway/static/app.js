@@ -184,6 +184,8 @@ async function pollHealth() {
       const down = Object.entries(v.services).filter(([, up]) => !up).map(([n]) => n);
       $("health").textContent = `link ${v.link_ok ? "ok" : "LOST"} · offboard ${v.offboard_ok ? "on" : "off"} · ` +
         `battery ${v.battery_remaining == null ? "?" : v.battery_remaining.toFixed(0) + "%"}` +
+        ` · perception ${v.segmenter || "?"}${v.segmenter === "sim" ? " (ground-truth oracle)" : ""}` +
+        (v.realism ? ` · sim ${v.realism}` : "") +
         (down.length ? ` · down: ${down.join(", ")}` : "");
       if (v.state) updatePose(v.state);
       if (!state.task && v.running_task) follow(v.running_task);

@@ -35,10 +35,15 @@ class ColorClass:
 
 @dataclass(frozen=True)
 class SurfaceClass:
+    """A furniture top: albedo `rgb`. A flat pixel matches by chromaticity (r, g, b over their sum, within
+    `chroma_tol`) and by brightness relative to the albedo (within `brightness`): room light and exposure
+    scale the brightness of a top far more than they shift its hue."""
+
     name: str
     color: str
-    rgb: tuple[int, int, int]  # albedo; tops of surfaces are lit almost uniformly (normal up)
-    tol: float = 22.0
+    rgb: tuple[int, int, int]
+    chroma_tol: float = 0.03
+    brightness: tuple[float, float] = (0.45, 1.15)
     category: str = "surface"
     min_extent: float = 0.35  # metres: a top narrower than this is an object of the same colour
     more_rgb: tuple[tuple[int, int, int], ...] = ()  # other colours of the same top (a sink's basin)
@@ -55,18 +60,16 @@ DEFAULT_OBJECTS = (
     ColorClass("orange", "orange", (16, 245, 250), (0.08, 0.08, 0.08)),
     ColorClass("banana", "yellow", (26, 213, 245), (0.19, 0.045, 0.04)),
     ColorClass("cracker box", "pink", (164, 147, 235), (0.16, 0.07, 0.21)),
-    ColorClass("cardboard box", "brown", (15, 155, 165), (0.30, 0.24, 0.20)),
-    ColorClass("small box", "teal", (90, 255, 140), (0.10, 0.10, 0.08)),
-    ColorClass("large box", "navy", (117, 189, 135), (0.34, 0.28, 0.24)),
+    ColorClass("cardboard box", "brown", (15, 155, 165), (0.22, 0.16, 0.15)),
     ColorClass("hammer", "olive", (30, 255, 120), (0.30, 0.10, 0.035)),
 )
 DEFAULT_SURFACES = (
     SurfaceClass("table", "white", (225, 225, 220)),
-    SurfaceClass("round table", "grey", (175, 175, 180)),
-    SurfaceClass("wooden table", "wood", (150, 100, 55)),
+    SurfaceClass("round table", "sage", (120, 165, 140)),
+    SurfaceClass("wooden table", "wood", (150, 100, 55), chroma_tol=0.045),
     SurfaceClass("shelf", "beige", (205, 190, 160)),
-    SurfaceClass("sink", "steel", (190, 200, 205), more_rgb=((105, 115, 125),)),
-    SurfaceClass("counter", "dark grey", (90, 90, 95)),
+    SurfaceClass("sink", "blue steel", (140, 165, 200)),
+    SurfaceClass("counter", "dark grey", (70, 70, 75)),
 )
 SURFACE_HEIGHT = (0.3, 1.6)  # metres above the floor where furniture tops are
 
@@ -270,12 +273,21 @@ class ColorSegmenter(Segmenter):
         fy, fx = np.nonzero(flat)
         rgb = frame.rgb[fy * stride, fx * stride].astype(np.float32)  # only the flat pixels
         owner = np.array([i for i, s in enumerate(self.surfaces) for _ in (s.rgb, *s.more_rgb)])
-        tols = np.array([s.tol for s in self.surfaces for _ in (s.rgb, *s.more_rgb)], np.float32)
-        albedo = np.array([c for s in self.surfaces for c in (s.rgb, *s.more_rgb)], np.float32) * 0.95
-        # Tops face the light: the renderer's (and a room's) overhead light keeps them near albedo.
-        dist = np.sqrt(((rgb[:, None, :] - albedo[None]) ** 2).sum(axis=2))
-        nearest = dist.argmin(axis=1)
-        close = dist[np.arange(len(nearest)), nearest] < tols[nearest]
+        tols = np.array([s.chroma_tol for s in self.surfaces for _ in (s.rgb, *s.more_rgb)], np.float32)
+        lo = np.array([s.brightness[0] for s in self.surfaces for _ in (s.rgb, *s.more_rgb)], np.float32)
+        hi = np.array([s.brightness[1] for s in self.surfaces for _ in (s.rgb, *s.more_rgb)], np.float32)
+        albedo = np.array([c for s in self.surfaces for c in (s.rgb, *s.more_rgb)], np.float32)
+        # Chromaticity and relative brightness: the light's strength and the exposure scale a top's colour.
+        total = rgb.sum(axis=1, keepdims=True) + 1e-3
+        a_total = albedo.sum(axis=1)
+        chroma_d = np.sqrt(((rgb[:, None, :] / total[:, :, None] - (albedo / a_total[:, None])[None]) ** 2)
+                           .sum(axis=2))
+        ratio = total / a_total[None]
+        ok = (chroma_d < tols[None]) & (ratio >= lo[None]) & (ratio <= hi[None])
+        # Nearest chromaticity among the classes whose brightness range fits.
+        score = np.where(ok, chroma_d / tols[None], np.inf)
+        nearest = score.argmin(axis=1)
+        close = np.isfinite(score[np.arange(len(nearest)), nearest])
         cls = np.where(close, owner[nearest], -1)
         out: list[Segment] = []
         for i, s in enumerate(self.surfaces):

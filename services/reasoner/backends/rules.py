@@ -668,7 +668,16 @@ def context_from_prompt(text: str) -> PolicyContext:
         lib, _, command = text.removeprefix("Skills:\n").rpartition("\n\nCommand: ")
         command, rules, history, variant = command.strip(), "", "", "unstructured"
     skills = re.findall(r"^- ([a-z_]+)", lib, re.M)
-    steps = [PastStep(m.group(2), m.group(3), m.group(4), m.group(5) or "") for m in _STEP_LINE.finditer(history)]
+    steps = []
+    matches = list(_STEP_LINE.finditer(history))
+    for i, m in enumerate(matches):
+        message = m.group(5) or ""
+        if not message:
+            # A recent step is written in full: its executor message on an indented line below it.
+            block = history[m.end(): matches[i + 1].start() if i + 1 < len(matches) else len(history)]
+            em = re.search(r"^\s+executor: (.*)$", block, re.M)
+            message = em.group(1) if em else ""
+        steps.append(PastStep(m.group(2), m.group(3), m.group(4), message))
     held_m = re.search(r"holding: ([^.\n]+)\.", history)
     held = held_m.group(1).strip() if held_m and held_m.group(1).strip() != "nothing" else None
     visible: list[Seen] = []

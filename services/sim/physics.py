@@ -1,0 +1,424 @@
+"""The simulated world on MuJoCo: static rooms and furniture, free rigid objects, the vehicle body with a
+two-finger parallel gripper, contacts and collisions (world frame ENU, z up).
+
+The vehicle is a body on three slide joints and a yaw hinge (a multirotor's attitude is not simulated: the
+position controller in `services.sim.vehicle` commands forces on those joints, limited like PX4's). It
+collides with furniture, walls and objects; every contact of the airframe with furniture or walls is recorded,
+and one faster than `crash_speed` is a crash. The fingers slide along the body's y axis, driven by position
+actuators with a bounded force: an object is held only by the fingers' contact and friction.
+
+Collision groups (contype/conaffinity bits): 1 furniture and walls, 2 objects, 4 fingers, 8 airframe, 16 floor.
+Fingers touch objects and furniture (not the floor, which the landing gear reaches first); the airframe
+touches furniture, walls, floor and objects.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from xml.sax.saxutils import quoteattr
+
+import mujoco
+import numpy as np
+
+from services.sim.layout import FLOOR_Z, VEHICLE_BELOW, VEHICLE_HEIGHT, VEHICLE_RADIUS, Entity
+from shared.frames import CAMERA_OFFSET_BODY, CAMERA_PITCH_DOWN, DEFAULT_INTRINSICS, GRIPPER_OFFSET_BODY
+
+TIMESTEP = 0.002  # s; contacts of small objects in a gripper want a few ms at most
+VEHICLE_MASS = 1.5  # kg, airframe (fingers add FINGER_MASS each)
+VEHICLE_YAW_INERTIA = 0.03  # kg m^2 about z
+FINGER_MASS = 0.04
+FINGER_MAX_HALF = 0.09  # each finger travels 0..9 cm from the centre line: opening 0..18 cm
+FINGER_FORCE = 12.0  # N, grip force limit per finger
+FINGER_KP = 600.0  # N/m, position servo of a finger
+FINGER_PAD = (0.025, 0.006, 0.03)  # half sizes: along body x (width), thickness (y), height (z)
+FINGER_PAD_Z = 0.005  # pad centre above the gripper point: the pad spans 2.5 cm below to 3.5 cm above it
+FINGER_FRICTION = 1.2  # rubber pads
+GEAR_OFFSETS = ((0.12, 0.12), (0.12, -0.12), (-0.12, 0.12), (-0.12, -0.12))
+GEAR_RADIUS = 0.02
+CRASH_SPEED = 0.5  # m/s: the airframe meeting furniture or a wall faster than this is a crash
+
+GROUP_ENV, GROUP_OBJ, GROUP_FINGER, GROUP_AIRFRAME, GROUP_FLOOR = 1, 2, 4, 8, 16
+
+
+def _f(v: float) -> str:
+    return f"{v:.6g}"
+
+
+def _vec(v) -> str:
+    return " ".join(_f(float(x)) for x in v)
+
+
+def _rgba(rgb: tuple[int, int, int]) -> str:
+    return _vec([c / 255 for c in rgb] + [1.0])
+
+
+def _yaw_quat(yaw: float) -> str:
+    return _vec([math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)])
+
+
+def camera_quat() -> np.ndarray:
+    """Quaternion (w, x, y, z) of the MuJoCo camera in the body frame: MuJoCo cameras look along their -z with
+    +y up, the optical frame along +z with +y down."""
+    from shared.frames import base_to_camera
+
+    r = base_to_camera(CAMERA_PITCH_DOWN, CAMERA_OFFSET_BODY)[:3, :3] @ np.diag([1.0, -1.0, -1.0])
+    q = np.zeros(4)
+    mujoco.mju_mat2Quat(q, r.reshape(-1))
+    return q
+
+
+def entity_geom_name(e: Entity) -> str:
+    return f"e{e.id}"
+
+
+def build_xml(entities: list[Entity], light_seed: int = 0, light_variation: bool = True) -> str:
+    """MJCF for a layout: structure and furniture static, objects free, the vehicle at the origin."""
+    rng = np.random.default_rng(light_seed)
+    intr = DEFAULT_INTRINSICS
+    fovy = math.degrees(2 * math.atan(intr.height / 2 / intr.fy))
+    parts: list[str] = []
+    add = parts.append
+    add('<mujoco model="aermani">')
+    add('<compiler angle="radian" autolimits="true"/>')
+    # Sleeping islands: objects at rest cost nothing until something touches them (MuJoCo >= 3.3).
+    add(f'<option timestep="{TIMESTEP}" integrator="implicitfast" cone="elliptic" impratio="10">'
+        '<flag sleep="enable"/></option>')
+    add(f'<visual><global offwidth="{intr.width}" offheight="{intr.height}"/>'
+        '<quality shadowsize="1024"/><map znear="0.01" zfar="50"/>'
+        '<headlight ambient="0.3 0.3 0.3" diffuse="0.15 0.15 0.15" specular="0 0 0"/></visual>')
+    add('<asset><texture name="tiles" type="2d" builtin="checker" width="256" height="256" '
+        'rgb1="0.50 0.50 0.48" rgb2="0.42 0.42 0.40"/>'
+        '<material name="floor" texture="tiles" texrepeat="8 8" specular="0.05"/></asset>')
+    add('<default><geom solref="0.004 1" solimp="0.95 0.99 0.001" condim="4"/></default>')
+    add('<worldbody>')
+    # Room light from above (a directional key light, slanted, and a weaker fill): its brightness and
+    # direction vary per layout (another office, another time of day).
+    k = float(rng.uniform(0.45, 0.65)) if light_variation else 0.55
+    tilt = float(rng.uniform(0.25, 0.6)) if light_variation else 0.4
+    az = float(rng.uniform(-math.pi, math.pi)) if light_variation else 0.7
+    key_dir = [math.sin(tilt) * math.cos(az), math.sin(tilt) * math.sin(az), -math.cos(tilt)]
+    add(f'<light name="key" directional="true" pos="0 0 2.5" dir="{_vec(key_dir)}" '
+        f'diffuse="{_vec([k, k, k * 0.97])}" specular="0.05 0.05 0.05" castshadow="true"/>')
+    add(f'<light name="fill" directional="true" pos="0 0 2.5" dir="{_vec([-key_dir[0], -key_dir[1], -0.6])}" '
+        f'diffuse="{_vec([0.15, 0.15, 0.16])}" specular="0 0 0" castshadow="false"/>')
+    for e in entities:
+        name = quoteattr(entity_geom_name(e))
+        if e.category == "object":
+            continue
+        if e.name == "floor":
+            add(f'<geom name={name} type="box" size="{_vec(np.array(e.size) / 2)}" pos="{_vec(e.center)}" '
+                f'material="floor" contype="{GROUP_FLOOR}" conaffinity="0" friction="0.8 0.01 0.001"/>')
+            continue
+        if e.shape == "cylinder":
+            geom = f'type="cylinder" size="{_f(e.size[0] / 2)} {_f(e.size[2] / 2)}"'
+        else:
+            geom = f'type="box" size="{_vec(np.array(e.size) / 2)}"'
+        add(f'<geom name={name} {geom} pos="{_vec(e.center)}" quat="{_yaw_quat(e.yaw)}" rgba="{_rgba(e.rgb)}" '
+            f'contype="{GROUP_ENV}" conaffinity="0" friction="0.6 0.01 0.001"/>')
+    from services.sim.layout import OBJECTS
+
+    for e in entities:
+        if e.category != "object":
+            continue
+        spec = OBJECTS[e.name]
+        name = quoteattr(entity_geom_name(e))
+        if e.shape == "cylinder":
+            geom = f'type="cylinder" size="{_f(e.size[0] / 2)} {_f(e.size[2] / 2)}"'
+        elif e.shape == "sphere":
+            geom = f'type="sphere" size="{_f(e.size[0] / 2)}"'
+        else:
+            geom = f'type="box" size="{_vec(np.array(e.size) / 2)}"'
+        add(f'<body name={quoteattr("obj " + e.name)} pos="{_vec(e.center)}" quat="{_yaw_quat(e.yaw)}">'
+            f'<freejoint/><geom name={name} {geom} mass="{_f(spec.mass)}" rgba="{_rgba(e.rgb)}" '
+            f'friction="{_f(spec.friction)} 0.005 0.0005" contype="{GROUP_OBJ}" '
+            f'conaffinity="{GROUP_ENV | GROUP_OBJ | GROUP_FINGER | GROUP_FLOOR}"/></body>')
+    # The vehicle: airframe cylinder, landing gear, camera, two fingers.
+    air = f'contype="{GROUP_AIRFRAME}" conaffinity="{GROUP_ENV | GROUP_OBJ | GROUP_FLOOR}"'
+    add('<body name="vehicle" pos="0 0 0" sleep="never">')
+    add('<joint name="vx" type="slide" axis="1 0 0"/><joint name="vy" type="slide" axis="0 1 0"/>'
+        '<joint name="vz" type="slide" axis="0 0 1"/><joint name="vyaw" type="hinge" axis="0 0 1"/>')
+    half_h = VEHICLE_HEIGHT / 2
+    add(f'<geom name="airframe" type="cylinder" size="{_f(VEHICLE_RADIUS)} {_f(half_h)}" '
+        f'pos="0 0 {_f(half_h - VEHICLE_BELOW)}" mass="{_f(VEHICLE_MASS)}" rgba="0.15 0.15 0.17 1" {air}/>')
+    gear_z = FLOOR_Z + GEAR_RADIUS  # gear bottom on the floor when the body origin is at z = 0
+    for i, (gx, gy) in enumerate(GEAR_OFFSETS):
+        add(f'<geom name="gear{i}" type="sphere" size="{_f(GEAR_RADIUS)}" pos="{_vec([gx, gy, gear_z])}" '
+            f'mass="0.01" rgba="0.1 0.1 0.1 1" {air} friction="1 0.01 0.001"/>')
+    add(f'<camera name="camera" pos="{_vec(CAMERA_OFFSET_BODY)}" quat="{_vec(camera_quat())}" '
+        f'fovy="{_f(fovy)}"/>')
+    gz = GRIPPER_OFFSET_BODY[2]
+    pad = FINGER_PAD
+    fingers = f'contype="{GROUP_FINGER}" conaffinity="{GROUP_ENV}" friction="{_f(FINGER_FRICTION)} 0.02 0.001"'
+    for side, sign in (("left", 1.0), ("right", -1.0)):
+        add(f'<body name="finger_{side}" pos="0 0 {_f(gz)}">'
+            f'<joint name="finger_{side}" type="slide" axis="0 {_f(sign)} 0" range="0 {_f(FINGER_MAX_HALF)}" '
+            'damping="8" armature="0.01"/>'
+            f'<geom name="finger_{side}" type="box" size="{_vec(pad)}" pos="0 {_f(sign * pad[1])} '
+            f'{_f(FINGER_PAD_Z)}" mass="{_f(FINGER_MASS)}" rgba="0.2 0.2 0.2 1" group="3" {fingers}/>'
+            f'<geom type="box" size="0.01 0.004 {_f((-gz - 0.05 - pad[2] - FINGER_PAD_Z) / 2)}" '
+            f'pos="0 {_f(sign * pad[1])} {_f(FINGER_PAD_Z + pad[2] + (-gz - 0.05 - pad[2] - FINGER_PAD_Z) / 2)}" '
+            'mass="0.001" contype="0" conaffinity="0" rgba="0.2 0.2 0.2 1" group="3"/></body>')
+    add('</body>')
+    add('</worldbody>')
+    add('<actuator>')
+    for side in ("left", "right"):
+        add(f'<position name="finger_{side}" joint="finger_{side}" kp="{_f(FINGER_KP)}" '
+            f'ctrlrange="0 {_f(FINGER_MAX_HALF)}" forcerange="{_f(-FINGER_FORCE)} {_f(FINGER_FORCE)}"/>')
+    add('</actuator>')
+    add('</mujoco>')
+    return "\n".join(parts)
+
+
+@dataclass
+class Contact:
+    """A contact the airframe made with something static (furniture, walls, ceiling)."""
+
+    name: str
+    speed: float  # vehicle speed when the contact began, m/s
+    crash: bool
+
+
+@dataclass
+class World:
+    """A layout simulated by MuJoCo. `entities` mirror the simulation (object poses, support, held) after every
+    `step`; `version` changes whenever the model is rebuilt (reset)."""
+
+    entities: list[Entity]
+    light_seed: int = 0
+    light_variation: bool = True
+    version: int = 0
+    collisions: list[str] = field(default_factory=list)
+    crash_speed: float = CRASH_SPEED
+    settle_s: float = 0.3  # let the objects come to rest on their supports before anything else
+
+    def __post_init__(self) -> None:
+        self.xml = build_xml(self.entities, self.light_seed, self.light_variation)
+        self.model = mujoco.MjModel.from_xml_string(self.xml)
+        self.data = mujoco.MjData(self.model)
+        m = self.model
+        self._jnt = {n: m.joint(n).qposadr[0] for n in ("vx", "vy", "vz", "vyaw", "finger_left", "finger_right")}
+        self._dof = {n: m.joint(n).dofadr[0] for n in ("vx", "vy", "vz", "vyaw", "finger_left", "finger_right")}
+        self.vehicle_body = m.body("vehicle").id
+        self.finger_geoms = (m.geom("finger_left").id, m.geom("finger_right").id)
+        self.airframe_geoms = {m.geom("airframe").id} | {m.geom(f"gear{i}").id for i in range(4)}
+        self.vehicle_mass = float(m.body_subtreemass[self.vehicle_body])
+        self.geom_entity: dict[int, Entity] = {}
+        self.obj_body: dict[str, int] = {}
+        self.obj_qadr: dict[str, int] = {}
+        for e in self.entities:
+            gid = m.geom(entity_geom_name(e)).id
+            self.geom_entity[gid] = e
+            if e.category == "object":
+                b = m.body("obj " + e.name)
+                self.obj_body[e.name] = b.id
+                self.obj_qadr[e.name] = m.jnt_qposadr[b.jntadr[0]]
+        # Segmentation lookup: geom id -> instance id (0 for the vehicle's own geoms).
+        self.geom_instance = np.zeros(m.ngeom + 1, dtype=np.uint16)
+        for gid, e in self.geom_entity.items():
+            self.geom_instance[gid] = e.id
+        self._static_contact: set[int] = set()
+        self.contacts: list[Contact] = []
+        self.sim_time = 0.0
+        self._pending = 0.0
+        self.set_fingers(FINGER_MAX_HALF)
+        self.data.qpos[self._jnt["finger_left"]] = self.data.qpos[self._jnt["finger_right"]] = FINGER_MAX_HALF
+        mujoco.mj_forward(self.model, self.data)
+        if self.settle_s > 0:
+            self.settle(self.settle_s)
+
+    # ---- lookup (same names as the layout)
+
+    def by_name(self, name: str) -> Entity | None:
+        key = name.strip().lower()
+        return next((e for e in self.entities if e.name == key), None)
+
+    @property
+    def objects(self) -> list[Entity]:
+        return [e for e in self.entities if e.category == "object"]
+
+    @property
+    def surfaces(self) -> list[Entity]:
+        return [e for e in self.entities if e.category == "surface"]
+
+    @property
+    def obstacles(self) -> list[Entity]:
+        return [e for e in self.entities if e.category in ("surface", "furniture")]
+
+    def attached(self) -> Entity | None:
+        return next((e for e in self.objects if e.attached), None)
+
+    # ---- vehicle state
+
+    def set_vehicle(self, pos: np.ndarray, yaw: float) -> None:
+        d = self.data
+        for i, n in enumerate(("vx", "vy", "vz")):
+            d.qpos[self._jnt[n]] = pos[i]
+            d.qvel[self._dof[n]] = 0.0
+        d.qpos[self._jnt["vyaw"]] = yaw
+        d.qvel[self._dof["vyaw"]] = 0.0
+        mujoco.mj_forward(self.model, d)
+        self._static_contact = self._airframe_static_contacts()
+
+    def vehicle_position(self) -> np.ndarray:
+        return np.array([self.data.qpos[self._jnt[n]] for n in ("vx", "vy", "vz")])
+
+    def vehicle_velocity(self) -> np.ndarray:
+        return np.array([self.data.qvel[self._dof[n]] for n in ("vx", "vy", "vz")])
+
+    def vehicle_yaw(self) -> float:
+        return float(self.data.qpos[self._jnt["vyaw"]])
+
+    def vehicle_yaw_rate(self) -> float:
+        return float(self.data.qvel[self._dof["vyaw"]])
+
+    def gripper_position(self) -> np.ndarray:
+        """World position of the gripper point (between the finger pads)."""
+        return self.data.xpos[self.vehicle_body] + self.data.xmat[self.vehicle_body].reshape(3, 3) @ np.array(
+            GRIPPER_OFFSET_BODY)
+
+    def finger_width(self) -> float:
+        """Opening between the finger pads, metres."""
+        return float(self.data.qpos[self._jnt["finger_left"]] + self.data.qpos[self._jnt["finger_right"]])
+
+    def set_fingers(self, half_opening: float) -> None:
+        self.data.ctrl[:2] = min(max(half_opening, 0.0), FINGER_MAX_HALF)
+
+    def fingers_closing(self) -> bool:
+        return float(self.data.ctrl[0]) < FINGER_MAX_HALF / 2
+
+    def apply_vehicle_force(self, force: np.ndarray, torque_z: float) -> None:
+        d = self.data
+        for i, n in enumerate(("vx", "vy", "vz")):
+            d.qfrc_applied[self._dof[n]] = force[i]
+        d.qfrc_applied[self._dof["vyaw"]] = torque_z
+
+    # ---- contacts
+
+    def _contact_pairs(self) -> np.ndarray:
+        n = self.data.ncon
+        if n == 0:
+            return np.zeros((0, 2), dtype=int)
+        return np.array(self.data.contact.geom[:n], dtype=int).reshape(-1, 2)
+
+    def _airframe_static_contacts(self) -> set[int]:
+        """Furniture, wall and ceiling geoms the airframe or its landing gear touches (the floor is not a
+        collision: landing)."""
+        out = set()
+        for g1, g2 in self._contact_pairs():
+            for a, b in ((g1, g2), (g2, g1)):
+                if a in self.airframe_geoms and self.model.geom_bodyid[b] == 0:
+                    e = self.geom_entity.get(int(b))
+                    if e is not None and e.name != "floor":
+                        out.add(int(b))
+        return out
+
+    def gear_on_something(self) -> bool:
+        """Whether the landing gear (or the airframe) rests on something below it."""
+        for g1, g2 in self._contact_pairs():
+            for a, b in ((g1, g2), (g2, g1)):
+                if a in self.airframe_geoms and b not in self.finger_geoms and self.model.geom_bodyid[b] != \
+                        self.vehicle_body:
+                    below = self.data.geom_xpos[b][2] < self.data.xpos[self.vehicle_body][2] or \
+                        self.geom_entity.get(b) is not None and self.geom_entity[b].category != "object"
+                    if below:
+                        return True
+        return False
+
+    def step(self, dt: float) -> list[Contact]:
+        """Advance `dt` seconds with the forces and finger targets set now (the controller runs at the caller's
+        rate, as PX4's does). Returns the airframe's new contacts with furniture, walls or the ceiling (each
+        also recorded in `collisions`); one begun faster than `crash_speed` is a crash."""
+        new: list[Contact] = []
+        self._pending += dt  # simulated time not yet stepped (callers' dt need not be a multiple of TIMESTEP)
+        n = int(self._pending / TIMESTEP + 1e-9)
+        if n == 0:
+            return new
+        self._pending -= n * TIMESTEP
+        speed = float(np.linalg.norm(self.vehicle_velocity()))
+        mujoco.mj_step(self.model, self.data, nstep=n)
+        self.sim_time += n * TIMESTEP
+        now = self._airframe_static_contacts()
+        for gid in sorted(now - self._static_contact):
+            e = self.geom_entity[gid]
+            name = "ceiling" if e.name == "ceiling" else ("wall" if e.name.startswith("wall") else e.name)
+            c = Contact(name, speed, speed > self.crash_speed)
+            new.append(c)
+            self.contacts.append(c)
+            tag = f"vehicle-{name}"
+            if tag not in self.collisions:
+                self.collisions.append(tag)
+        self._static_contact = now
+        self.sync()
+        return new
+
+    def settle(self, seconds: float) -> None:
+        """Let the objects come to rest (after a reset), the vehicle held where it is."""
+        pos, yaw = self.vehicle_position(), self.vehicle_yaw()
+        self.step(seconds)
+        self.set_vehicle(pos, yaw)
+        self.collisions.clear()
+        self.contacts.clear()
+        self.sim_time = 0.0
+
+    # ---- mirror MuJoCo's state into the entities
+
+    def sync(self) -> None:
+        d = self.data
+        touching: dict[int, set[int]] = {}
+        for g1, g2 in self._contact_pairs():
+            touching.setdefault(int(g1), set()).add(int(g2))
+            touching.setdefault(int(g2), set()).add(int(g1))
+        left, right = self.finger_geoms
+        for e in self.objects:
+            b = self.obj_body[e.name]
+            e.center = d.xpos[b].copy()
+            rot = d.xmat[b].reshape(3, 3)
+            e.yaw = math.atan2(rot[1, 0], rot[0, 0])
+            e.tilt = math.acos(min(1.0, abs(float(rot[2, 2])))) if e.shape != "sphere" else 0.0
+            if not d.body_awake[b]:
+                # Asleep: at rest, no contacts computed; what it rests on stays as it was, and it is not held
+                # (a held object shares the never-sleeping vehicle's island).
+                e.attached = False
+                continue
+            gid = self.model.body_geomadr[b]
+            others = touching.get(int(gid), set())
+            e.attached = left in others and right in others and self.finger_width() > 0.005
+            support = None
+            lowest = math.inf
+            for o in others:
+                oe = self.geom_entity.get(o)
+                if oe is None or o in (left, right):
+                    continue
+                z = float(d.geom_xpos[o][2]) if oe.category == "object" else oe.top_z
+                if z < e.center[2] and z < lowest:
+                    support, lowest = oe.name, z
+            e.support = None if e.attached else support
+
+    def object_speed(self, name: str) -> float:
+        b = self.obj_body[name]
+        return float(np.linalg.norm(self.data.cvel[b][3:]))
+
+    def holding(self) -> Entity | None:
+        """The object both finger pads touch, if any."""
+        return self.attached()
+
+    def on_surface(self, obj: Entity, surface: Entity, tolerance: float = 0.05,
+                   upright_tolerance: float = math.radians(20)) -> tuple[bool, str]:
+        """Resting on `surface`'s top by contact, upright within `upright_tolerance`."""
+        if obj.attached:
+            return False, f"{obj.name} is in the gripper"
+        if obj.support != surface.name:
+            where = f"rests on the {obj.support}" if obj.support else "touches nothing below it"
+            return False, f"{obj.name} {where}, not on the {surface.name}"
+        gap = obj.bottom_z - surface.top_z
+        if abs(gap) > tolerance + (obj.size[2] if obj.tilt > upright_tolerance else 0.0):
+            return False, f"{obj.name} bottom is {gap:+.3f} m from the {surface.name} top (tolerance {tolerance})"
+        if obj.tilt > upright_tolerance:
+            return False, (f"{obj.name} lies on the {surface.name} tilted {math.degrees(obj.tilt):.0f} deg "
+                           f"(upright tolerance {math.degrees(upright_tolerance):.0f} deg)")
+        return True, f"{obj.name} rests upright on the {surface.name}"
+
+    def state_vector(self) -> np.ndarray:
+        """qpos: what a renderer needs besides the model."""
+        return self.data.qpos.copy()
