@@ -19,7 +19,6 @@ import cv2
 import numpy as np
 import pytest
 
-from services.sim.core import Snapshot
 from services.sim.scenarios import generate
 from shared.bus import Latest
 from shared.frames import DEFAULT_INTRINSICS
@@ -42,9 +41,10 @@ SEED, TARGET = 3, "red cup"
 
 
 def write_view(folder, world, x: float, y: float, z: float, yaw: float) -> None:
+    from services.sim.render import snapshot_at
     from tests.perception.scenes import renderer
 
-    f = renderer().render(Snapshot(world, np.array([x, y, z]), yaw))
+    f = renderer().render(snapshot_at(world, np.array([x, y, z]), yaw))
     folder.mkdir(parents=True)
     cv2.imwrite(str(folder / "0000.png"), cv2.cvtColor(f.rgb, cv2.COLOR_RGB2BGR))
     cv2.imwrite(str(folder / "0000_depth.png"), f.depth_mm)
