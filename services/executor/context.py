@@ -96,6 +96,7 @@ class SkillContext:
         self.estimate: ObjectEstimate | PlacementEstimate | None = None
         self.task_id = ""  # the running skill's task: sent with motion commands so the bridge knows whose they are
         self.override_ns_at_start = 0  # a takeover older than the skill is the bridge's business, not the skill's
+        self.overspeed_since_ns = 0
 
     def reset_outcome(self, task_id: str = "") -> None:
         self.stop_requested = False
@@ -127,8 +128,13 @@ class SkillContext:
             p = st.position
             raise SkillFailed(f"vehicle left the geofence at ({p.x:.2f}, {p.y:.2f}, {p.z:.2f}); holding")
         speed = math.sqrt(st.velocity.x ** 2 + st.velocity.y ** 2 + st.velocity.z ** 2)
-        if speed > s.max_speed + s.overspeed_margin:
-            raise SkillFailed(f"vehicle speed {speed:.2f} m/s exceeds the limit {s.max_speed:.2f} m/s; holding")
+        if speed <= s.max_speed + s.overspeed_margin:
+            self.overspeed_since_ns = 0
+            return
+        self.overspeed_since_ns = self.overspeed_since_ns or st.stamp_ns
+        if (st.stamp_ns - self.overspeed_since_ns) / 1e9 >= s.overspeed_persist_s:
+            raise SkillFailed(f"vehicle speed {speed:.2f} m/s exceeds the limit {s.max_speed:.2f} m/s "
+                              f"for {s.overspeed_persist_s:.1f} s; holding")
 
     async def wait_for(self, pred: Callable[[VehicleState], bool], timeout: float, what: str) -> VehicleState:
         """Wait until `pred(state)`, checking health and the envelope on every sample."""

@@ -48,6 +48,10 @@ class ExecutorSettings(ServiceSettings):
     """Speed limit sent with every setpoint, m/s; a measured speed above max_speed + overspeed_margin aborts."""
     overspeed_margin: float = 0.6
     """Tolerance above max_speed before the monitor declares an overspeed, m/s."""
+    overspeed_persist_s: float = 1.2
+    """How long an overspeed must last before the skill fails. Longer than PX4's 1 Hz HEARTBEAT, so when a PX4
+    failsafe (RTL climbs at several m/s) is the cause, the takeover is reported first and the skill ends with
+    PX4's reason instead of commanding a hold that would fight it."""
     state_max_age_s: float = 0.5
     """Vehicle state older than this is stale: no motion starts, a running skill holds and fails."""
     geofence_exit_margin: float = 0.2

@@ -144,12 +144,17 @@ async def test_pick_and_place_flight_over_real_udp(tmp_path) -> None:
             assert math.dist(after.position.as_tuple(), before.position.as_tuple()) < 0.1
             assert h.details["jitter_p99_ms"] >= 0 and h.details["setpoints_sent"] > 20
 
-            # Pick: over the cup at cruise altitude, then the gripper point onto its top centre.
+            # Pick: over the cup at cruise altitude, then the finger pads 3 cm below its rim (physics: the fingers
+            # hold by contact and friction), close, and give them a moment to squeeze.
             await fly_to(bus, state, cup.position.x, cup.position.y, ALT, 0.0, speed=1.0)
-            await fly_to(bus, state, cup.position.x, cup.position.y, cup.top_z + GRIP_DROP - 0.01, 0.0, tol=0.03)
+            await fly_to(bus, state, cup.position.x, cup.position.y, cup.top_z + GRIP_DROP - 0.03, 0.0, tol=0.03)
             res = await command(bus, GripperCommand(action="close"))
             assert res.ok and res.ack_name == "MAV_RESULT_ACCEPTED", res
-            held = await bus.query(KEYS.sim_judge, JudgeRequest(op="held"))
+            for _ in range(30):
+                held = await bus.query(KEYS.sim_judge, JudgeRequest(op="held"))
+                if held.held == "red cup":
+                    break
+                await asyncio.sleep(0.1)
             assert held.held == "red cup", held.message
             await wait_until(lambda: state.value.gripper == "closed", 10, what="gripper state published")
 
@@ -160,8 +165,12 @@ async def test_pick_and_place_flight_over_real_udp(tmp_path) -> None:
             await fly_to(bus, state, tx, ty, table.top_z + cup.size.z + GRIP_DROP + 0.04, 0.0, tol=0.05)
             res = await command(bus, GripperCommand(action="open"))
             assert res.ok, res
-            judged = await bus.query(KEYS.sim_judge, JudgeRequest(op="on_surface", object="red cup",
-                                                                  surface="table"))
+            for _ in range(50):  # the fingers open, the cup drops the last centimetres and settles
+                judged = await bus.query(KEYS.sim_judge, JudgeRequest(op="on_surface", object="red cup",
+                                                                      surface="table"))
+                if judged.ok:
+                    break
+                await asyncio.sleep(0.1)
             assert judged.ok, judged.message
             assert not judged.collisions, judged.collisions
 
