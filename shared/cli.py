@@ -14,7 +14,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from shared.launcher import SERVICE_ORDER, Stack, available_services
+from shared.launcher import SERVICE_ORDER, Stack, available_services, default_services
 
 app = typer.Typer(help="aermani: language-driven aerial manipulation (AERMANI-VLM) on PX4.", no_args_is_help=True,
                   pretty_exceptions_enable=False)
@@ -23,8 +23,8 @@ console = Console()
 
 @app.command()
 def up(
-    services: Annotated[str | None, typer.Option(help="Comma-separated services to start (default: all that exist).")]
-    = None,
+    services: Annotated[str | None, typer.Option(help="Comma-separated services to start (default: all that exist; "
+                                                 "the camera only when AERMANI_CAMERA_SOURCE is set).")] = None,
     without: Annotated[str, typer.Option(help="Comma-separated services to leave out, e.g. sim for a real drone.")] = "",
     port: Annotated[int, typer.Option(help="Port of the embedded Zenoh router on 127.0.0.1.")] = 7447,
     vehicle: Annotated[str, typer.Option(help="Vehicle id.")] = "am1",
@@ -40,7 +40,7 @@ def up(
     = "tls/127.0.0.1:7448",
 ) -> None:
     """Start the embedded stack: a Zenoh router on loopback and every service as a supervised process."""
-    names = [s.strip() for s in services.split(",")] if services else available_services()
+    names = [s.strip() for s in services.split(",")] if services else default_services()
     skip = {s.strip() for s in without.split(",") if s.strip()}
     names = [n for n in names if n not in skip]
     unknown = [n for n in names if n not in available_services()]
@@ -107,31 +107,53 @@ def health(
     vehicle: Annotated[str | None, typer.Option(help="Only this vehicle id.")] = None,
     timeout: Annotated[float, typer.Option(help="Seconds to wait for answers.")] = 2.0,
 ) -> None:
-    """List the live services (from their liveliness tokens)."""
-    from shared.bus import Bus
-    from shared.keys import alive_pattern, parse_alive_key
+    """List the live services (from their liveliness tokens) and what their health reports say (a stalled
+    camera, a lost autopilot link...)."""
+    from shared.bus import Bus, Subscription
+    from shared.keys import HEALTH_TOPIC, alive_pattern, parse_alive_key
+    from shared.launcher import OPTIONAL
+    from shared.messages import Health
 
-    async def run() -> list[str]:
+    async def run() -> tuple[list[str], dict[tuple[str, str], Health]]:
         bus = await Bus.open(connect=[connect], connect_timeout_s=timeout + 1)
         try:
-            return await bus.alive(alive_pattern(vehicle), timeout=timeout)
+            topic = HEALTH_TOPIC.bind(vehicle, service="*") if vehicle else HEALTH_TOPIC.fleet(service="*")
+            sub: Subscription[Health] = bus.subscribe(topic, maxsize=200)
+            loop = asyncio.get_running_loop()
+            deadline = loop.time() + 1.1  # health comes at about 1 Hz; listen while liveliness is asked
+            keys = await bus.alive(alive_pattern(vehicle), timeout=timeout)
+            reports: dict[tuple[str, str], Health] = {}
+            while sub.qsize() or loop.time() < deadline:
+                with contextlib.suppress(TimeoutError):
+                    rec = await sub.recv_sample(timeout=max(0.01, deadline - loop.time()))
+                    reports[(rec.key.split("/")[2], rec.value.service)] = rec.value
+            return keys, reports
         finally:
             await bus.close()
 
     try:
-        keys = asyncio.run(asyncio.wait_for(run(), timeout + 10))
+        keys, reports = asyncio.run(asyncio.wait_for(run(), timeout + 10))
     except Exception as exc:
         console.print(f"[red]cannot reach the router at {connect}: {exc}[/red]")
         raise typer.Exit(1)
-    table = Table("vehicle", "service", "state")
+    table = Table("vehicle", "service", "state", "health")
+
+    def said(vid: str, name: str) -> str:
+        h = reports.get((vid, name))
+        if h is None:
+            return ""
+        return "[green]ok[/green]" if h.ok else f"[red]{h.message or 'not ok'}[/red]"
+
     live = {parse_alive_key(k) for k in keys}
     for vid, name in sorted(live):
-        table.add_row(vid, name, "[green]alive[/green]")
+        table.add_row(vid, name, "[green]alive[/green]", said(vid, name))
     vehicles = {v for v, _ in live} or {vehicle or "am1"}
     for vid in sorted(vehicles):
         for name in available_services():
+            if name in OPTIONAL:
+                continue  # started only when configured: absence is not a fault
             if (vid, name) not in live and not any(n == name for _, n in live if name in ("recorder", "gateway")):
-                table.add_row(vid, name, "[red]not running[/red]")
+                table.add_row(vid, name, "[red]not running[/red]", said(vid, name))
     console.print(table)
     if not live:
         raise typer.Exit(1)

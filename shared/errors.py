@@ -39,6 +39,10 @@ class MavlinkError(AermaniError):
     """MAVLink link or command failure."""
 
 
+class CameraError(AermaniError):
+    """A camera source cannot be configured or opened (missing package, device, file)."""
+
+
 class PerceptionError(AermaniError):
     """A perception backend could not start or answer."""
 

@@ -237,7 +237,7 @@ CAMERA_SEGMENTATION: Topic[bytes] = Topic(
     reliable=False, periodic=True)
 TF: Topic[bytes] = Topic(
     "tf", Protobuf("foxglove.FrameTransforms"), "world->base_link, base_link->camera, base_link->gripper",
-    "autopilot_bridge, sim", reliable=False, periodic=True)
+    "autopilot_bridge, sim, camera", reliable=False, periodic=True)
 SIM_LABELS: Topic[SimLabels] = Topic(
     "sim/labels", SimLabels, "instance id -> name for camera/segmentation (oracle only)", "sim",
     periodic=True)

@@ -33,11 +33,29 @@ from shared.security import require_loopback
 log = logging.getLogger("aermani.launcher")
 
 # Start order: the world and the link first, the decision makers last.
-SERVICE_ORDER = ("sim", "autopilot_bridge", "perception", "executor", "reasoner", "recorder", "gateway")
+SERVICE_ORDER = ("sim", "camera", "autopilot_bridge", "perception", "executor", "reasoner", "recorder", "gateway")
 # Services that exist once per vehicle (the rest serve a whole ground station).
-PER_VEHICLE = ("sim", "autopilot_bridge", "perception", "executor", "reasoner")
+PER_VEHICLE = ("sim", "camera", "autopilot_bridge", "perception", "executor", "reasoner")
+# Services started by default only when configured. The camera service runs when AERMANI_CAMERA_SOURCE names
+# a source (not `none`); then it owns the camera keys and tf's camera/gripper frames, so a simulator in the
+# same stack runs with its camera off (AERMANI_SIM_CAMERA=0) and the autopilot bridge publishes
+# world->base_link (AERMANI_AUTOPILOT_BRIDGE_PUBLISH_TF=1), exactly as on a real drone. Without it the
+# simulator is the camera. Explicit settings in the environment win over these defaults.
+OPTIONAL = ("camera",)
+
+
+def camera_configured(env: dict[str, str] | os._Environ[str] | None = None) -> bool:
+    """Whether a camera source is configured (AERMANI_CAMERA_SOURCE set and not `none`)."""
+    source = (os.environ if env is None else env).get("AERMANI_CAMERA_SOURCE", "").strip().lower()
+    return source not in ("", "none")
+
+
+def default_services(env: dict[str, str] | os._Environ[str] | None = None) -> list[str]:
+    """What `aermani up` starts without --services: every service in this checkout, the optional ones only
+    when configured."""
+    return [s for s in available_services() if s not in OPTIONAL or (s == "camera" and camera_configured(env))]
 # Services that run on the vehicle (behind the drone router in a --secure stack); the rest are the ground's.
-DRONE_SIDE = ("sim", "autopilot_bridge", "perception", "executor")
+DRONE_SIDE = ("sim", "camera", "autopilot_bridge", "perception", "executor")
 
 
 def free_port() -> int:
@@ -151,6 +169,12 @@ class Stack:
     def add_vehicle(self, vehicle_id: str, services: list[str], env: dict[str, str] | None = None) -> None:
         """Add services for one vehicle id; ground-station services (recorder, gateway) are added once."""
         have = {(p.name, p.vehicle_id) for p in self.procs}
+        env = dict(env or {})
+        if "camera" in services and camera_configured({**os.environ, **env}):
+            # One camera per vehicle: the camera service's frames, not the simulator's (see OPTIONAL).
+            for var, value in (("AERMANI_SIM_CAMERA", "false"), ("AERMANI_AUTOPILOT_BRIDGE_PUBLISH_TF", "true")):
+                if var not in env and var not in os.environ:
+                    env[var] = value
         for name in services:
             if name not in PER_VEHICLE and any(p.name == name for p in self.procs):
                 continue
@@ -158,7 +182,7 @@ class Stack:
                 continue
             endpoint = self.drone_endpoint if name in DRONE_SIDE else self.endpoint
             child_env = {**os.environ, "AERMANI_ZENOH_CONNECT": endpoint, "AERMANI_VEHICLE_ID": vehicle_id,
-                         "PYTHONUNBUFFERED": "1", **(env or {})}
+                         "PYTHONUNBUFFERED": "1", **env}
             suffix = f"-{vehicle_id}" if name in PER_VEHICLE else ""
             self.procs.append(ServiceProcess(name, vehicle_id, child_env, self.log_dir / f"{name}{suffix}.log"))
 

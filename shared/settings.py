@@ -9,6 +9,7 @@ from typing import Annotated
 from pydantic import AliasChoices, Field, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
+from shared.frames import Mount
 from shared.keys import DEFAULT_VEHICLE_ID, Keys
 
 DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
@@ -31,6 +32,8 @@ class ServiceSettings(BaseSettings):
     """Zenoh session mode: client (to a router), peer or router."""
     log_level: str = Field("INFO", validation_alias=AliasChoices("log_level", "AERMANI_LOG_LEVEL"))
     """Python log level."""
+    mount: Mount = Field(default_factory=Mount, validation_alias=AliasChoices("mount"))
+    """Camera and gripper mounts on the body: ONE definition for every service (env AERMANI_MOUNT_*)."""
 
     @field_validator("zenoh_connect", mode="before")
     @classmethod

@@ -34,7 +34,7 @@ from shared.action import skill_client
 from shared.bus import Bus, Subscription, query_ready
 from shared.errors import AermaniError, BusError, ConfigError
 from shared.keys import Keys
-from shared.launcher import PER_VEHICLE, Stack, available_services, free_udp_port
+from shared.launcher import OPTIONAL, PER_VEHICLE, Stack, available_services, free_udp_port
 from shared.messages import (
     Abort,
     LandedState,
@@ -137,8 +137,9 @@ def vehicle_env(cfg: RunConfig) -> dict[str, str]:
 
 
 def build_stack(cfg: RunConfig, vehicle_ids: list[str]) -> Stack:
-    services = [s for s in available_services() if s in PER_VEHICLE]
-    missing = [s for s in PER_VEHICLE if s not in services]
+    # Episodes are judged in the simulator's world: its camera, never a configured camera service.
+    services = [s for s in available_services() if s in PER_VEHICLE and s not in OPTIONAL]
+    missing = [s for s in PER_VEHICLE if s not in services and s not in OPTIONAL]
     if missing:
         raise ConfigError(f"the evaluation needs every per-vehicle service; missing in this checkout: {missing}")
     stack = Stack(services, vehicle_id=vehicle_ids[0], env=vehicle_env(cfg), log_dir=cfg.out / "logs")

@@ -13,7 +13,7 @@ import numpy as np
 
 from services.executor.settings import ExecutorSettings
 from shared.envelope import altitude_problem, geofence_problem, outside_geofence, speed_problem
-from shared.frames import base_to_camera
+from shared.frames import Mount
 from shared.messages import LandedState, VehicleState
 from shared.sensors import Intrinsics, backproject
 
@@ -51,10 +51,10 @@ def offboard_problem(state: VehicleState) -> str | None:
 class DepthClearance:
     """Forward clearance from the latest depth frame: points inside the corridor the airframe would sweep."""
 
-    def __init__(self, intr: Intrinsics, stride: int = 4) -> None:
+    def __init__(self, intr: Intrinsics, stride: int = 4, mount: Mount | None = None) -> None:
         self.intr = intr
         self.stride = stride
-        self.base_from_camera = base_to_camera()
+        self.base_from_camera = (mount or Mount()).base_to_camera()
         self.depth: np.ndarray | None = None
         self.stamp_ns = 0
         self.receive_ns = 0

@@ -59,7 +59,7 @@ class Executor:
         self.skills = build_library(settings)
         self.memory = Memory(on_change=self._memory_changed)
         self.state = StateTracker()
-        self.clearance = DepthClearance(DEFAULT_INTRINSICS)
+        self.clearance = DepthClearance(DEFAULT_INTRINSICS, mount=settings.mount)
         self.ctx = SkillContext(bus, settings, self.memory, self.state, self.clearance)
         self.goal: Goal | None = None
         self._memory_dirty = False

@@ -122,10 +122,6 @@ class ExecutorSettings(ServiceSettings):
     """An object re-localized farther than this from memory has moved: grasp fails, re-localize first."""
     grasp_depth_fraction: float = 0.25
     """Gripper point target below the object's top, as a fraction of its height."""
-    gripper_offset_z: float = -0.22
-    """Gripper capture point below the body origin, metres (shared.frames.GRIPPER_OFFSET_BODY)."""
-    camera_pitch_deg: float = 35.0
-    """Camera pitch below the horizon, degrees: sets the standoff height that keeps a target in view."""
     place_vertical_offset: float = 0.03
     """Release height of the object's bottom above the surface, metres."""
     verify_tolerance: float = 0.12
@@ -151,3 +147,13 @@ class ExecutorSettings(ServiceSettings):
             if not 0 < getattr(self, name) <= self.max_speed:
                 raise ValueError(f"{name} must be in (0, max_speed]")
         return self
+
+    @property
+    def gripper_offset_z(self) -> float:
+        """Gripper capture point below the body origin, metres (from the one mount definition, `mount`)."""
+        return float(self.mount.gripper_offset[2])
+
+    @property
+    def camera_pitch_deg(self) -> float:
+        """Camera pitch below the horizon, degrees: sets the standoff height that keeps a target in view."""
+        return float(self.mount.camera_pitch_deg)

@@ -92,6 +92,10 @@ class PerceptionService:
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(self.new_frame.wait(), remaining)
         if frame is None:
+            if self.store.counts["color"] and not self.store.counts["depth"]:
+                return None, "no_frame", ("colour frames arrive but no depth: 3D localization needs a depth image "
+                                          "aligned to colour (camera source realsense, zed, or file with depth "
+                                          "PNGs); a colour-only camera (uvc, a plain video) cannot localize in 3D")
             return None, "no_frame", f"no camera frame yet (missing: {self.store.missing() or 'nothing'}); is the " \
                                      "camera (or the sim) running?"
         return None, "stale_frame", f"newest frame is {frame.age_s():.2f} s old (max_frame_age_s {max_age_s}); " \
@@ -150,6 +154,11 @@ class PerceptionService:
                     log.exception("detections failed")
             await asyncio.sleep(max(0.0, period - (time.monotonic() - t0)))
 
+    def _no_frame_reason(self) -> str:
+        if self.store.counts["color"] and not self.store.counts["depth"]:
+            return "colour only, no depth: 3D localization needs a depth camera"
+        return f"no frame ({self.store.missing()})"
+
     async def _health(self, stop: asyncio.Event) -> None:
         while not stop.is_set():
             frame = self.store.latest()
@@ -158,7 +167,7 @@ class PerceptionService:
             ok = frame is not None and age is not None and age < 2.0
             self.bus.publish(self.settings.keys.health("perception"), Health(
                 service="perception", ok=ok,
-                message="" if ok else (f"no frame ({self.store.missing()})" if frame is None else f"frame {age:.1f} s old"),
+                message="" if ok else (self._no_frame_reason() if frame is None else f"frame {age:.1f} s old"),
                 details={"segmenter": self.perception.segmenter.type, "frame_age_s": age, **self.store.counts,
                          **self.served, "latency_p50_ms": lat[len(lat) // 2] if lat else None}))
             with contextlib.suppress(TimeoutError):

@@ -8,13 +8,16 @@ import logging
 import time
 from collections import deque
 
+import numpy as np
+
 from services.sim.core import SimCore
 from services.sim.mavlink_server import LinkSettings, MavlinkServer
 from services.sim.render_worker import FrameEncoder, RenderWorker
 from services.sim.settings import SimSettings
 from services.sim.vehicle import realism_params
 from shared.bus import Bus
-from shared.frames import DEFAULT_INTRINSICS, base_to_camera, base_to_gripper
+from shared.errors import ConfigError
+from shared.frames import DEFAULT_INTRINSICS, Mount
 from shared.messages import Health, JudgeRequest, ResetNotice, Scenario, SimLabels, now_ns
 from shared.sensors import (
     BODY_FRAME,
@@ -36,7 +39,23 @@ def scenario_from(settings: SimSettings) -> Scenario:
                     target_out_of_view=settings.target_out_of_view, extra_objects=tuple(settings.extra_objects))
 
 
+# The simulated airframe: its MuJoCo model puts the camera and the gripper at the default mount.
+AIRFRAME = Mount.model_construct()
+
+
+def check_airframe(settings: SimSettings) -> None:
+    """AERMANI_MOUNT_* describes a real airframe; the simulator's is fixed, and a stack told otherwise would
+    localize and grasp with the wrong geometry. Refuse rather than disagree silently."""
+    m = settings.mount
+    if not (np.allclose(m.base_to_camera(), AIRFRAME.base_to_camera(), atol=1e-6)
+            and np.allclose(m.base_to_gripper(), AIRFRAME.base_to_gripper(), atol=1e-6)):
+        raise ConfigError(f"the simulator's airframe has its camera at {AIRFRAME.camera_offset} pitched "
+                          f"{AIRFRAME.camera_pitch_deg:.0f} deg down and its gripper at {AIRFRAME.gripper_offset}, "
+                          f"but AERMANI_MOUNT_* says {settings.mount}; unset AERMANI_MOUNT_* when flying the simulator")
+
+
 def build(settings: SimSettings) -> tuple[SimCore, MavlinkServer]:
+    check_airframe(settings)
     params = realism_params(settings.realism, takeoff_alt=settings.takeoff_alt,
                             offboard_loss_timeout=settings.offboard_loss_timeout,
                             failsafe_land_delay=settings.failsafe_land_delay, seed=settings.seed)
@@ -57,7 +76,9 @@ class CameraPublisher:
         self.keys = settings.keys
         self.worker: RenderWorker | None = None
         self.encoder: FrameEncoder | None = None
-        if settings.render_process:
+        if not settings.camera:
+            pass  # no renderer at all: nothing is drawn
+        elif settings.render_process:
             self.worker = RenderWorker(settings.render_scale, settings.jpeg_quality, settings.realism)
         else:
             self.encoder = FrameEncoder(settings.render_scale, settings.jpeg_quality, settings.realism)
@@ -83,10 +104,11 @@ class CameraPublisher:
 
     @staticmethod
     def transforms(snap, stamp_ns: int) -> bytes:
-        """world -> body from the estimated pose (as a real stack gets it from its EKF), not the truth."""
+        """world -> body from the estimated pose (as a real stack gets it from its EKF), not the truth; the
+        camera and gripper frames of the simulated airframe (the default mount, see check_airframe)."""
         body = pose_matrix(float(snap.position[0]), float(snap.position[1]), float(snap.position[2]), snap.yaw)
-        return transforms_message([(WORLD_FRAME, BODY_FRAME, body), (BODY_FRAME, CAMERA_FRAME, base_to_camera()),
-                                   (BODY_FRAME, GRIPPER_FRAME, base_to_gripper())], stamp_ns)
+        return transforms_message([(WORLD_FRAME, BODY_FRAME, body), (BODY_FRAME, CAMERA_FRAME, AIRFRAME.base_to_camera()),
+                                   (BODY_FRAME, GRIPPER_FRAME, AIRFRAME.base_to_gripper())], stamp_ns)
 
     def segmentation_watched(self) -> bool:
         """Segmentation (ground truth: the oracle segmenter, debugging) is rendered only when subscribed."""
@@ -106,7 +128,7 @@ class CameraPublisher:
         last_cal = last_labels = 0.0
         while not stop.is_set():
             now = time.monotonic()
-            if now - last_cal >= 1.0:
+            if now - last_cal >= 1.0 and self.settings.camera:
                 self.bus.publish(self.keys.camera_calibration, calibration_message(DEFAULT_INTRINSICS, now_ns()))
                 last_cal = now
             version = self.core.world.version
@@ -116,7 +138,9 @@ class CameraPublisher:
                     self.bus.publish(self.keys.health("sim"), self.health())
                 last_labels, self.last_labels_version = now, version
             stamp = now_ns()
-            if not self.watched():
+            if not self.settings.camera:
+                pass  # the camera service publishes frames and tf; the bridge publishes world->base_link
+            elif not self.watched():
                 # Nobody consumes images (e.g. a MAVLink-only test or many idle evaluation vehicles): skip the
                 # raycast, keep tf flowing.
                 self.idle_frames += 1
@@ -152,7 +176,8 @@ class CameraPublisher:
             now = time.monotonic()
             fps = sum(1 for t in self.recent if now - t <= 5.0) / 5.0
             details = {"fps_5s": fps, "frames": st["frames"], "idle_frames": st["idle_frames"],
-                       "mode": v.mode_name, "armed": v.armed, "realism": self.core.realism, "scenario_seed": self.core.scenario.seed,
+                       "camera": self.settings.camera, "mode": v.mode_name, "armed": v.armed,
+                       "realism": self.core.realism, "scenario_seed": self.core.scenario.seed,
                        "setpoints_received": v.setpoints_received, **self.core.counters}
         ok = self.failures < 3
         return Health(service="sim", ok=ok, message="" if ok else f"rendering keeps failing: {self.last_error}",
@@ -173,6 +198,9 @@ async def run(bus: Bus, settings: SimSettings, stop: asyncio.Event, *, core: Sim
     if core is None or server is None:
         core, server = build(settings)
         server.start()
+    if not settings.camera:
+        # A camera service (or a real camera) owns the camera keys and tf: the simulator only flies.
+        log.info("sim camera off (AERMANI_SIM_CAMERA=0): no colour, depth, segmentation, calibration or tf")
     try:
         camera = await asyncio.to_thread(CameraPublisher, bus, core, settings)
     except BaseException:

@@ -27,6 +27,10 @@ class SimSettings(ServiceSettings):
     target_out_of_view: bool = False
     """Place the target outside the initial camera view."""
 
+    camera: bool = True
+    """Publish the simulated camera (colour, depth, segmentation, calibration) and tf. Off when a camera service
+    owns those keys (drone-side tests, `aermani up` with AERMANI_CAMERA_SOURCE set): the simulator then only
+    flies over MAVLink, and the autopilot bridge must publish world->base_link (AERMANI_AUTOPILOT_BRIDGE_PUBLISH_TF)."""
     fps: float = Field(15.0, gt=0, le=60)
     """Camera frame rate (colour, depth, segmentation and tf), frames per second."""
     jpeg_quality: int = Field(85, ge=10, le=100)

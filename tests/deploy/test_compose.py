@@ -15,7 +15,7 @@ SERVICES = COMPOSE["services"]
 
 PROFILES = {
     "ground": {"zenoh-ground", "gateway", "reasoner", "recorder"},
-    "drone": {"zenoh-drone", "perception", "executor", "autopilot_bridge"},
+    "drone": {"zenoh-drone", "camera", "perception", "executor", "autopilot_bridge"},
     "sim": {"sim"},
     "px4-sitl": {"px4-sitl"},
 }
@@ -103,7 +103,7 @@ def test_environment_variables_name_real_settings():
     import importlib
 
     classes = {}
-    for name in ("sim", "autopilot_bridge", "perception", "executor", "reasoner", "recorder", "gateway"):
+    for name in ("sim", "camera", "autopilot_bridge", "perception", "executor", "reasoner", "recorder", "gateway"):
         mod = importlib.import_module(f"services.{name}.settings")
         for obj in vars(mod).values():
             prefix = getattr(getattr(obj, "model_config", {}), "get", lambda *_: None)("env_prefix")
@@ -117,3 +117,14 @@ def test_environment_variables_name_real_settings():
                     names = set(cls.model_fields) | {a for f in cls.model_fields.values()
                                                      for a in getattr(f.validation_alias, "choices", ()) or ()}
                     assert field in names or var in names, f"{svc_name}: {var} is not a setting of {cls.__name__}"
+
+
+def test_the_camera_service_idles_unless_configured():
+    """The drone profile carries the camera service; with the sim profile it must not fight the simulator's
+    frames, so its source defaults to `none` (publishes nothing) and the simulator's camera stays on."""
+    cam = SERVICES["camera"]["environment"]
+    assert cam["AERMANI_CAMERA_SOURCE"] == "${AERMANI_CAMERA_SOURCE:-none}"
+    assert SERVICES["sim"]["environment"]["AERMANI_SIM_CAMERA"] == "${AERMANI_SIM_CAMERA:-true}"
+    from services.camera.settings import CameraSettings
+
+    assert CameraSettings(_env_file=None).source == "none"

@@ -169,8 +169,8 @@ async def _bad_and_stale(stack) -> None:
                json.dumps({"query": "red cup", "max_frame_age_s": "soon"}).encode()]
         for payload in bad:
             for key, model in ((KEYS.localize_object, ObjectEstimate), (KEYS.localize_placement, PlacementEstimate)):
-                est = await ask(bus, key, payload, model, timeout=10)
-                assert not est.found and est.reason == "bad_query", (payload[:40], est)
+                est = await ask(bus, key, payload, timeout=10)
+                assert isinstance(est, model) and not est.found and est.reason == "bad_query", (payload[:40], est)
                 assert est.message and len(est.query) <= 200
 
         # One frame set: a grey plane 1.5 m ahead with a red cup's instance id... published once, then silence.

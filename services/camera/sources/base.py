@@ -1,0 +1,148 @@
+"""The camera source interface and its registry: a source is one file plus `@register`, picked by `source`."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, ClassVar
+
+import numpy as np
+
+from shared.errors import CameraError
+from shared.frames import DEFAULT_INTRINSICS
+from shared.sensors import Intrinsics
+
+if TYPE_CHECKING:
+    from services.camera.settings import CameraSettings
+
+
+@dataclass
+class Capture:
+    """One frame from a source: colour (pixels, or JPEG bytes passed through) and depth aligned to it."""
+
+    rgb: np.ndarray | None = None
+    """HxWx3 uint8 RGB (None when `jpeg` is given)."""
+    jpeg: bytes | None = None
+    """Colour already JPEG-encoded (a recorded log's bytes, republished without re-encoding)."""
+    depth_mm: np.ndarray | None = None
+    """HxW uint16 z-depth in millimetres, registered to the colour image (0 = invalid); None without depth."""
+
+
+class CameraSource(ABC):
+    """A camera. `open()` connects (raises CameraError when absent), `read()` blocks for the next frame and
+    returns None when a finite source (file/mcap without loop) has ended, `close()` releases it."""
+
+    type: ClassVar[str] = ""
+    paced: ClassVar[bool] = False
+    """True: `read()` itself waits for the device's next frame; False: the service paces reads to `fps`."""
+    retry_open: ClassVar[bool] = True
+    """True for devices (unplugged now, plugged in later: keep trying); False for files, where a failed open
+    is a configuration error and the service exits with it."""
+
+    def __init__(self, settings: CameraSettings) -> None:
+        self.settings = settings
+        self.intrinsics: Intrinsics | None = None
+        """Pinhole intrinsics of the colour (and aligned depth) image, known after `open()`."""
+        self.has_depth = False
+        """Whether `read()` returns depth (set by `open()`)."""
+        self.ended = ""
+        """Why a finite source stopped ("" while it runs)."""
+
+    def check(self) -> None:  # noqa: B027 - optional hook
+        """Validate settings and dependencies without touching a device; raise CameraError saying how to fix."""
+
+    @abstractmethod
+    def open(self) -> None:
+        """Connect to the camera (raise CameraError when it is absent); set `intrinsics` and `has_depth`."""
+
+    @abstractmethod
+    def read(self) -> Capture | None:
+        """The next frame (blocking), or None when the source has ended."""
+
+    def close(self) -> None:  # noqa: B027 - optional hook
+        """Release the device or file."""
+
+    def describe(self) -> str:
+        return self.type
+
+
+SOURCES: dict[str, type[CameraSource]] = {}
+
+
+def register(cls: type[CameraSource]) -> type[CameraSource]:
+    """Class decorator: make a source selectable by its `type` (AERMANI_CAMERA_SOURCE)."""
+    if not cls.type:
+        raise ValueError(f"{cls.__name__} has no `type`")
+    SOURCES[cls.type] = cls
+    return cls
+
+
+def make_source(settings: CameraSettings) -> CameraSource:
+    """Build the configured source and check it (raises CameraError naming the fix; opens nothing)."""
+    from services.camera import sources  # noqa: F401 - registers the built-in ones
+
+    cls = SOURCES.get(settings.source)
+    if cls is None:
+        raise CameraError(f"unknown camera source {settings.source!r}; set AERMANI_CAMERA_SOURCE to one of "
+                          f"{', '.join(sorted(SOURCES))}")
+    src = cls(settings)
+    src.check()
+    return src
+
+
+# --------------------------------------------------------------------------- helpers shared by sources
+
+
+def scaled(intr: Intrinsics, width: int, height: int) -> Intrinsics:
+    """Intrinsics of the same camera at another resolution (pixel centres kept)."""
+    if (intr.width, intr.height) == (width, height):
+        return intr
+    sx, sy = width / intr.width, height / intr.height
+    return Intrinsics(width, height, intr.fx * sx, intr.fy * sy, (intr.cx + 0.5) * sx - 0.5, (intr.cy + 0.5) * sy - 0.5)
+
+
+def default_intrinsics(width: int, height: int) -> Intrinsics:
+    """The simulator's camera at `width` x `height`: the assumption when nothing better is known."""
+    return scaled(DEFAULT_INTRINSICS, width, height)
+
+
+def load_calibration(path: str | Path) -> Intrinsics:
+    """Intrinsics from YAML: either `width, height, fx, fy, cx, cy`, or a ROS camera_info file
+    (`image_width`, `image_height`, `camera_matrix: {data: [9 numbers]}`)."""
+    import yaml
+
+    p = Path(path)
+    try:
+        data = yaml.safe_load(p.read_text())
+    except OSError as exc:
+        raise CameraError(f"cannot read calibration {p}: {exc}") from exc
+    except yaml.YAMLError as exc:
+        raise CameraError(f"calibration {p} is not valid YAML: {exc}") from exc
+    if not isinstance(data, dict):
+        raise CameraError(f"calibration {p} must be a mapping with width, height, fx, fy, cx, cy")
+    try:
+        if "camera_matrix" in data:
+            k = [float(v) for v in data["camera_matrix"]["data"]]
+            intr = Intrinsics(int(data["image_width"]), int(data["image_height"]), k[0], k[4], k[2], k[5])
+        else:
+            intr = Intrinsics(int(data["width"]), int(data["height"]), float(data["fx"]), float(data["fy"]),
+                              float(data["cx"]), float(data["cy"]))
+    except (KeyError, TypeError, ValueError, IndexError) as exc:
+        raise CameraError(f"calibration {p} lacks a field or has a non-number ({exc!r}); expected width, height, "
+                          "fx, fy, cx, cy (or a ROS camera_info file)") from exc
+    if intr.width <= 0 or intr.height <= 0 or intr.fx <= 0 or intr.fy <= 0:
+        raise CameraError(f"calibration {p}: width, height, fx and fy must be positive, got {intr}")
+    return intr
+
+
+def fit(cap: Capture, width: int, height: int) -> Capture:
+    """Resize a capture's colour (area) and depth (nearest: never blend depth across edges) to width x height."""
+    import cv2
+
+    rgb, depth = cap.rgb, cap.depth_mm
+    if rgb is not None and rgb.shape[:2] != (height, width):
+        rgb = cv2.resize(rgb, (width, height), interpolation=cv2.INTER_AREA)
+    if depth is not None and depth.shape[:2] != (height, width):
+        depth = cv2.resize(depth, (width, height), interpolation=cv2.INTER_NEAREST)
+    return Capture(rgb, cap.jpeg, depth)

@@ -1,0 +1,78 @@
+"""`realsense` source: an Intel RealSense D4xx through pyrealsense2, depth aligned to colour on the device's
+pipeline, intrinsics read from the device (untested here: no device on the build machine)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from services.camera.sources.base import CameraSource, Capture, register
+from shared.errors import CameraError
+from shared.sensors import Intrinsics
+
+INSTALL = ("the realsense source needs the `pyrealsense2` package: `pip install pyrealsense2` (or `pip install "
+           "-e .[realsense]`); where no wheel exists for the platform (e.g. a Jetson), build librealsense with "
+           "-DBUILD_PYTHON_BINDINGS=ON (docs/hardware.md)")
+
+
+def _rs() -> Any:
+    try:
+        import pyrealsense2 as rs  # type: ignore[import-not-found]
+    except ImportError as exc:
+        raise CameraError(INSTALL) from exc
+    return rs
+
+
+@register
+class RealSenseSource(CameraSource):
+    type = "realsense"
+    paced = True  # wait_for_frames blocks until the device delivers
+
+    def check(self) -> None:
+        _rs()
+
+    def open(self) -> None:
+        rs = _rs()
+        s = self.settings
+        self.pipeline = rs.pipeline()
+        cfg = rs.config()
+        if s.device:
+            cfg.enable_device(s.device)
+        fps = int(round(s.fps))
+        cfg.enable_stream(rs.stream.color, s.width, s.height, rs.format.rgb8, fps)
+        cfg.enable_stream(rs.stream.depth, s.width, s.height, rs.format.z16, fps)
+        try:
+            profile = self.pipeline.start(cfg)
+        except RuntimeError as exc:
+            raise CameraError(f"no RealSense camera could stream {s.width}x{s.height} at {fps} fps"
+                              f"{' (serial ' + s.device + ')' if s.device else ''}: {exc}") from exc
+        # Depth units: metres per raw unit (1 mm by default on D4xx); the bus wants millimetres.
+        self.depth_to_mm = profile.get_device().first_depth_sensor().get_depth_scale() * 1000.0
+        self.align = rs.align(rs.stream.color)
+        ci = profile.get_stream(rs.stream.color).as_video_stream_profile().get_intrinsics()
+        self.intrinsics = Intrinsics(ci.width, ci.height, ci.fx, ci.fy, ci.ppx, ci.ppy)
+        self.has_depth = True
+
+    def read(self) -> Capture | None:
+        try:
+            frames = self.pipeline.wait_for_frames(int(self.settings.read_timeout_s * 1000))
+        except RuntimeError as exc:
+            raise CameraError(f"RealSense delivered no frame in {self.settings.read_timeout_s} s: {exc}") from exc
+        frames = self.align.process(frames)
+        color, depth = frames.get_color_frame(), frames.get_depth_frame()
+        if not color or not depth:
+            raise CameraError("RealSense frameset without colour or depth")
+        raw = np.asanyarray(depth.get_data())
+        depth_mm = raw if abs(self.depth_to_mm - 1.0) < 1e-6 else np.clip(raw * self.depth_to_mm, 0, 65535)
+        return Capture(rgb=np.asanyarray(color.get_data()).copy(), depth_mm=depth_mm.astype(np.uint16))
+
+    def close(self) -> None:
+        if getattr(self, "pipeline", None) is not None:
+            try:
+                self.pipeline.stop()
+            except RuntimeError:
+                pass
+
+    def describe(self) -> str:
+        return f"realsense {self.settings.device or '(first)'}"
