@@ -77,8 +77,7 @@ async def test_reasoner_process_runs_a_task_on_the_registered_backend_and_names_
     with run_stack(["reasoner"], tmp_path, env=env) as stack:
         async def missing_key() -> TaskAccept:
             async with bus_for(stack) as bus:
-                return await bus.query(keys.start_task, TaskRequest(command=CMD, backend="openai"), TaskAccept,
-                                       timeout=10)
+                return await bus.query(keys.start_task, TaskRequest(command=CMD, backend="openai"), timeout=10)
 
         final, steps = await run_task(stack, w, TaskRequest(command=CMD, backend="counting_test"))
         refused = await missing_key()
