@@ -43,7 +43,7 @@ def create_app(settings: GatewaySettings, bus: Bus | None = None) -> FastAPI:
     async def lifespan(app: FastAPI):
         own_bus = bus is None
         the_bus = bus or await Bus.open(connect=settings.zenoh_connect, mode=settings.zenoh_mode)
-        store = Store(settings.db_path)
+        store = Store(settings.db_path, settings.db_synchronous)
         await store.open()
         fleet = Fleet(the_bus, store)
         try:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import ipaddress
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
 from pydantic import AliasChoices, Field, SecretStr, field_validator
 from pydantic_settings import NoDecode, SettingsConfigDict
@@ -23,6 +23,9 @@ class GatewaySettings(ServiceSettings):
     """HTTP port (0 picks a free one, for tests)."""
     db_path: str = "runs/gateway.sqlite3"
     """SQLite file that keeps tasks, steps and skill statuses across restarts (`:memory:` for none)."""
+    db_synchronous: Literal["NORMAL", "FULL"] = "NORMAL"
+    """SQLite durability: NORMAL keeps every committed write across a killed gateway; FULL also across an OS
+    crash or power loss (one fsync per write)."""
     token: SecretStr | None = Field(None, validation_alias=AliasChoices("token", "AERMANI_GATEWAY_TOKEN"))
     """Bearer token required by every /api/v1 endpoint except the liveness check /api/v1/live. Optional only
     on a loopback bind (then browser requests are checked for Host, Origin and JSON instead). Never logged or

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import sqlite3
 import time
+from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -56,10 +58,17 @@ def _row_task(row: sqlite3.Row) -> dict[str, Any]:
 
 class Store:
     """One connection used from one worker thread, so writes are serialized and never block the loop.
-    AUTOINCREMENT keeps event ids strictly increasing (never reused), which the SSE resume relies on."""
+    AUTOINCREMENT keeps event ids strictly increasing (never reused), which the SSE resume relies on.
 
-    def __init__(self, path: str) -> None:
+    Durability: WAL journal. `synchronous=NORMAL` (the default) makes every committed write survive the
+    gateway being killed at any instant; only an OS crash or power loss can lose the last commits.
+    `synchronous=FULL` (setting `db_synchronous`) also survives those, at one fsync per write."""
+
+    def __init__(self, path: str, synchronous: str = "NORMAL") -> None:
+        if synchronous.upper() not in ("NORMAL", "FULL"):
+            raise ValueError(f"db_synchronous must be NORMAL or FULL, not {synchronous!r}")
         self.path = path
+        self.synchronous = synchronous.upper()
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="gateway-db")
         self._db: sqlite3.Connection | None = None
 
@@ -75,7 +84,7 @@ class Store:
         db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None)
         db.row_factory = sqlite3.Row
         db.execute("PRAGMA journal_mode=WAL")
-        db.execute("PRAGMA synchronous=NORMAL")
+        db.execute(f"PRAGMA synchronous={self.synchronous}")
         db.executescript(SCHEMA)
         self._db = db
 
@@ -94,6 +103,20 @@ class Store:
             raise RuntimeError("store is not open")
         return self._db
 
+    @contextlib.contextmanager
+    def _tx(self) -> Iterator[sqlite3.Connection]:
+        """One real transaction. The connection is in autocommit mode (isolation_level=None), where
+        `with connection:` opens none and every statement commits on its own; BEGIN IMMEDIATE takes the
+        write lock up front so the statements inside commit together or not at all."""
+        db = self.db
+        db.execute("BEGIN IMMEDIATE")
+        try:
+            yield db
+        except BaseException:
+            db.execute("ROLLBACK")
+            raise
+        db.execute("COMMIT")
+
     # ---- tasks
 
     async def create_task(self, task_id: str, vehicle_id: str, command: str, request: dict[str, Any]) -> None:
@@ -104,7 +127,7 @@ class Store:
 
     async def delete_task(self, task_id: str) -> None:
         def delete() -> None:
-            with self.db:
+            with self._tx():
                 self.db.execute("DELETE FROM events WHERE task_id = ?", (task_id,))
                 self.db.execute("DELETE FROM tasks WHERE task_id = ?", (task_id,))
 
@@ -151,7 +174,7 @@ class Store:
 
         def write() -> tuple[int, bool]:
             now = time.time_ns()
-            with self.db:
+            with self._tx():
                 row = self.db.execute("SELECT state FROM tasks WHERE task_id = ?", (status["task_id"],)).fetchone()
                 if row is None:
                     self.db.execute(
@@ -179,7 +202,7 @@ class Store:
 
     async def add_event(self, task_id: str, kind: str, stamp_ns: int, data: dict[str, Any]) -> int:
         def write() -> int:
-            with self.db:
+            with self._tx():
                 cur = self.db.execute("INSERT INTO events(task_id, kind, stamp_ns, data) VALUES (?, ?, ?, ?)",
                                       (task_id, kind, stamp_ns, json.dumps(data)))
                 self.db.execute("UPDATE tasks SET updated_ns = ? WHERE task_id = ?", (time.time_ns(), task_id))

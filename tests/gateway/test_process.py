@@ -56,14 +56,18 @@ class GatewayProcess:
         while True:
             assert self.proc.poll() is None, self.log.read_text()
             try:
-                h = httpx.get(f"{self.url}/health", timeout=5, headers={"Authorization": f"Bearer {TOKEN}"}).json()
-                if any(v["services"].get("reasoner") for v in h["vehicles"]):
+                if self.ready():
                     return
             except httpx.HTTPError:
                 pass
             if time.monotonic() > deadline:
                 raise TimeoutError(f"gateway not up:\n{self.log.read_text()}")
             time.sleep(0.2)
+
+    def ready(self) -> bool:
+        """Up: the API answers and a reasoner is alive behind it."""
+        h = httpx.get(f"{self.url}/health", timeout=5, headers={"Authorization": f"Bearer {TOKEN}"}).json()
+        return any(v["services"].get("reasoner") for v in h["vehicles"])
 
     def stop(self, sig: int = signal.SIGTERM) -> int:
         assert self.proc is not None
