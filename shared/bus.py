@@ -33,6 +33,9 @@ from shared.errors import BusError, DecodeError, NoResponder, QueryTimeout, Remo
 from shared.keys import BoundQuery, BoundToken, BoundTopic, Json, Protobuf, schema_name
 from shared.messages import SCHEMA_MINOR, SCHEMA_VERSION
 
+ZENOH_TIMEOUT = b"Timeout"
+"""The payload of the error reply Zenoh itself gives a query whose deadline passed without an answer."""
+
 log = logging.getLogger("aermani.bus")
 
 T = TypeVar("T")
@@ -539,8 +542,8 @@ class Bus:
         ok, data = replies[0]
         if not ok:
             text = data.decode(errors="replace")
-            if "timeout" in text.lower():
-                raise QueryTimeout(f"query {key} timed out after {timeout:.1f} s")
+            if data.strip() == ZENOH_TIMEOUT:  # Zenoh's own reply when the deadline passed; a service's error
+                raise QueryTimeout(f"query {key} timed out after {timeout:.1f} s")  # text never counts as one
             raise RemoteError(f"{key} answered with an error: {text}", text)
         return decoder(target.decl.reply if isinstance(target, BoundQuery) else None)(data)  # type: ignore[no-any-return]
 

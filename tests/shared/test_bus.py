@@ -98,6 +98,8 @@ async def test_query_reply_errors_and_timeout(router):
                 await asyncio.sleep(3)
             if req.skill == "boom":
                 raise RuntimeError("handler failed")
+            if req.skill == "upstream":
+                raise TimeoutError("the VLM endpoint: read timeout")
             return m.SkillAccept(accepted=True, goal_id=f"g-{req.skill}")
 
         q = Query("test/q", m.SkillRequest, m.SkillAccept, "test", "test").bind("t1")
@@ -112,6 +114,10 @@ async def test_query_reply_errors_and_timeout(router):
             await b.query(q, m.SkillRequest(skill="boom"), timeout=5)
         with pytest.raises(QueryTimeout):
             await b.query(q, m.SkillRequest(skill="slow"), timeout=0.5)
+        # A service's own error that mentions a timeout is its error, not this query timing out.
+        with pytest.raises(RemoteError, match="read timeout") as err:
+            await b.query(q, m.SkillRequest(skill="upstream"), timeout=5)
+        assert not isinstance(err.value, QueryTimeout)
         with pytest.raises(NoResponder):
             await b.query(nobody, m.SkillRequest(skill="x"), timeout=1)
         # The queryable survives all of that.
