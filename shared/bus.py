@@ -19,6 +19,7 @@ import contextlib
 import functools
 import json
 import logging
+import math
 import threading
 import time
 from collections import deque
@@ -30,9 +31,11 @@ import zenoh
 from pydantic import BaseModel, TypeAdapter, ValidationError
 
 from shared.errors import BusError, DecodeError, NoResponder, QueryTimeout, RemoteError
-from shared.keys import BoundQuery, BoundToken, BoundTopic, Json, Protobuf, schema_name
-from shared.messages import SCHEMA_MINOR, SCHEMA_VERSION
+from shared.keys import BoundQuery, BoundToken, BoundTopic, Json, Protobuf, max_bytes_of, schema_name
+from shared.messages import SCHEMA_MINOR, SCHEMA_VERSION, Health
 
+QUERY_CONCURRENCY = 64
+"""Requests one queryable serves at once; beyond that a request gets a "busy" error reply at once."""
 ZENOH_TIMEOUT = b"Timeout"
 """The payload of the error reply Zenoh itself gives a query whose deadline passed without an answer."""
 
@@ -296,18 +299,44 @@ class Received(Generic[T]):
     receive_ns: int
 
 
+class RateLimitedWarning:
+    """A warning logged at most once per `period_s` per source, with the count of those it held back."""
+
+    def __init__(self, period_s: float = 10.0) -> None:
+        self.period_s = period_s
+        self._last = -math.inf
+        self._held = 0
+
+    def __call__(self, msg: str, *args: Any) -> None:
+        now = time.monotonic()
+        if now - self._last < self.period_s:
+            self._held += 1
+            return
+        if self._held:
+            msg += f" ({self._held} more like it in the last {self.period_s:.0f} s)"
+        self._held, self._last = 0, now
+        log.warning(msg, *args)
+
+
 class Subscription(Generic[T]):
     """A bounded async queue of decoded samples from one key expression."""
 
-    def __init__(self, bus: Bus, key: str, model: Any, maxsize: int, overflow: Overflow) -> None:
+    def __init__(self, bus: Bus, key: str, model: Any, maxsize: int, overflow: Overflow,
+                 max_bytes: int | None = None) -> None:
         self.bus = bus
         self.key = key
         self._decode = decoder(model)
         self._queue: asyncio.Queue[tuple[str, bytes, str, int]] = asyncio.Queue(maxsize=maxsize)
+        self._maxsize = maxsize
         self._overflow = overflow
+        self.max_bytes = max_bytes_of(model, max_bytes)
         self.dropped = 0
+        """Samples lost to a full queue or hand-off (the consumer is too slow)."""
         self.malformed = 0
+        self.oversize = 0
+        """Samples larger than `max_bytes`, dropped before they were copied."""
         self.received = 0
+        self._warn = RateLimitedWarning()
         self._sub: Any = None
         self._closed = False
         # Hand-over from zenoh's thread: samples gather here and one loop callback drains them, so a burst
@@ -316,8 +345,24 @@ class Subscription(Generic[T]):
         self._pending_lock = threading.Lock()
         self._drain_scheduled = False
 
+    def _on_sample(self, sample: zenoh.Sample) -> None:  # runs on a zenoh thread
+        size = len(sample.payload)
+        if size > self.max_bytes:
+            self.oversize += 1
+            self._warn("dropped a %d-byte sample on %s: larger than its %d-byte cap", size, sample.key_expr,
+                       self.max_bytes)
+            return
+        self._from_zenoh((str(sample.key_expr), sample.payload.to_bytes(), str(sample.encoding), time.time_ns()))
+
     def _from_zenoh(self, item: tuple[str, bytes, str, int]) -> None:  # runs on a zenoh thread
         with self._pending_lock:
+            self.received += 1
+            # Bounded like the queue: while the loop is busy the hand-off keeps at most `maxsize` samples.
+            if len(self._pending) >= self._maxsize:
+                self.dropped += 1
+                if self._overflow == "drop_newest":
+                    return
+                self._pending.popleft()
             self._pending.append(item)
             if self._drain_scheduled:
                 return
@@ -333,7 +378,6 @@ class Subscription(Generic[T]):
             self._push(item)
 
     def _push(self, item: tuple[str, bytes, str, int]) -> None:  # runs on the loop
-        self.received += 1
         if self._queue.full():
             self.dropped += 1
             if self._overflow == "drop_newest":
@@ -355,7 +399,7 @@ class Subscription(Generic[T]):
                 value = self._decode(data)
             except DecodeError as exc:
                 self.malformed += 1
-                log.warning("dropped malformed sample on %s: %s", key, exc)
+                self._warn("dropped malformed sample on %s: %s", key, exc)
                 continue
             return Received(key, value, data, enc, rns)
 
@@ -373,7 +417,7 @@ class Subscription(Generic[T]):
                 return self._decode(data)  # type: ignore[no-any-return]
             except DecodeError as exc:
                 self.malformed += 1
-                log.warning("dropped malformed sample on %s: %s", key, exc)
+                self._warn("dropped malformed sample on %s: %s", key, exc)
 
     def latest_nowait(self) -> T | None:
         """Drain the queue and return the newest valid sample, or None."""
@@ -396,6 +440,8 @@ class Subscription(Generic[T]):
         if not self._closed:
             self._closed = True
             self.bus._undeclare(self._sub)
+            with contextlib.suppress(ValueError):
+                self.bus._subscriptions.remove(self)
 
 
 # --------------------------------------------------------------------------- the bus
@@ -412,6 +458,8 @@ class Bus:
         self._tasks: set[asyncio.Task[None]] = set()
         self._closed = False
         self._lock = threading.Lock()
+        self._subscriptions: list[Subscription[Any]] = []
+        self._busy_replies = 0
         self.name = ""
         """This service's name, sent with every query so queryables can log who asked (see Caller)."""
 
@@ -495,6 +543,10 @@ class Bus:
             reliable = target.decl.reliable if reliable is None else reliable
         else:
             key = target
+        if isinstance(obj, Health) and "bus" not in obj.details and any((stats := self.stats()).values()):
+            # A service's health carries its bus counters once anything was dropped, malformed, oversize or
+            # refused: those show without each service having to report them.
+            obj = obj.model_copy(update={"details": {**obj.details, "bus": stats}})  # type: ignore[assignment]
         data, enc = encode(obj, schema)
         self._publisher(key, True if reliable is None else reliable).put(data, encoding=enc, attachment=attachment)
 
@@ -517,15 +569,18 @@ class Bus:
         """Subscribe a declared topic (values decode to its declared type; protobuf topics give bytes) or a
         plain key expression (raw bytes), into a bounded queue."""
         key, model = (target.key, target.decl.type) if isinstance(target, BoundTopic) else (target, None)
-        sub_obj: Subscription[T] = Subscription(self, key, model, maxsize, overflow)
-
-        def on_sample(sample: zenoh.Sample) -> None:
-            sub_obj._from_zenoh((str(sample.key_expr), sample.payload.to_bytes(), str(sample.encoding),
-                                 time.time_ns()))
-
-        sub_obj._sub = self.session.declare_subscriber(key, on_sample)
+        cap = target.decl.max_bytes if isinstance(target, BoundTopic) else None
+        sub_obj: Subscription[T] = Subscription(self, key, model, maxsize, overflow, cap)
+        sub_obj._sub = self.session.declare_subscriber(key, sub_obj._on_sample)
         self._declared.append(sub_obj._sub)
+        self._subscriptions.append(sub_obj)
         return sub_obj
+
+    def stats(self) -> dict[str, int]:
+        """Counters over this bus's subscriptions: samples dropped (slow consumer), malformed, oversize."""
+        subs = list(self._subscriptions)
+        return {"dropped": sum(s.dropped for s in subs), "malformed": sum(s.malformed for s in subs),
+                "oversize": sum(s.oversize for s in subs), "busy_queries": self._busy_replies}
 
     # ---- query / reply
 
@@ -599,6 +654,7 @@ class Bus:
         key = target.key if isinstance(target, BoundQuery) else target
         request_model = target.decl.request if isinstance(target, BoundQuery) and not raw else None
         decode = decoder(request_model)
+        max_bytes = max_bytes_of(None if raw or not isinstance(target, BoundQuery) else target.decl.request)
         lock = asyncio.Lock()
 
         async def answer(query: zenoh.Query, data: bytes | None, attachment: bytes | None) -> None:
@@ -635,13 +691,31 @@ class Bus:
                 with contextlib.suppress(Exception):
                     query.drop()  # type: ignore[no-untyped-call]
 
+        in_flight: set[asyncio.Task[None]] = set()
+        warn = RateLimitedWarning()
+
+        def refuse(query: zenoh.Query, why: str) -> None:
+            self._busy_replies += 1
+            warn("refused a query on %s: %s", key, why)
+            with contextlib.suppress(Exception):
+                query.reply_err(json.dumps({"error": why}).encode())
+                query.drop()  # type: ignore[no-untyped-call]
+
         def start(query: zenoh.Query, data: bytes | None, attachment: bytes | None) -> None:
+            if len(in_flight) >= QUERY_CONCURRENCY:
+                refuse(query, f"busy: {len(in_flight)} requests on {key} in progress; try again")
+                return
             task = self.loop.create_task(answer(query, data, attachment))
             self._tasks.add(task)
+            in_flight.add(task)
             task.add_done_callback(self._tasks.discard)
+            task.add_done_callback(in_flight.discard)
 
         def on_query(query: zenoh.Query) -> None:
             payload = query.payload
+            if payload is not None and len(payload) > max_bytes:
+                refuse(query, f"request of {len(payload)} bytes exceeds the {max_bytes}-byte cap of {key}")
+                return
             attachment = query.attachment
             self._to_loop(start, query, payload.to_bytes() if payload is not None else None,
                           attachment.to_bytes() if attachment is not None else None)

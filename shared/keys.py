@@ -99,6 +99,20 @@ def type_name(t: Any) -> str:
     return str(t)
 
 
+MESSAGE_MAX_BYTES = 1 << 20
+"""Default size cap of a JSON message sample (1 MiB: a ReasoningStep with its prompt is tens of KiB)."""
+FRAME_MAX_BYTES = 32 << 20
+"""Default size cap of a protobuf sample and of a plain key's raw bytes (32 MiB: an uncompressed 1080p RGB-D
+pair is 10 MiB)."""
+
+
+def max_bytes_of(t: Any, declared: int | None = None) -> int:
+    """The size cap of a sample of declared type `t` (None: raw bytes on a plain key)."""
+    if declared is not None:
+        return declared
+    return FRAME_MAX_BYTES if t is None or isinstance(t, Protobuf) else MESSAGE_MAX_BYTES
+
+
 def schema_name(t: Any) -> str | None:
     """The Zenoh encoding schema a payload of declared type `t` is sent with (None when it varies)."""
     if isinstance(t, Protobuf):
@@ -125,6 +139,9 @@ class Topic(Generic[M]):
     """False for streams where late is worse than lost (frames, state): congestion drops, express."""
     periodic: bool = False
     """Published on a clock (not only on events): a running publisher must show a sample within seconds."""
+    max_bytes: int | None = None
+    """Largest sample a subscriber accepts (None: `MESSAGE_MAX_BYTES` for messages, `FRAME_MAX_BYTES` for
+    protobuf frames); a larger one is dropped before it is copied or decoded, and counted."""
 
     kind = "pub"
 
