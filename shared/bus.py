@@ -546,7 +546,7 @@ class Bus:
         if isinstance(obj, Health) and "bus" not in obj.details and any((stats := self.stats()).values()):
             # A service's health carries its bus counters once anything was dropped, malformed, oversize or
             # refused: those show without each service having to report them.
-            obj = obj.model_copy(update={"details": {**obj.details, "bus": stats}})  # type: ignore[assignment]
+            obj = obj.model_copy(update={"details": {**obj.details, "bus": stats}})
         data, enc = encode(obj, schema)
         self._publisher(key, True if reliable is None else reliable).put(data, encoding=enc, attachment=attachment)
 
