@@ -25,6 +25,7 @@ from shared.messages import (
     CancelReply,
     Detections,
     Health,
+    Heartbeat,
     JudgeRequest,
     JudgeResult,
     LocalizeRequest,
@@ -52,6 +53,7 @@ FLEET_ID = "fleet"
 """Reserved in place of a vehicle id: keys under `aermani/v1/fleet/` address every vehicle at once."""
 ALIVE = "alive"
 HEALTH = "health"
+HEARTBEAT = "heartbeat"
 
 M = TypeVar("M")
 Req = TypeVar("Req")
@@ -309,6 +311,9 @@ SAFETY_ABORT: Topic[Abort] = Topic("safety/abort", Abort, "stop: hold and end th
 SAFETY_ABORT_ACK: Topic[AbortAck] = Topic(
     "safety/abort_ack", AbortAck, "an abort was obeyed (vehicle commanded to hold)", "executor, autopilot_bridge")
 HEALTH_TOPIC: Topic[Health] = Topic(f"{HEALTH}/{{service}}", Health, "a service's health, 1 Hz", "every service")
+HEARTBEAT_TOPIC: Topic[Heartbeat] = Topic(
+    f"{HEARTBEAT}/{{service}}", Heartbeat, "the service's event loop runs, 2 Hz (a hung one goes quiet)",
+    "every service", reliable=False, periodic=True)
 ALIVE_TOKEN = Token(f"{ALIVE}/{{service}}", "presence of a service", "every service")
 
 FLEET_ABORT: BoundTopic[Abort] = BoundTopic(f"{ROOT}/{FLEET_ID}/{SAFETY_ABORT.name}", SAFETY_ABORT)
@@ -319,7 +324,8 @@ DECLARATIONS: tuple[Topic[Any] | Query[Any, Any] | Token, ...] = (
     SIM_STATS, SIM_RESET_NOTICE, AUTOPILOT_STATE, AUTOPILOT_COMMAND, PERCEPTION_LOCALIZE_OBJECT,
     PERCEPTION_LOCALIZE_PLACEMENT, PERCEPTION_DETECTIONS, EXECUTOR_RUN_SKILL, EXECUTOR_CANCEL_SKILL,
     EXECUTOR_SKILL_STATUS, EXECUTOR_SKILLS, EXECUTOR_MEMORY, REASONER_START_TASK, REASONER_CANCEL_TASK, REASONER_STEP,
-    REASONER_TASK_STATUS, REASONER_APPROVAL, REASONER_DECIDE_APPROVAL, SAFETY_ABORT, SAFETY_ABORT_ACK, HEALTH_TOPIC, ALIVE_TOKEN,
+    REASONER_TASK_STATUS, REASONER_APPROVAL, REASONER_DECIDE_APPROVAL, SAFETY_ABORT, SAFETY_ABORT_ACK, HEALTH_TOPIC, HEARTBEAT_TOPIC,
+    ALIVE_TOKEN,
 )
 BY_NAME: dict[str, Topic[Any] | Query[Any, Any] | Token] = {d.name: d for d in DECLARATIONS}
 
@@ -342,6 +348,8 @@ def declaration_of(key: str) -> Topic[Any] | Query[Any, Any] | Token | None:
         return BY_NAME[name]
     if parts[3] == HEALTH and len(parts) == 5:
         return HEALTH_TOPIC
+    if parts[3] == HEARTBEAT and len(parts) == 5:
+        return HEARTBEAT_TOPIC
     if parts[3] == ALIVE and len(parts) == 5:
         return ALIVE_TOKEN
     return None
@@ -397,6 +405,9 @@ class Keys:
     def health(self, service: str) -> BoundTopic[Health]:
         return HEALTH_TOPIC.bind(self.vehicle_id, service=service)
 
+    def heartbeat(self, service: str) -> BoundTopic[Heartbeat]:
+        return HEARTBEAT_TOPIC.bind(self.vehicle_id, service=service)
+
     def alive(self, service: str) -> BoundToken:
         return ALIVE_TOKEN.bind(self.vehicle_id, service=service)
 
@@ -404,6 +415,11 @@ class Keys:
 def alive_pattern(vehicle_id: str | None = None) -> str:
     """Liveliness pattern for one vehicle, or for the whole fleet when `vehicle_id` is None."""
     return f"{ROOT}/{vehicle_id or '*'}/{ALIVE}/*"
+
+
+def heartbeat_pattern() -> str:
+    """Every service's heartbeat across the fleet."""
+    return f"{ROOT}/*/{HEARTBEAT}/*"
 
 
 def parse_alive_key(key: str) -> tuple[str, str]:

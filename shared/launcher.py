@@ -9,7 +9,6 @@ SIGKILL. Children get PR_SET_PDEATHSIG so that even a SIGKILLed launcher leaves 
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import importlib.util
 import json
 import logging
@@ -27,7 +26,8 @@ from typing import Any
 import zenoh
 
 from shared.bus import _init_zenoh_log, zenoh_config
-from shared.keys import DEFAULT_VEHICLE_ID, alive_pattern, parse_alive_key
+from shared.keys import DEFAULT_VEHICLE_ID, alive_pattern, heartbeat_pattern, parse_alive_key
+from shared.messages import Heartbeat
 from shared.security import require_loopback
 
 log = logging.getLogger("aermani.launcher")
@@ -81,11 +81,6 @@ def available_services() -> list[str]:
     return found
 
 
-def _set_pdeathsig() -> None:  # runs in the child between fork and exec
-    with contextlib.suppress(Exception):
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
-
-
 def open_router(port: int, host: str = "127.0.0.1") -> zenoh.Session:
     """A Zenoh session in router mode listening on tcp/<host>:<port>, multicast scouting off. Plain TCP
     without access control: only on loopback (`--secure` routers come from `shared.security`)."""
@@ -115,11 +110,16 @@ class ServiceProcess:
         logf = open(self.log_path, "ab")  # noqa: SIM115 - handed to the child
         logf.write(f"\n--- start {time.strftime('%H:%M:%S')} ---\n".encode())
         logf.flush()
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", f"services.{self.name}"], env=self.env, stdout=logf, stderr=subprocess.STDOUT,
-            stdin=subprocess.DEVNULL, preexec_fn=_set_pdeathsig, start_new_session=True,
-        )
-        logf.close()
+        # No preexec_fn (unsafe from a threaded parent: the supervisor restarts from its thread); the child
+        # arranges to die with the launcher itself (shared.service.die_with_parent).
+        env = {**self.env, "AERMANI_PARENT_PID": str(os.getpid())}
+        try:
+            self.proc = subprocess.Popen(
+                [sys.executable, "-m", f"services.{self.name}"], env=env, stdout=logf, stderr=subprocess.STDOUT,
+                stdin=subprocess.DEVNULL, start_new_session=True,
+            )
+        finally:
+            logf.close()
         self.started_at = time.monotonic()
 
     @property
@@ -139,7 +139,8 @@ class Stack:
     def __init__(self, services: list[str] | None = None, *, port: int | None = None, vehicle_id: str =
                  DEFAULT_VEHICLE_ID, env: dict[str, str] | None = None, log_dir: str | Path | None = None,
                  supervise: bool = True, host: str = "127.0.0.1", router: bool = True,
-                 secure: str | Path | None = None, tls_listen: list[str] | None = None) -> None:
+                 secure: str | Path | None = None, tls_listen: list[str] | None = None,
+                 hung_after_s: float = 4.0) -> None:
         """`secure` is a certificate directory (`aermani certs init`): the stack then runs a ground and a drone
         router from `shared/routers/` linked by mutual TLS, ground services on the ground router's loopback
         listener, vehicle services on the drone router's, and outsiders reach the ground router only through
@@ -159,6 +160,8 @@ class Stack:
         self.procs: list[ServiceProcess] = []
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self.hung_after_s = hung_after_s
+        self._beats: dict[tuple[str, str], tuple[float, int]] = {}
         self.events: list[str] = []
         if services is None:
             services = available_services()
@@ -262,25 +265,78 @@ class Stack:
             p.proc.send_signal(sig)
 
     def _supervise(self) -> None:
+        self._watch_heartbeats()
         while not self._stop.wait(0.2):
             now = time.monotonic()
             for p in self.procs:
-                if p.proc is None or p.proc.poll() is None:
-                    continue
-                if p.next_start == 0.0:
-                    code = p.proc.returncode
-                    p.exit_codes.append(code)
-                    # Backoff doubles per crash (0.5 s .. 30 s); a long healthy run resets it.
-                    if now - p.started_at > 60:
-                        p.restarts = 0
-                    delay = min(30.0, 0.5 * 2 ** p.restarts)
-                    p.next_start = now + delay
-                    self._event(f"{p.label} exited with {code}; restarting in {delay:.1f} s")
-                elif now >= p.next_start and not self._stop.is_set():
-                    p.restarts += 1
-                    p.next_start = 0.0
-                    p.start()
-                    self._event(f"restarted {p.label} (pid {p.proc.pid}, restart #{p.restarts})")
+                try:
+                    self._supervise_one(p, now)
+                except Exception as exc:  # one service's trouble never ends the supervision of the others
+                    self._event(f"supervising {p.label} failed: {exc}")
+
+    def _supervise_one(self, p: ServiceProcess, now: float) -> None:
+        if p.proc is None:  # never started, or a restart failed: try again when due
+            if p.next_start and now >= p.next_start and not self._stop.is_set():
+                self._restart(p, now)
+            return
+        if p.proc.poll() is None:
+            self._check_hung(p, now)
+            return
+        if p.next_start == 0.0:
+            code = p.proc.returncode
+            p.exit_codes.append(code)
+            delay = self._backoff(p, now)
+            self._event(f"{p.label} exited with {code}; restarting in {delay:.1f} s")
+        elif now >= p.next_start and not self._stop.is_set():
+            self._restart(p, now)
+
+    def _backoff(self, p: ServiceProcess, now: float) -> float:
+        """Schedule the next start: the delay doubles per crash (0.5 s .. 30 s); a long healthy run resets it."""
+        if now - p.started_at > 60:
+            p.restarts = 0
+        delay: float = min(30.0, 0.5 * 2.0 ** p.restarts)
+        p.next_start = now + delay
+        return delay
+
+    def _restart(self, p: ServiceProcess, now: float) -> None:
+        p.restarts += 1
+        p.next_start = 0.0
+        try:
+            p.start()
+        except Exception as exc:  # fork failure, EMFILE, a log directory gone: keep supervising, retry later
+            p.proc = None
+            delay = self._backoff(p, now)
+            self._event(f"restarting {p.label} failed ({exc}); trying again in {delay:.1f} s")
+            return
+        self._event(f"restarted {p.label} (pid {p.proc.pid if p.proc else '?'}, restart #{p.restarts})")
+
+    def _watch_heartbeats(self) -> None:
+        """Note every service's heartbeat (published from its event loop) on the routers this stack runs."""
+
+        def on_beat(sample: zenoh.Sample) -> None:
+            with contextlib.suppress(Exception):
+                parts = str(sample.key_expr).split("/")
+                beat = Heartbeat.model_validate_json(sample.payload.to_bytes())
+                self._beats[(parts[2], parts[4])] = (time.monotonic(), beat.pid)
+
+        for router in (self.router, self.drone_router):
+            if router is not None:
+                with contextlib.suppress(Exception):
+                    router.declare_subscriber(heartbeat_pattern(), on_beat)
+
+    def _check_hung(self, p: ServiceProcess, now: float) -> None:
+        """A live process whose heartbeat stopped is hung (a blocked loop, SIGSTOP): kill it, and the next
+        round restarts it like a crash."""
+        assert p.proc is not None
+        seen = self._beats.get((p.vehicle_id, p.name))
+        if seen is None or seen[1] != p.proc.pid:  # not beating yet since this start
+            return
+        quiet = now - seen[0]
+        if quiet > self.hung_after_s:
+            self._event(f"{p.label} (pid {p.proc.pid}) is hung: no heartbeat for {quiet:.1f} s; killing it")
+            self._beats.pop((p.vehicle_id, p.name), None)
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(p.proc.pid, signal.SIGKILL)
 
     def _event(self, text: str) -> None:
         self.events.append(text)

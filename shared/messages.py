@@ -893,6 +893,21 @@ class Health(Message):
     """Service-specific figures (fps, queue drops, file path...)."""
 
 
+class Heartbeat(Message):
+    """Proof that a service's event loop runs: every service publishes it twice a second (shared.service), and
+    the launcher restarts a service whose heartbeat stops while its process lives (hung or stopped)."""
+
+    kind: Literal["heartbeat"] = "heartbeat"
+    stamp_ns: int = Field(default_factory=now_ns)
+    """Publish time."""
+    service: str
+    """Service name."""
+    pid: int = Field(ge=0)
+    """Process id, so a supervisor tells a restarted process from the one it replaced."""
+    loop_lag_ms: float = Field(0.0, ge=0, allow_inf_nan=False)
+    """How late the loop woke for this beat: a busy or blocked loop shows here first."""
+
+
 # --------------------------------------------------------------------------- simulator (evaluation only)
 
 
@@ -1016,6 +1031,6 @@ MESSAGE_TYPES: tuple[type[Message], ...] = (
     GripperCommand, AutopilotResult, LocalizeRequest, ObjectEstimate, PlacementEstimate, Detections,
     SkillLibrary, SkillRequest, SkillAccept, WorkingMemory, SkillStatus, Abort, AbortAck, ReasoningStep,
     TaskRequest, TaskAccept, TaskStatus, Health, Scenario, SimLabels, JudgeRequest, JudgeResult, SimResetResult,
-    CancelGoal, CancelReply, ResetNotice, ApprovalStatus, ApprovalDecision,
+    CancelGoal, CancelReply, ResetNotice, ApprovalStatus, ApprovalDecision, Heartbeat,
 )
 MESSAGES_BY_SCHEMA: dict[str, type[Message]] = {m.full_schema_name(): m for m in MESSAGE_TYPES}

@@ -6,17 +6,35 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import os
 import signal
 from collections.abc import Callable, Coroutine
 from typing import TypeVar
 
 from shared.bus import Bus
+from shared.messages import Heartbeat
 from shared.settings import ServiceSettings, setup_logging
 
 S = TypeVar("S", bound=ServiceSettings)
 RunFn = Callable[[Bus, S, asyncio.Event], Coroutine[object, object, None]]
 
 log = logging.getLogger("aermani.service")
+
+HEARTBEAT_PERIOD_S = 0.5
+
+
+async def heartbeat(bus: Bus, settings: ServiceSettings, name: str, period_s: float = HEARTBEAT_PERIOD_S) -> None:
+    """Publish `heartbeat/<name>` from the event loop itself, with how late the loop woke: a loop that hangs
+    (a blocking call, a deadlock, SIGSTOP) goes quiet even though Zenoh's threads keep the liveliness token."""
+    loop = asyncio.get_running_loop()
+    topic, pid = settings.keys.heartbeat(name), os.getpid()
+    due = loop.time()
+    while True:
+        lag = max(0.0, loop.time() - due)
+        with contextlib.suppress(Exception):  # a closing bus must not end the service
+            bus.publish(topic, Heartbeat(service=name, pid=pid, loop_lag_ms=round(lag * 1e3, 3)))
+        due = loop.time() + period_s
+        await asyncio.sleep(period_s)
 
 
 def announce(bus: Bus, settings: ServiceSettings, name: str) -> None:
@@ -46,10 +64,12 @@ async def serve_forever(name: str, run: RunFn[S], settings: S, stop: asyncio.Eve
     stopper.cancel()
     bus = opening.result()
     bus.name = name
+    beat: asyncio.Task[None] | None = None
     try:
         if announce_at_start:
             announce(bus, settings, name)
         log.info("%s up (vehicle %s, zenoh %s)", name, settings.vehicle_id, settings.zenoh_connect)
+        beat = asyncio.create_task(heartbeat(bus, settings, name), name=f"{name}.heartbeat")
         runner: asyncio.Task[None] = asyncio.create_task(run(bus, settings, stop), name=f"{name}.run")
         stopper = asyncio.create_task(stop.wait(), name=f"{name}.stop")
         done, _ = await asyncio.wait({runner, stopper}, return_when=asyncio.FIRST_COMPLETED)
@@ -61,13 +81,30 @@ async def serve_forever(name: str, run: RunFn[S], settings: S, stop: asyncio.Eve
             with contextlib.suppress(asyncio.CancelledError):
                 await asyncio.wait_for(runner, 10.0)
     finally:
+        if beat is not None:
+            beat.cancel()
         await bus.close()
         log.info("%s stopped", name)
+
+
+def die_with_parent() -> None:
+    """Under the launcher (AERMANI_PARENT_PID set), ask Linux to SIGTERM this process when the launcher dies,
+    and exit if it already has. Done here, after exec, because a `preexec_fn` is unsafe in a threaded parent."""
+    parent = os.environ.get("AERMANI_PARENT_PID", "")
+    if not parent.isdigit():
+        return
+    with contextlib.suppress(Exception):
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    if os.getppid() != int(parent):  # the launcher died before prctl took effect
+        raise SystemExit(f"the launcher (pid {parent}) is gone; not starting")
 
 
 def main_for(name: str, run: RunFn[S], settings_cls: type[S], *, settings: S | None = None,
              announce_at_start: bool = True) -> None:
     """Body of every `services/<name>/__main__.py`."""
+    die_with_parent()
     settings = settings or settings_cls()
     setup_logging(settings.log_level, name)
     with contextlib.suppress(KeyboardInterrupt):

@@ -40,6 +40,7 @@ def sample_messages() -> list[m.Message]:
         m.TaskAccept(accepted=False, reason="busy"),
         m.TaskStatus(task_id="t1", command="pick", state=m.TaskState.RUNNING),
         m.Health(service="sim", ok=True, details={"fps": 15.2}),
+        m.Heartbeat(service="executor", pid=4242, loop_lag_ms=0.8),
         m.Scenario(seed=3, target_object="red cup", destination="table", target_out_of_view=True),
         m.SimLabels(labels=(m.SimLabel(id=1, name="red cup", category="object", color="red"),)),
         m.JudgeRequest(op="on_surface", object="red cup", surface="table"),

@@ -92,3 +92,46 @@ def test_health_reports_unreachable_router():
     out = subprocess.run([*AERMANI, "health", "--connect", f"tcp/127.0.0.1:{free_port()}", "--timeout", "1"],
                          capture_output=True, text=True, timeout=60)
     assert out.returncode != 0
+
+
+def _wait_event(stack, text: str, timeout: float) -> str:
+    return _wait(lambda: next((e for e in stack.events if text in e), None), timeout, f"launcher event {text!r}")
+
+
+def test_a_hung_service_is_noticed_by_its_heartbeat_and_restarted(tmp_path: Path):
+    from shared.launcher import Stack
+
+    with Stack(["reasoner"], log_dir=tmp_path / "logs", hung_after_s=3.0) as stack:
+        p = stack.find("reasoner")
+        first = p.proc.pid
+        _wait(lambda: stack._beats.get((p.vehicle_id, "reasoner")), 30, "a heartbeat")
+        os.kill(first, signal.SIGSTOP)  # alive to the kernel and (for Zenoh's lease) still connected: hung
+        stopped = time.monotonic()
+        hung = _wait_event(stack, "is hung", 30)
+        noticed = time.monotonic() - stopped
+        assert f"pid {first}" in hung
+        _wait_event(stack, "restarted", 30)
+        stack.wait_alive(timeout=60)
+        assert p.proc.pid != first and p.running
+        print(f"hung service noticed after {noticed:.1f} s (heartbeat every 0.5 s, limit 3 s)")
+
+
+def test_a_failed_restart_does_not_end_supervision(tmp_path: Path):
+    from shared.launcher import Stack
+
+    logs = tmp_path / "logs"
+    with Stack(["reasoner"], log_dir=logs) as stack:
+        p = stack.find("reasoner")
+        first = p.proc.pid
+        # The restart cannot open its log: the log directory is now a file (a real OS failure of Popen's set-up).
+        moved = tmp_path / "logs.moved"
+        logs.rename(moved)
+        logs.write_text("not a directory")
+        os.kill(first, signal.SIGKILL)
+        _wait_event(stack, "failed", 30)
+        assert stack._thread is not None and stack._thread.is_alive()
+        logs.unlink()
+        moved.rename(logs)
+        _wait_event(stack, "restarted", 60)
+        stack.wait_alive(timeout=60)
+        assert p.running and p.proc.pid != first
