@@ -19,7 +19,9 @@ from dataclasses import dataclass, field
 from typing import Any, Generic, TypeVar
 
 from shared.bus import Bus, Subscription, query_ready
+from shared.errors import ServerLost
 from shared.keys import (
+    ALIVE_TOKEN,
     EXECUTOR_CANCEL_SKILL,
     EXECUTOR_RUN_SKILL,
     EXECUTOR_SKILL_STATUS,
@@ -85,7 +87,9 @@ class GoalHandle(Generic[A, S]):
     _updated: asyncio.Event = field(default_factory=asyncio.Event)
 
     async def result(self, timeout: float | None = None) -> S | None:
-        """The terminal status, or None when `timeout` passes first (or the goal was rejected)."""
+        """The terminal status, or None when `timeout` passes first (or the goal was rejected). Raises
+        ServerLost as soon as the server's liveliness token disappears while the goal runs (a dead executor
+        is noticed within Zenoh's lease, not at the goal's timeout)."""
         if not self.accepted or self._done is None:
             return None
         try:
@@ -104,6 +108,10 @@ class GoalHandle(Generic[A, S]):
             return self.feedback[-1]
         with contextlib.suppress(TimeoutError):
             await asyncio.wait_for(self._updated.wait(), timeout)
+        if len(self.feedback) == seen and self._done is not None and self._done.done():
+            lost = self._done.exception()
+            if lost is not None:
+                raise lost  # ServerLost: no more feedback will come
         return self.feedback[-1] if len(self.feedback) > seen else None
 
     async def cancel(self, reason: str = "cancelled", source: str = "client", timeout: float = 5.0) -> CancelReply:
@@ -127,6 +135,7 @@ class ActionClient(Generic[G, A, S]):
         self._early: dict[str, list[S]] = {}  # statuses that overtook the accept reply
         self._sub: Subscription[S] | None = None
         self._pump: asyncio.Task[None] | None = None
+        self._watch: asyncio.Task[None] | None = None
 
     async def __aenter__(self) -> ActionClient[G, A, S]:
         self.start()
@@ -139,15 +148,34 @@ class ActionClient(Generic[G, A, S]):
         if self._sub is None:
             self._sub = self.bus.subscribe(self.spec.status.bind(self.vehicle_id), maxsize=self.maxsize)
             self._pump = asyncio.create_task(self._route(), name=f"action.{self.spec.name}.{self.vehicle_id}")
+            token = ALIVE_TOKEN.bind(self.vehicle_id, service=self.spec.goal.server)
+            events = self.bus.watch_liveliness(str(token), history=False, maxsize=16)
+            self._watch = asyncio.create_task(self._server_gone(events, str(token)),
+                                              name=f"action.{self.spec.name}.{self.vehicle_id}.alive")
 
     async def close(self) -> None:
-        if self._pump is not None:
-            self._pump.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await self._pump
+        for task in (self._pump, self._watch):
+            if task is not None:
+                task.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await task
         if self._sub is not None:
             self._sub.close()
-        self._sub = self._pump = None
+        self._sub = self._pump = self._watch = None
+
+    async def _server_gone(self, events: asyncio.Queue[tuple[str, bool]], token: str) -> None:
+        """Fail every running goal with ServerLost when the server's liveliness token disappears."""
+        while True:
+            _key, alive = await events.get()
+            if alive:
+                continue
+            for handle in list(self._handles.values()):
+                if handle._done is not None and not handle._done.done():
+                    handle._done.set_exception(ServerLost(
+                        f"the {self.spec.goal.server} of {self.vehicle_id} stopped while {self.spec.name} goal "
+                        f"{handle.goal_id} was running (its liveliness token {token} disappeared)"))
+                    handle._done.exception()  # retrieved here too: no "never retrieved" warning if unawaited
+                    handle._updated.set()
 
     async def _route(self) -> None:
         assert self._sub is not None

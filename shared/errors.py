@@ -31,6 +31,10 @@ class RemoteError(BusError):
         self.payload = payload
 
 
+class ServerLost(BusError):
+    """An action's server went away (its liveliness token disappeared) while a goal of it was running."""
+
+
 class DecodeError(AermaniError):
     """A payload could not be decoded into the expected message type."""
 

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 
 from shared.action import GoalHandle, task_client
 from shared.bus import Bus, Subscription, query_ready
+from shared.errors import ServerLost
 from shared.keys import Keys
 from shared.messages import JudgeRequest, JudgeResult, ReasoningStep, TaskAccept, TaskRequest, TaskStatus
 
@@ -67,6 +68,8 @@ class Followed:
     final: TaskStatus | None
     steps: list[ReasoningStep]
     foreign: int = 0
+    error: str = ""
+    """Why no terminal status came, when known (the reasoner stopped mid-task)."""
 
 
 async def follow_task(bus: Bus, keys: Keys, request: TaskRequest, *, on_step: Callable[[ReasoningStep], None] =
@@ -90,7 +93,10 @@ async def follow_task(bus: Bus, keys: Keys, request: TaskRequest, *, on_step: Ca
                 await asyncio.sleep(1.0)
             if not handle.accepted:
                 return Followed(handle.accept, None, steps.steps)
-            final = await _follow(handle, steps, on_status, timeout)
+            try:
+                final = await _follow(handle, steps, on_status, timeout)
+            except ServerLost as exc:  # the reasoner died: no terminal status will come
+                return Followed(handle.accept, None, steps.steps, steps.foreign, error=str(exc))
             if final is not None:
                 await steps.until(final.steps, 5.0)
             return Followed(handle.accept, final, steps.steps, steps.foreign)

@@ -27,7 +27,7 @@ from services.reasoner.prompt import (
 )
 from services.reasoner.settings import ReasonerSettings
 from shared import skills as S  # noqa: N812
-from shared.errors import AermaniError, InvalidAnswer, ModelError
+from shared.errors import AermaniError, InvalidAnswer, ModelError, ServerLost
 from shared.messages import (
     ApprovalState,
     ApprovalStatus,
@@ -324,6 +324,11 @@ class TaskRunner:
         started = now_ns()
         try:
             accept, st = await self.world.run_skill(req, timeout)
+        except ServerLost as exc:  # the executor died mid-skill: known within Zenoh's lease, not at the timeout
+            await self.world.hold(req.task_id, "executor lost")
+            return SkillStatus(goal_id="", skill=req.skill, argument=req.argument, state=SkillState.FAILED,
+                               message=f"executor stopped mid-skill: {exc}", task_id=req.task_id, step=req.step,
+                               started_ns=started, ended_ns=now_ns())
         except AermaniError as exc:
             return SkillStatus(goal_id="", skill=req.skill, argument=req.argument, state=SkillState.REJECTED,
                                message=f"executor unreachable: {exc}", task_id=req.task_id, step=req.step,
