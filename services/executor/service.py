@@ -36,6 +36,8 @@ from shared.messages import (
 )
 from shared.sensors import parse_calibration, parse_raw16
 
+UNKNOWN_HELD = "unidentified object"
+"""What memory calls an object the gripper reports holding that this executor did not grasp itself."""
 log = logging.getLogger("aermani.executor")
 
 
@@ -273,6 +275,12 @@ class Executor:
             if self.goal is None and self.memory.held and rec.value.gripper == GripperState.OPEN:
                 log.info("gripper reports open: no longer holding the %s", self.memory.held)
                 self.memory.set_held(None)
+            # The gripper's own report wins over memory, which a restart of this service empties: an object
+            # between closed fingers is held, whatever the memory says, so no skill opens the gripper on it.
+            elif (self.goal is None and not self.memory.held and rec.value.gripper == GripperState.CLOSED
+                  and rec.value.gripper_holding):
+                log.warning("the gripper reports an object between its fingers that memory did not know of")
+                self.memory.set_held(UNKNOWN_HELD)
 
     async def _pump_aborts(self, key: BoundTopic[Abort]) -> None:
         sub = self.bus.subscribe(key, maxsize=16, overflow="drop_newest")

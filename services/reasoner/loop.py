@@ -189,6 +189,9 @@ class TaskRunner:
             ended = self._authority_end(obs, last_skill)
             if ended is not None:
                 return ended
+            obs, ended = await self._await_link(obs, last_end_ns, last_skill)
+            if ended is not None:
+                return ended
             self.steps += 1
             try:
                 result, model_time = await self._decide(compiler, library, obs)
@@ -251,6 +254,41 @@ class TaskRunner:
                                                  f"{': ' + st.message if st.message else ''}); the task ends "
                                                  "here, a new command is needed to fly again")
         return None
+
+    @staticmethod
+    def _link_problem(obs: Observation) -> str | None:
+        st = obs.state
+        if st is None:
+            return "no vehicle state from the autopilot bridge"
+        if not st.link_ok:
+            return "no link to the autopilot"
+        if st.landed_state is LandedState.IN_AIR and not st.offboard_ok:
+            return f"offboard control is not healthy (mode {st.mode})"
+        return None
+
+    async def _await_link(self, obs: Observation, newer_than_ns: int,
+                          last_skill: str) -> tuple[Observation, TaskStatus | None]:
+        """Issue no skill while the vehicle's link or offboard control is bad (a skill would fail and burn a
+        step): wait up to `link_wait_s` for it to recover, then hold and end the task with the reason."""
+        problem = self._link_problem(obs)
+        if problem is None:
+            return obs, None
+        log.warning("task %s: %s; waiting up to %.0f s before the next step", self.req.task_id, problem,
+                    self.settings.link_wait_s)
+        deadline = time.monotonic() + self.settings.link_wait_s
+        while problem is not None and time.monotonic() < deadline:
+            await asyncio.sleep(0.5)
+            obs = await self.world.observe(newer_than_ns)
+            ended = self._authority_end(obs, last_skill)
+            if ended is not None:
+                return obs, ended
+            problem = self._link_problem(obs)
+        if problem is None:
+            log.info("task %s: the vehicle's link is back; continuing", self.req.task_id)
+            return obs, None
+        await self.world.hold(self.req.task_id, "link lost")
+        return obs, self.status(TaskState.FAILED, f"{problem} for {self.settings.link_wait_s:.0f} s; no skill was "
+                                                  "issued meanwhile; vehicle held (if it still listens)")
 
     def _publish(self, rec: ReasoningStep) -> None:
         self.records.append(rec)

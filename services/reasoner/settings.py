@@ -68,6 +68,9 @@ class ReasonerSettings(ServiceSettings):
     categories (`motion`, `manipulation`, `perception`), e.g. `["grasp", "place"]`. Empty: none."""
     approval_timeout_s: float = Field(120.0, gt=0)
     """How long a skill waits for the operator; then the vehicle holds and the step fails."""
+    link_wait_s: float = Field(20.0, ge=0)
+    """While the autopilot link or offboard control is down mid-task, the reasoner issues no skill and waits
+    this long for it to come back before it holds and ends the task (no step is spent waiting)."""
     skill_timeout_s: float = Field(180.0, gt=0)
     """Longest wait for one skill's terminal status before the reasoner holds and records a timeout."""
     frame_wait_s: float = Field(1.0, ge=0)

@@ -81,7 +81,8 @@ class MiniWorld:
 
     def state(self) -> VehicleState:
         return VehicleState(armed=self.airborne, landed_state=LandedState.IN_AIR if self.airborne
-                            else LandedState.ON_GROUND, position=Vec3(z=1.2 if self.airborne else 0.0))
+                            else LandedState.ON_GROUND, position=Vec3(z=1.2 if self.airborne else 0.0),
+                            link_ok=True, offboard_ok=self.airborne, mode="OFFBOARD" if self.airborne else "HOLD")
 
     def _find(self, query: str) -> Thing | None:
         q = query.lower()

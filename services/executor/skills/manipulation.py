@@ -139,6 +139,11 @@ class Grasp(_Manipulation):
         s, mem = self.settings, ctx.memory
         if mem.held:
             return f"already holding the {mem.held}: place it before grasping something else"
+        st = ctx.state.value
+        if st is not None and st.gripper == GripperState.CLOSED and st.gripper_holding:
+            # The autopilot's word over memory (which a restart empties): opening now would drop it.
+            return ("the gripper reports an object between its fingers: place it on a localized surface before "
+                    "grasping something else (the gripper never opens in the air except to place)")
         obj = mem.find_object(argument)
         if obj is None:
             what = f"the {argument}" if argument else "any object"
