@@ -69,6 +69,9 @@ class EpisodeRecord(BaseModel):
     """Trials started for this episode (a take-off failure before the first reasoning step restarts it)."""
     restarts: list[str] = []
     """Why each earlier trial of this episode was restarted (one line per restart)."""
+    stale_memory: str = ""
+    """Legacy (records from before the executor followed the sim's reset notice): the harness found the
+    executor's memory left over from the previous episode and restarted the executor process. Reported."""
     foreign_samples: int = 0
     """Step samples seen on this vehicle's key during the episode that belonged to another task (cross-talk)."""
     harness_error: str = ""

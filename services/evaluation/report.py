@@ -158,8 +158,9 @@ def incident_lines(records: list[EpisodeRecord]) -> list[str]:
     """Every excluded, retried or restarted episode with its reason."""
     excluded = [r for r in records if r.harness_error]
     restarted = [r for r in records if r.attempts > 1 and not r.harness_error]
+    stale = [r for r in records if r.stale_memory]
     lines = ["## Excluded, retried and restarted episodes", ""]
-    if not excluded and not restarted:
+    if not excluded and not restarted and not stale:
         return lines + ["None: every episode ran once, to its end, and is in the metrics.", ""]
     for r in excluded:
         lines.append(f"- excluded (left out of the metrics, retried by the next run of the command): "
@@ -168,6 +169,9 @@ def incident_lines(records: list[EpisodeRecord]) -> list[str]:
         why = "; ".join(r.restarts) or "take-off failed before the first reasoning step"
         lines.append(f"- restarted ({r.attempts} trials, the last one is in the metrics): {r.episode_id} on "
                      f"{r.vehicle_id or '?'}: {why}")
+    for r in stale:
+        lines.append(f"- executor process restarted before the episode (legacy harness): {r.episode_id} on "
+                     f"{r.vehicle_id or '?'}: {r.stale_memory}")
     return lines + [""]
 
 

@@ -182,10 +182,14 @@ def vehicle_env(cfg: RunConfig) -> dict[str, str]:
     return {**env, **cfg.extra_env}
 
 
+# The services of one evaluated vehicle. Episodes are judged in the simulator's world: its camera, never a
+# configured camera service.
+PER_VEHICLE_SERVICES = [s for s in PER_VEHICLE if s not in OPTIONAL]
+
+
 def build_stack(cfg: RunConfig, vehicle_ids: list[str]) -> Stack:
-    # Episodes are judged in the simulator's world: its camera, never a configured camera service.
-    services = [s for s in available_services() if s in PER_VEHICLE and s not in OPTIONAL]
-    missing = [s for s in PER_VEHICLE if s not in services and s not in OPTIONAL]
+    services = [s for s in available_services() if s in PER_VEHICLE_SERVICES]
+    missing = [s for s in PER_VEHICLE_SERVICES if s not in services]
     if missing:
         raise ConfigError(f"the evaluation needs every per-vehicle service; missing in this checkout: {missing}")
     stack = Stack(services, vehicle_id=vehicle_ids[0], env=vehicle_env(cfg), log_dir=cfg.out / "logs")
