@@ -328,3 +328,18 @@ def test_collisions_are_counted_per_episode():
     m = compute([a, b, c])
     assert (m.collisions, m.collision_episodes) == (3, 2)
     assert m.collisions_per_episode == pytest.approx(1.0)
+
+
+def test_displacement_rules_from_step_records():
+    """The trajectory log as recorded: poses in the skills' outcomes of real ReasoningStep messages."""
+    steps = [step(1, "forward", start=_p(0, 0), end=_p(0.5, 0)),
+             step(2, "obj_localization", "red cup", state=SkillState.FAILED, start=_p(0.5, 0), end=_p(0.5, 0)),
+             step(3, "backward", start=_p(0.5, 0), end=_p(0.01, 0)),  # undoes step 1 (one motion later)
+             step(4, "yaw_left", start=_p(0.01, 0), end=_p(0.01, 0, 0.6)),
+             step(5, "obj_localization", "red cup", start=_p(0.01, 0, 0.6), end=_p(0.01, 0, 0.6)),
+             step(6, "done")]
+    a = actions_of(steps)
+    assert [x.skill for x in a] == ["forward", "obj_localization", "backward", "yaw_left", "obj_localization"]
+    assert oscillations(a) == {0, 2} and zero_net_sequences(a) == set()  # a localization sits between them
+    assert futile_loops(a) == set() and redundant_actions(a) == {0, 2}
+    assert compute([record("e1", True, steps)]).arr == pytest.approx(100 * 2 / 5)
