@@ -39,6 +39,8 @@ from shared.keys import Keys
 from shared.launcher import OPTIONAL, PER_VEHICLE, Stack, available_services, free_udp_port
 from shared.messages import (
     Abort,
+    GripperCommand,
+    GripperState,
     LandedState,
     SkillRequest,
     TaskRequest,
@@ -231,6 +233,8 @@ class VehicleWorker:
         st = await self._current_state()
         if st is None or st.landed_state not in (LandedState.IN_AIR, LandedState.TAKEOFF, LandedState.LANDING):
             return
+        if st.gripper == GripperState.CLOSED or st.gripper_holding:
+            await self._empty_gripper()
         deadline = time.monotonic() + timeout
         async with skill_client(self.bus, self.vehicle_id) as skills:
             try:
@@ -248,6 +252,20 @@ class VehicleWorker:
             if st is not None and not st.armed:
                 return
         log.warning("%s: vehicle still armed %.0f s after land; resetting anyway", self.vehicle_id, timeout)
+
+    async def _empty_gripper(self) -> None:
+        """The previous episode (already judged) ended with an object in the gripper: open it before landing, as
+        an operator takes the object out between real trials. A vehicle carrying an object under it cannot
+        touch down, so its land would time out and the next reset would find it armed."""
+        try:
+            res = await query_ready(self.bus, self.keys.autopilot_command, GripperCommand(action="open"),
+                                    timeout=QUERY_TIMEOUT_S, ready_timeout=READY_WAIT_S)
+        except AermaniError as exc:
+            log.warning("%s: could not open the gripper before landing (%s)", self.vehicle_id, exc)
+            return
+        if not res.ok:
+            log.warning("%s: gripper open refused before landing: %s", self.vehicle_id, res.message)
+        await asyncio.sleep(1.0)  # let the object fall clear before descending
 
     async def _wait_grounded(self, timeout: float = 30.0) -> None:
         """After a reset the bridge must report the vehicle on the ground, disarmed, before a task starts."""
