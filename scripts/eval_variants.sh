@@ -1,7 +1,9 @@
 #!/usr/bin/env bash
-# Reproduces docs/eval/variants: the six prompt variants through the local OpenAI-compatible TEST SERVER
-# (tests/reasoner/fake_vlm.py answers with the rules policy read from the prompt; not a model), with the
-# committed fault schedule: every 20th answer truncated (invalid_json) to exercise re-prompting.
+# A PIPELINE CHECK, not results: the six prompt variants through the local OpenAI-compatible TEST SERVER
+# (tests/reasoner/fake_vlm.py answers every variant with the rules policy's decision read from the prompt; not a
+# model, so the variants' rows differ only by noise), with every 20th answer truncated (invalid_json) to
+# exercise re-prompting. Never commit its output as a variants sweep: docs/evaluation.md shows how to run the
+# paper's ablation with a real model.
 # Usage: scripts/eval_variants.sh [OUT] [extra `aermani eval` options, e.g. --output-mode both]
 set -euo pipefail
 cd "$(dirname "$0")/.."

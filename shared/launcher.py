@@ -81,12 +81,13 @@ def available_services() -> list[str]:
     return found
 
 
-def open_router(port: int, host: str = "127.0.0.1") -> zenoh.Session:
-    """A Zenoh session in router mode listening on tcp/<host>:<port>, multicast scouting off. Plain TCP
-    without access control: only on loopback (`--secure` routers come from `shared.security`)."""
-    require_loopback([f"tcp/{host}:{port}"])
+def open_router(port: int, host: str = "127.0.0.1", connect: list[str] | None = None) -> zenoh.Session:
+    """A Zenoh session in router mode listening on tcp/<host>:<port>, multicast scouting off, linked to the
+    routers in `connect` (e.g. a vehicle host's router joining the ground's). Plain TCP without access
+    control: only on loopback (`--secure` routers come from `shared.security`)."""
+    require_loopback([f"tcp/{host}:{port}", *(connect or [])])
     _init_zenoh_log()
-    return zenoh.open(zenoh_config(mode="router", listen=[f"tcp/{host}:{port}"]))
+    return zenoh.open(zenoh_config(mode="router", listen=[f"tcp/{host}:{port}"], connect=list(connect or [])))
 
 
 @dataclass
@@ -140,11 +141,12 @@ class Stack:
                  DEFAULT_VEHICLE_ID, env: dict[str, str] | None = None, log_dir: str | Path | None = None,
                  supervise: bool = True, host: str = "127.0.0.1", router: bool = True,
                  secure: str | Path | None = None, tls_listen: list[str] | None = None,
-                 hung_after_s: float = 4.0) -> None:
+                 hung_after_s: float = 4.0, link: list[str] | None = None) -> None:
         """`secure` is a certificate directory (`aermani certs init`): the stack then runs a ground and a drone
         router from `shared/routers/` linked by mutual TLS, ground services on the ground router's loopback
         listener, vehicle services on the drone router's, and outsiders reach the ground router only through
-        `tls_listen` (default tls/127.0.0.1:<free port>) with a certificate."""
+        `tls_listen` (default tls/127.0.0.1:<free port>) with a certificate. `link`: routers the stack's own
+        (plain, loopback) router connects to, so its services are reachable through them."""
         require_loopback([f"tcp/{host}:0"])
         self.port = port or free_port()
         self.host = host
@@ -156,6 +158,7 @@ class Stack:
         self.log_dir = Path(log_dir) if log_dir else Path("runs") / time.strftime("%Y%m%d-%H%M%S") / "logs"
         self.supervise = supervise
         self.with_router = router
+        self.link = list(link or [])
         self.router: zenoh.Session | None = None
         self.procs: list[ServiceProcess] = []
         self._stop = threading.Event()
@@ -200,7 +203,7 @@ class Stack:
     def start(self, wait: bool = True, timeout: float = 90.0) -> Stack:
         if self.with_router and self.router is None:
             if self.secure is None:
-                self.router = open_router(self.port, self.host)
+                self.router = open_router(self.port, self.host, connect=self.link)
             else:
                 self._open_secure_routers()
         for p in self.procs:

@@ -32,6 +32,8 @@ def eval_command(
                                               f"({', '.join(VARIANTS)}).")] = "full",
     episodes: Annotated[int | None, typer.Option(help="Episodes per suite (cycling through its tasks); "
                                                       "default 10, or each task of --tasks once.")] = None,
+    split: Annotated[str, typer.Option(help="Split of the built-in suites: dev (work against it) or test (held "
+                                            "out: headline figures only, never tuned on).")] = "dev",
     suites: Annotated[str | None, typer.Option(help="Comma list of suites (localization, clutter, sequential, "
                                                     "search); default all four.")] = None,
     tasks: Annotated[Path | None, typer.Option(help="JSON Lines file of your own tasks: {command, suite, "
@@ -62,6 +64,7 @@ def eval_command(
     """Evaluate a backend and prompt variants on the paper's task suites: SR, ARR, RS, IAR, RT, TT."""
     from services.evaluation.report import write_report
     from services.evaluation.runner import RunConfig, run
+    from services.evaluation.tasks import SPLITS
 
     if report_only:
         paths = write_report(out)
@@ -71,6 +74,9 @@ def eval_command(
     bad = [v for v in variants if v not in VARIANTS]
     if bad:
         console.print(f"[red]unknown variants {bad}; known: {', '.join(VARIANTS)}[/red]")
+        raise typer.Exit(2)
+    if split not in SPLITS:
+        console.print(f"[red]unknown split {split!r}; use one of {', '.join(SPLITS)}[/red]")
         raise typer.Exit(2)
     if connect and not vehicles:
         console.print("[red]--connect needs --vehicles (the ids of the simulated vehicles to use)[/red]")
@@ -82,7 +88,7 @@ def eval_command(
     modes = ["schema", "text"] if output_mode == "both" else [output_mode]
     cfg = RunConfig(out=out, backend=backend, output_mode=modes[0], variants=variants, model=model, base_url=base_url, api_key=api_key,
                     episodes=episodes if episodes is not None else (None if tasks else 10),
-                    suites=_split(suites), tasks_file=tasks, seed=seed, parallel=parallel,
+                    split=split, suites=_split(suites), tasks_file=tasks, seed=seed, parallel=parallel,
                     speed_factor=speed_factor, t_max_s=t_max, tolerance=tolerance, connect=connect,
                     vehicles=_split(vehicles), progress=progress, note=note, segmenter=segmenter,
                     realism=realism)

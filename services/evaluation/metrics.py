@@ -2,12 +2,17 @@
 
 Definitions, exactly as computed here (docs/evaluation.md repeats them):
 
-- SR = successful episodes / episodes x 100. Success is the ground-truth verdict of the simulator.
+- SR = successful episodes / episodes x 100. An episode succeeds when the task's own end state is `succeeded`
+  (the policy declared it done before T_max) AND the simulator's ground-truth judge agrees; the report shows
+  both counts apart.
 - Actions of an episode: the skills the policy chose and the executor ran (a step with an STE and a skill
   state), except `done`, which moves nothing. n_total = number of actions.
 - An action is redundant (counted once even if several rules match) when it is
-  1. an oscillatory correction: a motion primitive whose OPPOSITE (shared/skills.py) is among the next two
-     motion primitives of the episode; both the motion and the one that undoes it are redundant;
+  1. an oscillatory correction: a motion primitive undone by one of the next two motion primitives of the
+     episode, judged by net displacement: the vehicle's displacement over the later motion cancels the
+     earlier one's (position within `pos_tol`, yaw within `yaw_tol`) and the earlier one did move the vehicle.
+     Both are redundant. Where a pose is missing, the later motion must be the earlier one's OPPOSITE
+     (shared/skills.py);
   2. part of a zero-net-displacement sequence: two or more consecutive motion primitives (no other action
      between) that bring the vehicle back to where it started, position within `pos_tol` metres and yaw
      within `yaw_tol` radians. Poses come from the skills' outcomes (the trajectory log); when a pose is
@@ -16,12 +21,20 @@ Definitions, exactly as computed here (docs/evaluation.md repeats them):
   3. a repeated localization with no motion between: obj_localization or placement_localization with the
      same (case- and space-normalized) argument as an earlier one of the same kind, with no motion
      primitive, grasp or place in between that the executor ran (a rejected skill moved nothing): the view
-     did not change, so the answer cannot.
+     did not change, so the answer cannot;
+  4. a futile loop: a skill that failed (failed, rejected or timed out) repeated with the same argument and
+     failing again, with no change of state since the earlier failure (no action succeeded between, the held
+     object is the same, and, where poses are known, the vehicle is where that failure left it). The repeats
+     are redundant, not the first attempt.
 - ARR = mean over successful episodes of n_redundant / n_total, x 100 (the paper's tables are in percent).
 - RS = mean number of reasoning cycles (reasoning steps) per episode over all episodes.
-- IAR = invalid answers / all model queries x 100 (every call of every step, re-prompts included).
+- IAR = invalid answers / all model queries x 100 (every call of every step, re-prompts included). Per
+  episode the larger of the recorded calls and the terminal status's counters is taken, so an invalid answer
+  whose step ended in a transport error (and a lost step sample) still counts.
 - RT = median and 95th percentile (linear interpolation) of the model latency per query, seconds.
 - TT = mean end-to-end time of successful episodes, seconds (reasoner start to terminal status).
+- Collisions: the simulator's contacts of the airframe with furniture, walls or the ceiling since the reset
+  (services/sim/physics.py), per episode; reported as the total, the mean per episode and the episodes with any.
 
 Episodes the harness could not run (harness_error) are left out of every metric and counted in `not_run`.
 """
@@ -50,6 +63,7 @@ LOCALIZATIONS = (OBJ_LOCALIZATION, PLACEMENT_LOCALIZATION)
 # Actions that change the view or the scene, so a localization after them is not a repeat.
 VIEW_CHANGING = (*MOTION_PRIMITIVES, GRASP, PLACE)
 OSCILLATION_WINDOW = 2
+FAILING = ("failed", "rejected", "timeout")
 POS_TOL = 0.10
 YAW_TOL = 0.15
 # Generic, pairwise incommensurate step sizes for dead reckoning: a sequence that cancels with these
@@ -66,6 +80,7 @@ class Action:
     start_pose: Pose | None = None
     end_pose: Pose | None = None
     state: str | None = None
+    held: str | None = None
 
 
 def actions_of(steps: Iterable[ReasoningStep]) -> list[Action]:
@@ -76,7 +91,7 @@ def actions_of(steps: Iterable[ReasoningStep]) -> list[Action]:
             continue
         o = s.outcome
         out.append(Action(s.ste.skill, s.ste.argument, o.start_pose if o else None, o.end_pose if o else None,
-                          s.skill_state.value))
+                          s.skill_state.value, o.held_object if o else None))
     return out
 
 
@@ -88,13 +103,31 @@ def _wrap(a: float) -> float:
     return (a + math.pi) % (2 * math.pi) - math.pi
 
 
-def oscillations(actions: Sequence[Action]) -> set[int]:
-    """Rule 1: motions undone by their opposite within the next two motions (both are marked)."""
+def _displacement(a: Action) -> tuple[float, float, float, float] | None:
+    """World-frame (dx, dy, dz, dyaw) of one action from its start and end poses; None without both."""
+    if a.start_pose is None or a.end_pose is None:
+        return None
+    p0, p1 = a.start_pose.position, a.end_pose.position
+    return p1.x - p0.x, p1.y - p0.y, p1.z - p0.z, _wrap(a.end_pose.yaw - a.start_pose.yaw)
+
+
+def _undoes(first: Action, later: Action, pos_tol: float, yaw_tol: float) -> bool:
+    """Whether `later` undoes `first`: by net displacement when both have poses, else by name."""
+    d0, d1 = _displacement(first), _displacement(later)
+    if d0 is None or d1 is None:
+        return later.skill == OPPOSITE[first.skill]
+    moved = math.hypot(*d0[:3]) > pos_tol or abs(d0[3]) > yaw_tol
+    net = (d0[0] + d1[0], d0[1] + d1[1], d0[2] + d1[2])
+    return moved and math.hypot(*net) <= pos_tol and abs(_wrap(d0[3] + d1[3])) <= yaw_tol
+
+
+def oscillations(actions: Sequence[Action], pos_tol: float = POS_TOL, yaw_tol: float = YAW_TOL) -> set[int]:
+    """Rule 1: motions undone within the next two motions (both are marked)."""
     motions = [i for i, a in enumerate(actions) if a.skill in MOTION_PRIMITIVES]
     out: set[int] = set()
     for k, i in enumerate(motions):
         for j in motions[k + 1:k + 1 + OSCILLATION_WINDOW]:
-            if actions[j].skill == OPPOSITE[actions[i].skill]:
+            if _undoes(actions[i], actions[j], pos_tol, yaw_tol):
                 out.update((i, j))
                 break
     return out
@@ -160,9 +193,35 @@ def repeated_localizations(actions: Sequence[Action]) -> set[int]:
     return out
 
 
+def _same_place(a: Pose | None, b: Pose | None, pos_tol: float, yaw_tol: float) -> bool:
+    if a is None or b is None:
+        return True  # unknown: the other conditions decide
+    return (math.dist(a.position.as_tuple(), b.position.as_tuple()) <= pos_tol
+            and abs(_wrap(a.yaw - b.yaw)) <= yaw_tol)
+
+
+def futile_loops(actions: Sequence[Action], pos_tol: float = POS_TOL, yaw_tol: float = YAW_TOL) -> set[int]:
+    """Rule 4: a failing skill repeated (same skill and argument) that fails again with no change of state
+    since the earlier failure: nothing succeeded between, the same object held, the vehicle where it was."""
+    out: set[int] = set()
+    failures: dict[tuple[str, str], Action] = {}  # failures since the last change of state
+    for i, a in enumerate(actions):
+        if a.state not in FAILING:  # a skill that ran (or a record without a state) may have changed things
+            failures.clear()
+            continue
+        key = (a.skill, _norm(a.argument))
+        earlier = failures.get(key)
+        if earlier is not None and earlier.held == a.held and _same_place(earlier.end_pose, a.start_pose,
+                                                                            pos_tol, yaw_tol):
+            out.add(i)
+        failures[key] = a
+    return out
+
+
 def redundant_actions(actions: Sequence[Action], pos_tol: float = POS_TOL, yaw_tol: float = YAW_TOL) -> set[int]:
-    """Indices of redundant actions (union of the three rules)."""
-    return oscillations(actions) | zero_net_sequences(actions, pos_tol, yaw_tol) | repeated_localizations(actions)
+    """Indices of redundant actions (union of the four rules)."""
+    return (oscillations(actions, pos_tol, yaw_tol) | zero_net_sequences(actions, pos_tol, yaw_tol)
+            | repeated_localizations(actions) | futile_loops(actions, pos_tol, yaw_tol))
 
 
 def redundancy_ratio(actions: Sequence[Action]) -> float:
@@ -203,6 +262,15 @@ class Metrics(BaseModel):
     tt: float | None = None
     queries: int = 0
     invalid: int = 0
+    ended_succeeded: int = 0
+    """Episodes whose task ended `succeeded` (the policy's own end state), whatever the judge says."""
+    judged_success: int = 0
+    """Episodes the simulator's judge found right, whatever the task's end state."""
+    collisions: int = 0
+    """Collisions over all episodes (airframe contacts with furniture, walls, ceiling)."""
+    collision_episodes: int = 0
+    """Episodes with at least one collision."""
+    collisions_per_episode: float | None = None
 
 
 def iar_by_mode(records: Iterable[EpisodeRecord]) -> dict[str, tuple[int, int]]:
@@ -219,13 +287,29 @@ def iar_by_mode(records: Iterable[EpisodeRecord]) -> dict[str, tuple[int, int]]:
     return out
 
 
+def query_counts(rec: EpisodeRecord) -> tuple[int, int]:
+    """(invalid answers, model queries) of one episode: the recorded calls, or the terminal status's counters
+    when it counted more (an invalid answer whose step then hit a transport error, a lost step sample)."""
+    calls = [c for s in rec.steps for c in s.calls]
+    invalid = sum(1 for c in calls if not c.valid)
+    if rec.status is not None:
+        return max(invalid, rec.status.invalid_answers), max(len(calls), rec.status.model_calls)
+    return invalid, len(calls)
+
+
+def judged_ok(rec: EpisodeRecord) -> bool:
+    """The judge's verdict alone (older records kept only the combined verdict)."""
+    return rec.judge_success if rec.judge_success is not None else rec.success
+
+
 def compute(records: Iterable[EpisodeRecord]) -> Metrics:
     records = list(records)
     ran = [r for r in records if not r.harness_error]
     ok = [r for r in ran if r.success]
-    calls = [c for r in ran for s in r.steps for c in s.calls]
-    latencies = [c.latency_s for c in calls]
-    invalid = sum(1 for c in calls if not c.valid)
+    latencies = [c.latency_s for r in ran for s in r.steps for c in s.calls]
+    counts = [query_counts(r) for r in ran]
+    invalid, queries = sum(c[0] for c in counts), sum(c[1] for c in counts)
+    collisions = [len(r.collisions) for r in ran]
     n = len(ran)
     return Metrics(
         episodes=n,
@@ -234,10 +318,15 @@ def compute(records: Iterable[EpisodeRecord]) -> Metrics:
         sr=100.0 * len(ok) / n if n else None,
         arr=100.0 * sum(redundancy_ratio(actions_of(r.steps)) for r in ok) / len(ok) if ok else None,
         rs=sum(reasoning_steps(r) for r in ran) / n if n else None,
-        iar=100.0 * invalid / len(calls) if calls else None,
+        iar=100.0 * invalid / queries if queries else None,
         rt_median=percentile(latencies, 50) if latencies else None,
         rt_p95=percentile(latencies, 95) if latencies else None,
         tt=sum(r.duration_s for r in ok) / len(ok) if ok else None,
-        queries=len(calls),
+        queries=queries,
         invalid=invalid,
+        ended_succeeded=sum(1 for r in ran if r.state == "succeeded"),
+        judged_success=sum(1 for r in ran if judged_ok(r)),
+        collisions=sum(collisions),
+        collision_episodes=sum(1 for c in collisions if c),
+        collisions_per_episode=sum(collisions) / n if n else None,
     )

@@ -42,7 +42,11 @@ class EpisodeRecord(BaseModel):
     message: str = ""
     """Reasoner's or harness's explanation."""
     success: bool = False
-    """Ground-truth verdict: the right object placed on the destination (or held) before T_max."""
+    """Success as SR counts it: the task ended `succeeded` (before T_max) AND the judge found the right object
+    placed on the destination (or held)."""
+    judge_success: bool | None = None
+    """The simulator's ground-truth judge alone, whatever the task's end state (None in records from before it
+    was kept apart)."""
     verdict: str = ""
     """Why the verdict is what it is."""
     held: str | None = None
@@ -61,10 +65,13 @@ class EpisodeRecord(BaseModel):
     """When the task was started (harness clock)."""
     ended_ns: int = 0
     """When the terminal status arrived."""
-    stale_memory: str = ""
-    """Set when the executor's working memory still held state of an earlier episode at this one's start."""
     attempts: int = 1
     """Trials started for this episode (a take-off failure before the first reasoning step restarts it)."""
+    restarts: list[str] = []
+    """Why each earlier trial of this episode was restarted (one line per restart)."""
+    stale_memory: str = ""
+    """Legacy (records from before the executor followed the sim's reset notice): the harness found the
+    executor's memory left over from the previous episode and restarted the executor process. Reported."""
     foreign_samples: int = 0
     """Step samples seen on this vehicle's key during the episode that belonged to another task (cross-talk)."""
     harness_error: str = ""

@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import urlparse
 
-from services.evaluation.metrics import compute, iar_by_mode, reasoning_steps
+from services.evaluation.metrics import compute, iar_by_mode, judged_ok, reasoning_steps
 from services.evaluation.records import RESULTS_FILE, EpisodeRecord, ResultsFile
 from services.evaluation.tasks import PAPER_RS, PAPER_SUITES, SUITE_TITLES
 from shared.messages import VARIANTS
@@ -36,10 +36,38 @@ def _config_order(records: list[EpisodeRecord]) -> list[tuple[str, str]]:
     return sorted(configs, key=lambda c: (c[0], rank.get(c[1], 99), c[1]))
 
 
+# The paper's figures (Section IV), as printed; the report lays a run beside them.
+PAPER_SR = {"localization": 90.0, "clutter": 80.0, "sequential": 100.0, "search": 80.0}
+# "Comparison with baseline frameworks and different VLM backbones" (project name: Table V):
+# method -> (SR, ARR, RS, IAR, RT s); `match` finds a run's model among them.
+PAPER_BACKBONES: dict[str, tuple[float, float, float, float, float]] = {
+    "AERMANI-VLM (Gemini-3-Pro)": (87.5, 2.3, 16.8, 4.1, 0.92),
+    "AERMANI-VLM (GPT-4o)": (85.0, 2.6, 18.4, 5.2, 0.88),
+    "AERMANI-VLM (Claude-3.5)": (82.5, 3.1, 19.6, 6.4, 0.95),
+    "AERMANI-VLM (Qwen2-VL)": (77.5, 4.5, 22.8, 8.7, 0.61),
+    "AERMANI-VLM (LLaVA-Next)": (72.5, 5.2, 25.3, 10.1, 0.58),
+    "ReAct Prompting (VLM)": (35.0, 12.5, 28.0, 15.0, 0.90),
+}
+_BACKBONE_KEYS = {"gemini": "AERMANI-VLM (Gemini-3-Pro)", "gpt-4o": "AERMANI-VLM (GPT-4o)",
+                  "claude": "AERMANI-VLM (Claude-3.5)", "qwen2-vl": "AERMANI-VLM (Qwen2-VL)",
+                  "llava": "AERMANI-VLM (LLaVA-Next)"}
+NOT_RUN = "not run here: needs a GPU/API key"
+RULES_NAME = "rules (non-VLM baseline)"
+
+
 def method_name(backend: str, variant: str, multi_backend: bool = True) -> str:
-    """Paper name of the variant plus the backend that answered, so a rules row never reads as a VLM's."""
+    """The name of a method in every table. The rules baseline is named as what it is, a non-VLM baseline,
+    never as AERMANI-VLM; a model backend gets the paper's name of the variant plus the backend."""
+    if backend == "rules":
+        return RULES_NAME if variant == "full" else f"{RULES_NAME}, {variant} prompt"
     name = VARIANT_TITLES.get(variant, variant)
     return f"{name} ({backend})"
+
+
+def paper_row_for(model: str) -> str | None:
+    """The paper's backbone row a model name belongs to (e.g. Qwen/Qwen2-VL-7B-Instruct -> Qwen2-VL)."""
+    m = model.lower()
+    return next((row for key, row in _BACKBONE_KEYS.items() if key in m), None)
 
 
 def _loopback(url: str) -> bool:
@@ -72,13 +100,101 @@ def backend_note(config: dict[str, Any], records: list[EpisodeRecord]) -> str:
                       "(tests/reasoner/fake_vlm.py) the numbers reflect the test server, not a real VLM")
             parts.append(p)
     note = "; ".join(parts) + "."
-    seg = config.get("segmenter") or "sim (runs from before the segmenter was recorded used the oracle)"
-    oracle = " -- the simulator's ground-truth masks, an oracle, not real perception" if seg == "sim" else ""
-    note += (f" Perception: `{seg}` segmenter{oracle}; simulator: MuJoCo physics, realism "
+    note += (f" Perception: {segmenter_text(config)}; simulator: MuJoCo physics, realism "
              f"`{config.get('realism') or 'unrecorded'}`.")
     if config.get("note"):
         note = f"{config['note']} {note}"
     return note
+
+
+def segmenter_text(config: dict[str, Any]) -> str:
+    """Which segmenter perception ran (AERMANI_PERCEPTION_SEGMENTER), and whether that is real perception."""
+    seg = config.get("segmenter")
+    if not seg:
+        return "segmenter unrecorded (runs from before it was recorded used `sim`, the ground-truth oracle)"
+    if seg == "sim":
+        return "`sim` segmenter -- ORACLE: the simulator's ground-truth masks, not real perception"
+    what = {"color": "the colour segmenter (OpenCV colour classes on the rendered pixels + depth)",
+            "sam3": "SAM3 (open-vocabulary segmentation on the rendered pixels + depth)"}.get(seg, seg)
+    return f"`{seg}` segmenter -- real: {what}"
+
+
+def _seeds_text(records: list[EpisodeRecord]) -> str:
+    seeds = sorted({r.seed for r in records})
+    return ", ".join(str(x) for x in seeds) if seeds else "--"
+
+
+def configuration_lines(records: list[EpisodeRecord], config: dict[str, Any]) -> list[str]:
+    """The configuration table at the top of report.md: everything that produced the numbers."""
+    commit = config.get("commit") or "unrecorded"
+    dirty = config.get("dirty")
+    rev = f"`{commit}`" + {True: " (dirty: uncommitted changes in the work tree)", False: " (clean)"}.get(dirty, "")
+    backends = sorted({r.backend for r in records}) or [config.get("backend", "")]
+    models = sorted({r.model for r in records if r.model}) or [config.get("model") or "--"]
+    variants = sorted({r.variant for r in records}) or config.get("variants") or []
+    ran = [r for r in records if not r.harness_error]
+    rows = [
+        ("command (regenerates this report; rerun with a fresh --out)", f"`{config.get('command', 'unrecorded')}`"),
+        ("rebuild the report from episodes.jsonl", f"`{config.get('report_only_command', 'aermani eval --out DIR --report-only')}`"),
+        ("commit", rev),
+        ("backend", ", ".join(f"{b}" + (" (non-VLM baseline)" if b == "rules" else "") for b in backends)),
+        ("model", ", ".join(models)),
+        ("variant", ", ".join(variants)),
+        ("segmenter", segmenter_text(config)),
+        ("simulator realism", f"`{config.get('realism') or 'unrecorded'}`"),
+        ("speed factor", str(config.get("speed_factor", "unrecorded"))),
+        ("split", f"`{config.get('split') or 'unrecorded'}`" + (f" (task file {config['tasks_file']})"
+                                                                if config.get("tasks_file") else "")),
+        ("episodes per suite", str(config.get("episodes"))),
+        ("N (episodes in the metrics / recorded)", f"{len(ran)} / {len(records)}"),
+        ("seeds", _seeds_text(records)),
+        ("T_max, tolerance", f"{config.get('t_max_s', '?')} s, {config.get('tolerance', '?')} m"),
+        ("vehicles", ", ".join(sorted({r.vehicle_id for r in records if r.vehicle_id})) or "--"),
+    ]
+    return ["## Configuration", "", "| | |", "|---|---|"] + [f"| {k} | {v} |" for k, v in rows] + [""]
+
+
+def incident_lines(records: list[EpisodeRecord]) -> list[str]:
+    """Every excluded, retried or restarted episode with its reason."""
+    excluded = [r for r in records if r.harness_error]
+    restarted = [r for r in records if r.attempts > 1 and not r.harness_error]
+    stale = [r for r in records if r.stale_memory]
+    lines = ["## Excluded, retried and restarted episodes", ""]
+    if not excluded and not restarted and not stale:
+        return lines + ["None: every episode ran once, to its end, and is in the metrics.", ""]
+    for r in excluded:
+        lines.append(f"- excluded (left out of the metrics, retried by the next run of the command): "
+                     f"{r.episode_id} on {r.vehicle_id or '?'}: {r.harness_error}")
+    for r in restarted:
+        why = "; ".join(r.restarts) or "take-off failed before the first reasoning step"
+        lines.append(f"- restarted ({r.attempts} trials, the last one is in the metrics): {r.episode_id} on "
+                     f"{r.vehicle_id or '?'}: {why}")
+    for r in stale:
+        lines.append(f"- executor process restarted before the episode (legacy harness): {r.episode_id} on "
+                     f"{r.vehicle_id or '?'}: {r.stale_memory}")
+    return lines + [""]
+
+
+def paper_comparison_lines(records: list[EpisodeRecord], config: dict[str, Any]) -> list[str]:
+    """The paper's backbone table beside this run: a real model's row gets this run's figures, the others say
+    they were not run here."""
+    model = (config.get("model") or "") if config.get("backend") not in ("rules", "replay") else ""
+    mine = paper_row_for(model) if model else None
+    lines = ["## Beside the paper (comparison with VLM backbones, averaged over the suites)", "",
+             "| Method | paper SR | paper ARR | paper RS | paper IAR | paper RT (s) | real-model run here |",
+             "|---|---|---|---|---|---|---|"]
+    m = compute(records)
+    for row, (sr, arr, rs, iar, rt) in PAPER_BACKBONES.items():
+        here = NOT_RUN
+        if row == mine:
+            here = (f"SR {_fmt(m.sr)}, ARR {_fmt(m.arr)}, RS {_fmt(m.rs)}, IAR {_fmt(m.iar)}, "
+                    f"RT {_fmt(m.rt_median, 2)} ({model}, N={m.episodes})")
+        lines.append(f"| {row} | {sr:.1f} | {arr:.1f} | {rs:.1f} | {iar:.1f} | {rt:.2f} | {here} |")
+    if mine is None:
+        b = sorted({r.backend for r in records}) or [config.get("backend", "?")]
+        lines += ["", f"This run ({', '.join(method_name(x, 'full') for x in b)}) is not one of the paper's methods; "
+                  "its figures are in the tables above. docs/evaluation.md shows how to run the paper's backbones."]
+    return lines + [""]
 
 
 def summarize(records: list[EpisodeRecord]) -> dict[str, Any]:
@@ -102,12 +218,14 @@ def markdown(records: list[EpisodeRecord], config: dict[str, Any], plots: list[s
     lines = ["# aermani evaluation report", "",
              f"Generated {time.strftime('%Y-%m-%d %H:%M:%S %Z')} from `{RESULTS_FILE}` ({len(records)} episodes).", "",
              f"**Backend.** {backend_note(config, records)}", ""]
-    settings = {k: config.get(k) for k in ("backend", "output_mode", "variants", "model", "base_url", "episodes",
-                                           "suites", "seed",
-                                           "parallel", "speed_factor", "t_max_s", "tolerance", "tasks_file")
+    if config.get("split") == "dev":
+        lines += ["**Dev split.** These figures come from the split the project is built against; headline "
+                  "figures come from the test split (docs/evaluation.md).", ""]
+    lines += configuration_lines(records, config)
+    settings = {k: config.get(k) for k in ("output_mode", "base_url", "suites", "seed", "parallel", "connect")
                 if config.get(k) not in (None, "", [])}
     if settings:
-        lines += ["Run settings: " + ", ".join(f"{k}={v}" for k, v in settings.items()) + ".", ""]
+        lines += ["Other settings: " + ", ".join(f"{k}={v}" for k, v in settings.items()) + ".", ""]
 
     lines += ["## Results by task suite (paper Table II layout)", "",
               "| Task Suite | Method | N | SR ↑ | ARR ↓ | RS ↓ | IAR ↓ |", "|---|---|---|---|---|---|---|"]
@@ -134,47 +252,50 @@ def markdown(records: list[EpisodeRecord], config: dict[str, Any], plots: list[s
         lines.append(f"- {method_name(b, v, multi)}: " + ("; ".join(
             f"{'schema-constrained' if m == 'schema' else 'free text'} IAR {100 * bad / n:.1f} % of {n} calls"
             for m, (bad, n) in sorted(modes.items())) or "no model calls"))
-    lines += ["", "How the episodes ended (reasoner's terminal state; success above is the simulator's ground truth):", ""]
+    lines += ["", "## End state, judge and collisions", "",
+              "SR counts an episode only when both hold: the task's own end state is `succeeded` and the "
+              "simulator's ground-truth judge agrees. Collisions: airframe contacts with furniture, walls or the "
+              "ceiling recorded by the physics simulator since the episode's reset.", "",
+              "| Method | N | ended succeeded | judge success | both (SR numerator) | collisions | "
+              "episodes with a collision | terminal states |", "|---|---|---|---|---|---|---|---|"]
     for b, v in configs:
         recs = [r for r in records if r.backend == b and r.variant == v and not r.harness_error]
+        m = compute(recs)
         states: dict[str, int] = {}
         for r in recs:
             states[r.state] = states.get(r.state, 0) + 1
-        retried = sum(1 for r in recs if r.attempts > 1)
-        stale = sum(1 for r in recs if r.stale_memory)
-        lines.append(f"- {method_name(b, v, multi)}: " + ", ".join(f"{k} {n}" for k, n in sorted(states.items()))
-                     + (f"; {retried} restarted after a take-off failure before the first step" if retried else "")
-                     + (f"; **{stale} started with executor memory left over from the previous episode**"
-                        if stale else ""))
+        lines.append(f"| {method_name(b, v, multi)} | {m.episodes} | {m.ended_succeeded} | {m.judged_success} | "
+                     f"{m.successes} | {m.collisions} ({_fmt(m.collisions_per_episode, 2)} per episode) | "
+                     f"{m.collision_episodes} | " + ", ".join(f"{k} {n}" for k, n in sorted(states.items())) + " |")
+    lines.append("")
+    lines += incident_lines(records)
     paper_suites = [s for s in suites if s in PAPER_RS]
     if paper_suites:
-        lines += ["", "## Against the paper's AERMANI-VLM (Table II)", "",
+        lines += ["## Beside the paper's AERMANI-VLM (by task suite)", "",
                   "| Task Suite | Method | SR | paper SR | RS | paper RS |", "|---|---|---|---|---|---|"]
-        paper_sr = {"localization": 90.0, "clutter": 80.0, "sequential": 100.0, "search": 80.0}
         for s in paper_suites:
             for b, v in configs:
                 recs = [r for r in records if r.suite == s and r.backend == b and r.variant == v]
                 if recs and v == "full":
                     m = compute(recs)
                     lines.append(f"| {SUITE_TITLES.get(s, s)} | {method_name(b, v, multi)} | {_fmt(m.sr)} | "
-                                 f"{paper_sr[s]:.1f} | {_fmt(m.rs)} | {PAPER_RS[s]:.1f} |")
+                                 f"{PAPER_SR[s]:.1f} | {_fmt(m.rs)} | {PAPER_RS[s]:.1f} |")
+        lines.append("")
+    lines += paper_comparison_lines(records, config)
     lines += ["", "Metrics (definitions in docs/evaluation.md): SR = % of episodes where the simulator's ground "
               "truth has the right object on the destination within tolerance (or held, when the command has no "
               "destination) before T_max; ARR = mean % of redundant actions over successful episodes; RS = mean "
               "reasoning steps per episode; IAR = % of model answers that were invalid; RT = model latency per "
               "query; TT = mean end-to-end time of successful episodes (wall clock, simulator speed factor "
               f"{config.get('speed_factor', '?')}).", ""]
-    not_run = [r for r in records if r.harness_error]
     failed = [r for r in records if not r.success and not r.harness_error]
     if failed:
-        lines += ["## Failed episodes", "", "| Episode | Vehicle | State | Steps | Verdict |", "|---|---|---|---|---|"]
-        for r in failed[:50]:
+        lines += ["## Failed episodes", "", "| Episode | Vehicle | State | Judge | Steps | Collisions | Verdict |",
+                  "|---|---|---|---|---|---|---|"]
+        for r in failed:
             verdict = (r.verdict or r.message).replace("|", "/")
-            lines.append(f"| {r.episode_id} | {r.vehicle_id} | {r.state} | {reasoning_steps(r)} | {verdict} |")
-        lines.append("")
-    if not_run:
-        lines += ["## Episodes the harness could not run (left out of the metrics)", ""]
-        lines += [f"- {r.episode_id}: {r.harness_error}" for r in not_run[:50]]
+            lines.append(f"| {r.episode_id} | {r.vehicle_id} | {r.state} | {'ok' if judged_ok(r) else 'no'} | "
+                         f"{reasoning_steps(r)} | {', '.join(r.collisions) or '--'} | {verdict} |")
         lines.append("")
     if plots:
         lines += ["## Plots", ""] + [f"![{Path(p).stem}]({p})" for p in plots] + [""]
@@ -269,9 +390,26 @@ def write_report(out: Path, config: dict[str, Any] | None = None) -> dict[str, P
     config = config or {}
     records = sorted(ResultsFile(out / RESULTS_FILE).load(), key=lambda r: r.episode_id)
     plots = plot(records, out)
+    ran = [r for r in records if not r.harness_error]
     doc = {
         "generated": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         "backend_note": backend_note(config, records),
+        "command": config.get("command"),
+        "commit": config.get("commit"),
+        "dirty": config.get("dirty"),
+        "backend": config.get("backend"),
+        "model": config.get("model"),
+        "variants": config.get("variants"),
+        "segmenter": config.get("segmenter"),
+        "segmenter_description": segmenter_text(config),
+        "realism": config.get("realism"),
+        "speed_factor": config.get("speed_factor"),
+        "split": config.get("split"),
+        "seeds": sorted({r.seed for r in records}),
+        "n": len(ran),
+        "excluded": [{"episode_id": r.episode_id, "reason": r.harness_error} for r in records if r.harness_error],
+        "restarted": [{"episode_id": r.episode_id, "attempts": r.attempts, "reasons": r.restarts}
+                      for r in records if r.attempts > 1],
         "config": config,
         "metrics": summarize(records),
         # Every episode with every step; the prompt texts (the bulk) stay in episodes.jsonl only.

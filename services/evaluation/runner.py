@@ -12,10 +12,10 @@ import asyncio
 import contextlib
 import json
 import logging
-import signal
+import shlex
 import subprocess
 import time
-from collections.abc import Awaitable, Callable
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -23,8 +23,10 @@ from pydantic import BaseModel, ConfigDict
 
 from services.evaluation.records import RESULTS_FILE, EpisodeRecord, ResultsFile
 from services.evaluation.tasks import (
+    DEFAULT_SPLIT,
     DEFAULT_T_MAX_S,
     EpisodeSpec,
+    check_split,
     expand,
     group_by_suite,
     load_jsonl,
@@ -37,11 +39,12 @@ from shared.keys import Keys
 from shared.launcher import OPTIONAL, PER_VEHICLE, Stack, available_services, free_udp_port
 from shared.messages import (
     Abort,
+    GripperCommand,
+    GripperState,
     LandedState,
     SkillRequest,
     TaskRequest,
     VehicleState,
-    WorkingMemory,
     new_id,
     now_ns,
 )
@@ -70,6 +73,8 @@ class RunConfig(BaseModel):
     base_url: str | None = None
     api_key: str | None = None
     episodes: int | None = 10
+    split: str = DEFAULT_SPLIT
+    """Built-in suites' split: dev (work against it) or test (held out; headline figures only)."""
     suites: list[str] | None = None
     tasks_file: Path | None = None
     seed: int = 0
@@ -93,10 +98,53 @@ class RunConfig(BaseModel):
     # Testing hook: stop (as if interrupted) after this many episodes have finished in this run.
     stop_after: int | None = None
 
+    def command_line(self) -> str:
+        """The `aermani eval` command that reproduces this run, every option that shapes the numbers explicit
+        (defaults included, so a later change of a default does not change what the line means)."""
+        args = ["aermani", "eval", "--split", self.split, "--backend", self.backend, "--variant",
+                ",".join(self.variants)]
+        if self.model:
+            args += ["--model", self.model]
+        if self.base_url:
+            args += ["--base-url", self.base_url]
+        if self.tasks_file is not None:
+            args += ["--tasks", str(self.tasks_file)]
+        if self.suites:
+            args += ["--suites", ",".join(self.suites)]
+        if self.episodes is not None:
+            args += ["--episodes", str(self.episodes)]
+        args += ["--seed", str(self.seed), "--segmenter", self.segmenter, "--realism", self.realism,
+                 "--speed-factor", f"{self.speed_factor:g}", "--t-max", f"{self.t_max_s:g}",
+                 "--tolerance", f"{self.tolerance:g}", "--output-mode", self.output_mode]
+        if self.connect:
+            args += ["--connect", self.connect, "--vehicles", ",".join(self.vehicle_ids())]
+        else:
+            args += ["--parallel", str(self.parallel)]
+        if self.note:
+            args += ["--note", self.note]
+        return shlex.join([*args, "--out", str(self.out)])
+
     def vehicle_ids(self) -> list[str]:
         if self.vehicles:
             return list(self.vehicles)
         return [f"ev{i + 1}" for i in range(max(1, self.parallel))]
+
+
+def source_revision() -> dict[str, str | bool]:
+    """The commit of the code that runs the evaluation and whether the work tree had uncommitted changes
+    (a dirty run cannot be reproduced from the commit alone)."""
+    root = Path(__file__).resolve().parents[2]
+
+    def git(*args: str) -> str:
+        try:
+            return subprocess.run(["git", *args], cwd=root, capture_output=True, text=True, timeout=20,
+                                  check=True).stdout.strip()
+        except (OSError, subprocess.SubprocessError):
+            return ""
+
+    commit = git("rev-parse", "HEAD")
+    dirty = bool(git("status", "--porcelain", "--untracked-files=no")) if commit else False
+    return {"commit": commit or "unknown (not a git checkout)", "dirty": dirty}
 
 
 def episode_specs(cfg: RunConfig) -> list[EpisodeSpec]:
@@ -107,8 +155,8 @@ def episode_specs(cfg: RunConfig) -> list[EpisodeSpec]:
         # A user's file lists its episodes; --episodes only repeats them when asked for more.
         return expand(tasks, episodes=cfg.episodes, backends=[cfg.backend], variants=cfg.variants,
                       base_seed=cfg.seed)
-    return expand(load_suites(cfg.suites), episodes=cfg.episodes, backends=[cfg.backend], variants=cfg.variants,
-                  base_seed=cfg.seed)
+    return expand(load_suites(cfg.suites, split=check_split(cfg.split)), episodes=cfg.episodes,
+                  backends=[cfg.backend], variants=cfg.variants, base_seed=cfg.seed)
 
 
 def vehicle_env(cfg: RunConfig) -> dict[str, str]:
@@ -136,10 +184,14 @@ def vehicle_env(cfg: RunConfig) -> dict[str, str]:
     return {**env, **cfg.extra_env}
 
 
+# The services of one evaluated vehicle. Episodes are judged in the simulator's world: its camera, never a
+# configured camera service.
+PER_VEHICLE_SERVICES = [s for s in PER_VEHICLE if s not in OPTIONAL]
+
+
 def build_stack(cfg: RunConfig, vehicle_ids: list[str]) -> Stack:
-    # Episodes are judged in the simulator's world: its camera, never a configured camera service.
-    services = [s for s in available_services() if s in PER_VEHICLE and s not in OPTIONAL]
-    missing = [s for s in PER_VEHICLE if s not in services and s not in OPTIONAL]
+    services = [s for s in available_services() if s in PER_VEHICLE_SERVICES]
+    missing = [s for s in PER_VEHICLE_SERVICES if s not in services]
     if missing:
         raise ConfigError(f"the evaluation needs every per-vehicle service; missing in this checkout: {missing}")
     stack = Stack(services, vehicle_id=vehicle_ids[0], env=vehicle_env(cfg), log_dir=cfg.out / "logs")
@@ -160,18 +212,13 @@ class VehicleWorker:
     cfg: RunConfig
     keys: Keys = field(init=False)
     state: Subscription[VehicleState] = field(init=False)
-    memory: Subscription[WorkingMemory] = field(init=False)
-    last_memory: WorkingMemory | None = None
-    restart_executor: Callable[[], Awaitable[None]] | None = None
 
     def __post_init__(self) -> None:
         self.keys = Keys(self.vehicle_id)
         self.state = self.bus.subscribe(self.keys.autopilot_state, maxsize=2)
-        self.memory = self.bus.subscribe(self.keys.memory, maxsize=5)
 
     def close(self) -> None:
-        for sub in (self.state, self.memory):
-            sub.close()
+        self.state.close()
 
     async def _current_state(self, timeout: float = 10.0) -> VehicleState | None:
         latest = self.state.latest_nowait()
@@ -186,6 +233,8 @@ class VehicleWorker:
         st = await self._current_state()
         if st is None or st.landed_state not in (LandedState.IN_AIR, LandedState.TAKEOFF, LandedState.LANDING):
             return
+        if st.gripper == GripperState.CLOSED or st.gripper_holding:
+            await self._empty_gripper()
         deadline = time.monotonic() + timeout
         async with skill_client(self.bus, self.vehicle_id) as skills:
             try:
@@ -203,6 +252,20 @@ class VehicleWorker:
             if st is not None and not st.armed:
                 return
         log.warning("%s: vehicle still armed %.0f s after land; resetting anyway", self.vehicle_id, timeout)
+
+    async def _empty_gripper(self) -> None:
+        """The previous episode (already judged) ended with an object in the gripper: open it before landing, as
+        an operator takes the object out between real trials. A vehicle carrying an object under it cannot
+        touch down, so its land would time out and the next reset would find it armed."""
+        try:
+            res = await query_ready(self.bus, self.keys.autopilot_command, GripperCommand(action="open"),
+                                    timeout=QUERY_TIMEOUT_S, ready_timeout=READY_WAIT_S)
+        except AermaniError as exc:
+            log.warning("%s: could not open the gripper before landing (%s)", self.vehicle_id, exc)
+            return
+        if not res.ok:
+            log.warning("%s: gripper open refused before landing: %s", self.vehicle_id, res.message)
+        await asyncio.sleep(1.0)  # let the object fall clear before descending
 
     async def _wait_grounded(self, timeout: float = 30.0) -> None:
         """After a reset the bridge must report the vehicle on the ground, disarmed, before a task starts."""
@@ -224,20 +287,22 @@ class VehicleWorker:
         rec = EpisodeRecord(episode_id=spec.episode_id, suite=task.suite, backend=spec.backend,
                             variant=spec.variant, model=self.cfg.model, task=task, seed=spec.seed,
                             vehicle_id=self.vehicle_id, t_max_s=t_max)
+        restarts: list[str] = []
         for attempt in range(1, TAKEOFF_ATTEMPTS + 1):
             try:
                 out = await self._run(spec, rec, t_max)
             except (AermaniError, TimeoutError) as exc:
                 log.warning("%s: episode %s could not run: %s", self.vehicle_id, spec.episode_id, exc)
                 return rec.model_copy(update={"harness_error": f"{type(exc).__name__}: {exc}",
-                                              "ended_ns": now_ns()})
+                                              "ended_ns": now_ns(), "attempts": attempt, "restarts": restarts})
             if not _failed_before_first_step(out):
-                return out.model_copy(update={"attempts": attempt})
+                return out.model_copy(update={"attempts": attempt, "restarts": restarts})
+            restarts.append(f"attempt {attempt}: {out.state} before the first reasoning step: {out.message}")
             log.warning("%s: episode %s failed before its first reasoning step (%s); attempt %d of %d",
                         self.vehicle_id, spec.episode_id, out.message, attempt, TAKEOFF_ATTEMPTS)
         # The trial never reached the policy: not a policy failure, so it stays out of the metrics (and a
         # rerun tries it again), but the report lists it.
-        return out.model_copy(update={"attempts": TAKEOFF_ATTEMPTS, "harness_error":
+        return out.model_copy(update={"attempts": TAKEOFF_ATTEMPTS, "restarts": restarts, "harness_error":
                                       f"failed before the first reasoning step {TAKEOFF_ATTEMPTS} times: "
                                       f"{out.message}"})
 
@@ -248,38 +313,9 @@ class VehicleWorker:
                                   ready_timeout=READY_WAIT_S)
         if not reset.ok:
             return rec.model_copy(update={"harness_error": f"sim/reset refused the scenario: {reset.message}"})
+        # The simulator's reset notice clears the executor's working memory (services/executor/memory.py,
+        # world_reset): the episode starts from an empty memory without restarting any process.
         await self._wait_grounded()
-        # The executor publishes its working memory on change only: keep the newest one seen.
-        self.last_memory = self.memory.latest_nowait() or self.last_memory
-        # The executor drops a held object once the autopilot reports the gripper open (sim/reset opens
-        # it): give that update a moment to arrive before calling the memory stale.
-        deadline = time.monotonic() + 3.0
-        while self.last_memory is not None and self.last_memory.held_object and time.monotonic() < deadline:
-            try:
-                self.last_memory = await self.memory.recv(timeout=max(0.1, deadline - time.monotonic()))
-            except TimeoutError:
-                break
-        stale = ""
-        if self.last_memory is not None and self.last_memory.held_object:
-            stale = (f"executor working memory says it holds the {self.last_memory.held_object} at the start of "
-                     "the episode, after sim/reset emptied the gripper (memory carried over from the last one)")
-            log.warning("%s: %s", self.vehicle_id, stale)
-        if stale and self.restart_executor is not None:
-            # A fresh executor process is a clean trial; the record keeps the finding for the report.
-            await self.restart_executor()
-            self.last_memory = None
-            # The reasoner reads the held object from the same publication: wait for the fresh executor's.
-            deadline = time.monotonic() + 20.0
-            while time.monotonic() < deadline:
-                try:
-                    m = await self.memory.recv(timeout=max(0.1, deadline - time.monotonic()))
-                except TimeoutError:
-                    break
-                if not m.held_object:
-                    self.last_memory = m
-                    break
-            stale += "; executor restarted before the episode"
-        rec = rec.model_copy(update={"stale_memory": stale})
         task_id = new_id("ev-")
         request = TaskRequest(command=task.command, task_id=task_id, variant=spec.variant, t_max_s=t_max,
                               takeoff=True)
@@ -291,7 +327,6 @@ class VehicleWorker:
                                           "task_id": task_id})
         status, steps, foreign = followed.final, followed.steps, followed.foreign
         ended = now_ns()
-        self.last_memory = self.memory.latest_nowait() or self.last_memory
         if status is None:
             # The reasoner never ended the task: stop it so the next episode starts clean.
             self.bus.publish(self.keys.abort, Abort(reason="evaluation: no terminal status", source="evaluation",
@@ -299,19 +334,29 @@ class VehicleWorker:
 
         v = await judge_episode(self.bus, self.keys, task.accepted, task.destination, tolerance=self.cfg.tolerance,
                                 timeout=QUERY_TIMEOUT_S)
-        judge, success, verdict = v.result, v.success, v.message
+        judge, judged_ok = v.result, v.success
         state = status.state.value if status else "timeout"
-        if success and status is None:
-            success, verdict = False, f"{verdict}, but the task did not end before T_max"
-        elif success and status is not None and status.state.value == "timeout":
-            success, verdict = False, f"{verdict}, but only after T_max ({t_max:.0f} s)"
+        # Success needs both: the task's own end state (the policy finished it before T_max) and the judge.
+        success, verdict = success_verdict(state, judged_ok, v.message, t_max)
         return rec.model_copy(update={
             "task_id": task_id, "state": state,
             "message": status.message if status else f"no terminal status within {t_max + STATUS_MARGIN_S:.0f} s",
-            "success": success, "verdict": verdict, "held": judge.held, "collisions": judge.collisions,
+            "success": success, "judge_success": judged_ok, "verdict": verdict, "held": judge.held,
+            "collisions": judge.collisions,
             "steps": steps, "status": status, "judge": judge, "started_ns": started, "ended_ns": ended,
             "foreign_samples": foreign,
         })
+
+
+def success_verdict(state: str, judged_ok: bool, judge_message: str, t_max: float) -> tuple[bool, str]:
+    """(success, verdict): the judge must find the world right AND the task must have ended `succeeded`."""
+    if state == "succeeded":
+        return judged_ok, judge_message
+    if state == "timeout":
+        return False, f"{judge_message}; the task did not end before T_max ({t_max:.0f} s)"
+    if judged_ok:
+        return False, f"{judge_message}, but the task ended {state}, not succeeded"
+    return False, judge_message
 
 
 def _failed_before_first_step(rec: EpisodeRecord) -> bool:
@@ -333,27 +378,8 @@ class RunSummary:
     wall_s: float = 0.0
 
 
-def restart_service(stack: Stack, name: str, vehicle_id: str, timeout: float = 60.0) -> None:
-    """Stop one service of one vehicle with SIGTERM and let the stack's supervisor start it again (blocking)."""
-    p = stack.find(name, vehicle_id)
-    old = p.proc
-    p.restarts = 0  # a deliberate restart, not a crash: no growing backoff
-    if old is not None and old.poll() is None:
-        old.send_signal(signal.SIGTERM)
-        try:
-            old.wait(timeout=15)
-        except subprocess.TimeoutExpired:
-            old.kill()
-            old.wait(timeout=5)
-    deadline = time.monotonic() + timeout
-    while (p.proc is old or not p.running) and time.monotonic() < deadline:
-        time.sleep(0.1)
-    stack.wait_alive([name], timeout=max(1.0, deadline - time.monotonic()))
-
-
 async def run_episodes(bus: Bus, specs: list[EpisodeSpec], cfg: RunConfig, results: ResultsFile,
-                       on_done: Callable[[EpisodeRecord], None] | None = None,
-                       stack: Stack | None = None) -> list[EpisodeRecord]:
+                       on_done: Callable[[EpisodeRecord], None] | None = None) -> list[EpisodeRecord]:
     """One worker per vehicle pulls episodes from a shared queue until it is empty (or stop_after is hit)."""
     queue: asyncio.Queue[EpisodeSpec] = asyncio.Queue()
     for s in specs:
@@ -363,11 +389,6 @@ async def run_episodes(bus: Bus, specs: list[EpisodeSpec], cfg: RunConfig, resul
 
     async def worker(vid: str) -> None:
         w = VehicleWorker(bus, vid, cfg)
-        if stack is not None:
-            async def restart(vid: str = vid) -> None:
-                await asyncio.to_thread(restart_service, stack, "executor", vid)
-
-            w.restart_executor = restart
         try:
             while not stop.is_set():
                 try:
@@ -395,7 +416,7 @@ def run(cfg: RunConfig) -> RunSummary:
     from services.evaluation.report import write_report
 
     cfg.out.mkdir(parents=True, exist_ok=True)
-    run_config = cfg.model_dump(mode="json", exclude={"api_key", "extra_env", "stop_after", "progress"})
+    run_config = run_config_of(cfg)
     (cfg.out / "run_config.json").write_text(json.dumps(run_config, indent=2))  # a report rebuilt mid-run
     results = ResultsFile(cfg.out / RESULTS_FILE)
     specs = episode_specs(cfg)
@@ -415,7 +436,7 @@ def run(cfg: RunConfig) -> RunSummary:
                 stack.start(wait=True, timeout=cfg.startup_timeout_s)
                 endpoint = stack.endpoint
             summary.records = asyncio.run(_run_async(endpoint, todo, cfg, results, len(specs),
-                                                     len(specs) - len(todo), stack))
+                                                     len(specs) - len(todo)))
         except KeyboardInterrupt:
             summary.interrupted = True
         finally:
@@ -428,15 +449,24 @@ def run(cfg: RunConfig) -> RunSummary:
     return summary
 
 
+def run_config_of(cfg: RunConfig) -> dict:
+    """run_config.json: the settings (no API key), the source revision, and the command that reproduces it."""
+    doc = cfg.model_dump(mode="json", exclude={"api_key", "extra_env", "stop_after", "progress"})
+    doc.update(source_revision())
+    doc["command"] = cfg.command_line()
+    doc["report_only_command"] = shlex.join(["aermani", "eval", "--out", str(cfg.out), "--report-only"])
+    return doc
+
+
 async def _run_async(endpoint: str, todo: list[EpisodeSpec], cfg: RunConfig, results: ResultsFile, total: int,
-                     skipped: int, stack: Stack | None = None) -> list[EpisodeRecord]:
+                     skipped: int) -> list[EpisodeRecord]:
     try:
         bus = await Bus.open(connect=[endpoint])
     except BusError as exc:
         raise ConfigError(f"cannot reach the router at {endpoint}: {exc}")
     try:
         if not cfg.progress:
-            return await run_episodes(bus, todo, cfg, results, stack=stack)
+            return await run_episodes(bus, todo, cfg, results)
         from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
         with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
@@ -454,7 +484,7 @@ async def _run_async(endpoint: str, todo: list[EpisodeSpec], cfg: RunConfig, res
                                        f"{rec.duration_s:.0f} s): {rec.verdict or rec.harness_error}")
                 progress.update(bar, advance=1, sr=f"success {wins[0]}/{wins[1]}")
 
-            return await run_episodes(bus, todo, cfg, results, on_done, stack=stack)
+            return await run_episodes(bus, todo, cfg, results, on_done)
     finally:
         with contextlib.suppress(Exception):
             await bus.close()

@@ -23,6 +23,13 @@ SUITE_TITLES = {
 # The paper's AERMANI-VLM reasoning steps per suite (Table II), the bar the rules baseline must meet.
 PAPER_RS = {"localization": 11.0, "clutter": 14.1, "sequential": 19.2, "search": 23.7}
 DEFAULT_T_MAX_S = 600.0  # paper: T_max = 10 min
+# Held-out evaluation (docs/evaluation.md, "Suites and splits"): every built-in task line belongs to one split.
+# `dev` is what the project is built and tuned against; `test` gives the headline figures and is never looked
+# at while changing the project. Commands are disjoint between the splits, and so are the layout seeds: a
+# derived seed of split k lies in [k * 2^30, (k + 1) * 2^30).
+SPLITS = ("dev", "test")
+DEFAULT_SPLIT = "dev"
+_SEED_RANGE = 1 << 30
 
 
 class EvalTask(BaseModel):
@@ -34,6 +41,8 @@ class EvalTask(BaseModel):
     """Natural-language command L sent to the reasoner."""
     suite: str = "custom"
     """Task category (localization, clutter, sequential, search, or a user's own name)."""
+    split: str = DEFAULT_SPLIT
+    """Evaluation split: dev (build and tune against it) or test (held out, headline figures only)."""
     target_object: str
     """Canonical name of the object that must be grasped (e.g. "red cup")."""
     accept_objects: tuple[str, ...] = ()
@@ -109,20 +118,36 @@ def load_jsonl(path: Path, default_suite: str | None = None) -> list[EvalTask]:
     return tasks
 
 
-def load_suites(names: list[str] | None = None) -> dict[str, list[EvalTask]]:
-    """The built-in suites (services/evaluation/suites/<name>.jsonl), in paper order."""
+def check_split(split: str) -> str:
+    if split not in SPLITS:
+        raise ConfigError(f"unknown split {split!r}; use one of {', '.join(SPLITS)}")
+    return split
+
+
+def load_suites(names: list[str] | None = None, split: str | None = DEFAULT_SPLIT) -> dict[str, list[EvalTask]]:
+    """The built-in suites (services/evaluation/suites/<name>.jsonl), in paper order, with the tasks of one
+    split (None: both splits, for checks of the suites themselves)."""
+    if split is not None:
+        check_split(split)
     available = {p.stem: p for p in SUITES_DIR.glob("*.jsonl")}
     wanted = list(names) if names else [s for s in PAPER_SUITES if s in available]
     unknown = [n for n in wanted if n not in available]
     if unknown:
         raise ConfigError(f"unknown suites {unknown}; available: {sorted(available)}")
-    return {name: load_jsonl(available[name], default_suite=name) for name in wanted}
+    out = {}
+    for name in wanted:
+        tasks = [t for t in load_jsonl(available[name], default_suite=name) if split is None or t.split == split]
+        if not tasks:
+            raise ConfigError(f"suite {name} has no {split} tasks")
+        out[name] = tasks
+    return out
 
 
-def derive_seed(base_seed: int, suite: str, index: int) -> int:
-    """A layout seed that depends only on (base seed, suite, index), stable across Python runs."""
-    digest = hashlib.sha256(f"{base_seed}/{suite}/{index}".encode()).digest()
-    return int.from_bytes(digest[:4], "big") & 0x7FFFFFFF
+def derive_seed(base_seed: int, suite: str, index: int, split: str = DEFAULT_SPLIT) -> int:
+    """A layout seed that depends only on (split, base seed, suite, index), stable across Python runs. The
+    splits draw from disjoint ranges (dev: [0, 2^30), test: [2^30, 2^31)), so no layout is in both."""
+    digest = hashlib.sha256(f"{split}/{base_seed}/{suite}/{index}".encode()).digest()
+    return SPLITS.index(check_split(split)) * _SEED_RANGE + (int.from_bytes(digest[:4], "big") % _SEED_RANGE)
 
 
 def config_label(backend: str, variant: str) -> str:
@@ -141,7 +166,7 @@ def expand(tasks_by_suite: dict[str, list[EvalTask]], *, episodes: int | None, b
                 n = len(tasks) if episodes is None else episodes
                 for i in range(n):
                     task = tasks[i % len(tasks)]
-                    seed = task.seed if task.seed is not None else derive_seed(base_seed, suite, i)
+                    seed = task.seed if task.seed is not None else derive_seed(base_seed, suite, i, task.split)
                     eid = f"{backend}/{variant}/{suite}/{i:03d}-s{seed}"
                     specs.append(EpisodeSpec(episode_id=eid, task=task, seed=seed, index=i, backend=backend,
                                              variant=variant))

@@ -10,14 +10,17 @@ from services.evaluation.metrics import (
     Action,
     actions_of,
     compute,
+    futile_loops,
     oscillations,
     percentile,
+    query_counts,
     redundancy_ratio,
     redundant_actions,
     repeated_localizations,
     zero_net_sequences,
 )
 from services.evaluation.records import EpisodeRecord
+from services.evaluation.runner import success_verdict
 from services.evaluation.tasks import EvalTask
 from shared.messages import (
     ModelCall,
@@ -216,3 +219,127 @@ def test_rs_counts_steps_announced_by_the_status_when_samples_were_lost():
     rec = record("e1", True, [step(1, "grasp")])
     rec = rec.model_copy(update={"status": rec.status.model_copy(update={"steps": 4})})
     assert compute([rec]).rs == 4.0
+
+
+# ---------------------------------------------------------------- issue 14: displacement, futile loops, IAR, SR
+
+
+def _p(x: float, y: float, yaw: float = 0.0, z: float = 1.5) -> Pose:
+    return Pose(position=Vec3(x=x, y=y, z=z), yaw=yaw)
+
+
+def test_oscillation_is_judged_by_net_displacement_when_poses_are_logged():
+    # forward then backward, but the backward step was blocked (the vehicle stayed 0.5 m ahead): not undone
+    blocked = [Action("forward", None, _p(0, 0), _p(0.5, 0), "succeeded"),
+               Action("backward", None, _p(0.5, 0), _p(0.48, 0), "succeeded")]
+    assert oscillations(blocked) == set()
+    # forward then left after a yaw of 180 degrees would not be "opposite" by name, but here a left step
+    # carried the vehicle back to where the forward step began: the motion was undone
+    undone = [Action("forward", None, _p(0, 0), _p(0.5, 0), "succeeded"),
+              Action("left", None, _p(0.5, 0, -math.pi / 2), _p(0.02, 0, -math.pi / 2), "succeeded")]
+    assert oscillations(undone) == {0, 1}
+    # a motion that did not move the vehicle is not "undone" by the next one
+    stuck = [Action("up", None, _p(0, 0), _p(0, 0), "failed"),
+             Action("down", None, _p(0, 0), _p(0, 0, z=1.0), "succeeded")]
+    assert oscillations(stuck) == set()
+
+
+def test_oscillation_by_displacement_includes_yaw():
+    turned = [Action("yaw_left", None, _p(0, 0, 0.0), _p(0, 0, 0.5), "succeeded"),
+              Action("yaw_right", None, _p(0, 0, 0.5), _p(0, 0, 0.05), "succeeded")]
+    assert oscillations(turned) == {0, 1}
+    half = [Action("yaw_left", None, _p(0, 0, 0.0), _p(0, 0, 0.5), "succeeded"),
+            Action("yaw_right", None, _p(0, 0, 0.5), _p(0, 0, 0.3), "succeeded")]
+    assert oscillations(half) == set()
+
+
+def test_futile_loop_counts_the_repeats_of_a_failing_skill_with_no_change_of_state():
+    a = [Action("grasp", "red cup", _p(1, 0), _p(1, 0), "failed"),
+         Action("grasp", "Red Cup", _p(1, 0), _p(1, 0), "failed"),
+         Action("grasp", "red cup", _p(1, 0), _p(1, 0), "rejected")]
+    assert futile_loops(a) == {1, 2}
+    assert redundant_actions(a) == {1, 2}
+    assert redundancy_ratio(a) == pytest.approx(2 / 3)
+
+
+def test_futile_loop_needs_no_change_between_the_failures():
+    moved = [Action("grasp", "red cup", _p(1, 0), _p(1, 0), "failed"),
+             Action("forward", None, _p(1, 0), _p(1.3, 0), "succeeded"),
+             Action("grasp", "red cup", _p(1.3, 0), _p(1.3, 0), "failed")]
+    assert futile_loops(moved) == set()
+    # the vehicle drifted 40 cm between the two failures (no skill succeeded): the state changed
+    drifted = [Action("grasp", "red cup", _p(1, 0), _p(1, 0), "failed"),
+               Action("grasp", "red cup", _p(1.4, 0), _p(1.4, 0), "failed")]
+    assert futile_loops(drifted) == set()
+    # another argument is another attempt; a repeat that succeeds was not futile
+    other = [Action("obj_localization", "red cup", None, None, "failed"),
+             Action("obj_localization", "purple cup", None, None, "failed"),
+             Action("obj_localization", "red cup", None, None, "succeeded")]
+    assert futile_loops(other) == set()
+    held = [Action("place", "table", None, None, "failed", held="red cup"),
+            Action("place", "table", None, None, "failed", held=None)]
+    assert futile_loops(held) == set()
+
+
+def test_futile_loop_from_step_records():
+    fail = SkillState.FAILED
+    steps = [step(1, "grasp", "red cup", state=fail, start=_p(1, 0), end=_p(1, 0)),
+             step(2, "grasp", "red cup", state=fail, start=_p(1, 0), end=_p(1, 0)),
+             step(3, "done")]
+    assert futile_loops(actions_of(steps)) == {1}
+
+
+def test_iar_counts_an_invalid_answer_followed_by_a_transport_error():
+    # step 1: valid; step 2: an invalid answer, then the re-prompt hit a transport error (the loop records the
+    # step with its calls and no skill); the status counted 3 queries, 1 invalid
+    steps = [step(1, "obj_localization", "red cup", calls=((True, 0.5),)),
+             ReasoningStep(task_id="t", step=2, calls=(ModelCall(raw_answer="{", valid=False, error="no JSON"),),
+                           skill_message="model unavailable: 503")]
+    rec = record("e1", False, steps)
+    rec = rec.model_copy(update={"status": rec.status.model_copy(update={"model_calls": 2, "invalid_answers": 1})})
+    assert query_counts(rec) == (1, 2)
+    m = compute([rec])
+    assert (m.invalid, m.queries, m.iar) == (1, 2, 50.0)
+    # a lost step sample: the status counted an invalid answer the records do not hold
+    lost = rec.model_copy(update={"steps": steps[:1], "status": rec.status.model_copy(
+        update={"model_calls": 3, "invalid_answers": 2})})
+    assert compute([lost]).iar == pytest.approx(200 / 3)
+
+
+def test_sr_needs_the_end_state_and_the_judge():
+    assert success_verdict("succeeded", True, "red cup rests on the table", 600) == (True, "red cup rests on the table")
+    ok, why = success_verdict("failed", True, "red cup rests on the table", 600)
+    assert not ok and "ended failed, not succeeded" in why
+    ok, why = success_verdict("timeout", True, "red cup rests on the table", 600)
+    assert not ok and "T_max (600 s)" in why
+    assert success_verdict("succeeded", False, "red cup is in the gripper", 600)[0] is False
+    both = record("e1", True, [step(1, "grasp")], judge_success=True)
+    claimed = record("e2", True, [step(1, "grasp")], judge_success=False).model_copy(update={"success": False})
+    placed = record("e3", False, [step(1, "grasp")], judge_success=True)
+    m = compute([both, claimed, placed])
+    assert (m.ended_succeeded, m.judged_success, m.successes) == (2, 2, 1)
+    assert m.sr == pytest.approx(100 / 3)
+
+
+def test_collisions_are_counted_per_episode():
+    a = record("e1", True, [step(1, "grasp")], collisions=("vehicle-shelf", "vehicle-wall"))
+    b = record("e2", False, [step(1, "grasp")])
+    c = record("e3", False, [step(1, "forward")], collisions=("vehicle-table",))
+    m = compute([a, b, c])
+    assert (m.collisions, m.collision_episodes) == (3, 2)
+    assert m.collisions_per_episode == pytest.approx(1.0)
+
+
+def test_displacement_rules_from_step_records():
+    """The trajectory log as recorded: poses in the skills' outcomes of real ReasoningStep messages."""
+    steps = [step(1, "forward", start=_p(0, 0), end=_p(0.5, 0)),
+             step(2, "obj_localization", "red cup", state=SkillState.FAILED, start=_p(0.5, 0), end=_p(0.5, 0)),
+             step(3, "backward", start=_p(0.5, 0), end=_p(0.01, 0)),  # undoes step 1 (one motion later)
+             step(4, "yaw_left", start=_p(0.01, 0), end=_p(0.01, 0, 0.6)),
+             step(5, "obj_localization", "red cup", start=_p(0.01, 0, 0.6), end=_p(0.01, 0, 0.6)),
+             step(6, "done")]
+    a = actions_of(steps)
+    assert [x.skill for x in a] == ["forward", "obj_localization", "backward", "yaw_left", "obj_localization"]
+    assert oscillations(a) == {0, 2} and zero_net_sequences(a) == set()  # a localization sits between them
+    assert futile_loops(a) == set() and redundant_actions(a) == {0, 2}
+    assert compute([record("e1", True, steps)]).arr == pytest.approx(100 * 2 / 5)

@@ -16,7 +16,7 @@ from shared.messages import ModelCall, ReasoningStep, SkillState, SkillToExecute
 
 
 def test_builtin_suites_parse_and_name_only_things_the_simulator_has():
-    suites = load_suites()
+    suites = load_suites(split=None)
     assert list(suites) == list(PAPER_SUITES)
     for name, tasks in suites.items():
         assert tasks, name
@@ -30,7 +30,7 @@ def test_builtin_suites_parse_and_name_only_things_the_simulator_has():
                 assert t.scenario(1).placements == t.placements
     assert all(t.target_out_of_view for t in suites["search"])
     # The conditional's outcome is decided by the layout: the orange (or, otherwise, the banana) is on the counter.
-    counter = [t for t in suites["sequential"] if "counter" in t.command]
+    counter = [t for t in suites["sequential"] if "If you see an orange" in t.command]
     assert {t.target_object for t in counter} == {"orange", "banana"}
     assert all(t.placements == {t.target_object: "counter"} for t in counter)
     assert all("orange" not in (*t.extra_objects, *(t.distractors or ())) for t in counter if t.target_object == "banana")
@@ -41,6 +41,53 @@ def test_builtin_suites_parse_and_name_only_things_the_simulator_has():
               "tissue box.", "Find the purple cup and place it on the round table.",
               "Locate the cardboard box and bring it to the sink."):
         assert c in commands
+
+
+def _norm(command: str) -> str:
+    return " ".join("".join(ch for ch in command.lower() if ch.isalnum() or ch.isspace()).split())
+
+
+def test_splits_have_ten_distinct_commands_per_suite_and_share_none():
+    dev, test = load_suites(split="dev"), load_suites(split="test")
+    assert list(dev) == list(test) == list(PAPER_SUITES)
+    for suite in PAPER_SUITES:
+        d = {_norm(t.command) for t in dev[suite]}
+        t = {_norm(x.command) for x in test[suite]}
+        assert len(d) >= 10 and len(t) >= 10, suite
+        assert not d & t, (suite, d & t)
+        assert {x.split for x in dev[suite]} == {"dev"} and {x.split for x in test[suite]} == {"test"}
+    # the paper's templates are dev commands: the project was built against them
+    assert any(x.command == "Pick up the red cup and place it on the table." for x in dev["localization"])
+    with pytest.raises(ConfigError, match="unknown split"):
+        load_suites(split="val")
+
+
+def test_split_seeds_come_from_disjoint_ranges():
+    dev = expand(load_suites(split="dev"), episodes=10, backends=["rules"], variants=["full"])
+    test = expand(load_suites(split="test"), episodes=10, backends=["rules"], variants=["full"])
+    assert len(dev) == len(test) == 40
+    dev_seeds, test_seeds = {s.seed for s in dev}, {s.seed for s in test}
+    assert len(dev_seeds) == len(test_seeds) == 40  # 10 layouts per suite, none shared between suites
+    assert max(dev_seeds) < 2**30 <= min(test_seeds) and max(test_seeds) < 2**31
+    assert all(derive_seed(b, "search", i, "dev") < 2**30 <= derive_seed(b, "search", i, "test")
+               for b in range(3) for i in range(50))
+    # 10 episodes of a suite are 10 distinct tasks (a conditional command has one task line per branch)
+    assert all(len({s.task.model_dump_json() for s in dev if s.task.suite == suite}) == 10 for suite in PAPER_SUITES)
+
+
+def test_run_config_names_the_split_and_the_command_that_reproduces_it(tmp_path):
+    cfg = RunConfig(out=tmp_path / "ev", split="test", episodes=3, suites=["search"])
+    specs = episode_specs(cfg)
+    assert len(specs) == 3 and {s.task.split for s in specs} == {"test"}
+    line = cfg.command_line()
+    assert line.startswith("aermani eval --split test --backend rules --variant full ")
+    assert "--segmenter color --realism realistic --speed-factor 4 " in line and "--suites search" in line
+    import inspect
+
+    from services.evaluation.cli import eval_command  # the line's options are the CLI's own
+    params = set(inspect.signature(eval_command).parameters)
+    opts = [a[2:].replace("-", "_") for a in line.split() if a.startswith("--")]
+    assert set(opts) <= params | {"t_max"}, set(opts) - params
 
 
 def test_user_task_file(tmp_path):
@@ -78,12 +125,12 @@ def test_expand_is_deterministic_and_shares_layouts_across_variants():
     assert derive_seed(3, "search", 1) != derive_seed(3, "search", 2)
 
 
-def _rec(eid: str, success: bool, variant: str = "full") -> EpisodeRecord:
+def _rec(eid: str, success: bool, variant: str = "full", backend: str = "openai") -> EpisodeRecord:
     task = load_suites(["localization"])["localization"][0]
     steps = [ReasoningStep(task_id="t", step=1, calls=(ModelCall(raw_answer="{}", valid=True, latency_s=0.2),),
                            ste=SkillToExecute(skill="obj_localization", argument="red cup"), valid=True,
                            skill_state=SkillState.SUCCEEDED)]
-    return EpisodeRecord(episode_id=eid, suite="localization", backend="openai", variant=variant, task=task, seed=1,
+    return EpisodeRecord(episode_id=eid, suite="localization", backend=backend, variant=variant, task=task, seed=1,
                          state="succeeded" if success else "failed", success=success, steps=steps,
                          verdict="red cup rests on the table" if success else "red cup is in the gripper")
 
@@ -118,3 +165,49 @@ def test_report_states_the_backend_and_has_both_tables(tmp_path):
     write_report(tmp_path)
     assert "not a real VLM" in paths["markdown"].read_text()
     assert "not a VLM" in backend_note({"backend": "rules"}, [])
+
+
+def test_report_states_the_configuration_names_the_rules_baseline_and_lists_every_incident(tmp_path):
+    rf = ResultsFile(tmp_path / "episodes.jsonl")
+    rf.append(_rec("rules/full/localization/000-s11", True, backend="rules").model_copy(
+        update={"seed": 11, "collisions": ("vehicle-shelf",), "judge_success": True}))
+    rf.append(_rec("rules/full/localization/001-s12", False, backend="rules").model_copy(
+        update={"seed": 12, "attempts": 2, "judge_success": True, "restarts": [
+            "attempt 1: failed before the first reasoning step: takeoff failed: no climb"]}))
+    rf.append(_rec("rules/full/localization/002-s13", False, backend="rules").model_copy(
+        update={"seed": 13, "harness_error": "sim/reset refused the scenario: no room"}))
+    cfg = RunConfig(out=tmp_path, split="dev", episodes=3)
+    from services.evaluation.runner import run_config_of
+    doc_cfg = run_config_of(cfg)
+    paths = write_report(tmp_path, config=doc_cfg)
+    md = paths["markdown"].read_text()
+    assert "AERMANI-VLM (rules)" not in md and "| rules (non-VLM baseline) | 2 | 50.0 |" in md
+    for needle in (f"`{cfg.command_line()}`", f"`{doc_cfg['commit']}`", "segmenter -- real: the colour segmenter",
+                   "| simulator realism | `realistic` |", "| speed factor | 4.0 |", "| split | `dev` |",
+                   "| seeds | 11, 12, 13 |", "| N (episodes in the metrics / recorded) | 2 / 3 |",
+                   "excluded (left out of the metrics, retried by the next run of the command): "
+                   "rules/full/localization/002-s13 on ?: sim/reset refused the scenario: no room",
+                   "restarted (2 trials, the last one is in the metrics): rules/full/localization/001-s12",
+                   "takeoff failed: no climb", "| rules (non-VLM baseline) | 2 | 1 | 2 | 1 | 1 (0.50 per episode) | 1 |",
+                   "| AERMANI-VLM (Qwen2-VL) | 77.5 | 4.5 | 22.8 | 8.7 | 0.61 | not run here: needs a GPU/API key |"):
+        assert needle in md, needle
+    doc = json.loads(paths["json"].read_text())
+    assert doc["split"] == "dev" and doc["seeds"] == [11, 12, 13] and doc["n"] == 2
+    assert doc["command"] == cfg.command_line() and doc["commit"] == doc_cfg["commit"]
+    assert isinstance(doc["dirty"], bool) and doc["segmenter"] == "color" and doc["realism"] == "realistic"
+    assert doc["excluded"][0]["reason"].startswith("sim/reset refused")
+    assert doc["restarted"][0]["reasons"][0].startswith("attempt 1")
+    saved = json.loads((tmp_path / "run_config.json").read_text())
+    assert saved["command"] == cfg.command_line() and "dirty" in saved
+    # the oracle is named as such
+    assert "ORACLE" in backend_note({"backend": "rules", "segmenter": "sim"}, [])
+
+
+def test_report_puts_a_real_model_run_in_its_paper_row(tmp_path):
+    rf = ResultsFile(tmp_path / "episodes.jsonl")
+    rf.append(_rec("openai/full/localization/000", True))
+    md = write_report(tmp_path, config={"backend": "openai", "model": "Qwen/Qwen2-VL-7B-Instruct",
+                                        "base_url": "http://gpu-box:8000/v1"})["markdown"].read_text()
+    row = next(x for x in md.splitlines() if x.startswith("| AERMANI-VLM (Qwen2-VL) |"))
+    assert "SR 100.0" in row and "Qwen/Qwen2-VL-7B-Instruct, N=1" in row
+    assert "| AERMANI-VLM (GPT-4o) | 85.0 |" in md and md.count("not run here: needs a GPU/API key") == 5

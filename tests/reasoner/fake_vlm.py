@@ -137,7 +137,7 @@ class FakeVLMServer:
         self.faults: deque[str | None] = deque()
         self.fault_every = fault_every
         """When > 0 and no fault is queued, every fault_every-th answer gets `periodic_fault` (a standing schedule
-        for evaluation runs, e.g. docs/eval/variants: every 20th answer truncated)."""
+        for pipeline checks, e.g. scripts/eval_variants.sh: every 20th answer truncated)."""
         self.periodic_fault = periodic_fault
         self._answered = 0
         self.requests: list[dict] = []

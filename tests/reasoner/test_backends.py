@@ -124,6 +124,18 @@ def test_outage_fails_task_with_clear_message() -> None:
     assert len(down.requests) == 2 and w.executed[-1] == "hold"
 
 
+def test_invalid_answer_then_transport_error_stays_in_the_step_record(vlm: FakeVLMServer) -> None:
+    """An invalid answer followed, in the same step, by a transport error is still in the step's calls (and in
+    the status's counters), so IAR counts it."""
+    vlm.faults.clear()
+    vlm.faults.extend(["invalid_json", "500", "500"])  # the re-prompt fails twice: transport retry budget 1
+    w = world()
+    final, steps = run(settings_for("openai", vlm, transport_retries=1), w)
+    assert final.state is TaskState.FAILED and "model unavailable" in final.message
+    assert [c.valid for c in steps[-1].calls] == [False]
+    assert final.invalid_answers == 1 and final.model_calls == 1
+
+
 def test_missing_key_is_a_config_error(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delenv("OPENAI_API_KEY", raising=False)
     with pytest.raises(ConfigError, match="AERMANI_REASONER_API_KEY"):
