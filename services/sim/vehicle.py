@@ -21,6 +21,7 @@ MAIN_POSCTL = mavutil.PX4_CUSTOM_MAIN_MODE_POSCTL
 MAIN_AUTO = mavutil.PX4_CUSTOM_MAIN_MODE_AUTO
 MAIN_OFFBOARD = mavutil.PX4_CUSTOM_MAIN_MODE_OFFBOARD
 SUB_TAKEOFF = mavutil.PX4_CUSTOM_SUB_MODE_AUTO_TAKEOFF
+LAND_DETECT_S = 1.5  # no vertical motion while landing for this long: landed (PX4's land detector)
 SUB_LOITER = mavutil.PX4_CUSTOM_SUB_MODE_AUTO_LOITER
 SUB_LAND = mavutil.PX4_CUSTOM_SUB_MODE_AUTO_LAND
 SUB_RTL = mavutil.PX4_CUSTOM_SUB_MODE_AUTO_RTL
@@ -134,6 +135,7 @@ class Vehicle:
         self.main_mode, self.sub_mode = MAIN_AUTO, SUB_LOITER
         self.on_ground = True
         self.landing_touch_wall: float | None = None
+        self._blocked_s = 0.0
         self.sp_pos: np.ndarray | None = None
         self.sp_vel: np.ndarray | None = None
         self.sp_yaw: float | None = None
@@ -427,11 +429,24 @@ class Vehicle:
                 self._event(mav.MAV_SEVERITY_INFO, f"Gripper: no longer holding {self.held_name}")
             self.held_name = name
         was = self.on_ground
-        resting = self.world.gear_on_something() or self.world.vehicle_position()[2] < 0.003
+        # Resting on something: the gear, the floor, a payload that touched down first (descent blocked while
+        # landing), or anything at all once the motors are off and it no longer moves.
+        resting = (self.world.gear_on_something() or self.world.vehicle_position()[2] < 0.003
+                   or self._descent_blocked(dt) or (not self.armed and abs(self.v[2]) < 0.05))
         self.on_ground = resting and abs(self.v[2]) < 0.15 and (
             not self.armed or not self._climbing())
         if was and not self.on_ground:
             self.landing_touch_wall = None
+
+    def _descent_blocked(self, dt: float) -> bool:
+        """PX4's land detector in AUTO.LAND: commanded down but no vertical motion for a while means ground
+        contact, whatever touches (the gear, or a payload hanging below the gripper that reached the floor)."""
+        landing = self.main_mode == MAIN_AUTO and self.sub_mode == SUB_LAND
+        if landing and abs(self.v[2]) < 0.05:
+            self._blocked_s += dt
+        else:
+            self._blocked_s = 0.0
+        return self._blocked_s >= LAND_DETECT_S
 
     def _drift(self, dt: float) -> None:
         p = self.params

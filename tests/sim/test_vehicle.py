@@ -193,3 +193,18 @@ def test_battery_failsafe_takes_over_offboard_but_offboard_stays_possible(core):
     # PX4 would let a stack switch back (a setpoint stream is there): not re-entering is the stack's duty.
     clock.run(0.2, ([0.0, 0.0, -1.0], 0.0))
     assert v.set_mode(MAIN_OFFBOARD, 0, clock.now) == ACCEPTED
+
+
+def test_landing_with_an_object_in_the_gripper_is_detected_and_disarms(core):
+    """The held object reaches the floor before the gear: PX4's land detector still sees a landing (commanded
+    down, no vertical motion), so AUTO.LAND ends on the ground and auto-disarms instead of hovering on."""
+    clock, v = Clock(core), core.vehicle
+    to_offboard(core, clock)
+    assert grasp(core, clock, "red cup", 0.0)
+    clock.fly([0.0, 0.0, 1.2], 0.0, 10.0)
+    assert v.land() == ACCEPTED
+    clock.run(12.0)
+    assert v.on_ground and v.landed_state == mav.MAV_LANDED_STATE_ON_GROUND
+    assert not v.armed
+    assert core.world.holding() is not None  # still in the fingers, resting on the floor below the vehicle
+    assert v.p[2] < -0.05  # NED: the body stopped above its gear height: the cup holds it up
