@@ -124,7 +124,7 @@ def recover_cmd(
         raise typer.Exit(2)
     res = recover(log, dst)
     state = "the log was complete" if res.complete else f"stopped at: {res.error or 'end of file'}"
-    typer.echo(f"recovered {len(res.samples)} messages in {len(res.channels)} channels from {res.chunks} "
+    typer.echo(f"recovered {res.messages} messages in {len(res.channels)} channels from {res.chunks} "
                f"complete chunks into {dst} ({state})")
 
 

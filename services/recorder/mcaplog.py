@@ -11,7 +11,6 @@ This module is also the reading helper other services use (the reasoner's `repla
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import json
 import logging
@@ -342,42 +341,56 @@ class Salvage:
     """True when the file ended with its footer (nothing was lost)."""
     error: str = ""
     raw: list[tuple[int, Message]] | None = None
+    messages: int = 0
+    """Messages kept (= len(samples) for `salvage`; `recover` streams them and keeps none)."""
 
 
-def salvage(path: str | Path) -> Salvage:
-    """Read a (possibly truncated) log record by record; stop at the first incomplete or corrupt record.
-    Messages live in chunks, and a chunk is only parsed once it is complete, so this keeps exactly the
-    complete chunks."""
-    schemas: dict[int, Schema] = {}
-    channels: dict[int, Channel] = {}
-    meta: list[Metadata] = []
-    raw: list[tuple[int, Message]] = []
-    chunks = 0
-    complete = False
-    error = ""
+@dataclass
+class _Scan:
+    """What streaming through a (possibly truncated) log found so far."""
+
+    chunks: int = 0
+    complete: bool = False
+    error: str = ""
+
+
+def _scan(path: str | Path, scan: _Scan) -> Iterator[Any]:
+    """Yield the records of a (possibly truncated) log in file order: schemas, channels, messages, metadata;
+    stop at the first incomplete or corrupt record. A chunk's records are yielded only once the whole chunk
+    has been read and its CRC checked, so this keeps exactly the complete chunks, holding one at a time."""
     from mcap.records import Chunk, Footer
 
     with Path(path).open("rb") as f:
         reader = StreamReader(f, emit_chunks=True, record_size_limit=1 << 31)
-        it = reader.records
         try:
-            for record in it:
+            for record in reader.records:
                 if isinstance(record, Chunk):
-                    # Decode the chunk's records only once it has been read completely.
                     inner = list(_chunk_records(record))
-                    chunks += 1
-                    for r in inner:
-                        _take(r, schemas, channels, raw)
-                elif isinstance(record, Metadata):
-                    meta.append(record)
+                    scan.chunks += 1
+                    yield from inner
                 elif isinstance(record, Footer):
-                    complete = True
+                    scan.complete = True
                 else:
-                    _take(record, schemas, channels, raw)
+                    yield record
         except Exception as exc:  # truncated or corrupt tail: keep what was complete
-            error = f"{type(exc).__name__}: {exc}"
+            scan.error = f"{type(exc).__name__}: {exc}"
+
+
+def salvage(path: str | Path) -> Salvage:
+    """Read a (possibly truncated) log into memory record by record, up to its last complete chunk (for
+    reading; `recover` streams instead)."""
+    schemas: dict[int, Schema] = {}
+    channels: dict[int, Channel] = {}
+    meta: list[Metadata] = []
+    raw: list[tuple[int, Message]] = []
+    scan = _Scan()
+    for record in _scan(path, scan):
+        if isinstance(record, Metadata):
+            meta.append(record)
+        else:
+            _take(record, schemas, channels, raw)
     samples = [_sample(schemas.get(channels[cid].schema_id), channels[cid], m) for cid, m in raw if cid in channels]
-    return Salvage(samples, schemas, channels, meta, chunks, complete, error, raw)
+    return Salvage(samples, schemas, channels, meta, scan.chunks, scan.complete, scan.error, raw, len(samples))
 
 
 def _chunk_records(chunk: Any) -> Iterable[Any]:
@@ -398,28 +411,34 @@ def _take(record: Any, schemas: dict[int, Schema], channels: dict[int, Channel],
 
 def recover(src: str | Path, dst: str | Path, *, chunk_size: int = 1 << 20) -> Salvage:
     """Write every message of the complete chunks of `src` (e.g. after a SIGKILL) into a finished log
-    `dst`, with the same channels, schemas, metadata and times."""
-    result = salvage(src)
+    `dst`, with the same channels, schemas, metadata and times. Streams: memory stays at about one chunk
+    whatever the log's size. The returned Salvage carries the counts, not the samples."""
     dst = Path(dst)
     dst.parent.mkdir(parents=True, exist_ok=True)
+    scan = _Scan()
+    schemas: dict[int, Schema] = {}
+    channels: dict[int, Channel] = {}
+    schema_ids: dict[int, int] = {}
+    channel_ids: dict[int, int] = {}
+    messages = 0
     with dst.open("wb") as f:
         writer = Writer(f, chunk_size=chunk_size, compression=CompressionType.ZSTD)
         writer.start(profile="", library="aermani-recover")
-        schema_ids: dict[int, int] = {}
-        channel_ids: dict[int, int] = {}
-        for sid, s in result.schemas.items():
-            schema_ids[sid] = writer.register_schema(s.name, s.encoding, s.data)
-        for cid, c in result.channels.items():
-            channel_ids[cid] = writer.register_channel(c.topic, c.message_encoding, schema_ids.get(c.schema_id, 0),
-                                                       dict(c.metadata))
-        for m in result.metadata:
-            writer.add_metadata(m.name, dict(m.metadata))
-        writer.add_metadata("aermani.recovered", {"source": str(src), "messages": str(len(result.samples)),
-                                                  "chunks": str(result.chunks), "error": result.error})
-        for cid, m in result.raw or []:
-            if cid in channel_ids:
-                writer.add_message(channel_ids[cid], m.log_time, m.data, m.publish_time, m.sequence)
+        for record in _scan(src, scan):
+            if isinstance(record, Schema) and record.id not in schema_ids:
+                schemas[record.id] = record
+                schema_ids[record.id] = writer.register_schema(record.name, record.encoding, record.data)
+            elif isinstance(record, Channel) and record.id not in channel_ids:
+                channels[record.id] = record
+                channel_ids[record.id] = writer.register_channel(
+                    record.topic, record.message_encoding, schema_ids.get(record.schema_id, 0), dict(record.metadata))
+            elif isinstance(record, Metadata):
+                writer.add_metadata(record.name, dict(record.metadata))
+            elif isinstance(record, Message) and record.channel_id in channel_ids:
+                writer.add_message(channel_ids[record.channel_id], record.log_time, record.data, record.publish_time,
+                                   record.sequence)
+                messages += 1
+        writer.add_metadata("aermani.recovered", {"source": str(src), "messages": str(messages),
+                                                  "chunks": str(scan.chunks), "error": scan.error})
         writer.finish()
-    with contextlib.suppress(Exception):
-        result.raw = None
-    return result
+    return Salvage([], schemas, channels, [], scan.chunks, scan.complete, scan.error, None, messages)

@@ -80,5 +80,5 @@ async def run(bus: Bus, settings: RecorderSettings, stop: asyncio.Event) -> None
             writer.submit(rec.key, rec.payload, rec.encoding, rec.receive_ns)
         sub.close()
         # The writer thread finishes the file; never cancelled, so a SIGTERM always leaves a valid MCAP.
-        await asyncio.shield(asyncio.to_thread(writer.stop))
+        await asyncio.shield(asyncio.to_thread(writer.stop, settings.stop_drain_s, settings.stop_drain_s + 15.0))
         log.info("recording finished: %s", writer.stats())

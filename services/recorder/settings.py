@@ -34,6 +34,9 @@ class RecorderSettings(ServiceSettings):
     """Bytes waiting for the writer thread before new samples are dropped (counted), MiB."""
     health_period_s: float = Field(1.0, gt=0)
     """How often health/recorder is published, seconds."""
+    stop_drain_s: float = Field(10.0, ge=0)
+    """On SIGTERM, write the queued backlog for at most this long, then finish the file (the rest is counted
+    as dropped). With the file's finish, well inside compose's 30 s stop grace for the recorder."""
     retry_s: float = Field(5.0, gt=0)
     """After a write error (disk full, unwritable path), wait this long before opening a new file."""
     foxglove: bool = False

@@ -87,6 +87,9 @@ class RecordWriter:
         self._opened_at = 0.0
         self._file_index = 0
         self._retry_at = 0.0
+        self._file_durable = 0
+        self._drain_deadline = 0.0
+        self.dropped_at_stop = 0
         self._pending = 0
         self._fox: Any = None
         self._fox_server: Any = None
@@ -128,9 +131,13 @@ class RecordWriter:
         """Ask for a new file now."""
         self._queue.put(_ROTATE)
 
-    def stop(self, timeout: float | None = 60.0) -> None:
-        """Write what is queued, finish the file, end the thread."""
+    def stop(self, drain_s: float | None = None, timeout: float | None = 60.0) -> None:
+        """Write what is queued (for at most `drain_s` seconds; what is left then is counted in
+        `dropped_at_stop`), finish the file, end the thread. Bounded, so a SIGTERM always ends with a valid
+        file within the stop grace of a container."""
         if self._thread.is_alive():
+            if drain_s is not None:
+                self._drain_deadline = time.monotonic() + drain_s
             self._queue.put(_STOP)
             self._thread.join(timeout)
 
@@ -148,7 +155,7 @@ class RecordWriter:
             "durable": self.durable, "file_messages": self.file_messages, "dropped": self.dropped_backlog,
             "lost_on_error": self.lost_on_error, "bytes": self.bytes_written, "channels": self.channels,
             "vehicles": sorted(self.vehicles), "backlog_bytes": self._backlog_bytes, "error": self.error,
-            "errors": self.errors, "foxglove": self.foxglove_url,
+            "errors": self.errors, "foxglove": self.foxglove_url, "dropped_at_stop": self.dropped_at_stop,
         }
 
     # ---- writer thread
@@ -164,6 +171,9 @@ class RecordWriter:
                 item = None
             if item is _STOP:
                 break
+            if self._drain_deadline and time.monotonic() > self._drain_deadline:
+                self._drop_rest(item)
+                break
             if item is _ROTATE:
                 self._rotate("requested")
                 continue
@@ -177,6 +187,19 @@ class RecordWriter:
         if self._fox_server is not None:
             with contextlib.suppress(Exception):
                 self._fox_server.stop()
+
+    def _drop_rest(self, item: Any) -> None:
+        """The drain ran out of time: count `item` and what is still queued, and leave them."""
+        while True:
+            if isinstance(item, tuple):
+                self.dropped_at_stop += 1
+                with self._lock:
+                    self._backlog_bytes -= len(item[1])
+            try:
+                item = self._queue.get_nowait()
+            except queue.Empty:
+                break
+        log.warning("stop: %d queued samples not written (drain limit reached)", self.dropped_at_stop)
 
     def _next_path(self) -> Path:
         out = Path(self.settings.out_dir)
@@ -193,16 +216,17 @@ class RecordWriter:
             out.mkdir(parents=True, exist_ok=True)
             path = self._next_path()
             self._file = _File(self.opener(path))
+            self.path, self._file_durable = str(path), 0  # from here a failure concerns this file
             self._writer = Writer(self._file, chunk_size=self.settings.chunk_size,
                                   compression=compression_type(self.settings.compression))
             self._writer.start(profile="", library="aermani-recorder")
             self._writer.add_metadata("aermani", {**self.static_meta, "file_index": str(self._file_index),
                                                   "opened_ns": str(time.time_ns())})
             self._table = ChannelTable(self._writer)
-            self.path = str(path)
             self.files.append(str(path))
             self._opened_at = time.monotonic()
             self._pending = 0
+            self._file_durable = 0
             self.file_messages = 0
             self.channels = 0
             if self.error:
@@ -225,6 +249,14 @@ class RecordWriter:
         if self._file is not None:
             with contextlib.suppress(Exception):
                 self._file.close()
+            if self._file_durable == 0 and self.path:
+                # Nothing of this file reached the disk (a retry on a still-full disk): remove it, so a
+                # disk-full episode leaves one new file when space returns, not one per retry.
+                with contextlib.suppress(OSError):
+                    Path(self.path).unlink()
+                with contextlib.suppress(ValueError):
+                    self.files.remove(self.path)
+                log.info("removed %s: nothing in it reached the disk", self.path)
         self._file = None
         self._writer = None
         self._table = None
@@ -251,6 +283,7 @@ class RecordWriter:
             after = self._file.tell()
             if after != before:  # a chunk was finished: everything added so far is on disk
                 self.durable += self._pending
+                self._file_durable += self._pending
                 self._pending = 0
                 self.bytes_written += after - before
         except Exception as exc:
