@@ -51,11 +51,12 @@ _GENERIC = {"one", "object", "thing", "item", "of", "them", "two", "three", "bot
 # Verbs, by what they ask for. Multi-word ones first where it matters.
 PICK_VERBS = ("pick up", "pick out", "pick", "grab", "get", "take", "fetch", "collect", "snag", "lift", "retrieve",
               "obtain", "seize", "grasp", "nab", "secure", "procure", "acquire", "bring", "carry", "hand", "pass",
-              "give", "deliver", "gather", "scoop up", "hold")
+              "give", "deliver", "gather", "scoop up", "hold", "pluck", "hoist", "snatch", "grip", "clutch", "haul",
+              "lug", "tote", "ferry", "convey", "shuttle", "take hold of", "get hold of", "grab hold of")
 FIND_VERBS = ("find", "locate", "look for", "search for", "seek", "hunt for", "hunt down", "track down", "spot")
 PLACE_VERBS = ("put", "place", "set", "drop", "deposit", "leave", "lay", "rest", "position", "stick", "stash", "stow",
                "plop", "pop", "park", "transfer", "relocate", "move", "carry", "take", "bring", "deliver", "return",
-               "unload", "shift")
+               "unload", "shift", "dump", "toss", "plonk", "haul", "lug", "tote", "ferry", "convey", "shuttle")
 TASK_VERBS = tuple(dict.fromkeys(PICK_VERBS + FIND_VERBS + PLACE_VERBS))
 # Verbs after which a plain "on/in/at" is where the object is, not where it goes ("take the cup on the table").
 _CARRY_VERBS = {"bring", "carry", "take", "deliver", "get", "fetch", "grab", "pick up", "pick", "collect", "snag",
@@ -176,7 +177,8 @@ _POLITE = (
 _WANTS = (r"\b(?:i(?: would|'d|d)? (?:like|love|want|need|wish for)|i could (?:use|do with)|i will have|i'?m (?:craving|looking for)|"
           r"i am (?:craving|looking for)|can i (?:have|get)|could i (?:have|get)|may i (?:have|get)|let me have|"
           r"give me|hand me|pass me|get me|grab me|fetch me|bring me)\b")
-_CONTRACTIONS = (("don't", "do not"), ("doesn't", "does not"), ("isn't", "is not"), ("aren't", "are not"),
+_CONTRACTIONS = (("i'd", "i would"), ("i'll", "i will"), ("we'd", "we would"), ("it'd", "it would"),
+                 ("isn't", "is not"), ("don't", "do not"), ("doesn't", "does not"), ("isn't", "is not"), ("aren't", "are not"),
                  ("can't", "cannot"), ("won't", "will not"), ("there's", "there is"), ("it's", "it is"),
                  ("that's", "that is"), ("what's", "what is"), ("where's", "where is"), ("i'm", "i am"),
                  ("you're", "you are"), ("you'll", "you will"), ("shouldn't", "should not"))
@@ -206,6 +208,8 @@ def normalize(command: str) -> str:
     c = re.sub(r"\bgo (?:and )?(get|grab|fetch|pick up|collect|retrieve|find|bring)\b", r" \1 ", c)
     c = re.sub(r"\b(?:set|put|lay|place|drop|plop) (it|them|that|this)? ?down\b", r" put \1 ", c)
     c = re.sub(r"\bdrop (it|them|that|this)? ?off\b", r" put \1 ", c)
+    c = re.sub(r"^\s*(?:the |a |an |my )?(?P<x>[a-z][a-z \-]*?) (?:needs|has|should|must|ought|is|are|has got) (?:to )?"
+               r"(?:go|be (?:put|placed|moved|set|brought|taken|returned)|end up|get put)\b", r"put the \g<x>", c)
     for pat, rep in _COMPOUNDS:
         c = re.sub(pat, rep, c)
     for pat, rep in _CATEGORY_PHRASES:
@@ -243,10 +247,12 @@ def _clean(np_: str) -> str | None:
 # --------------------------------------------------------------------------- special constructions
 
 _OBJ = r"((?:(?!\b(?:otherwise|else|if|then|and|but|or|not|please)\b)[a-z0-9\- ])+?)"
-_ELSE = (r"(?:[,;.]\s*|\s+)(?:and\s+|but\s+)?(?:otherwise|or else|else|if not|failing that|if (?:there is|you see|you find|"
-         r"you spot) (?:none|nothing|no [a-z]+)|if (?:there is not|there are not) (?:one|any)|if you (?:cannot|do not|"
+_ELSE = (r"(?:[,;.]\s*|\s+)(?:and\s+|but\s+|or\s+)?(?:otherwise|or else|else|if not|failing that|if (?:there is|you see|you find|"
+         r"you spot) (?:none|nothing|no [a-z]+)|if (?:there is not|there are not)(?: (?:one|any))?|if you (?:cannot|do not|"
          r"can not|did not) (?:see|find|spot)(?: (?:one|it|any|them))?|if none|if it is not there|if not there|"
          r"in case there is none)\b,?")
+_IF_IS = (r"\b(?:if|in case|should|when|provided)\s+(?:there is\s+)?(?:a|an|the|any|some)\s+"
+          r"(?=[a-z\- ]+?\s+(?:is|are|happens|can be|exists|shows up|turns up)\b)")
 _IF_SEE = (r"\b(?:if|in case|should|when|whenever|provided)\s+(?:you\s+)?(?:can\s+)?(?:see|find|spot|notice|detect|"
            r"there (?:is|are)|there happens to be|you come across)\s+")
 
@@ -255,7 +261,8 @@ def _conditional(c: str, plan: Plan) -> str:
     """"If you see an orange, pick it up; otherwise grab the banana" -> choices [orange, banana]; the rest of the
     command is returned. A conditional without an else branch names the target."""
     m = re.search(_ELSE, c)
-    cond = re.search(_IF_SEE + r"(.*)", c[: m.start()] if m else c)
+    head = c[: m.start()] if m else c
+    cond = re.search(_IF_SEE + r"(.*)", head) or re.search(_IF_IS + r"(.*)", head)
     if m and cond:
         first = noun_phrase(cond.group(1))
         if first in ("it", "one", ""):  # "grab the orange if you see it, otherwise ..."
@@ -268,6 +275,15 @@ def _conditional(c: str, plan: Plan) -> str:
             plan.choices = [singular(first), singular(second)]
             start = min(cond.start(), _verb_start(c[: cond.start()]))
             return c[:start] + " " + (after[cut.start():] if cut else "")
+    if m and not cond and _after_verb(head):  # "take the orange, or if there is not one, the apple"
+        first = noun_phrase(_after_verb(head) or "")
+        after = c[m.end():]
+        cut = re.search(r"[.;!?]|\bthen\b|\band (?:then )?(?:put|place|set|drop|bring|move)\b", after)
+        second_text = after[: cut.start()] if cut else after
+        second = noun_phrase(_after_verb(second_text) or second_text)
+        if first and second and first not in _PRONOUNS and second not in _PRONOUNS:
+            plan.choices = [singular(first), singular(second)]
+            return c[: _verb_start(head)] + " " + (after[cut.start():] if cut else "")
     if cond and not m:
         first = noun_phrase(cond.group(1))
         if first and first not in _PRONOUNS:
@@ -303,6 +319,8 @@ _EXCLUDE = (
     + _OBJ + r"(?=\s*(?:\band\b|\bthen\b|[,.;:!?]|$))",
     r"\bleave (?:the |a |an |any |those |these )?" + _OBJ + r"\s+(?:alone|be|where (?:it is|they are)|untouched|in place)",
 )
+_LEAVE = re.compile(r"\b(?:and |but |then )?leave (?:the |a |an |any |those |these )?(?P<np>[a-z0-9\- ]+?)"
+                    r"(?=\s*(?:\band\b|\bthen\b|[,.;:!?]|$))")
 
 
 def _exclusions(c: str, plan: Plan) -> str:
@@ -316,13 +334,17 @@ def _exclusions(c: str, plan: Plan) -> str:
             if np_ and np_ not in _PRONOUNS:
                 plan.excluded.append(singular(np_))
             c = c[: m.start()] + " " + c[m.end():]
+    for m in list(_LEAVE.finditer(c))[::-1]:  # "... and leave the purple cup": a distractor, when nothing follows
+        if noun_phrase(m.group("np")) == m.group("np").strip() and m.group("np").strip() not in _PRONOUNS:
+            plan.excluded.append(singular(m.group("np").strip()))
+            c = c[: m.start()] + " " + c[m.end():]
     return c
 
 
 def _selector(c: str, plan: Plan) -> None:
     """Size comparisons: the larger/smaller one of a group, resolved later from measured sizes."""
     words = "|".join(_LARGER + _SMALLER)
-    m = re.search(r"\b(" + words + r")\b", c)
+    m = re.search(r"(?<!\ba )(?<!\bjust a )\b(" + words + r")\b(?! (?:bit|while|further|more|higher|lower|closer)\b)", c)
     if not m:
         return
     plan.selector = "larger" if m.group(1) in _LARGER else "smaller"
@@ -383,6 +405,8 @@ _MOVE = re.compile(r"\b(?:move|go|fly|step|head|drift|shift|slide|strafe|glide|t
                    + r")?")
 _BARE = re.compile(r"\b(?P<verb>advance|ascend|climb|rise|descend|reverse|retreat|back up|back off|go higher|"
                    r"go lower|gain altitude|lose altitude|lower yourself|raise yourself)\b(?P<post>" + _COUNT + r")?")
+_LONE_DIR = re.compile(r"(?:then\s+|and\s+)?(?P<dir>forwards?|ahead|backwards?|back|left|right|up|down|higher|lower)\b"
+                       r"(?P<post>" + _COUNT + r")?\s*$")
 _BARE_DIR = {"advance": S.FORWARD, "ascend": S.UP, "climb": S.UP, "rise": S.UP, "go higher": S.UP,
              "gain altitude": S.UP, "raise yourself": S.UP, "descend": S.DOWN, "go lower": S.DOWN,
              "lose altitude": S.DOWN, "lower yourself": S.DOWN, "reverse": S.BACKWARD, "retreat": S.BACKWARD,
@@ -475,6 +499,10 @@ def motions(clause: str) -> list[str]:
     for m in _BARE.finditer(clause):
         skill = _BARE_DIR[m.group("verb")]
         add(m, [skill] * _amount(m, skill, ("post",)))
+    m = _LONE_DIR.match(clause)
+    if m and not found:  # "... and forward twice": the verb was in the clause before
+        skill = _DIRS[m.group("dir")]
+        add(m, [skill] * _amount(m, skill, ("post",)))
     for m in _GOTO.finditer(clause):
         what = noun_phrase(m.group("what"))
         if what and what not in _DIRS and what.split()[0] not in _DIRS:
@@ -521,6 +549,7 @@ def _strip_location(text: str, plain: bool) -> str:
 
 def _destination_after(text: str, verb: str) -> str | None:
     """The destination named right after an object: "onto the counter next to the sink" -> counter."""
+    text = re.sub(r"^\s*(?:off|down|back|over|up)\s+(?=(?:on|in|onto|into|to|at|inside|atop|upon)\b)", " ", text)
     text = _strip_location(text, verb in _CARRY_VERBS)
     text = re.sub(r"^\s*,?\s*(?:and\s+)?(?:then\s+)?", "", text)
     preps = _STRONG_PREP if verb in _CARRY_VERBS and verb not in ("move",) else _STRONG_PREP + "|" + _WEAK_PREP
@@ -532,6 +561,11 @@ def _destination_after(text: str, verb: str) -> str | None:
 
 def _dest_np(text: str) -> str | None:
     np_ = noun_phrase(text)
+    if np_:  # "on the table in the sink": a second place-preposition after the first names the destination
+        tail = text[text.find(np_.split()[-1]) + len(np_.split()[-1]):]
+        later = re.match(r"\s*(?:onto|into|in|on|inside|on top of|atop|upon)\s+(?P<np>[a-z][a-z \-]*)", tail)
+        if later and noun_phrase(later.group("np")):
+            np_ = noun_phrase(later.group("np"))
     if not np_ or np_ in _NOT_DESTINATION or text.strip().startswith(("me", "here", "us", "you")):
         return None
     return singular(np_)
@@ -588,8 +622,8 @@ def _object_and_destination(c: str, plan: Plan) -> str | None:
                 plan.target = singular(np_)
         last = np_.split()[-1]
         after = rest[rest.find(last) + len(last):]
-        if plan.destination is None and verb in PLACE_VERBS:
-            plan.destination = _destination_after(after, verb)
+        if plan.destination is None:  # a verb that does not place takes only a strong preposition ("onto")
+            plan.destination = _destination_after(after, verb if verb in PLACE_VERBS else "carry")
         if plan.target or plan.category or plan.choices or plan.selector:
             break
     if plan.destination is None:
@@ -646,6 +680,8 @@ def parse_command(command: str, skills: list[str] | tuple[str, ...] = ()) -> Pla
         plan.motions.extend(motions(clause))
     if verb and not (plan.target or plan.choices or plan.category or plan.selector) and re.search(r"\b(?:it|them)\b", c):
         plan.target = _antecedent(c)
+    head = (plan.target or plan.group or "").split()[-1:]
+    plan.excluded = [f"{x[:-4]} {head[0]}" if x.endswith(" one") and head else x for x in plan.excluded]
     if plan.choices:
         plan.target = None
     if plan.category and plan.target is None and plan.excluded and plan.category in plan.excluded:
