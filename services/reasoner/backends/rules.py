@@ -1,16 +1,18 @@
 """`rules`: the deterministic non-VLM baseline policy, answering in the same DRT/STE JSON as a VLM.
 
 It reads the same context the prompt is built from (command, history, working memory, perception's
-detections), never the pixels, and re-derives its plan from that context at every step, so it is
-stateless and also works from the prompt text alone (`context_from_prompt`, used by the fake VLM
-servers in tests). It handles the paper's four suites:
+detections, the vehicle pose), never the pixels nor the simulator, and re-derives its plan from that
+context at every step, so it is stateless and also works from the prompt text alone
+(`context_from_prompt`, used by the fake VLM servers in tests). The command is read by `rules_parse`
+(synonyms, polite and indirect requests, relative clauses, counts and amounts of motion, conditionals,
+negated distractors, size comparisons, categories); a command it cannot understand is refused before
+takeoff (`RulesBackend.refusal`). Then:
 
-- localization: "pick up the X and place it on the Y", "get the X and put it in the Y";
-- clutter/ambiguity: "of the two boxes, pick up the larger one" (compares detected sizes), "ignore the
-  tools and pick up the green bottle", "bring me a snack" (apple, banana, cracker box...);
-- sequential: "move forward twice, turn right, and pick up the tissue box" (motions first, in order),
-  and conditionals "approach the counter. if you see an orange, pick it up; otherwise grab the banana";
-- search: yaw in place to scan until the target is detected, then localize, grasp, search the surface...
+- the command's motions first, in order ("approach the counter" flies there);
+- the target: named, chosen by a conditional, by measured size, or as the nearest member of a category,
+  never an excluded one; localize, grasp, then the destination: localize a spot, place;
+- not in view: look toward where it was seen earlier, else explore (scan in place, then fly to viewpoints
+  around where the search began and scan there); after covering them, `done` with a "not found" failure.
 
 Without a destination ("pick up the tissue box", "bring it here", "bring me a snack") the task ends
 with `done` after a successful grasp, holding the object: "here" is where the operator is, and the
