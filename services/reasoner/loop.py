@@ -169,18 +169,9 @@ class TaskRunner:
             return self.status(TaskState.FAILED, f"no skill library from the executor: {exc}")
         compiler = PromptCompiler(self.variant, library)
         self.categories = {spec.name: spec.category for spec in library.skills}
-        refused = self.backend.refusal(self.req.command, [s.name for s in policy_skills(library)])
-        if refused:  # before takeoff: nothing flies for a command the policy cannot carry out
-            return self.status(TaskState.FAILED, f"command refused before takeoff: {refused}")
-        obs = await self.world.observe(0)
-        if obs.state is not None:
-            self._override_ns = obs.state.override_ns
-        if self.req.takeoff and obs.state is not None and obs.state.landed_state in (
-                LandedState.ON_GROUND, LandedState.UNKNOWN) and not obs.state.armed:
-            st = await self._execute(SkillRequest(skill=S.TAKEOFF, task_id=self.req.task_id, step=0),
-                                     self.settings.takeoff_timeout_s)
-            if st.state is not SkillState.SUCCEEDED:
-                return self.status(TaskState.FAILED, f"takeoff {st.state.value}: {st.message}")
+        ended = await self._preflight(library)
+        if ended is not None:
+            return ended
         failed_in_row = 0
         last_skill = S.TAKEOFF
         last_end_ns = 0
@@ -243,6 +234,23 @@ class TaskRunner:
                 log.warning("done was %s: %s", st.state.value, st.message)
             if st.state is SkillState.ABORTED:
                 return self.status(TaskState.ABORTED, f"skill {ste.skill} aborted: {st.message}")
+
+    async def _preflight(self, library: SkillLibrary) -> TaskStatus | None:
+        """Before the first step: the backend's refusal (nothing flies for a command the policy cannot carry
+        out), then the takeoff when the vehicle is on the ground. The failed status, or None to go on."""
+        refused = self.backend.refusal(self.req.command, [s.name for s in policy_skills(library)])
+        if refused:
+            return self.status(TaskState.FAILED, f"command refused before takeoff: {refused}")
+        obs = await self.world.observe(0)
+        if obs.state is not None:
+            self._override_ns = obs.state.override_ns
+        if self.req.takeoff and obs.state is not None and obs.state.landed_state in (
+                LandedState.ON_GROUND, LandedState.UNKNOWN) and not obs.state.armed:
+            st = await self._execute(SkillRequest(skill=S.TAKEOFF, task_id=self.req.task_id, step=0),
+                                     self.settings.takeoff_timeout_s)
+            if st.state is not SkillState.SUCCEEDED:
+                return self.status(TaskState.FAILED, f"takeoff {st.state.value}: {st.message}")
+        return None
 
     def _authority_end(self, obs: Observation, last_skill: str) -> TaskStatus | None:
         """PX4's authority: when PX4, the pilot or an abort took control during this task, or the vehicle came

@@ -66,6 +66,7 @@ def test_absent_object_ends_not_found_after_flying_through_the_room(tmp_path) ->
     where = [tuple(float(v) for v in m.groups()) for s in steps if (m := _AT.search(s.skill_message or ""))]
     assert where, "no motion reported a position"
     spread = max(math.dist(a[:2], b[:2]) for a in where for b in where)
+    print(f"{final.steps} steps, farthest apart {spread:.1f} m: {final.message}")
     assert spread >= 1.5, where
     assert skills.count("forward") >= 3
 
