@@ -69,7 +69,7 @@ _IRREGULAR = {"brought": "bring", "took": "take", "got": "get", "gotten": "get",
 
 # Determiners and fillers before a noun phrase; words that end one.
 _DET = {"the", "a", "an", "some", "that", "this", "those", "these", "my", "your", "our", "any", "me", "us", "one",
-        "of", "single", "whichever", "either", "each", "another", "other"}
+        "of", "single", "whichever", "whatever", "either", "each", "another", "other"}
 _NP_STOP = {"on", "onto", "in", "into", "inside", "to", "from", "at", "by", "near", "next", "beside", "behind",
             "under", "below", "beneath", "over", "across", "off", "with", "toward", "towards", "for", "of", "that",
             "which", "who", "whose", "sitting", "lying", "resting", "located", "standing", "placed", "kept", "found",
@@ -274,6 +274,7 @@ def _conditional(c: str, plan: Plan) -> str:
         if first and second and second not in _PRONOUNS:
             plan.choices = [singular(first), singular(second)]
             start = min(cond.start(), _verb_start(c[: cond.start()]))
+            plan.destination = _branch_destination(c[start: m.start()]) or _branch_destination(second_text)
             return c[:start] + " " + (after[cut.start():] if cut else "")
     if m and not cond and _after_verb(head):  # "take the orange, or if there is not one, the apple"
         first = noun_phrase(_after_verb(head) or "")
@@ -290,6 +291,26 @@ def _conditional(c: str, plan: Plan) -> str:
             rest = re.sub(r"\b(it|them|that|one)\b", first, c[cond.end(1) - len(cond.group(1)) + len(first):], count=1)
             return c[: cond.start()] + " " + re.sub(r"^[\s,]*(?:then\s+)?", "", rest)
     return c
+
+
+def _branch_destination(text: str) -> str | None:
+    """The destination a conditional's branch names ("put it on the table", "place the banana in the sink")."""
+    for vm in _VERB_RE.finditer(text + " "):
+        rest = text[vm.end():]
+        pro = re.match(r"\s*(?:it|them|that|this|one)\b", rest)
+        np_ = _object_np(rest)
+        if pro:
+            after = rest[pro.end():]
+        elif np_:
+            last = np_.split()[-1]
+            after = rest[rest.find(last) + len(last):]
+        else:
+            continue
+        verb = vm.group("verb")
+        dest = _destination_after(after, verb if verb in PLACE_VERBS else "carry")
+        if dest:
+            return dest
+    return None
 
 
 def _verb_start(text: str) -> int:
@@ -389,7 +410,8 @@ _TURN = re.compile(r"\b(?:turn|rotate|yaw|spin|pivot|swivel|face|veer)(?:\s+(?:y
                    r"round))?(?P<pre>" + _COUNT + r")?\s+(?:to (?:the |your )?)?(?P<dir>left|right|"
                    r"counter-?clockwise|anti-?clockwise|clockwise)(?P<post>" + _COUNT + r")?")
 _TURN_AROUND = re.compile(r"\b(?:turn|spin|rotate|swing)\s+(?:yourself\s+)?(?:all the way\s+)?around\b"
-                          r"(?!\s+(?:to (?:the |your )?)?(?:left|right|clockwise|counter|anti))|"
+                          r"(?!\s+(?:to (?:the |your )?)?(?:left|right|clockwise|counter|anti))(?P<post>" + _COUNT
+                          + r")?|"
                           r"\bturn back\b|\babout[- ]face\b|\b(?:do|make) a u-?turn\b")
 _TURN_BY = re.compile(r"\b(?:turn|rotate|yaw|spin|pivot|swivel)(?:\s+(?:yourself|around|round))?(?P<post>"
                       r"(?:\s+(?:by\s+|about\s+)?(?:\d+|ninety|forty-five|a hundred and eighty)\s+(?:degrees?|deg)|"
@@ -478,7 +500,7 @@ def motions(clause: str) -> list[str]:
     for m in _FULL_TURN.finditer(clause):
         add(m, [S.YAW_LEFT] * int(360 / YAW_STEP_DEG))
     for m in _TURN_AROUND.finditer(clause):
-        add(m, [S.YAW_LEFT] * int(180 / YAW_STEP_DEG))
+        add(m, [S.YAW_LEFT] * _clip(int(180 / YAW_STEP_DEG) * _amount(m, S.YAW_LEFT, ("post",))))
     for m in _TURN_BY.finditer(clause):
         text = m.group("post").replace("ninety", "90").replace("forty-five", "45").replace("a hundred and eighty",
                                                                                          "180")
