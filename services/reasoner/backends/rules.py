@@ -348,7 +348,8 @@ class RulesPolicy:
         target, why = self._target(ctx, plan, rest)
         query = target or plan.target or (plan.choices[-1] if plan.choices else None)
         if target is None:
-            return self._search(ctx, rest, query, S.OBJ_LOCALIZATION, why)
+            label = query or (f"{plan.selector} {plan.group or 'object'}" if plan.selector else plan.category)
+            return self._search(ctx, rest, query, S.OBJ_LOCALIZATION, why, label)
         last = rest[-1] if rest else None
         approach = self._approach(ctx, rest, S.GRASP, target)
         if approach is not None:
@@ -437,7 +438,7 @@ class RulesPolicy:
         return S.FORWARD, None, f"The {label} is {dist:.1f} m away (reach {reach:.1f} m) and ahead: fly closer."
 
     def _search(self, ctx: PolicyContext, rest: list[PastStep], query: str | None, localize: str,
-                why: str) -> tuple[str, str | None, str]:
+                why: str, label: str | None = None) -> tuple[str, str | None, str]:
         if query and not any(s.skill not in S.OPERATOR_SKILLS for s in ctx.steps):
             # Perception's list at the first step still comes from frames taken during take-off (tables seen
             # from below, their tops hidden); the executor localizes on a fresh frame, so ask it before turning.
@@ -447,7 +448,7 @@ class RulesPolicy:
             skill, arg, how = remembered
             return skill, arg, f"{why} {how}"
         window = _search_window(rest)
-        return explore(ctx, window, query, localize, why)
+        return explore(ctx, window, query, localize, why, label)
 
     @staticmethod
     def _toward_remembered(ctx: PolicyContext, rest: list[PastStep], query: str | None,
@@ -549,7 +550,7 @@ def _poses(window: list[PastStep], now: tuple[float, float, float] | None) -> li
 
 
 def explore(ctx: PolicyContext, window: list[PastStep], query: str | None, localize: str,
-            why: str) -> tuple[str, str | None, str]:
+            why: str, label: str | None = None) -> tuple[str, str | None, str]:
     """The next exploration step when `query` is not in view, replayed from the search's own steps: scan in
     place, then fly to viewpoints around where the search began and scan from each; after the last (or after
     EXPLORE_BUDGET steps) `done` with a "not found" reason. Deterministic; reads only the context."""
@@ -571,13 +572,13 @@ def explore(ctx: PolicyContext, window: list[PastStep], query: str | None, local
         if pose is not None:
             been.append(pose[:2])
     ex.settle(poses[-1], been)
-    what = query or "target"
+    what = query or label or "object the command asks for"
     if ex.finished or len(window) >= EXPLORE_BUDGET:
         moved = max((math.dist(p[:2], origin[:2]) for p in poses if p is not None), default=0.0) if origin else 0.0
+        reached = len(points) if ex.finished else min(ex.leg, len(points))
         return S.DONE, None, (f"{NOT_FOUND}: the {what} was not detected after scanning where the search began and "
-                              f"from {min(ex.leg, len(points)) if not ex.finished else len(points)} viewpoint(s) "
-                              f"around it ({len(window)} steps, up to {moved:.1f} m from the start); the task ends "
-                              "failed.")
+                              f"flying to {reached} viewpoint(s) around it ({len(window)} steps, up to {moved:.1f} m "
+                              "from the start); the task ends failed.")
     last = window[-1] if window else None
     if (query and ex.phase == "transit" and ex.n == 0 and last is not None
             and last.skill in (S.YAW_LEFT, S.YAW_RIGHT)):
