@@ -401,3 +401,17 @@ def test_demo_scenario_keeps_a_command_without_destination_without_one():
     assert sc.target_object == "green bottle" and sc.destination is None
     sc, _ = scenario_for("pick up the red cup and place it on the table", None, None, 0)
     assert sc.destination == "table"
+
+
+@pytest.mark.parametrize(("command", "dest"), [
+    ("Could you bring the red cup over to the table?", "table"),
+    ("Put the red cup onto the counter next to the sink", "counter"),
+    ("I'd like you to grab the red cup that is on the table and drop it off in the sink", "sink"),
+])
+def test_paraphrased_commands_place_on_the_named_destination(command: str, dest: str) -> None:
+    # Before the new reader these ended with the cup held and the task reported succeeded (or found nothing).
+    w = MiniWorld([Thing("red cup"), TABLE, Thing("counter", "surface", headings=(2,)),
+                   Thing("sink", "surface", headings=(3,))])
+    final, *_ = run_task(command, w)
+    assert final.state is TaskState.SUCCEEDED, final.message
+    assert w.placed_on == {"red cup": dest} and w.held is None

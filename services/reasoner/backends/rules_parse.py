@@ -571,7 +571,7 @@ def _strip_location(text: str, plain: bool) -> str:
 
 def _destination_after(text: str, verb: str) -> str | None:
     """The destination named right after an object: "onto the counter next to the sink" -> counter."""
-    text = re.sub(r"^\s*(?:off|down|back|over|up)\s+(?=(?:on|in|onto|into|to|at|inside|atop|upon)\b)", " ", text)
+    text = re.sub(r"^\s*(?:off|down|back|over|up|away)\s+(?=(?:on|in|onto|into|to|at|inside|atop|upon)\b)", " ", text)
     text = _strip_location(text, verb in _CARRY_VERBS)
     text = re.sub(r"^\s*,?\s*(?:and\s+)?(?:then\s+)?", "", text)
     preps = _STRONG_PREP if verb in _CARRY_VERBS and verb not in ("move",) else _STRONG_PREP + "|" + _WEAK_PREP
