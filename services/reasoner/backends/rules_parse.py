@@ -172,7 +172,7 @@ _POLITE = (
     r"\bbe a dear and\b", r"\btry (?:to|and)\b", r"\bif you (?:can|could|would|don't mind|do not mind|please)\b",
     r"\bif possible\b", r"\bwhen you (?:get a chance|can)\b", r"\bthanks?(?: you)?(?: so much)?\b", r"\bfor me\b",
     r"\bwould be great\b", r"\bi'm asking you to\b", r"\bi am asking you to\b", r"\bmind\b", r"\bjust\b",
-    r"\bnow\b", r"\bquickly\b", r"\bcarefully\b", r"\bgently\b", r"\bright away\b", r"\basap\b",
+    r"\bnow\b", r"\bpls\b", r"\bplz\b", r"\bthx\b", r"\bquickly\b", r"\bcarefully\b", r"\bgently\b", r"\bright away\b", r"\basap\b",
 )
 _WANTS = (r"\b(?:i(?: would|'d|d)? (?:like|love|want|need|wish for)|i could (?:use|do with)|i will have|i'?m (?:craving|looking for)|"
           r"i am (?:craving|looking for)|can i (?:have|get)|could i (?:have|get)|may i (?:have|get)|let me have|"
@@ -191,6 +191,9 @@ def normalize(command: str) -> str:
     for a, b in _CONTRACTIONS:
         c = c.replace(a, b)
     c = re.sub(r"\bwhich ever\b", "whichever", c)
+    c = re.sub(r"\s(?:--+|—|–)\s", " ; ", c)
+    c = re.sub(r"\bi(?: would)? (?:like|want|love) (?P<x>(?:the |a |an |my )?[a-z][a-z \-]*?) (?P<p>on top of|onto|into|on|in|"
+               r"inside) (?=the |a |my )", r"put \g<x> \g<p> ", c)
     words = [_FORMS.get(w, w) for w in re.findall(r"\d+\.\d+|[a-z0-9'\-]+|[^\sa-z0-9'\-]", c)
              if w not in ("really", "actually", "maybe", "perhaps", "kindly", "um", "uh")]
     c = " " + " ".join(words) + " "
@@ -333,7 +336,7 @@ _EXCLUDE = (
     r"\b(?:do not|never|without) (?:touch|touching|take|taking|grab|grabbing|pick up|picking up|pick|get|move|"
     r"moving|disturb|disturbing|bother with|knock over) (?:the |a |an |any |those |these )?" + _OBJ +
     r"(?=\s*(?:\band\b|\bthen\b|[,.;:!?]|$))",
-    r"(?:,\s*|\s+)(?:and |but |though |just )?not (?:the |a |an |that |this |any |those )?" + _OBJ +
+    r"(?:^\s*|,\s*|\s+)(?:and |but |though |just )?not (?:the |a |an |that |this |any |those )?" + _OBJ +
     r"(?=\s*(?:\band\b|\bthen\b|[,.;:!?]|$))",
     r"\b(?:rather than|instead of|except(?: for)?|other than|apart from|but not|as opposed to|anything but|"
     r"everything but|anything except|not including|excluding) (?:the |a |an |any )?"
@@ -702,6 +705,8 @@ def parse_command(command: str, skills: list[str] | tuple[str, ...] = ()) -> Pla
         plan.motions.extend(motions(clause))
     if verb and not (plan.target or plan.choices or plan.category or plan.selector) and re.search(r"\b(?:it|them)\b", c):
         plan.target = _antecedent(c)
+    if plan.target and plan.target.endswith(" one") and plan.excluded:  # "not the red cup; the purple one"
+        plan.target = f"{plan.target[:-4]} {plan.excluded[0].split()[-1]}"
     head = (plan.target or plan.group or "").split()[-1:]
     plan.excluded = [f"{x[:-4]} {head[0]}" if x.endswith(" one") and head else x for x in plan.excluded]
     if plan.choices:
