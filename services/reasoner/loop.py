@@ -100,6 +100,8 @@ def policy_context(command: str, variant: str, library: SkillLibrary, history: H
 class StepResult:
     record: ReasoningStep
     parsed: ParsedAnswer | None
+    failure: str | None = None
+    """The backend's reason when its (valid) answer ends the task as failed (ModelReply.failure)."""
 
 
 class TaskRunner:
@@ -167,15 +169,9 @@ class TaskRunner:
             return self.status(TaskState.FAILED, f"no skill library from the executor: {exc}")
         compiler = PromptCompiler(self.variant, library)
         self.categories = {spec.name: spec.category for spec in library.skills}
-        obs = await self.world.observe(0)
-        if obs.state is not None:
-            self._override_ns = obs.state.override_ns
-        if self.req.takeoff and obs.state is not None and obs.state.landed_state in (
-                LandedState.ON_GROUND, LandedState.UNKNOWN) and not obs.state.armed:
-            st = await self._execute(SkillRequest(skill=S.TAKEOFF, task_id=self.req.task_id, step=0),
-                                     self.settings.takeoff_timeout_s)
-            if st.state is not SkillState.SUCCEEDED:
-                return self.status(TaskState.FAILED, f"takeoff {st.state.value}: {st.message}")
+        ended = await self._preflight(library)
+        if ended is not None:
+            return ended
         failed_in_row = 0
         last_skill = S.TAKEOFF
         last_end_ns = 0
@@ -234,11 +230,31 @@ class TaskRunner:
                                          "overhead_s": overhead, "skill_duration_s": skill_s})
             self._publish(rec)
             if ste.skill == S.DONE:
+                if result.failure:  # the policy ends the task as failed ("not found: ..."), not as complete
+                    await self.world.hold(self.req.task_id, "policy gave up")
+                    return self.status(TaskState.FAILED, result.failure)
                 if st.state is SkillState.SUCCEEDED:
                     return self.status(TaskState.SUCCEEDED, "the policy declared the task complete")
                 log.warning("done was %s: %s", st.state.value, st.message)
             if st.state is SkillState.ABORTED:
                 return self.status(TaskState.ABORTED, f"skill {ste.skill} aborted: {st.message}")
+
+    async def _preflight(self, library: SkillLibrary) -> TaskStatus | None:
+        """Before the first step: the backend's refusal (nothing flies for a command the policy cannot carry
+        out), then the takeoff when the vehicle is on the ground. The failed status, or None to go on."""
+        refused = self.backend.refusal(self.req.command, [s.name for s in policy_skills(library)])
+        if refused:
+            return self.status(TaskState.FAILED, f"command refused before takeoff: {refused}")
+        obs = await self.world.observe(0)
+        if obs.state is not None:
+            self._override_ns = obs.state.override_ns
+        if self.req.takeoff and obs.state is not None and obs.state.landed_state in (
+                LandedState.ON_GROUND, LandedState.UNKNOWN) and not obs.state.armed:
+            st = await self._execute(SkillRequest(skill=S.TAKEOFF, task_id=self.req.task_id, step=0),
+                                     self.settings.takeoff_timeout_s)
+            if st.state is not SkillState.SUCCEEDED:
+                return self.status(TaskState.FAILED, f"takeoff {st.state.value}: {st.message}")
+        return None
 
     def _authority_end(self, obs: Observation, last_skill: str) -> TaskStatus | None:
         """PX4's authority: when PX4, the pilot or an abort took control during this task, or the vehicle came
@@ -303,6 +319,7 @@ class TaskRunner:
         feedback: list[tuple[str, str]] = []
         calls: list[ModelCall] = []
         parsed: ParsedAnswer | None = None
+        failure: str | None = None
         model_time = 0.0
         for _attempt in range(self.settings.max_reprompts + 1):
             t0 = time.perf_counter()
@@ -319,6 +336,7 @@ class TaskRunner:
                 calls.append(ModelCall(raw_answer=reply.text, valid=True, latency_s=reply.latency_s,
                                        tokens_in=reply.tokens_in, tokens_out=reply.tokens_out,
                                        structured=reply.structured, tokens_cached=reply.cached_tokens))
+                failure = reply.failure
                 break
             except InvalidAnswer as exc:
                 self.invalid += 1
@@ -332,7 +350,7 @@ class TaskRunner:
             variant=self.variant, prompt=prompt.parts, image_stamp_ns=obs.image_stamp_ns if prompt.has_image else 0,
             calls=tuple(calls), drt=parsed.drt if parsed else None, ste=parsed.ste if parsed else None,
             valid=parsed is not None, retries=len(calls) - 1)
-        return StepResult(rec, parsed), model_time
+        return StepResult(rec, parsed, failure), model_time
 
     def _needs_approval(self, skill: str) -> bool:
         wanted = set(self.settings.approval)

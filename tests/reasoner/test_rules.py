@@ -26,7 +26,8 @@ TABLE = Thing("table", "surface", headings=(0, 1, 7), size=(1.2, 0.8, 0.75))
 
 
 def run_task(command: str, world: MiniWorld, variant: str = "full", **settings: object):
-    s = ReasonerSettings(variant=variant, max_steps=40, **settings)
+    settings.setdefault("max_steps", 40)
+    s = ReasonerSettings(variant=variant, **settings)
     steps, statuses = [], []
     runner = TaskRunner(TaskRequest(command=command), s, RulesBackend(), MiniWorldPort(world),
                         publish_step=steps.append, publish_status=statuses.append)
@@ -196,10 +197,93 @@ def test_failed_grasp_relocalizes() -> None:
     assert steps[1].skill_state.value == "failed"
 
 
-def test_never_found_fails_after_step_budget() -> None:
+def test_never_found_ends_not_found_before_the_step_cap() -> None:
     w = MiniWorld([TABLE])
-    final, steps, _ = run_task("pick up the unicorn", w)
-    assert final.state is TaskState.FAILED and "40 steps" in final.message and len(steps) == 40
+    final, steps, _ = run_task("pick up the unicorn", w, max_steps=80)
+    assert final.state is TaskState.FAILED and final.message.startswith("not found: the unicorn"), final.message
+    assert len(steps) < 80 and steps[-1].ste.skill == "done"
+    assert "forward" in w.executed and "grasp" not in " ".join(w.executed)
+
+
+def test_step_cap_still_ends_a_task_that_cannot_finish() -> None:
+    w = MiniWorld([TABLE])
+    final, steps, _ = run_task("pick up the unicorn", w, max_steps=12)
+    assert final.state is TaskState.FAILED and "12 steps" in final.message and len(steps) == 12
+
+
+def test_ununderstood_command_is_refused_before_takeoff_and_any_skill() -> None:
+    w = MiniWorld([Thing("red cup"), TABLE])
+    final, steps, statuses = run_task("Sing me a song", w)
+    assert final.state is TaskState.FAILED and final.message.startswith("command refused before takeoff")
+    assert "Sing me a song" in final.message and "no motion" in final.message
+    assert w.executed == [] and not w.airborne and steps == [] and final.model_calls == 0
+    # The same refusal through the answer path, for a caller that skips the pre-check: a `done` with the reason.
+    d = RulesPolicy().decide_full(_ctx("what's the weather", []))
+    assert d.skill == "done" and d.failure and d.failure.startswith("refused:")
+
+
+class Room:
+    """A kinematic stand-in for the flight (yaw 45 deg, 0.5 m steps, walls at +-3.8 m) that reports poses as the
+    executor's motions do; `hidden` things become visible within 1.6 m."""
+
+    def __init__(self, hidden: dict[str, tuple[float, float]] | None = None) -> None:
+        self.x, self.y, self.yaw = 0.3, -0.2, 0.0
+        self.hidden = hidden or {}
+        self.steps: list[PastStep] = []
+        self.path: list[tuple[float, float]] = [(self.x, self.y)]
+
+    def visible(self) -> list[Seen]:
+        return [Seen(n, "object", 0.001, math.dist(p, (self.x, self.y))) for n, p in self.hidden.items()
+                if math.dist(p, (self.x, self.y)) <= 1.6]
+
+    def apply(self, skill: str, arg: str | None) -> None:
+        state, msg = "succeeded", ""
+        if skill in ("yaw_left", "yaw_right"):
+            self.yaw += math.pi / 4 if skill == "yaw_left" else -math.pi / 4
+        elif skill == "forward":
+            nx, ny = self.x + 0.5 * math.cos(self.yaw), self.y + 0.5 * math.sin(self.yaw)
+            if max(abs(nx), abs(ny)) > 3.8:
+                state, msg = "rejected", "geofence 0.20 m ahead"
+            else:
+                self.x, self.y = nx, ny
+        elif skill == "obj_localization":
+            state, msg = "failed", f"{arg} not visible"
+        if skill in ("yaw_left", "yaw_right", "forward") and state == "succeeded":
+            msg = f"{skill} done: now at ({self.x:.2f}, {self.y:.2f}, 1.50), yaw {math.degrees(self.yaw):.0f} deg"
+        self.path.append((self.x, self.y))
+        self.steps.append(PastStep(skill, arg, state, msg))
+
+    def fly(self, command: str, max_steps: int = 80):
+        policy = RulesPolicy()
+        for _ in range(max_steps):
+            ctx = _ctx(command, list(self.steps), pose=(self.x, self.y, self.yaw), visible=self.visible())
+            d = policy.decide_full(ctx)
+            if d.skill in ("done", "grasp") or (d.skill == "obj_localization" and self.visible()):
+                return d
+            self.apply(d.skill, d.argument)
+        return None
+
+
+def test_exploration_moves_through_the_room_then_reports_not_found() -> None:
+    room = Room()
+    d = room.fly("Could you look around and find the unicorn for me?")
+    assert d is not None and d.skill == "done" and d.failure and d.failure.startswith("not found: the unicorn")
+    assert len(room.steps) < 80
+    start = room.path[0]
+    assert max(math.dist(start, p) for p in room.path) >= 1.5  # moved, not only rotated
+    skills = [s.skill for s in room.steps]
+    assert skills.count("forward") >= 4 and skills.count("yaw_left") >= 7
+    # Deterministic: the same context gives the same flight.
+    again = Room()
+    again.fly("Could you look around and find the unicorn for me?")
+    assert [s.skill for s in again.steps] == skills
+
+
+def test_exploration_finds_a_target_out_of_sight_of_the_start() -> None:
+    room = Room(hidden={"red cup": (-1.7, 0.0)})
+    d = room.fly("Pick up the red cup and place it on the table")
+    assert d is not None and (d.skill, d.argument) == ("obj_localization", "red cup"), d
+    assert math.dist((room.x, room.y), (-1.7, 0.0)) <= 1.6
 
 
 @pytest.mark.parametrize("variant", VARIANTS)
@@ -317,3 +401,17 @@ def test_demo_scenario_keeps_a_command_without_destination_without_one():
     assert sc.target_object == "green bottle" and sc.destination is None
     sc, _ = scenario_for("pick up the red cup and place it on the table", None, None, 0)
     assert sc.destination == "table"
+
+
+@pytest.mark.parametrize(("command", "dest"), [
+    ("Could you bring the red cup over to the table?", "table"),
+    ("Put the red cup onto the counter next to the sink", "counter"),
+    ("I'd like you to grab the red cup that is on the table and drop it off in the sink", "sink"),
+])
+def test_paraphrased_commands_place_on_the_named_destination(command: str, dest: str) -> None:
+    # Before the new reader these ended with the cup held and the task reported succeeded (or found nothing).
+    w = MiniWorld([Thing("red cup"), TABLE, Thing("counter", "surface", headings=(2,)),
+                   Thing("sink", "surface", headings=(3,))])
+    final, *_ = run_task(command, w)
+    assert final.state is TaskState.SUCCEEDED, final.message
+    assert w.placed_on == {"red cup": dest} and w.held is None

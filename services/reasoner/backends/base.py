@@ -72,6 +72,9 @@ class ModelReply:
     """The answer was decoded under the answer's JSON schema (schema-constrained output)."""
     cached_tokens: int | None = None
     """Prompt tokens the server read from its prompt cache, when it says."""
+    failure: str | None = None
+    """Set with a `done` answer when the backend ends the task as failed, with the reason (the rules baseline:
+    "not found: ..." after exploring the room); the task then ends FAILED instead of SUCCEEDED."""
 
 
 def conversation(request: ModelRequest, first_user_content: list[dict]) -> list[dict]:
@@ -104,6 +107,11 @@ class Backend(ABC):
 
     @abstractmethod
     async def complete(self, request: ModelRequest) -> ModelReply: ...
+
+    def refusal(self, command: str, skills: list[str]) -> str | None:
+        """Why this backend refuses the command outright (before takeoff, before any skill), or None to run it.
+        `skills` are the live library's policy skills. Model backends accept every command."""
+        return None
 
     async def aclose(self) -> None:
         return None

@@ -1,16 +1,18 @@
 """`rules`: the deterministic non-VLM baseline policy, answering in the same DRT/STE JSON as a VLM.
 
 It reads the same context the prompt is built from (command, history, working memory, perception's
-detections), never the pixels, and re-derives its plan from that context at every step, so it is
-stateless and also works from the prompt text alone (`context_from_prompt`, used by the fake VLM
-servers in tests). It handles the paper's four suites:
+detections, the vehicle pose), never the pixels nor the simulator, and re-derives its plan from that
+context at every step, so it is stateless and also works from the prompt text alone
+(`context_from_prompt`, used by the fake VLM servers in tests). The command is read by `rules_parse`
+(synonyms, polite and indirect requests, relative clauses, counts and amounts of motion, conditionals,
+negated distractors, size comparisons, categories); a command it cannot understand is refused before
+takeoff (`RulesBackend.refusal`). Then:
 
-- localization: "pick up the X and place it on the Y", "get the X and put it in the Y";
-- clutter/ambiguity: "of the two boxes, pick up the larger one" (compares detected sizes), "ignore the
-  tools and pick up the green bottle", "bring me a snack" (apple, banana, cracker box...);
-- sequential: "move forward twice, turn right, and pick up the tissue box" (motions first, in order),
-  and conditionals "approach the counter. if you see an orange, pick it up; otherwise grab the banana";
-- search: yaw in place to scan until the target is detected, then localize, grasp, search the surface...
+- the command's motions first, in order ("approach the counter" flies there);
+- the target: named, chosen by a conditional, by measured size, or as the nearest member of a category,
+  never an excluded one; localize, grasp, then the destination: localize a spot, place;
+- not in view: look toward where it was seen earlier, else explore (scan in place, then fly to viewpoints
+  around where the search began and scan there); after covering them, `done` with a "not found" failure.
 
 Without a destination ("pick up the tissue box", "bring it here", "bring me a snack") the task ends
 with `done` after a successful grasp, holding the object: "here" is where the operator is, and the
@@ -23,7 +25,7 @@ import json
 import math
 import re
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 from services.reasoner.backends.base import (
     Backend,
@@ -34,167 +36,50 @@ from services.reasoner.backends.base import (
     Seen,
     register,
 )
+from services.reasoner.backends.rules_parse import (
+    APPROACH,
+    CATEGORY_WORDS,
+    SIZE_WORDS,
+    SNACKS,
+    Plan,
+    parse_command,
+    singular,
+)
 from services.reasoner.prompt import DRT_FIELDS
 from shared import skills as S  # noqa: N812 - reads like the paper tables
 
-SNACKS = ("apple", "banana", "orange", "cracker", "chips", "cookie", "granola", "candy", "snack", "chocolate",
-          "biscuit", "pear")
-CATEGORY_WORDS = {
-    "snack": SNACKS,
-    "tool": ("hammer", "screwdriver", "wrench", "pliers", "drill", "scissors", "saw", "tool"),
-    "fruit": ("apple", "banana", "orange", "pear", "lemon", "fruit"),
-    "drink": ("can", "bottle", "soda", "coke", "juice", "cup", "drink"),
-}
-SIZE_WORDS = {"larger": {"large", "big", "larger", "bigger", "huge"}, "smaller": {"small", "little", "smaller", "tiny"}}
-NUMBERS = {"once": 1, "twice": 2, "thrice": 3, "one": 1, "two": 2, "three": 3, "four": 4, "five": 5}
+__all__ = ["CATEGORY_WORDS", "SNACKS", "Plan", "RulesBackend", "RulesPolicy", "answer_for_prompt",
+           "context_from_prompt", "parse_command", "render_answer"]
+
 SEEN_FOV_HALF_DEG = 30  # a remembered thing within this of the heading is in view (camera: +-42 deg)
 SCAN_LIMIT = 8  # consecutive yaw steps (one full turn at 45 deg) before trying something else
+SCAN_TURNS = 7  # yaw steps of a scan at one viewpoint: 8 headings 45 deg apart, the whole circle
 APPROACH_RADIUS = 1.5  # "approach the counter" ends within this horizontal distance of what was seen of it
 APPROACH_FACING_DEG = 30  # turn first when further off the heading than this (> half the 45 deg yaw step, or it oscillates)
 APPROACH_LIMIT = 12  # motion steps an "approach" may take before the policy decides from where it is
 SURFACE_RETRY_RADIUS = 2.0  # after a failed placement_localization, fly this close to the surface first
 ON_SURFACE_XY = 0.35  # a released object this close to its placement spot (and at its height) rests there
+EXPLORE_RADIUS = 2.0  # viewpoints of the exploration: this far from where the search began, ahead/left/behind/right
+EXPLORE_ARRIVED = 0.6  # a viewpoint counts as reached (or visited earlier) within this horizontal distance
+TRANSIT_LIMIT = 9  # motion steps toward one viewpoint before scanning from wherever the vehicle got to
+EXPLORE_BUDGET = 60  # steps of one search (since it began) after which the thing is reported not found
 _MOTION_SKILLS = (S.YAW_LEFT, S.YAW_RIGHT, S.FORWARD, S.BACKWARD, S.LEFT, S.RIGHT, S.UP, S.DOWN)
-_NOT_SEQUENCED = (S.OBJ_LOCALIZATION, S.GRASP, S.PLACEMENT_LOCALIZATION, S.PLACE, S.DONE)
-_APPROACH = "approach:"  # motion token: fly to the named thing, as many steps as it takes
+_APPROACH = APPROACH  # motion token: fly to the named thing, as many steps as it takes
 _VEC = r"\((-?[\d.]+), (-?[\d.]+), (-?[\d.]+)\)"
-_ACTION_WORDS = ("pick", "grab", "get", "take", "fetch", "find", "locate", "search", "bring", "place", "put",
-                 "drop", "look for", "if ", "otherwise")
-_ART = r"(?:the|a|an|some|me|my)\s+"
+NOT_FOUND = "not found"
+"""Start of the failure reason when the room was explored without finding the target (or destination)."""
+_singular = singular
 
 
 @dataclass
-class Plan:
-    motions: list[str] = field(default_factory=list)
-    target: str | None = None
-    choices: list[str] = field(default_factory=list)
-    selector: str | None = None  # "larger" or "smaller"
-    group: str | None = None  # "box" in "of the two boxes"
-    category: str | None = None  # "snack" in "bring me a snack"
-    excluded: list[str] = field(default_factory=list)
-    destination: str | None = None
+class Decision:
+    """One decision of the policy: the skill, its argument, why; `failure` set when a `done` ends the task as
+    failed (the command was not understood, or the target was not found after exploring the room)."""
 
-
-def _singular(word: str) -> str:
-    word = word.strip()
-    if word.endswith("xes") or word.endswith("ches") or word.endswith("shes"):
-        return word[:-2]
-    if word.endswith("ies"):
-        return word[:-3] + "y"
-    if word.endswith("s") and not word.endswith("ss"):
-        return word[:-1]
-    return word
-
-
-def _clean_query(text: str) -> str:
-    text = re.sub(r"^\s*(?:up\s+)?", "", text.strip().lower())
-    text = re.sub(r"^" + _ART, "", text)
-    text = re.sub(r"^" + _ART, "", text)
-    # "the soda can on the table", "the purple cup next to the coffee machine": keep the object only.
-    text = re.split(r"\s+(?:on|in|inside|from|next to|near|beside|behind|under|at|by|to)\s+", text)[0]
-    return re.sub(r"[^a-z0-9 \-]", "", text).strip()
-
-
-def _named_skills(clause: str, skills: list[str]) -> list[tuple[int, str]]:
-    """Registered skills the clause names outright ("descend to inspect" -> descend_to_inspect), with their
-    position: a skill added to the library is usable in an explicit sequence without touching this file."""
-    found = []
-    for name in skills:
-        if name in _MOTION_SKILLS or name in _NOT_SEQUENCED:
-            continue
-        for phrase in {name, name.replace("_", " ")}:
-            for m in re.finditer(r"\b" + re.escape(phrase) + r"\b", clause):
-                found.append((m.start(), name))
-    return found
-
-
-def _motions(clause: str, skills: list[str] = ()) -> list[str]:  # type: ignore[assignment]
-    extra = _named_skills(clause, list(skills))
-    if extra:
-        return [name for _pos, name in sorted(extra)]
-    out: list[str] = []
-    for m in re.finditer(r"\b(?:(turn|rotate|yaw)\s+(left|right)|(?:move|go|fly|step)?\s*(forward|ahead|backward|"
-                         r"backwards|back|left|right|up|down|closer|higher|lower)|(approach))"
-                         r"(?:\s+\S+){0,3}?\s*(once|twice|thrice|(?:\d+|one|two|three|four|five)\s+times)?\b",
-                         clause):
-        turn, turn_dir, move, approach, count = m.groups()
-        if turn:
-            skill = S.YAW_LEFT if turn_dir == "left" else S.YAW_RIGHT
-        elif approach:
-            # "approach the counter": a destination, not a step count; the policy flies there (_approach_to)
-            what = re.match(r"approach\s+(?:the\s+|a\s+|an\s+)?([a-z][a-z \-]*)", clause[m.start():])
-            if what:
-                out.append(_APPROACH + _clean_query(what.group(1)))
-                continue
-            skill = S.FORWARD
-        elif move in ("forward", "ahead", "closer"):
-            skill = S.FORWARD
-        elif move in ("backward", "backwards", "back"):
-            skill = S.BACKWARD
-        elif move in ("up", "higher"):
-            skill = S.UP
-        elif move in ("down", "lower"):
-            skill = S.DOWN
-        else:
-            skill = S.LEFT if move == "left" else S.RIGHT
-        n = 1
-        if count:
-            word = count.split()[0]
-            n = NUMBERS.get(word, int(word) if word.isdigit() else 1)
-        out.extend([skill] * max(1, min(n, 10)))
-    return out
-
-
-def parse_command(command: str, skills: list[str] | tuple[str, ...] = ()) -> Plan:
-    """Read the plan out of a command in the paper's four suites; `skills` (the live library's policy skills)
-    lets a command name a registered skill outright."""
-    plan = Plan()
-    c = " ".join(command.lower().replace("’", "'").split())
-    cond = re.search(r"if you (?:see|find|spot) (?:an?\s+|the\s+|any\s+)?([a-z0-9 \-]+?)\s*[,;]?\s*(?:then\s+)?"
-                     r"(?:pick|grab|get|take|fetch) (?:it|that|one)(?: up)?\s*[;,.]?\s*(?:otherwise|else|if not),?\s*"
-                     r"(?:pick up|grab|get|take|fetch)\s+([a-z0-9 \-]+)", c)
-    if cond:
-        plan.choices = [_clean_query(cond.group(1)), _clean_query(cond.group(2))]
-        c = c[: cond.start()] + " " + c[cond.end():]
-    dest = re.search(r"\b(?:place|put|drop|set|leave|bring|take|carry|move)\s+(?:it|them|that)\s+(?:down\s+)?"
-                     r"(?:on|onto|in|into|inside|to|at|on top of)\s+(?:the\s+)?([a-z0-9 \-]+)", c)
-    if dest and not re.match(r"(?:me|here|us)\b", dest.group(1)):
-        plan.destination = _clean_query(dest.group(1))
-        c = c[: dest.start()] + " " + c[dest.end():]
-    ignore = re.search(r"\bignor(?:e|ing)\s+(?:the\s+|all\s+|any\s+)?([a-z ]+?)(?:\s+and\b|[,.;]|$)", c)
-    if ignore:
-        plan.excluded = [_singular(w) for w in ignore.group(1).split() if w not in ("the", "all", "any")]
-        c = c[: ignore.start()] + " " + c[ignore.end():]
-    sel = re.search(r"\b(larger|largest|bigger|biggest|smaller|smallest|tiny|big)\b", c)
-    if sel:
-        plan.selector = "larger" if sel.group(1) in ("larger", "largest", "bigger", "biggest", "big") else "smaller"
-        grp = (re.search(r"\bof (?:the |these |those )?(?:two |three |\d+ )?([a-z]+)", c)
-               or re.search(r"\b(?:larger|largest|bigger|biggest|smaller|smallest)\s+([a-z]+)", c))
-        if grp and grp.group(1) not in ("one", "of"):
-            plan.group = _singular(grp.group(1))
-    clauses = [x.strip() for x in re.split(r"[,.;]|\band then\b|\bthen\b|\band\b", c) if x.strip()]
-    for clause in clauses:
-        is_action = any(w in clause for w in _ACTION_WORDS)
-        if not is_action:
-            plan.motions.extend(_motions(clause, list(skills)))
-            continue
-        if plan.target or plan.choices or plan.selector:
-            continue
-        m = re.search(r"\b(?:pick up|pick|grab|get|take|fetch|find|locate|look for|search for|bring me|bring)\s+(.+)",
-                      clause)
-        if m:
-            q = _clean_query(m.group(1))
-            if q in ("it", "one", "the one", ""):
-                continue
-            for cat, _words in CATEGORY_WORDS.items():
-                if q in (cat, cat + "s", "something to eat" if cat == "snack" else "-"):
-                    plan.category = cat
-                    break
-            else:
-                plan.target = q
-    if plan.choices:
-        plan.target = None
-    return plan
+    skill: str
+    argument: str | None
+    reasoning: str
+    failure: str | None = None
 
 
 def _matches(label: str, query: str) -> bool:
@@ -219,7 +104,20 @@ class RulesPolicy:
 
     def decide(self, ctx: PolicyContext) -> tuple[str, str | None, str]:
         """(skill, argument, reasoning)."""
+        d = self.decide_full(ctx)
+        return d.skill, d.argument, d.reasoning
+
+    def decide_full(self, ctx: PolicyContext) -> Decision:
+        """The decision with its failure verdict: a `done` that ends the task as failed carries the reason."""
         plan = parse_command(ctx.command, ctx.skills)
+        if not plan.understood:
+            return Decision(S.DONE, None, f"I cannot carry out this command: {plan.reason}.",
+                            failure=f"refused: {plan.reason}")
+        skill, arg, why = self._decide(ctx, plan)
+        failure = why if skill == S.DONE and why.startswith(NOT_FOUND) else None
+        return Decision(skill, arg, why, failure)
+
+    def _decide(self, ctx: PolicyContext, plan: Plan) -> tuple[str, str | None, str]:
         steps = ctx.steps
         # 1. The motions the command spells out, in order (a motion that fails twice is skipped).
         first_free, pending = self._motions_left(ctx, plan, steps)
@@ -365,68 +263,93 @@ class RulesPolicy:
     def _target(self, ctx: PolicyContext, plan: Plan, rest: list[PastStep]) -> tuple[str | None, str]:
         """(label or query to localize, why); label None when nothing fits yet."""
         visible = [v for v in ctx.visible if v.category == "object" and not _excluded(v.label, plan)]
-        if plan.choices:
-            # Decided from what is seen where the command says to look (after its motions), once: the first
-            # successful localization of either choice settles it; a failed look for the first means "otherwise".
-            for s in rest:
-                if s.skill == S.OBJ_LOCALIZATION and s.argument in plan.choices and s.state == "succeeded":
-                    return s.argument, f"I already chose the {s.argument} for the conditional."
-            first, other = plan.choices
-            if any(s.skill == S.OBJ_LOCALIZATION and s.argument == first for s in rest):
-                return other, f"I looked for a {first} here and did not find one, so grab the {other}."
-            if any(_matches(v.label, first) for v in visible) or first in ctx.known_objects:
-                return first, f"I see a {first}, so the condition holds: pick the {first}."
-            return other, f"I do not see a {first}, so the command says to grab the {other}."
-        if plan.selector:
-            group = plan.group or ""
-            # Sizes are compared while both are in view; once chosen, a turn that hides the other one (or the
-            # choice itself) must not flip the decision to "the larger of the one I see".
-            for s in rest:
-                if s.skill == S.OBJ_LOCALIZATION and s.argument and (not group or _matches(s.argument, group)
-                                                                     or group in s.argument):
-                    return s.argument, f"I already chose the {s.argument} as the {plan.selector} {group or 'one'}."
-            cands = [v for v in visible if not group or _matches(v.label, group) or group in v.label]
-            sized = [v for v in cands if v.volume is not None]
-            if len(sized) >= 2:
-                pick = (max if plan.selector == "larger" else min)(sized, key=lambda v: v.volume or 0.0)
-                return pick.label, (f"Of the {len(sized)} {group or 'object'} candidates I compare sizes: the "
-                                    f"{plan.selector} is the {pick.label}.")
-            # Only one in view: a name that says its size ("large box") settles it, in view or seen earlier;
-            # one whose name says the opposite is not taken for want of the other.
-            want, avoid = SIZE_WORDS[plan.selector], SIZE_WORDS["smaller" if plan.selector == "larger" else "larger"]
-            names = [v.label for v in cands] + [n for n in ctx.positions
-                                                if not group or _matches(n, group) or group in n]
-            named = next((n for n in names if set(n.lower().split()) & want), None)
-            if named:
-                return named, f"The {named} is the {plan.selector} {group or 'one'} by its name."
-            if len(sized) == 1 and not set(sized[0].label.lower().split()) & avoid:
-                return sized[0].label, f"The {sized[0].label} is the only {group or 'candidate'} I detect."
-            return None, f"I need both {group or 'candidate'}s in view to compare sizes."
-        if plan.category:
-            words = CATEGORY_WORDS[plan.category]
-            cands = [v for v in visible if any(w in v.label.lower() for w in words)]
-            if cands:
-                pick = min(cands, key=lambda v: v.distance if v.distance is not None else 1e9)
-                return pick.label, f"The {pick.label} is a {plan.category}, and the nearest one I detect."
-            known = [k for k in ctx.known_objects if any(w in k.lower() for w in words)]
-            if known:
-                return known[0], f"The {known[0]} in working memory is a {plan.category}."
-            return None, f"No {plan.category} is detected yet."
-        if plan.target:
-            for v in visible:
-                if _matches(v.label, plan.target):
-                    return v.label, f"The {v.label} matches '{plan.target}' and is detected."
-            for k in ctx.known_objects:
-                if _matches(k, plan.target):
-                    return k, f"The {k} is in working memory."
-            return None, f"The {plan.target} is not detected yet."
+        for part in (self._by_choice, self._by_size, self._by_category, self._by_name):
+            found = part(ctx, plan, rest, visible)
+            if found is not None:
+                return found
         return None, "The command names no object I can identify."
+
+    @staticmethod
+    def _by_choice(ctx: PolicyContext, plan: Plan, rest: list[PastStep],
+                   visible: list[Seen]) -> tuple[str | None, str] | None:
+        if not plan.choices:
+            return None
+        # Decided from what is seen where the command says to look (after its motions), once: the first
+        # successful localization of either choice settles it; a failed look for the first means "otherwise".
+        for s in rest:
+            if s.skill == S.OBJ_LOCALIZATION and s.argument in plan.choices and s.state == "succeeded":
+                return s.argument, f"I already chose the {s.argument} for the conditional."
+        first, other = plan.choices
+        if any(s.skill == S.OBJ_LOCALIZATION and s.argument == first for s in rest):
+            return other, f"I looked for a {first} here and did not find one, so grab the {other}."
+        if any(_matches(v.label, first) for v in visible) or first in ctx.known_objects:
+            return first, f"I see a {first}, so the condition holds: pick the {first}."
+        return other, f"I do not see a {first}, so the command says to grab the {other}."
+
+    @staticmethod
+    def _by_size(ctx: PolicyContext, plan: Plan, rest: list[PastStep],
+                 visible: list[Seen]) -> tuple[str | None, str] | None:
+        if not plan.selector:
+            return None
+        group = plan.group or ""
+        # Sizes are compared while both are in view; once chosen, a turn that hides the other one (or the
+        # choice itself) must not flip the decision to "the larger of the one I see".
+        for s in rest:
+            if s.skill == S.OBJ_LOCALIZATION and s.argument and (not group or _matches(s.argument, group)
+                                                                 or group in s.argument):
+                return s.argument, f"I already chose the {s.argument} as the {plan.selector} {group or 'one'}."
+        cands = [v for v in visible if not group or _matches(v.label, group) or group in v.label]
+        sized = [v for v in cands if v.volume is not None]
+        if len(sized) >= 2:
+            pick = (max if plan.selector == "larger" else min)(sized, key=lambda v: v.volume or 0.0)
+            return pick.label, (f"Of the {len(sized)} {group or 'object'} candidates I compare sizes: the "
+                                f"{plan.selector} is the {pick.label}.")
+        # Only one in view: a name that says its size ("large box") settles it, in view or seen earlier;
+        # one whose name says the opposite is not taken for want of the other.
+        want, avoid = SIZE_WORDS[plan.selector], SIZE_WORDS["smaller" if plan.selector == "larger" else "larger"]
+        names = [v.label for v in cands] + [n for n in ctx.positions
+                                            if not group or _matches(n, group) or group in n]
+        named = next((n for n in names if set(n.lower().split()) & want), None)
+        if named:
+            return named, f"The {named} is the {plan.selector} {group or 'one'} by its name."
+        if len(sized) == 1 and not set(sized[0].label.lower().split()) & avoid:
+            return sized[0].label, f"The {sized[0].label} is the only {group or 'candidate'} I detect."
+        return None, f"I need both {group or 'candidate'}s in view to compare sizes."
+
+    @staticmethod
+    def _by_category(ctx: PolicyContext, plan: Plan, rest: list[PastStep],
+                     visible: list[Seen]) -> tuple[str | None, str] | None:
+        if not plan.category:
+            return None
+        words = CATEGORY_WORDS[plan.category]
+        cands = [v for v in visible if any(w in v.label.lower() for w in words)]
+        if cands:
+            pick = min(cands, key=lambda v: v.distance if v.distance is not None else 1e9)
+            return pick.label, f"The {pick.label} is a {plan.category}, and the nearest one I detect."
+        known = [k for k in ctx.known_objects if any(w in k.lower() for w in words) and not _excluded(k, plan)]
+        if known:
+            return known[0], f"The {known[0]} in working memory is a {plan.category}."
+        return None, f"No {plan.category} is detected yet."
+
+    @staticmethod
+    def _by_name(ctx: PolicyContext, plan: Plan, rest: list[PastStep],
+                 visible: list[Seen]) -> tuple[str | None, str] | None:
+        if not plan.target:
+            return None
+        for v in visible:
+            if _matches(v.label, plan.target):
+                return v.label, f"The {v.label} matches '{plan.target}' and is detected."
+        for k in ctx.known_objects:
+            if _matches(k, plan.target):
+                return k, f"The {k} is in working memory."
+        return None, f"The {plan.target} is not detected yet."
 
     def _pick(self, ctx: PolicyContext, plan: Plan, rest: list[PastStep]) -> tuple[str, str | None, str]:
         target, why = self._target(ctx, plan, rest)
         query = target or plan.target or (plan.choices[-1] if plan.choices else None)
         if target is None:
-            return self._search(ctx, rest, query, S.OBJ_LOCALIZATION, why)
+            label = query or (f"{plan.selector} {plan.group or 'object'}" if plan.selector else plan.category)
+            return self._search(ctx, rest, query, S.OBJ_LOCALIZATION, why, label)
         last = rest[-1] if rest else None
         approach = self._approach(ctx, rest, S.GRASP, target)
         if approach is not None:
@@ -515,7 +438,7 @@ class RulesPolicy:
         return S.FORWARD, None, f"The {label} is {dist:.1f} m away (reach {reach:.1f} m) and ahead: fly closer."
 
     def _search(self, ctx: PolicyContext, rest: list[PastStep], query: str | None, localize: str,
-                why: str) -> tuple[str, str | None, str]:
+                why: str, label: str | None = None) -> tuple[str, str | None, str]:
         if query and not any(s.skill not in S.OPERATOR_SKILLS for s in ctx.steps):
             # Perception's list at the first step still comes from frames taken during take-off (tables seen
             # from below, their tops hidden); the executor localizes on a fresh frame, so ask it before turning.
@@ -524,15 +447,8 @@ class RulesPolicy:
         if remembered is not None:
             skill, arg, how = remembered
             return skill, arg, f"{why} {how}"
-        yaws = 0
-        for s in reversed(rest):
-            if s.skill not in (S.YAW_LEFT, S.YAW_RIGHT):
-                break
-            yaws += 1
-        if yaws < SCAN_LIMIT or not query:
-            return S.YAW_LEFT, None, f"{why} Rotate to scan for it ({yaws + 1}/{SCAN_LIMIT})."
-        return localize, query, f"{why} A full scan did not detect it; ask perception directly."
-
+        window = _search_window(rest)
+        return explore(ctx, window, query, localize, why, label)
 
     @staticmethod
     def _toward_remembered(ctx: PolicyContext, rest: list[PastStep], query: str | None,
@@ -554,6 +470,121 @@ class RulesPolicy:
             return turn, None, (f"It was seen earlier at ({pos[0]:.1f}, {pos[1]:.1f}), "
                                 f"{math.degrees(bearing):.0f} deg from my heading: turn toward it.")
         return localize, query, f"It was seen earlier at ({pos[0]:.1f}, {pos[1]:.1f}), ahead of me now: localize it."
+
+
+def _search_window(rest: list[PastStep]) -> list[PastStep]:
+    """The steps of the current search: since the last grasp or release (or since the command's motions)."""
+    start = 0
+    for i, s in enumerate(rest):
+        if (s.skill == S.GRASP and s.state == "succeeded") or _released(s):
+            start = i + 1
+    return rest[start:]
+
+
+@dataclass
+class _Explorer:
+    """The exploration's progress, replayed from the search's steps: leg 0 scans where the search began; leg k
+    flies to viewpoint k (EXPLORE_RADIUS ahead, left, behind, right of that start) and scans there."""
+
+    points: list[tuple[float, float]]
+    leg: int = 0
+    phase: str = "scan"
+    n: int = 0
+    blocked: int = 0
+
+    def settle(self, pose: tuple[float, float, float] | None, been: list[tuple[float, float]]) -> None:
+        """Phase changes that need no step: a finished scan moves on to the next viewpoint (skipping one the
+        vehicle has already been at), an arrival, a blocked way or a spent transit budget starts the scan."""
+        while True:
+            if self.phase == "scan" and self.n >= SCAN_TURNS:
+                self.leg, self.phase, self.n, self.blocked = self.leg + 1, "transit", 0, 0
+                continue
+            if self.phase != "transit" or self.leg > len(self.points):
+                return
+            wp = self.points[self.leg - 1]
+            if self.n == 0 and any(math.dist(p, wp) <= EXPLORE_ARRIVED for p in been):
+                self.leg += 1  # been there already (passed it on the way): the next viewpoint
+                continue
+            here = pose is not None and math.dist(pose[:2], wp) <= EXPLORE_ARRIVED
+            if here or self.blocked >= 2 or self.n >= TRANSIT_LIMIT:
+                self.phase, self.n = "scan", 0
+            return
+
+    def consume(self, step: PastStep) -> None:
+        if self.phase == "scan":
+            self.n += step.skill in (S.YAW_LEFT, S.YAW_RIGHT)
+            return
+        self.n += 1
+        if step.skill == S.FORWARD:
+            self.blocked = 0 if step.state == "succeeded" else self.blocked + 1
+
+    @property
+    def finished(self) -> bool:
+        return self.leg > len(self.points)
+
+    def next(self, pose: tuple[float, float, float] | None) -> tuple[str, str]:
+        if self.phase == "scan":
+            where = "where the search began" if self.leg == 0 else f"viewpoint {self.leg}/{len(self.points)}"
+            return S.YAW_LEFT, f"Scan {where} ({self.n + 1}/{SCAN_TURNS})."
+        wp = self.points[self.leg - 1]
+        if pose is None:
+            return S.FORWARD, f"Fly on to viewpoint {self.leg}/{len(self.points)}."
+        dist = math.hypot(wp[0] - pose[0], wp[1] - pose[1])
+        bearing = math.atan2(wp[1] - pose[1], wp[0] - pose[0]) - pose[2]
+        bearing = math.atan2(math.sin(bearing), math.cos(bearing))
+        where = f"viewpoint {self.leg}/{len(self.points)} at ({wp[0]:.1f}, {wp[1]:.1f}), {dist:.1f} m away"
+        if abs(bearing) > math.radians(APPROACH_FACING_DEG):
+            return (S.YAW_LEFT if bearing > 0 else S.YAW_RIGHT), f"Explore: turn toward {where}."
+        return S.FORWARD, f"Explore: fly toward {where}."
+
+
+def _poses(window: list[PastStep], now: tuple[float, float, float] | None) -> list[tuple[float, float, float] | None]:
+    """The vehicle's pose before each step of the window (from the motions' reports), then the pose now."""
+    known = [_pose_in(s.message) if s.skill in _MOTION_SKILLS else None for s in window]
+    first = next((p for p in known if p is not None), now)
+    out: list[tuple[float, float, float] | None] = [first]
+    for p in known:
+        out.append(p if p is not None else out[-1])
+    out[-1] = now if now is not None else out[-1]
+    return out
+
+
+def explore(ctx: PolicyContext, window: list[PastStep], query: str | None, localize: str,
+            why: str, label: str | None = None) -> tuple[str, str | None, str]:
+    """The next exploration step when `query` is not in view, replayed from the search's own steps: scan in
+    place, then fly to viewpoints around where the search began and scan from each; after the last (or after
+    EXPLORE_BUDGET steps) `done` with a "not found" reason. Deterministic; reads only the context."""
+    poses = _poses(window, ctx.pose)
+    origin = poses[0]
+    if origin is None:
+        points = [(EXPLORE_RADIUS * math.cos(a), EXPLORE_RADIUS * math.sin(a)) for a in (0.0, 1.57, 3.14, -1.57)]
+    else:
+        points = [(origin[0] + EXPLORE_RADIUS * math.cos(origin[2] + a),
+                   origin[1] + EXPLORE_RADIUS * math.sin(origin[2] + a)) for a in (0.0, math.pi / 2, math.pi,
+                                                                                    -math.pi / 2)]
+    ex = _Explorer(points)
+    been: list[tuple[float, float]] = []
+    for i, step in enumerate(window):
+        pose = poses[i]
+        ex.settle(pose, been)
+        if step.skill in _MOTION_SKILLS:
+            ex.consume(step)
+        if pose is not None:
+            been.append(pose[:2])
+    ex.settle(poses[-1], been)
+    what = query or label or "object the command asks for"
+    if ex.finished or len(window) >= EXPLORE_BUDGET:
+        moved = max((math.dist(p[:2], origin[:2]) for p in poses if p is not None), default=0.0) if origin else 0.0
+        reached = len(points) if ex.finished else min(ex.leg, len(points))
+        return S.DONE, None, (f"{NOT_FOUND}: the {what} was not detected after scanning where the search began and "
+                              f"flying to {reached} viewpoint(s) around it ({len(window)} steps, up to {moved:.1f} m "
+                              "from the start); the task ends failed.")
+    last = window[-1] if window else None
+    if (query and ex.phase == "transit" and ex.n == 0 and last is not None
+            and last.skill in (S.YAW_LEFT, S.YAW_RIGHT)):
+        return localize, query, f"{why} A full scan here did not detect it; ask perception directly."
+    skill, how = ex.next(poses[-1])
+    return skill, None, f"{why} {how}"
 
 
 def _short(rest: list[PastStep]) -> str:
@@ -636,11 +667,16 @@ class RulesBackend(Backend):
     def __init__(self) -> None:
         self.policy = RulesPolicy()
 
+    def refusal(self, command: str, skills: list[str]) -> str | None:
+        """Why the command cannot be carried out (it names no object, no motion and no task verb), else None."""
+        plan = parse_command(command, skills)
+        return None if plan.understood else plan.reason
+
     async def complete(self, request: ModelRequest) -> ModelReply:
         t0 = time.perf_counter()
-        skill, arg, why = self.policy.decide(request.context)
-        text = render_answer(request.context, skill, arg, why)
-        return ModelReply(text=text, latency_s=time.perf_counter() - t0)
+        d = self.policy.decide_full(request.context)
+        text = render_answer(request.context, d.skill, d.argument, d.reasoning)
+        return ModelReply(text=text, latency_s=time.perf_counter() - t0, failure=d.failure)
 
 
 # --------------------------------------------------------------------------- from the prompt text alone

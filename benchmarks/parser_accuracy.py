@@ -1,0 +1,124 @@
+"""Accuracy of the rules baseline's command reader (services/reasoner/backends/rules_parse.py) on phrasing sets.
+
+Each FILE is JSONL, one phrasing per line: {"command", "kind", "target", "destination", "motions", "selector",
+"group", "category", "excluded", "choices", "understood"}. A line is correct when every field matches the
+parse after normalising (lower case, singular nouns, surrounding spaces and articles dropped, lists compared in
+order); an expected `understood: false` only needs the parse to be refused. Prints, per file, accuracy per kind
+and overall, then per-field accuracy. Robust to unknown kinds, missing fields (not scored), blank or broken
+lines (reported and counted wrong). Run:
+
+    .venv/bin/python benchmarks/parser_accuracy.py tests/reasoner/data/phrasings_dev.jsonl [MORE.jsonl ...]
+    [--show-errors]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections import defaultdict
+from pathlib import Path
+
+from services.reasoner.backends.rules_parse import parse_command, singular
+
+FIELDS = ("target", "destination", "motions", "selector", "group", "category", "excluded", "choices", "understood")
+
+
+def norm(value: object) -> object:
+    """Comparable form of a field value: strings lower-cased, articles dropped, each word singular."""
+    if value is None or value == "":
+        return None
+    if isinstance(value, bool):
+        return value
+    if isinstance(value, (list, tuple)):
+        return [norm(v) for v in value]
+    text = " ".join(str(value).lower().replace("_", "_").split())
+    if text.startswith("approach:"):
+        return "approach:" + str(norm(text[len("approach:"):]))
+    words = [w for w in text.split() if w not in ("the", "a", "an")]
+    return " ".join(singular(w) for w in words) or None
+
+
+def score_line(row: dict) -> tuple[bool, dict[str, bool], dict]:
+    """(line correct, per-field correct, the parse) for one phrasing."""
+    plan = parse_command(str(row.get("command", "")))
+    got = plan.as_record()
+    fields: dict[str, bool] = {}
+    expect_understood = row.get("understood", True)
+    for f in FIELDS:
+        if f not in row:
+            continue
+        if f != "understood" and expect_understood is False:
+            continue  # a refusal is judged by `understood` alone
+        want = norm(row[f]) if f != "understood" else bool(row[f])
+        have = norm(got[f]) if f != "understood" else bool(got[f])
+        if isinstance(want, list) and not want:
+            want = []
+        if isinstance(have, list) and not have:
+            have = []
+        fields[f] = want == have
+    return all(fields.values()) and bool(fields), fields, got
+
+
+def evaluate(path: Path, show_errors: bool) -> tuple[int, int]:
+    per_kind: dict[str, list[int]] = defaultdict(lambda: [0, 0])
+    per_field: dict[str, list[int]] = defaultdict(lambda: [0, 0])
+    lines = path.read_text(encoding="utf-8").splitlines()
+    bad = 0
+    for n, line in enumerate(lines, 1):
+        if not line.strip():
+            continue
+        try:
+            row = json.loads(line)
+            if not isinstance(row, dict) or "command" not in row:
+                raise ValueError("not an object with a command")
+        except ValueError as exc:
+            bad += 1
+            per_kind["(unreadable line)"][1] += 1
+            print(f"  {path.name}:{n}: unreadable line, counted wrong ({exc})")
+            continue
+        kind = str(row.get("kind") or "(no kind)")
+        ok, fields, got = score_line(row)
+        per_kind[kind][0] += ok
+        per_kind[kind][1] += 1
+        for f, good in fields.items():
+            per_field[f][0] += good
+            per_field[f][1] += 1
+        if show_errors and not ok:
+            wrong = {f: (row.get(f), got[f]) for f, good in fields.items() if not good}
+            print(f"  WRONG {path.name}:{n} [{kind}] {row['command']!r}: (expected, parsed) {wrong}")
+    right = sum(v[0] for v in per_kind.values())
+    total = sum(v[1] for v in per_kind.values())
+    print(f"\n{path}: {total} phrasings" + (f" ({bad} unreadable)" if bad else ""))
+    print(f"  {'kind':<24} {'correct':>8} {'total':>6} {'accuracy':>9}")
+    for kind in sorted(per_kind):
+        r, t = per_kind[kind]
+        print(f"  {kind:<24} {r:>8} {t:>6} {100 * r / t:>8.1f}%")
+    print(f"  {'OVERALL':<24} {right:>8} {total:>6} {100 * right / max(total, 1):>8.1f}%")
+    print(f"  {'field':<24} {'correct':>8} {'scored':>6} {'accuracy':>9}")
+    for f in FIELDS:
+        if f in per_field:
+            r, t = per_field[f]
+            print(f"  {f:<24} {r:>8} {t:>6} {100 * r / t:>8.1f}%")
+    return right, total
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("files", nargs="+", type=Path, help="JSONL phrasing sets")
+    ap.add_argument("--show-errors", action="store_true", help="print every wrong line with the fields that differ")
+    args = ap.parse_args(argv)
+    right = total = 0
+    for path in args.files:
+        if not path.is_file():
+            print(f"{path}: no such file", file=sys.stderr)
+            return 2
+        r, t = evaluate(path, args.show_errors)
+        right, total = right + r, total + t
+    if len(args.files) > 1:
+        print(f"\nall files: {right}/{total} = {100 * right / max(total, 1):.1f}%")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
