@@ -11,6 +11,7 @@ import numpy as np
 
 from shared.errors import CameraError
 from shared.frames import DEFAULT_INTRINSICS
+from shared.registry import Registry
 from shared.sensors import Intrinsics
 
 if TYPE_CHECKING:
@@ -67,26 +68,16 @@ class CameraSource(ABC):
         return self.type
 
 
-SOURCES: dict[str, type[CameraSource]] = {}
-
-
-def register(cls: type[CameraSource]) -> type[CameraSource]:
-    """Class decorator: make a source selectable by its `type` (AERMANI_CAMERA_SOURCE)."""
-    if not cls.type:
-        raise ValueError(f"{cls.__name__} has no `type`")
-    SOURCES[cls.type] = cls
-    return cls
+SOURCES: Registry[type[CameraSource]] = Registry("camera source", "type", "AERMANI_CAMERA_SOURCE", CameraError)
+register = SOURCES.register
+"""Class decorator: make a source selectable by its `type` (AERMANI_CAMERA_SOURCE)."""
 
 
 def make_source(settings: CameraSettings) -> CameraSource:
     """Build the configured source and check it (raises CameraError naming the fix; opens nothing)."""
     from services.camera import sources  # noqa: F401 - registers the built-in ones
 
-    cls = SOURCES.get(settings.source)
-    if cls is None:
-        raise CameraError(f"unknown camera source {settings.source!r}; set AERMANI_CAMERA_SOURCE to one of "
-                          f"{', '.join(sorted(SOURCES))}")
-    src = cls(settings)
+    src = SOURCES.lookup(settings.source)(settings)
     src.check()
     return src
 

@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, ClassVar
 
 from services.reasoner.prompt import CompiledPrompt, reprompt_text
 from shared.errors import ConfigError, ModelError
+from shared.registry import Registry
 
 if TYPE_CHECKING:
     from services.reasoner.settings import ReasonerSettings
@@ -109,15 +110,10 @@ class Backend(ABC):
         return None
 
 
-BACKENDS: dict[str, type[Backend]] = {}
-
-
-def register(cls: type[Backend]) -> type[Backend]:
-    """Class decorator: make a backend selectable by its `kind`."""
-    if not cls.kind:
-        raise ValueError(f"{cls.__name__} has no `kind`")
-    BACKENDS[cls.kind] = cls
-    return cls
+BACKENDS: Registry[type[Backend]] = Registry("reasoner backend", "kind",
+                                             "AERMANI_REASONER_BACKEND (or the task's backend)", ConfigError)
+register = BACKENDS.register
+"""Class decorator: make a backend selectable by its `kind`."""
 
 
 def api_key(settings: ReasonerSettings, kind: str, env_var: str) -> str:
