@@ -31,6 +31,15 @@ class Envelope(Protocol):
     max_speed: float
 
 
+def check_settings(s: Envelope) -> None:
+    """Settings both enforcers accept: a geofence box whose minimum is below its maximum on every axis and an
+    altitude band 0 < min < max (a ValueError says which is not, for the settings validators)."""
+    if any(lo >= hi for lo, hi in zip(s.geofence_min, s.geofence_max, strict=True)):
+        raise ValueError("geofence_min must be below geofence_max on every axis")
+    if not 0 < s.min_altitude < s.max_altitude:
+        raise ValueError("need 0 < min_altitude < max_altitude")
+
+
 def geofence_problem(p: Vec3, s: Envelope, what: str = "target") -> str | None:
     lo, hi = s.geofence_min, s.geofence_max
     for axis, v, a, b in (("x", p.x, lo[0], hi[0]), ("y", p.y, lo[1], hi[1]), ("z", p.z, lo[2], hi[2])):

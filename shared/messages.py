@@ -304,20 +304,36 @@ LocalizeReason = Literal[
 ]
 
 
-class ObjectEstimate(Message):
-    """Perception's answer to obj_localization: found or not (with the reason), pose, size, support."""
+class LocalizeAnswer(Message):
+    """What perception's two answers (ObjectEstimate, PlacementEstimate) share: the query, found or not with
+    the reason, the matched label, how sure, the evidence and the frame it comes from."""
 
-    kind: Literal["object_estimate"] = "object_estimate"
+    kind: str = ""
+    """The answer's kind (each subclass fixes it)."""
     query: str
     """The query this answers (truncated to 200 characters)."""
     found: bool
-    """Whether the object was localized."""
+    """Whether the thing was localized (an object's pose; a surface with a free placement pose)."""
     reason: LocalizeReason = "ok"
     """Why not, when not found."""
     message: str = ""
     """Human-readable explanation."""
     label: str = ""
-    """Label of the matched object."""
+    """Label of the matched object or surface."""
+    confidence: float = 0.0
+    """0..1."""
+    n_points: int = 0
+    """Number of 3D points supporting the estimate (for a placement: the surface plane's inliers)."""
+    bbox: BBox2D | None = None
+    """2D box of the matched object or surface in the image used."""
+    frame_stamp_ns: int = 0
+    """Timestamp of the colour/depth pair used."""
+
+
+class ObjectEstimate(LocalizeAnswer):
+    """Perception's answer to obj_localization: found or not (with the reason), pose, size, support."""
+
+    kind: Literal["object_estimate"] = "object_estimate"
     pose: Pose | None = None
     """Object centroid (world ENU) and grasp yaw from its oriented box."""
     size: Vec3 | None = None
@@ -326,30 +342,12 @@ class ObjectEstimate(Message):
     """Height of the object's top, world z, metres."""
     support_z: float | None = None
     """Height of the surface under it, world z, metres."""
-    confidence: float = 0.0
-    """0..1."""
-    n_points: int = 0
-    """Number of 3D points supporting the estimate."""
-    bbox: BBox2D | None = None
-    """2D box in the image used."""
-    frame_stamp_ns: int = 0
-    """Timestamp of the colour/depth pair used."""
 
 
-class PlacementEstimate(Message):
+class PlacementEstimate(LocalizeAnswer):
     """Perception's answer to placement_localization: the surface and a free placement spot."""
 
     kind: Literal["placement_estimate"] = "placement_estimate"
-    query: str
-    """The surface query this answers (truncated to 200 characters)."""
-    found: bool
-    """Whether a placement pose was found."""
-    reason: LocalizeReason = "ok"
-    """Why not, when not found."""
-    message: str = ""
-    """Human-readable explanation."""
-    label: str = ""
-    """Label of the matched surface."""
     pose: Pose | None = None
     """Placement pose: where the held object's bottom should be released (world ENU), plus vertical offset."""
     surface_z: float | None = None
@@ -360,14 +358,6 @@ class PlacementEstimate(Message):
     """Offset above the surface included in pose.position.z, metres."""
     clearance: float = 0.0
     """Distance from the spot to the nearest clutter or edge, metres."""
-    confidence: float = 0.0
-    """0..1."""
-    n_points: int = 0
-    """Number of plane inlier points."""
-    bbox: BBox2D | None = None
-    """2D box of the surface in the image used."""
-    frame_stamp_ns: int = 0
-    """Timestamp of the colour/depth pair used."""
 
 
 class Detection(Part):
@@ -801,6 +791,18 @@ class TaskState(StrEnum):
         return self not in (TaskState.PENDING, TaskState.RUNNING)
 
 
+def command_text(v: str) -> str:
+    """A natural-language command as every receiver takes it (task requests, evaluation task files, the
+    gateway after its stricter check): stripped, not empty, no control characters but tab."""
+    v = v.strip()
+    if not v:
+        raise ValueError("command is empty")
+    bad = [c for c in v if (ord(c) < 32 and c not in "\t") or ord(c) == 127]
+    if bad:
+        raise ValueError("command contains control characters")
+    return v
+
+
 class TaskRequest(Message):
     """Action protocol, task level: the goal (a natural-language command L, with overrides)."""
 
@@ -821,13 +823,7 @@ class TaskRequest(Message):
     @field_validator("command")
     @classmethod
     def _printable(cls, v: str) -> str:
-        v = v.strip()
-        if not v:
-            raise ValueError("command is empty")
-        bad = [c for c in v if (ord(c) < 32 and c not in "\t") or ord(c) == 127]
-        if bad:
-            raise ValueError("command contains control characters")
-        return v
+        return command_text(v)
 
 
 class TaskAccept(Message):

@@ -8,10 +8,11 @@ import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
-from shared.bus import Bus
+from shared.bus import Bus, Subscription
 from shared.launcher import Stack, free_port, free_udp_port
+from shared.messages import SkillStatus
 
-__all__ = ["Stack", "free_port", "free_udp_port", "run_stack", "bus_for", "wait_until", "arun"]
+__all__ = ["Stack", "free_port", "free_udp_port", "run_stack", "bus_for", "wait_until", "skill_outcome", "arun"]
 
 
 @contextlib.contextmanager
@@ -59,6 +60,19 @@ async def wait_until(pred: Callable[[], bool], timeout: float = 30.0, interval: 
         if time.monotonic() > deadline:
             raise TimeoutError(f"condition not met in {timeout} s: {what}")
         await asyncio.sleep(interval)
+
+
+async def skill_outcome(statuses: Subscription[SkillStatus], goal_id: str, timeout: float) -> SkillStatus:
+    """The terminal status of skill goal `goal_id` from the executor's status stream (TimeoutError after
+    `timeout` seconds)."""
+
+    async def loop() -> SkillStatus:
+        while True:
+            st = await statuses.recv()
+            if st.goal_id == goal_id and st.state.terminal:
+                return st
+
+    return await asyncio.wait_for(loop(), timeout)
 
 
 def arun(coro, timeout: float = 240.0):

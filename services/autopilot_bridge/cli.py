@@ -10,6 +10,7 @@ import typer
 from rich.console import Console
 
 from shared.bus import Bus
+from shared.cli_helpers import Connect, Vehicle, query_once
 from shared.errors import AermaniError
 from shared.keys import Keys
 from shared.messages import (
@@ -28,21 +29,12 @@ console = Console()
 autopilot = typer.Typer(help="Vehicle state and autopilot commands through the autopilot bridge.",
                         no_args_is_help=True)
 
-Connect = Annotated[str, typer.Option(help="Zenoh endpoint of the router.")]
-Vehicle = Annotated[str, typer.Option(help="Vehicle id.")]
-
-
-async def _send(connect: str, vehicle: str, cmd: Any, timeout: float) -> AutopilotResult:
-    bus = await Bus.open(connect=[connect])
-    try:
-        return await bus.query(Keys(vehicle).autopilot_command, cmd, timeout=timeout)
-    finally:
-        await bus.close()
 
 
 def _run(connect: str, vehicle: str, cmd: Any, timeout: float = 60.0) -> None:
     try:
-        res = asyncio.run(_send(connect, vehicle, cmd, timeout))
+        res: AutopilotResult = asyncio.run(query_once(connect, Keys(vehicle).autopilot_command, cmd,
+                                                      timeout=timeout))
     except AermaniError as exc:
         console.print(f"[red]{exc}[/red]")
         raise typer.Exit(2)

@@ -97,10 +97,7 @@ class BridgeSettings(ServiceSettings):
 
     @model_validator(mode="after")
     def _check_envelope(self) -> BridgeSettings:
-        if any(lo >= hi for lo, hi in zip(self.geofence_min, self.geofence_max, strict=True)):
-            raise ValueError("geofence_min must be below geofence_max on every axis")
-        if not 0 < self.min_altitude < self.max_altitude:
-            raise ValueError("need 0 < min_altitude < max_altitude")
+        envelope.check_settings(self)
         return self
 
     @field_validator("connection")

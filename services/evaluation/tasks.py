@@ -9,7 +9,7 @@ from pathlib import Path
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from shared.errors import ConfigError
-from shared.messages import MAX_COMMAND_CHARS, Scenario
+from shared.messages import MAX_COMMAND_CHARS, Scenario, command_text
 
 SUITES_DIR = Path(__file__).resolve().parent / "suites"
 # Paper order (Section IV-B, Table II); also the row order of the report.
@@ -65,10 +65,7 @@ class EvalTask(BaseModel):
     @field_validator("command")
     @classmethod
     def _strip(cls, v: str) -> str:
-        v = v.strip()
-        if not v:
-            raise ValueError("command is empty")
-        return v
+        return command_text(v)
 
     @property
     def accepted(self) -> tuple[str, ...]:

@@ -15,6 +15,18 @@ def _norm(label: str) -> str:
     return " ".join(label.strip().lower().split())
 
 
+def _find(table: dict[str, MemoryObject], last: str | None, label: str | None) -> MemoryObject | None:
+    """The entry of `table` named `label` (exact, then substring of its key or query, newest first), or the
+    entry `last` when no label is given."""
+    if not label:
+        return table.get(last) if last else None
+    key = _norm(label)
+    if key in table:
+        return table[key]
+    matches = [e for k, e in table.items() if key in k or k in key or key in _norm(e.query)]
+    return max(matches, key=lambda e: e.last_seen_ns) if matches else None
+
+
 class Memory:
     """Mutable store behind the published WorkingMemory. Entries are world-frame, so they survive motion;
     `last_seen_ns` lets skills judge freshness. `on_change` fires after every mutation."""
@@ -126,22 +138,11 @@ class Memory:
 
     def find_object(self, label: str | None) -> MemoryObject | None:
         """The object named `label` (exact, then substring match), or the last localized one."""
-        if not label:
-            return self.objects.get(self.last_object) if self.last_object else None
-        key = _norm(label)
-        if key in self.objects:
-            return self.objects[key]
-        matches = [o for k, o in self.objects.items() if key in k or k in key or key in _norm(o.query)]
-        return max(matches, key=lambda o: o.last_seen_ns) if matches else None
+        return _find(self.objects, self.last_object, label)
 
     def find_placement(self, label: str | None) -> MemoryObject | None:
-        if not label:
-            return self.placements.get(self.last_placement) if self.last_placement else None
-        key = _norm(label)
-        if key in self.placements:
-            return self.placements[key]
-        matches = [p for k, p in self.placements.items() if key in k or k in key or key in _norm(p.query)]
-        return max(matches, key=lambda p: p.last_seen_ns) if matches else None
+        """The placement spot on the surface named `label` (exact, then substring match), or the last one."""
+        return _find(self.placements, self.last_placement, label)
 
     def snapshot(self) -> WorkingMemory:
         return WorkingMemory(objects=tuple(self.objects.values()), placements=tuple(self.placements.values()),

@@ -135,10 +135,7 @@ class ExecutorSettings(ServiceSettings):
     @model_validator(mode="after")
     def _sane(self) -> ExecutorSettings:
         # Refuse unsafe combinations instead of flying them.
-        if any(lo >= hi for lo, hi in zip(self.geofence_min, self.geofence_max, strict=True)):
-            raise ValueError("geofence_min must be below geofence_max on every axis")
-        if not 0 < self.min_altitude < self.max_altitude:
-            raise ValueError("need 0 < min_altitude < max_altitude")
+        envelope.check_settings(self)
         if self.max_altitude > self.geofence_max[2]:
             raise ValueError("max_altitude is above the geofence ceiling")
         if not self.min_altitude <= self.flight_altitude <= self.max_altitude:

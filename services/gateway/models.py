@@ -6,7 +6,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from shared.messages import MAX_COMMAND_CHARS, SkillStatus, TaskState, Variant, VehicleState
+from shared.messages import MAX_COMMAND_CHARS, SkillStatus, TaskState, Variant, VehicleState, command_text
 
 VEHICLE_ID_PATTERN = r"^[A-Za-z0-9_-]{1,32}$"
 
@@ -66,10 +66,7 @@ class TaskCreate(ApiModel):
                       or c in "\u2028\u2029\ufeff"})
         if bad:
             raise ValueError(f"command contains control characters ({', '.join(bad)}); send plain text")
-        v = v.strip()
-        if not v:
-            raise ValueError("command is empty or only whitespace")
-        return v
+        return command_text(v)
 
 
 class TaskLinks(ApiModel):

@@ -8,30 +8,25 @@ from typing import Annotated
 import typer
 from rich.console import Console
 
+from shared.cli_helpers import Connect, Vehicle, command_group, query_once
+
 console = Console()
 
-Connect = Annotated[str, typer.Option(help="Zenoh endpoint of the router.")]
-Vehicle = Annotated[str, typer.Option(help="Vehicle id.")]
 
 
 def register(app: typer.Typer) -> None:
-    p = typer.Typer(help="Perception: localize objects and placement spots, watch detections.", no_args_is_help=True)
-    app.add_typer(p, name="perception")
-    p.command("object")(object_cmd)
-    p.command("place")(place_cmd)
-    p.command("detections")(detections_cmd)
+    command_group(app, "perception", "Perception: localize objects and placement spots, watch detections.",
+                  {"object": object_cmd, "place": place_cmd, "detections": detections_cmd})
 
 
 async def _ask(connect: str, vehicle: str, key_name: str, query: str, size: tuple[float, float, float] | None):
-    from shared.bus import Bus
     from shared.keys import Keys
     from shared.messages import LocalizeRequest, Vec3
 
     keys = Keys(vehicle)
     key = keys.localize_object if key_name == "object" else keys.localize_placement
     req = LocalizeRequest(query=query, object_size=Vec3(x=size[0], y=size[1], z=size[2]) if size else None)
-    async with await Bus.open(connect=[connect]) as bus:
-        return await bus.query(key, req, timeout=10)
+    return await query_once(connect, key, req, timeout=10)
 
 
 def _show(est) -> None:

@@ -4,15 +4,17 @@ from __future__ import annotations
 
 import logging
 import math
+from typing import Any, NamedTuple, TypeVar
 
 import numpy as np
 
 from services.perception import geometry as geo
 from services.perception import query as q
 from services.perception.frames import Frame
-from services.perception.segmenters.base import Segment, Segmenter
+from services.perception.segmenters.base import Found, Segment, Segmenter
 from services.perception.settings import PerceptionSettings
 from shared.messages import (
+    BBox2D,
     Detection,
     Detections,
     LocalizeRequest,
@@ -38,6 +40,20 @@ def camera_yaw(frame: Frame) -> float:
     return math.atan2(fwd[1], fwd[0])
 
 
+E = TypeVar("E", ObjectEstimate, PlacementEstimate)
+
+
+class _Target(NamedTuple):
+    """A found segment with its pixels, their bounding box and depth points, and the estimate's common fields."""
+
+    found: Found
+    seg: Segment
+    idx: np.ndarray
+    bbox: BBox2D | None
+    cloud: geo.Cloud
+    base: dict[str, Any]
+
+
 class Perception:
     """Stateless per request: everything comes from the frame it is given."""
 
@@ -48,24 +64,11 @@ class Perception:
     # ---- objects
 
     def localize_object(self, frame: Frame, req: LocalizeRequest, parsed: q.Query) -> ObjectEstimate:
-        base = {"query": parsed.text, "frame_stamp_ns": frame.stamp_ns}
-        try:
-            found = self.segmenter.find(frame, parsed, OBJECT_CATEGORIES)
-        except q.BadQuery as exc:
-            return ObjectEstimate(found=False, reason="bad_query", message=str(exc), **base)
-        if found.segment is None:
-            return ObjectEstimate(found=False, reason=found.reason, message=found.message, **base)  # type: ignore[arg-type]
-        seg = found.segment
-        idx = seg.indices
-        bbox = geo.bbox_of(idx, frame.shape[1])
-        base.update(label=seg.label, bbox=bbox)
-        if idx.size < self.settings.min_pixels:
-            return ObjectEstimate(found=False, reason="not_visible", message=f"{seg.label}: only {idx.size} pixels",
-                                  **base)
-        cloud = geo.lift(frame, idx, self.settings.max_object_points)
-        if cloud.n_valid == 0:
-            return ObjectEstimate(found=False, reason="depth_invalid", n_points=0,
-                                  message=f"{seg.label} is in view ({idx.size} px) but has no valid depth", **base)
+        target = self._target(frame, parsed, OBJECT_CATEGORIES, ObjectEstimate, self.settings.max_object_points,
+                              self.settings.min_pixels)
+        if not isinstance(target, _Target):
+            return target
+        found, seg, idx, bbox, cloud, base = target
         if cloud.n_valid < self.settings.min_points:
             return ObjectEstimate(found=False, reason="too_few_points", n_points=cloud.n_valid,
                                   message=f"{seg.label}: {cloud.n_valid} valid depth points (< "
@@ -83,22 +86,11 @@ class Perception:
     # ---- placement
 
     def localize_placement(self, frame: Frame, req: LocalizeRequest, parsed: q.Query) -> PlacementEstimate:
-        base = {"query": parsed.text, "frame_stamp_ns": frame.stamp_ns}
         s = self.settings
-        try:
-            found = self.segmenter.find(frame, parsed, PLACEMENT_CATEGORIES)
-        except q.BadQuery as exc:
-            return PlacementEstimate(found=False, reason="bad_query", message=str(exc), **base)
-        if found.segment is None:
-            return PlacementEstimate(found=False, reason=found.reason, message=found.message, **base)  # type: ignore[arg-type]
-        seg = found.segment
-        idx = seg.indices
-        bbox = geo.bbox_of(idx, frame.shape[1])
-        base.update(label=seg.label, bbox=bbox)
-        cloud = geo.lift(frame, idx, s.max_surface_points)
-        if cloud.n_valid == 0:
-            return PlacementEstimate(found=False, reason="depth_invalid",
-                                     message=f"{seg.label} is in view but has no valid depth", **base)
+        target = self._target(frame, parsed, PLACEMENT_CATEGORIES, PlacementEstimate, s.max_surface_points)
+        if not isinstance(target, _Target):
+            return target
+        found, seg, _, bbox, cloud, base = target
         if cloud.n_valid < s.min_points:
             return PlacementEstimate(found=False, reason="too_few_points", n_points=cloud.n_valid,
                                      message=f"{seg.label}: {cloud.n_valid} valid depth points", **base)
@@ -129,6 +121,29 @@ class Perception:
             found=True, reason="ok", message=found.message, pose=Pose(position=_vec(pos), yaw=camera_yaw(frame)),
             surface_z=surface_z, plane=plane_t, vertical_offset=s.vertical_offset, clearance=spot.clearance,
             confidence=round(float(conf), 3), n_points=int(inliers.size), **base)
+
+    def _target(self, frame: Frame, parsed: q.Query, categories: tuple[str, ...], estimate: type[E], max_points: int,
+                min_pixels: int = 0) -> _Target | E:
+        """What the query names, its pixels and their depth points; or the `estimate` saying why not (a bad
+        query, not found, too few pixels, no valid depth)."""
+        base: dict[str, Any] = {"query": parsed.text, "frame_stamp_ns": frame.stamp_ns}
+        try:
+            found = self.segmenter.find(frame, parsed, categories)
+        except q.BadQuery as exc:
+            return estimate(found=False, reason="bad_query", message=str(exc), **base)
+        if found.segment is None:
+            return estimate(found=False, reason=found.reason, message=found.message, **base)
+        seg = found.segment
+        idx = seg.indices
+        bbox = geo.bbox_of(idx, frame.shape[1])
+        base.update(label=seg.label, bbox=bbox)
+        if idx.size < min_pixels:
+            return estimate(found=False, reason="not_visible", message=f"{seg.label}: only {idx.size} pixels", **base)
+        cloud = geo.lift(frame, idx, max_points)
+        if cloud.n_valid == 0:
+            return estimate(found=False, reason="depth_invalid", n_points=0,
+                            message=f"{seg.label} is in view ({idx.size} px) but has no valid depth", **base)
+        return _Target(found, seg, idx, bbox, cloud, base)
 
     def _held_radius(self, req: LocalizeRequest) -> float:
         size = req.object_size

@@ -12,6 +12,7 @@ from typing import Annotated
 import typer
 from rich.console import Console
 
+from shared.cli_helpers import command_group
 from shared.messages import VARIANTS
 
 console = Console()
@@ -22,16 +23,11 @@ console = Console()
 
 async def _live_library(connect: str, timeout: float):
     """The executor's registry if a router and an executor answer within `timeout`, else None."""
-    import json as _json
-
-    from shared.bus import Bus, zenoh_config
+    from shared.cli_helpers import bus_if_up
     from shared.keys import Keys
 
-    cfg = zenoh_config(mode="client", connect=[connect])
-    cfg.insert_json5("connect/timeout_ms", _json.dumps(int(timeout * 1000)))
-    try:
-        bus = await Bus.open(config=cfg)
-    except Exception:
+    bus = await bus_if_up(connect, timeout)
+    if bus is None:
         return None
     try:
         return await bus.query(Keys().skills, None, timeout=timeout)
@@ -373,11 +369,8 @@ def backends_command() -> None:
 
 
 def register(app: typer.Typer) -> None:
-    vlm = typer.Typer(help="Tools for VLM answers and backends.", no_args_is_help=True)
-    vlm.command("check")(check_command)
-    vlm.command("backends")(backends_command)
-    vlm.command("probe")(probe_command)
-    app.add_typer(vlm, name="vlm")
+    command_group(app, "vlm", "Tools for VLM answers and backends.",
+                  {"check": check_command, "backends": backends_command, "probe": probe_command})
     app.command("demo")(demo_command)
 
 

@@ -139,19 +139,14 @@ async def probe(settings: ReasonerSettings, jpeg: bytes, frame_source: str, *, c
 
 async def frame_from_stack(connect: str, vehicle_id: str, timeout: float) -> bytes | None:
     """The newest colour frame of a running stack's camera, or None when nothing publishes one in time."""
-    import json
-
     from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 
-    from shared.bus import Bus, zenoh_config
+    from shared.cli_helpers import bus_if_up
     from shared.keys import Keys
     from shared.sensors import decode_proto
 
-    cfg = zenoh_config(mode="client", connect=[connect])
-    cfg.insert_json5("connect/timeout_ms", json.dumps(int(timeout * 1000)))
-    try:
-        bus = await Bus.open(config=cfg)
-    except Exception:
+    bus = await bus_if_up(connect, timeout)
+    if bus is None:
         return None
     try:
         sub = bus.subscribe(Keys(vehicle_id).camera_color, maxsize=2)

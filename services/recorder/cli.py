@@ -10,6 +10,8 @@ from typing import Annotated
 import typer
 from rich.console import Console
 
+from shared.cli_helpers import command_group
+
 console = Console()
 err = Console(stderr=True)
 
@@ -17,13 +19,10 @@ LogArg = Annotated[Path, typer.Argument(help="An MCAP log written by the recorde
 
 
 def register(app: typer.Typer) -> None:
-    log_app = typer.Typer(help="Inspect, report on and repair MCAP logs.", no_args_is_help=True)
-    app.add_typer(log_app, name="log")
+    command_group(app, "log", "Inspect, report on and repair MCAP logs.",
+                  {"show": show_cmd, "export": export_cmd, "recover": recover_cmd})
     app.command("replay")(replay_cmd)
     app.command("rereason")(rereason_cmd)
-    log_app.command("show")(show_cmd)
-    log_app.command("export")(export_cmd)
-    log_app.command("recover")(recover_cmd)
 
 
 def replay_cmd(

@@ -10,19 +10,15 @@ from typing import Annotated
 import typer
 from rich.console import Console
 
+from shared.cli_helpers import Connect, Vehicle, command_group, query_once
+
 console = Console()
 
-Connect = Annotated[str, typer.Option(help="Zenoh endpoint of the router.")]
-Vehicle = Annotated[str, typer.Option(help="Vehicle id.")]
 
 
 def register(app: typer.Typer) -> None:
-    sim_app = typer.Typer(help="The built-in simulator: preview layouts, reset, judge, stats.", no_args_is_help=True)
-    app.add_typer(sim_app, name="sim")
-    sim_app.command("render")(render_cmd)
-    sim_app.command("reset")(reset_cmd)
-    sim_app.command("judge")(judge_cmd)
-    sim_app.command("stats")(stats_cmd)
+    command_group(app, "sim", "The built-in simulator: preview layouts, reset, judge, stats.",
+                  {"render": render_cmd, "reset": reset_cmd, "judge": judge_cmd, "stats": stats_cmd})
 
 
 def _scenario(seed: int, target: str | None, destination: str | None, out_of_view: bool):
@@ -69,14 +65,9 @@ def render_cmd(
 
 
 async def _query(connect: str, key_attr: str, vehicle: str, request):
-    from shared.bus import Bus
     from shared.keys import Keys
 
-    bus = await Bus.open(connect=[connect])
-    try:
-        return await bus.query(getattr(Keys(vehicle), key_attr), request, timeout=20)
-    finally:
-        await bus.close()
+    return await query_once(connect, getattr(Keys(vehicle), key_attr), request, timeout=20)
 
 
 def reset_cmd(

@@ -14,7 +14,7 @@ from shared.keys import Keys
 from shared.launcher import free_port, open_router
 from shared.messages import SkillAccept, SkillRequest, SkillState, SkillStatus, WorkingMemory
 from tests.executor.fakes import FakeAutopilot, FakeDepth, FakePerception, ToyWorld, cancel_all
-from tests.helpers import wait_until
+from tests.helpers import skill_outcome, wait_until
 
 
 @dataclass
@@ -33,13 +33,7 @@ class Rig:
         return await self.bus.query(self.keys.run_skill, SkillRequest(skill=skill, argument=argument, task_id=task_id), timeout=5.0)
 
     async def terminal(self, goal_id: str, timeout: float = 60.0) -> SkillStatus:
-        async def loop() -> SkillStatus:
-            while True:
-                st = await self.statuses.recv()
-                if st.goal_id == goal_id and st.state.terminal:
-                    return st
-
-        return await asyncio.wait_for(loop(), timeout)
+        return await skill_outcome(self.statuses, goal_id, timeout)
 
     async def run_skill(self, skill: str, argument: str | None = None, timeout: float = 60.0) -> SkillStatus:
         acc = await self.request(skill, argument)

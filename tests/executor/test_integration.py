@@ -27,7 +27,7 @@ from shared.messages import (
     SkillState,
     SkillStatus,
 )
-from tests.helpers import bus_for, run_stack
+from tests.helpers import bus_for, run_stack, skill_outcome
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
@@ -71,13 +71,7 @@ class Client:
                                     timeout=10)
 
     async def terminal(self, goal_id: str, timeout: float = 150.0) -> SkillStatus:
-        async def loop() -> SkillStatus:
-            while True:
-                st = await self.statuses.recv()
-                if st.goal_id == goal_id and st.state.terminal:
-                    return st
-
-        return await asyncio.wait_for(loop(), timeout)
+        return await skill_outcome(self.statuses, goal_id, timeout)
 
     async def run(self, skill: str, argument: str | None = None) -> SkillStatus:
         acc = await self.request(skill, argument)

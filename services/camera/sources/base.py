@@ -2,15 +2,17 @@
 
 from __future__ import annotations
 
+import importlib
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
 from shared.errors import CameraError
 from shared.frames import DEFAULT_INTRINSICS
+from shared.registry import Registry
 from shared.sensors import Intrinsics
 
 if TYPE_CHECKING:
@@ -49,8 +51,46 @@ class CameraSource(ABC):
         self.ended = ""
         """Why a finite source stopped ("" while it runs)."""
 
-    def check(self) -> None:  # noqa: B027 - optional hook
-        """Validate settings and dependencies without touching a device; raise CameraError saying how to fix."""
+    sdk: ClassVar[str] = ""
+    """The Python module of the device's SDK (imported on `check()` and `open()`), "" when none is needed."""
+    install: ClassVar[str] = ""
+    """How to install `sdk`: the CameraError's text when it cannot be imported."""
+
+    def check(self) -> None:
+        """Validate settings and dependencies without touching a device; raise CameraError saying how to fix.
+        By default: the SDK imports."""
+        if self.sdk:
+            self.sdk_module()
+
+    def input_path(self, what: str) -> Path:
+        """`path` of a source that plays a file: a CameraError naming AERMANI_CAMERA_PATH when unset or absent."""
+        if not self.settings.path:
+            raise CameraError(f"the {self.type} source needs AERMANI_CAMERA_PATH: {what}")
+        p = Path(self.settings.path)
+        if not p.exists():
+            raise CameraError(f"AERMANI_CAMERA_PATH {p} does not exist")
+        return p
+
+    def check_calibration(self) -> None:
+        """A calibration file named by AERMANI_CAMERA_CALIBRATION must exist (checked before anything opens)."""
+        if self.settings.calibration and not Path(self.settings.calibration).is_file():
+            raise CameraError(f"AERMANI_CAMERA_CALIBRATION {self.settings.calibration} does not exist")
+
+    def intrinsics_from(self, cal: Path | None, native: tuple[int, int], must_match: bool) -> Intrinsics:
+        """Intrinsics at the configured size of frames that arrive `native`-sized: from the calibration file
+        `cal` when it exists (for `native` exactly when `must_match`), else the simulator camera's."""
+        intr = load_calibration(cal) if cal is not None and cal.is_file() else default_intrinsics(*native)
+        if must_match and (intr.width, intr.height) != native:
+            raise CameraError(f"calibration {cal} is for {intr.width}x{intr.height} but the frames are "
+                              f"{native[0]}x{native[1]}")
+        return scaled(intr, self.settings.width, self.settings.height)
+
+    def sdk_module(self) -> Any:
+        """The imported `sdk` module, or a CameraError saying how to install it."""
+        try:
+            return importlib.import_module(self.sdk)
+        except ImportError as exc:
+            raise CameraError(self.install) from exc
 
     @abstractmethod
     def open(self) -> None:
@@ -67,26 +107,16 @@ class CameraSource(ABC):
         return self.type
 
 
-SOURCES: dict[str, type[CameraSource]] = {}
-
-
-def register(cls: type[CameraSource]) -> type[CameraSource]:
-    """Class decorator: make a source selectable by its `type` (AERMANI_CAMERA_SOURCE)."""
-    if not cls.type:
-        raise ValueError(f"{cls.__name__} has no `type`")
-    SOURCES[cls.type] = cls
-    return cls
+SOURCES: Registry[type[CameraSource]] = Registry("camera source", "type", "AERMANI_CAMERA_SOURCE", CameraError)
+register = SOURCES.register
+"""Class decorator: make a source selectable by its `type` (AERMANI_CAMERA_SOURCE)."""
 
 
 def make_source(settings: CameraSettings) -> CameraSource:
     """Build the configured source and check it (raises CameraError naming the fix; opens nothing)."""
     from services.camera import sources  # noqa: F401 - registers the built-in ones
 
-    cls = SOURCES.get(settings.source)
-    if cls is None:
-        raise CameraError(f"unknown camera source {settings.source!r}; set AERMANI_CAMERA_SOURCE to one of "
-                          f"{', '.join(sorted(SOURCES))}")
-    src = cls(settings)
+    src = SOURCES.lookup(settings.source)(settings)
     src.check()
     return src
 

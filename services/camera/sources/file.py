@@ -14,15 +14,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from services.camera.sources.base import (
-    CameraSource,
-    Capture,
-    default_intrinsics,
-    fit,
-    load_calibration,
-    register,
-    scaled,
-)
+from services.camera.sources.base import CameraSource, Capture, fit, register
 from shared.errors import CameraError
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp")
@@ -66,13 +58,8 @@ class FileSource(CameraSource):
     retry_open = False
 
     def check(self) -> None:
-        if not self.settings.path:
-            raise CameraError("the file source needs AERMANI_CAMERA_PATH: a video file or a folder of images")
-        p = Path(self.settings.path)
-        if not p.exists():
-            raise CameraError(f"AERMANI_CAMERA_PATH {p} does not exist")
-        if self.settings.calibration and not Path(self.settings.calibration).is_file():
-            raise CameraError(f"AERMANI_CAMERA_CALIBRATION {self.settings.calibration} does not exist")
+        p = self.input_path("a video file or a folder of images")
+        self.check_calibration()
         if p.is_dir():
             frames = folder_frames(p)
             if not frames:
@@ -103,11 +90,7 @@ class FileSource(CameraSource):
                 raise CameraError(f"OpenCV cannot open the video {p}")
             native = (int(self.video.get(cv2.CAP_PROP_FRAME_WIDTH)), int(self.video.get(cv2.CAP_PROP_FRAME_HEIGHT)))
             cal = Path(self.settings.calibration) if self.settings.calibration else p.with_suffix(".yaml")
-        intr = load_calibration(cal) if cal.is_file() else default_intrinsics(*native)
-        if (intr.width, intr.height) != native:
-            raise CameraError(f"calibration {cal} is for {intr.width}x{intr.height} but the frames are "
-                              f"{native[0]}x{native[1]}")
-        self.intrinsics = scaled(intr, self.settings.width, self.settings.height)
+        self.intrinsics = self.intrinsics_from(cal, native, must_match=True)
 
     def _next_folder(self) -> Capture | None:
         if self.index >= len(self.frames):

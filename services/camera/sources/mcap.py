@@ -34,9 +34,7 @@ class McapSource(CameraSource):
     retry_open = False
 
     def check(self) -> None:
-        if not self.settings.path:
-            raise CameraError("the mcap source needs AERMANI_CAMERA_PATH: an aermani MCAP log")
-        if not Path(self.settings.path).is_file():
+        if not self.input_path("an aermani MCAP log").is_file():
             raise CameraError(f"AERMANI_CAMERA_PATH {self.settings.path} is not a file")
 
     def open(self) -> None:

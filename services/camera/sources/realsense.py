@@ -3,8 +3,6 @@ pipeline, intrinsics read from the device (untested here: no device on the build
 
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
 
 from services.camera.sources.base import CameraSource, Capture, register
@@ -16,24 +14,15 @@ INSTALL = ("the realsense source needs the `pyrealsense2` package: `pip install 
            "-DBUILD_PYTHON_BINDINGS=ON (docs/hardware.md)")
 
 
-def _rs() -> Any:
-    try:
-        import pyrealsense2 as rs  # type: ignore[import-not-found]
-    except ImportError as exc:
-        raise CameraError(INSTALL) from exc
-    return rs
-
-
 @register
 class RealSenseSource(CameraSource):
     type = "realsense"
     paced = True  # wait_for_frames blocks until the device delivers
-
-    def check(self) -> None:
-        _rs()
+    sdk = "pyrealsense2"
+    install = INSTALL
 
     def open(self) -> None:
-        rs = _rs()
+        rs = self.sdk_module()
         s = self.settings
         self.pipeline = rs.pipeline()
         cfg = rs.config()

@@ -7,15 +7,7 @@ from pathlib import Path
 
 import cv2
 
-from services.camera.sources.base import (
-    CameraSource,
-    Capture,
-    default_intrinsics,
-    fit,
-    load_calibration,
-    register,
-    scaled,
-)
+from services.camera.sources.base import CameraSource, Capture, fit, register
 from shared.errors import CameraError
 
 
@@ -29,8 +21,7 @@ class UvcSource(CameraSource):
         return int(dev) if dev.isdigit() else dev
 
     def check(self) -> None:
-        if self.settings.calibration and not Path(self.settings.calibration).is_file():
-            raise CameraError(f"AERMANI_CAMERA_CALIBRATION {self.settings.calibration} does not exist")
+        self.check_calibration()
 
     def open(self) -> None:
         dev = self._device()
@@ -46,9 +37,8 @@ class UvcSource(CameraSource):
         self.cap.set(cv2.CAP_PROP_FPS, s.fps)
         self.has_depth = False
         native = (int(self.cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(self.cap.get(cv2.CAP_PROP_FRAME_HEIGHT)))
-        intr = load_calibration(s.calibration) if s.calibration else default_intrinsics(*native)
-
-        self.intrinsics = scaled(intr, s.width, s.height)
+        cal = Path(s.calibration) if s.calibration else None
+        self.intrinsics = self.intrinsics_from(cal, native, must_match=False)
 
     def read(self) -> Capture | None:
         ok, bgr = self.cap.read()

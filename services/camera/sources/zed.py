@@ -3,8 +3,6 @@ left colour image, intrinsics from the SDK (untested here: needs the SDK, CUDA a
 
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
 
 from services.camera.sources.base import CameraSource, Capture, register
@@ -18,24 +16,15 @@ INSTALL = ("the zed source needs the ZED SDK and its Python API `pyzed` (not on 
 RESOLUTIONS = {(672, 376): "VGA", (1280, 720): "HD720", (1920, 1080): "HD1080", (2208, 1242): "HD2K"}
 
 
-def _sl() -> Any:
-    try:
-        import pyzed.sl as sl  # type: ignore[import-not-found]
-    except ImportError as exc:
-        raise CameraError(INSTALL) from exc
-    return sl
-
-
 @register
 class ZedSource(CameraSource):
     type = "zed"
     paced = True  # grab() waits for the next frame
-
-    def check(self) -> None:
-        _sl()
+    sdk = "pyzed.sl"
+    install = INSTALL
 
     def open(self) -> None:
-        sl = _sl()
+        sl = self.sdk_module()
         s = self.settings
         init = sl.InitParameters()
         # The SDK has fixed modes: take the one matching width x height, else the smallest, resized below.

@@ -9,7 +9,7 @@ from services.executor.context import SkillContext, SkillFailed
 from services.executor.envelope import geofence_problem, wrap
 from services.executor.memory import age_s, horizontal_distance
 from services.executor.registry import Category, Skill, SkillResult, register
-from services.executor.skills.common import fmt, not_found
+from services.executor.skills.common import beyond_reach, fmt, not_found
 from shared import skills as names
 from shared.messages import (
     GripperState,
@@ -152,12 +152,10 @@ class Grasp(_Manipulation):
         if a > s.localization_max_age_s:
             return (f"the {obj.label} was last localized {a:.0f} s ago (limit {s.localization_max_age_s:.0f} s): "
                     "run obj_localization again")
-        st = ctx.state.value
-        assert st is not None
-        d = horizontal_distance(obj.position, st.position)
-        if d > s.reach:
-            return (f"the {obj.label} is {d:.2f} m away (reach {s.reach:.2f} m, where localization is accurate "
-                    "enough for the gripper): too far: approach first")
+        far = beyond_reach(ctx, obj.position, s.reach, f"the {obj.label}",
+                           ", where localization is accurate enough for the gripper")
+        if far:
+            return far
         if obj.size is not None and min(obj.size.x, obj.size.y) > s.gripper_max_opening - 0.01:
             return (f"the {obj.label} measures {100 * min(obj.size.x, obj.size.y):.0f} cm across its narrow side: "
                     f"wider than the gripper opens ({100 * s.gripper_max_opening:.0f} cm)")
@@ -282,13 +280,7 @@ class Place(_Manipulation):
         if pl is None:
             what = f"on the {argument}" if argument else ""
             return f"no placement spot {what} in working memory: run placement_localization first".replace("  ", " ")
-        st = ctx.state.value
-        assert st is not None
-        d = horizontal_distance(pl.position, st.position)
-        if d > s.place_reach:
-            return (f"the placement spot on the {pl.label} is {d:.2f} m away (reach {s.place_reach:.2f} m): "
-                    "too far: approach first")
-        return None
+        return beyond_reach(ctx, pl.position, s.place_reach, f"the placement spot on the {pl.label}")
 
     async def run(self, ctx: SkillContext, argument: str | None) -> SkillResult:
         s, mem = self.settings, ctx.memory

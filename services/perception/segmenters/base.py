@@ -11,6 +11,8 @@ import numpy as np
 
 from services.perception import query as q
 from services.perception.frames import Frame
+from shared.errors import PerceptionError
+from shared.registry import Registry
 
 if TYPE_CHECKING:
     from services.perception.settings import PerceptionSettings
@@ -82,26 +84,16 @@ class Segmenter(ABC):
         return Found(seg, "ok", result.message)
 
 
-SEGMENTERS: dict[str, type[Segmenter]] = {}
-
-
-def register(cls: type[Segmenter]) -> type[Segmenter]:
-    """Class decorator: make a segmenter selectable by its `type`."""
-    if not cls.type:
-        raise ValueError(f"{cls.__name__} has no `type`")
-    SEGMENTERS[cls.type] = cls
-    return cls
+SEGMENTERS: Registry[type[Segmenter]] = Registry("segmenter", "type", "AERMANI_PERCEPTION_SEGMENTER",
+                                                 PerceptionError)
+register = SEGMENTERS.register
+"""Class decorator: make a segmenter selectable by its `type` (AERMANI_PERCEPTION_SEGMENTER)."""
 
 
 def make_segmenter(settings: PerceptionSettings) -> Segmenter:
     """Build and start the configured segmenter; raises PerceptionError with a fix when it cannot start."""
     from services.perception import segmenters  # noqa: F401 - registers the built-in ones
-    from shared.errors import PerceptionError
 
-    cls = SEGMENTERS.get(settings.segmenter)
-    if cls is None:
-        raise PerceptionError(f"unknown segmenter {settings.segmenter!r}; set AERMANI_PERCEPTION_SEGMENTER to one "
-                              f"of {', '.join(sorted(SEGMENTERS))}")
-    seg = cls(settings)
+    seg = SEGMENTERS.lookup(settings.segmenter)(settings)
     seg.start()
     return seg

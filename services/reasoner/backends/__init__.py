@@ -45,8 +45,4 @@ def make_backend(settings: ReasonerSettings, name: str | None = None) -> Backend
     """The backend named by `name` (or settings.backend), built from the settings."""
     load_backend_modules(settings.backend_modules)
     name = name or settings.backend
-    cls = BACKENDS.get(name)
-    if cls is None:
-        raise ConfigError(f"unknown reasoner backend {name!r}: set AERMANI_REASONER_BACKEND (or the task's backend) "
-                          f"to one of {', '.join(BACKENDS)}")
-    return cls.from_settings(settings.model_copy(update={"backend": name}))
+    return BACKENDS.lookup(name).from_settings(settings.model_copy(update={"backend": name}))

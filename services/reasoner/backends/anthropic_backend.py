@@ -12,15 +12,7 @@ import time
 
 import anthropic
 
-from services.reasoner.backends.base import (
-    ChatBackend,
-    ModelReply,
-    ModelRequest,
-    SchemaRejected,
-    conversation,
-    register,
-)
-from shared.errors import ModelError
+from services.reasoner.backends.base import ChatBackend, ModelReply, ModelRequest, register
 
 
 @register
@@ -29,24 +21,15 @@ class AnthropicBackend(ChatBackend):
     summary = "Claude through the Anthropic Messages API; MODEL, BASE_URL, API_KEY or ANTHROPIC_API_KEY"
     default_model = "claude-sonnet-4-5"
     key_env = "ANTHROPIC_API_KEY"
+    endpoint = "Anthropic endpoint"
+    client_class = anthropic.AsyncAnthropic
 
-    def __init__(self, **kw: object) -> None:
-        super().__init__(**kw)  # type: ignore[arg-type]
-        # Like the OpenAI SDK: bounded retries with backoff on 408/409/429/5xx, connection errors, timeouts.
-        self.client = anthropic.AsyncAnthropic(api_key=self.api_key, base_url=self.base_url or None,
-                                               timeout=self.timeout_s, max_retries=self.retries)
+    def prefix_part(self, prefix: str) -> dict:
+        return {"type": "text", "text": prefix, "cache_control": {"type": "ephemeral"}}
 
-    def messages(self, request: ModelRequest) -> list[dict]:
-        p = request.prompt
-        content: list[dict] = []
-        if p.prefix:
-            content.append({"type": "text", "text": p.prefix, "cache_control": {"type": "ephemeral"}})
-        content.append({"type": "text", "text": p.suffix})
-        jpeg = self.image(request)
-        if jpeg is not None:
-            content.append({"type": "image", "source": {"type": "base64", "media_type": "image/jpeg",
-                                                         "data": base64.b64encode(jpeg).decode()}})
-        return conversation(request, content)
+    def image_part(self, jpeg: bytes) -> dict:
+        return {"type": "image", "source": {"type": "base64", "media_type": "image/jpeg",
+                                            "data": base64.b64encode(jpeg).decode()}}
 
     async def _call(self, request: ModelRequest, schema: dict | None) -> ModelReply:
         t0 = time.perf_counter()
@@ -56,20 +39,9 @@ class AnthropicBackend(ChatBackend):
         if self.temperature:
             # Recent Claude models fix sampling; a non-zero setting still reaches endpoints that accept it.
             kw["extra_body"] = {"temperature": self.temperature}
-        try:
+        with self.sdk_errors(anthropic, schema):
             resp = await self.client.messages.create(model=self.model, max_tokens=self.max_tokens,
                                                      messages=self.messages(request), **kw)
-        except (anthropic.BadRequestError, anthropic.UnprocessableEntityError) as exc:
-            if schema is not None:
-                raise SchemaRejected(f"HTTP {exc.status_code}: {str(exc)[:200]}") from exc
-            raise ModelError(f"Anthropic endpoint refused the request for model {self.model} (HTTP "
-                             f"{exc.status_code}): {str(exc)[:200]}") from exc
-        except anthropic.APIStatusError as exc:
-            raise ModelError(f"Anthropic endpoint answered HTTP {exc.status_code} for model {self.model} after the "
-                             f"retry budget: {str(exc)[:200]}") from exc
-        except anthropic.APIError as exc:
-            raise ModelError(f"Anthropic endpoint unreachable for model {self.model} after the retry budget: "
-                             f"{type(exc).__name__}: {str(exc)[:200]}") from exc
         latency = time.perf_counter() - t0
         text = "".join(getattr(b, "text", "") for b in resp.content)
         u = resp.usage
@@ -78,6 +50,3 @@ class AnthropicBackend(ChatBackend):
         # input_tokens counts only what was neither read from nor written to the cache.
         return ModelReply(text=text, latency_s=latency, tokens_in=u.input_tokens + (cached or 0) + written,
                           tokens_out=u.output_tokens, structured=schema is not None, cached_tokens=cached)
-
-    async def aclose(self) -> None:
-        await self.client.close()

@@ -7,11 +7,14 @@ from __future__ import annotations
 import logging
 import os
 from abc import ABC, abstractmethod
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 from services.reasoner.prompt import CompiledPrompt, reprompt_text
 from shared.errors import ConfigError, ModelError
+from shared.registry import Registry
 
 if TYPE_CHECKING:
     from services.reasoner.settings import ReasonerSettings
@@ -117,15 +120,10 @@ class Backend(ABC):
         return None
 
 
-BACKENDS: dict[str, type[Backend]] = {}
-
-
-def register(cls: type[Backend]) -> type[Backend]:
-    """Class decorator: make a backend selectable by its `kind`."""
-    if not cls.kind:
-        raise ValueError(f"{cls.__name__} has no `kind`")
-    BACKENDS[cls.kind] = cls
-    return cls
+BACKENDS: Registry[type[Backend]] = Registry("reasoner backend", "kind",
+                                             "AERMANI_REASONER_BACKEND (or the task's backend)", ConfigError)
+register = BACKENDS.register
+"""Class decorator: make a backend selectable by its `kind`."""
 
 
 def api_key(settings: ReasonerSettings, kind: str, env_var: str) -> str:
@@ -186,10 +184,15 @@ def fit_image(jpeg: bytes, max_side: int) -> bytes:
 
 class ChatBackend(Backend):
     """A hosted or local chat model: model profile, output mode (schema-constrained or free text) with the
-    per-endpoint fallback, and the settings every such backend reads. Subclasses implement `_call`."""
+    per-endpoint fallback, the settings every such backend reads, the request's chat turns and the SDK's
+    client and errors. Subclasses name their SDK client and implement `image_part` and `_call`."""
 
     default_model: ClassVar[str] = ""
     key_env: ClassVar[str] = ""
+    endpoint: ClassVar[str] = ""
+    """What the server is called in errors ("OpenAI-compatible endpoint")."""
+    client_class: ClassVar[Any] = None
+    """The official SDK's async client class (`openai.AsyncOpenAI`), built with the endpoint settings."""
 
     def __init__(self, *, model: str, api_key: str, base_url: str | None = None, timeout_s: float = 30.0,
                  retries: int = 3, max_tokens: int | None = None, temperature: float | None = None,
@@ -206,6 +209,11 @@ class ChatBackend(Backend):
         self.api_key = api_key
         self.timeout_s = timeout_s
         self.retries = retries
+        # The SDK retries 408/409/429/5xx, connection errors and timeouts with exponential backoff and jitter;
+        # `retries` is the bounded budget per call.
+        self.client: Any = None if self.client_class is None else self.client_class(
+            api_key=api_key, base_url=base_url or None, timeout=timeout_s, max_retries=retries)
+        """The official SDK's async client, closed by `aclose`."""
         self.tracer = None
         """OpenTelemetry tracer for model-call spans (tracing.py), None when tracing is off."""
 
@@ -261,6 +269,48 @@ class ChatBackend(Backend):
                             "text and the lenient reader from now on", self.kind, self.base_url or "(default)",
                             self.model, str(exc)[:200])
             return reply
+
+    async def aclose(self) -> None:
+        if self.client is not None:
+            await self.client.close()
+
+    def messages(self, request: ModelRequest) -> list[dict]:
+        """The chat turns: [prompt prefix, rest of the prompt, image] as the first user turn (the first text
+        part is the same for every step: what prefix caching reuses), then the step's feedback."""
+        p = request.prompt
+        content: list[dict] = [self.prefix_part(p.prefix)] if p.prefix else []
+        content.append({"type": "text", "text": p.suffix})
+        jpeg = self.image(request)
+        if jpeg is not None:
+            content.append(self.image_part(jpeg))
+        return conversation(request, content)
+
+    def prefix_part(self, prefix: str) -> dict:
+        """The content part carrying the constant prompt prefix."""
+        return {"type": "text", "text": prefix}
+
+    @abstractmethod
+    def image_part(self, jpeg: bytes) -> dict:
+        """The content part carrying the (fitted) JPEG image, in the API's format."""
+
+    @contextmanager
+    def sdk_errors(self, sdk: Any, schema: dict | None) -> Iterator[None]:
+        """Translate the errors of an official SDK (`openai`, `anthropic`: the same Stainless-generated error
+        classes) after its retry budget: SchemaRejected for a refused request that carried a schema,
+        else ModelError naming the endpoint (`endpoint` names its kind) and the model."""
+        try:
+            yield
+        except (sdk.BadRequestError, sdk.UnprocessableEntityError) as exc:
+            if schema is not None:
+                raise SchemaRejected(f"HTTP {exc.status_code}: {str(exc)[:200]}") from exc
+            raise ModelError(f"{self.endpoint} refused the request for model {self.model} (HTTP "
+                             f"{exc.status_code}): {str(exc)[:200]}") from exc
+        except sdk.APIStatusError as exc:
+            raise ModelError(f"{self.endpoint} answered HTTP {exc.status_code} for model {self.model} after the "
+                             f"retry budget: {str(exc)[:200]}") from exc
+        except sdk.APIError as exc:  # connection, timeout
+            raise ModelError(f"{self.endpoint} unreachable for model {self.model} after the retry budget: "
+                             f"{type(exc).__name__}: {str(exc)[:200]}") from exc
 
     @abstractmethod
     async def _call(self, request: ModelRequest, schema: dict | None) -> ModelReply:

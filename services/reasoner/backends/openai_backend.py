@@ -12,16 +12,8 @@ import time
 
 import openai
 
-from services.reasoner.backends.base import (
-    ChatBackend,
-    ModelReply,
-    ModelRequest,
-    SchemaRejected,
-    conversation,
-    register,
-)
+from services.reasoner.backends.base import ChatBackend, ModelReply, ModelRequest, register
 from services.reasoner.schema import SCHEMA_NAME
-from shared.errors import ModelError
 
 
 def image_data_url(jpeg: bytes) -> str:
@@ -39,41 +31,19 @@ class OpenAIBackend(ChatBackend):
                "MODEL, BASE_URL, API_KEY or OPENAI_API_KEY")
     default_model = "gpt-4o"
     key_env = "OPENAI_API_KEY"
+    endpoint = "OpenAI-compatible endpoint"
+    client_class = openai.AsyncOpenAI
 
-    def __init__(self, **kw: object) -> None:
-        super().__init__(**kw)  # type: ignore[arg-type]
-        # The SDK retries 408/409/429/5xx, connection errors and timeouts with exponential backoff and jitter;
-        # max_retries is our bounded budget per call.
-        self.client = openai.AsyncOpenAI(api_key=self.api_key, base_url=self.base_url or None,
-                                         timeout=self.timeout_s, max_retries=self.retries)
-
-    def messages(self, request: ModelRequest) -> list[dict]:
-        p = request.prompt
-        content: list[dict] = [{"type": "text", "text": p.prefix}] if p.prefix else []
-        content.append({"type": "text", "text": p.suffix})
-        jpeg = self.image(request)
-        if jpeg is not None:
-            content.append({"type": "image_url", "image_url": {"url": image_data_url(jpeg)}})
-        return conversation(request, content)
+    def image_part(self, jpeg: bytes) -> dict:
+        return {"type": "image_url", "image_url": {"url": image_data_url(jpeg)}}
 
     async def _call(self, request: ModelRequest, schema: dict | None) -> ModelReply:
         t0 = time.perf_counter()
         extra = {"response_format": response_format(schema)} if schema is not None else {}
-        try:
+        with self.sdk_errors(openai, schema):
             resp = await self.client.chat.completions.create(
                 model=self.model, messages=self.messages(request), max_tokens=self.max_tokens,
                 temperature=self.temperature, **extra)
-        except (openai.BadRequestError, openai.UnprocessableEntityError) as exc:
-            if schema is not None:
-                raise SchemaRejected(f"HTTP {exc.status_code}: {str(exc)[:200]}") from exc
-            raise ModelError(f"OpenAI-compatible endpoint refused the request for model {self.model} (HTTP "
-                             f"{exc.status_code}): {str(exc)[:200]}") from exc
-        except openai.APIStatusError as exc:
-            raise ModelError(f"OpenAI-compatible endpoint answered HTTP {exc.status_code} for model {self.model}"
-                             f" after the retry budget: {str(exc)[:200]}") from exc
-        except openai.APIError as exc:  # connection, timeout
-            raise ModelError(f"OpenAI-compatible endpoint unreachable for model {self.model} after the retry "
-                             f"budget: {type(exc).__name__}: {str(exc)[:200]}") from exc
         latency = time.perf_counter() - t0
         text = (resp.choices[0].message.content or "") if resp.choices else ""
         usage = resp.usage
@@ -81,6 +51,3 @@ class OpenAIBackend(ChatBackend):
         return ModelReply(text=text, latency_s=latency, tokens_in=usage.prompt_tokens if usage else None,
                           tokens_out=usage.completion_tokens if usage else None, structured=schema is not None,
                           cached_tokens=getattr(details, "cached_tokens", None))
-
-    async def aclose(self) -> None:
-        await self.client.close()
