@@ -59,6 +59,10 @@ class StepCollector:
         self.sub.close()
 
 
+REFUSED_BEFORE_TAKEOFF = "command refused before takeoff"
+"""How a task's failure message starts when the policy refused the command before anything flew: the
+policy's answer (a failure to count), not a stack problem to retry."""
+
 @dataclass
 class Followed:
     """What following one task gave: the accept answer, the terminal status (None when none came in time),

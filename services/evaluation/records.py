@@ -6,10 +6,11 @@ import json
 import threading
 from pathlib import Path
 
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, model_validator
 
 from services.evaluation.tasks import EvalTask
 from shared.messages import JudgeResult, ReasoningStep, TaskStatus
+from shared.tasks import REFUSED_BEFORE_TAKEOFF
 
 RESULTS_FILE = "episodes.jsonl"
 
@@ -76,6 +77,16 @@ class EpisodeRecord(BaseModel):
     """Step samples seen on this vehicle's key during the episode that belonged to another task (cross-talk)."""
     harness_error: str = ""
     """Set when the episode could not run (reset failed, no status...)."""
+
+    @model_validator(mode="after")
+    def _refusal_is_a_result(self) -> EpisodeRecord:
+        """Records from harness versions that excluded a refused command as "failed before the first reasoning
+        step": a refusal is the policy's answer, so such an episode counts as a failure (it stays listed with
+        its retries)."""
+        if (self.harness_error.startswith("failed before the first reasoning step") and self.status is not None
+                and self.status.message.startswith(REFUSED_BEFORE_TAKEOFF)):
+            self.harness_error = ""
+        return self
 
     @property
     def duration_s(self) -> float:

@@ -48,7 +48,7 @@ from shared.messages import (
     new_id,
     now_ns,
 )
-from shared.tasks import follow_task, judge_episode
+from shared.tasks import REFUSED_BEFORE_TAKEOFF, follow_task, judge_episode
 
 log = logging.getLogger("aermani.evaluation")
 
@@ -360,8 +360,10 @@ def success_verdict(state: str, judged_ok: bool, judge_message: str, t_max: floa
 
 
 def _failed_before_first_step(rec: EpisodeRecord) -> bool:
+    """A take-off failure before the policy ever ran (a stack problem: the trial restarts). A command the
+    policy refused is its answer: a failed episode like any other, never restarted or excluded."""
     return (rec.status is not None and rec.status.state.value == "failed" and rec.status.steps == 0
-            and not rec.steps and not rec.success)
+            and not rec.steps and not rec.success and not rec.status.message.startswith(REFUSED_BEFORE_TAKEOFF))
 
 
 # --------------------------------------------------------------------------- the run

@@ -44,6 +44,7 @@ from shared.messages import (
     TaskStatus,
     now_ns,
 )
+from shared.tasks import REFUSED_BEFORE_TAKEOFF
 
 log = logging.getLogger("aermani.reasoner.loop")
 
@@ -244,7 +245,7 @@ class TaskRunner:
         out), then the takeoff when the vehicle is on the ground. The failed status, or None to go on."""
         refused = self.backend.refusal(self.req.command, [s.name for s in policy_skills(library)])
         if refused:
-            return self.status(TaskState.FAILED, f"command refused before takeoff: {refused}")
+            return self.status(TaskState.FAILED, f"{REFUSED_BEFORE_TAKEOFF}: {refused}")
         obs = await self.world.observe(0)
         if obs.state is not None:
             self._override_ns = obs.state.override_ns

@@ -343,3 +343,26 @@ def test_displacement_rules_from_step_records():
     assert oscillations(a) == {0, 2} and zero_net_sequences(a) == set()  # a localization sits between them
     assert futile_loops(a) == set() and redundant_actions(a) == {0, 2}
     assert compute([record("e1", True, steps)]).arr == pytest.approx(100 * 2 / 5)
+
+
+def test_a_refused_command_is_a_failed_episode_not_an_excluded_one() -> None:
+    """A command the policy refuses before takeoff is its answer: counted as a failure, never restarted or
+    left out of the metrics (records written by older harnesses are read the same way)."""
+    from services.evaluation.records import EpisodeRecord
+    from services.evaluation.runner import _failed_before_first_step
+    from services.evaluation.tasks import EvalTask
+    from shared.messages import TaskState, TaskStatus
+
+    task = EvalTask(command="tissue box -> shelf", suite="localization", target_object="tissue box",
+                    destination="shelf")
+    refused = TaskStatus(task_id="t", command=task.command, state=TaskState.FAILED, steps=0,
+                         message="command refused before takeoff: I cannot understand it")
+    rec = EpisodeRecord(episode_id="e", suite="localization", backend="rules", variant="full", task=task, seed=1,
+                        status=refused)
+    assert not _failed_before_first_step(rec)
+    takeoff = rec.model_copy(update={"status": refused.model_copy(update={"message": "takeoff failed: no GPS"})})
+    assert _failed_before_first_step(takeoff)
+    old = EpisodeRecord.model_validate({**rec.model_dump(mode="json"), "attempts": 3, "harness_error":
+                                        "failed before the first reasoning step 3 times: command refused before "
+                                        "takeoff: I cannot understand it"})
+    assert old.harness_error == "" and old.attempts == 3
