@@ -15,17 +15,20 @@ RUN apt-get update \
 RUN python3 -m venv /opt/venv
 ENV PATH=/opt/venv/bin:$PATH
 
-# pip's index, extra indexes, find-links, constraints and CA bundle for builds behind a proxy or a mirror;
-# unset (empty) ones are dropped so pip keeps its defaults. Paths must exist in the build (COPY or `-v`).
+# pip's index, extra indexes, find-links, constraints and CA bundle for builds behind a proxy or a mirror
+# (pip ignores the empty ones). Paths they name must exist in the build: COPY them or mount them (`podman
+# build -v`), see docs/deploy.md.
 ARG PIP_INDEX_URL= PIP_EXTRA_INDEX_URL= PIP_TRUSTED_HOST= PIP_FIND_LINKS= PIP_CERT= PIP_CONSTRAINT=
 WORKDIR /app
-COPY pyproject.toml README.md ./
+COPY pyproject.toml ./
+# The dependencies first, in a layer that changes only with pyproject.toml (the package is installed empty
+# and removed again): a code change then rebuilds in seconds instead of reinstalling Open3D and MuJoCo.
+RUN mkdir -p shared services && touch README.md && pip install --no-cache-dir . && pip uninstall -y -q aermani \
+ && rm -rf shared services build
+COPY README.md ./
 COPY shared ./shared
 COPY services ./services
-RUN for v in PIP_INDEX_URL PIP_EXTRA_INDEX_URL PIP_TRUSTED_HOST PIP_FIND_LINKS PIP_CERT PIP_CONSTRAINT; do \
-      eval "[ -n \"\${$v}\" ]" || unset "$v"; \
-    done \
- && pip install --no-cache-dir .
+RUN pip install --no-cache-dir --no-deps .
 
 ENV PYTHONUNBUFFERED=1 \
     MUJOCO_GL=egl \
