@@ -152,7 +152,8 @@ class Stack:
     def logs(self) -> str:
         names = _run(["podman", "ps", "-a", "--filter", f"label=io.podman.compose.project={self.project}",
                       "--format", "{{.Names}}"]).stdout.split()
-        return "\n".join(f"== {n}\n" + _run(["podman", "logs", "--tail", "15", n]).stderr[-1500:] for n in names)
+        tails = {n: _run(["podman", "logs", "--tail", "15", n]) for n in names}
+        return "\n".join(f"== {n}\n{(p.stdout + p.stderr)[-1500:]}" for n, p in tails.items())
 
     def remove(self) -> None:
         _run([*self.cmd, "down", "-t", "0"], timeout=300, env=self.env, cwd=ROOT)
@@ -240,6 +241,7 @@ def test_compose_profiles_run_a_task_over_http(tmp_path: Path) -> None:
     assert compose, "podman-compose not found: run scripts/compose_test.sh or `pip install podman-compose`"
     build_s = _build_image(base, tmp_path / "build.log")
     stack = Stack(compose, tmp_path)
+    t0 = time.monotonic()
     try:
         stack.compose("up", "-d", "--no-build")
         with httpx.Client(base_url=f"http://127.0.0.1:{stack.http_port}", timeout=30,
@@ -249,10 +251,13 @@ def test_compose_profiles_run_a_task_over_http(tmp_path: Path) -> None:
             task = _run_task(client, f"Pick up the {scenario['target_object']} and place it on the "
                                      f"{scenario['destination']}.")
         assert task["state"] == "succeeded", f"{task['state']}: {task.get('message')}\n{stack.logs()}"
+        t_task = time.monotonic()
         stack.compose("down", timeout=600)  # each service's stop_grace_period applies
+        t_down = time.monotonic()
         _check_recording(stack.volume("recordings"), task["task_id"])
         _check_store(stack.volume("gateway-data"), task["task_id"])
-        print(f"compose test: image build {build_s:.0f} s, task {task['task_id']} succeeded")
+        print(f"compose test: image build {build_s:.0f} s, up to task end {t_task - t0:.0f} s, "
+              f"down {t_down - t_task:.0f} s; task {task['task_id']} succeeded")
     except AssertionError:
         print(stack.logs())
         raise
