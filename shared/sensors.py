@@ -119,6 +119,8 @@ def parse_raw16(payload: bytes) -> tuple[int, np.ndarray]:
 
 @dataclass(frozen=True)
 class Intrinsics:
+    """Pinhole camera intrinsics: image size, focal lengths and principal point in pixels."""
+
     width: int
     height: int
     fx: float

@@ -56,6 +56,8 @@ def vehicle_of(key: str) -> str:
 
 @dataclass
 class Frame:
+    """The newest camera frame of a vehicle as received, decoded to JPEG only on demand."""
+
     payload: bytes
     """The foxglove CompressedImage protobuf, undecoded until someone asks (most frames nobody watches)."""
     receive_ns: int
@@ -71,6 +73,8 @@ ABORT_SERVICES = ("executor", "autopilot_bridge")  # the services that act on sa
 
 @dataclass
 class VehicleView:
+    """What the gateway knows of one vehicle: service liveliness, state, latest frame, detections, approvals."""
+
     vehicle_id: str
     services: dict[str, bool] = field(default_factory=dict)
     state: VehicleState | None = None

@@ -45,6 +45,8 @@ def _host_name(host_header: str) -> str:
 
 
 class RequestGuard:
+    """ASGI middleware: bearer-token check, CORS origin allow-list, body size limit and security headers."""
+
     def __init__(self, app: ASGIApp, settings: GatewaySettings) -> None:
         self.app = app
         self.settings = settings

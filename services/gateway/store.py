@@ -40,6 +40,8 @@ CREATE INDEX IF NOT EXISTS events_task ON events(task_id, id);
 
 @dataclass
 class Event:
+    """One stored task event (step, skill status or task status) with its row id and stamp."""
+
     id: int
     task_id: str
     kind: str

@@ -72,6 +72,8 @@ def remove_outliers(points: np.ndarray, nb_neighbors: int = 16, std_ratio: float
 
 @dataclass
 class ObjectGeometry:
+    """An object's oriented box fitted to its points: centre, yaw, size, top and support heights."""
+
     center: np.ndarray  # x/y: centre of the footprint box; z: halfway between support and top
     yaw: float  # along the footprint's longer side, in (-pi/2, pi/2]
     size: np.ndarray  # along yaw, across, height
@@ -137,6 +139,8 @@ def object_geometry(frame: Frame, cloud: Cloud, idx: np.ndarray) -> ObjectGeomet
 
 @dataclass
 class Placement:
+    """A placement spot found on a support plane, with the plane, the clearance there and the inlier count."""
+
     spot: np.ndarray  # x, y on the plane
     surface_z: float
     plane: tuple[float, float, float, float]

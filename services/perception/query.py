@@ -99,6 +99,8 @@ class Candidate:
 
 @dataclass(frozen=True)
 class Query:
+    """A parsed object query: its words, colour words and size selector (larger / smaller)."""
+
     text: str
     words: tuple[str, ...]
     colors: frozenset[str] = field(default_factory=frozenset)

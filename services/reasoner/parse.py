@@ -55,6 +55,8 @@ class Work:
 
 @dataclass(frozen=True)
 class ParsedAnswer:
+    """A model answer read into its reasoning trace (DRT) and the skill to execute (STE)."""
+
     drt: DescriptiveReasoningTrace
     ste: SkillToExecute
     recovered: bool = False

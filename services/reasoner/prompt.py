@@ -118,6 +118,8 @@ class Observation:
 
 @dataclass
 class CompiledPrompt:
+    """A prompt ready to send: its parts, the constant prefix and per-step suffix, and the camera image."""
+
     variant: str
     parts: dict[str, str]
     text: str

@@ -333,6 +333,8 @@ def metadata(path: str | Path) -> dict[str, dict[str, str]]:
 
 @dataclass
 class Salvage:
+    """What could be read from a damaged or unfinished MCAP file: samples, schemas, channels and metadata."""
+
     samples: list[LoggedSample]
     schemas: dict[int, Schema]
     channels: dict[int, Channel]

@@ -52,6 +52,8 @@ class RereasonError(AermaniError):
 
 @dataclass
 class StepComparison:
+    """One re-reasoned step next to the recorded one: both decisions and whether they agree."""
+
     task_id: str
     step: int
     recorded_skill: str | None
@@ -88,6 +90,8 @@ def _sec(v: float | None) -> str:
 
 @dataclass
 class RereasonResult:
+    """Result of re-reasoning a log with a backend and variant: every step comparison and the agreement rate."""
+
     log: str
     backend: str
     variant: str
@@ -177,6 +181,8 @@ class _Stream:
 
 @dataclass
 class RecordedTask:
+    """A task as found in a log: its id, vehicle, command, prompt variant and recorded reasoning steps."""
+
     task_id: str
     vehicle_id: str
     command: str

@@ -16,6 +16,8 @@ from shared.sensors import PROTO_TYPES, stamp_to_ns
 
 @dataclass
 class StepRow:
+    """One reasoning step in a task timeline: the chosen skill, validity, retries, calls and outcome."""
+
     step: int
     stamp_ns: int
     skill: str | None
@@ -43,6 +45,8 @@ class StepRow:
 
 @dataclass
 class TaskTimeline:
+    """A task's readable timeline from a log: command, backend, variant, final state and its step rows."""
+
     task_id: str
     vehicle_id: str
     command: str

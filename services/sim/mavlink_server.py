@@ -93,6 +93,8 @@ def command_arg(p: list[float], i: int, default: float) -> float:
 
 @dataclass
 class LinkSettings:
+    """One MAVLink UDP link of the simulated autopilot: local port and the remote peer."""
+
     name: str
     local_port: int
     remote_host: str
@@ -122,6 +124,8 @@ class Link:
 
 
 class MavlinkServer:
+    """Speaks MAVLink like PX4 on UDP for the simulated vehicle: heartbeats, telemetry, commands, offboard setpoints."""
+
     def __init__(self, core: SimCore, links: list[LinkSettings], speed_factor: float = 1.0,
                  physics_rate: float = 200.0) -> None:
         self.core = core

@@ -28,6 +28,8 @@ REALISM = ("realistic", "ideal")
 
 @dataclass
 class Frame:
+    """One rendered camera view: colour, depth in mm, instance ids and the true camera pose."""
+
     rgb: np.ndarray  # HxWx3 uint8
     depth_mm: np.ndarray  # HxW uint16, 0 = no return
     instance: np.ndarray  # HxW uint16, 0 = nothing (or the vehicle itself)

@@ -63,6 +63,8 @@ def wrap(a: float) -> float:
 
 @dataclass
 class VehicleParams:
+    """Flight limits of the simulated multicopter, named after the PX4 parameters they mirror."""
+
     max_speed_h: float = 2.0  # m/s (MPC_XY_VEL_MAX)
     max_speed_up: float = 1.0  # m/s (MPC_Z_VEL_MAX_UP)
     max_speed_down: float = 1.0  # m/s (MPC_Z_VEL_MAX_DN)

@@ -26,6 +26,8 @@ def _rs() -> Any:
 
 @register
 class RealSenseSource(CameraSource):
+    """Camera source for an Intel RealSense depth camera (colour aligned with depth) through pyrealsense2."""
+
     type = "realsense"
     paced = True  # wait_for_frames blocks until the device delivers
 

@@ -28,6 +28,8 @@ def _sl() -> Any:
 
 @register
 class ZedSource(CameraSource):
+    """Camera source for a Stereolabs ZED stereo camera (colour and depth) through the ZED SDK."""
+
     type = "zed"
     paced = True  # grab() waits for the next frame
 

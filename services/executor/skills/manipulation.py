@@ -122,6 +122,8 @@ def _top(o: MemoryObject | ObjectEstimate) -> float:
 
 @register
 class Grasp(_Manipulation):
+    """Skill grasp: approach, re-localize, descend on the localized object, close the gripper and verify the hold."""
+
     name = names.GRASP
     description = ("Pick up the localized object: approach a standoff {s.standoff_distance:g} m from it facing it, "
                    "re-localize with yaw alignment, move above it, descend, close the gripper, verify it is held, "
@@ -259,6 +261,8 @@ class Grasp(_Manipulation):
 
 @register
 class Place(_Manipulation):
+    """Skill place: descend to the localized placement spot, release the held object and verify it rests there."""
+
     name = names.PLACE
     description = ("Place the held object at the localized placement spot: approach above it, controlled descent "
                    "until the object's bottom is {s.place_vertical_offset:g} m above the surface, open the gripper, "

@@ -25,6 +25,8 @@ from shared.errors import ModelError
 
 @register
 class AnthropicBackend(ChatBackend):
+    """VLM backend for Claude through the Anthropic Messages API, with prompt caching of the constant prefix."""
+
     kind = "anthropic"
     summary = "Claude through the Anthropic Messages API; MODEL, BASE_URL, API_KEY or ANTHROPIC_API_KEY"
     default_model = "claude-sonnet-4-5"

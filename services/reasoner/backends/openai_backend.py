@@ -34,6 +34,8 @@ def response_format(schema: dict) -> dict:
 
 @register
 class OpenAIBackend(ChatBackend):
+    """VLM backend for any OpenAI-compatible chat-completions endpoint (GPT-4o, Gemini, vLLM, Ollama, ...)."""
+
     kind = "openai"
     summary = ("any OpenAI-compatible chat-completions endpoint (GPT-4o, Gemini, vLLM, Ollama, llama.cpp); "
                "MODEL, BASE_URL, API_KEY or OPENAI_API_KEY")

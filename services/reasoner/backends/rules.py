@@ -65,6 +65,8 @@ _ART = r"(?:the|a|an|some|me|my)\s+"
 
 @dataclass
 class Plan:
+    """What the rules policy read from the command: motions, target, choices, selector, category, exclusions."""
+
     motions: list[str] = field(default_factory=list)
     target: str | None = None
     choices: list[str] = field(default_factory=list)
@@ -629,6 +631,8 @@ def render_answer(ctx: PolicyContext, skill: str, argument: str | None, reasonin
 
 @register
 class RulesBackend(Backend):
+    """Backend wrapping the deterministic non-VLM rules policy (reads the prompt's context, never pixels)."""
+
     kind = "rules"
     summary = "the deterministic non-VLM baseline policy (reads the prompt's context, never pixels)"
     name = "rules"
