@@ -195,7 +195,8 @@ def make_transform(parent: str, child: str, T: np.ndarray, stamp_ns: int) -> Fra
 
 
 def transforms_message(items: list[tuple[str, str, np.ndarray]], stamp_ns: int) -> bytes:
-    return bytes(FrameTransforms(transforms=[make_transform(p, c, T, stamp_ns) for p, c, T in items]).SerializeToString())
+    msg = FrameTransforms(transforms=[make_transform(p, c, T, stamp_ns) for p, c, T in items])
+    return bytes(msg.SerializeToString())
 
 
 def parse_transforms(payload: bytes) -> dict[tuple[str, str], tuple[int, np.ndarray]]:

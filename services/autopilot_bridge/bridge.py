@@ -717,7 +717,8 @@ class Bridge:
             if self.s.publish_tf and self.have_position:
                 # The message's pitch is nose-up positive; FLU's rotation about +y (left) is nose-down.
                 T = pose_matrix(*self.position, self.yaw, self.roll, -self.pitch)  # noqa: N806
-                self.bus.publish(self.keys.tf, transforms_message([(WORLD_FRAME, BODY_FRAME, T)], st.stamp_ns), reliable=False)
+                self.bus.publish(self.keys.tf, transforms_message([(WORLD_FRAME, BODY_FRAME, T)], st.stamp_ns),
+                                 reliable=False)
             next_t += period
             delay = next_t - time.monotonic()
             if delay < -period:

@@ -134,7 +134,8 @@ def markdown(records: list[EpisodeRecord], config: dict[str, Any], plots: list[s
         lines.append(f"- {method_name(b, v, multi)}: " + ("; ".join(
             f"{'schema-constrained' if m == 'schema' else 'free text'} IAR {100 * bad / n:.1f} % of {n} calls"
             for m, (bad, n) in sorted(modes.items())) or "no model calls"))
-    lines += ["", "How the episodes ended (reasoner's terminal state; success above is the simulator's ground truth):", ""]
+    lines += ["", "How the episodes ended (reasoner's terminal state; success above is the simulator's ground truth):",
+              ""]
     for b, v in configs:
         recs = [r for r in records if r.backend == b and r.variant == v and not r.harness_error]
         states: dict[str, int] = {}

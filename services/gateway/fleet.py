@@ -264,7 +264,8 @@ class Fleet:
         """Every pending approval of the fleet, oldest first (expired ones the reasoner did not report yet are
         left out)."""
         now = time.time_ns()
-        out = [a for v in self.vehicles.values() for a in v.approvals.values() if not a.expires_ns or a.expires_ns > now]
+        out = [a for v in self.vehicles.values() for a in v.approvals.values()
+               if not a.expires_ns or a.expires_ns > now]
         return sorted(out, key=lambda a: a.stamp_ns)
 
     async def _on_detections(self, key: str, dets: Detections) -> None:

@@ -209,7 +209,8 @@ class LogIndex:
             topic = s.key.split("/", 3)[3] if s.key.count("/") >= 3 else s.key
             try:
                 if topic == AUTOPILOT_STATE.name:
-                    self.state.setdefault(vid, _Stream()).add(s.log_time_ns, VehicleState.model_validate_json(s.payload))
+                    state = VehicleState.model_validate_json(s.payload)
+                    self.state.setdefault(vid, _Stream()).add(s.log_time_ns, state)
                 elif topic == PERCEPTION_DETECTIONS.name:
                     self.detections.setdefault(vid, _Stream()).add(s.log_time_ns,
                                                                    Detections.model_validate_json(s.payload))

@@ -107,7 +107,8 @@ class CameraPublisher:
         """world -> body from the estimated pose (as a real stack gets it from its EKF), not the truth; the
         camera and gripper frames of the simulated airframe (the default mount, see check_airframe)."""
         body = pose_matrix(float(snap.position[0]), float(snap.position[1]), float(snap.position[2]), snap.yaw)
-        return transforms_message([(WORLD_FRAME, BODY_FRAME, body), (BODY_FRAME, CAMERA_FRAME, AIRFRAME.base_to_camera()),
+        return transforms_message([(WORLD_FRAME, BODY_FRAME, body),
+                                   (BODY_FRAME, CAMERA_FRAME, AIRFRAME.base_to_camera()),
                                    (BODY_FRAME, GRIPPER_FRAME, AIRFRAME.base_to_gripper())], stamp_ns)
 
     def segmentation_watched(self) -> bool:

@@ -33,7 +33,8 @@ def test_builtin_suites_parse_and_name_only_things_the_simulator_has():
     counter = [t for t in suites["sequential"] if "counter" in t.command]
     assert {t.target_object for t in counter} == {"orange", "banana"}
     assert all(t.placements == {t.target_object: "counter"} for t in counter)
-    assert all("orange" not in (*t.extra_objects, *(t.distractors or ())) for t in counter if t.target_object == "banana")
+    assert all("orange" not in (*t.extra_objects, *(t.distractors or ()))
+               for t in counter if t.target_object == "banana")
     commands = {t.command for ts in suites.values() for t in ts}
     # the paper's Table I commands are all there
     for c in ("Pick up the red cup and place it on the table.", "Of the two boxes, pick up the larger one.",

@@ -1,8 +1,9 @@
 """Issue 4's accuracy sweep: 20 random sim layouts, every object and surface, both segmenters.
 
 The pipeline runs in-process on frames the simulator's own camera produces (MuJoCo rendering with the
-realistic stereo-depth and exposure model, same JPEG as the sim process publishes), so 20 layouts take a minute instead of twenty; test_service.py runs the
-real service process against the real sim process for a sample.
+realistic stereo-depth and exposure model, same JPEG as the sim process publishes), so 20 layouts take a
+minute instead of twenty; test_service.py runs the real service process against the real sim process for a
+sample.
 
 Comparison with ground truth (the sim's world model):
 - objects: horizontal distance of the estimated centre to the true box centre <= 4 cm, and |top_z - true

@@ -50,7 +50,8 @@ NUMBERS = {"once": 1, "twice": 2, "thrice": 3, "one": 1, "two": 2, "three": 3, "
 SEEN_FOV_HALF_DEG = 30  # a remembered thing within this of the heading is in view (camera: +-42 deg)
 SCAN_LIMIT = 8  # consecutive yaw steps (one full turn at 45 deg) before trying something else
 APPROACH_RADIUS = 1.5  # "approach the counter" ends within this horizontal distance of what was seen of it
-APPROACH_FACING_DEG = 30  # turn first when further off the heading than this (> half the 45 deg yaw step, or it oscillates)
+# Turn first when further off the heading than this (> half the 45 deg yaw step, or it oscillates).
+APPROACH_FACING_DEG = 30
 APPROACH_LIMIT = 12  # motion steps an "approach" may take before the policy decides from where it is
 SURFACE_RETRY_RADIUS = 2.0  # after a failed placement_localization, fly this close to the surface first
 ON_SURFACE_XY = 0.35  # a released object this close to its placement spot (and at its height) rests there
