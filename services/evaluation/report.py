@@ -95,6 +95,43 @@ def summarize(records: list[EpisodeRecord]) -> dict[str, Any]:
     return by_config
 
 
+def _endings_section(records: list[EpisodeRecord], configs: list[tuple[str, str]], multi: bool) -> list[str]:
+    """The report lines counting how each method's episodes ended (the reasoner's terminal state)."""
+    lines = ["", "How the episodes ended (reasoner's terminal state; success above is the simulator's ground truth):",
+             ""]
+    for b, v in configs:
+        recs = [r for r in records if r.backend == b and r.variant == v and not r.harness_error]
+        states: dict[str, int] = {}
+        for r in recs:
+            states[r.state] = states.get(r.state, 0) + 1
+        retried = sum(1 for r in recs if r.attempts > 1)
+        stale = sum(1 for r in recs if r.stale_memory)
+        lines.append(f"- {method_name(b, v, multi)}: " + ", ".join(f"{k} {n}" for k, n in sorted(states.items()))
+                     + (f"; {retried} restarted after a take-off failure before the first step" if retried else "")
+                     + (f"; **{stale} started with executor memory left over from the previous episode**"
+                        if stale else ""))
+    return lines
+
+
+def _paper_section(records: list[EpisodeRecord], suites: list[str], configs: list[tuple[str, str]],
+                   multi: bool) -> list[str]:
+    """The report lines comparing the full-variant methods with the paper's Table II (empty: no paper suite)."""
+    paper_suites = [s for s in suites if s in PAPER_RS]
+    if not paper_suites:
+        return []
+    lines = ["", "## Against the paper's AERMANI-VLM (Table II)", "",
+             "| Task Suite | Method | SR | paper SR | RS | paper RS |", "|---|---|---|---|---|---|"]
+    paper_sr = {"localization": 90.0, "clutter": 80.0, "sequential": 100.0, "search": 80.0}
+    for s in paper_suites:
+        for b, v in configs:
+            recs = [r for r in records if r.suite == s and r.backend == b and r.variant == v]
+            if recs and v == "full":
+                m = compute(recs)
+                lines.append(f"| {SUITE_TITLES.get(s, s)} | {method_name(b, v, multi)} | {_fmt(m.sr)} | "
+                             f"{paper_sr[s]:.1f} | {_fmt(m.rs)} | {PAPER_RS[s]:.1f} |")
+    return lines
+
+
 def markdown(records: list[EpisodeRecord], config: dict[str, Any], plots: list[str]) -> str:
     configs = _config_order(records)
     multi = len({b for b, _ in configs}) > 1
@@ -134,31 +171,8 @@ def markdown(records: list[EpisodeRecord], config: dict[str, Any], plots: list[s
         lines.append(f"- {method_name(b, v, multi)}: " + ("; ".join(
             f"{'schema-constrained' if m == 'schema' else 'free text'} IAR {100 * bad / n:.1f} % of {n} calls"
             for m, (bad, n) in sorted(modes.items())) or "no model calls"))
-    lines += ["", "How the episodes ended (reasoner's terminal state; success above is the simulator's ground truth):",
-              ""]
-    for b, v in configs:
-        recs = [r for r in records if r.backend == b and r.variant == v and not r.harness_error]
-        states: dict[str, int] = {}
-        for r in recs:
-            states[r.state] = states.get(r.state, 0) + 1
-        retried = sum(1 for r in recs if r.attempts > 1)
-        stale = sum(1 for r in recs if r.stale_memory)
-        lines.append(f"- {method_name(b, v, multi)}: " + ", ".join(f"{k} {n}" for k, n in sorted(states.items()))
-                     + (f"; {retried} restarted after a take-off failure before the first step" if retried else "")
-                     + (f"; **{stale} started with executor memory left over from the previous episode**"
-                        if stale else ""))
-    paper_suites = [s for s in suites if s in PAPER_RS]
-    if paper_suites:
-        lines += ["", "## Against the paper's AERMANI-VLM (Table II)", "",
-                  "| Task Suite | Method | SR | paper SR | RS | paper RS |", "|---|---|---|---|---|---|"]
-        paper_sr = {"localization": 90.0, "clutter": 80.0, "sequential": 100.0, "search": 80.0}
-        for s in paper_suites:
-            for b, v in configs:
-                recs = [r for r in records if r.suite == s and r.backend == b and r.variant == v]
-                if recs and v == "full":
-                    m = compute(recs)
-                    lines.append(f"| {SUITE_TITLES.get(s, s)} | {method_name(b, v, multi)} | {_fmt(m.sr)} | "
-                                 f"{paper_sr[s]:.1f} | {_fmt(m.rs)} | {PAPER_RS[s]:.1f} |")
+    lines += _endings_section(records, configs, multi)
+    lines += _paper_section(records, suites, configs, multi)
     lines += ["", "Metrics (definitions in docs/evaluation.md): SR = % of episodes where the simulator's ground "
               "truth has the right object on the destination within tolerance (or held, when the command has no "
               "destination) before T_max; ARR = mean % of redundant actions over successful episodes; RS = mean "

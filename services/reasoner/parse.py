@@ -112,6 +112,11 @@ def _object_spans(text: str, quotes: str, work: Work) -> list[tuple[int, int]]:
                 stack.pop()
         elif stack and c in quotes:
             quote = c
+    return _outermost(pairs)
+
+
+def _outermost(pairs: list[tuple[int, int]]) -> list[tuple[int, int]]:
+    """The outermost of matched `(start, end)` bracket pairs given in closing order, in text order."""
     # `pairs` is in closing order and brackets nest, so walking it backwards a pair is outermost exactly when it
     # ends before the start of the last outermost one kept (otherwise that one contains it): linear, no sort.
     out: list[tuple[int, int]] = []

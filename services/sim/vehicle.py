@@ -504,15 +504,20 @@ class Vehicle:
         force_enu[2] = min(max(force_enu[2], 0.0), m * p.max_thrust_accel)
         # Yaw: rate-limited towards the target, then a torque tracking that rate.
         if yaw_rate_cmd is None:
-            if yaw_target is None or not math.isfinite(yaw_target):
-                yaw_rate_cmd = 0.0
-            else:
-                err = wrap(yaw_target - self.yaw)
-                yaw_rate_cmd = min(max(3.0 * err, -p.yaw_rate), p.yaw_rate)
-                if abs(err) > 1e-4:
-                    yaw_rate_cmd = math.copysign(min(abs(yaw_rate_cmd), math.sqrt(2 * 6.0 * abs(err))), err)
+            yaw_rate_cmd = self._yaw_rate_toward(yaw_target)
         torque = VEHICLE_YAW_INERTIA_TOTAL * (-yaw_rate_cmd - self.world.vehicle_yaw_rate()) / 0.05
         return force_enu, torque
+
+    def _yaw_rate_toward(self, yaw_target: float | None) -> float:
+        """Yaw rate command towards `yaw_target` (P gain, rate limit, sqrt braking); 0 without a target."""
+        if yaw_target is None or not math.isfinite(yaw_target):
+            return 0.0
+        p = self.params
+        err = wrap(yaw_target - self.yaw)
+        yaw_rate_cmd = min(max(3.0 * err, -p.yaw_rate), p.yaw_rate)
+        if abs(err) > 1e-4:
+            yaw_rate_cmd = math.copysign(min(abs(yaw_rate_cmd), math.sqrt(2 * 6.0 * abs(err))), err)
+        return yaw_rate_cmd
 
     def _rtl_target(self) -> np.ndarray:
         z_rtl = min(self.p[2], self.home[2] - self.params.rtl_alt)  # NED: never descend on the way home

@@ -369,52 +369,11 @@ class RulesPolicy:
         """(label or query to localize, why); label None when nothing fits yet."""
         visible = [v for v in ctx.visible if v.category == "object" and not _excluded(v.label, plan)]
         if plan.choices:
-            # Decided from what is seen where the command says to look (after its motions), once: the first
-            # successful localization of either choice settles it; a failed look for the first means "otherwise".
-            for s in rest:
-                if s.skill == S.OBJ_LOCALIZATION and s.argument in plan.choices and s.state == "succeeded":
-                    return s.argument, f"I already chose the {s.argument} for the conditional."
-            first, other = plan.choices
-            if any(s.skill == S.OBJ_LOCALIZATION and s.argument == first for s in rest):
-                return other, f"I looked for a {first} here and did not find one, so grab the {other}."
-            if any(_matches(v.label, first) for v in visible) or first in ctx.known_objects:
-                return first, f"I see a {first}, so the condition holds: pick the {first}."
-            return other, f"I do not see a {first}, so the command says to grab the {other}."
+            return self._target_conditional(ctx, plan, rest, visible)
         if plan.selector:
-            group = plan.group or ""
-            # Sizes are compared while both are in view; once chosen, a turn that hides the other one (or the
-            # choice itself) must not flip the decision to "the larger of the one I see".
-            for s in rest:
-                if s.skill == S.OBJ_LOCALIZATION and s.argument and (not group or _matches(s.argument, group)
-                                                                     or group in s.argument):
-                    return s.argument, f"I already chose the {s.argument} as the {plan.selector} {group or 'one'}."
-            cands = [v for v in visible if not group or _matches(v.label, group) or group in v.label]
-            sized = [v for v in cands if v.volume is not None]
-            if len(sized) >= 2:
-                pick = (max if plan.selector == "larger" else min)(sized, key=lambda v: v.volume or 0.0)
-                return pick.label, (f"Of the {len(sized)} {group or 'object'} candidates I compare sizes: the "
-                                    f"{plan.selector} is the {pick.label}.")
-            # Only one in view: a name that says its size ("large box") settles it, in view or seen earlier;
-            # one whose name says the opposite is not taken for want of the other.
-            want, avoid = SIZE_WORDS[plan.selector], SIZE_WORDS["smaller" if plan.selector == "larger" else "larger"]
-            names = [v.label for v in cands] + [n for n in ctx.positions
-                                                if not group or _matches(n, group) or group in n]
-            named = next((n for n in names if set(n.lower().split()) & want), None)
-            if named:
-                return named, f"The {named} is the {plan.selector} {group or 'one'} by its name."
-            if len(sized) == 1 and not set(sized[0].label.lower().split()) & avoid:
-                return sized[0].label, f"The {sized[0].label} is the only {group or 'candidate'} I detect."
-            return None, f"I need both {group or 'candidate'}s in view to compare sizes."
+            return self._target_by_size(ctx, plan, rest, visible)
         if plan.category:
-            words = CATEGORY_WORDS[plan.category]
-            cands = [v for v in visible if any(w in v.label.lower() for w in words)]
-            if cands:
-                pick = min(cands, key=lambda v: v.distance if v.distance is not None else 1e9)
-                return pick.label, f"The {pick.label} is a {plan.category}, and the nearest one I detect."
-            known = [k for k in ctx.known_objects if any(w in k.lower() for w in words)]
-            if known:
-                return known[0], f"The {known[0]} in working memory is a {plan.category}."
-            return None, f"No {plan.category} is detected yet."
+            return self._target_in_category(ctx, plan, visible)
         if plan.target:
             for v in visible:
                 if _matches(v.label, plan.target):
@@ -424,6 +383,66 @@ class RulesPolicy:
                     return k, f"The {k} is in working memory."
             return None, f"The {plan.target} is not detected yet."
         return None, "The command names no object I can identify."
+
+    @staticmethod
+    def _target_conditional(ctx: PolicyContext, plan: Plan, rest: list[PastStep],
+                            visible: list[Seen]) -> tuple[str | None, str]:
+        """The target of "if you see a X pick it, otherwise the Y": which of `plan.choices` applies."""
+        # Decided from what is seen where the command says to look (after its motions), once: the first
+        # successful localization of either choice settles it; a failed look for the first means "otherwise".
+        for s in rest:
+            if s.skill == S.OBJ_LOCALIZATION and s.argument in plan.choices and s.state == "succeeded":
+                return s.argument, f"I already chose the {s.argument} for the conditional."
+        first, other = plan.choices
+        if any(s.skill == S.OBJ_LOCALIZATION and s.argument == first for s in rest):
+            return other, f"I looked for a {first} here and did not find one, so grab the {other}."
+        if any(_matches(v.label, first) for v in visible) or first in ctx.known_objects:
+            return first, f"I see a {first}, so the condition holds: pick the {first}."
+        return other, f"I do not see a {first}, so the command says to grab the {other}."
+
+    @staticmethod
+    def _target_by_size(ctx: PolicyContext, plan: Plan, rest: list[PastStep],
+                        visible: list[Seen]) -> tuple[str | None, str]:
+        """The target of "the larger / smaller (box)": compared while both are in view, or named by its size."""
+        assert plan.selector is not None
+        group = plan.group or ""
+        # Sizes are compared while both are in view; once chosen, a turn that hides the other one (or the
+        # choice itself) must not flip the decision to "the larger of the one I see".
+        for s in rest:
+            if s.skill == S.OBJ_LOCALIZATION and s.argument and (not group or _matches(s.argument, group)
+                                                                 or group in s.argument):
+                return s.argument, f"I already chose the {s.argument} as the {plan.selector} {group or 'one'}."
+        cands = [v for v in visible if not group or _matches(v.label, group) or group in v.label]
+        sized = [v for v in cands if v.volume is not None]
+        if len(sized) >= 2:
+            pick = (max if plan.selector == "larger" else min)(sized, key=lambda v: v.volume or 0.0)
+            return pick.label, (f"Of the {len(sized)} {group or 'object'} candidates I compare sizes: the "
+                                f"{plan.selector} is the {pick.label}.")
+        # Only one in view: a name that says its size ("large box") settles it, in view or seen earlier;
+        # one whose name says the opposite is not taken for want of the other.
+        want, avoid = SIZE_WORDS[plan.selector], SIZE_WORDS["smaller" if plan.selector == "larger" else "larger"]
+        names = [v.label for v in cands] + [n for n in ctx.positions
+                                            if not group or _matches(n, group) or group in n]
+        named = next((n for n in names if set(n.lower().split()) & want), None)
+        if named:
+            return named, f"The {named} is the {plan.selector} {group or 'one'} by its name."
+        if len(sized) == 1 and not set(sized[0].label.lower().split()) & avoid:
+            return sized[0].label, f"The {sized[0].label} is the only {group or 'candidate'} I detect."
+        return None, f"I need both {group or 'candidate'}s in view to compare sizes."
+
+    @staticmethod
+    def _target_in_category(ctx: PolicyContext, plan: Plan, visible: list[Seen]) -> tuple[str | None, str]:
+        """The target of "bring me a snack": the nearest detected member of the category, else one remembered."""
+        assert plan.category is not None
+        words = CATEGORY_WORDS[plan.category]
+        cands = [v for v in visible if any(w in v.label.lower() for w in words)]
+        if cands:
+            pick = min(cands, key=lambda v: v.distance if v.distance is not None else 1e9)
+            return pick.label, f"The {pick.label} is a {plan.category}, and the nearest one I detect."
+        known = [k for k in ctx.known_objects if any(w in k.lower() for w in words)]
+        if known:
+            return known[0], f"The {known[0]} in working memory is a {plan.category}."
+        return None, f"No {plan.category} is detected yet."
 
     def _pick(self, ctx: PolicyContext, plan: Plan, rest: list[PastStep]) -> tuple[str, str | None, str]:
         target, why = self._target(ctx, plan, rest)
