@@ -80,7 +80,7 @@ class _PeerWriter:
 
     def write(self, buf: bytes) -> None:
         port = getattr(self.conn, "port", None)
-        if self.peer is not None and hasattr(port, "sendto"):
+        if self.peer is not None and port is not None and hasattr(port, "sendto"):
             port.sendto(buf, self.peer)
         else:
             self.conn.write(buf)
