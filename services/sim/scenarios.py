@@ -14,6 +14,7 @@ from services.sim.layout import (
     ROOM_HALF,
     SURFACES,
     WALL_HEIGHT,
+    Category,
     Entity,
 )
 from services.sim.physics import World
@@ -82,7 +83,7 @@ def _place_furniture(rng: random.Random, start: tuple[float, float]) -> list[Ent
                     continue
                 if all(abs(x - o.center[0]) >= (sx + o.size[0]) / 2 + FURNITURE_GAP
                        or abs(y - o.center[1]) >= (sy + o.size[1]) / 2 + FURNITURE_GAP for o in placed):
-                    cat = "surface" if spec.support else "furniture"
+                    cat: Category = "surface" if spec.support else "furniture"
                     placed.append(Entity(FURNITURE_IDS[name], name, cat, spec.shape,
                                          np.array([x, y, (spec.height + FLOOR_Z) / 2]),
                                          (sx, sy, spec.height - FLOOR_Z), spec.rgb,

@@ -450,6 +450,7 @@ class Vehicle:
         """PX4-like cascade on the estimated state: position -> velocity setpoint (speed and acceleration
         limits, sqrt braking profile) -> force (PI on velocity, gravity feed-forward, thrust limits)."""
         p = self.params
+        yaw_target: float | None
         target, yaw_target, vmax_up, vmax_down = self.hold_pos, self.hold_yaw, p.max_speed_up, p.max_speed_down
         vel_cmd: np.ndarray | None = None
         yaw_rate_cmd: float | None = None
