@@ -22,12 +22,12 @@ from shared.bus import Bus
 from shared.errors import BusError, SkillError
 from shared.keys import Keys
 from shared.messages import (
+    AutopilotCommand,
     AutopilotResult,
     GotoCommand,
     GripperCommand,
     GripperState,
     LocalizeRequest,
-    Message,
     ObjectEstimate,
     PlacementEstimate,
     Pose,
@@ -151,7 +151,7 @@ class SkillContext:
 
     # ---- autopilot
 
-    async def command(self, cmd: Message, timeout: float | None = None) -> AutopilotResult:
+    async def command(self, cmd: AutopilotCommand, timeout: float | None = None) -> AutopilotResult:
         if self.stop_requested:
             raise asyncio.CancelledError("aborted")
         t = timeout or self.settings.command_timeout_s

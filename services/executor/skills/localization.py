@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from abc import abstractmethod
+from typing import ClassVar
 
 from services.executor.context import SkillContext, SkillFailed
 from services.executor.envelope import outside_geofence
@@ -18,7 +19,7 @@ from shared.messages import ObjectEstimate, PlacementEstimate
 class _Localization(Skill):
     """Perception routines: ask perception, store the estimate; they never move the vehicle."""
 
-    category: Category = "perception"
+    category: ClassVar[Category] = "perception"
     argument_required = True
     moves = False
     needs_airborne = False

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+from typing import ClassVar
 
 from services.executor.context import SkillContext, SkillFailed
 from services.executor.envelope import geofence_problem, wrap
@@ -48,7 +49,7 @@ def grasp_yaw(size: Vec3 | None, est_yaw: float, current_yaw: float) -> float:
 
 
 class _Manipulation(Skill):
-    category: Category = "manipulation"
+    category: ClassVar[Category] = "manipulation"
 
     def view_height(self, target_z: float) -> float:
         """Body altitude at the standoff that puts a target at `target_z` near the image centre."""
