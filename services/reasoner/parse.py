@@ -299,14 +299,15 @@ def _parse(raw: str, variant: str, library: SkillLibrary, coverage: float, work:
     specs = {s.name: s for s in policy_skills(library)}
     names = list(specs)
     thought: str | None = None
+    obj: dict | None
     if variant == "react":
         obj, thought, recovered = _react_action(raw, work)
     else:
         obj, recovered, _start = extract_json(raw, work)
     if obj is None:
         if variant == "unstructured":
-            skill, arg = _bare_skill(raw, names, work)
-            return _validate(skill, arg, {}, variant, specs, coverage, True, thought)
+            bare_skill, arg = _bare_skill(raw, names, work)
+            return _validate(bare_skill, arg, {}, variant, specs, coverage, True, thought)
         raise InvalidAnswer("No JSON object found in the answer; reply with exactly one JSON object in the "
                             "format given in the Rules.")
     obj = {norm_key(k): v for k, v in obj.items()}

@@ -59,8 +59,9 @@ class AnthropicBackend(ChatBackend):
             # Recent Claude models fix sampling; a non-zero setting still reaches endpoints that accept it.
             kw["extra_body"] = {"temperature": self.temperature}
         try:
+            # The messages are plain dicts in the wire format; the SDK types them as TypedDicts.
             resp = await self.client.messages.create(model=self.model, max_tokens=self.max_tokens,
-                                                     messages=self.messages(request), **kw)
+                                                     messages=self.messages(request), **kw)  # type: ignore[arg-type]
         except (anthropic.BadRequestError, anthropic.UnprocessableEntityError) as exc:
             if schema is not None:
                 raise SchemaRejected(f"HTTP {exc.status_code}: {str(exc)[:200]}") from exc

@@ -62,7 +62,8 @@ class OpenAIBackend(ChatBackend):
         t0 = time.perf_counter()
         extra = {"response_format": response_format(schema)} if schema is not None else {}
         try:
-            resp = await self.client.chat.completions.create(
+            # The messages are plain dicts in the wire format; the SDK types them as TypedDicts.
+            resp = await self.client.chat.completions.create(  # type: ignore[call-overload]
                 model=self.model, messages=self.messages(request), max_tokens=self.max_tokens,
                 temperature=self.temperature, **extra)
         except (openai.BadRequestError, openai.UnprocessableEntityError) as exc:

@@ -708,11 +708,11 @@ def context_from_prompt(text: str) -> PolicyContext:
     seen_m = re.search(r"^Perception sees now: (.*)\.$", history, re.M)
     if seen_m and seen_m.group(1) != "nothing recognised":
         for item in seen_m.group(1).split("; "):
-            m = _SEEN_ITEM.match(item.strip())
-            if not m:
+            seen = _SEEN_ITEM.match(item.strip())
+            if not seen:
                 continue
-            vol = float(m.group(3)) * float(m.group(4)) * float(m.group(5)) if m.group(3) else None
-            visible.append(Seen(m.group(1), m.group(2), vol, float(m.group(6)) if m.group(6) else None))
+            vol = float(seen.group(3)) * float(seen.group(4)) * float(seen.group(5)) if seen.group(3) else None
+            visible.append(Seen(seen.group(1), seen.group(2), vol, float(seen.group(6)) if seen.group(6) else None))
     objs = re.search(r"localized objects: (.*?)(?:\. |\.$|$)", history, re.M)
     places = re.search(r"placement spots: (.*?)(?:\. |\.$|$)", history, re.M)
 
