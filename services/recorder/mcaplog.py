@@ -252,7 +252,8 @@ def iter_samples(path: str | Path, keys: str | None = None, start_ns: int | None
 
 def read_messages(path: str | Path, model: type[T], keys: str | None = None) -> list[tuple[LoggedSample, T]]:
     """Every sample of a log whose schema is `model`, decoded (malformed ones are skipped)."""
-    name = model.full_schema_name() if hasattr(model, "full_schema_name") else f"aermani.{model.__name__}"
+    full_schema_name = getattr(model, "full_schema_name", None)  # protobuf classes have it, pydantic models not
+    name = full_schema_name() if full_schema_name is not None else f"aermani.{model.__name__}"
     out = []
     for s in iter_samples(path, keys):
         if s.schema_name == name or s.encoding.endswith(";" + name):
@@ -418,9 +419,9 @@ def recover(src: str | Path, dst: str | Path, *, chunk_size: int = 1 << 20) -> S
             writer.add_metadata(m.name, dict(m.metadata))
         writer.add_metadata("aermani.recovered", {"source": str(src), "messages": str(len(result.samples)),
                                                   "chunks": str(result.chunks), "error": result.error})
-        for cid, m in result.raw or []:
+        for cid, msg in result.raw or []:
             if cid in channel_ids:
-                writer.add_message(channel_ids[cid], m.log_time, m.data, m.publish_time, m.sequence)
+                writer.add_message(channel_ids[cid], msg.log_time, msg.data, msg.publish_time, msg.sequence)
         writer.finish()
     with contextlib.suppress(Exception):
         result.raw = None

@@ -239,10 +239,10 @@ class LogIndex:
         self.tasks: list[RecordedTask] = []
         for task_id, by_step in steps.items():
             ordered = [by_step[k] for k in sorted(by_step)]
-            st = statuses.get(task_id)
-            command = st.command if st else ordered[0].prompt.get("command", "")
+            status = statuses.get(task_id)
+            command = status.command if status else ordered[0].prompt.get("command", "")
             self.tasks.append(RecordedTask(task_id, vehicles.get(task_id, ""), command,
-                                           (st.variant if st else "") or ordered[0].variant, ordered))
+                                           (status.variant if status else "") or ordered[0].variant, ordered))
 
     def frame(self, vid: str, stamp_ns: int) -> bytes | None:
         frames = self.frames.get(vid, {})
