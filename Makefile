@@ -1,9 +1,9 @@
 # The two commands of the README: `make demo` runs the whole stack on a real pick-and-place task,
-# `make test` runs ruff and the test suite. Both set up the machine first (idempotent).
+# `make test` runs the linters (ruff, mypy) and the test suite. Both set up the machine first (idempotent).
 VENV ?= .venv
 COMMAND ?= pick up the red cup and place it on the table
 
-.PHONY: setup demo up test lint bench
+.PHONY: setup demo up test lint lint-only bench
 
 setup:
 	@bash scripts/setup.sh
@@ -14,12 +14,18 @@ demo: setup
 up: setup
 	$(VENV)/bin/aermani up
 
-lint: setup
+# ruff (style, line length, complexity, class docstrings), mypy strict on the shared contract, mypy on services.
+lint-only:
 	$(VENV)/bin/ruff check .
+	$(VENV)/bin/mypy --strict shared
+	$(VENV)/bin/mypy services
+
+lint: setup
+	$(MAKE) --no-print-directory lint-only
 
 test:
 	@bash scripts/setup.sh --browser
-	$(VENV)/bin/ruff check .
+	$(MAKE) --no-print-directory lint-only
 	$(VENV)/bin/pytest
 
 bench: setup

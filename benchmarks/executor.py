@@ -55,24 +55,54 @@ async def run_skill(bus: Bus, statuses, skill: str, timeout: float = 90.0) -> Sk
             return st
 
 
+async def take_off(bus: Bus, statuses) -> None:
+    """Run the takeoff skill until it succeeds; the bridge needs a moment to see the sim's heartbeats."""
+    why = ""
+    for _ in range(60):
+        try:
+            st = await run_skill(bus, statuses, "takeoff")
+            if st.state == SkillState.SUCCEEDED:
+                return
+            why = st.message
+        except RuntimeError as exc:
+            why = str(exc)
+        await asyncio.sleep(1.0)
+    raise RuntimeError(f"takeoff failed: {why}")
+
+
+async def abort_once(bus: Bus, acks, states, still: float) -> tuple[float, float]:
+    """Publish an abort; -> (ms to its AbortAck, ms until the vehicle is slower than `still` m/s)."""
+    abort = Abort(reason="benchmark", source="benchmark")
+    t0 = time.time_ns()
+    bus.publish(KEYS.abort, abort)
+    got_ack = got_still = None
+    while got_ack is None or got_still is None:
+        if got_ack is None:
+            try:
+                rec = await acks.recv_sample(timeout=0.005)
+                if rec.value.abort_stamp_ns == abort.stamp_ns:
+                    got_ack = (rec.receive_ns - t0) / 1e6
+            except TimeoutError:
+                pass
+        if got_still is None:
+            try:
+                rec = await states.recv_sample(timeout=0.005)
+                if speed(rec.value) < still:
+                    got_still = (rec.receive_ns - t0) / 1e6
+            except TimeoutError:
+                pass
+        if (time.time_ns() - t0) > 10e9:
+            raise RuntimeError("no ack or no stop within 10 s")
+    return got_ack, got_still
+
+
 async def bench(endpoint: str, trials: int, still: float) -> None:
     bus = await Bus.open(connect=[endpoint])
     statuses = bus.subscribe(KEYS.skill_status, maxsize=1000)
     states = bus.subscribe(KEYS.autopilot_state, maxsize=1000)
     acks = bus.subscribe(KEYS.abort_ack, maxsize=100)
     try:
-        why = ""
-        for _ in range(60):  # the bridge needs a moment to see the sim's heartbeats
-            try:
-                st = await run_skill(bus, statuses, "takeoff")
-                if st.state == SkillState.SUCCEEDED:
-                    break
-                why = st.message
-            except RuntimeError as exc:
-                why = str(exc)
-            await asyncio.sleep(1.0)
-        else:
-            raise RuntimeError(f"takeoff failed: {why}")
+        await take_off(bus, statuses)
         ack_ms: list[float] = []
         still_ms: list[float] = []
         for i in range(trials):
@@ -83,27 +113,7 @@ async def bench(endpoint: str, trials: int, still: float) -> None:
             while speed(await states.recv(timeout=10)) < 0.15:
                 pass
             states.latest_nowait()
-            abort = Abort(reason="benchmark", source="benchmark")
-            t0 = time.time_ns()
-            bus.publish(KEYS.abort, abort)
-            got_ack = got_still = None
-            while got_ack is None or got_still is None:
-                if got_ack is None:
-                    try:
-                        rec = await acks.recv_sample(timeout=0.005)
-                        if rec.value.abort_stamp_ns == abort.stamp_ns:
-                            got_ack = (rec.receive_ns - t0) / 1e6
-                    except TimeoutError:
-                        pass
-                if got_still is None:
-                    try:
-                        rec = await states.recv_sample(timeout=0.005)
-                        if speed(rec.value) < still:
-                            got_still = (rec.receive_ns - t0) / 1e6
-                    except TimeoutError:
-                        pass
-                if (time.time_ns() - t0) > 10e9:
-                    raise RuntimeError("no ack or no stop within 10 s")
+            got_ack, got_still = await abort_once(bus, acks, states, still)
             ack_ms.append(got_ack)
             still_ms.append(got_still)
             # drain the aborted status before the next trial

@@ -122,7 +122,8 @@ async def main_async(args: argparse.Namespace) -> None:
     print(f"dropped       {dropped} (bus queue {d.get('bus_dropped', 0)}, writer backlog "
           f"{dropped - d.get('bus_dropped', 0)}), lost to write errors {d['lost_on_error']}, "
           f"missing {sent - written} of {sent}")
-    print(f"file size     {file_mb:.1f} MB in {len(files)} file(s), compression {nbytes / 1e6 / max(file_mb, 1e-9):.1f}x")
+    compression = nbytes / 1e6 / max(file_mb, 1e-9)
+    print(f"file size     {file_mb:.1f} MB in {len(files)} file(s), compression {compression:.1f}x")
     print(f"target zero drops at {args.rate_mult:g}x:", "MET" if dropped == 0 and sent == written else "NOT MET")
     if args.out is None:
         shutil.rmtree(out, ignore_errors=True)  # a temp recording of ~100 MB is not worth keeping

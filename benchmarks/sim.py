@@ -6,7 +6,8 @@ Usage: .venv/bin/python benchmarks/sim.py [--seconds 10] [--services sim,autopil
 
 Prints figures only (targets from issue 13: physics >= 20x real time with 15 objects, >= 15 fps colour+depth
 on one core; issue 3: p99 setpoint interval jitter <= 5 ms); never fails on them. Pin to one core with
-`taskset -c 0` for the one-core figures (software OpenGL would otherwise use every core). The jitter is measured by the sim itself from kernel receive timestamps of SET_POSITION_TARGET_LOCAL_NED
+`taskset -c 0` for the one-core figures (software OpenGL would otherwise use every core). The jitter is
+measured by the sim itself from kernel receive timestamps of SET_POSITION_TARGET_LOCAL_NED
 (queryable sim/stats), so it is what the vehicle sees, independent of the sim's own scheduling.
 """
 

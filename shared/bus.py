@@ -25,7 +25,7 @@ import time
 from collections import deque
 from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass
-from typing import Any, Generic, Literal, TypeVar
+from typing import Any, Generic, Literal, TypeVar, overload
 
 import zenoh
 from pydantic import BaseModel, TypeAdapter, ValidationError
@@ -564,6 +564,16 @@ class Bus:
             raise BusError(f"publish on {key} after the bus was closed")
         self._publisher(key, reliable).put(bytes(data), encoding=zenoh.Encoding(encoding), attachment=attachment)
 
+    # A BoundTopic / BoundQuery is also a `str`: with a union parameter mypy cannot infer the declared type
+    # (T would be solved from the `str` arm), so each of these has one overload per kind of target.
+    @overload
+    def subscribe(self, target: BoundTopic[T], *, maxsize: int = 100,
+                  overflow: Overflow = "drop_oldest") -> Subscription[T]: ...
+
+    @overload
+    def subscribe(self, target: str, *, maxsize: int = 100,
+                  overflow: Overflow = "drop_oldest") -> Subscription[Any]: ...
+
     def subscribe(self, target: BoundTopic[T] | str, *, maxsize: int = 100,
                   overflow: Overflow = "drop_oldest") -> Subscription[T]:
         """Subscribe a declared topic (values decode to its declared type; protobuf topics give bytes) or a
@@ -583,6 +593,13 @@ class Bus:
                 "oversize": sum(s.oversize for s in subs), "busy_queries": self._busy_replies}
 
     # ---- query / reply
+
+    @overload
+    async def query(self, target: BoundQuery[Req, Rep], request: Req | None = None, *,
+                    timeout: float = 5.0) -> Rep: ...
+
+    @overload
+    async def query(self, target: str, request: Any = None, *, timeout: float = 5.0) -> Any: ...
 
     async def query(self, target: BoundQuery[Req, Rep] | str, request: Req | Any = None, *,
                     timeout: float = 5.0) -> Rep:

@@ -25,7 +25,8 @@ console = Console()
 def up(
     services: Annotated[str | None, typer.Option(help="Comma-separated services to start (default: all that exist; "
                                                  "the camera only when AERMANI_CAMERA_SOURCE is set).")] = None,
-    without: Annotated[str, typer.Option(help="Comma-separated services to leave out, e.g. sim for a real drone.")] = "",
+    without: Annotated[str, typer.Option(
+        help="Comma-separated services to leave out, e.g. sim for a real drone.")] = "",
     port: Annotated[int, typer.Option(help="Port of the embedded Zenoh router on 127.0.0.1.")] = 7447,
     vehicle: Annotated[str, typer.Option(help="Vehicle id.")] = "am1",
     log_dir: Annotated[str | None, typer.Option(help="Where service logs go (default runs/<time>/logs).")] = None,
@@ -89,7 +90,8 @@ def up(
                 now = (p.vehicle_id, p.name) in alive
                 if shown[p.label] != now:
                     shown[p.label] = now
-                    console.print(f"  {'[green]alive[/green]' if now else '[red]dead [/red]'}  {p.label}", highlight=False)
+                    mark = "[green]alive[/green]" if now else "[red]dead [/red]"
+                    console.print(f"  {mark}  {p.label}", highlight=False)
             for ev in stack.events[seen_events:]:
                 if "exited" in ev or "restarted" in ev:
                     console.print(f"  [yellow]{ev}[/yellow]")

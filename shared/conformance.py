@@ -64,7 +64,8 @@ def _serves(decl_owner: str, service: str) -> bool:
 
 def declared_by(service: str) -> tuple[list[Topic[Any]], list[Query[Any, Any]]]:
     """The topics a service publishes and the queryables it serves, by the declarations."""
-    topics = [d for d in DECLARATIONS if isinstance(d, Topic) and d is not HEALTH_TOPIC and _serves(d.publisher, service)]
+    topics = [d for d in DECLARATIONS
+              if isinstance(d, Topic) and d is not HEALTH_TOPIC and _serves(d.publisher, service)]
     queries = [d for d in DECLARATIONS if isinstance(d, Query) and _serves(d.server, service)]
     return topics, queries
 
@@ -130,7 +131,8 @@ async def _check_query(bus: Bus, keys: Keys, decl: Query[Any, Any], report: Repo
     except QueryTimeout:
         replies = []
     if not replies:
-        report.add(key, False, f"no answer to a malformed request within {timeout:.1f} s (nobody serves it, or it hung)")
+        report.add(key, False,
+                   f"no answer to a malformed request within {timeout:.1f} s (nobody serves it, or it hung)")
         return
     ok, data = replies[0]
     if not ok:

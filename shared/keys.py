@@ -244,7 +244,8 @@ class _QueryOn(Generic[Req, Rep]):
 # --------------------------------------------------------------------------- the declarations
 
 CAMERA_COLOR: Topic[bytes] = Topic(
-    "camera/color", Protobuf("foxglove.CompressedImage"), "colour frame, JPEG", "sim, camera", reliable=False, periodic=True)
+    "camera/color", Protobuf("foxglove.CompressedImage"), "colour frame, JPEG", "sim, camera", reliable=False,
+    periodic=True)
 CAMERA_DEPTH: Topic[bytes] = Topic(
     "camera/depth", Protobuf("foxglove.RawImage"), "depth, 16UC1 millimetres, aligned to colour, same stamp",
     "sim, camera", reliable=False, periodic=True)
@@ -324,7 +325,8 @@ DECLARATIONS: tuple[Topic[Any] | Query[Any, Any] | Token, ...] = (
     SIM_STATS, SIM_RESET_NOTICE, AUTOPILOT_STATE, AUTOPILOT_COMMAND, PERCEPTION_LOCALIZE_OBJECT,
     PERCEPTION_LOCALIZE_PLACEMENT, PERCEPTION_DETECTIONS, EXECUTOR_RUN_SKILL, EXECUTOR_CANCEL_SKILL,
     EXECUTOR_SKILL_STATUS, EXECUTOR_SKILLS, EXECUTOR_MEMORY, REASONER_START_TASK, REASONER_CANCEL_TASK, REASONER_STEP,
-    REASONER_TASK_STATUS, REASONER_APPROVAL, REASONER_DECIDE_APPROVAL, SAFETY_ABORT, SAFETY_ABORT_ACK, HEALTH_TOPIC, HEARTBEAT_TOPIC,
+    REASONER_TASK_STATUS, REASONER_APPROVAL, REASONER_DECIDE_APPROVAL, SAFETY_ABORT, SAFETY_ABORT_ACK, HEALTH_TOPIC,
+    HEARTBEAT_TOPIC,
     ALIVE_TOKEN,
 )
 BY_NAME: dict[str, Topic[Any] | Query[Any, Any] | Token] = {d.name: d for d in DECLARATIONS}

@@ -92,6 +92,8 @@ def open_router(port: int, host: str = "127.0.0.1", connect: list[str] | None = 
 
 @dataclass
 class ServiceProcess:
+    """One service process the launcher runs: its name, vehicle, environment, log file and restart count."""
+
     name: str
     vehicle_id: str
     env: dict[str, str]

@@ -13,7 +13,7 @@ from typing import TypeVar
 
 import numpy as np
 from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
-from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage as CompressedImage  # re-exported
 from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
 from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
@@ -119,6 +119,8 @@ def parse_raw16(payload: bytes) -> tuple[int, np.ndarray]:
 
 @dataclass(frozen=True)
 class Intrinsics:
+    """Pinhole camera intrinsics: image size, focal lengths and principal point in pixels."""
+
     width: int
     height: int
     fx: float
@@ -193,7 +195,8 @@ def make_transform(parent: str, child: str, T: np.ndarray, stamp_ns: int) -> Fra
 
 
 def transforms_message(items: list[tuple[str, str, np.ndarray]], stamp_ns: int) -> bytes:
-    return bytes(FrameTransforms(transforms=[make_transform(p, c, T, stamp_ns) for p, c, T in items]).SerializeToString())
+    msg = FrameTransforms(transforms=[make_transform(p, c, T, stamp_ns) for p, c, T in items])
+    return bytes(msg.SerializeToString())
 
 
 def parse_transforms(payload: bytes) -> dict[tuple[str, str], tuple[int, np.ndarray]]:

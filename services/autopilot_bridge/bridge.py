@@ -9,7 +9,7 @@ import math
 import sys
 import time
 from collections import defaultdict
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from typing import Any
 
 from services.autopilot_bridge import px4
@@ -193,7 +193,7 @@ class Bridge:
         if addr is not None and peer is not None and tuple(addr) != peer:
             if mtype == "HEARTBEAT" and not self.link_ok and self._is_px4(msg):
                 log.warning("autopilot system %d came back from %s (was %s)", src, addr, peer)
-                self.link.lock_peer(tuple(addr))
+                self.link.lock_peer(addr)
             else:
                 self.counters["wrong_address"] += 1
                 self.warn("addr", "ignored %s from %s: the autopilot is at %s", mtype, addr, peer)
@@ -214,7 +214,7 @@ class Bridge:
         self.target_system = msg.get_srcSystem()
         self.target_component = msg.get_srcComponent()
         if addr is not None:
-            self.link.lock_peer(tuple(addr))
+            self.link.lock_peer(addr)
         log.info("talking to PX4 system %d component %d at %s", self.target_system, self.target_component,
                  addr or self.s.connection)
 
@@ -490,9 +490,9 @@ class Bridge:
             age = time.monotonic() - self.last_hb_mono if self.last_hb_mono else None
             why = "no HEARTBEAT received yet" if age is None else f"no HEARTBEAT for {age:.1f} s"
             return self._result(kind, False, f"no link to PX4 ({why}) on {self.s.connection}")
-        handlers = {ArmCommand: self.arm, DisarmCommand: self.disarm, TakeoffCommand: self.takeoff,
-                    GotoCommand: self.goto, HoldCommand: self.hold, LandCommand: self.land,
-                    GripperCommand: self.gripper_cmd}
+        handlers: dict[type, Callable[[Any], Awaitable[AutopilotResult]]] = {
+            ArmCommand: self.arm, DisarmCommand: self.disarm, TakeoffCommand: self.takeoff, GotoCommand: self.goto,
+            HoldCommand: self.hold, LandCommand: self.land, GripperCommand: self.gripper_cmd}
         handler = handlers.get(type(cmd))
         if handler is None:
             return self._result(str(kind), False, f"unknown autopilot command {kind!r}")
@@ -717,7 +717,8 @@ class Bridge:
             if self.s.publish_tf and self.have_position:
                 # The message's pitch is nose-up positive; FLU's rotation about +y (left) is nose-down.
                 T = pose_matrix(*self.position, self.yaw, self.roll, -self.pitch)  # noqa: N806
-                self.bus.publish(self.keys.tf, transforms_message([(WORLD_FRAME, BODY_FRAME, T)], st.stamp_ns), reliable=False)
+                self.bus.publish(self.keys.tf, transforms_message([(WORLD_FRAME, BODY_FRAME, T)], st.stamp_ns),
+                                 reliable=False)
             next_t += period
             delay = next_t - time.monotonic()
             if delay < -period:

@@ -54,6 +54,20 @@ def parse_connection(spec: str, baud: int = 921600) -> tuple[str, int]:
                        "serial:/dev/DEVICE[:BAUD] or a device path")
 
 
+
+def _parse_datagram(parser: Any, data: bytes) -> list[Any]:
+    """The MAVLink messages of one UDP datagram, from a reset parser state; a parser error or a truncated frame at
+    the end comes back as a BAD_DATA message instead of raising."""
+    parser.buf, parser.buf_index = bytearray(), 0
+    parser.expected_length, parser.have_prefix_error = mavlink.HEADER_LEN_V1 + 2, False
+    try:
+        msgs = parser.parse_buffer(data) or []
+    except Exception as exc:  # the parser must never kill the link
+        msgs = [mavlink.MAVLink_bad_data(bytearray(data), f"parser error: {exc}")]
+    if parser.buf_len() > 0:  # a truncated frame at the end of the datagram
+        msgs.append(mavlink.MAVLink_bad_data(bytearray(parser.buf[parser.buf_index:]), "truncated"))
+    return list(msgs)
+
 class _PeerWriter:
     """Stands in for `mav.file`: on UDP server links, send only to the peer we locked onto.
 
@@ -66,7 +80,7 @@ class _PeerWriter:
 
     def write(self, buf: bytes) -> None:
         port = getattr(self.conn, "port", None)
-        if self.peer is not None and hasattr(port, "sendto"):
+        if self.peer is not None and port is not None and hasattr(port, "sendto"):
             port.sendto(buf, self.peer)
         else:
             self.conn.write(buf)
@@ -142,15 +156,7 @@ class MavlinkLink:
                     log.warning("UDP read error on %s: %s", self.connection, exc)
                     time.sleep(0.1)
                     continue
-                parser.buf, parser.buf_index = bytearray(), 0
-                parser.expected_length, parser.have_prefix_error = mavlink.HEADER_LEN_V1 + 2, False
-                try:
-                    msgs = parser.parse_buffer(data) or []
-                except Exception as exc:  # the parser must never kill the link
-                    msgs = [mavlink.MAVLink_bad_data(bytearray(data), f"parser error: {exc}")]
-                if parser.buf_len() > 0:  # a truncated frame at the end of the datagram
-                    msgs.append(mavlink.MAVLink_bad_data(bytearray(parser.buf[parser.buf_index:]), "truncated"))
-                for m in msgs:
+                for m in _parse_datagram(parser, data):
                     if not deliver(m, addr):
                         return
 

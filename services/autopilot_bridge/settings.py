@@ -18,6 +18,8 @@ def _env(field: str, executor_field: str | None = None) -> AliasChoices:
 
 
 class BridgeSettings(ServiceSettings):
+    """Autopilot bridge configuration (AERMANI_AUTOPILOT_BRIDGE_*): MAVLink link, geofence, limits, gripper."""
+
     model_config = SettingsConfigDict(env_prefix="AERMANI_AUTOPILOT_BRIDGE_", extra="ignore", populate_by_name=True,
                                       use_attribute_docstrings=True)
 

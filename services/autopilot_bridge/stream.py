@@ -155,13 +155,13 @@ class SetpointStream:
             while time.monotonic() < deadline and not stop.is_set():
                 pass
 
-    def stats(self) -> dict[str, float | int]:
+    def stats(self) -> dict[str, float | int | str]:
         """Interval and jitter figures of the recent window, in milliseconds."""
         with self._lock:
             iv = list(self._intervals)
-        out: dict[str, float | int] = {"stream_rate_hz": round(1.0 / self.period, 2), "setpoints_sent": self.sent,
-                                       "stream_skipped_slots": self.skipped, "stream_samples": len(iv),
-                                       "stream_scheduling": self.scheduling}
+        out: dict[str, float | int | str] = {"stream_rate_hz": round(1.0 / self.period, 2),
+                                             "setpoints_sent": self.sent, "stream_skipped_slots": self.skipped,
+                                             "stream_samples": len(iv), "stream_scheduling": self.scheduling}
         if iv:
             jit = [abs(v - self.period) for v in iv]
             out.update(

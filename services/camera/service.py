@@ -36,6 +36,8 @@ MAX_REOPEN_S = 30.0
 
 @dataclass
 class Encoded:
+    """One captured frame encoded for the bus: colour, optional depth and camera transform, with its stamp."""
+
     stamp_ns: int
     color: bytes
     depth: bytes | None
@@ -136,6 +138,8 @@ class Capturer:
 
 
 class CameraService:
+    """Publishes a camera source's frames on the vehicle's camera keys and reports the frame rate in health."""
+
     def __init__(self, bus: Bus, settings: CameraSettings, source: CameraSource) -> None:
         self.bus, self.s, self.source = bus, settings, source
         self.keys = settings.keys

@@ -9,6 +9,8 @@ from shared.settings import ServiceSettings
 
 
 class CameraSettings(ServiceSettings):
+    """Camera service configuration (AERMANI_CAMERA_*): which source, its device or file, and the frame rate."""
+
     model_config = SettingsConfigDict(env_prefix="AERMANI_CAMERA_", extra="ignore", populate_by_name=True,
                                       use_attribute_docstrings=True)
 

@@ -86,7 +86,8 @@ def eval_command(
         raise typer.Exit(2)
     api_key = os.environ.get("AERMANI_REASONER_API_KEY")
     modes = ["schema", "text"] if output_mode == "both" else [output_mode]
-    cfg = RunConfig(out=out, backend=backend, output_mode=modes[0], variants=variants, model=model, base_url=base_url, api_key=api_key,
+    cfg = RunConfig(out=out, backend=backend, output_mode=modes[0], variants=variants, model=model, base_url=base_url,
+                    api_key=api_key,
                     episodes=episodes if episodes is not None else (None if tasks else 10),
                     split=split, suites=_split(suites), tasks_file=tasks, seed=seed, parallel=parallel,
                     speed_factor=speed_factor, t_max_s=t_max, tolerance=tolerance, connect=connect,

@@ -149,11 +149,11 @@ def _dead_reckon(window: Sequence[Action]) -> tuple[float, float, float, float]:
 
 
 def _returns_to_start(window: Sequence[Action], pos_tol: float, yaw_tol: float) -> bool:
-    first, last = window[0], window[-1]
-    if all(a.start_pose is not None and a.end_pose is not None for a in window):
-        p0, p1 = first.start_pose.position, last.end_pose.position
-        dist = math.dist(p0.as_tuple(), p1.as_tuple())
-        return dist <= pos_tol and abs(_wrap(last.end_pose.yaw - first.start_pose.yaw)) <= yaw_tol
+    start, end = window[0].start_pose, window[-1].end_pose
+    if start is not None and end is not None and all(a.start_pose is not None and a.end_pose is not None
+                                                     for a in window):
+        dist = math.dist(start.position.as_tuple(), end.position.as_tuple())
+        return dist <= pos_tol and abs(_wrap(end.yaw - start.yaw)) <= yaw_tol
     x, y, z, yaw = _dead_reckon(window)
     return math.hypot(x, y, z) < 1e-9 and abs(yaw) < 1e-9
 

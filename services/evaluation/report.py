@@ -128,14 +128,16 @@ def configuration_lines(records: list[EpisodeRecord], config: dict[str, Any]) ->
     """The configuration table at the top of report.md: everything that produced the numbers."""
     commit = config.get("commit") or "unrecorded"
     dirty = config.get("dirty")
-    rev = f"`{commit}`" + {True: " (dirty: uncommitted changes in the work tree)", False: " (clean)"}.get(dirty, "")
+    rev = f"`{commit}`" + (" (dirty: uncommitted changes in the work tree)" if dirty is True
+                           else " (clean)" if dirty is False else "")
     backends = sorted({r.backend for r in records}) or [config.get("backend", "")]
     models = sorted({r.model for r in records if r.model}) or [config.get("model") or "--"]
     variants = sorted({r.variant for r in records}) or config.get("variants") or []
     ran = [r for r in records if not r.harness_error]
     rows = [
         ("command (regenerates this report; rerun with a fresh --out)", f"`{config.get('command', 'unrecorded')}`"),
-        ("rebuild the report from episodes.jsonl", f"`{config.get('report_only_command', 'aermani eval --out DIR --report-only')}`"),
+        ("rebuild the report from episodes.jsonl",
+         f"`{config.get('report_only_command', 'aermani eval --out DIR --report-only')}`"),
         ("commit", rev),
         ("backend", ", ".join(f"{b}" + (" (non-VLM baseline)" if b == "rules" else "") for b in backends)),
         ("model", ", ".join(models)),
@@ -211,6 +213,46 @@ def summarize(records: list[EpisodeRecord]) -> dict[str, Any]:
     return by_config
 
 
+def _endings_section(records: list[EpisodeRecord], configs: list[tuple[str, str]], multi: bool) -> list[str]:
+    """End state, judge and collisions per method: SR needs both the task's end state and the judge."""
+    lines = ["", "## End state, judge and collisions", "",
+             "SR counts an episode only when both hold: the task's own end state is `succeeded` and the "
+             "simulator's ground-truth judge agrees. Collisions: airframe contacts with furniture, walls or the "
+             "ceiling recorded by the physics simulator since the episode's reset.", "",
+             "| Method | N | ended succeeded | judge success | both (SR numerator) | collisions | "
+             "episodes with a collision | terminal states |", "|---|---|---|---|---|---|---|---|"]
+    for b, v in configs:
+        recs = [r for r in records if r.backend == b and r.variant == v and not r.harness_error]
+        m = compute(recs)
+        states: dict[str, int] = {}
+        for r in recs:
+            states[r.state] = states.get(r.state, 0) + 1
+        lines.append(f"| {method_name(b, v, multi)} | {m.episodes} | {m.ended_succeeded} | {m.judged_success} | "
+                     f"{m.successes} | {m.collisions} ({_fmt(m.collisions_per_episode, 2)} per episode) | "
+                     f"{m.collision_episodes} | " + ", ".join(f"{k} {n}" for k, n in sorted(states.items())) + " |")
+    lines.append("")
+    return lines
+
+
+def _paper_section(records: list[EpisodeRecord], suites: list[str], configs: list[tuple[str, str]],
+                   multi: bool) -> list[str]:
+    """The full-variant methods beside the paper's AERMANI-VLM by task suite (empty: no paper suite)."""
+    paper_suites = [s for s in suites if s in PAPER_RS]
+    if not paper_suites:
+        return []
+    lines = ["## Beside the paper's AERMANI-VLM (by task suite)", "",
+             "| Task Suite | Method | SR | paper SR | RS | paper RS |", "|---|---|---|---|---|---|"]
+    for s in paper_suites:
+        for b, v in configs:
+            recs = [r for r in records if r.suite == s and r.backend == b and r.variant == v]
+            if recs and v == "full":
+                m = compute(recs)
+                lines.append(f"| {SUITE_TITLES.get(s, s)} | {method_name(b, v, multi)} | {_fmt(m.sr)} | "
+                             f"{PAPER_SR[s]:.1f} | {_fmt(m.rs)} | {PAPER_RS[s]:.1f} |")
+    lines.append("")
+    return lines
+
+
 def markdown(records: list[EpisodeRecord], config: dict[str, Any], plots: list[str]) -> str:
     configs = _config_order(records)
     multi = len({b for b, _ in configs}) > 1
@@ -252,35 +294,9 @@ def markdown(records: list[EpisodeRecord], config: dict[str, Any], plots: list[s
         lines.append(f"- {method_name(b, v, multi)}: " + ("; ".join(
             f"{'schema-constrained' if m == 'schema' else 'free text'} IAR {100 * bad / n:.1f} % of {n} calls"
             for m, (bad, n) in sorted(modes.items())) or "no model calls"))
-    lines += ["", "## End state, judge and collisions", "",
-              "SR counts an episode only when both hold: the task's own end state is `succeeded` and the "
-              "simulator's ground-truth judge agrees. Collisions: airframe contacts with furniture, walls or the "
-              "ceiling recorded by the physics simulator since the episode's reset.", "",
-              "| Method | N | ended succeeded | judge success | both (SR numerator) | collisions | "
-              "episodes with a collision | terminal states |", "|---|---|---|---|---|---|---|---|"]
-    for b, v in configs:
-        recs = [r for r in records if r.backend == b and r.variant == v and not r.harness_error]
-        m = compute(recs)
-        states: dict[str, int] = {}
-        for r in recs:
-            states[r.state] = states.get(r.state, 0) + 1
-        lines.append(f"| {method_name(b, v, multi)} | {m.episodes} | {m.ended_succeeded} | {m.judged_success} | "
-                     f"{m.successes} | {m.collisions} ({_fmt(m.collisions_per_episode, 2)} per episode) | "
-                     f"{m.collision_episodes} | " + ", ".join(f"{k} {n}" for k, n in sorted(states.items())) + " |")
-    lines.append("")
+    lines += _endings_section(records, configs, multi)
     lines += incident_lines(records)
-    paper_suites = [s for s in suites if s in PAPER_RS]
-    if paper_suites:
-        lines += ["## Beside the paper's AERMANI-VLM (by task suite)", "",
-                  "| Task Suite | Method | SR | paper SR | RS | paper RS |", "|---|---|---|---|---|---|"]
-        for s in paper_suites:
-            for b, v in configs:
-                recs = [r for r in records if r.suite == s and r.backend == b and r.variant == v]
-                if recs and v == "full":
-                    m = compute(recs)
-                    lines.append(f"| {SUITE_TITLES.get(s, s)} | {method_name(b, v, multi)} | {_fmt(m.sr)} | "
-                                 f"{PAPER_SR[s]:.1f} | {_fmt(m.rs)} | {PAPER_RS[s]:.1f} |")
-        lines.append("")
+    lines += _paper_section(records, suites, configs, multi)
     lines += paper_comparison_lines(records, config)
     lines += ["", "Metrics (definitions in docs/evaluation.md): SR = % of episodes where the simulator's ground "
               "truth has the right object on the destination within tolerance (or held, when the command has no "

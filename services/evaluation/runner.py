@@ -371,6 +371,8 @@ def _failed_before_first_step(rec: EpisodeRecord) -> bool:
 
 @dataclass
 class RunSummary:
+    """Outcome of one evaluation run: where it wrote, episodes planned, skipped and run, and their records."""
+
     out: Path
     planned: int
     skipped: int

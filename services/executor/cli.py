@@ -24,7 +24,7 @@ async def _run_skill(vehicle: str, skill: str, argument: str | None, timeout: fl
                 return goal.accept
             result = await goal.result(timeout)
             if result is None:
-                raise typer.Exit(f"no result within {timeout:.0f} s (goal {goal.goal_id})")
+                raise SystemExit(f"no result within {timeout:.0f} s (goal {goal.goal_id})")  # printed, exit 1
             return result
     finally:
         await bus.close()

@@ -22,12 +22,12 @@ from shared.bus import Bus
 from shared.errors import BusError, SkillError
 from shared.keys import Keys
 from shared.messages import (
+    AutopilotCommand,
     AutopilotResult,
     GotoCommand,
     GripperCommand,
     GripperState,
     LocalizeRequest,
-    Message,
     ObjectEstimate,
     PlacementEstimate,
     Pose,
@@ -151,7 +151,7 @@ class SkillContext:
 
     # ---- autopilot
 
-    async def command(self, cmd: Message, timeout: float | None = None) -> AutopilotResult:
+    async def command(self, cmd: AutopilotCommand, timeout: float | None = None) -> AutopilotResult:
         if self.stop_requested:
             raise asyncio.CancelledError("aborted")
         t = timeout or self.settings.command_timeout_s
@@ -210,8 +210,8 @@ class SkillContext:
         while True:
             age = max(0.05, (time.time_ns() - after) / 1e9)
             try:
-                est = await self.bus.query(key, LocalizeRequest(query=query, object_size=object_size,
-                                                                max_frame_age_s=min(age, 5.0)), timeout=self.settings.localize_timeout_s)
+                request = LocalizeRequest(query=query, object_size=object_size, max_frame_age_s=min(age, 5.0))
+                est = await self.bus.query(key, request, timeout=self.settings.localize_timeout_s)
             except BusError as exc:
                 raise SkillFailed(f"perception did not answer the localization of {query!r}: {exc}") from exc
             old = est.reason in ("stale_frame", "no_frame") or (est.frame_stamp_ns and est.frame_stamp_ns < after)

@@ -43,6 +43,8 @@ log = logging.getLogger("aermani.executor")
 
 @dataclass
 class Goal:
+    """A skill goal the executor accepted: the request, the skill instance and the tasks running it."""
+
     goal_id: str
     request: SkillRequest
     skill: Skill
@@ -54,6 +56,8 @@ class Goal:
 
 
 class Executor:
+    """Serves the skill library over the bus: accepts skill goals, runs one at a time, publishes status and memory."""
+
     def __init__(self, bus: Bus, settings: ExecutorSettings) -> None:
         self.bus = bus
         self.settings = settings

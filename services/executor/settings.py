@@ -10,6 +10,8 @@ from shared.settings import ServiceSettings
 
 
 class ExecutorSettings(ServiceSettings):
+    """Executor configuration (AERMANI_EXECUTOR_*): skill modules, flight and manipulation parameters, timeouts."""
+
     model_config = SettingsConfigDict(env_prefix="AERMANI_EXECUTOR_", extra="ignore", populate_by_name=True,
                                       use_attribute_docstrings=True)
 

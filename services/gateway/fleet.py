@@ -56,6 +56,8 @@ def vehicle_of(key: str) -> str:
 
 @dataclass
 class Frame:
+    """The newest camera frame of a vehicle as received, decoded to JPEG only on demand."""
+
     payload: bytes
     """The foxglove CompressedImage protobuf, undecoded until someone asks (most frames nobody watches)."""
     receive_ns: int
@@ -71,6 +73,8 @@ ABORT_SERVICES = ("executor", "autopilot_bridge")  # the services that act on sa
 
 @dataclass
 class VehicleView:
+    """What the gateway knows of one vehicle: service liveliness, state, latest frame, detections, approvals."""
+
     vehicle_id: str
     services: dict[str, bool] = field(default_factory=dict)
     state: VehicleState | None = None
@@ -260,7 +264,8 @@ class Fleet:
         """Every pending approval of the fleet, oldest first (expired ones the reasoner did not report yet are
         left out)."""
         now = time.time_ns()
-        out = [a for v in self.vehicles.values() for a in v.approvals.values() if not a.expires_ns or a.expires_ns > now]
+        out = [a for v in self.vehicles.values() for a in v.approvals.values()
+               if not a.expires_ns or a.expires_ns > now]
         return sorted(out, key=lambda a: a.stamp_ns)
 
     async def _on_detections(self, key: str, dets: Detections) -> None:

@@ -45,6 +45,8 @@ def _host_name(host_header: str) -> str:
 
 
 class RequestGuard:
+    """ASGI middleware: bearer-token check, CORS origin allow-list, body size limit and security headers."""
+
     def __init__(self, app: ASGIApp, settings: GatewaySettings) -> None:
         self.app = app
         self.settings = settings
@@ -120,7 +122,8 @@ class RequestGuard:
         origin = headers.get("origin")
         if origin is not None and origin.lower() != "null":
             if not self._same_origin(origin, host, scheme) and origin.rstrip("/").lower() not in self.allowed_origins:
-                return 403, f"cross-origin request from {origin[:100]!r} refused (Origin must match Host {host[:100]!r})"
+                return 403, (f"cross-origin request from {origin[:100]!r} refused "
+                             f"(Origin must match Host {host[:100]!r})")
         elif origin is not None and method not in SAFE_METHODS:
             return 403, "request from an opaque origin (Origin: null) refused"
         if method in SAFE_METHODS or not self.no_token:

@@ -12,6 +12,8 @@ VEHICLE_ID_PATTERN = r"^[A-Za-z0-9_-]{1,32}$"
 
 
 class ApiModel(BaseModel):
+    """Base of the HTTP API's models: field docstrings become the schema descriptions; unknown fields are rejected."""
+
     model_config = ConfigDict(use_attribute_docstrings=True, extra="forbid")
 
 
@@ -70,6 +72,8 @@ class TaskCreate(ApiModel):
 
 
 class TaskLinks(ApiModel):
+    """Hypermedia links of a task: itself, its event stream and its abort endpoint."""
+
     self: str
     """URL of the task."""
     events: str
@@ -79,6 +83,8 @@ class TaskLinks(ApiModel):
 
 
 class TaskCreated(ApiModel):
+    """Response to POST /tasks: the accepted task's id, vehicle, state and links."""
+
     model_config = ConfigDict(json_schema_extra={"examples": [
         {"task_id": "task-1a2b3c4d5e6f", "vehicle_id": "am1", "state": "pending",
          "links": {"self": "/api/v1/tasks/task-1a2b3c4d5e6f", "events": "/api/v1/tasks/task-1a2b3c4d5e6f/events",
@@ -95,6 +101,8 @@ class TaskCreated(ApiModel):
 
 
 class TaskSummary(ApiModel):
+    """One task in a listing: id, vehicle, command, state and timing."""
+
     task_id: str
     """Task id."""
     vehicle_id: str
@@ -114,6 +122,8 @@ class TaskSummary(ApiModel):
 
 
 class TaskPage(ApiModel):
+    """A page of the task listing with the total count for pagination."""
+
     items: list[TaskSummary]
     """Tasks, newest first."""
     total: int
@@ -134,6 +144,8 @@ class StepOut(ApiModel):
 
 
 class Metrics(ApiModel):
+    """Per-task metrics: reasoning steps, model calls, invalid answers, IAR, skills used and durations."""
+
     steps: int = 0
     """Reasoning steps recorded."""
     model_calls: int = 0
@@ -155,6 +167,8 @@ class Metrics(ApiModel):
 
 
 class TaskDetail(TaskSummary):
+    """A task in full: its request, latest status, every reasoning step and skill result."""
+
     request: dict[str, Any] = {}
     """The request as posted (overrides included)."""
     status: dict[str, Any] | None = None
@@ -173,6 +187,8 @@ class TaskDetail(TaskSummary):
 
 
 class AbortIn(ApiModel):
+    """Body of an abort request: the reason and, optionally, the one vehicle to stop."""
+
     model_config = ConfigDict(extra="forbid", use_attribute_docstrings=True,
                               json_schema_extra={"examples": [{"reason": "person entered the area"}]})
 
@@ -189,6 +205,8 @@ def abort_summary(acked: dict[str, dict[str, str]]) -> dict[str, str]:
 
 
 class AbortOut(ApiModel):
+    """Result of an abort: the vehicles addressed, which acknowledged, and each service's answer."""
+
     model_config = ConfigDict(json_schema_extra={"examples": [
         {"vehicles": ["am1"], "acknowledged": ["am1"], "task_id": "task-1a2b3c4d5e6f",
          "messages": {"am1": "stopped grasp (goal goal-0123456789ab), holding position"},
@@ -213,6 +231,8 @@ class AbortOut(ApiModel):
 
 
 class VehicleHealth(ApiModel):
+    """Health of one vehicle: service liveliness, autopilot link and offboard state, battery."""
+
     vehicle_id: str
     """Vehicle id."""
     services: dict[str, bool]
@@ -244,6 +264,8 @@ class VehicleHealth(ApiModel):
 
 
 class HealthOut(ApiModel):
+    """Response of GET /health: the gateway, its database and every vehicle's health."""
+
     model_config = ConfigDict(json_schema_extra={"examples": [
         {"ok": True, "database": True, "vehicles": [{"vehicle_id": "am1", "services": {"reasoner": True,
          "executor": True}, "link_ok": True, "offboard_ok": False, "battery_remaining": 87.0}]}]})

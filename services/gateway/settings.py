@@ -14,6 +14,8 @@ from shared.settings import ServiceSettings
 
 
 class GatewaySettings(ServiceSettings):
+    """Gateway configuration (AERMANI_GATEWAY_*): bind address, token, CORS, limits and database path."""
+
     model_config = SettingsConfigDict(env_prefix="AERMANI_GATEWAY_", extra="ignore", populate_by_name=True,
                                       use_attribute_docstrings=True)
 

@@ -40,8 +40,16 @@ CREATE INDEX IF NOT EXISTS events_task ON events(task_id, id);
 """
 
 
+def _inserted_id(cur: sqlite3.Cursor) -> int:
+    """The id of the row an INSERT just added (the sqlite3 stubs type `lastrowid` as optional)."""
+    assert cur.lastrowid is not None
+    return cur.lastrowid
+
+
 @dataclass
 class Event:
+    """One stored task event (step, skill status or task status) with its row id and stamp."""
+
     id: int
     task_id: str
     kind: str
@@ -194,7 +202,7 @@ class Store:
                 cur = self.db.execute("INSERT INTO events(task_id, kind, stamp_ns, data) VALUES (?, ?, ?, ?)",
                                       (status["task_id"], "task_status", status.get("stamp_ns") or now,
                                        json.dumps(status)))
-                return cur.lastrowid, changed
+                return _inserted_id(cur), changed
 
         return await self._run(write)
 
@@ -206,7 +214,7 @@ class Store:
                 cur = self.db.execute("INSERT INTO events(task_id, kind, stamp_ns, data) VALUES (?, ?, ?, ?)",
                                       (task_id, kind, stamp_ns, json.dumps(data)))
                 self.db.execute("UPDATE tasks SET updated_ns = ? WHERE task_id = ?", (time.time_ns(), task_id))
-                return cur.lastrowid
+                return _inserted_id(cur)
 
         return await self._run(write)
 

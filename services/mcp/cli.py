@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import sys
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
@@ -23,8 +23,8 @@ def register(app: typer.Typer) -> None:
         flight). Gateway token from AERMANI_GATEWAY_TOKEN; HTTP clients need AERMANI_MCP_TOKEN."""
         from services.mcp.server import build_server, http_app
 
-        overrides = {k: v for k, v in (("transport", transport), ("port", port), ("gateway_url", gateway))
-                     if v is not None}
+        options = (("transport", transport), ("port", port), ("gateway_url", gateway))
+        overrides: dict[str, Any] = {k: v for k, v in options if v is not None}
         settings = McpSettings(**overrides)
         settings.check_safe()
         if settings.transport == "stdio":

@@ -7,6 +7,7 @@ import time
 from collections import OrderedDict, deque
 from dataclasses import dataclass, field
 from functools import cached_property
+from typing import cast
 
 import numpy as np
 
@@ -205,7 +206,7 @@ class FrameStore:
             # Calibration for another resolution: scale it rather than mis-project.
             sx, sy = depth.shape[1] / intr.width, depth.shape[0] / intr.height
             intr = Intrinsics(depth.shape[1], depth.shape[0], intr.fx * sx, intr.fy * sy, intr.cx * sx, intr.cy * sy)
-        frame = Frame(stamp, depth, intr, world_from_base @ self.base_from_camera, int(slot["receive_ns"]),
+        frame = Frame(stamp, depth, intr, world_from_base @ self.base_from_camera, int(cast(int, slot["receive_ns"])),
                       slot.get("color"), slot.get("segmentation"), slot.get("labels"))  # type: ignore[arg-type]
         self._cache = (stamp, frame)
         return frame

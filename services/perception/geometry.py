@@ -72,6 +72,8 @@ def remove_outliers(points: np.ndarray, nb_neighbors: int = 16, std_ratio: float
 
 @dataclass
 class ObjectGeometry:
+    """An object's oriented box fitted to its points: centre, yaw, size, top and support heights."""
+
     center: np.ndarray  # x/y: centre of the footprint box; z: halfway between support and top
     yaw: float  # along the footprint's longer side, in (-pi/2, pi/2]
     size: np.ndarray  # along yaw, across, height
@@ -100,7 +102,8 @@ def support_height(frame: Frame, idx: np.ndarray, bottom_z: float, ring_px: int 
     x0, x1 = max(int(u.min()) - ring_px, 0), min(int(u.max()) + ring_px + 1, w)
     crop = np.zeros((y1 - y0, x1 - x0), np.uint8)
     crop[v - y0, u - x0] = 1
-    ring = cv2.dilate(crop, np.ones((2 * ring_px + 1, 2 * ring_px + 1), np.uint8)) & (crop ^ 1)
+    dilated = np.asarray(cv2.dilate(crop, np.ones((2 * ring_px + 1, 2 * ring_px + 1), np.uint8)), np.uint8)
+    ring = dilated & (crop ^ 1)
     rv, ru = np.nonzero(ring)
     ring_idx = (rv + y0) * w + (ru + x0)
     cloud = lift(frame, ring_idx, max_points=800)
@@ -137,6 +140,8 @@ def object_geometry(frame: Frame, cloud: Cloud, idx: np.ndarray) -> ObjectGeomet
 
 @dataclass
 class Placement:
+    """A placement spot found on a support plane, with the plane, the clearance there and the inlier count."""
+
     spot: np.ndarray  # x, y on the plane
     surface_z: float
     plane: tuple[float, float, float, float]
@@ -193,7 +198,7 @@ def free_spot(surface_pts: np.ndarray, surface_z: float, clutter_pts: np.ndarray
     ij = ((xy - lo) / cell).astype(np.int64)
     grid[ij[:, 1], ij[:, 0]] = 1
     # Close sampling gaps between depth pixels, not occlusion holes (those are a few cells wide).
-    grid = cv2.morphologyEx(grid, cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8))
+    grid = np.asarray(cv2.morphologyEx(grid, cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8)), np.uint8)
     if len(clutter_pts):
         c = clutter_pts[(clutter_pts[:, 2] > surface_z + 0.015) & (clutter_pts[:, 2] < surface_z + 0.8)]
         cij = ((c[:, :2] - lo) / cell).astype(np.int64)

@@ -99,6 +99,8 @@ class Candidate:
 
 @dataclass(frozen=True)
 class Query:
+    """A parsed object query: its words, colour words and size selector (larger / smaller)."""
+
     text: str
     words: tuple[str, ...]
     colors: frozenset[str] = field(default_factory=frozenset)
@@ -163,6 +165,30 @@ def vocabulary(names: Sequence[str]) -> frozenset[str]:
     return frozenset(words)
 
 
+def _score(name: str, qset: set[str]) -> int:
+    """How a query's words name a label: 3 full name, 2 family, 1 head noun (or colour-only match), 0 none."""
+    lw = _label_words(name)
+    if lw and set(lw) <= qset:
+        return 3
+    if any(name in FAMILIES.get(w, ()) for w in qset):
+        return 2
+    if lw and (lw[-1] in qset or any(w in qset for w in lw if w not in COLOR_WORDS and w not in SIZE_WORDS)):
+        return 1
+    return 0
+
+
+def _filter_colors(names_in: list[str], colors_of: dict[str, str], colors: frozenset[str]) -> list[str]:
+    """The names whose colour (or a colour word in their label) the query asks for; all when it names none."""
+    if not colors:
+        return names_in
+    out = []
+    for n in names_in:
+        c = colors_of.get(n, "")
+        if c in colors or set(_label_words(n)) & set(colors):
+            out.append(n)
+    return out
+
+
 def match(query: Query, candidates: Sequence[Candidate], known_names: Sequence[str],
           categories: Sequence[str] = ("object",)) -> Match:
     """Choose the candidate a query means.
@@ -180,34 +206,13 @@ def match(query: Query, candidates: Sequence[Candidate], known_names: Sequence[s
         raise BadQuery(f"no known object or surface in the query ({unknown}); known: {', '.join(names[:30])}")
     qset = set(query.words)
 
-    def score(name: str) -> int:
-        """3 full name, 2 family, 1 head noun (or colour-only match), 0 none."""
-        lw = _label_words(name)
-        if lw and set(lw) <= qset:
-            return 3
-        if any(name in FAMILIES.get(w, ()) for w in qset):
-            return 2
-        if lw and (lw[-1] in qset or any(w in qset for w in lw if w not in COLOR_WORDS and w not in SIZE_WORDS)):
-            return 1
-        return 0
-
-    def filter_colors(names_in: list[str], colors_of: dict[str, str]) -> list[str]:
-        if not query.colors:
-            return names_in
-        out = []
-        for n in names_in:
-            c = colors_of.get(n, "")
-            if c in query.colors or set(_label_words(n)) & set(query.colors):
-                out.append(n)
-        return out
-
     # Which known names does the query mean (independent of visibility)?
     colors_of = {c.name: c.color for c in candidates}
-    scored = {n: score(n) for n in names}
+    scored = {n: _score(n, qset) for n in names}
     best = max(scored.values(), default=0)
     if best == 0 and query.colors:
         # "the red one": colour alone names every thing of that colour.
-        meant = filter_colors(names, colors_of)
+        meant = _filter_colors(names, colors_of, query.colors)
     else:
         meant = [n for n, s in scored.items() if s == best and s > 0]
         if best == 3:
@@ -215,7 +220,7 @@ def match(query: Query, candidates: Sequence[Candidate], known_names: Sequence[s
             sets = {n: set(_label_words(n)) for n in meant}
             meant = [n for n in meant if not any(sets[n] < sets[m] for m in meant)]
         if best < 3:
-            meant = filter_colors(meant, colors_of)
+            meant = _filter_colors(meant, colors_of, query.colors)
     if not meant:
         return Match(None, "not_visible", f"nothing known matches '{query.text}'")
 

@@ -53,6 +53,8 @@ def parse_request(data: bytes | None) -> tuple[LocalizeRequest | None, str, str]
 
 
 class PerceptionService:
+    """Serves perception over the bus: keeps the newest frames and answers localization queries and detections."""
+
     def __init__(self, bus: Bus, settings: PerceptionSettings, perception: Perception) -> None:
         self.bus = bus
         self.settings = settings

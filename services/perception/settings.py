@@ -9,6 +9,8 @@ from shared.settings import ServiceSettings
 
 
 class PerceptionSettings(ServiceSettings):
+    """Perception configuration (AERMANI_PERCEPTION_*): segmenter type, its model or catalogue, workers."""
+
     model_config = SettingsConfigDict(env_prefix="AERMANI_PERCEPTION_", extra="ignore", populate_by_name=True,
                                       use_attribute_docstrings=True)
 

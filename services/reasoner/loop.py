@@ -99,6 +99,8 @@ def policy_context(command: str, variant: str, library: SkillLibrary, history: H
 
 @dataclass
 class StepResult:
+    """One finished reasoning step: the published record and the parsed answer (None when invalid)."""
+
     record: ReasoningStep
     parsed: ParsedAnswer | None
     failure: str | None = None

@@ -55,6 +55,8 @@ class Work:
 
 @dataclass(frozen=True)
 class ParsedAnswer:
+    """A model answer read into its reasoning trace (DRT) and the skill to execute (STE)."""
+
     drt: DescriptiveReasoningTrace
     ste: SkillToExecute
     recovered: bool = False
@@ -110,6 +112,11 @@ def _object_spans(text: str, quotes: str, work: Work) -> list[tuple[int, int]]:
                 stack.pop()
         elif stack and c in quotes:
             quote = c
+    return _outermost(pairs)
+
+
+def _outermost(pairs: list[tuple[int, int]]) -> list[tuple[int, int]]:
+    """The outermost of matched `(start, end)` bracket pairs given in closing order, in text order."""
     # `pairs` is in closing order and brackets nest, so walking it backwards a pair is outermost exactly when it
     # ends before the start of the last outermost one kept (otherwise that one contains it): linear, no sort.
     out: list[tuple[int, int]] = []
@@ -292,14 +299,15 @@ def _parse(raw: str, variant: str, library: SkillLibrary, coverage: float, work:
     specs = {s.name: s for s in policy_skills(library)}
     names = list(specs)
     thought: str | None = None
+    obj: dict | None
     if variant == "react":
         obj, thought, recovered = _react_action(raw, work)
     else:
         obj, recovered, _start = extract_json(raw, work)
     if obj is None:
         if variant == "unstructured":
-            skill, arg = _bare_skill(raw, names, work)
-            return _validate(skill, arg, {}, variant, specs, coverage, True, thought)
+            bare_skill, arg = _bare_skill(raw, names, work)
+            return _validate(bare_skill, arg, {}, variant, specs, coverage, True, thought)
         raise InvalidAnswer("No JSON object found in the answer; reply with exactly one JSON object in the "
                             "format given in the Rules.")
     obj = {norm_key(k): v for k, v in obj.items()}

@@ -28,6 +28,8 @@ PROBE_COMMAND = "pick up the red cup and place it on the table"
 
 @dataclass
 class CallResult:
+    """One probe call to a model endpoint: mode, whether it answered and validated, latency and tokens."""
+
     mode: str
     ok: bool
     """The endpoint answered (HTTP success)."""
@@ -43,6 +45,8 @@ class CallResult:
 
 @dataclass
 class ProbeReport:
+    """Result of `aermani vlm probe`: the endpoint, what it accepted, and the calls' response times."""
+
     backend: str
     model: str
     base_url: str

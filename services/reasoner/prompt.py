@@ -118,6 +118,8 @@ class Observation:
 
 @dataclass
 class CompiledPrompt:
+    """A prompt ready to send: its parts, the constant prefix and per-step suffix, and the camera image."""
+
     variant: str
     parts: dict[str, str]
     text: str
@@ -154,7 +156,7 @@ def describe_detections(obs: Observation) -> str:
     items = []
     pos = obs.state.position if obs.state else None
     for d in obs.detections[:20]:
-        extra = [d.category]
+        extra: list[str] = [d.category]
         if d.size is not None:
             extra.append(f"{d.size.x:.2f} x {d.size.y:.2f} x {d.size.z:.2f} m")
         if d.centroid is not None and pos is not None:

@@ -31,7 +31,9 @@ def _closed(properties: dict[str, Any], description: str | None = None) -> dict[
 
 def ste_schema(library: SkillLibrary) -> dict[str, Any]:
     """The Skill To Execute: one branch per argument rule, each with the enum of the skills that follow it."""
-    none, required, optional = [], [], []
+    none: list[str] = []
+    required: list[str] = []
+    optional: list[str] = []
     for spec in policy_skills(library):
         (none if spec.argument is None else required if spec.argument_required else optional).append(spec.name)
     branches = []

@@ -128,6 +128,8 @@ def _jpeg(payload: bytes) -> tuple[bytes, int]:
 
 
 class Reasoner:
+    """Serves tasks over the bus: runs one task at a time through the policy loop and publishes steps and status."""
+
     def __init__(self, bus: Bus, settings: ReasonerSettings, world: World | None = None) -> None:
         self.bus = bus
         self.settings = settings

@@ -12,6 +12,8 @@ from shared.settings import ServiceSettings
 
 
 class ReasonerSettings(ServiceSettings):
+    """Reasoner configuration (AERMANI_REASONER_*): backend, model endpoint, prompt variant and step limits."""
+
     model_config = SettingsConfigDict(env_prefix="AERMANI_REASONER_", extra="ignore", populate_by_name=True,
                                       use_attribute_docstrings=True)
 

@@ -251,7 +251,8 @@ def iter_samples(path: str | Path, keys: str | None = None, start_ns: int | None
 
 def read_messages(path: str | Path, model: type[T], keys: str | None = None) -> list[tuple[LoggedSample, T]]:
     """Every sample of a log whose schema is `model`, decoded (malformed ones are skipped)."""
-    name = model.full_schema_name() if hasattr(model, "full_schema_name") else f"aermani.{model.__name__}"
+    full_schema_name = getattr(model, "full_schema_name", None)  # protobuf classes have it, pydantic models not
+    name = full_schema_name() if full_schema_name is not None else f"aermani.{model.__name__}"
     out = []
     for s in iter_samples(path, keys):
         if s.schema_name == name or s.encoding.endswith(";" + name):
@@ -332,6 +333,8 @@ def metadata(path: str | Path) -> dict[str, dict[str, str]]:
 
 @dataclass
 class Salvage:
+    """What could be read from a damaged or unfinished MCAP file: samples, schemas, channels and metadata."""
+
     samples: list[LoggedSample]
     schemas: dict[int, Schema]
     channels: dict[int, Channel]

@@ -52,6 +52,8 @@ def remap_sample(key: str, payload: bytes, encoding: str, remap: dict[str, str])
 
 @dataclass
 class ReplayResult:
+    """Result of replaying a log onto the bus: samples published, the log's time span and the wall time."""
+
     published: int
     first_log_ns: int
     last_log_ns: int

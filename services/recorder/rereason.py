@@ -52,6 +52,8 @@ class RereasonError(AermaniError):
 
 @dataclass
 class StepComparison:
+    """One re-reasoned step next to the recorded one: both decisions and whether they agree."""
+
     task_id: str
     step: int
     recorded_skill: str | None
@@ -88,6 +90,8 @@ def _sec(v: float | None) -> str:
 
 @dataclass
 class RereasonResult:
+    """Result of re-reasoning a log with a backend and variant: every step comparison and the agreement rate."""
+
     log: str
     backend: str
     variant: str
@@ -177,6 +181,8 @@ class _Stream:
 
 @dataclass
 class RecordedTask:
+    """A task as found in a log: its id, vehicle, command, prompt variant and recorded reasoning steps."""
+
     task_id: str
     vehicle_id: str
     command: str
@@ -203,7 +209,8 @@ class LogIndex:
             topic = s.key.split("/", 3)[3] if s.key.count("/") >= 3 else s.key
             try:
                 if topic == AUTOPILOT_STATE.name:
-                    self.state.setdefault(vid, _Stream()).add(s.log_time_ns, VehicleState.model_validate_json(s.payload))
+                    state = VehicleState.model_validate_json(s.payload)
+                    self.state.setdefault(vid, _Stream()).add(s.log_time_ns, state)
                 elif topic == PERCEPTION_DETECTIONS.name:
                     self.detections.setdefault(vid, _Stream()).add(s.log_time_ns,
                                                                    Detections.model_validate_json(s.payload))
@@ -232,10 +239,10 @@ class LogIndex:
         self.tasks: list[RecordedTask] = []
         for task_id, by_step in steps.items():
             ordered = [by_step[k] for k in sorted(by_step)]
-            st = statuses.get(task_id)
-            command = st.command if st else ordered[0].prompt.get("command", "")
+            status = statuses.get(task_id)
+            command = status.command if status else ordered[0].prompt.get("command", "")
             self.tasks.append(RecordedTask(task_id, vehicles.get(task_id, ""), command,
-                                           (st.variant if st else "") or ordered[0].variant, ordered))
+                                           (status.variant if status else "") or ordered[0].variant, ordered))
 
     def frame(self, vid: str, stamp_ns: int) -> bytes | None:
         frames = self.frames.get(vid, {})

@@ -11,6 +11,8 @@ from shared.settings import ServiceSettings
 
 
 class RecorderSettings(ServiceSettings):
+    """Recorder configuration (AERMANI_RECORDER_*): the key expression to record and where MCAP files go."""
+
     model_config = SettingsConfigDict(env_prefix="AERMANI_RECORDER_", extra="ignore", populate_by_name=True,
                                       use_attribute_docstrings=True)
 

@@ -16,6 +16,8 @@ from shared.sensors import PROTO_TYPES, stamp_to_ns
 
 @dataclass
 class StepRow:
+    """One reasoning step in a task timeline: the chosen skill, validity, retries, calls and outcome."""
+
     step: int
     stamp_ns: int
     skill: str | None
@@ -43,6 +45,8 @@ class StepRow:
 
 @dataclass
 class TaskTimeline:
+    """A task's readable timeline from a log: command, backend, variant, final state and its step rows."""
+
     task_id: str
     vehicle_id: str
     command: str
@@ -89,9 +93,9 @@ def timelines(path: str | Path, vehicle_id: str | None = None) -> list[TaskTimel
         steps.setdefault(s.task_id, {})[s.step] = s  # a later version of a step replaces the earlier one
         vehicles.setdefault(s.task_id, vehicle_of(sample.key) or s.vehicle_id)
     statuses: dict[str, TaskStatus] = {}
-    for sample, st in read_topic(path, topic_of(vid, REASONER_TASK_STATUS)):
-        statuses[st.task_id] = st
-        vehicles.setdefault(st.task_id, vehicle_of(sample.key) or st.vehicle_id)
+    for sample, status in read_topic(path, topic_of(vid, REASONER_TASK_STATUS)):
+        statuses[status.task_id] = status
+        vehicles.setdefault(status.task_id, vehicle_of(sample.key) or status.vehicle_id)
     order = list(dict.fromkeys([*statuses, *steps]))
     out = []
     for task_id in order:

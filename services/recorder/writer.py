@@ -16,7 +16,7 @@ import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import IO, Any, BinaryIO, cast
 
 from mcap.writer import Writer
 
@@ -217,7 +217,8 @@ class RecordWriter:
             path = self._next_path()
             self._file = _File(self.opener(path))
             self.path, self._file_durable = str(path), 0  # from here a failure concerns this file
-            self._writer = Writer(self._file, chunk_size=self.settings.chunk_size,
+            # _File has the write/tell/flush mcap's Writer uses; its annotation only names real file types.
+            self._writer = Writer(cast(IO[Any], self._file), chunk_size=self.settings.chunk_size,
                                   compression=compression_type(self.settings.compression))
             self._writer.start(profile="", library="aermani-recorder")
             self._writer.add_metadata("aermani", {**self.static_meta, "file_index": str(self._file_index),

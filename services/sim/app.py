@@ -98,7 +98,11 @@ class CameraPublisher:
     def render_frame(self, stamp_ns: int) -> tuple[bytes, bytes, bytes | None, bytes]:
         snap = self.core.snapshot()
         seg = self.segmentation_watched()
-        enc = self.worker.render(snap, stamp_ns, seg) if self.worker is not None else self.encoder(snap, stamp_ns, seg)
+        if self.worker is not None:
+            enc = self.worker.render(snap, stamp_ns, seg)
+        else:
+            assert self.encoder is not None  # with the camera on and no render process, __init__ made it
+            enc = self.encoder(snap, stamp_ns, seg)
         self.render_s += enc.render_s
         return enc.color, enc.depth, enc.segmentation, self.transforms(snap, stamp_ns)
 
@@ -107,7 +111,8 @@ class CameraPublisher:
         """world -> body from the estimated pose (as a real stack gets it from its EKF), not the truth; the
         camera and gripper frames of the simulated airframe (the default mount, see check_airframe)."""
         body = pose_matrix(float(snap.position[0]), float(snap.position[1]), float(snap.position[2]), snap.yaw)
-        return transforms_message([(WORLD_FRAME, BODY_FRAME, body), (BODY_FRAME, CAMERA_FRAME, AIRFRAME.base_to_camera()),
+        return transforms_message([(WORLD_FRAME, BODY_FRAME, body),
+                                   (BODY_FRAME, CAMERA_FRAME, AIRFRAME.base_to_camera()),
                                    (BODY_FRAME, GRIPPER_FRAME, AIRFRAME.base_to_gripper())], stamp_ns)
 
     def segmentation_watched(self) -> bool:
@@ -123,19 +128,21 @@ class CameraPublisher:
             self.keys.camera_color, self.keys.camera_depth, self.keys.camera_segmentation))
 
     async def run(self, stop: asyncio.Event) -> None:
+        bus = self.bus
+        assert bus is not None, "the camera loop publishes: it needs a bus"
         period = 1.0 / self.settings.fps
         next_t = time.monotonic()
         last_cal = last_labels = 0.0
         while not stop.is_set():
             now = time.monotonic()
             if now - last_cal >= 1.0 and self.settings.camera:
-                self.bus.publish(self.keys.camera_calibration, calibration_message(DEFAULT_INTRINSICS, now_ns()))
+                bus.publish(self.keys.camera_calibration, calibration_message(DEFAULT_INTRINSICS, now_ns()))
                 last_cal = now
             version = self.core.world.version
             if now - last_labels >= 1.0 or version != self.last_labels_version:
-                self.bus.publish(self.keys.sim_labels, SimLabels(labels=self.core.labels()))
+                bus.publish(self.keys.sim_labels, SimLabels(labels=self.core.labels()))
                 if now - last_labels >= 1.0:
-                    self.bus.publish(self.keys.health("sim"), self.health())
+                    bus.publish(self.keys.health("sim"), self.health())
                 last_labels, self.last_labels_version = now, version
             stamp = now_ns()
             if not self.settings.camera:
@@ -144,7 +151,7 @@ class CameraPublisher:
                 # Nobody consumes images (e.g. a MAVLink-only test or many idle evaluation vehicles): skip the
                 # raycast, keep tf flowing.
                 self.idle_frames += 1
-                self.bus.publish(self.keys.tf, self.transforms(self.core.snapshot(), stamp), reliable=False)
+                bus.publish(self.keys.tf, self.transforms(self.core.snapshot(), stamp), reliable=False)
             else:
                 try:
                     color, depth, seg, tf = await asyncio.to_thread(self.render_frame, stamp)
@@ -153,11 +160,11 @@ class CameraPublisher:
                     self.last_error = f"{type(exc).__name__}: {exc}"
                     log.exception("rendering failed; retrying next frame")
                 else:
-                    self.bus.publish(self.keys.camera_color, color)
-                    self.bus.publish(self.keys.camera_depth, depth)
+                    bus.publish(self.keys.camera_color, color)
+                    bus.publish(self.keys.camera_depth, depth)
                     if seg is not None:
-                        self.bus.publish(self.keys.camera_segmentation, seg)
-                    self.bus.publish(self.keys.tf, tf)
+                        bus.publish(self.keys.camera_segmentation, seg)
+                    bus.publish(self.keys.tf, tf)
                     self.frames += 1
                     self.failures = 0
                     self.recent.append(time.monotonic())

@@ -40,6 +40,8 @@ class Snapshot:
 
 
 class SimCore:
+    """The simulated world and vehicle behind one lock: physics steps, camera renders and scenario resets."""
+
     def __init__(self, scenario: Scenario, params: VehicleParams | None = None, realism: str = "realistic") -> None:
         self.lock = threading.RLock()
         self.realism = realism

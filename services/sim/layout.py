@@ -26,6 +26,8 @@ VEHICLE_BELOW = 0.05
 
 @dataclass(frozen=True)
 class ObjectSpec:
+    """A graspable object of a scenario layout: shape, size, colour and physical properties."""
+
     name: str
     shape: Shape
     size: tuple[float, float, float]  # extent x, y, z in metres (cylinder/sphere: diameter, diameter, height)
@@ -37,6 +39,8 @@ class ObjectSpec:
 
 @dataclass(frozen=True)
 class FurnitureSpec:
+    """A piece of furniture of a scenario layout: shape, footprint, height, colour and whether it supports objects."""
+
     name: str
     shape: Shape  # box or cylinder (round table)
     footprint: tuple[float, float]  # x, y extent (cylinder: diameter, diameter)

@@ -10,6 +10,7 @@ import struct
 import threading
 import time
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from pymavlink.dialects.v20 import common as mav
@@ -25,6 +26,7 @@ from services.sim.vehicle import (
     SUB_LOITER,
     SUB_RTL,
     UNSUPPORTED,
+    Vehicle,
     yaw_ned_to_enu,
 )
 from shared.errors import MavlinkError
@@ -79,6 +81,11 @@ PARAMS: dict[str, float] = {
 
 # MAV_CMD_INJECT_FAILURE units that take the local position estimate away (GPS outdoors, VIO indoors).
 POSITION_SENSORS = {mav.FAILURE_UNIT_SENSOR_GPS, mav.FAILURE_UNIT_SENSOR_VIO}
+# Messages acted on only when addressed to us (target system/component 0 or ours).
+_TARGETED = ("SET_POSITION_TARGET_LOCAL_NED", "COMMAND_LONG", "COMMAND_INT", "PARAM_REQUEST_LIST",
+             "PARAM_REQUEST_READ", "PARAM_SET", "MISSION_REQUEST_LIST")
+# Commands answered with a message (after the COMMAND_ACK) when accepted.
+_REQUESTS = (mav.MAV_CMD_REQUEST_MESSAGE, mav.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES, mav.MAV_CMD_GET_HOME_POSITION)
 INT32_MAX = 2**31 - 1
 
 
@@ -93,6 +100,8 @@ def command_arg(p: list[float], i: int, default: float) -> float:
 
 @dataclass
 class LinkSettings:
+    """One MAVLink UDP link of the simulated autopilot: local port and the remote peer."""
+
     name: str
     local_port: int
     remote_host: str
@@ -122,6 +131,8 @@ class Link:
 
 
 class MavlinkServer:
+    """Speaks MAVLink like PX4 on UDP for the simulated vehicle: heartbeats, telemetry, commands, offboard setpoints."""
+
     def __init__(self, core: SimCore, links: list[LinkSettings], speed_factor: float = 1.0,
                  physics_rate: float = 200.0) -> None:
         self.core = core
@@ -273,19 +284,9 @@ class MavlinkServer:
             return
         if t == "HEARTBEAT":
             return
-        if t == "SET_POSITION_TARGET_LOCAL_NED":
+        if t in _TARGETED:
             if self._for_us(msg):
-                self._setpoint(msg, rx_ns)
-            return
-        if t == "COMMAND_LONG":
-            if self._for_us(msg):
-                self._command(link, msg, msg.command, [msg.param1, msg.param2, msg.param3, msg.param4,
-                                                       msg.param5, msg.param6, msg.param7])
-            return
-        if t == "COMMAND_INT":
-            if self._for_us(msg):
-                self._command(link, msg, msg.command, [msg.param1, msg.param2, msg.param3, msg.param4,
-                                                       msg.x, msg.y, msg.z])
+                self._handle_targeted(link, msg, t, rx_ns)
             return
         if t == "SET_MODE":
             if msg.target_system == SYSTEM_ID:
@@ -297,19 +298,26 @@ class MavlinkServer:
             if msg.tc1 == 0:
                 link.send(link.mav.timesync_encode(time.monotonic_ns(), msg.ts1))
             return
-        if t in ("PARAM_REQUEST_LIST", "PARAM_REQUEST_READ", "PARAM_SET"):
-            if self._for_us(msg):
-                self._param(link, msg)
-            return
-        if t == "MISSION_REQUEST_LIST":
-            if self._for_us(msg):
-                link.send(link.mav.mission_count_encode(msg.get_srcSystem(), msg.get_srcComponent(), 0,
-                                                        getattr(msg, "mission_type", 0)))
-            return
         if t in ("SYSTEM_TIME", "PING", "MANUAL_CONTROL", "RC_CHANNELS_OVERRIDE"):
             return
         self.core.count("unknown_messages")
         self._log_limited(f"unknown-{t}", logging.INFO, "ignored unsupported MAVLink message %s", t)
+
+    def _handle_targeted(self, link: Link, msg: mav.MAVLink_message, t: str, rx_ns: int) -> None:
+        """A message of `_TARGETED` addressed to us: setpoints, commands, parameters, the mission list."""
+        if t == "SET_POSITION_TARGET_LOCAL_NED":
+            self._setpoint(msg, rx_ns)
+        elif t == "COMMAND_LONG":
+            self._command(link, msg, msg.command, [msg.param1, msg.param2, msg.param3, msg.param4,
+                                                   msg.param5, msg.param6, msg.param7])
+        elif t == "COMMAND_INT":
+            self._command(link, msg, msg.command, [msg.param1, msg.param2, msg.param3, msg.param4,
+                                                   msg.x, msg.y, msg.z])
+        elif t == "MISSION_REQUEST_LIST":
+            link.send(link.mav.mission_count_encode(msg.get_srcSystem(), msg.get_srcComponent(), 0,
+                                                    getattr(msg, "mission_type", 0)))
+        else:  # PARAM_REQUEST_LIST, PARAM_REQUEST_READ, PARAM_SET
+            self._param(link, msg)
 
     def _setpoint(self, msg: mav.MAVLink_message, rx_ns: int) -> None:
         if msg.coordinate_frame != mav.MAV_FRAME_LOCAL_NED:
@@ -338,57 +346,12 @@ class MavlinkServer:
     # ------------------------------------------------------------------ commands
 
     def _command(self, link: Link, msg: mav.MAVLink_message, cmd: int, p: list[float]) -> None:
-        result = UNSUPPORTED
-        out = None
-        now = time.monotonic()
         v = self.core.vehicle
-
-        def arg(i: int, default: float = 0.0) -> float:
-            return command_arg(p, i, default)
-
         with self.core.lock:
-            if cmd == mav.MAV_CMD_COMPONENT_ARM_DISARM:
-                action = arg(0, -1.0)
-                if round(action) not in (0, 1):
-                    v._event(mav.MAV_SEVERITY_CRITICAL, f"Unsupported ARM_DISARM param: {action:.3f}")
-                else:
-                    result = v.arm(round(action) == 1, force=round(arg(1)) == FORCE_MAGIC)
-            elif cmd == mav.MAV_CMD_DO_SET_MODE:
-                if int(arg(0)) & mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
-                    result = v.set_mode(int(arg(1)), int(arg(2)), now)
-                else:
-                    result = DENIED
-            elif cmd == mav.MAV_CMD_NAV_TAKEOFF:
-                result = v.takeoff(arg(6, math.nan))
-            elif cmd == mav.MAV_CMD_NAV_LAND:
-                result = v.land()
-            elif cmd == mav.MAV_CMD_NAV_RETURN_TO_LAUNCH:
-                result = v.set_mode(MAIN_AUTO, SUB_RTL, now)
-            elif cmd == mav.MAV_CMD_NAV_LOITER_UNLIM:
-                result = v.set_mode(MAIN_AUTO, SUB_LOITER, now)
-            elif cmd == mav.MAV_CMD_DO_GRIPPER:
-                result = v.gripper(round(arg(1, mav.GRIPPER_ACTION_RELEASE)) == mav.GRIPPER_ACTION_GRAB)
-            elif cmd == mav.MAV_CMD_DO_SET_ACTUATOR:
-                # The gripper servo sits on output function "Peripheral via Actuator Set N" (SIM_GRIP_ACT_SET):
-                # > 0 closes, < 0 opens, NaN leaves it alone (PX4's semantics for params 1-6).
-                n = int(self.params.get("SIM_GRIP_ACT_SET", 1.0))
-                value = p[n - 1] if 1 <= n <= 6 and int(arg(6)) == 0 else math.nan
-                result = ACCEPTED if not math.isfinite(value) or value == 0.0 else v.gripper(value > 0.0)
-            elif cmd == mav.MAV_CMD_INJECT_FAILURE:
-                result = self._inject_failure(int(arg(0, -1)), int(arg(1, -1)))
-            elif cmd == mav.MAV_CMD_SET_MESSAGE_INTERVAL:
-                result = self._set_interval(link, int(arg(0, -1)), arg(1))
-            elif cmd in (mav.MAV_CMD_REQUEST_MESSAGE, mav.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES,
-                         mav.MAV_CMD_GET_HOME_POSITION):
-                want = {mav.MAV_CMD_REQUEST_MESSAGE: int(arg(0, -1)),
-                        mav.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES: mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION,
-                        mav.MAV_CMD_GET_HOME_POSITION: mav.MAVLINK_MSG_ID_HOME_POSITION}[cmd]
-                out = self._build(link, want)
-                result = ACCEPTED if out is not None else DENIED
+            result, out = self._execute(link, cmd, p)
             events, v.events = v.events, []
         link.send(link.mav.command_ack_encode(cmd, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()))
-        if cmd in (mav.MAV_CMD_REQUEST_MESSAGE, mav.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES,
-                   mav.MAV_CMD_GET_HOME_POSITION) and result == ACCEPTED and out is not None:
+        if cmd in _REQUESTS and result == ACCEPTED and out is not None:
             link.send(out)
         if result == UNSUPPORTED:
             self._log_limited(f"cmd-{cmd}", logging.INFO, "unsupported command %d", cmd)
@@ -397,6 +360,52 @@ class MavlinkServer:
                      msg.get_srcSystem(), msg.get_srcComponent(), result)
         for sev, text in events:
             self._statustext(sev, text)
+
+    def _execute(self, link: Link, cmd: int, p: list[float]) -> tuple[int, Any]:
+        """Carry out one command (under the core lock) -> (MAV_RESULT, the message a request asked for or None)."""
+        now = time.monotonic()
+        v = self.core.vehicle
+
+        def arg(i: int, default: float = 0.0) -> float:
+            return command_arg(p, i, default)
+
+        if cmd == mav.MAV_CMD_COMPONENT_ARM_DISARM:
+            action = arg(0, -1.0)
+            if round(action) not in (0, 1):
+                v._event(mav.MAV_SEVERITY_CRITICAL, f"Unsupported ARM_DISARM param: {action:.3f}")
+                return UNSUPPORTED, None
+            return v.arm(round(action) == 1, force=round(arg(1)) == FORCE_MAGIC), None
+        if cmd == mav.MAV_CMD_DO_SET_MODE:
+            if int(arg(0)) & mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
+                return v.set_mode(int(arg(1)), int(arg(2)), now), None
+            return DENIED, None
+        if cmd == mav.MAV_CMD_NAV_TAKEOFF:
+            return v.takeoff(arg(6, math.nan)), None
+        if cmd == mav.MAV_CMD_NAV_LAND:
+            return v.land(), None
+        if cmd == mav.MAV_CMD_NAV_RETURN_TO_LAUNCH:
+            return v.set_mode(MAIN_AUTO, SUB_RTL, now), None
+        if cmd == mav.MAV_CMD_NAV_LOITER_UNLIM:
+            return v.set_mode(MAIN_AUTO, SUB_LOITER, now), None
+        if cmd == mav.MAV_CMD_DO_GRIPPER:
+            return v.gripper(round(arg(1, mav.GRIPPER_ACTION_RELEASE)) == mav.GRIPPER_ACTION_GRAB), None
+        if cmd == mav.MAV_CMD_DO_SET_ACTUATOR:
+            # The gripper servo sits on output function "Peripheral via Actuator Set N" (SIM_GRIP_ACT_SET):
+            # > 0 closes, < 0 opens, NaN leaves it alone (PX4's semantics for params 1-6).
+            n = int(self.params.get("SIM_GRIP_ACT_SET", 1.0))
+            value = p[n - 1] if 1 <= n <= 6 and int(arg(6)) == 0 else math.nan
+            return (ACCEPTED if not math.isfinite(value) or value == 0.0 else v.gripper(value > 0.0)), None
+        if cmd == mav.MAV_CMD_INJECT_FAILURE:
+            return self._inject_failure(int(arg(0, -1)), int(arg(1, -1))), None
+        if cmd == mav.MAV_CMD_SET_MESSAGE_INTERVAL:
+            return self._set_interval(link, int(arg(0, -1)), arg(1)), None
+        if cmd in _REQUESTS:
+            want = {mav.MAV_CMD_REQUEST_MESSAGE: int(arg(0, -1)),
+                    mav.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES: mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION,
+                    mav.MAV_CMD_GET_HOME_POSITION: mav.MAVLINK_MSG_ID_HOME_POSITION}[cmd]
+            out = self._build(link, want)
+            return (ACCEPTED if out is not None else DENIED), out
+        return UNSUPPORTED, None
 
     def _inject_failure(self, unit: int, kind: int) -> int:
         """MAV_CMD_INJECT_FAILURE as PX4 SITL answers it (only with SYS_FAILURE_EN = 1)."""
@@ -486,17 +495,7 @@ class MavlinkServer:
             v = self.core.vehicle
             boot_ms = int(v.sim_time * 1000)  # time since boot runs on simulated time
             if msg_id == mav.MAVLINK_MSG_ID_HEARTBEAT:
-                base = mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | mav.MAV_MODE_FLAG_STABILIZE_ENABLED
-                if v.main_mode in (MAIN_AUTO, MAIN_OFFBOARD):
-                    base |= mav.MAV_MODE_FLAG_GUIDED_ENABLED
-                if v.main_mode == MAIN_AUTO:
-                    base |= mav.MAV_MODE_FLAG_AUTO_ENABLED
-                if v.main_mode == MAIN_POSCTL:
-                    base |= mav.MAV_MODE_FLAG_MANUAL_INPUT_ENABLED
-                if v.armed:
-                    base |= mav.MAV_MODE_FLAG_SAFETY_ARMED
-                status = mav.MAV_STATE_ACTIVE if v.armed else mav.MAV_STATE_STANDBY
-                return m.heartbeat_encode(mav.MAV_TYPE_QUADROTOR, mav.MAV_AUTOPILOT_PX4, base, v.custom_mode, status)
+                return self._heartbeat(m, v)
             if msg_id in (mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED, mav.MAVLINK_MSG_ID_GLOBAL_POSITION_INT) \
                     and not v.estimate_valid:
                 return None  # PX4 publishes no position it does not have
@@ -510,13 +509,7 @@ class MavlinkServer:
             if msg_id == mav.MAVLINK_MSG_ID_EXTENDED_SYS_STATE:
                 return m.extended_sys_state_encode(mav.MAV_VTOL_STATE_UNDEFINED, v.landed_state)
             if msg_id == mav.MAVLINK_MSG_ID_SYS_STATUS:
-                # PREARM_CHECK healthy = the arming checks pass (MAVSDK's health.is_armable reads it).
-                sensors = 0x3FFFFF | mav.MAV_SYS_STATUS_PREARM_CHECK
-                health = sensors if v.estimate_valid else sensors & ~mav.MAV_SYS_STATUS_SENSOR_GPS
-                if v.armed or v.arming_check() is not None:
-                    health &= ~mav.MAV_SYS_STATUS_PREARM_CHECK
-                return m.sys_status_encode(sensors, sensors, health, 200, int(v.battery_voltage * 1000),
-                                           800 if v.armed else 50, int(v.battery), 0, 0, 0, 0, 0, 0)
+                return self._sys_status(m, v)
             if msg_id == mav.MAVLINK_MSG_ID_BATTERY_STATUS:
                 cell = int(v.battery_voltage * 1000 / 3)
                 return m.battery_status_encode(0, mav.MAV_BATTERY_FUNCTION_ALL, mav.MAV_BATTERY_TYPE_LIPO,
@@ -540,6 +533,32 @@ class MavlinkServer:
                 return m.autopilot_version_encode(caps, version, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0,
                                                   0x41455253494D)
         return None
+
+    @staticmethod
+    def _heartbeat(m: mav.MAVLink, v: Vehicle) -> mav.MAVLink_message:
+        """PX4's HEARTBEAT: base mode flags from the flight mode and arming state, the custom mode, the state."""
+        base = mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | mav.MAV_MODE_FLAG_STABILIZE_ENABLED
+        if v.main_mode in (MAIN_AUTO, MAIN_OFFBOARD):
+            base |= mav.MAV_MODE_FLAG_GUIDED_ENABLED
+        if v.main_mode == MAIN_AUTO:
+            base |= mav.MAV_MODE_FLAG_AUTO_ENABLED
+        if v.main_mode == MAIN_POSCTL:
+            base |= mav.MAV_MODE_FLAG_MANUAL_INPUT_ENABLED
+        if v.armed:
+            base |= mav.MAV_MODE_FLAG_SAFETY_ARMED
+        status = mav.MAV_STATE_ACTIVE if v.armed else mav.MAV_STATE_STANDBY
+        return m.heartbeat_encode(mav.MAV_TYPE_QUADROTOR, mav.MAV_AUTOPILOT_PX4, base, v.custom_mode, status)
+
+    @staticmethod
+    def _sys_status(m: mav.MAVLink, v: Vehicle) -> mav.MAVLink_message:
+        """SYS_STATUS: sensor health (GPS unhealthy without a position estimate), the pre-arm check, battery."""
+        # PREARM_CHECK healthy = the arming checks pass (MAVSDK's health.is_armable reads it).
+        sensors = 0x3FFFFF | mav.MAV_SYS_STATUS_PREARM_CHECK
+        health = sensors if v.estimate_valid else sensors & ~mav.MAV_SYS_STATUS_SENSOR_GPS
+        if v.armed or v.arming_check() is not None:
+            health &= ~mav.MAV_SYS_STATUS_PREARM_CHECK
+        return m.sys_status_encode(sensors, sensors, health, 200, int(v.battery_voltage * 1000),
+                                   800 if v.armed else 50, int(v.battery), 0, 0, 0, 0, 0, 0)
 
     @staticmethod
     def _latlon(north: float, east: float) -> tuple[int, int]:

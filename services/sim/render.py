@@ -28,6 +28,8 @@ REALISM = ("realistic", "ideal")
 
 @dataclass
 class Frame:
+    """One rendered camera view: colour, depth in mm, instance ids and the true camera pose."""
+
     rgb: np.ndarray  # HxWx3 uint8
     depth_mm: np.ndarray  # HxW uint16, 0 = no return
     instance: np.ndarray  # HxW uint16, 0 = nothing (or the vehicle itself)
@@ -71,6 +73,7 @@ class Renderer:
     def render(self, snap: Snapshot) -> Frame:
         self._model(snap)
         r, d, m = self._renderer, self.data, self.model
+        assert r is not None  # _model() made it
         d.qpos[:] = snap.qpos
         mujoco.mj_kinematics(m, d)
         mujoco.mj_camlight(m, d)
@@ -89,9 +92,9 @@ class Renderer:
             instance = np.where(ok, lut[np.clip(ids, 0, len(lut) - 1)], 0).astype(np.uint16)
         else:
             instance = np.zeros(depth.shape, np.uint16)
-        cam = pose_matrix(*(float(x) for x in d.xpos[m.body("vehicle").id]),
-                          float(np.arctan2(d.xmat[m.body("vehicle").id][3], d.xmat[m.body("vehicle").id][0]))) \
-            @ base_to_camera()
+        vehicle = m.body("vehicle").id
+        x, y, z = (float(v) for v in d.xpos[vehicle])
+        cam = pose_matrix(x, y, z, float(np.arctan2(d.xmat[vehicle][3], d.xmat[vehicle][0]))) @ base_to_camera()
         if self.realism == "realistic":
             rgb, depth = self._camera_model(rgb, depth)
         valid = (depth > MIN_DEPTH_M) & (depth < MAX_DEPTH_M) & np.isfinite(depth)

@@ -26,6 +26,8 @@ log = logging.getLogger("aermani.sim.render")
 
 @dataclass
 class Encoded:
+    """A rendered frame encoded as foxglove messages, with the time spent rendering and encoding."""
+
     color: bytes  # serialized foxglove.CompressedImage
     depth: bytes  # serialized foxglove.RawImage 16UC1 (mm)
     segmentation: bytes | None  # serialized foxglove.RawImage 16UC1 (instance ids); None when not asked for

@@ -14,6 +14,7 @@ from services.sim.layout import (
     ROOM_HALF,
     SURFACES,
     WALL_HEIGHT,
+    Category,
     Entity,
 )
 from services.sim.physics import World
@@ -82,7 +83,7 @@ def _place_furniture(rng: random.Random, start: tuple[float, float]) -> list[Ent
                     continue
                 if all(abs(x - o.center[0]) >= (sx + o.size[0]) / 2 + FURNITURE_GAP
                        or abs(y - o.center[1]) >= (sy + o.size[1]) / 2 + FURNITURE_GAP for o in placed):
-                    cat = "surface" if spec.support else "furniture"
+                    cat: Category = "surface" if spec.support else "furniture"
                     placed.append(Entity(FURNITURE_IDS[name], name, cat, spec.shape,
                                          np.array([x, y, (spec.height + FLOOR_Z) / 2]),
                                          (sx, sy, spec.height - FLOOR_Z), spec.rgb,
@@ -135,10 +136,10 @@ def visible_from(entity: Entity, start: Pose, altitudes: tuple[float, ...] = VIE
     return False
 
 
-def generate(scenario: Scenario, light_variation: bool = True) -> tuple[World, Scenario, Pose]:
-    """Build the world for `scenario` (a MuJoCo simulation, objects settled on their supports); returns it, the
-    scenario with every choice filled in, and the start."""
-    rng = random.Random(scenario.seed)
+def _named(scenario: Scenario) -> tuple[str | None, str | None, tuple[str, ...], dict[str, str]]:
+    """The scenario's names in canonical form -> (target, destination, extra objects, fixed placements);
+    raises ScenarioError for a destination or placement that is no surface, or a target placed on its
+    destination."""
     target = canonical(scenario.target_object, OBJECTS, "object") if scenario.target_object else None
     dest = canonical(scenario.destination, FURNITURE, "surface") if scenario.destination else None
     if dest is not None and dest not in SURFACES:
@@ -151,6 +152,37 @@ def generate(scenario: Scenario, light_variation: bool = True) -> tuple[World, S
             raise ScenarioError(f"{surf_name!r} has no top to place the {obj_name} on; surfaces: {', '.join(SURFACES)}")
         if obj_name == target and surf_name == dest:
             raise ScenarioError(f"the {obj_name} cannot start on its destination, the {dest}")
+    return target, dest, extras, fixed
+
+
+def _place_object(rng: random.Random, name: str, choices: list[Entity], placed: list[Entity], start: Pose,
+                  want_visible: bool | None) -> Entity | None:
+    """Draw a free spot for object `name` on one of the `choices` surfaces (up to 600 tries); None: no room."""
+    spec = OBJECTS[name]
+    for attempt in range(600):
+        surf = rng.choice(choices)
+        yaw = rng.uniform(-math.pi, math.pi) if spec.shape == "box" else 0.0
+        r = surf.footprint_radius()
+        x = surf.center[0] + rng.uniform(-r, r)
+        y = surf.center[1] + rng.uniform(-r, r)
+        obj = Entity(OBJECT_IDS[name], name, "object", spec.shape,
+                     np.array([x, y, surf.top_z + spec.size[2] / 2]), spec.size, spec.rgb, spec.color, yaw,
+                     support=surf.name)
+        if not _fits(surf, obj, placed):
+            continue
+        # Visibility is a preference for the normal case (the policy should see the target) and a hard
+        # requirement for search tasks.
+        if want_visible is not None and attempt < 500 and visible_from(obj, start) != want_visible:
+            continue
+        return obj
+    return None
+
+
+def generate(scenario: Scenario, light_variation: bool = True) -> tuple[World, Scenario, Pose]:
+    """Build the world for `scenario` (a MuJoCo simulation, objects settled on their supports); returns it, the
+    scenario with every choice filled in, and the start."""
+    rng = random.Random(scenario.seed)
+    target, dest, extras, fixed = _named(scenario)
 
     if scenario.start is not None:
         start = scenario.start
@@ -190,24 +222,7 @@ def generate(scenario: Scenario, light_variation: bool = True) -> tuple[World, S
     placed: list[Entity] = []
 
     def place(name: str, choices: list[str], want_visible: bool | None) -> Entity | None:
-        spec = OBJECTS[name]
-        for attempt in range(600):
-            surf = surfaces[rng.choice(choices)]
-            yaw = rng.uniform(-math.pi, math.pi) if spec.shape == "box" else 0.0
-            r = surf.footprint_radius()
-            x = surf.center[0] + rng.uniform(-r, r)
-            y = surf.center[1] + rng.uniform(-r, r)
-            obj = Entity(OBJECT_IDS[name], name, "object", spec.shape,
-                         np.array([x, y, surf.top_z + spec.size[2] / 2]), spec.size, spec.rgb, spec.color, yaw,
-                         support=surf.name)
-            if not _fits(surf, obj, placed):
-                continue
-            # Visibility is a preference for the normal case (the policy should see the target) and a hard
-            # requirement for search tasks.
-            if want_visible is not None and attempt < 500 and visible_from(obj, start) != want_visible:
-                continue
-            return obj
-        return None
+        return _place_object(rng, name, [surfaces[c] for c in choices], placed, start, want_visible)
 
     want = not scenario.target_out_of_view
     obj = place(target, target_surface_choices, want)

@@ -11,6 +11,8 @@ from shared.settings import ServiceSettings, parse_endpoints
 
 
 class SimSettings(ServiceSettings):
+    """Simulator configuration (AERMANI_SIM_*): scenario seed and target, realism, rates and camera."""
+
     model_config = SettingsConfigDict(env_prefix="AERMANI_SIM_", extra="ignore", populate_by_name=True,
                                       use_attribute_docstrings=True)
 

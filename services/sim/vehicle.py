@@ -64,6 +64,8 @@ def wrap(a: float) -> float:
 
 @dataclass
 class VehicleParams:
+    """Flight limits of the simulated multicopter, named after the PX4 parameters they mirror."""
+
     max_speed_h: float = 2.0  # m/s (MPC_XY_VEL_MAX)
     max_speed_up: float = 1.0  # m/s (MPC_Z_VEL_MAX_UP)
     max_speed_down: float = 1.0  # m/s (MPC_Z_VEL_MAX_DN)
@@ -463,6 +465,7 @@ class Vehicle:
         """PX4-like cascade on the estimated state: position -> velocity setpoint (speed and acceleration
         limits, sqrt braking profile) -> force (PI on velocity, gravity feed-forward, thrust limits)."""
         p = self.params
+        yaw_target: float | None
         target, yaw_target, vmax_up, vmax_down = self.hold_pos, self.hold_yaw, p.max_speed_up, p.max_speed_down
         vel_cmd: np.ndarray | None = None
         yaw_rate_cmd: float | None = None
@@ -517,15 +520,20 @@ class Vehicle:
         force_enu[2] = min(max(force_enu[2], 0.0), m * p.max_thrust_accel)
         # Yaw: rate-limited towards the target, then a torque tracking that rate.
         if yaw_rate_cmd is None:
-            if yaw_target is None or not math.isfinite(yaw_target):
-                yaw_rate_cmd = 0.0
-            else:
-                err = wrap(yaw_target - self.yaw)
-                yaw_rate_cmd = min(max(3.0 * err, -p.yaw_rate), p.yaw_rate)
-                if abs(err) > 1e-4:
-                    yaw_rate_cmd = math.copysign(min(abs(yaw_rate_cmd), math.sqrt(2 * 6.0 * abs(err))), err)
+            yaw_rate_cmd = self._yaw_rate_toward(yaw_target)
         torque = VEHICLE_YAW_INERTIA_TOTAL * (-yaw_rate_cmd - self.world.vehicle_yaw_rate()) / 0.05
         return force_enu, torque
+
+    def _yaw_rate_toward(self, yaw_target: float | None) -> float:
+        """Yaw rate command towards `yaw_target` (P gain, rate limit, sqrt braking); 0 without a target."""
+        if yaw_target is None or not math.isfinite(yaw_target):
+            return 0.0
+        p = self.params
+        err = wrap(yaw_target - self.yaw)
+        yaw_rate_cmd = min(max(3.0 * err, -p.yaw_rate), p.yaw_rate)
+        if abs(err) > 1e-4:
+            yaw_rate_cmd = math.copysign(min(abs(yaw_rate_cmd), math.sqrt(2 * 6.0 * abs(err))), err)
+        return yaw_rate_cmd
 
     def _rtl_target(self) -> np.ndarray:
         z_rtl = min(self.p[2], self.home[2] - self.params.rtl_alt)  # NED: never descend on the way home

@@ -36,7 +36,8 @@ async def test_out_of_envelope_commands_and_in_air_disarm_are_refused_at_the_bri
                 "speed": GotoCommand(position=Vec3(x=here.x + 0.5, y=here.y, z=1.5), yaw=0.0, max_speed=8.0),
             }
             expected = {"geofence": "outside the geofence (x must stay in [-3.80, 3.80])",
-                        "ceiling": "outside the geofence (z must stay in [0.00, 2.50])", "floor": "below the minimum 0.20 m",
+                        "ceiling": "outside the geofence (z must stay in [0.00, 2.50])",
+                        "floor": "below the minimum 0.20 m",
                         "speed": "above the limit 1.00 m/s"}
             for name, cmd in refusals.items():
                 res = await command(bus, cmd)

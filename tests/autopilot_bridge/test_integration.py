@@ -114,7 +114,8 @@ async def test_pick_and_place_flight_over_real_udp(tmp_path) -> None:
     async def body(stack):
         async with bus_for(stack) as bus:
             await sim_ready(bus)
-            reset = await bus.query(KEYS.sim_reset, Scenario(seed=7, target_object="red cup", destination="table"), timeout=30)
+            scenario = Scenario(seed=7, target_object="red cup", destination="table")
+            reset = await bus.query(KEYS.sim_reset, scenario, timeout=30)
             assert reset.ok, reset.message
             state, task = await start_state(bus)
             world = await bus.query(KEYS.sim_judge, JudgeRequest(op="world"))

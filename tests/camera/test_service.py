@@ -126,7 +126,8 @@ async def test_mcap_source_republishes_recorded_frames_with_fresh_stamps(tmp_pat
             got, cals, _ = await pairs(bus, 6)
     from services.recorder.mcaplog import iter_samples
 
-    jpegs = {bytes(decode_proto(CompressedImage, s.payload).data) for s in iter_samples(log, "aermani/v1/am7/camera/color")}
+    jpegs = {bytes(decode_proto(CompressedImage, s.payload).data)
+             for s in iter_samples(log, "aermani/v1/am7/camera/color")}
     for stamp, c, d in got:
         assert stamp not in recorded, "a replayed frame gets a new stamp (bus convention: now)"
         assert bytes(decode_proto(CompressedImage, c).data) in jpegs, "JPEG bytes pass through verbatim"

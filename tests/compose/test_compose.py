@@ -47,7 +47,8 @@ def _base_image() -> str:
     base = os.environ.get("AERMANI_COMPOSE_BASE", "python:3.11-slim-bookworm")
     if _run(["podman", "image", "exists", base]).returncode != 0:
         pull = _run(["podman", "pull", base], timeout=600)
-        assert pull.returncode == 0, (f"base image {base} is not here and cannot be pulled ({pull.stderr.strip()[-300:]}): "
+        why = pull.stderr.strip()[-300:]
+        assert pull.returncode == 0, (f"base image {base} is not here and cannot be pulled ({why}): "
                                       "scripts/compose_test.sh builds one with debootstrap")
     return base
 

@@ -14,7 +14,8 @@ def rec(eid: str, calls: list[tuple[bool, bool]]) -> EpisodeRecord:
     """An episode whose one step made `calls` model calls, each (structured, valid)."""
     task = load_suites(["localization"])["localization"][0]
     step = ReasoningStep(task_id="t", step=1, ste=SkillToExecute(skill="done"), valid=True,
-                         calls=tuple(ModelCall(raw_answer="{}", valid=v, structured=s, latency_s=0.1) for s, v in calls),
+                         calls=tuple(ModelCall(raw_answer="{}", valid=v, structured=s, latency_s=0.1)
+                                     for s, v in calls),
                          skill_state=SkillState.SUCCEEDED)
     return EpisodeRecord(episode_id=eid, suite="localization", backend="openai", variant="full", task=task, seed=1,
                          state="succeeded", success=True, steps=[step], verdict="ok")

@@ -33,7 +33,8 @@ def test_builtin_suites_parse_and_name_only_things_the_simulator_has():
     counter = [t for t in suites["sequential"] if "If you see an orange" in t.command]
     assert {t.target_object for t in counter} == {"orange", "banana"}
     assert all(t.placements == {t.target_object: "counter"} for t in counter)
-    assert all("orange" not in (*t.extra_objects, *(t.distractors or ())) for t in counter if t.target_object == "banana")
+    assert all("orange" not in (*t.extra_objects, *(t.distractors or ()))
+               for t in counter if t.target_object == "banana")
     commands = {t.command for ts in suites.values() for t in ts}
     # the paper's Table I commands are all there
     for c in ("Pick up the red cup and place it on the table.", "Of the two boxes, pick up the larger one.",
@@ -188,7 +189,8 @@ def test_report_states_the_configuration_names_the_rules_baseline_and_lists_ever
                    "excluded (left out of the metrics, retried by the next run of the command): "
                    "rules/full/localization/002-s13 on ?: sim/reset refused the scenario: no room",
                    "restarted (2 trials, the last one is in the metrics): rules/full/localization/001-s12",
-                   "takeoff failed: no climb", "| rules (non-VLM baseline) | 2 | 1 | 2 | 1 | 1 (0.50 per episode) | 1 |",
+                   "takeoff failed: no climb",
+                   "| rules (non-VLM baseline) | 2 | 1 | 2 | 1 | 1 (0.50 per episode) | 1 |",
                    "| AERMANI-VLM (Qwen2-VL) | 77.5 | 4.5 | 22.8 | 8.7 | 0.61 | not run here: needs a GPU/API key |"):
         assert needle in md, needle
     doc = json.loads(paths["json"].read_text())

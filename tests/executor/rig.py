@@ -30,7 +30,8 @@ class Rig:
     memory: Subscription[WorkingMemory]
 
     async def request(self, skill: str, argument: str | None = None, task_id: str = "t1") -> SkillAccept:
-        return await self.bus.query(self.keys.run_skill, SkillRequest(skill=skill, argument=argument, task_id=task_id), timeout=5.0)
+        request = SkillRequest(skill=skill, argument=argument, task_id=task_id)
+        return await self.bus.query(self.keys.run_skill, request, timeout=5.0)
 
     async def terminal(self, goal_id: str, timeout: float = 60.0) -> SkillStatus:
         return await skill_outcome(self.statuses, goal_id, timeout)
@@ -62,8 +63,8 @@ async def rig(airborne_at: float | None = 1.5, depth_m: float | None = 8.0, **se
     stop = asyncio.Event()
     statuses = bus.subscribe(keys.skill_status, maxsize=1000, overflow="drop_newest")
     memory = bus.subscribe(keys.memory, maxsize=1000)
-    tasks = [asyncio.create_task(vehicle.run()), asyncio.create_task(depth.run()), asyncio.create_task(perception.run()),
-             asyncio.create_task(executor.run(stop))]
+    tasks = [asyncio.create_task(vehicle.run()), asyncio.create_task(depth.run()),
+             asyncio.create_task(perception.run()), asyncio.create_task(executor.run(stop))]
     try:
         await wait_until(lambda: executor.state.value is not None
                          and (depth_m is None or executor.clearance.depth is not None), 20.0, what="executor inputs")

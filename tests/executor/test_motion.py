@@ -16,7 +16,8 @@ from tests.helpers import wait_until
 def test_registry_covers_every_shared_skill_name_with_settings_in_the_text():
     s = ExecutorSettings(yaw_step_deg=45, horizontal_step=0.4)
     lib = build_library(s)
-    assert set(names.MOTION_PRIMITIVES) | set(names.OPERATOR_SKILLS) | {names.GRASP, names.PLACE, names.DONE} <= set(lib)
+    expected = set(names.MOTION_PRIMITIVES) | set(names.OPERATOR_SKILLS) | {names.GRASP, names.PLACE, names.DONE}
+    assert expected <= set(lib)
     specs = {n: sk.spec() for n, sk in lib.items()}
     assert "45 deg" in specs["yaw_left"].description
     assert "0.4 m" in specs["forward"].description

@@ -203,4 +203,5 @@ def test_the_log_has_every_stored_step(rig) -> None:
             logged.setdefault(step.task_id, set()).add(step.step)
     for tid in TASKS:
         stored = {s["step"]["step"] for s in c.get(f"/tasks/{tid}").json()["reasoning_steps"]}
-        assert stored <= logged.get(tid, set()), f"task {tid}: steps stored but not logged: {stored - logged.get(tid, set())}"
+        missing = stored - logged.get(tid, set())
+        assert not missing, f"task {tid}: steps stored but not logged: {missing}"

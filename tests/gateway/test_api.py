@@ -140,7 +140,8 @@ PROTECTED = [("POST", "/tasks", {"command": "pick up the cup"}), ("GET", "/tasks
 
 
 @pytest.mark.parametrize(("method", "url", "body"), PROTECTED)
-@pytest.mark.parametrize("auth", [None, "Bearer wrong-token", f"Basic {TOKEN}", f"Bearer {TOKEN}x", "Bearer é".encode("latin-1")])
+@pytest.mark.parametrize("auth", [None, "Bearer wrong-token", f"Basic {TOKEN}", f"Bearer {TOKEN}x",
+                                  "Bearer é".encode("latin-1")])
 def test_protected_routes_need_the_token(gw, method: str, url: str, body: dict | None,
                                         auth: str | bytes | None) -> None:
     headers = {"Authorization": auth} if auth else {}

@@ -152,7 +152,8 @@ def test_gateway_process_serves_https_with_the_deployment_ca(tmp_path) -> None:
     router = open_router(router_port)
     env = {k: v for k, v in os.environ.items() if not k.startswith("AERMANI_")}
     env.update(AERMANI_GATEWAY_PORT=str(port), AERMANI_GATEWAY_TOKEN=TOKEN, PYTHONPATH=str(ROOT),
-               AERMANI_GATEWAY_DB_PATH=str(tmp_path / "gw.sqlite3"), AERMANI_ZENOH_CONNECT=f"tcp/127.0.0.1:{router_port}",
+               AERMANI_GATEWAY_DB_PATH=str(tmp_path / "gw.sqlite3"),
+               AERMANI_ZENOH_CONNECT=f"tcp/127.0.0.1:{router_port}",
                AERMANI_GATEWAY_TLS_CERTFILE=str(tmp_path / "certs" / "ground.pem"),
                AERMANI_GATEWAY_TLS_KEYFILE=str(tmp_path / "certs" / "ground.key"))
     log = tmp_path / "gateway.log"

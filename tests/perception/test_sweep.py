@@ -1,8 +1,9 @@
 """Issue 4's accuracy sweep: 20 random sim layouts, every object and surface, both segmenters.
 
 The pipeline runs in-process on frames the simulator's own camera produces (MuJoCo rendering with the
-realistic stereo-depth and exposure model, same JPEG as the sim process publishes), so 20 layouts take a minute instead of twenty; test_service.py runs the
-real service process against the real sim process for a sample.
+realistic stereo-depth and exposure model, same JPEG as the sim process publishes), so 20 layouts take a
+minute instead of twenty; test_service.py runs the real service process against the real sim process for a
+sample.
 
 Comparison with ground truth (the sim's world model):
 - objects: horizontal distance of the estimated centre to the true box centre <= 4 cm, and |top_z - true
@@ -65,6 +66,39 @@ def placement_ok(est, surface, world) -> bool:
                for o in world.objects if o.support == surface.name)
 
 
+def judge_object(c: Counter, failures: list[str], what: str, cls: str, est, e) -> None:
+    """Count one object query's outcome by how the object appears (`cls`) and note what went wrong."""
+    c[f"object_{cls}"] += 1
+    if cls == "in_view":
+        if not est.found:
+            c["object_miss"] += 1
+            failures.append(f"{what}: {est.reason} {est.message}")
+        elif not object_ok(est, e):
+            c["object_wrong"] += 1
+            failures.append(f"{what}: off {est.pose.position} vs {e.center}")
+        else:
+            c["object_ok"] += 1
+    elif cls == "absent" and est.found:
+        c["object_false"] += 1
+        failures.append(f"{what}: found but not in the image")
+    elif cls == "absent":
+        c["absent_ok"] += 1
+
+
+def judge_placement(c: Counter, failures: list[str], what: str, aimed: bool, est, s, world) -> None:
+    """Count one placement query's outcome (`aimed`: the camera looks at this surface, else it is out of view)."""
+    if est.found and not placement_ok(est, s, world):
+        c["place_wrong"] += 1
+        failures.append(f"{what}: spot {est.pose.position} not free/on it")
+    elif est.found:
+        c["place_ok"] += 1
+    elif aimed:
+        c["place_miss"] += 1
+        failures.append(f"{what}: {est.reason} {est.message}")
+    if not aimed and est.found:
+        c["place_false"] += 1
+
+
 @pytest.mark.timeout(1500)
 def test_twenty_layouts_sim_and_color() -> None:
     seg = {k: Perception(make_segmenter(PerceptionSettings(segmenter=k)), PerceptionSettings(segmenter=k))
@@ -83,22 +117,7 @@ def test_twenty_layouts_sim_and_color() -> None:
                     if kind == "color" and e.name not in COLOR_SET:
                         continue
                     est = p.localize_object(view.frame, LocalizeRequest(query=e.name), q.parse(e.name))
-                    c = st[kind]
-                    c[f"object_{cls}"] += 1
-                    if cls == "in_view":
-                        if not est.found:
-                            c["object_miss"] += 1
-                            failures.append(f"{kind} seed {seed} {e.name}: {est.reason} {est.message}")
-                        elif not object_ok(est, e):
-                            c["object_wrong"] += 1
-                            failures.append(f"{kind} seed {seed} {e.name}: off {est.pose.position} vs {e.center}")
-                        else:
-                            c["object_ok"] += 1
-                    elif cls == "absent" and est.found:
-                        c["object_false"] += 1
-                        failures.append(f"{kind} seed {seed} {e.name}: found but not in the image")
-                    elif cls == "absent":
-                        c["absent_ok"] += 1
+                    judge_object(st[kind], failures, f"{kind} seed {seed} {e.name}", cls, est, e)
             # Names the layout does not have at all must be not_visible, never another object.
             for name in COLOR_SET:
                 if name not in present:
@@ -116,21 +135,10 @@ def test_twenty_layouts_sim_and_color() -> None:
                 # The aimed-at surface is judged fully; the others only when they are out of the image.
                 if s is not surface and (view.instance == s.id).any():
                     continue
-                cls = "in_view" if s is surface else "absent"
                 for kind, p in seg.items():
                     est = p.localize_placement(view.frame, LocalizeRequest(query=s.name, object_size=HELD),
                                                q.parse(s.name))
-                    c = st[kind]
-                    if est.found and not placement_ok(est, s, world):
-                        c["place_wrong"] += 1
-                        failures.append(f"{kind} seed {seed} {s.name}: spot {est.pose.position} not free/on it")
-                    elif est.found:
-                        c["place_ok"] += 1
-                    elif s is surface:
-                        c["place_miss"] += 1
-                        failures.append(f"{kind} seed {seed} {s.name}: {est.reason} {est.message}")
-                    if cls == "absent" and est.found:
-                        c["place_false"] += 1
+                    judge_placement(st[kind], failures, f"{kind} seed {seed} {s.name}", s is surface, est, s, world)
     for kind, c in st.items():
         print(kind, dict(c))
     print("\n".join(failures[:40]))

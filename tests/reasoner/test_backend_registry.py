@@ -68,7 +68,8 @@ def test_cli_lists_a_backend_from_a_module_setting() -> None:
 
 
 @pytest.mark.integration
-async def test_reasoner_process_runs_a_task_on_the_registered_backend_and_names_a_missing_key(tmp_path, monkeypatch) -> None:
+async def test_reasoner_process_runs_a_task_on_the_registered_backend_and_names_a_missing_key(
+        tmp_path, monkeypatch) -> None:
     monkeypatch.delenv("OPENAI_API_KEY", raising=False)
     monkeypatch.delenv("AERMANI_REASONER_API_KEY", raising=False)
     keys = Keys("am1")

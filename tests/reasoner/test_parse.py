@@ -94,7 +94,8 @@ def test_react_thought_then_json() -> None:
 @pytest.mark.parametrize(("raw", "skill", "arg"), [("yaw_left", "yaw_left", None),
                                                    ("obj_localization(red cup)", "obj_localization", "red cup"),
                                                    ("I would choose Yaw Right.", "yaw_right", None),
-                                                   ("placement_localization: table", "placement_localization", "table")])
+                                                   ("placement_localization: table", "placement_localization",
+                                                    "table")])
 def test_unstructured_bare_names(raw: str, skill: str, arg: str | None) -> None:
     p = parse_answer(raw, "unstructured", LIB)
     assert (p.ste.skill, p.ste.argument) == (skill, arg)
@@ -201,7 +202,8 @@ _PIECES = st.sampled_from(["{", "}", "[", "]", '"', "'", "\\", ":", ",", "\n", "
                            "```json\n", '"ste"', '"skill"', '"drt"', "yaw_left", "grasp", "obj_localization",
                            " so I will ", " would fail", "null", "1", "true", "(red cup)"])
 _JSONISH = st.recursive(st.none() | st.booleans() | st.integers() | st.text(max_size=8),
-                        lambda kids: st.lists(kids, max_size=4) | st.dictionaries(st.text(max_size=6), kids, max_size=4),
+                        lambda kids: (st.lists(kids, max_size=4)
+                                      | st.dictionaries(st.text(max_size=6), kids, max_size=4)),
                         max_leaves=40)
 
 

@@ -334,9 +334,10 @@ def test_out_of_reach_turns_toward_then_flies_closer_then_retries() -> None:
 
     refused = PastStep("place", None, "rejected", "the placement spot on the table is 4.28 m away (reach 3.00 m): "
                                                   "move closer")
-    base = {"command": "pick up the red cup and place it on the table", "variant": "full", "skills": [], "held": "red cup",
-                "known_placements": ["table"], "positions": {"table": (0.0, 4.0)}}
-    steps = [PastStep("grasp", "red cup", "succeeded"), PastStep("placement_localization", "table", "succeeded"), refused]
+    base = {"command": "pick up the red cup and place it on the table", "variant": "full", "skills": [],
+            "held": "red cup", "known_placements": ["table"], "positions": {"table": (0.0, 4.0)}}
+    steps = [PastStep("grasp", "red cup", "succeeded"), PastStep("placement_localization", "table", "succeeded"),
+             refused]
     policy = RulesPolicy()
     assert policy.decide(PolicyContext(**base, steps=steps, pose=(0.0, 0.0, 0.0)))[0] == "yaw_left"
     assert policy.decide(PolicyContext(**base, steps=steps, pose=(0.0, 0.0, 1.57)))[0] == "forward"

@@ -54,6 +54,8 @@ def folder_frames(folder: Path) -> list[tuple[Path, Path | None]]:
 
 @register
 class FileSource(CameraSource):
+    """Camera source that plays a video file or a folder of images (colour only)."""
+
     type = "file"
     retry_open = False
 

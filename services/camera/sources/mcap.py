@@ -30,6 +30,8 @@ def _vehicles_with_color(path: Path) -> list[str]:
 
 @register
 class McapSource(CameraSource):
+    """Camera source that replays the camera frames recorded in an aermani MCAP log."""
+
     type = "mcap"
     retry_open = False
 

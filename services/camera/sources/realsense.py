@@ -16,6 +16,8 @@ INSTALL = ("the realsense source needs the `pyrealsense2` package: `pip install 
 
 @register
 class RealSenseSource(CameraSource):
+    """Camera source for an Intel RealSense depth camera (colour aligned with depth) through pyrealsense2."""
+
     type = "realsense"
     paced = True  # wait_for_frames blocks until the device delivers
     sdk = "pyrealsense2"

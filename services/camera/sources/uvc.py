@@ -13,6 +13,8 @@ from shared.errors import CameraError
 
 @register
 class UvcSource(CameraSource):
+    """Camera source for a USB (UVC) webcam through OpenCV's VideoCapture; colour only, no depth."""
+
     type = "uvc"
     paced = True  # VideoCapture.read waits for the device's next frame
 

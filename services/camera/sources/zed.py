@@ -18,6 +18,8 @@ RESOLUTIONS = {(672, 376): "VGA", (1280, 720): "HD720", (1920, 1080): "HD1080", 
 
 @register
 class ZedSource(CameraSource):
+    """Camera source for a Stereolabs ZED stereo camera (colour and depth) through the ZED SDK."""
+
     type = "zed"
     paced = True  # grab() waits for the next frame
     sdk = "pyzed.sl"

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 from services.executor.context import SkillContext
 from services.executor.envelope import airborne
 from services.executor.registry import Category, Skill, SkillResult, register
@@ -22,7 +24,7 @@ class Done(Skill):
     """The policy declares the task complete."""
 
     name = names.DONE
-    category: Category = "control"
+    category: ClassVar[Category] = "control"
     description = "Declare the task complete; the episode ends."
     moves = False
     needs_airborne = False
@@ -35,7 +37,7 @@ class Done(Skill):
 class _Operator(Skill):
     """Skills the operator (or the loop itself) runs; never offered to the model."""
 
-    category: Category = "operator"
+    category: ClassVar[Category] = "operator"
     policy_visible = False
     needs_offboard = False
 

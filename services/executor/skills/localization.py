@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from abc import abstractmethod
+from typing import ClassVar
 
 from services.executor.context import SkillContext, SkillFailed
 from services.executor.envelope import outside_geofence
@@ -18,7 +19,7 @@ from shared.messages import ObjectEstimate, PlacementEstimate
 class _Localization(Skill):
     """Perception routines: ask perception, store the estimate; they never move the vehicle."""
 
-    category: Category = "perception"
+    category: ClassVar[Category] = "perception"
     argument_required = True
     moves = False
     needs_airborne = False
@@ -47,6 +48,8 @@ class _Localization(Skill):
 
 @register
 class ObjLocalization(_Localization):
+    """Skill obj_localization: estimate the queried object's 3D pose and store it in working memory."""
+
     name = names.OBJ_LOCALIZATION
     description = ("Estimate the 3D pose of the queried object (open-vocabulary segmentation fused with depth) "
                    "and store it in working memory. Fails when the object is not in view.")
@@ -71,6 +74,8 @@ class ObjLocalization(_Localization):
 
 @register
 class PlacementLocalization(_Localization):
+    """Skill placement_localization: find a placement pose on the queried surface and store it in memory."""
+
     name = names.PLACEMENT_LOCALIZATION
     description = ("Find the queried support surface in the point cloud and compute a collision-free placement "
                    "pose with a vertical offset for the held object; store it in working memory.")

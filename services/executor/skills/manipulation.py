@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+from typing import ClassVar
 
 from services.executor.context import SkillContext, SkillFailed
 from services.executor.envelope import geofence_problem, wrap
@@ -48,7 +49,7 @@ def grasp_yaw(size: Vec3 | None, est_yaw: float, current_yaw: float) -> float:
 
 
 class _Manipulation(Skill):
-    category: Category = "manipulation"
+    category: ClassVar[Category] = "manipulation"
 
     def view_height(self, target_z: float) -> float:
         """Body altitude at the standoff that puts a target at `target_z` near the image centre."""
@@ -122,6 +123,8 @@ def _top(o: MemoryObject | ObjectEstimate) -> float:
 
 @register
 class Grasp(_Manipulation):
+    """Skill grasp: approach, re-localize, descend on the localized object, close the gripper and verify the hold."""
+
     name = names.GRASP
     description = ("Pick up the localized object: approach a standoff {s.standoff_distance:g} m from it facing it, "
                    "re-localize with yaw alignment, move above it, descend, close the gripper, verify it is held, "
@@ -262,6 +265,8 @@ class Grasp(_Manipulation):
 
 @register
 class Place(_Manipulation):
+    """Skill place: descend to the localized placement spot, release the held object and verify it rests there."""
+
     name = names.PLACE
     description = ("Place the held object at the localized placement spot: approach above it, controlled descent "
                    "until the object's bottom is {s.place_vertical_offset:g} m above the surface, open the gripper, "

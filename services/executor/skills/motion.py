@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import ClassVar
 
 from services.executor.context import SkillContext
 from services.executor.envelope import altitude_problem, geofence_problem, wrap
@@ -21,7 +22,7 @@ from shared.messages import (
 class _Step(Skill):
     """A fixed body-frame step: translation (fx, fy, fz) times the step size, or a yaw turn."""
 
-    category: Category = "motion"
+    category: ClassVar[Category] = "motion"
     body: tuple[float, float, float] = (0.0, 0.0, 0.0)
     turn: float = 0.0  # +1 left (counter-clockwise), -1 right
 

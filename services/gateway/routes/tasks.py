@@ -165,12 +165,13 @@ def _now() -> int:
     return time.time_ns()
 
 
-SSE_DOC = {200: {"description": "Server-Sent Events. Each event has `id` (increasing per task; send it back "
-                                "as Last-Event-ID to resume), `event` (step, skill_status, task_status) and "
-                                "`data` (JSON: the ReasoningStep, SkillStatus or TaskStatus). The stream ends "
-                                "after the terminal task_status.",
-                 "content": {"text/event-stream": {"schema": {"type": "string"}, "example":
-                             'id: 7\nevent: step\ndata: {"task_id": "task-1a2b3c4d5e6f", "step": 1, ...}\n\n'}}}}
+SSE_DOC: dict[int | str, dict[str, Any]] = {
+    200: {"description": "Server-Sent Events. Each event has `id` (increasing per task; send it back "
+                          "as Last-Event-ID to resume), `event` (step, skill_status, task_status) and "
+                          "`data` (JSON: the ReasoningStep, SkillStatus or TaskStatus). The stream ends "
+                          "after the terminal task_status.",
+          "content": {"text/event-stream": {"schema": {"type": "string"}, "example":
+                      'id: 7\nevent: step\ndata: {"task_id": "task-1a2b3c4d5e6f", "step": 1, ...}\n\n'}}}}
 
 
 @router.get("/{task_id}/events", dependencies=[Authorized], summary="Follow a task (Server-Sent Events)",

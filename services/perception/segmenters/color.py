@@ -24,6 +24,8 @@ from services.perception.segmenters.base import Found, Segment, Segmenter, regis
 
 @dataclass(frozen=True)
 class ColorClass:
+    """One object class of the color segmenter: its albedo in HSV, extent, category and tolerances."""
+
     name: str
     color: str
     hsv: tuple[int, int, int]

@@ -56,7 +56,8 @@ class Sam3Segmenter(Segmenter):
             self.processor = transformers.Sam3Processor.from_pretrained(str(local) if local.is_dir() else src, **kwargs)
             self.model = transformers.Sam3Model.from_pretrained(str(local) if local.is_dir() else src, **kwargs)
         except (OSError, ValueError) as exc:
-            raise PerceptionError(f"SAM3 weights not found at {src!r} ({type(exc).__name__}: {exc}); {INSTALL}") from exc
+            raise PerceptionError(
+                f"SAM3 weights not found at {src!r} ({type(exc).__name__}: {exc}); {INSTALL}") from exc
         dev = self.settings.sam3_device
         self.device = ("cuda" if torch.cuda.is_available() else "cpu") if dev == "auto" else dev
         self.model.to(self.device).eval()

@@ -2,10 +2,18 @@
 
 from __future__ import annotations
 
+from functools import partial
+
 import numpy as np
 
 from services.perception.frames import Frame
 from services.perception.segmenters.base import Segment, Segmenter, register
+from shared.messages import SimLabel
+
+
+def _instance_pixels(flat: np.ndarray, inst: int) -> np.ndarray:
+    """Flat indices of the pixels of instance `inst` (computed only when a segment's pixels are asked for)."""
+    return np.flatnonzero(flat == inst)
 
 
 @register
@@ -16,7 +24,7 @@ class SimSegmenter(Segmenter):
     type = "sim"
     needs_segmentation = True
 
-    def _labels(self, frame: Frame | None) -> dict[int, object]:
+    def _labels(self, frame: Frame | None) -> dict[int, SimLabel]:
         labels = getattr(frame, "labels", None) if frame is not None else None
         return {lab.id: lab for lab in getattr(labels, "labels", ())}
 
@@ -39,5 +47,5 @@ class SimSegmenter(Segmenter):
             size = lab.size
             volume = float(size.x * size.y * size.z) if size is not None else 0.0
             out.append(Segment(int(inst), lab.name, lab.category, lab.color, 1.0, volume, int(counts[inst]),
-                               _compute=lambda i=int(inst): np.flatnonzero(flat == i)))
+                               _compute=partial(_instance_pixels, flat, int(inst))))
         return out

@@ -17,6 +17,8 @@ from services.reasoner.backends.base import ChatBackend, ModelReply, ModelReques
 
 @register
 class AnthropicBackend(ChatBackend):
+    """VLM backend for Claude through the Anthropic Messages API, with prompt caching of the constant prefix."""
+
     kind = "anthropic"
     summary = "Claude through the Anthropic Messages API; MODEL, BASE_URL, API_KEY or ANTHROPIC_API_KEY"
     default_model = "claude-sonnet-4-5"
@@ -40,8 +42,9 @@ class AnthropicBackend(ChatBackend):
             # Recent Claude models fix sampling; a non-zero setting still reaches endpoints that accept it.
             kw["extra_body"] = {"temperature": self.temperature}
         with self.sdk_errors(anthropic, schema):
+            # The messages are plain dicts in the wire format; the SDK types them as TypedDicts.
             resp = await self.client.messages.create(model=self.model, max_tokens=self.max_tokens,
-                                                     messages=self.messages(request), **kw)
+                                                     messages=self.messages(request), **kw)  # type: ignore[arg-type]
         latency = time.perf_counter() - t0
         text = "".join(getattr(b, "text", "") for b in resp.content)
         u = resp.usage

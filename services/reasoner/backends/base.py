@@ -32,6 +32,8 @@ class Seen:
 
 @dataclass
 class PastStep:
+    """One earlier step of the task as the policy sees it: skill, argument, outcome state and message."""
+
     skill: str
     argument: str | None
     state: str
@@ -59,6 +61,8 @@ class PolicyContext:
 
 @dataclass
 class ModelRequest:
+    """What a backend is asked for one step: the compiled prompt, the policy context and re-prompt feedback."""
+
     prompt: CompiledPrompt
     context: PolicyContext
     feedback: list[tuple[str, str]] = field(default_factory=list)
@@ -67,6 +71,8 @@ class ModelRequest:
 
 @dataclass
 class ModelReply:
+    """A backend's answer to one request: the raw text, latency, token counts and whether it was structured."""
+
     text: str
     latency_s: float
     tokens_in: int | None = None

@@ -26,6 +26,8 @@ def response_format(schema: dict) -> dict:
 
 @register
 class OpenAIBackend(ChatBackend):
+    """VLM backend for any OpenAI-compatible chat-completions endpoint (GPT-4o, Gemini, vLLM, Ollama, ...)."""
+
     kind = "openai"
     summary = ("any OpenAI-compatible chat-completions endpoint (GPT-4o, Gemini, vLLM, Ollama, llama.cpp); "
                "MODEL, BASE_URL, API_KEY or OPENAI_API_KEY")
@@ -41,7 +43,8 @@ class OpenAIBackend(ChatBackend):
         t0 = time.perf_counter()
         extra = {"response_format": response_format(schema)} if schema is not None else {}
         with self.sdk_errors(openai, schema):
-            resp = await self.client.chat.completions.create(
+            # The messages are plain dicts in the wire format; the SDK types them as TypedDicts.
+            resp = await self.client.chat.completions.create(  # type: ignore[call-overload]
                 model=self.model, messages=self.messages(request), max_tokens=self.max_tokens,
                 temperature=self.temperature, **extra)
         latency = time.perf_counter() - t0

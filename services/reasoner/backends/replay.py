@@ -19,10 +19,14 @@ from shared.errors import ConfigError, ModelError
 
 
 class ReplaySource(Protocol):
+    """Where a replay backend gets its recorded answers from, in order."""
+
     def answers(self) -> Iterator[str]: ...
 
 
 class JsonlReplaySource:
+    """Replay answers read from a JSONL file of recorded steps, {"raw": ...} objects or strings."""
+
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
         if not self.path.is_file():
@@ -49,6 +53,8 @@ class JsonlReplaySource:
 
 
 class ListReplaySource:
+    """Replay answers from an in-memory list (for tests and scripted runs)."""
+
     def __init__(self, answers: list[str]) -> None:
         self._answers = list(answers)
 
@@ -58,6 +64,8 @@ class ListReplaySource:
 
 @register
 class ReplayBackend(Backend):
+    """Backend that returns recorded answers one per call instead of querying a model."""
+
     kind = "replay"
     summary = "answers from a JSONL of recorded ReasoningSteps, {\"raw\": ...} objects or strings; REPLAY_PATH"
     name = "replay"

@@ -55,7 +55,8 @@ SEEN_FOV_HALF_DEG = 30  # a remembered thing within this of the heading is in vi
 SCAN_LIMIT = 8  # consecutive yaw steps (one full turn at 45 deg) before trying something else
 SCAN_TURNS = 7  # yaw steps of a scan at one viewpoint: 8 headings 45 deg apart, the whole circle
 APPROACH_RADIUS = 1.5  # "approach the counter" ends within this horizontal distance of what was seen of it
-APPROACH_FACING_DEG = 30  # turn first when further off the heading than this (> half the 45 deg yaw step, or it oscillates)
+# Turn first when further off the heading than this (> half the 45 deg yaw step, or it oscillates).
+APPROACH_FACING_DEG = 30
 APPROACH_LIMIT = 12  # motion steps an "approach" may take before the policy decides from where it is
 SURFACE_RETRY_RADIUS = 2.0  # after a failed placement_localization, fly this close to the surface first
 ON_SURFACE_XY = 0.35  # a released object this close to its placement spot (and at its height) rests there
@@ -660,6 +661,8 @@ def render_answer(ctx: PolicyContext, skill: str, argument: str | None, reasonin
 
 @register
 class RulesBackend(Backend):
+    """Backend wrapping the deterministic non-VLM rules policy (reads the prompt's context, never pixels)."""
+
     kind = "rules"
     summary = "the deterministic non-VLM baseline policy (reads the prompt's context, never pixels)"
     name = "rules"
@@ -720,11 +723,11 @@ def context_from_prompt(text: str) -> PolicyContext:
     seen_m = re.search(r"^Perception sees now: (.*)\.$", history, re.M)
     if seen_m and seen_m.group(1) != "nothing recognised":
         for item in seen_m.group(1).split("; "):
-            m = _SEEN_ITEM.match(item.strip())
-            if not m:
+            seen = _SEEN_ITEM.match(item.strip())
+            if not seen:
                 continue
-            vol = float(m.group(3)) * float(m.group(4)) * float(m.group(5)) if m.group(3) else None
-            visible.append(Seen(m.group(1), m.group(2), vol, float(m.group(6)) if m.group(6) else None))
+            vol = float(seen.group(3)) * float(seen.group(4)) * float(seen.group(5)) if seen.group(3) else None
+            visible.append(Seen(seen.group(1), seen.group(2), vol, float(seen.group(6)) if seen.group(6) else None))
     objs = re.search(r"localized objects: (.*?)(?:\. |\.$|$)", history, re.M)
     places = re.search(r"placement spots: (.*?)(?:\. |\.$|$)", history, re.M)
 

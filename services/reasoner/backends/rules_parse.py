@@ -38,7 +38,8 @@ _CATEGORY_PHRASES = (
     (r"\b(?:some )?(?:food|snacks?|a bite to eat|something i can eat)\b", "snack"),
     (r"\b(?:something|anything) (?:to drink|drinkable)\b|\bbeverages?\b|\bdrinks\b", "drink"),
     (r"\b(?:a piece of fruit|some fruit|fruits)\b", "fruit"),
-    (r"\b(?:something|anything) (?:to (?:fix|repair|build) (?:things|stuff|it)( with)?|i can fix things with)\b|\btools\b",
+    (r"\b(?:something|anything) (?:to (?:fix|repair|build) (?:things|stuff|it)( with)?|i can fix things with)\b|"
+     r"\btools\b",
      "tool"),
 )
 SIZE_WORDS = {"larger": {"large", "big", "larger", "bigger", "huge"}, "smaller": {"small", "little", "smaller", "tiny"}}
@@ -95,7 +96,8 @@ _COMPOUNDS = ((r"\bkitchen counter(?:top)?\b|\bcounter ?tops?\b|\bworktops?\b", 
 # Destination prepositions: strong ones name a destination after any verb; weak ones only after a put-verb.
 _STRONG_PREP = (r"(?:over |across |back |down |up |right )?(?:onto|into|on to|in to|to|toward|towards)|on top of|"
                 r"(?:over |across )?to the top of|atop|upon|inside of|over onto|back onto|back into")
-_WEAK_PREP = r"(?:back |down |up )?(?:on|in|inside|at|next to|beside|near|by|in front of|on the top of|under|underneath)"
+_WEAK_PREP = (r"(?:back |down |up )?(?:on|in|inside|at|next to|beside|near|by|in front of|on the top of|under|"
+              r"underneath)")
 _LOCATOR_MARK = (r"(?:(?:that|which|who)\s+(?:is|are|was|were|'s|sits?|lies?|rests?|stands?|can be found|you (?:see|"
                  r"can see|saw|will find|find))\s+|that's\s+)?(?:(?:sitting|lying|resting|located|standing|placed|"
                  r"kept|found|left|seen|waiting)\s+)?")
@@ -172,13 +174,16 @@ _POLITE = (
     r"\bbe a dear and\b", r"\btry (?:to|and)\b", r"\bif you (?:can|could|would|don't mind|do not mind|please)\b",
     r"\bif possible\b", r"\bwhen you (?:get a chance|can)\b", r"\bthanks?(?: you)?(?: so much)?\b", r"\bfor me\b",
     r"\bwould be great\b", r"\bi'm asking you to\b", r"\bi am asking you to\b", r"\bmind\b", r"\bjust\b",
-    r"\bnow\b", r"\bpls\b", r"\bplz\b", r"\bthx\b", r"\bquickly\b", r"\bcarefully\b", r"\bgently\b", r"\bright away\b", r"\basap\b",
+    r"\bnow\b", r"\bpls\b", r"\bplz\b", r"\bthx\b", r"\bquickly\b", r"\bcarefully\b", r"\bgently\b",
+    r"\bright away\b", r"\basap\b",
 )
-_WANTS = (r"\b(?:i(?: would|'d|d)? (?:like|love|want|need|wish for)|i could (?:use|do with)|i will have|i'?m (?:craving|looking for)|"
+_WANTS = (r"\b(?:i(?: would|'d|d)? (?:like|love|want|need|wish for)|i could (?:use|do with)|i will have|"
+           r"i'?m (?:craving|looking for)|"
           r"i am (?:craving|looking for)|can i (?:have|get)|could i (?:have|get)|may i (?:have|get)|let me have|"
           r"give me|hand me|pass me|get me|grab me|fetch me|bring me)\b")
 _CONTRACTIONS = (("i'd", "i would"), ("i'll", "i will"), ("we'd", "we would"), ("it'd", "it would"),
-                 ("isn't", "is not"), ("don't", "do not"), ("doesn't", "does not"), ("isn't", "is not"), ("aren't", "are not"),
+                 ("isn't", "is not"), ("don't", "do not"), ("doesn't", "does not"), ("isn't", "is not"),
+                 ("aren't", "are not"),
                  ("can't", "cannot"), ("won't", "will not"), ("there's", "there is"), ("it's", "it is"),
                  ("that's", "that is"), ("what's", "what is"), ("where's", "where is"), ("i'm", "i am"),
                  ("you're", "you are"), ("you'll", "you will"), ("shouldn't", "should not"))
@@ -192,7 +197,8 @@ def normalize(command: str) -> str:
         c = c.replace(a, b)
     c = re.sub(r"\bwhich ever\b", "whichever", c)
     c = re.sub(r"\s(?:--+|—|–)\s", " ; ", c)
-    c = re.sub(r"\bi(?: would)? (?:like|want|love) (?P<x>(?:the |a |an |my )?[a-z][a-z \-]*?) (?P<p>on top of|onto|into|on|in|"
+    c = re.sub(r"\bi(?: would)? (?:like|want|love) (?P<x>(?:the |a |an |my )?[a-z][a-z \-]*?) (?P<p>on top of|"
+               r"onto|into|on|in|"
                r"inside) (?=the |a |my )", r"put \g<x> \g<p> ", c)
     words = [_FORMS.get(w, w) for w in re.findall(r"\d+\.\d+|[a-z0-9'\-]+|[^\sa-z0-9'\-]", c)
              if w not in ("really", "actually", "maybe", "perhaps", "kindly", "um", "uh")]
@@ -250,8 +256,10 @@ def _clean(np_: str) -> str | None:
 # --------------------------------------------------------------------------- special constructions
 
 _OBJ = r"((?:(?!\b(?:otherwise|else|if|then|and|but|or|not|please)\b)[a-z0-9\- ])+?)"
-_ELSE = (r"(?:[,;.]\s*|\s+)(?:and\s+|but\s+|or\s+)?(?:otherwise|or else|else|if not|failing that|if (?:there is|you see|you find|"
-         r"you spot) (?:none|nothing|no [a-z]+)|if (?:there is not|there are not)(?: (?:one|any))?|if you (?:cannot|do not|"
+_ELSE = (r"(?:[,;.]\s*|\s+)(?:and\s+|but\s+|or\s+)?(?:otherwise|or else|else|if not|failing that|if (?:there is|"
+         r"you see|you find|"
+         r"you spot) (?:none|nothing|no [a-z]+)|if (?:there is not|there are not)(?: (?:one|any))?|"
+         r"if you (?:cannot|do not|"
          r"can not|did not) (?:see|find|spot)(?: (?:one|it|any|them))?|if none|if it is not there|if not there|"
          r"in case there is none)\b,?")
 _IF_IS = (r"\b(?:if|in case|should|when|provided)\s+(?:there is\s+)?(?:a|an|the|any|some)\s+"
@@ -341,7 +349,8 @@ _EXCLUDE = (
     r"\b(?:rather than|instead of|except(?: for)?|other than|apart from|but not|as opposed to|anything but|"
     r"everything but|anything except|not including|excluding) (?:the |a |an |any )?"
     + _OBJ + r"(?=\s*(?:\band\b|\bthen\b|[,.;:!?]|$))",
-    r"\bleave (?:the |a |an |any |those |these )?" + _OBJ + r"\s+(?:alone|be|where (?:it is|they are)|untouched|in place)",
+    r"\bleave (?:the |a |an |any |those |these )?" + _OBJ + r"\s+(?:alone|be|where (?:it is|they are)|untouched|"
+    r"in place)",
 )
 _LEAVE = re.compile(r"\b(?:and |but |then )?leave (?:the |a |an |any |those |these )?(?P<np>[a-z0-9\- ]+?)"
                     r"(?=\s*(?:\band\b|\bthen\b|[,.;:!?]|$))")
@@ -368,7 +377,8 @@ def _exclusions(c: str, plan: Plan) -> str:
 def _selector(c: str, plan: Plan) -> None:
     """Size comparisons: the larger/smaller one of a group, resolved later from measured sizes."""
     words = "|".join(_LARGER + _SMALLER)
-    m = re.search(r"(?<!\ba )(?<!\bjust a )\b(" + words + r")\b(?! (?:bit|while|further|more|higher|lower|closer)\b)", c)
+    m = re.search(r"(?<!\ba )(?<!\bjust a )\b(" + words
+                  + r")\b(?! (?:bit|while|further|more|higher|lower|closer)\b)", c)
     if not m:
         return
     plan.selector = "larger" if m.group(1) in _LARGER else "smaller"
@@ -441,7 +451,8 @@ _GOTO = re.compile(r"\b(?:approach|go|fly|head|move|travel|navigate|proceed|get|
                    r"(?:to|toward|towards|up to|near|close to|next to|over to|in front of|beside)?\s*"
                    r"(?:the|a|an|that|this)\s+(?P<what>[a-z][a-z \-]*)")
 _STEP_COUNT = re.compile(r"\b(?P<n>\d+|a|an|one|two|three|four|five|six|couple(?: of)?|few)\s+(?P<unit>steps?|meters?|"
-                         r"metres?|m)\s+(?:to (?:the |your )?)?(?P<dir>forwards?|ahead|backwards?|back|left|right|up|down)\b")
+                         r"metres?|m)\s+(?:to (?:the |your )?)?(?P<dir>forwards?|ahead|backwards?|back|left|"
+                         r"right|up|down)\b")
 
 
 _NUM_WORDS = set(_NUM) - {"a", "an", "one", "single"} | {str(i) for i in range(100)}
@@ -507,7 +518,8 @@ def motions(clause: str) -> list[str]:
     for m in _TURN_BY.finditer(clause):
         text = m.group("post").replace("ninety", "90").replace("forty-five", "45").replace("a hundred and eighty",
                                                                                          "180")
-        deg = 90.0 if "quarter" in text else 180.0 if "half" in text else float(re.search(r"\d+", text).group())
+        digits = re.search(r"\d+", text)
+        deg = 90.0 if "quarter" in text else 180.0 if "half" in text else float(digits.group() if digits else 90)
         add(m, [S.YAW_LEFT] * _clip(round(deg / YAW_STEP_DEG)))
     for m in _TURN.finditer(clause):
         skill = _turn_skill(m.group("dir"))
@@ -524,10 +536,10 @@ def motions(clause: str) -> list[str]:
     for m in _BARE.finditer(clause):
         skill = _BARE_DIR[m.group("verb")]
         add(m, [skill] * _amount(m, skill, ("post",)))
-    m = _LONE_DIR.match(clause)
-    if m and not found:  # "... and forward twice": the verb was in the clause before
-        skill = _DIRS[m.group("dir")]
-        add(m, [skill] * _amount(m, skill, ("post",)))
+    lone = _LONE_DIR.match(clause)
+    if lone and not found:  # "... and forward twice": the verb was in the clause before
+        skill = _DIRS[lone.group("dir")]
+        add(lone, [skill] * _amount(lone, skill, ("post",)))
     for m in _GOTO.finditer(clause):
         what = noun_phrase(m.group("what"))
         if what and what not in _DIRS and what.split()[0] not in _DIRS:
@@ -604,7 +616,8 @@ _PLACE_CLAUSE = re.compile(r"\b(?:put|place|set|drop|deposit|leave|lay|rest|posi
 
 
 _NOT_OBJECTS = {"room", "area", "house", "kitchen", "picture", "photo", "look", "break", "nap", "seat", "off",
-                "selfie", "walk", "note", "step", "turn", "moment", "second", "minute", "while", "way", "rest", "flight",
+                "selfie", "walk", "note", "step", "turn", "moment", "second", "minute", "while", "way", "rest",
+                "flight",
                 "song", "joke", "breath", "care", "position", "altitude", "height", "hold"}
 
 
@@ -692,7 +705,8 @@ def parse_command(command: str, skills: list[str] | tuple[str, ...] = ()) -> Pla
     _selector(c, plan)
     if plan.selector:  # the phrase with the size word names the group, not a target
         plan.target = None
-    clauses = [x.strip() for x in re.split(r"[,;!?]|\.(?!\d)|\band then\b|\bthen\b|\bafter that\b|\bafterwards\b|\band\b|"
+    clauses = [x.strip() for x in re.split(r"[,;!?]|\.(?!\d)|\band then\b|\bthen\b|\bafter that\b|"
+                              r"\bafterwards\b|\band\b|"
                                          r"\bnext\b|\bfinally\b|\bfirst\b|\bbefore\b", c) if x.strip()]
     verb = _object_and_destination(c, plan)
     for clause in clauses:
@@ -703,7 +717,8 @@ def parse_command(command: str, skills: list[str] | tuple[str, ...] = ()) -> Pla
         if _is_action(clause):
             continue
         plan.motions.extend(motions(clause))
-    if verb and not (plan.target or plan.choices or plan.category or plan.selector) and re.search(r"\b(?:it|them)\b", c):
+    if verb and not (plan.target or plan.choices or plan.category or plan.selector) \
+            and re.search(r"\b(?:it|them)\b", c):
         plan.target = _antecedent(c)
     if plan.target and plan.target.endswith(" one") and plan.excluded:  # "not the red cup; the purple one"
         plan.target = f"{plan.target[:-4]} {plan.excluded[0].split()[-1]}"
