@@ -39,7 +39,7 @@ from shared.messages import Detection, MemoryObject, Vec3, VehicleState, Working
 from shared.sensors import color_message, decode_proto, stamp_to_ns
 
 PAPER_MEDIAN_RT_S = 0.92
-RECORDED = Path(__file__).resolve().parent.parent / "docs" / "eval" / "rules" / "episodes.jsonl.gz"
+RECORDED = Path(__file__).resolve().parent.parent / "docs" / "eval" / "rules-dev" / "episodes.jsonl.gz"
 _PIECE = re.compile(r"[A-Za-z]+|\d{1,3}|[^\sA-Za-z\d]+|\s+")
 IMAGE_TOKENS_GPT4O_HIGH = 765
 
