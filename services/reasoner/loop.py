@@ -177,7 +177,7 @@ class TaskRunner:
             return ended
         failed_in_row = 0
         last_skill = S.TAKEOFF
-        last_end_ns = 0
+        last_end_ns = now_ns()  # the first observation must come after the take-off (not a stale grounded state)
         while True:
             if self.steps >= self.settings.max_steps:
                 await self.world.hold(self.req.task_id, "max steps")

@@ -79,6 +79,10 @@ class BusWorld(World):
         if newer_than_ns and self.settings.frame_wait_s > 0:
             await self.frame.newer_than(newer_than_ns, self.settings.frame_wait_s)
             await self.detections.newer_than(newer_than_ns, min(0.3, self.settings.frame_wait_s))
+        if newer_than_ns:
+            # Zenoh does not order samples across keys: the state that shows the skill's effect (e.g. airborne
+            # after the take-off) may arrive after its status. The autopilot state comes at >= 20 Hz.
+            await self.state.newer_than(newer_than_ns, 1.0)
         frame = self.frame.value
         det = self.detections.value
         return Observation(image_jpeg=frame[0] if frame else None, image_stamp_ns=frame[1] if frame else 0,

@@ -52,6 +52,7 @@ def example(cls: type[m.Message], i: int = 0) -> m.Message:
         m.ResetNotice: lambda: m.ResetNotice(seed=i),
         m.ApprovalStatus: lambda: m.ApprovalStatus(skill="grasp", step=i),
         m.ApprovalDecision: lambda: m.ApprovalDecision(approval_id=f"a{i}", approved=True),
+        m.Heartbeat: lambda: m.Heartbeat(service="executor", pid=1000 + i, loop_lag_ms=0.5),
     }
     return examples[cls]()
 
