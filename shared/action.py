@@ -136,6 +136,7 @@ class ActionClient(Generic[G, A, S]):
         self._sub: Subscription[S] | None = None
         self._pump: asyncio.Task[None] | None = None
         self._watch: asyncio.Task[None] | None = None
+        self._alive: asyncio.Queue[tuple[str, bool]] | None = None
 
     async def __aenter__(self) -> ActionClient[G, A, S]:
         self.start()
@@ -149,8 +150,8 @@ class ActionClient(Generic[G, A, S]):
             self._sub = self.bus.subscribe(self.spec.status.bind(self.vehicle_id), maxsize=self.maxsize)
             self._pump = asyncio.create_task(self._route(), name=f"action.{self.spec.name}.{self.vehicle_id}")
             token = ALIVE_TOKEN.bind(self.vehicle_id, service=self.spec.goal.server)
-            events = self.bus.watch_liveliness(str(token), history=False, maxsize=16)
-            self._watch = asyncio.create_task(self._server_gone(events, str(token)),
+            self._alive = self.bus.watch_liveliness(str(token), history=False, maxsize=16)
+            self._watch = asyncio.create_task(self._server_gone(self._alive, str(token)),
                                               name=f"action.{self.spec.name}.{self.vehicle_id}.alive")
 
     async def close(self) -> None:
@@ -161,7 +162,9 @@ class ActionClient(Generic[G, A, S]):
                     await task
         if self._sub is not None:
             self._sub.close()
-        self._sub = self._pump = self._watch = None
+        if self._alive is not None:  # clients live per request in places (gateway, evaluation): no leak
+            self.bus.unwatch_liveliness(self._alive)
+        self._sub = self._pump = self._watch = self._alive = None
 
     async def _server_gone(self, events: asyncio.Queue[tuple[str, bool]], token: str) -> None:
         """Fail every running goal with ServerLost when the server's liveliness token disappears."""

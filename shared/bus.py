@@ -459,7 +459,8 @@ class Bus:
         self._closed = False
         self._lock = threading.Lock()
         self._subscriptions: list[Subscription[Any]] = []
-        self._busy_replies = 0
+        self._watches: dict[int, Any] = {}  # id(queue) -> its liveliness subscriber, for unwatch_liveliness
+        self._refused_queries = 0
         self.name = ""
         """This service's name, sent with every query so queryables can log who asked (see Caller)."""
 
@@ -587,10 +588,11 @@ class Bus:
         return sub_obj
 
     def stats(self) -> dict[str, int]:
-        """Counters over this bus's subscriptions: samples dropped (slow consumer), malformed, oversize."""
+        """Counters: samples dropped (slow consumer), malformed and oversize over this bus's subscriptions, and
+        requests its queryables refused (busy, or larger than their cap)."""
         subs = list(self._subscriptions)
         return {"dropped": sum(s.dropped for s in subs), "malformed": sum(s.malformed for s in subs),
-                "oversize": sum(s.oversize for s in subs), "busy_queries": self._busy_replies}
+                "oversize": sum(s.oversize for s in subs), "refused_queries": self._refused_queries}
 
     # ---- query / reply
 
@@ -712,7 +714,7 @@ class Bus:
         warn = RateLimitedWarning()
 
         def refuse(query: zenoh.Query, why: str) -> None:
-            self._busy_replies += 1
+            self._refused_queries += 1
             warn("refused a query on %s: %s", key, why)
             with contextlib.suppress(Exception):
                 query.reply_err(json.dumps({"error": why}).encode())
@@ -773,7 +775,12 @@ class Bus:
 
         sub = self.session.liveliness().declare_subscriber(pattern, on_sample, history=history)
         self._declared.append(sub)
+        self._watches[id(queue)] = sub
         return queue
+
+    def unwatch_liveliness(self, queue: asyncio.Queue[tuple[str, bool]]) -> None:
+        """Stop the watch that feeds `queue` (its subscriber is undeclared; nothing more is queued)."""
+        self._undeclare(self._watches.pop(id(queue), None))
 
 
 class Latest(Generic[T]):

@@ -39,6 +39,7 @@ async def test_a_killed_server_fails_the_running_goal_at_once(router: str) -> No
             print(f"server loss noticed after {time.monotonic() - killed:.2f} s")
             with pytest.raises(ServerLost):
                 await goal.next_feedback(timeout=0.1)
+        assert not bus._watches  # a closed client leaves no liveliness subscriber behind
     finally:
         if server.poll() is None:
             server.kill()

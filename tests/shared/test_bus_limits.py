@@ -10,20 +10,17 @@ import time
 import pytest
 
 from shared import messages as m
-from shared.bus import QUERY_CONCURRENCY, Bus, RateLimitedWarning
+from shared.bus import QUERY_CONCURRENCY, RateLimitedWarning
 from shared.errors import RemoteError
 from shared.keys import MESSAGE_MAX_BYTES, Query, Topic
+from tests.helpers import bus_pair
 
 pytestmark = pytest.mark.integration
 
 
-async def _pair(endpoint: str) -> tuple[Bus, Bus]:
-    return await Bus.open(connect=[endpoint]), await Bus.open(connect=[endpoint])
-
 
 async def test_oversize_samples_are_dropped_and_counted(router):
-    a, b = await _pair(router)
-    try:
+    async with bus_pair(router) as (a, b):
         capped = Topic("test/capped", m.Health, "test", "test", max_bytes=4096).bind("t1")
         default = Topic("test/default", m.Health, "test", "test").bind("t1")
         sub, sub_default = b.subscribe(capped), b.subscribe(default)
@@ -36,14 +33,10 @@ async def test_oversize_samples_are_dropped_and_counted(router):
         assert (await sub_default.recv(timeout=5)).message == "fits"
         assert sub.oversize == 1 and sub_default.oversize == 1
         assert b.stats()["oversize"] == 2
-    finally:
-        await a.close()
-        await b.close()
 
 
 async def test_hand_off_is_bounded_while_the_loop_is_busy(router):
-    a, b = await _pair(router)
-    try:
+    async with bus_pair(router) as (a, b):
         t = Topic("test/flood", m.Health, "test", "test").bind("t1")
         sub = b.subscribe(t, maxsize=20)
         await asyncio.sleep(0.3)
@@ -64,14 +57,10 @@ async def test_hand_off_is_bounded_while_the_loop_is_busy(router):
         b.publish(h, m.Health(service="s", ok=True))
         got = await hs.recv(timeout=5)
         assert got.details["bus"]["dropped"] == sub.dropped
-    finally:
-        await a.close()
-        await b.close()
 
 
 async def test_concurrent_queries_beyond_the_cap_get_busy_and_big_requests_are_refused(router):
-    a, b = await _pair(router)
-    try:
+    async with bus_pair(router) as (a, b):
         release = asyncio.Event()
 
         async def slow(req: m.SkillRequest) -> m.SkillAccept:
@@ -84,7 +73,7 @@ async def test_concurrent_queries_beyond_the_cap_get_busy_and_big_requests_are_r
         calls = [asyncio.create_task(b.query(q, m.SkillRequest(skill="x"), timeout=10))
                  for _ in range(QUERY_CONCURRENCY + 5)]
         for _ in range(100):  # every request has reached the server: the first QUERY_CONCURRENCY wait
-            if a.stats()["busy_queries"] >= 5 and sum(c.done() for c in calls) >= 5:
+            if a.stats()["refused_queries"] >= 5 and sum(c.done() for c in calls) >= 5:
                 break
             await asyncio.sleep(0.1)
         done = [c for c in calls if c.done()]
@@ -93,12 +82,9 @@ async def test_concurrent_queries_beyond_the_cap_get_busy_and_big_requests_are_r
         results = await asyncio.gather(*calls, return_exceptions=True)
         assert sum(isinstance(r, m.SkillAccept) for r in results) == QUERY_CONCURRENCY
         assert sum(isinstance(r, RemoteError) for r in results) == 5
-        assert a.stats()["busy_queries"] == 5
+        assert a.stats()["refused_queries"] == 5
         with pytest.raises(RemoteError, match="exceeds"):
             await b.query(f"{q}", b"{" + b" " * (MESSAGE_MAX_BYTES + 1) + b"}", timeout=10)
-    finally:
-        await a.close()
-        await b.close()
 
 
 def test_rate_limited_warning_holds_back_repeats(caplog):
