@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 
 class AermaniError(Exception):
     """Root of every error raised on purpose by aermani code."""
@@ -57,6 +59,10 @@ class SkillError(AermaniError):
 
 class ModelError(AermaniError):
     """A VLM backend failed (transport, timeout, refusal) after its retry budget."""
+
+    calls: tuple[Any, ...] = ()
+    """The step's model calls (`ModelCall`s) made before the failure, set by the reasoner loop so the step
+    record keeps them (IAR counts their invalid answers)."""
 
 
 class InvalidAnswer(AermaniError):

@@ -198,7 +198,7 @@ class TaskRunner:
                 await self.world.hold(self.req.task_id, "model outage")
                 rec = ReasoningStep(vehicle_id=self.settings.vehicle_id, task_id=self.req.task_id, step=self.steps,
                                     backend=self.backend.name, variant=self.variant, skill_message=str(exc),
-                                    calls=getattr(exc, "calls", ()))
+                                    calls=exc.calls)
                 self._publish(rec)
                 return self.status(TaskState.FAILED, f"model unavailable, vehicle held: {exc}")
             rec, parsed = result.record, result.parsed
@@ -330,7 +330,7 @@ class TaskRunner:
                 reply = await self.backend.complete(ModelRequest(prompt, ctx, list(feedback)))
             except ModelError as exc:
                 # The answers of this step so far (invalid ones) stay in the step record: IAR counts them.
-                exc.calls = tuple(calls)  # type: ignore[attr-defined]
+                exc.calls = tuple(calls)
                 raise
             model_time += time.perf_counter() - t0
             self.calls += 1
