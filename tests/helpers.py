@@ -5,7 +5,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import AsyncIterator, Callable, Iterator
 from pathlib import Path
 
 from shared.bus import Bus, Subscription
@@ -42,6 +42,20 @@ def run_stack(services: list[str], tmp_path: Path, *, vehicle_id: str = "am1", e
         raise
     finally:
         stack.stop()
+
+
+@contextlib.asynccontextmanager
+async def bus_pair(endpoint: str) -> AsyncIterator[tuple[Bus, Bus]]:
+    """Two client Buses on one router (a publisher/server and a subscriber/client), closed at exit."""
+    a = await Bus.open(connect=[endpoint])
+    try:
+        b = await Bus.open(connect=[endpoint])
+        try:
+            yield a, b
+        finally:
+            await b.close()
+    finally:
+        await a.close()
 
 
 @contextlib.asynccontextmanager

@@ -16,7 +16,7 @@ from shared import messages as m
 from shared.bus import Bus, zenoh_config
 from shared.errors import NoResponder, QueryTimeout, RemoteError
 from shared.keys import Protobuf, Query, Topic
-from tests.helpers import wait_until
+from tests.helpers import bus_pair, wait_until
 from tests.shared.samples import sample_messages
 
 
@@ -25,9 +25,6 @@ def topic(name: str, t: object, reliable: bool = True) -> object:
     return Topic(f"test/{name}", t, "test", "test", reliable=reliable).bind("t1")
 
 
-async def _pair(endpoint: str) -> tuple[Bus, Bus]:
-    return await Bus.open(connect=[endpoint]), await Bus.open(connect=[endpoint])
-
 
 def test_config_turns_multicast_off():
     cfg = zenoh_config(mode="client", connect=["tcp/127.0.0.1:1"])
@@ -35,8 +32,7 @@ def test_config_turns_multicast_off():
 
 
 async def test_every_message_type_round_trips(router):
-    a, b = await _pair(router)
-    try:
+    async with bus_pair(router) as (a, b):
         samples = sample_messages()
         topics = {i: topic(f"rt/{i}", type(s)) for i, s in enumerate(samples)}
         subs = {i: b.subscribe(topics[i]) for i, s in enumerate(samples)}
@@ -47,14 +43,10 @@ async def test_every_message_type_round_trips(router):
             rec = await subs[i].recv_sample(timeout=5)
             assert rec.value == s
             assert rec.encoding.endswith(s.full_schema_name())
-    finally:
-        await a.close()
-        await b.close()
 
 
 async def test_union_and_raw_bytes_subscriptions(router):
-    a, b = await _pair(router)
-    try:
+    async with bus_pair(router) as (a, b):
         cmd_topic = topic("cmd", m.AutopilotCommand)
         raw_topic = topic("raw", Protobuf("foxglove.RawImage"))
         cmds = b.subscribe(cmd_topic)
@@ -68,14 +60,10 @@ async def test_union_and_raw_bytes_subscriptions(router):
         assert isinstance(got, m.TakeoffCommand) and got.altitude == 2.0
         rec = await raw.recv_sample(timeout=5)
         assert rec.value == b"\x00\x01binary" and "foxglove.RawImage" in rec.encoding
-    finally:
-        await a.close()
-        await b.close()
 
 
 async def test_malformed_payload_is_dropped_and_subscriber_keeps_working(router):
-    a, b = await _pair(router)
-    try:
+    async with bus_pair(router) as (a, b):
         state = topic("state", m.VehicleState)
         sub = b.subscribe(state)
         await asyncio.sleep(0.3)
@@ -85,14 +73,10 @@ async def test_malformed_payload_is_dropped_and_subscriber_keeps_working(router)
         got = await sub.recv(timeout=5)
         assert got.armed is True
         assert sub.malformed == 2
-    finally:
-        await a.close()
-        await b.close()
 
 
 async def test_query_reply_errors_and_timeout(router):
-    a, b = await _pair(router)
-    try:
+    async with bus_pair(router) as (a, b):
         async def accept(req: m.SkillRequest) -> m.SkillAccept:
             if req.skill == "slow":
                 await asyncio.sleep(3)
@@ -123,14 +107,10 @@ async def test_query_reply_errors_and_timeout(router):
         # The queryable survives all of that.
         ok = await b.query(q, m.SkillRequest(skill="left"), timeout=5)
         assert ok.goal_id == "g-left"
-    finally:
-        await a.close()
-        await b.close()
 
 
 async def test_burst_of_1000_arrives_in_order_or_is_counted(router):
-    a, b = await _pair(router)
-    try:
+    async with bus_pair(router) as (a, b):
         burst = topic("burst", m.Health)
         small = b.subscribe(burst, maxsize=100)  # will overflow: drop_oldest
         big = b.subscribe(burst, maxsize=2000)  # will not
@@ -147,14 +127,10 @@ async def test_burst_of_1000_arrives_in_order_or_is_counted(router):
         assert small.received == 1000
         assert len(kept) + small.dropped == 1000
         assert kept == sorted(kept) and kept[-1] == 999  # newest kept, order preserved
-    finally:
-        await a.close()
-        await b.close()
 
 
 async def test_drop_newest_policy_keeps_the_first(router):
-    a, b = await _pair(router)
-    try:
+    async with bus_pair(router) as (a, b):
         dn = topic("dn", m.Health)
         sub = b.subscribe(dn, maxsize=10, overflow="drop_newest")
         await asyncio.sleep(0.3)
@@ -163,9 +139,6 @@ async def test_drop_newest_policy_keeps_the_first(router):
         await wait_until(lambda: sub.received == 50, 10)
         kept = [(await sub.recv(timeout=1)).details["i"] for _ in range(sub.qsize())]
         assert kept == list(range(10)) and sub.dropped == 40
-    finally:
-        await a.close()
-        await b.close()
 
 
 OWNER = textwrap.dedent("""
