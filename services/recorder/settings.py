@@ -26,6 +26,10 @@ class RecorderSettings(ServiceSettings):
     """MCAP chunk size in bytes. A crash loses at most the chunk in progress, so keep it modest."""
     compression: Literal["zstd", "lz4", "none"] = "zstd"
     """Chunk compression."""
+    flush_key_expr: str = "aermani/v1/*/reasoner/**"
+    """After a sample on these keys (reasoning steps, task statuses, approvals: small and rare), finish the chunk
+    in progress at once, so a SIGKILL or a full disk never takes a task event the writer already had with the
+    chunk (frames still fill big chunks). Empty: only full chunks are written."""
     rotate_mb: float = Field(2048.0, ge=0)
     """Start a new file when the current one reaches this size in MiB (0: never by size)."""
     rotate_s: float = Field(0.0, ge=0)

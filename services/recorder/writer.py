@@ -24,6 +24,7 @@ from services.recorder.mcaplog import (
     ChannelTable,
     channel_spec,
     compression_type,
+    key_matches,
     publish_time_ns,
     vehicle_of,
 )
@@ -94,6 +95,7 @@ class RecordWriter:
         self._fox: Any = None
         self._fox_server: Any = None
         self._fox_channels: dict[tuple[str, str], Any] = {}
+        self._flush_keys: dict[str, bool] = {}
         # Figures for health (read from any thread; ints are updated atomically enough for reporting).
         self.submitted = 0
         self.written = 0
@@ -281,6 +283,8 @@ class RecordWriter:
             self.written += 1
             self.file_messages += 1
             self._pending += 1
+            if self._flushes(key):
+                self._writer.flush()  # a task event: its chunk goes to the disk now
             after = self._file.tell()
             if after != before:  # a chunk was finished: everything added so far is on disk
                 self.durable += self._pending
@@ -290,6 +294,13 @@ class RecordWriter:
         except Exception as exc:
             self.lost_on_error += 1  # this message went down with its chunk
             self._fail(exc, f"cannot write to {self.path}")
+
+    def _flushes(self, key: str) -> bool:
+        hit = self._flush_keys.get(key)
+        if hit is None:
+            expr = self.settings.flush_key_expr
+            hit = self._flush_keys[key] = bool(expr) and key_matches(expr, key)
+        return hit
 
     def _maybe_rotate(self) -> None:
         if self._writer is None:

@@ -113,6 +113,27 @@ def test_disk_full_is_reported_and_the_writer_recovers(tmp_path: Path) -> None:
     assert w.written + w.lost_on_error == 106
 
 
+def test_a_task_event_is_on_disk_at_once_not_with_its_chunk(tmp_path: Path) -> None:
+    """A reasoning step finishes the chunk in progress: a SIGKILL right after it (the file as it is on disk
+    while the writer still runs) keeps the step, though the chunk size is far from reached; a state sample
+    after it waits for its chunk as before."""
+    w = RecordWriter(RecorderSettings(out_dir=str(tmp_path / "rec"), chunk_size=1 << 20))
+    w.start()
+    submit_model(w, K.autopilot_state, VehicleState(message="before"))
+    submit_model(w, K.reasoning_step, step_message("t", 1, "forward"))
+    submit_model(w, K.autopilot_state, VehicleState(message="after"))
+    wait_for(lambda: w.written == 3)
+    [path] = sorted((tmp_path / "rec").glob("*.mcap"))
+    killed = tmp_path / "killed.mcap"
+    killed.write_bytes(path.read_bytes())  # what a SIGKILL now would leave
+    w.stop()
+    assert w.durable == 3
+    keys = [s.key for s in mcaplog.iter_samples(killed)]
+    assert keys == [K.autopilot_state, K.reasoning_step], keys
+    res = mcaplog.recover(killed, tmp_path / "fixed.mcap")
+    assert res.messages == 2 and not res.complete
+
+
 def test_salvage_keeps_complete_chunks_of_a_truncated_file(tmp_path: Path) -> None:
     w = RecordWriter(settings(tmp_path))
     w.start()
