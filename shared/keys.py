@@ -267,6 +267,9 @@ SIM_RESET: Query[Scenario, SimResetResult] = Query(
     "sim/reset", Scenario, SimResetResult, "lay out a new scenario (evaluation)", "sim")
 SIM_STATS: Query[Any, dict[str, Any]] = Query(
     "sim/stats", Json("optional 'reset'"), Json("figures"), "setpoint intervals, fps, MAVLink counters", "sim")
+SIM_FAULT: Query[Any, dict[str, Any]] = Query(
+    "sim/fault", Json("{unit: camera | mavlink_signal, type: off | stuck | ok, duration_s}"), Json("the fault"),
+    "failure injection, like PX4 SITL's `failure` command (fault-injection tests only)", "sim")
 SIM_RESET_NOTICE: Topic[ResetNotice] = Topic(
     "sim/reset_notice", ResetNotice, "the world was reset: forget what was held and seen", "sim")
 AUTOPILOT_STATE: Topic[VehicleState] = Topic(
@@ -322,7 +325,7 @@ FLEET_ABORT: BoundTopic[Abort] = BoundTopic(f"{ROOT}/{FLEET_ID}/{SAFETY_ABORT.na
 
 DECLARATIONS: tuple[Topic[Any] | Query[Any, Any] | Token, ...] = (
     CAMERA_COLOR, CAMERA_DEPTH, CAMERA_CALIBRATION, CAMERA_SEGMENTATION, TF, SIM_LABELS, SIM_JUDGE, SIM_RESET,
-    SIM_STATS, SIM_RESET_NOTICE, AUTOPILOT_STATE, AUTOPILOT_COMMAND, PERCEPTION_LOCALIZE_OBJECT,
+    SIM_STATS, SIM_FAULT, SIM_RESET_NOTICE, AUTOPILOT_STATE, AUTOPILOT_COMMAND, PERCEPTION_LOCALIZE_OBJECT,
     PERCEPTION_LOCALIZE_PLACEMENT, PERCEPTION_DETECTIONS, EXECUTOR_RUN_SKILL, EXECUTOR_CANCEL_SKILL,
     EXECUTOR_SKILL_STATUS, EXECUTOR_SKILLS, EXECUTOR_MEMORY, REASONER_START_TASK, REASONER_CANCEL_TASK, REASONER_STEP,
     REASONER_TASK_STATUS, REASONER_APPROVAL, REASONER_DECIDE_APPROVAL, SAFETY_ABORT, SAFETY_ABORT_ACK, HEALTH_TOPIC,
@@ -384,6 +387,7 @@ class Keys:
     sim_judge = _QueryOn(SIM_JUDGE)
     sim_reset = _QueryOn(SIM_RESET)
     sim_stats = _QueryOn(SIM_STATS)
+    sim_fault = _QueryOn(SIM_FAULT)
     sim_reset_notice = _TopicOn(SIM_RESET_NOTICE)
     autopilot_state = _TopicOn(AUTOPILOT_STATE)
     autopilot_command = _QueryOn(AUTOPILOT_COMMAND)

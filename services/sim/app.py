@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import math
 import time
 from collections import deque
 
@@ -90,6 +91,23 @@ class CameraPublisher:
         self.render_s = 0.0
         self.started = time.monotonic()
         self.last_labels_version = -1
+        # Injected camera failure (sim/fault): "off" publishes no frames, "stuck" repeats the last one with its
+        # old stamp (a frozen driver); "ok" until `fault_until` (monotonic) passes or the fault is cleared.
+        self.fault = "ok"
+        self.fault_until = math.inf
+        self.last_frames: tuple[bytes, bytes, bytes | None] | None = None
+
+    def inject(self, kind: str, duration_s: float) -> None:
+        """Camera failure injection: `off`, `stuck` or `ok`, for `duration_s` seconds (0: until cleared)."""
+        self.fault = kind
+        self.fault_until = time.monotonic() + duration_s if duration_s > 0 and kind != "ok" else math.inf
+        log.warning("camera failure injected: %s%s", kind, f" for {duration_s:.1f} s" if duration_s > 0 else "")
+
+    def _camera_fault(self) -> str:
+        if self.fault != "ok" and time.monotonic() >= self.fault_until:
+            log.warning("camera failure %s over: frames again", self.fault)
+            self.fault, self.fault_until = "ok", math.inf
+        return self.fault
 
     def close(self) -> None:
         if self.worker is not None:
@@ -147,6 +165,8 @@ class CameraPublisher:
             stamp = now_ns()
             if not self.settings.camera:
                 pass  # the camera service publishes frames and tf; the bridge publishes world->base_link
+            elif self._camera_fault() != "ok":
+                self._publish_faulty(stamp)
             elif not self.watched():
                 # Nobody consumes images (e.g. a MAVLink-only test or many idle evaluation vehicles): skip the
                 # raycast, keep tf flowing.
@@ -160,6 +180,7 @@ class CameraPublisher:
                     self.last_error = f"{type(exc).__name__}: {exc}"
                     log.exception("rendering failed; retrying next frame")
                 else:
+                    self.last_frames = (color, depth, seg)
                     bus.publish(self.keys.camera_color, color)
                     bus.publish(self.keys.camera_depth, depth)
                     if seg is not None:
@@ -176,6 +197,18 @@ class CameraPublisher:
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(stop.wait(), max(delay, 0.0))
 
+    def _publish_faulty(self, stamp: int) -> None:
+        """Under an injected camera failure the pose keeps flowing (tf is the autopilot's estimate, not the
+        camera's); `stuck` re-sends the last frame, stamp and all, so a consumer sees it age."""
+        assert self.bus is not None
+        self.bus.publish(self.keys.tf, self.transforms(self.core.snapshot(), stamp), reliable=False)
+        if self.fault == "stuck" and self.last_frames is not None:
+            color, depth, seg = self.last_frames
+            self.bus.publish(self.keys.camera_color, color)
+            self.bus.publish(self.keys.camera_depth, depth)
+            if seg is not None:
+                self.bus.publish(self.keys.camera_segmentation, seg)
+
     def health(self) -> Health:
         st = self.stats()
         with self.core.lock:
@@ -183,6 +216,7 @@ class CameraPublisher:
             now = time.monotonic()
             fps = sum(1 for t in self.recent if now - t <= 5.0) / 5.0
             details = {"fps_5s": fps, "frames": st["frames"], "idle_frames": st["idle_frames"],
+                       "camera_fault": self.fault,
                        "camera": self.settings.camera, "mode": v.mode_name, "armed": v.armed,
                        "realism": self.core.realism, "scenario_seed": self.core.scenario.seed,
                        "setpoints_received": v.setpoints_received, **self.core.counters}
@@ -198,6 +232,33 @@ class CameraPublisher:
 
     def reset_stats(self) -> None:
         self.frames, self.idle_frames, self.render_s, self.started = 0, 0, 0.0, time.monotonic()
+
+
+FAULT_UNITS = {"camera": ("off", "stuck", "ok"), "mavlink_signal": ("off", "ok")}
+
+
+def inject_fault(req: object, camera: CameraPublisher, server: MavlinkServer) -> dict:
+    """sim/fault: the simulator's failure injection, like PX4 SITL's `failure <unit> <type>` shell command (a
+    backdoor of the simulation, not of the vehicle: only fault-injection tests use it).
+
+    `{"unit": "camera", "type": "off" | "stuck" | "ok"}`: frames stop, or repeat the last one (its stamp ages);
+    `{"unit": "mavlink_signal", "type": "off" | "ok"}`: every MAVLink link goes silent both ways while the vehicle
+    flies on (PX4's `failure mavlink_signal off`). `duration_s` > 0 ends the failure by itself."""
+    if not isinstance(req, dict):
+        return {"ok": False, "message": "expected {unit, type, duration_s}"}
+    unit, kind = str(req.get("unit", "")), str(req.get("type", ""))
+    try:
+        duration = float(req.get("duration_s", 0.0))
+    except (TypeError, ValueError):
+        duration = -1.0
+    if kind not in FAULT_UNITS.get(unit, ()) or not 0 <= duration < math.inf:
+        return {"ok": False, "message": f"unsupported: unit {unit!r} type {kind!r} duration {req.get('duration_s')!r}; "
+                                        f"units and types: {FAULT_UNITS}"}
+    if unit == "camera":
+        camera.inject(kind, duration)
+    else:
+        server.lose_signal(0.0 if kind == "ok" else duration or math.inf)
+    return {"ok": True, "unit": unit, "type": kind, "duration_s": duration}
 
 
 async def run(bus: Bus, settings: SimSettings, stop: asyncio.Event, *, core: SimCore | None = None,
@@ -235,7 +296,11 @@ async def run(bus: Bus, settings: SimSettings, stop: asyncio.Event, *, core: Sim
         return {"setpoints": core.setpoint_stats(), "camera": camera.stats(), "mavlink": server.state_summary(),
                 "counters": counters, "resets": core.resets}
 
+    async def fault(req: object) -> dict:
+        return inject_fault(req, camera, server)
+
     bus.serve(keys.sim_judge, judge)
+    bus.serve(keys.sim_fault, fault)
     bus.serve(keys.sim_reset, reset, concurrent=False)
     bus.serve(keys.sim_stats, stats)
     announce(bus, settings, "sim")

@@ -121,8 +121,15 @@ class Link:
     next_due: dict[int, float] = field(default_factory=dict)
     received: int = 0
     sent: int = 0
+    silent_until: float = 0.0  # injected MAVLink signal loss: nothing goes out or in until then (monotonic)
+
+    @property
+    def silent(self) -> bool:
+        return time.monotonic() < self.silent_until
 
     def send(self, msg: mav.MAVLink_message) -> None:
+        if self.silent:
+            return
         try:
             self.sock.sendto(msg.pack(self.mav), self.remote)
             self.sent += 1
@@ -225,6 +232,9 @@ class MavlinkServer:
                 return
             except OSError:
                 return  # ICMP errors from earlier sends surface here on Linux
+            if link.silent:  # the injected signal loss eats what arrives too
+                self.core.count("dropped_signal_lost")
+                continue
             rx_ns = time.time_ns()
             for level, kind, cdata in anc:
                 if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(cdata) >= 16:
@@ -422,6 +432,15 @@ class MavlinkServer:
             v.battery_failsafe()
             return ACCEPTED
         return UNSUPPORTED
+
+    def lose_signal(self, duration_s: float) -> None:
+        """Failure injection `mavlink_signal off` (PX4 SITL's `failure mavlink_signal off`): every link stops
+        sending and drops what it receives for `duration_s` seconds (inf: until `lose_signal(0)`), while the
+        vehicle flies on and PX4's own failsafes (offboard loss: hold, then land) act. 0 restores the links."""
+        until = time.monotonic() + duration_s if duration_s > 0 else 0.0
+        for link in self.links:
+            link.silent_until = until
+        log.warning("MAVLink signal %s", f"lost for {duration_s:.1f} s (injected)" if duration_s > 0 else "restored")
 
     def _set_interval(self, link: Link, msg_id: int, interval_us: float) -> int:
         if msg_id not in STREAMABLE:
