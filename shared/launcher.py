@@ -317,17 +317,46 @@ class Stack:
 
     def _watch_heartbeats(self) -> None:
         """Note every service's heartbeat (published from its event loop) on the routers this stack runs."""
+        for router in (self.router, self.drone_router):
+            if router is not None:
+                self._watch_heartbeats_on(router)
 
+    def _watch_heartbeats_on(self, router: zenoh.Session) -> None:
         def on_beat(sample: zenoh.Sample) -> None:
             with contextlib.suppress(Exception):
                 parts = str(sample.key_expr).split("/")
                 beat = Heartbeat.model_validate_json(sample.payload.to_bytes())
                 self._beats[(parts[2], parts[4])] = (time.monotonic(), beat.pid)
 
-        for router in (self.router, self.drone_router):
-            if router is not None:
-                with contextlib.suppress(Exception):
-                    router.declare_subscriber(heartbeat_pattern(), on_beat)
+        with contextlib.suppress(Exception):
+            router.declare_subscriber(heartbeat_pattern(), on_beat)
+
+    def restart_router(self, down_s: float = 0.0, timeout: float = 30.0) -> None:
+        """Close the stack's router and open it again on the same endpoint after `down_s` seconds (a router
+        restart, for fault injection). The services are Zenoh clients that reconnect by themselves. Their
+        heartbeats could not reach the supervisor meanwhile: it forgets them, so none is taken for hung."""
+        if self.secure is not None or self.router is None:
+            raise RuntimeError("restart_router: only the plain router of a started stack")
+        router, self.router = self.router, None
+        self._beats.clear()
+        with contextlib.suppress(Exception):
+            router.close()  # type: ignore[no-untyped-call]
+        self._event(f"router {self.endpoint} closed")
+        time.sleep(down_s)
+        deadline = time.monotonic() + timeout
+        while True:
+            try:
+                opened = open_router(self.port, self.host, connect=self.link)
+                break
+            except Exception as exc:  # the port may linger a moment after the close
+                if time.monotonic() > deadline:
+                    raise RuntimeError(f"the router did not reopen on {self.endpoint}: {exc}") from exc
+                time.sleep(0.2)
+        self._beats.clear()
+        if self.supervise:
+            self._watch_heartbeats_on(opened)
+        self.router = opened
+        self._event(f"router {self.endpoint} reopened")
 
     def _check_hung(self, p: ServiceProcess, now: float) -> None:
         """A live process whose heartbeat stopped is hung (a blocked loop, SIGSTOP): kill it, and the next
