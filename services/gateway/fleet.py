@@ -20,6 +20,7 @@ from shared.keys import (
     EXECUTOR_SKILL_STATUS,
     FLEET_ABORT,
     HEALTH_TOPIC,
+    HEARTBEAT_TOPIC,
     PERCEPTION_DETECTIONS,
     REASONER_APPROVAL,
     REASONER_STEP,
@@ -36,6 +37,7 @@ from shared.messages import (
     ApprovalStatus,
     Detections,
     Health,
+    Heartbeat,
     ReasoningStep,
     SkillStatus,
     TaskState,
@@ -48,6 +50,10 @@ from shared.sensors import CompressedImage, decode_proto
 log = logging.getLogger("aermani.gateway.fleet")
 
 FINISH_GRACE_S = 2.0
+# A reasoner's liveliness token also vanishes when only the way to it breaks (a router restart, a network blip)
+# while the process goes on with its task. Its tasks are ended as orphans unless that same process (its
+# heartbeat's pid) is back within this grace; a restarted reasoner (another pid) ends them at once.
+REASONER_GRACE_S = 5.0
 
 
 def vehicle_of(key: str) -> str:
@@ -88,6 +94,8 @@ class VehicleView:
     """Perception's segmenter, from its health (color, sam3, or sim: the simulator's ground-truth oracle)."""
     realism: str | None = None
     """The simulator's realism setting, from its health (absent on a real vehicle)."""
+    reasoner_beat: tuple[int, float] | None = None
+    """(pid, monotonic receive time) of the reasoner's latest heartbeat: which process it is."""
 
     @property
     def reasoner_alive(self) -> bool:
@@ -108,6 +116,7 @@ class Fleet:
         self._tasks: list[asyncio.Task] = []
         self._subs: list[Subscription] = []
         self._finishing: set[asyncio.Task] = set()
+        self._gone: set[asyncio.Task] = set()
         self._ordered: asyncio.Queue[tuple[Callable[[str, Any], Awaitable[None]], str, Any]] = asyncio.Queue()
 
     def view(self, vehicle_id: str) -> VehicleView:
@@ -152,6 +161,7 @@ class Fleet:
         sub(REASONER_APPROVAL, self._on_approval, maxsize=100)
         sub(HEALTH_TOPIC, self._on_health, maxsize=10, service="perception")
         sub(HEALTH_TOPIC, self._on_health, maxsize=10, service="sim")
+        sub(HEARTBEAT_TOPIC, self._on_reasoner_beat, maxsize=10, service="reasoner")
         queue = self.bus.watch_liveliness(f"{ROOT}/*/{ALIVE}/*", history=True)
         self._tasks.append(asyncio.create_task(self._liveliness(queue), name="gateway.liveliness"))
 
@@ -160,9 +170,9 @@ class Fleet:
         await self._notify()
         if self._finishing:  # terminal statuses still waiting for their last steps: store them now
             await asyncio.wait(set(self._finishing), timeout=5.0)
-        for t in self._tasks:
+        for t in [*self._tasks, *self._gone]:
             t.cancel()
-        for t in self._tasks:
+        for t in [*self._tasks, *self._gone]:
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await t
         for s in self._subs:
@@ -278,6 +288,9 @@ class Fleet:
         elif h.service == "sim" and "realism" in h.details:
             v.realism = str(h.details["realism"])
 
+    async def _on_reasoner_beat(self, key: str, beat: Heartbeat) -> None:
+        self.view(vehicle_of(key)).reasoner_beat = (beat.pid, time.monotonic())
+
     async def _on_ack(self, key: str, ack: AbortAck) -> None:
         v = self.view(vehicle_of(key))
         v.acks = [*v.acks[-19:], ack]
@@ -295,8 +308,26 @@ class Fleet:
             was = view.services.get(svc, False)
             view.services[svc] = alive
             if svc == "reasoner" and was and not alive:
-                for task in await self.store.running_tasks(vid):
-                    await self._end_orphan(task, f"the reasoner of {vid} stopped while the task was running")
+                t = asyncio.create_task(self._reasoner_gone(view), name=f"gateway.gone.{vid}")
+                self._gone.add(t)
+                t.add_done_callback(self._gone.discard)
+
+    async def _reasoner_gone(self, view: VehicleView) -> None:
+        """The reasoner's token vanished: end its running tasks, unless the same process is back within
+        REASONER_GRACE_S (only the link to it broke, and it is still running them)."""
+        since = time.monotonic()
+        pid = view.reasoner_beat[0] if view.reasoner_beat else None
+        while time.monotonic() - since < REASONER_GRACE_S and not self.closing.is_set():
+            beat = view.reasoner_beat
+            if view.reasoner_alive and beat is not None and beat[1] > since:
+                if beat[0] == pid:
+                    log.info("the reasoner of %s is back (same process, pid %d): its tasks go on", view.vehicle_id,
+                             pid)
+                    return
+                break  # a new reasoner process: the old one's tasks have nobody
+            await asyncio.sleep(0.1)
+        for task in await self.store.running_tasks(view.vehicle_id):
+            await self._end_orphan(task, f"the reasoner of {view.vehicle_id} stopped while the task was running")
 
     async def _end_orphan(self, task: dict[str, Any], why: str) -> None:
         """No reasoner will ever finish this task: end it so it stops blocking its vehicle and its streams end."""
