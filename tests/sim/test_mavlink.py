@@ -234,6 +234,34 @@ def test_offboard_loss_holds_then_lands(sim):
         assert time.monotonic() < deadline
 
 
+def test_injected_signal_loss_silences_both_ways_while_the_vehicle_flies_on(sim):
+    """sim/fault `mavlink_signal off` (PX4's `failure mavlink_signal off`): nothing goes out, what comes in is
+    dropped, the vehicle flies on under PX4's offboard-loss failsafe; the links come back by themselves."""
+    from services.sim.app import inject_fault
+
+    core, server, client, _ = sim
+    assert not inject_fault({"unit": "gps", "type": "off"}, None, server)["ok"]
+    assert not inject_fault({"unit": "mavlink_signal", "type": "stuck"}, None, server)["ok"]
+    assert client.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 1) == 0
+    for _ in range(26):
+        client.setpoint(0, 0, -1.0, 0.0)
+        time.sleep(0.05)
+    assert client.command(mav.MAV_CMD_DO_SET_MODE, 1, *OFFBOARD) == 0
+    with core.lock:
+        n, e = float(core.vehicle.p[0]), float(core.vehicle.p[1])
+    client.stream_until(n, e, -1.0, 0.0, lambda p, a: abs(p.z + 1.0) < 0.1)
+    assert inject_fault({"unit": "mavlink_signal", "type": "off", "duration_s": 2.5}, None, server)["ok"]
+    while client.conn.recv_match(blocking=False) is not None:  # what was sent before the loss
+        pass
+    with pytest.raises(TimeoutError):
+        client.stream_until(n, e, -1.0, 0.0, lambda p, a: True, timeout=1.0)  # setpoints out, nothing back
+    with core.lock:
+        assert core.counters.get("dropped_signal_lost", 0) > 0
+        assert core.vehicle.mode_name != "OFFBOARD"  # PX4's failsafe took over without setpoints
+    client.recv("HEARTBEAT", timeout=10)  # the links are back by themselves
+    assert client.mode() in (LOITER, LAND)
+
+
 def test_bad_input_changes_nothing(sim):
     core, server, client, _ = sim
     with core.lock:
