@@ -189,11 +189,12 @@ def _steps_so_far(c: httpx.Client, tid: str, at_least: int, timeout: float = 300
         time.sleep(0.3)
 
 
-def _start(stack, c: httpx.Client, seed: int) -> str:
+def _start(stack, c: httpx.Client, seed: int, t_max_s: float | None = None) -> str:
+    body = {"command": COMMAND} if t_max_s is None else {"command": COMMAND, "t_max_s": t_max_s}
     for attempt in range(3):  # PX4 may refuse OFFBOARD right after a reset on a loaded machine: retry
         reset(stack, seed=seed + 10 * attempt)
         wait_grounded(c, timeout=120)
-        r = c.post("/tasks", json={"command": COMMAND})
+        r = c.post("/tasks", json=body)
         if r.status_code == 202:
             return r.json()["task_id"]
         time.sleep(2)
@@ -262,12 +263,17 @@ def test_vlm_fault_mid_task(rig, fault: str, what: str) -> None:
 # ---- the stack's own parts: recorder, gateway, MAVLink link, camera, router, disk
 
 
+# The cases below bound their task's time (a layout the stand-in policy wanders on would take its 40 steps and a
+# minute of CI): past it the task ends `timeout` with its reason, a clear end like any other.
+CASE_T_MAX_S = 60.0
+
+
 def _begin(rig, seed: int) -> tuple[str, set[int]]:
     """Start a task and wait for its 2nd stored step: the fault comes mid-task."""
     stack, c, _tmp, _vlm = rig
     stack.wait_alive(timeout=120)
     _wait_api(c)
-    tid = _start(stack, c, seed=seed)
+    tid = _start(stack, c, seed=seed, t_max_s=CASE_T_MAX_S)
     TASKS.append(tid)
     return tid, _steps_so_far(c, tid, at_least=2)
 

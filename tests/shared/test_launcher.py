@@ -135,3 +135,20 @@ def test_a_failed_restart_does_not_end_supervision(tmp_path: Path):
         _wait_event(stack, "restarted", 60)
         stack.wait_alive(timeout=60)
         assert p.running and p.proc.pid != first
+
+
+def test_a_router_restart_is_reconnected_to_and_kills_nobody(tmp_path: Path):
+    """The router closes for longer than the hung limit and reopens on its endpoint: the service (a Zenoh
+    client) reconnects by itself, its token and heartbeat come back, and the supervisor, which could not hear
+    it meanwhile, did not take it for hung."""
+    from shared.launcher import Stack
+
+    with Stack(["reasoner"], log_dir=tmp_path / "logs", hung_after_s=2.0) as stack:
+        p = stack.find("reasoner")
+        first = p.proc.pid
+        _wait(lambda: stack._beats.get((p.vehicle_id, "reasoner")), 30, "a heartbeat")
+        stack.restart_router(down_s=3.0)
+        stack.wait_alive(timeout=60)
+        _wait(lambda: stack._beats.get((p.vehicle_id, "reasoner")), 30, "a heartbeat through the new router")
+        assert p.proc.pid == first and p.running and p.restarts == 0, stack.events
+        assert not any("hung" in e for e in stack.events), stack.events
