@@ -143,3 +143,23 @@ async def _check_frames(stack, client: Client) -> None:
         # Before this test subscribed, nobody watched: the sim skipped rendering; since then it renders.
         assert stats["camera"]["idle_frames"] > 0 and stats["camera"]["frames"] > 0
         assert stats["mavlink"]["links"]["api"]["received"] > 0
+
+        # Failure injection (sim/fault): a stuck camera repeats its last frame, stamp and all, and the health
+        # says so; `ok` ends it and the stamps move again. Unknown faults are refused with the list.
+        bad = await bus.query(keys.sim_fault, {"unit": "camera", "type": "melted"}, timeout=10)
+        assert not bad["ok"] and "stuck" in bad["message"]
+        assert (await bus.query(keys.sim_fault, {"unit": "camera", "type": "stuck"}, timeout=10))["ok"]
+        await _color_stamps(bus, keys, 3)  # frames rendered before the fault may still be on their way
+        assert len(set(await _color_stamps(bus, keys, 5))) == 1
+        assert (await bus.subscribe(keys.health("sim")).recv(10)).details["camera_fault"] == "stuck"
+        assert (await bus.query(keys.sim_fault, {"unit": "camera", "type": "ok"}, timeout=10))["ok"]
+        await _color_stamps(bus, keys, 2)
+        assert len(set(await _color_stamps(bus, keys, 4))) == 4
+
+
+async def _color_stamps(bus, keys, n: int) -> list[int]:
+    sub = bus.subscribe(keys.camera_color, maxsize=50)
+    try:
+        return [parse_color(await sub.recv(10))[0] for _ in range(n)]
+    finally:
+        sub.close()
