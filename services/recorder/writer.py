@@ -14,6 +14,7 @@ import os
 import queue
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Any, BinaryIO, cast
@@ -34,6 +35,9 @@ log = logging.getLogger("aermani.recorder")
 
 _STOP = object()
 _ROTATE = object()
+# Task events (flush_key_expr) that arrive while no file can be written (a full disk) are kept for the next
+# file, up to this many; frames and the rest are counted in lost_on_error.
+HELD_MAX = 10_000
 
 
 class _File:
@@ -96,6 +100,7 @@ class RecordWriter:
         self._fox_server: Any = None
         self._fox_channels: dict[tuple[str, str], Any] = {}
         self._flush_keys: dict[str, bool] = {}
+        self._held: deque[tuple[str, bytes, str, int]] = deque()
         # Figures for health (read from any thread; ints are updated atomically enough for reporting).
         self.submitted = 0
         self.written = 0
@@ -158,6 +163,7 @@ class RecordWriter:
             "lost_on_error": self.lost_on_error, "bytes": self.bytes_written, "channels": self.channels,
             "vehicles": sorted(self.vehicles), "backlog_bytes": self._backlog_bytes, "error": self.error,
             "errors": self.errors, "foxglove": self.foxglove_url, "dropped_at_stop": self.dropped_at_stop,
+            "held": len(self._held),
         }
 
     # ---- writer thread
@@ -186,6 +192,10 @@ class RecordWriter:
                 self._write(key, payload, encoding, receive_ns)
             self._maybe_rotate()
         self._close(final=True)
+        if self._held:  # the disk stayed full to the end: the kept task events go unwritten after all
+            log.warning("stop: %d task events kept through a write error could not be written", len(self._held))
+            self.lost_on_error += len(self._held)
+            self._held.clear()
         if self._fox_server is not None:
             with contextlib.suppress(Exception):
                 self._fox_server.stop()
@@ -236,6 +246,7 @@ class RecordWriter:
                 log.info("recording again into %s after: %s", path, self.error)
             self.error = ""
             log.info("recording into %s", path)
+            self._write_held()
             return True
         except Exception as exc:
             self._fail(exc, "cannot open a recording in " + self.settings.out_dir)
@@ -265,15 +276,33 @@ class RecordWriter:
         self._table = None
         self._retry_at = time.monotonic() + self.settings.retry_s
 
-    def _write(self, key: str, payload: bytes, encoding: str, receive_ns: int) -> None:
+    def _hold(self, key: str, payload: bytes, encoding: str, receive_ns: int) -> bool:
+        """Keep a task event that cannot be written now for the next file (False: not one, or no room)."""
+        if not self._flushes(key) or len(self._held) >= HELD_MAX:
+            return False
+        self._held.append((key, payload, encoding, receive_ns))
+        return True
+
+    def _write_held(self) -> None:
+        """The task events kept through a write error go first into the new file, in their order."""
+        if self._held:
+            held, self._held = self._held, deque()
+            log.info("writing %d task events kept while no file could be written", len(held))
+            for item in held:
+                self._write(*item, live=False)
+
+    def _write(self, key: str, payload: bytes, encoding: str, receive_ns: int, live: bool = True) -> None:
         vid = vehicle_of(key)
         if vid:
             self.vehicles.add(vid)
-        self._live(key, payload, encoding, receive_ns)
+        if live:
+            self._live(key, payload, encoding, receive_ns)
         if self._writer is None and (time.monotonic() < self._retry_at or not self._open()):
-            self.lost_on_error += 1
+            if not self._hold(key, payload, encoding, receive_ns):
+                self.lost_on_error += 1
             return
         assert self._writer is not None and self._table is not None and self._file is not None
+        counted = False
         try:
             cid = self._table.channel_id(key, encoding)
             self.channels = len(self._table.channels)
@@ -283,6 +312,7 @@ class RecordWriter:
             self.written += 1
             self.file_messages += 1
             self._pending += 1
+            counted = True
             if self._flushes(key):
                 self._writer.flush()  # a task event: its chunk goes to the disk now
             after = self._file.tell()
@@ -292,8 +322,11 @@ class RecordWriter:
                 self._pending = 0
                 self.bytes_written += after - before
         except Exception as exc:
-            self.lost_on_error += 1  # this message went down with its chunk
-            self._fail(exc, f"cannot write to {self.path}")
+            self._fail(exc, f"cannot write to {self.path}")  # counts the chunk's pending messages as lost
+            if not counted:
+                self.lost_on_error += 1  # this message went down with its chunk
+            if self._hold(key, payload, encoding, receive_ns):
+                self.lost_on_error -= 1  # a task event: kept for the next file instead
 
     def _flushes(self, key: str) -> bool:
         hit = self._flush_keys.get(key)

@@ -134,6 +134,48 @@ def test_a_task_event_is_on_disk_at_once_not_with_its_chunk(tmp_path: Path) -> N
     assert res.messages == 2 and not res.complete
 
 
+class ToggleDisk(io.RawIOBase):
+    """A real file on a disk that is full (ENOSPC on every write) while `full[0]` is set."""
+
+    def __init__(self, path: Path, full: list[bool]) -> None:
+        self.f = open(path, "wb", buffering=0)  # noqa: SIM115 - closed by the writer
+        self.full = full
+
+    def writable(self) -> bool:
+        return True
+
+    def write(self, b) -> int:
+        if self.full[0]:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return self.f.write(b)
+
+    def close(self) -> None:
+        self.f.close()
+        super().close()
+
+
+def test_task_events_outlive_a_full_disk(tmp_path: Path) -> None:
+    """Steps that arrive while the disk is full (or whose chunk the full disk broke) are kept and written first
+    into the file opened when space returns; state samples meanwhile are counted lost, as before."""
+    full = [False]
+    w = RecordWriter(settings(tmp_path, retry_s=0.2), opener=lambda path: ToggleDisk(path, full))
+    w.start()
+    submit_model(w, K.reasoning_step, step_message("t", 1, "forward"))
+    wait_for(lambda: w.durable == 1)
+    full[0] = True  # the next chunk fails, and every retry
+    for i in range(2, 6):
+        submit_model(w, K.autopilot_state, VehicleState(message=f"#{i}"))
+        submit_model(w, K.reasoning_step, step_message("t", i, "forward"))
+    wait_for(lambda: not w.ok and w.stats()["held"] == 4)
+    full[0] = False  # space again
+    wait_for(lambda: w.ok and w.stats()["held"] == 0)
+    w.stop()
+    assert w.written + w.lost_on_error == 9 and w.lost_on_error == 4, w.stats()
+    steps = [ReasoningStep.model_validate_json(s.payload).step for f in w.files
+             for s in mcaplog.iter_samples(f, keys=K.reasoning_step)]
+    assert steps == [1, 2, 3, 4, 5], steps
+
+
 def test_salvage_keeps_complete_chunks_of_a_truncated_file(tmp_path: Path) -> None:
     w = RecordWriter(settings(tmp_path))
     w.start()
