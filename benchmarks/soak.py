@@ -8,7 +8,10 @@ one in-process router. Each task: the simulator resets to a fresh seeded layout,
 needed, a pick-and-place command runs to its terminal status; an ending is unsafe when the task did not
 succeed and the vehicle is neither landed nor holding still inside the geofence. Printed, never asserted.
 
-    .venv/bin/python benchmarks/soak.py [--minutes 30] [--out runs/soak]
+    .venv/bin/python benchmarks/soak.py [--minutes 30] [--out runs/soak] [--json PATH]
+
+The figures are also written as JSON to --json (default OUT/soak.json), which `benchmarks/run_all.py
+--soak-json PATH` reads into docs/performance.md.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from benchmarks._figures import add_json_option, write_json  # noqa: E402
 from services.executor.settings import ExecutorSettings  # noqa: E402
 from shared.bus import Bus  # noqa: E402
 from shared.keys import HEALTH_TOPIC, Keys  # noqa: E402
@@ -55,7 +59,7 @@ def safe(st: VehicleState | None, fence: ExecutorSettings) -> bool:
     return inside and math.sqrt(v.x ** 2 + v.y ** 2 + v.z ** 2) < 0.15
 
 
-async def soak(stack: Stack, minutes: float) -> None:
+async def soak(stack: Stack, minutes: float) -> dict[str, object]:
     keys = Keys("am1")
     fence = ExecutorSettings()
     bus = await Bus.open(connect=[stack.endpoint])
@@ -109,6 +113,10 @@ async def soak(stack: Stack, minutes: float) -> None:
         print(f"  {label:28s} {base.get(label, float('nan')):7.1f} -> {mb:7.1f}  ({mb - base.get(label, mb):+.1f})")
     print("messages dropped (bus counters in health, recorder): " + (", ".join(f"{k} {v}" for k, v in drops.items())
                                                                      or "none"))
+    growth = {label: mb - base.get(label, mb) for label, mb in end.items()}
+    return {"minutes": minutes, "tasks": total, "succeeded": done, "unsafe": unsafe, "causes": dict(causes),
+            "memory_growth_mb": growth, "memory_growth_max_mb": max(growth.values(), default=0.0),
+            "dropped": dict(drops), "dropped_total": sum(drops.values())}
 
 
 def _note_drops(h: Health, drops: dict[str, int]) -> None:
@@ -121,6 +129,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--minutes", type=float, default=30.0)
     ap.add_argument("--out", default="runs/soak")
+    add_json_option(ap)
     args = ap.parse_args()
     api = free_udp_port()
     env = {"AERMANI_SIM_API_PORT": str(api), "AERMANI_SIM_API_LOCAL_PORT": str(free_udp_port()),
@@ -129,7 +138,8 @@ def main() -> None:
            "AERMANI_RECORDER_OUT_DIR": f"{args.out}/recordings", "AERMANI_SIM_SPEED_FACTOR": "4"}
     print(f"soak for {args.minutes:.0f} min: {', '.join(SERVICES)} (backend rules: a non-VLM baseline)")
     with Stack(SERVICES, env=env, log_dir=Path(args.out) / "logs") as stack:
-        asyncio.run(soak(stack, args.minutes))
+        figures = asyncio.run(soak(stack, args.minutes))
+    write_json(args.json or Path(args.out) / "soak.json", "soak", figures, args)
 
 
 if __name__ == "__main__":
