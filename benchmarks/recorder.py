@@ -127,7 +127,7 @@ async def main_async(args: argparse.Namespace) -> None:
     print(f"file size     {file_mb:.1f} MB in {len(files)} file(s), compression {compression:.1f}x")
     print(f"target zero drops at {args.rate_mult:g}x:", "MET" if dropped == 0 and sent == written else "NOT MET")
     write_json(args.json, "recorder", {
-        "offered_fps": fps, "sent": sent, "received": d["received"], "written": written, "dropped": dropped,
+        "offered_fps": fps, "sent": sent, "written": written, "dropped": dropped,
         "missing": sent - written,
         "lost_on_error": d["lost_on_error"], "msg_per_s": written / total_s, "mb_per_s": nbytes / 1e6 / total_s,
         "drain_s": drain_s, "file_mb": file_mb, "compression": compression}, args)
