@@ -395,3 +395,37 @@ def test_foxglove_layout_uses_recorded_channels_and_real_fields() -> None:
             model = ann if isinstance(ann, type) and hasattr(ann, "model_fields") else model
     panels = {k.split("!")[0] for k in layout["configById"]}
     assert {"Image", "3D", "RawMessages", "Plot"} <= panels
+
+
+# ------------------------------------------------------------------------------------ extension examples
+
+EXAMPLES = [  # (doc, first line of the python block, registry module, registry name, registered name)
+    ("docs/skills.md", "# services/executor/skills/inspect.py", "services.executor.registry", "REGISTRY",
+     "descend_to_inspect"),
+    ("docs/reasoner.md", "# my_lab/aermani_backend.py", "services.reasoner.backends.base", "BACKENDS", "my_server"),
+    ("docs/perception.md", "# services/perception/segmenters/bright.py", "services.perception.segmenters.base",
+     "SEGMENTERS", "bright"),
+]
+
+
+@pytest.mark.parametrize(("doc", "head", "module", "registry", "name"), EXAMPLES, ids=[e[4] for e in EXAMPLES])
+def test_extension_example_registers(doc: str, head: str, module: str, registry: str, name: str) -> None:
+    """The 'add a skill / backend / segmenter' examples run as written and register under their name."""
+    import importlib
+    import types
+
+    text = (ROOT / doc).read_text(encoding="utf-8")
+    m = re.search(rf"```python\n({re.escape(head)}.*?)```", text, re.S)
+    assert m, f"{doc}: no python block starting with {head!r}"
+    reg = getattr(importlib.import_module(module), registry)
+    if module.startswith("services.perception"):
+        importlib.import_module("services.perception.segmenters")  # the built-ins first, as the service does
+    assert name not in reg
+    mod = types.ModuleType(f"docs_example_{name}")
+    sys.modules[mod.__name__] = mod
+    try:
+        exec(compile(m.group(1), f"{doc} example", "exec"), mod.__dict__)  # noqa: S102 - our own docs
+        assert name in reg and reg[name].__module__ == mod.__name__
+    finally:
+        reg.pop(name, None)
+        sys.modules.pop(mod.__name__, None)
