@@ -327,9 +327,11 @@ CAMERA_NOTES = (
     "lookup and per-class masks), then Open3D's `remove_statistical_outlier` in the geometry (8 %), numpy "
     "reductions, `connectedComponentsWithStats`, colour conversion; JPEG encode (camera side, 2.5 %) and decode "
     "(1.7 %) and the bus/protobuf decoding are small. The segmentation is already computed once per frame and "
-    "shared by the detections and every query on that frame (`ColorSegmenter._cached`). No small, safe fix was "
-    "left; the next step is a lower-resolution surface pass (stride 4 where the surface is far) and "
-    "`np.cross` replaced by the two components the flatness test needs.")
+    "shared by the detections and every query on that frame (`ColorSegmenter._cached`). One small, exact fix "
+    "was made: `detect_surfaces` divides each flat pixel's colour by its brightness once instead of once per "
+    "surface class inside the broadcast (bit-identical results; that expression ~18 % faster, measured on "
+    "40,000 pixels x 12 albedos). The next steps are larger: a lower-resolution surface pass where the surface "
+    "is far, and fewer full-frame numpy passes for the normals.")
 REASONER_NOTES = (
     "prompt compilation (`prompt.render` 17 %, `condensed` history lines 11 %, regex substitutions 8 %) and "
     "answer parsing (`parse._object_spans` 9 %, `norm_skill` 7 %) dominate; base64 of the JPEG is 4 %. The step "
