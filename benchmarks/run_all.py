@@ -251,7 +251,7 @@ GAPS: dict[str, tuple[str, str]] = {
         "Re-run on a quiet machine; the profile (below) shows prompt compile and parse as the largest parts."),
     "sim.render_fps": (
         "MuJoCo renders with software OpenGL (OSMesa/llvmpipe) on one core: 12.7 fps measured in issue 13's "
-        "session (17.5 fps earlier on a quiet box with a simpler scene). The colour+depth read-back and the "
+        "session (17.5 fps with the earlier, non-MuJoCo renderer, issue 3). The colour+depth read-back and the "
         "stereo noise model add to the MuJoCo draw itself.",
         "EGL with a GPU where one exists (the default on a workstation); render depth at half resolution and "
         "upsample for the noise model; skip segmentation when no one watches it (already done)."),
@@ -303,7 +303,7 @@ GAPS: dict[str, tuple[str, str]] = {
         "stop waiting before the last frames are written.",
         "Count received samples per key in the recorder's health; make benchmarks/recorder.py wait on the "
         "benchmark's own keys; re-run on a quiet machine."),
-    "soak.unsafe": ("Not run in this report, or a real safety finding: read the soak output.",
+    "soak.unsafe": ("A real safety finding: the soak's output lists each failed task's cause.",
                     "Run `benchmarks/soak.py --minutes 30` on a quiet machine; investigate every unsafe ending."),
     "soak.memory": ("A service grew by 50 MB or more over the soak.",
                     "Take a tracemalloc snapshot of that service at the start and the end of a soak."),
