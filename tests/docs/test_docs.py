@@ -315,6 +315,14 @@ def test_markers_name_existing_tests_and_known_needs(block: Block) -> None:
     assert not unknown, f"unknown needs {sorted(unknown)}; use one of {sorted(NEEDS)}"
 
 
+def test_the_installed_aermani_command_runs() -> None:
+    """The entry point itself (the in-process help checks above share its code, not its installation)."""
+    exe = Path(sys.executable).parent / "aermani"
+    cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "shared.cli"]
+    res = subprocess.run([*cmd, "--help"], capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert res.returncode == 0 and "eval" in res.stdout, res.stderr[-500:]
+
+
 def test_the_command_parser_splits_and_joins() -> None:
     b = Block(ROOT / "README.md", 1, [(2, "A=1 aermani eval --out x \\"), (3, "    --split dev  # comment"),
                                       (4, "aermani certs init --out c && chown -R 1000 c"),
