@@ -15,7 +15,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from services.reasoner.backends import Backend, ModelRequest, PastStep, PolicyContext, Seen
+from services.reasoner.backends.base import Backend, ModelRequest, PastStep, PolicyContext, Seen
 from services.reasoner.library import policy_skills
 from services.reasoner.parse import ParsedAnswer, parse_answer
 from services.reasoner.prompt import (

@@ -9,7 +9,8 @@ import logging
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 
 from services.reasoner import tracing
-from services.reasoner.backends import Backend, make_backend
+from services.reasoner.backends import make_backend
+from services.reasoner.backends.base import Backend
 from services.reasoner.loop import TaskRunner, World
 from services.reasoner.prompt import Observation
 from services.reasoner.settings import ReasonerSettings
