@@ -9,7 +9,8 @@ import logging
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 
 from services.reasoner import tracing
-from services.reasoner.backends import Backend, make_backend
+from services.reasoner.backends import make_backend
+from services.reasoner.backends.base import Backend
 from services.reasoner.loop import TaskRunner, World
 from services.reasoner.prompt import Observation
 from services.reasoner.settings import ReasonerSettings
@@ -86,7 +87,8 @@ class BusWorld(World):
         frame = self.frame.value
         det = self.detections.value
         return Observation(image_jpeg=frame[0] if frame else None, image_stamp_ns=frame[1] if frame else 0,
-                           state=self.state.value, detections=det.items if det else (), memory=self.memory.value)
+                           state=self.state.value, state_age_s=self.state.age_s if self.state.value else 0.0,
+                           detections=det.items if det else (), memory=self.memory.value)
 
     async def run_skill(self, request: SkillRequest, timeout: float) -> tuple[SkillAccept, SkillStatus | None]:
         goal = await self.skills.send_goal(request, timeout=10.0)
