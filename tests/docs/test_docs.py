@@ -393,8 +393,9 @@ def test_foxglove_layout_uses_recorded_channels_and_real_fields() -> None:
     text = json.dumps(layout)
     topics = set(re.findall(r"aermani/v1/am1/[a-z_/]+", text))
     assert topics and topics <= set(declared), sorted(topics - set(declared))
-    for path in re.findall(r'\\"(aermani/v1/am1/[a-z_/]+)\\"((?:\.[a-z_]+)+)', text):
-        topic, fields = path
+    paths = re.findall(r"(aermani/v1/am1/[a-z_/]+)((?:\.[a-z_]+)+)", text)
+    assert paths, "the layout plots no message field"
+    for topic, fields in paths:
         model = declared[topic].type
         assert isinstance(model, type) and f"aermani.{model.__name__}" in MESSAGES_BY_SCHEMA
         for name in fields.strip(".").split("."):
