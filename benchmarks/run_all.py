@@ -219,7 +219,7 @@ FIGURES: list[Figure] = [
 
 GAPS: dict[str, tuple[str, str]] = {
     "bus.json_latency": (
-        "Measured about 2.8x on a quiet machine (0.301 vs 0.108 ms, issue 13's closing note). The benchmark "
+        "Measured about 2.8x on a quiet machine (0.301 vs 0.108 ms, the closing note of stop 21). The benchmark "
         "publishes and receives on one asyncio loop in one process, so each ping pays the hop from Zenoh's thread "
         "into the loop (call_soon_threadsafe + wake-up) while raw zenoh receives directly on Zenoh's thread; "
         "Python per message is small (publish 24 us incl. encode, receive 30 us, cProfile), the rest is "
