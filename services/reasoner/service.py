@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import logging
 
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
@@ -56,10 +57,11 @@ class BusWorld(World):
         self.bus = bus
         self.settings = settings
         self.keys = settings.keys
-        self.frame: Latest[tuple[bytes, int]] = Latest(bus.subscribe(self.keys.camera_color, maxsize=2), _jpeg)
-        self.state: Latest[VehicleState] = Latest(bus.subscribe(self.keys.autopilot_state, maxsize=5))
-        self.detections: Latest[Detections] = Latest(bus.subscribe(self.keys.detections, maxsize=5))
-        self.memory: Latest[WorkingMemory] = Latest(bus.subscribe(self.keys.memory, maxsize=5))
+        latest = functools.partial(bus.subscribe, overflow="latest")  # only the newest value is read
+        self.frame: Latest[tuple[bytes, int]] = Latest(latest(self.keys.camera_color, maxsize=2), _jpeg)
+        self.state: Latest[VehicleState] = Latest(latest(self.keys.autopilot_state, maxsize=5))
+        self.detections: Latest[Detections] = Latest(latest(self.keys.detections, maxsize=5))
+        self.memory: Latest[WorkingMemory] = Latest(latest(self.keys.memory, maxsize=5))
         self.skills = skill_client(bus, settings.vehicle_id)
         self.approvals: dict[str, tuple[ApprovalStatus, asyncio.Future[ApprovalDecision]]] = {}
 
