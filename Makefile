@@ -28,5 +28,7 @@ test:
 	$(MAKE) --no-print-directory lint-only
 	$(VENV)/bin/pytest
 
+# Every benchmark, then docs/performance.md from that one run (~15 min on 2 cores; BENCH_ARGS=--quick for a
+# pipeline check in ~3 min, written to runs/bench/performance.md instead).
 bench: setup
-	for b in benchmarks/*.py; do echo "== $$b"; $(VENV)/bin/python $$b || exit 1; done
+	$(VENV)/bin/python benchmarks/run_all.py $(BENCH_ARGS)

@@ -20,6 +20,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from benchmarks._figures import add_json_option, write_json  # noqa: E402
 from shared.bus import Bus  # noqa: E402
 from shared.keys import Keys  # noqa: E402
 from shared.launcher import Stack  # noqa: E402
@@ -70,6 +71,7 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=8.0)
     ap.add_argument("--width", type=int, default=640)
     ap.add_argument("--height", type=int, default=480)
+    add_json_option(ap)
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp) / "frames"
@@ -87,6 +89,7 @@ def main() -> None:
           f"{args.seconds:g} s:")
     for key, value in r.items():
         print(f"  {key}: {value:.2f}" if isinstance(value, float) else f"  {key}: {value}")
+    write_json(args.json, "camera", {**r, "requested_fps": args.fps}, args)
 
 
 if __name__ == "__main__":

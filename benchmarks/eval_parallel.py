@@ -17,6 +17,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks._figures import add_json_option, write_json  # noqa: E402
 from services.evaluation.metrics import compute  # noqa: E402
 from services.evaluation.runner import RunConfig, run  # noqa: E402
 
@@ -36,6 +37,7 @@ def main() -> None:
     ap.add_argument("--episodes-per-suite", type=int, default=3, help="episodes per suite (4 suites)")
     ap.add_argument("--speed-factor", type=float, default=4.0)
     ap.add_argument("--keep", type=Path, default=None, help="keep the runs (reports, logs) in this directory")
+    add_json_option(ap)
     args = ap.parse_args()
     with tempfile.TemporaryDirectory(prefix="aermani-evalbench-") as tmp:
         root = args.keep or Path(tmp)
@@ -46,6 +48,9 @@ def main() -> None:
         w3, ran3, ok3 = sweep(3, args.episodes_per_suite, args.speed_factor, root)
         print(f"  --parallel 3: {w3:7.1f} s wall  ({ran3} episodes, {ok3} successful)")
         print(f"  speed-up parallel 3 vs 1: {w1 / w3:.2f}x (wall-time ratio parallel1/parallel3)")
+    write_json(args.json, "eval_parallel", {"episodes": n, "wall_parallel1_s": w1, "wall_parallel3_s": w3,
+                                            "speedup": w1 / w3, "ok_parallel1": ok1, "ok_parallel3": ok3,
+                                            "ran_parallel1": ran1, "ran_parallel3": ran3}, args)
 
 
 if __name__ == "__main__":

@@ -23,6 +23,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from benchmarks._figures import add_json_option, write_json  # noqa: E402
 from shared.bus import Bus  # noqa: E402
 from shared.keys import Keys  # noqa: E402
 from shared.launcher import Stack, free_udp_port  # noqa: E402
@@ -96,7 +97,7 @@ async def abort_once(bus: Bus, acks, states, still: float) -> tuple[float, float
     return got_ack, got_still
 
 
-async def bench(endpoint: str, trials: int, still: float) -> None:
+async def bench(endpoint: str, trials: int, still: float) -> dict[str, float]:
     bus = await Bus.open(connect=[endpoint])
     statuses = bus.subscribe(KEYS.skill_status, maxsize=1000)
     states = bus.subscribe(KEYS.autopilot_state, maxsize=1000)
@@ -128,6 +129,9 @@ async def bench(endpoint: str, trials: int, still: float) -> None:
         print(f"abort -> speed < {still} p50 {pct(still_ms, 50):7.1f} ms  p95 {pct(still_ms, 95):7.1f} ms  "
               f"max {max(still_ms):7.1f} ms  (mean {statistics.mean(still_ms):.1f} ms)")
         await run_skill(bus, statuses, "land")
+        return {"ack_p50_ms": pct(ack_ms, 50), "ack_p95_ms": pct(ack_ms, 95), "ack_max_ms": max(ack_ms),
+                "still_p50_ms": pct(still_ms, 50), "still_p95_ms": pct(still_ms, 95), "still_max_ms": max(still_ms),
+                "trials": trials}
     finally:
         await bus.close()
 
@@ -137,6 +141,7 @@ def main() -> None:
     ap.add_argument("--trials", type=int, default=20)
     ap.add_argument("--still", type=float, default=0.05, help="speed counted as stopped, m/s")
     ap.add_argument("--speed-factor", type=float, default=1.0, help="AERMANI_SIM_SPEED_FACTOR")
+    add_json_option(ap)
     args = ap.parse_args()
     api = free_udp_port()
     env = {
@@ -150,9 +155,10 @@ def main() -> None:
         stack = Stack(["sim", "autopilot_bridge", "executor"], env=env, log_dir=Path(tmp) / "logs", supervise=False)
         stack.start(wait=True, timeout=120)
         try:
-            asyncio.run(bench(stack.endpoint, args.trials, args.still))
+            figures = asyncio.run(bench(stack.endpoint, args.trials, args.still))
         finally:
             stack.stop()
+    write_json(args.json, "executor", figures, args)
 
 
 if __name__ == "__main__":

@@ -24,6 +24,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from benchmarks._figures import add_json_option, write_json  # noqa: E402
 from shared.action import skill_client  # noqa: E402
 from shared.bus import Bus, Subscription  # noqa: E402
 from shared.keys import FLEET_ABORT, Keys  # noqa: E402
@@ -69,7 +70,7 @@ async def first(sub: Subscription, pred, t0: int, timeout: float = 10.0) -> floa
     raise RuntimeError("no answer within 10 s")
 
 
-async def bench(endpoint: str, vehicles: list[str], trials: int, still: float) -> None:
+async def bench(endpoint: str, vehicles: list[str], trials: int, still: float) -> dict[str, float]:
     bus = await Bus.open(connect=[endpoint])
     states = {v: bus.subscribe(Keys(v).autopilot_state, maxsize=1000) for v in vehicles}
     acks = {v: bus.subscribe(Keys(v).abort_ack, maxsize=100) for v in vehicles}
@@ -110,6 +111,9 @@ async def bench(endpoint: str, vehicles: list[str], trials: int, still: float) -
               f"max {max(ack_ms):6.1f} ms  (target p95 <= 100 ms; {len(vehicles)} vehicles, {trials} trials)")
         print(f"fleet abort -> every speed<{still} p50 {pct(still_ms, 50):6.1f} ms  p95 {pct(still_ms, 95):6.1f} ms  "
               f"max {max(still_ms):6.1f} ms  (includes braking from 0.3 m/s)")
+        return {"ack_p50_ms": pct(ack_ms, 50), "ack_p95_ms": pct(ack_ms, 95), "ack_max_ms": max(ack_ms),
+                "still_p50_ms": pct(still_ms, 50), "still_p95_ms": pct(still_ms, 95), "still_max_ms": max(still_ms),
+                "trials": trials, "vehicles": len(vehicles)}
     finally:
         for c in clients.values():
             await c.close()
@@ -121,6 +125,7 @@ def main() -> None:
     ap.add_argument("--trials", type=int, default=15)
     ap.add_argument("--vehicles", type=int, default=3)
     ap.add_argument("--still", type=float, default=0.05, help="speed counted as stopped, m/s")
+    add_json_option(ap)
     args = ap.parse_args()
     vehicles = [f"fa{i + 1}" for i in range(args.vehicles)]
     services = ["sim", "autopilot_bridge", "executor"]
@@ -131,9 +136,10 @@ def main() -> None:
             stack.add_vehicle(v, services, vehicle_env())
         stack.start(wait=True, timeout=180)
         try:
-            asyncio.run(bench(stack.endpoint, vehicles, args.trials, args.still))
+            figures = asyncio.run(bench(stack.endpoint, vehicles, args.trials, args.still))
         finally:
             stack.stop()
+    write_json(args.json, "fleet_abort", figures, args)
 
 
 if __name__ == "__main__":

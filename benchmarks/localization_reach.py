@@ -21,6 +21,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from benchmarks._figures import add_json_option, write_json  # noqa: E402
 from services.perception import query as q  # noqa: E402
 from services.perception.pipeline import Perception  # noqa: E402
 from services.perception.segmenters import make_segmenter  # noqa: E402
@@ -36,6 +37,7 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--seeds", type=int, default=6)
     ap.add_argument("--segmenter", default="color")
+    add_json_option(ap)
     a = ap.parse_args()
     s = PerceptionSettings(segmenter=a.segmenter)
     p = Perception(make_segmenter(s), s)
@@ -59,12 +61,15 @@ def main() -> None:
                     errs[d].append(math.hypot(pos.x - e.center[0], pos.y - e.center[1]))
     print(f"segmenter {a.segmenter}, realistic camera, {a.seeds} layouts")
     print("distance_m  tries  found_%  err_median_cm  err_p90_cm")
+    rows = {}
     for d in DISTANCES:
         e = np.array(errs[d])
         found = 100.0 * len(e) / tries[d] if tries[d] else float("nan")
         med = 100 * np.median(e) if len(e) else float("nan")
         p90 = 100 * np.percentile(e, 90) if len(e) else float("nan")
         print(f"{d:10.2f}  {tries[d]:5d}  {found:7.1f}  {med:13.1f}  {p90:10.1f}")
+        rows[f"{d:.2f}"] = {"tries": tries[d], "found_pct": found, "err_median_cm": med, "err_p90_cm": p90}
+    write_json(a.json, "localization_reach", {"by_distance_m": rows}, a)
 
 
 if __name__ == "__main__":

@@ -19,7 +19,10 @@ import sys
 from collections import defaultdict
 from pathlib import Path
 
-from services.reasoner.backends.rules_parse import parse_command, singular
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from benchmarks._figures import add_json_option, write_json  # noqa: E402
+from services.reasoner.backends.rules_parse import parse_command, singular  # noqa: E402
 
 FIELDS = ("target", "destination", "motions", "selector", "group", "category", "excluded", "choices", "understood")
 
@@ -107,16 +110,21 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("files", nargs="+", type=Path, help="JSONL phrasing sets")
     ap.add_argument("--show-errors", action="store_true", help="print every wrong line with the fields that differ")
+    add_json_option(ap)
     args = ap.parse_args(argv)
     right = total = 0
+    per_file: dict[str, dict[str, float]] = {}
     for path in args.files:
         if not path.is_file():
             print(f"{path}: no such file", file=sys.stderr)
             return 2
         r, t = evaluate(path, args.show_errors)
         right, total = right + r, total + t
+        per_file[path.name] = {"correct": r, "total": t, "accuracy_pct": 100 * r / max(t, 1)}
     if len(args.files) > 1:
         print(f"\nall files: {right}/{total} = {100 * right / max(total, 1):.1f}%")
+    write_json(args.json, "parser_accuracy", {"files": per_file, "correct": right, "total": total,
+                                              "accuracy_pct": 100 * right / max(total, 1)}, args)
     return 0
 
 

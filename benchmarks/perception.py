@@ -25,6 +25,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from benchmarks._figures import add_json_option, write_json  # noqa: E402
 from services.perception import query as q  # noqa: E402
 from services.perception.pipeline import Perception  # noqa: E402
 from services.perception.segmenters import make_segmenter  # noqa: E402
@@ -65,7 +66,18 @@ def pct(xs: list[float], cpu: list[float] | None = None) -> str:
     return text + f"  (n={len(a)})"
 
 
-def in_process(requests: int) -> None:
+def p95s(prefix: str, wall: list[float], cpu: list[float] | None = None) -> dict[str, float]:
+    """Figures of one series for --json: wall p50/p95 (and CPU p50/p95) in ms."""
+    out = {f"{prefix}_p50_ms": float(np.percentile(wall, 50)) * 1e3,
+           f"{prefix}_p95_ms": float(np.percentile(wall, 95)) * 1e3}
+    if cpu:
+        out |= {f"{prefix}_cpu_p50_ms": float(np.percentile(cpu, 50)) * 1e3,
+                f"{prefix}_cpu_p95_ms": float(np.percentile(cpu, 95)) * 1e3}
+    return out
+
+
+def in_process(requests: int) -> dict[str, float]:
+    figures: dict[str, float] = {}
     vs = views(min(requests, 24))
     for kind in ("sim", "color"):
         s = PerceptionSettings(segmenter=kind)
@@ -89,9 +101,12 @@ def in_process(requests: int) -> None:
             place_c.append(time.process_time() - c)
         print(f"in-process {kind:5s} localize_object    {pct(obj_t, obj_c)}")
         print(f"in-process {kind:5s} localize_placement {pct(place_t, place_c)}")
+        figures |= p95s(f"inproc_{kind}_object", obj_t, obj_c) | p95s(f"inproc_{kind}_placement", place_t, place_c)
+    return figures
 
 
-async def over_bus(requests: int, cpu: int | None) -> None:
+async def over_bus(requests: int, cpu: int | None) -> dict[str, float]:
+    figures: dict[str, float] = {}
     vs = views(6)
     keys = Keys("am1")
     for kind in ("sim", "color"):
@@ -156,6 +171,7 @@ async def over_bus(requests: int, cpu: int | None) -> None:
             where = f"pinned to cpu {cpu}" if cpu is not None else "unpinned"
             print(f"zenoh {kind:5s} localize_object    {pct(obj_t)}  [service {where}, detections at 5 Hz]")
             print(f"zenoh {kind:5s} localize_placement {pct(place_t)}")
+            figures |= p95s(f"zenoh_{kind}_object", obj_t) | p95s(f"zenoh_{kind}_placement", place_t)
         finally:
             stop.set()
             cam.cancel()
@@ -163,6 +179,7 @@ async def over_bus(requests: int, cpu: int | None) -> None:
             proc.wait(20)
             await bus.close()
             await router.close()
+    return figures
 
 
 def main() -> None:
@@ -171,16 +188,19 @@ def main() -> None:
     ap.add_argument("--no-process", action="store_true", help="only the figures through the service")
     ap.add_argument("--no-bus", action="store_true", help="only the in-process figures")
     ap.add_argument("--cpu", type=int, default=0, help="core to pin to (-1: no pinning)")
+    add_json_option(ap)
     args = ap.parse_args()
     cpu = None if args.cpu < 0 else args.cpu
     print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores; targets: object p95 <= 60 ms, "
           "placement p95 <= 120 ms on one core")
     if cpu is not None:
         os.sched_setaffinity(0, {cpu})
+    figures: dict[str, float] = {}
     if not args.no_process:
-        in_process(args.requests)
+        figures |= in_process(args.requests)
     if not args.no_bus:
-        asyncio.run(over_bus(args.requests, cpu))
+        figures |= asyncio.run(over_bus(args.requests, cpu))
+    write_json(args.json, "perception", figures, args)
 
 
 if __name__ == "__main__":

@@ -23,20 +23,24 @@ import json
 import math
 import re
 import statistics
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 
-from services.reasoner.backends.openai_backend import image_data_url
-from services.reasoner.backends.rules import RulesPolicy, render_answer
-from services.reasoner.library import default_library
-from services.reasoner.loop import policy_context
-from services.reasoner.parse import parse_answer
-from services.reasoner.prompt import History, HistoryEntry, Observation, PromptCompiler, layout
-from shared.messages import Detection, MemoryObject, Vec3, VehicleState, WorkingMemory
-from shared.sensors import color_message, decode_proto, stamp_to_ns
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from benchmarks._figures import add_json_option, write_json  # noqa: E402
+from services.reasoner.backends.openai_backend import image_data_url  # noqa: E402
+from services.reasoner.backends.rules import RulesPolicy, render_answer  # noqa: E402
+from services.reasoner.library import default_library  # noqa: E402
+from services.reasoner.loop import policy_context  # noqa: E402
+from services.reasoner.parse import parse_answer  # noqa: E402
+from services.reasoner.prompt import History, HistoryEntry, Observation, PromptCompiler, layout  # noqa: E402
+from shared.messages import Detection, MemoryObject, Vec3, VehicleState, WorkingMemory  # noqa: E402
+from shared.sensors import color_message, decode_proto, stamp_to_ns  # noqa: E402
 
 PAPER_MEDIAN_RT_S = 0.92
 RECORDED = Path(__file__).resolve().parent.parent / "docs" / "eval" / "rules-dev" / "episodes.jsonl.gz"
@@ -69,14 +73,14 @@ def _common_prefix(a: str, b: str) -> str:
     return a[:n]
 
 
-def cache_report(path: Path, variant: str) -> None:
+def cache_report(path: Path, variant: str) -> dict[str, float]:
     """Prompt tokens and cacheable prefix share per step of recorded real tasks."""
     with gzip.open(path, "rt") as f:
         episodes = [json.loads(line) for line in f]
     eps = [e for e in episodes if e["variant"] == variant and e["success"] and e["steps"]]
     if not eps:
         print(f"no recorded successful {variant} episode in {path}")
-        return
+        return {}
     rows: dict[str, list[tuple[int, int, int, int]]] = {}  # episode -> (step, total, constant, shared with prev)
     prefixes = set()
     for ep in eps:
@@ -110,6 +114,10 @@ def cache_report(path: Path, variant: str) -> None:
           f"steps >= 70 %: {100 * sum(c >= 0.7 for c in const) / len(const):.0f} %")
     print(f"  prefix shared with the previous step (what vLLM/OpenAI automatic prefix caching reuses): "
           f"median {100 * statistics.median(shared):.1f} %, min {100 * min(shared):.1f} %")
+    return {"cache_prefix_median_pct": 100 * statistics.median(const), "cache_prefix_min_pct": 100 * min(const),
+            "cache_steps_at_least_70_pct": 100 * sum(c >= 0.7 for c in const) / len(const),
+            "cache_shared_prev_median_pct": 100 * statistics.median(shared), "cache_steps": len(allrows),
+            "cache_tasks": len(rows), "cache_prefixes": len(prefixes)}
 
 
 def main() -> None:
@@ -117,6 +125,7 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=2000)
     ap.add_argument("--variant", default="full")
     ap.add_argument("--recorded", type=Path, default=RECORDED, help="episodes.jsonl.gz written by `aermani eval`")
+    add_json_option(ap)
     args = ap.parse_args()
     # A room-like frame (gradients, flat boxes, mild noise): JPEG size close to the simulator's frames.
     rng = np.random.default_rng(0)
@@ -170,7 +179,10 @@ def main() -> None:
     print(f"total p50 {1e3 * p50:.2f} ms ({100 * p50 / PAPER_MEDIAN_RT_S:.2f} % of 0.92 s), "
           f"p95 {1e3 * p95:.2f} ms ({100 * p95 / PAPER_MEDIAN_RT_S:.2f} %); target p95 <= 10 ms: "
           f"{'met' if p95 <= 0.010 else 'NOT met'} (p95 on a shared, loaded machine includes scheduling noise)")
-    cache_report(args.recorded, args.variant)
+    figures = {f"{k}_{q}_ms": 1e3 * (statistics.median(xs) if q == "p50" else pct(xs, 0.95))
+               for k, xs in parts.items() for q in ("p50", "p95")}
+    figures |= cache_report(args.recorded, args.variant)
+    write_json(args.json, "reasoner", figures, args, paper_median_rt_s=PAPER_MEDIAN_RT_S)
 
 
 if __name__ == "__main__":

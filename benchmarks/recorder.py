@@ -19,6 +19,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from benchmarks._figures import add_json_option, write_json  # noqa: E402
 from shared.bus import Bus  # noqa: E402
 from shared.keys import Keys  # noqa: E402
 from shared.launcher import Stack  # noqa: E402
@@ -125,6 +126,11 @@ async def main_async(args: argparse.Namespace) -> None:
     compression = nbytes / 1e6 / max(file_mb, 1e-9)
     print(f"file size     {file_mb:.1f} MB in {len(files)} file(s), compression {compression:.1f}x")
     print(f"target zero drops at {args.rate_mult:g}x:", "MET" if dropped == 0 and sent == written else "NOT MET")
+    write_json(args.json, "recorder", {
+        "offered_fps": fps, "sent": sent, "written": written, "dropped": dropped,
+        "missing": sent - written,
+        "lost_on_error": d["lost_on_error"], "msg_per_s": written / total_s, "mb_per_s": nbytes / 1e6 / total_s,
+        "drain_s": drain_s, "file_mb": file_mb, "compression": compression}, args)
     if args.out is None:
         shutil.rmtree(out, ignore_errors=True)  # a temp recording of ~100 MB is not worth keeping
 
@@ -137,6 +143,7 @@ def main() -> None:
     p.add_argument("--height", type=int, default=480)
     p.add_argument("--chunk-kib", type=int, default=1024)
     p.add_argument("--out", default=None, help="keep the recording in this directory (default: a temp dir, deleted)")
+    add_json_option(p)
     asyncio.run(main_async(p.parse_args()))
 
 

@@ -2,11 +2,12 @@
 with segmentation) on one core, CPU per frame, the same on Zenoh with the stack running, and setpoint jitter.
 
 Usage: .venv/bin/python benchmarks/sim.py [--seconds 10] [--services sim,autopilot_bridge,...] [--scale 1]
-       [--no-stack]
+       [--no-stack] [--cpu 0] [--json PATH]
 
 Prints figures only (targets from issue 13: physics >= 20x real time with 15 objects, >= 15 fps colour+depth
-on one core; issue 3: p99 setpoint interval jitter <= 5 ms); never fails on them. Pin to one core with
-`taskset -c 0` for the one-core figures (software OpenGL would otherwise use every core). The jitter is
+on one core; issue 3: p99 setpoint interval jitter <= 5 ms); never fails on them. `--cpu 0` pins the physics
+and render figures to one core (software OpenGL would otherwise use every core); the stack part runs unpinned,
+as deployed. The jitter is
 measured by the sim itself from kernel receive timestamps of SET_POSITION_TARGET_LOCAL_NED
 (queryable sim/stats), so it is what the vehicle sees, independent of the sim's own scheduling.
 """
@@ -15,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import os
 import sys
 import tempfile
 import time
@@ -24,6 +26,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from benchmarks._figures import add_json_option, write_json  # noqa: E402
 from services.sim.app import CameraPublisher  # noqa: E402
 from services.sim.core import SimCore, Snapshot  # noqa: E402
 from services.sim.layout import OBJECTS  # noqa: E402
@@ -34,7 +37,7 @@ from shared.launcher import Stack, available_services, free_udp_port  # noqa: E4
 from shared.messages import ArmCommand, Scenario, TakeoffCommand  # noqa: E402
 
 
-def physics(seconds: float) -> None:
+def physics(seconds: float) -> dict[str, float]:
     """One vehicle and all 14 catalogue objects + 1 more step (15 objects asked for: the catalogue has 14, each
     once), the vehicle flying a square at 1.5 m and then a grasp-height pass over a table, objects awake."""
     core = SimCore(Scenario(seed=3, distractors=(), extra_objects=tuple(n for n in OBJECTS if n != "red cup"),
@@ -63,9 +66,10 @@ def physics(seconds: float) -> None:
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     print(f"physics: {n_obj} objects + vehicle (2 ms MuJoCo steps, controller at {1 / dt:.0f} Hz): {seconds:.0f} s "
           f"simulated in {wall:.2f} s wall = {seconds / wall:.0f}x real time (CPU {cpu:.2f} s, one thread)")
+    return {"physics_objects": n_obj, "physics_rtf": seconds / wall, "physics_cpu_rtf": seconds / max(cpu, 1e-9)}
 
 
-def standalone(frames: int, scale: int) -> None:
+def standalone(frames: int, scale: int) -> dict[str, float]:
     core = SimCore(Scenario(seed=1))
     settings = SimSettings(render_scale=scale, render_process=False)
     cam = CameraPublisher(None, core, settings)  # rendering needs no bus
@@ -73,6 +77,7 @@ def standalone(frames: int, scale: int) -> None:
         core.world.set_vehicle(np.array([core.vehicle.true_position_enu()[0], core.vehicle.true_position_enu()[1],
                                          1.5]), core.vehicle.true_yaw_enu())  # airborne view: tables in frame
     cam.render_frame(time.time_ns())
+    out: dict[str, float] = {}
     for seg in (False, True):
         cam.segmentation_watched = lambda seg=seg: seg  # type: ignore[method-assign]
         t0, c0 = time.perf_counter(), time.process_time()
@@ -83,6 +88,8 @@ def standalone(frames: int, scale: int) -> None:
         what = "colour+depth+segmentation" if seg else "colour+depth"
         print(f"render {what} 640x480 (scale {scale}, realistic camera model, JPEG, tf): {dt * 1000:.1f} ms/frame "
               f"= {1 / dt:.1f} fps; CPU {cpu * 1000:.1f} ms/frame (all threads of this process)")
+        name = "render_seg" if seg else "render"
+        out |= {f"{name}_ms": dt * 1000, f"{name}_fps": 1 / dt, f"{name}_cpu_ms": cpu * 1000}
     snap: Snapshot = core.snapshot()
     r = cam.encoder.renderer
     r.segmentation = False
@@ -91,9 +98,10 @@ def standalone(frames: int, scale: int) -> None:
         r.render(snap)
     rt = (time.perf_counter() - t1) / frames
     print(f"  of which MuJoCo colour+depth rendering and the noise model: {rt * 1000:.1f} ms")
+    return out | {"render_mujoco_ms": rt * 1000}
 
 
-async def on_stack(services: list[str], seconds: float, scale: int) -> None:
+async def on_stack(services: list[str], seconds: float, scale: int) -> dict[str, float]:
     api = free_udp_port()
     env = {"AERMANI_SIM_API_PORT": str(api), "AERMANI_SIM_API_LOCAL_PORT": str(free_udp_port()),
            "AERMANI_SIM_GCS_PORT": str(free_udp_port()), "AERMANI_SIM_GCS_LOCAL_PORT": str(free_udp_port()),
@@ -103,6 +111,7 @@ async def on_stack(services: list[str], seconds: float, scale: int) -> None:
     stack = Stack(services, env=env, log_dir=log_dir)
     stack.start(wait=True, timeout=120)
     keys = Keys("am1")
+    out: dict[str, float] = {}
     try:
         bus = await Bus.open(connect=[stack.endpoint])
         try:
@@ -126,10 +135,14 @@ async def on_stack(services: list[str], seconds: float, scale: int) -> None:
             cam, sp = stats["camera"], stats["setpoints"]
             print(f"on Zenoh with {','.join(services)}: subscriber received {n / seconds:.1f} colour frames/s; sim "
                   f"published {cam['fps']:.1f} fps, mean frame work {cam['render_ms_mean']:.1f} ms")
+            out |= {"stack_received_fps": n / seconds, "stack_published_fps": cam["fps"],
+                    "stack_frame_work_ms": cam["render_ms_mean"], "stack_services": len(services)}
             if sp.get("n", 0) >= 3:
                 print(f"setpoint stream as received by the sim ({sp['n']} samples): interval p50 "
                       f"{sp['interval_ms_p50']:.2f} ms, p99 {sp['interval_ms_p99']:.2f} ms, max "
                       f"{sp['interval_ms_max']:.2f} ms; |interval - median| p99 = jitter {sp['jitter_ms_p99']:.2f} ms")
+                out |= {f"setpoint_{k}": sp[k] for k in ("interval_ms_p50", "interval_ms_p99", "interval_ms_max",
+                                                          "jitter_ms_p99", "n")}
             else:
                 print("no setpoint stream received (no bridge running)")
         finally:
@@ -137,6 +150,7 @@ async def on_stack(services: list[str], seconds: float, scale: int) -> None:
     finally:
         stack.stop()
         print(f"(service logs in {log_dir})")
+    return out
 
 
 def main() -> None:
@@ -147,16 +161,25 @@ def main() -> None:
     ap.add_argument("--services", default="", help="comma-separated; default: every service in this checkout")
     ap.add_argument("--physics-seconds", type=float, default=20.0)
     ap.add_argument("--no-stack", action="store_true", help="standalone figures only")
+    ap.add_argument("--cpu", type=int, default=-1,
+                    help="pin the physics and render figures to this core (the stack part is not pinned); -1: no pin")
+    add_json_option(ap)
     args = ap.parse_args()
     services = [s for s in args.services.split(",") if s] or list(available_services())
     if "sim" not in services:
         services.insert(0, "sim")
-    physics(args.physics_seconds)
-    standalone(args.frames, args.scale)
-    if args.no_stack:
-        return
-    np.random.seed(0)
-    asyncio.run(on_stack(services, args.seconds, args.scale))
+    cores = os.sched_getaffinity(0)
+    if args.cpu >= 0:
+        os.sched_setaffinity(0, {args.cpu})
+    figures = physics(args.physics_seconds)
+    figures |= standalone(args.frames, args.scale)
+    figures["standalone_cores"] = len(os.sched_getaffinity(0))
+    os.sched_setaffinity(0, cores)
+    if not args.no_stack:
+        np.random.seed(0)
+        figures |= asyncio.run(on_stack(services, args.seconds, args.scale))
+    figures["sim_fps_setting"] = SimSettings().fps
+    write_json(args.json, "sim", figures, args, services=services)
 
 
 if __name__ == "__main__":

@@ -8,7 +8,10 @@ one in-process router. Each task: the simulator resets to a fresh seeded layout,
 needed, a pick-and-place command runs to its terminal status; an ending is unsafe when the task did not
 succeed and the vehicle is neither landed nor holding still inside the geofence. Printed, never asserted.
 
-    .venv/bin/python benchmarks/soak.py [--minutes 30] [--out runs/soak]
+    .venv/bin/python benchmarks/soak.py [--minutes 30] [--out runs/soak] [--json PATH]
+
+The figures are also written as JSON to --json (default OUT/soak.json), which `benchmarks/run_all.py
+--soak-json PATH` reads into docs/performance.md.
 """
 
 from __future__ import annotations
@@ -23,11 +26,12 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from benchmarks._figures import add_json_option, write_json  # noqa: E402
 from services.executor.settings import ExecutorSettings  # noqa: E402
 from shared.bus import Bus  # noqa: E402
-from shared.keys import HEALTH_TOPIC, Keys  # noqa: E402
+from shared.keys import HEALTH_TOPIC, HEARTBEAT_TOPIC, Keys  # noqa: E402
 from shared.launcher import Stack, free_udp_port  # noqa: E402
-from shared.messages import Health, Scenario, TaskRequest, VehicleState  # noqa: E402
+from shared.messages import Health, Heartbeat, Scenario, TaskRequest, VehicleState  # noqa: E402
 from shared.tasks import follow_task  # noqa: E402
 
 SERVICES = ["sim", "autopilot_bridge", "perception", "executor", "reasoner", "recorder"]
@@ -55,11 +59,12 @@ def safe(st: VehicleState | None, fence: ExecutorSettings) -> bool:
     return inside and math.sqrt(v.x ** 2 + v.y ** 2 + v.z ** 2) < 0.15
 
 
-async def soak(stack: Stack, minutes: float) -> None:
+async def soak(stack: Stack, minutes: float) -> dict[str, object]:
     keys = Keys("am1")
     fence = ExecutorSettings()
     bus = await Bus.open(connect=[stack.endpoint])
     health = bus.subscribe(HEALTH_TOPIC.bind("am1", service="*"), maxsize=1000)
+    beats = bus.subscribe(HEARTBEAT_TOPIC.bind("am1", service="*"), maxsize=2000)
     state = bus.subscribe(keys.autopilot_state, maxsize=5)
     drops: dict[str, int] = collections.defaultdict(int)
     causes: collections.Counter[str] = collections.Counter()
@@ -92,6 +97,8 @@ async def soak(stack: Stack, minutes: float) -> None:
                     unsafe += 1
             while (h := health.recv_nowait()) is not None:
                 _note_drops(h, drops)
+            while (b := beats.recv_nowait()) is not None:
+                _note_beat(b, drops)
             if not base:
                 base = {p.label: rss_mb(p.proc.pid) for p in stack.procs if p.proc}
             left = (end_at - time.monotonic()) / 60
@@ -107,8 +114,17 @@ async def soak(stack: Stack, minutes: float) -> None:
     print("memory growth per service (RSS after the first task -> end, MB):")
     for label, mb in end.items():
         print(f"  {label:28s} {base.get(label, float('nan')):7.1f} -> {mb:7.1f}  ({mb - base.get(label, mb):+.1f})")
-    print("messages dropped (bus counters in health, recorder): " + (", ".join(f"{k} {v}" for k, v in drops.items())
-                                                                     or "none"))
+    dropped = ", ".join(f"{k} {v}" for k, v in sorted(drops.items())) or "none"
+    print(f"messages dropped (bus counters from every heartbeat and health, recorder): {dropped}")
+    growth = {label: mb - base.get(label, mb) for label, mb in end.items()}
+    return {"minutes": minutes, "tasks": total, "succeeded": done, "unsafe": unsafe, "causes": dict(causes),
+            "memory_growth_mb": growth, "memory_growth_max_mb": max(growth.values(), default=0.0),
+            "dropped": dict(drops), "dropped_total": sum(drops.values())}
+
+
+def _note_beat(b: Heartbeat, drops: dict[str, int]) -> None:
+    """Every service's heartbeat carries its bus's drop counter (services without a health topic too)."""
+    drops[b.service] = max(drops.get(b.service, 0), b.bus_dropped)
 
 
 def _note_drops(h: Health, drops: dict[str, int]) -> None:
@@ -121,6 +137,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--minutes", type=float, default=30.0)
     ap.add_argument("--out", default="runs/soak")
+    add_json_option(ap)
     args = ap.parse_args()
     api = free_udp_port()
     env = {"AERMANI_SIM_API_PORT": str(api), "AERMANI_SIM_API_LOCAL_PORT": str(free_udp_port()),
@@ -129,7 +146,8 @@ def main() -> None:
            "AERMANI_RECORDER_OUT_DIR": f"{args.out}/recordings", "AERMANI_SIM_SPEED_FACTOR": "4"}
     print(f"soak for {args.minutes:.0f} min: {', '.join(SERVICES)} (backend rules: a non-VLM baseline)")
     with Stack(SERVICES, env=env, log_dir=Path(args.out) / "logs") as stack:
-        asyncio.run(soak(stack, args.minutes))
+        figures = asyncio.run(soak(stack, args.minutes))
+    write_json(args.json or Path(args.out) / "soak.json", "soak", figures, args)
 
 
 if __name__ == "__main__":

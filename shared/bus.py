@@ -7,7 +7,10 @@ consumer side, so a malformed payload is logged, counted and dropped without tou
 Queue policy: each subscription has a bounded asyncio queue. When it is full, `overflow="drop_oldest"`
 (the default, right for sensor streams and state: the newest sample wins) discards the oldest queued
 sample; `overflow="drop_newest"` discards the arriving one. Either way the discarded sample is counted
-in `Subscription.dropped`, never silently lost. Publishers use CongestionControl.BLOCK by default so the
+in `Subscription.dropped`, never silently lost. `overflow="latest"` is for latest-value consumers (the
+newest vehicle state, depth frame or detections is all they read): it discards the oldest like
+`drop_oldest`, but counts it in `Subscription.superseded`, since a value replaced by a newer one of the same
+stream is what such a consumer asks for, not a lost message. Publishers use CongestionControl.BLOCK by default so the
 network layer itself does not drop (`reliable=False` selects DROP + express, for frames where late is
 worse than lost).
 """
@@ -44,7 +47,7 @@ log = logging.getLogger("aermani.bus")
 T = TypeVar("T")
 Req = TypeVar("Req")
 Rep = TypeVar("Rep")
-Overflow = Literal["drop_oldest", "drop_newest"]
+Overflow = Literal["drop_oldest", "drop_newest", "latest"]
 
 _ENC_JSON = zenoh.Encoding.APPLICATION_JSON
 _ENC_PROTOBUF = zenoh.Encoding.APPLICATION_PROTOBUF
@@ -332,6 +335,8 @@ class Subscription(Generic[T]):
         self.max_bytes = max_bytes_of(model, max_bytes)
         self.dropped = 0
         """Samples lost to a full queue or hand-off (the consumer is too slow)."""
+        self.superseded = 0
+        """With `overflow="latest"`: older samples replaced by a newer one before the consumer read them."""
         self.malformed = 0
         self.oversize = 0
         """Samples larger than `max_bytes`, dropped before they were copied."""
@@ -359,7 +364,7 @@ class Subscription(Generic[T]):
             self.received += 1
             # Bounded like the queue: while the loop is busy the hand-off keeps at most `maxsize` samples.
             if len(self._pending) >= self._maxsize:
-                self.dropped += 1
+                self._discard()
                 if self._overflow == "drop_newest":
                     return
                 self._pending.popleft()
@@ -368,6 +373,12 @@ class Subscription(Generic[T]):
                 return
             self._drain_scheduled = True
         self.bus._to_loop(self._drain)
+
+    def _discard(self) -> None:
+        if self._overflow == "latest":
+            self.superseded += 1
+        else:
+            self.dropped += 1
 
     def _drain(self) -> None:  # runs on the loop
         with self._pending_lock:
@@ -379,7 +390,7 @@ class Subscription(Generic[T]):
 
     def _push(self, item: tuple[str, bytes, str, int]) -> None:  # runs on the loop
         if self._queue.full():
-            self.dropped += 1
+            self._discard()
             if self._overflow == "drop_newest":
                 return
             with contextlib.suppress(asyncio.QueueEmpty):
@@ -544,12 +555,19 @@ class Bus:
             reliable = target.decl.reliable if reliable is None else reliable
         else:
             key = target
-        if isinstance(obj, Health) and "bus" not in obj.details and any((stats := self.stats()).values()):
-            # A service's health carries its bus counters once anything was dropped, malformed, oversize or
-            # refused: those show without each service having to report them.
-            obj = obj.model_copy(update={"details": {**obj.details, "bus": stats}})
+        if isinstance(obj, Health) and "bus" not in obj.details:
+            obj = self._with_bus_counters(obj)
         data, enc = encode(obj, schema)
         self._publisher(key, True if reliable is None else reliable).put(data, encoding=enc, attachment=attachment)
+
+    def _with_bus_counters(self, health: Any) -> Any:
+        """A service's health carries its bus counters once anything was dropped, malformed, oversize or
+        refused: those show without each service having to report them (superseded latest values alone do
+        not count)."""
+        stats = self.stats()
+        if not any(v for k, v in stats.items() if k != "superseded"):
+            return health
+        return health.model_copy(update={"details": {**health.details, "bus": stats}})
 
     def has_subscribers(self, target: BoundTopic[Any]) -> bool:
         """Whether any subscriber (local or behind the router) matches the topic now, so a producer can skip
@@ -588,11 +606,13 @@ class Bus:
         return sub_obj
 
     def stats(self) -> dict[str, int]:
-        """Counters: samples dropped (slow consumer), malformed and oversize over this bus's subscriptions, and
-        requests its queryables refused (busy, or larger than their cap)."""
+        """Counters: samples dropped (slow consumer), malformed and oversize over this bus's subscriptions,
+        requests its queryables refused (busy, or larger than their cap), and samples superseded by newer ones
+        on latest-value subscriptions (`overflow="latest"`: expected, not a loss)."""
         subs = list(self._subscriptions)
         return {"dropped": sum(s.dropped for s in subs), "malformed": sum(s.malformed for s in subs),
-                "oversize": sum(s.oversize for s in subs), "refused_queries": self._refused_queries}
+                "oversize": sum(s.oversize for s in subs), "refused_queries": self._refused_queries,
+                "superseded": sum(s.superseded for s in subs)}
 
     # ---- query / reply
 

@@ -18,7 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validat
 SCHEMA_VERSION = 1
 """Major version of the message schemas. A receiver rejects a message of a newer major version with an
 error naming both versions."""
-SCHEMA_MINOR = 1
+SCHEMA_MINOR = 2
 """Minor version: bumped when fields are added. A receiver accepts a message of a newer minor version,
 ignoring the fields it does not know (logged once per field)."""
 MAX_COMMAND_CHARS = 500
@@ -902,6 +902,9 @@ class Heartbeat(Message):
     """Process id, so a supervisor tells a restarted process from the one it replaced."""
     loop_lag_ms: float = Field(0.0, ge=0, allow_inf_nan=False)
     """How late the loop woke for this beat: a busy or blocked loop shows here first."""
+    bus_dropped: int = Field(0, ge=0)
+    """Samples this service's bus has dropped so far because a consumer was slow (minor version 2), so a
+    supervisor or a soak run sees drops of services that publish no health of their own."""
 
 
 # --------------------------------------------------------------------------- simulator (evaluation only)

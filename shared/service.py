@@ -32,7 +32,8 @@ async def heartbeat(bus: Bus, settings: ServiceSettings, name: str, period_s: fl
     while True:
         lag = max(0.0, loop.time() - due)
         with contextlib.suppress(Exception):  # a closing bus must not end the service
-            bus.publish(topic, Heartbeat(service=name, pid=pid, loop_lag_ms=round(lag * 1e3, 3)))
+            bus.publish(topic, Heartbeat(service=name, pid=pid, loop_lag_ms=round(lag * 1e3, 3),
+                                               bus_dropped=bus.stats()["dropped"]))
         due = loop.time() + period_s
         await asyncio.sleep(period_s)
 

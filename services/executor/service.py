@@ -270,7 +270,7 @@ class Executor:
             self.memory.world_reset()
 
     async def _pump_state(self) -> None:
-        sub = self.bus.subscribe(self.keys.autopilot_state, maxsize=4)
+        sub = self.bus.subscribe(self.keys.autopilot_state, maxsize=4, overflow="latest")
         while True:
             rec = await sub.recv_sample()
             self.state.update(rec.value, rec.receive_ns)
@@ -296,7 +296,7 @@ class Executor:
             task.add_done_callback(self._background.discard)
 
     async def _pump_depth(self) -> None:
-        sub = self.bus.subscribe(self.keys.camera_depth, maxsize=1)
+        sub = self.bus.subscribe(self.keys.camera_depth, maxsize=1, overflow="latest")
         while True:
             data = await sub.recv()
             try:
@@ -307,14 +307,14 @@ class Executor:
             self.clearance.update(stamp, img)
 
     async def _pump_calibration(self) -> None:
-        sub = self.bus.subscribe(self.keys.camera_calibration, maxsize=1)
+        sub = self.bus.subscribe(self.keys.camera_calibration, maxsize=1, overflow="latest")
         while True:
             data = await sub.recv()
             with contextlib.suppress(DecodeError):
                 self.clearance.intr = parse_calibration(data)
 
     async def _pump_detections(self) -> None:
-        sub = self.bus.subscribe(self.keys.detections, maxsize=2)
+        sub = self.bus.subscribe(self.keys.detections, maxsize=2, overflow="latest")
         while True:
             self.memory.set_visible(await sub.recv())
 

@@ -15,7 +15,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from services.reasoner.backends import Backend, ModelRequest, PastStep, PolicyContext, Seen
+from services.reasoner.backends.base import Backend, ModelRequest, PastStep, PolicyContext, Seen
 from services.reasoner.library import policy_skills
 from services.reasoner.parse import ParsedAnswer, parse_answer
 from services.reasoner.prompt import (
@@ -275,11 +275,12 @@ class TaskRunner:
                                                  "here, a new command is needed to fly again")
         return None
 
-    @staticmethod
-    def _link_problem(obs: Observation) -> str | None:
+    def _link_problem(self, obs: Observation) -> str | None:
         st = obs.state
         if st is None:
             return "no vehicle state from the autopilot bridge"
+        if obs.state_age_s > self.settings.state_stale_s:
+            return f"no vehicle state from the autopilot bridge for {obs.state_age_s:.1f} s"
         if not st.link_ok:
             return "no link to the autopilot"
         if st.landed_state is LandedState.IN_AIR and not st.offboard_ok:

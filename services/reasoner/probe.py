@@ -14,7 +14,8 @@ import statistics
 import time
 from dataclasses import asdict, dataclass, field
 
-from services.reasoner.backends import ModelRequest, make_backend
+from services.reasoner.backends import make_backend
+from services.reasoner.backends.base import ModelRequest
 from services.reasoner.library import default_library
 from services.reasoner.loop import policy_context
 from services.reasoner.parse import parse_answer

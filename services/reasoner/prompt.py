@@ -112,6 +112,8 @@ class Observation:
     image_jpeg: bytes | None = None
     image_stamp_ns: int = 0
     state: VehicleState | None = None
+    state_age_s: float = 0.0
+    """How long ago (this host's clock) `state` arrived: a silent bridge leaves an old state behind."""
     detections: tuple[Detection, ...] = ()
     memory: WorkingMemory | None = None
 

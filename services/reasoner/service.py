@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import logging
 
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 
 from services.reasoner import tracing
-from services.reasoner.backends import Backend, make_backend
+from services.reasoner.backends import make_backend
+from services.reasoner.backends.base import Backend
 from services.reasoner.loop import TaskRunner, World
 from services.reasoner.prompt import Observation
 from services.reasoner.settings import ReasonerSettings
@@ -55,10 +57,11 @@ class BusWorld(World):
         self.bus = bus
         self.settings = settings
         self.keys = settings.keys
-        self.frame: Latest[tuple[bytes, int]] = Latest(bus.subscribe(self.keys.camera_color, maxsize=2), _jpeg)
-        self.state: Latest[VehicleState] = Latest(bus.subscribe(self.keys.autopilot_state, maxsize=5))
-        self.detections: Latest[Detections] = Latest(bus.subscribe(self.keys.detections, maxsize=5))
-        self.memory: Latest[WorkingMemory] = Latest(bus.subscribe(self.keys.memory, maxsize=5))
+        latest = functools.partial(bus.subscribe, overflow="latest")  # only the newest value is read
+        self.frame: Latest[tuple[bytes, int]] = Latest(latest(self.keys.camera_color, maxsize=2), _jpeg)
+        self.state: Latest[VehicleState] = Latest(latest(self.keys.autopilot_state, maxsize=5))
+        self.detections: Latest[Detections] = Latest(latest(self.keys.detections, maxsize=5))
+        self.memory: Latest[WorkingMemory] = Latest(latest(self.keys.memory, maxsize=5))
         self.skills = skill_client(bus, settings.vehicle_id)
         self.approvals: dict[str, tuple[ApprovalStatus, asyncio.Future[ApprovalDecision]]] = {}
 
@@ -86,7 +89,8 @@ class BusWorld(World):
         frame = self.frame.value
         det = self.detections.value
         return Observation(image_jpeg=frame[0] if frame else None, image_stamp_ns=frame[1] if frame else 0,
-                           state=self.state.value, detections=det.items if det else (), memory=self.memory.value)
+                           state=self.state.value, state_age_s=self.state.age_s if self.state.value else 0.0,
+                           detections=det.items if det else (), memory=self.memory.value)
 
     async def run_skill(self, request: SkillRequest, timeout: float) -> tuple[SkillAccept, SkillStatus | None]:
         goal = await self.skills.send_goal(request, timeout=10.0)

@@ -73,6 +73,9 @@ class ReasonerSettings(ServiceSettings):
     link_wait_s: float = Field(20.0, ge=0)
     """While the autopilot link or offboard control is down mid-task, the reasoner issues no skill and waits
     this long for it to come back before it holds and ends the task (no step is spent waiting)."""
+    state_stale_s: float = Field(2.0, gt=0)
+    """A vehicle state older than this (the bridge publishes at >= 20 Hz) counts as a lost link: a dead or
+    silent bridge leaves its last state, still showing `link_ok`, behind."""
     skill_timeout_s: float = Field(180.0, gt=0)
     """Longest wait for one skill's terminal status before the reasoner holds and records a timeout."""
     frame_wait_s: float = Field(1.0, ge=0)

@@ -12,8 +12,8 @@ import time
 import pytest
 
 from services.gateway.models import TaskCreate
-from services.reasoner.backends import backend_names, make_backend, register
-from services.reasoner.backends.base import Backend, ModelReply, ModelRequest
+from services.reasoner.backends import backend_names, make_backend
+from services.reasoner.backends.base import Backend, ModelReply, ModelRequest, register
 from services.reasoner.backends.rules import RulesPolicy, render_answer
 from services.reasoner.settings import ReasonerSettings
 from shared.errors import ConfigError

@@ -59,6 +59,30 @@ async def test_hand_off_is_bounded_while_the_loop_is_busy(router):
         assert got.details["bus"]["dropped"] == sub.dropped
 
 
+async def test_latest_value_subscription_counts_superseded_not_dropped(router):
+    """`overflow="latest"`: the consumer reads only the newest value; older ones it never read are superseded,
+    not lost, so they stay out of `dropped` and out of the health counters."""
+    async with bus_pair(router) as (a, b):
+        t = Topic("test/state", m.Health, "test", "test").bind("t1")
+        sub = b.subscribe(t, maxsize=2, overflow="latest")
+        await asyncio.sleep(0.3)
+        for i in range(200):
+            a.publish(t, m.Health(service="s", ok=True, details={"i": i}))
+        time.sleep(1.0)  # a busy loop: the samples wait in the hand-off
+        await asyncio.sleep(0.2)
+        kept = []
+        while (v := sub.recv_nowait()) is not None:
+            kept.append(v.details["i"])
+        assert kept[-1] == 199 and len(kept) <= 2
+        assert sub.received == 200 and sub.superseded == 200 - len(kept) and sub.dropped == 0
+        assert b.stats()["dropped"] == 0 and b.stats()["superseded"] == sub.superseded
+        h = Topic("test/health", m.Health, "test", "test").bind("t1")
+        hs = a.subscribe(h)
+        await asyncio.sleep(0.3)
+        b.publish(h, m.Health(service="s", ok=True))
+        assert "bus" not in (await hs.recv(timeout=5)).details
+
+
 async def test_concurrent_queries_beyond_the_cap_get_busy_and_big_requests_are_refused(router):
     async with bus_pair(router) as (a, b):
         release = asyncio.Event()

@@ -1,4 +1,5 @@
-"""The key table in docs/architecture.md is generated from shared/keys.py and must not be stale."""
+"""The key table in docs/architecture.md (from shared/keys.py) and docs/messages.md (from shared/messages.py) are
+generated and must not be stale."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ from shared.keys import DECLARATIONS, Query, Topic
 
 
 def test_committed_key_table_is_current():
-    assert keydoc.main(["--check"]) == 0, "docs/architecture.md key table is stale: run python -m shared.keydoc"
+    assert keydoc.main(["--check"]) == 0, "a generated doc is stale: run python -m shared.keydoc"
 
 
 def test_every_declaration_has_a_row_with_its_types():
@@ -35,3 +36,13 @@ def test_no_call_site_names_a_declared_type_again():
                         rf"\.serve\({target}, [\w.]+, (?:[A-Z]\w*|None)\s*[,)]"):
             offenders += [f"{path.relative_to(root)}: {m.group(0)}" for m in re.finditer(pattern, text)]
     assert not offenders, offenders
+
+
+def test_messages_doc_has_every_message_and_field():
+    from shared.messages import MESSAGE_TYPES
+
+    text = keydoc.messages_doc()
+    for model in MESSAGE_TYPES:
+        assert f"### {model.__name__}\n" in text
+        for field in model.model_fields:
+            assert f"| `{field}` |" in text, (model.__name__, field)

@@ -39,8 +39,8 @@ class CameraSource(ABC):
     paced: ClassVar[bool] = False
     """True: `read()` itself waits for the device's next frame; False: the service paces reads to `fps`."""
     retry_open: ClassVar[bool] = True
-    """True for devices (unplugged now, plugged in later: keep trying); False for files, where a failed open
-    is a configuration error and the service exits with it."""
+    """True for devices (unplugged now, plugged in later: keep trying); False for what plays a file
+    (PlayedSource), where a failed open is a configuration error and the service exits with it."""
 
     def __init__(self, settings: CameraSettings) -> None:
         self.settings = settings
@@ -61,15 +61,6 @@ class CameraSource(ABC):
         By default: the SDK imports."""
         if self.sdk:
             self.sdk_module()
-
-    def input_path(self, what: str) -> Path:
-        """`path` of a source that plays a file: a CameraError naming AERMANI_CAMERA_PATH when unset or absent."""
-        if not self.settings.path:
-            raise CameraError(f"the {self.type} source needs AERMANI_CAMERA_PATH: {what}")
-        p = Path(self.settings.path)
-        if not p.exists():
-            raise CameraError(f"AERMANI_CAMERA_PATH {p} does not exist")
-        return p
 
     def check_calibration(self) -> None:
         """A calibration file named by AERMANI_CAMERA_CALIBRATION must exist (checked before anything opens)."""
@@ -105,6 +96,22 @@ class CameraSource(ABC):
 
     def describe(self) -> str:
         return self.type
+
+
+class PlayedSource(CameraSource):
+    """A source that plays what AERMANI_CAMERA_PATH names (a video, an image folder, a recorded log) instead of
+    a device: a failed open is a configuration error, never retried."""
+
+    retry_open = False
+
+    def input_path(self, what: str) -> Path:
+        """`path`, the thing to play: a CameraError naming AERMANI_CAMERA_PATH when unset or absent."""
+        if not self.settings.path:
+            raise CameraError(f"the {self.type} source needs AERMANI_CAMERA_PATH: {what}")
+        p = Path(self.settings.path)
+        if not p.exists():
+            raise CameraError(f"AERMANI_CAMERA_PATH {p} does not exist")
+        return p
 
 
 SOURCES: Registry[type[CameraSource]] = Registry("camera source", "type", "AERMANI_CAMERA_SOURCE", CameraError)

@@ -14,7 +14,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from services.camera.sources.base import CameraSource, Capture, fit, register
+from services.camera.sources.base import Capture, PlayedSource, fit, register
 from shared.errors import CameraError
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp")
@@ -53,11 +53,10 @@ def folder_frames(folder: Path) -> list[tuple[Path, Path | None]]:
 
 
 @register
-class FileSource(CameraSource):
+class FileSource(PlayedSource):
     """Camera source that plays a video file or a folder of images (colour only)."""
 
     type = "file"
-    retry_open = False
 
     def check(self) -> None:
         p = self.input_path("a video file or a folder of images")

@@ -10,7 +10,7 @@ from __future__ import annotations
 from collections.abc import Iterator
 from pathlib import Path
 
-from services.camera.sources.base import CameraSource, Capture, register
+from services.camera.sources.base import Capture, PlayedSource, register
 from shared.errors import CameraError, DecodeError
 from shared.keys import CAMERA_CALIBRATION, CAMERA_COLOR, CAMERA_DEPTH
 from shared.sensors import CompressedImage, decode_proto, parse_calibration, parse_raw16, stamp_to_ns
@@ -29,11 +29,10 @@ def _vehicles_with_color(path: Path) -> list[str]:
 
 
 @register
-class McapSource(CameraSource):
+class McapSource(PlayedSource):
     """Camera source that replays the camera frames recorded in an aermani MCAP log."""
 
     type = "mcap"
-    retry_open = False
 
     def check(self) -> None:
         if not self.input_path("an aermani MCAP log").is_file():

@@ -1,4 +1,5 @@
-"""Policy backends behind one interface, chosen by the `backend` setting from the registry in base.py.
+"""Policy backends behind one interface, chosen by the `backend` setting from the registry in base.py (where the
+interface, its request and reply types and `@register` are imported from; this package builds a backend).
 
 Importing this package registers the built-in backends (one module each); `backend_modules` names extra
 modules to import first, so a backend defined outside this package registers the same way.
@@ -9,21 +10,11 @@ from __future__ import annotations
 import importlib
 
 from services.reasoner.backends import anthropic_backend, openai_backend, replay, rules  # noqa: F401 - register
-from services.reasoner.backends.base import (
-    BACKENDS,
-    Backend,
-    ModelReply,
-    ModelRequest,
-    PastStep,
-    PolicyContext,
-    Seen,
-    register,
-)
+from services.reasoner.backends.base import BACKENDS, Backend
 from services.reasoner.settings import ReasonerSettings
 from shared.errors import ConfigError
 
-__all__ = ["BACKENDS", "Backend", "ModelReply", "ModelRequest", "PastStep", "PolicyContext", "Seen", "backend_names",
-           "load_backend_modules", "make_backend", "register"]
+__all__ = ["BACKENDS", "backend_names", "load_backend_modules", "make_backend"]
 
 
 def load_backend_modules(modules: str) -> None:

@@ -25,7 +25,7 @@ import json
 import math
 import re
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from services.reasoner.backends.base import (
     Backend,
@@ -263,87 +263,12 @@ class RulesPolicy:
 
     def _target(self, ctx: PolicyContext, plan: Plan, rest: list[PastStep]) -> tuple[str | None, str]:
         """(label or query to localize, why); label None when nothing fits yet."""
-        visible = [v for v in ctx.visible if v.category == "object" and not _excluded(v.label, plan)]
-        for part in (self._by_choice, self._by_size, self._by_category, self._by_name):
-            found = part(ctx, plan, rest, visible)
+        choice = _TargetChoice(ctx, plan, rest)
+        for part in (choice.by_choice, choice.by_size, choice.by_category, choice.by_name):
+            found = part()
             if found is not None:
                 return found
         return None, "The command names no object I can identify."
-
-    @staticmethod
-    def _by_choice(ctx: PolicyContext, plan: Plan, rest: list[PastStep],
-                   visible: list[Seen]) -> tuple[str | None, str] | None:
-        if not plan.choices:
-            return None
-        # Decided from what is seen where the command says to look (after its motions), once: the first
-        # successful localization of either choice settles it; a failed look for the first means "otherwise".
-        for s in rest:
-            if s.skill == S.OBJ_LOCALIZATION and s.argument in plan.choices and s.state == "succeeded":
-                return s.argument, f"I already chose the {s.argument} for the conditional."
-        first, other = plan.choices
-        if any(s.skill == S.OBJ_LOCALIZATION and s.argument == first for s in rest):
-            return other, f"I looked for a {first} here and did not find one, so grab the {other}."
-        if any(_matches(v.label, first) for v in visible) or first in ctx.known_objects:
-            return first, f"I see a {first}, so the condition holds: pick the {first}."
-        return other, f"I do not see a {first}, so the command says to grab the {other}."
-
-    @staticmethod
-    def _by_size(ctx: PolicyContext, plan: Plan, rest: list[PastStep],
-                 visible: list[Seen]) -> tuple[str | None, str] | None:
-        if not plan.selector:
-            return None
-        group = plan.group or ""
-        # Sizes are compared while both are in view; once chosen, a turn that hides the other one (or the
-        # choice itself) must not flip the decision to "the larger of the one I see".
-        for s in rest:
-            if s.skill == S.OBJ_LOCALIZATION and s.argument and (not group or _matches(s.argument, group)
-                                                                 or group in s.argument):
-                return s.argument, f"I already chose the {s.argument} as the {plan.selector} {group or 'one'}."
-        cands = [v for v in visible if not group or _matches(v.label, group) or group in v.label]
-        sized = [v for v in cands if v.volume is not None]
-        if len(sized) >= 2:
-            pick = (max if plan.selector == "larger" else min)(sized, key=lambda v: v.volume or 0.0)
-            return pick.label, (f"Of the {len(sized)} {group or 'object'} candidates I compare sizes: the "
-                                f"{plan.selector} is the {pick.label}.")
-        # Only one in view: a name that says its size ("large box") settles it, in view or seen earlier;
-        # one whose name says the opposite is not taken for want of the other.
-        want, avoid = SIZE_WORDS[plan.selector], SIZE_WORDS["smaller" if plan.selector == "larger" else "larger"]
-        names = [v.label for v in cands] + [n for n in ctx.positions
-                                            if not group or _matches(n, group) or group in n]
-        named = next((n for n in names if set(n.lower().split()) & want), None)
-        if named:
-            return named, f"The {named} is the {plan.selector} {group or 'one'} by its name."
-        if len(sized) == 1 and not set(sized[0].label.lower().split()) & avoid:
-            return sized[0].label, f"The {sized[0].label} is the only {group or 'candidate'} I detect."
-        return None, f"I need both {group or 'candidate'}s in view to compare sizes."
-
-    @staticmethod
-    def _by_category(ctx: PolicyContext, plan: Plan, rest: list[PastStep],
-                     visible: list[Seen]) -> tuple[str | None, str] | None:
-        if not plan.category:
-            return None
-        words = CATEGORY_WORDS[plan.category]
-        cands = [v for v in visible if any(w in v.label.lower() for w in words)]
-        if cands:
-            pick = min(cands, key=lambda v: v.distance if v.distance is not None else 1e9)
-            return pick.label, f"The {pick.label} is a {plan.category}, and the nearest one I detect."
-        known = [k for k in ctx.known_objects if any(w in k.lower() for w in words) and not _excluded(k, plan)]
-        if known:
-            return known[0], f"The {known[0]} in working memory is a {plan.category}."
-        return None, f"No {plan.category} is detected yet."
-
-    @staticmethod
-    def _by_name(ctx: PolicyContext, plan: Plan, rest: list[PastStep],
-                 visible: list[Seen]) -> tuple[str | None, str] | None:
-        if not plan.target:
-            return None
-        for v in visible:
-            if _matches(v.label, plan.target):
-                return v.label, f"The {v.label} matches '{plan.target}' and is detected."
-        for k in ctx.known_objects:
-            if _matches(k, plan.target):
-                return k, f"The {k} is in working memory."
-        return None, f"The {plan.target} is not detected yet."
 
     def _pick(self, ctx: PolicyContext, plan: Plan, rest: list[PastStep]) -> tuple[str, str | None, str]:
         target, why = self._target(ctx, plan, rest)
@@ -471,6 +396,96 @@ class RulesPolicy:
             return turn, None, (f"It was seen earlier at ({pos[0]:.1f}, {pos[1]:.1f}), "
                                 f"{math.degrees(bearing):.0f} deg from my heading: turn toward it.")
         return localize, query, f"It was seen earlier at ({pos[0]:.1f}, {pos[1]:.1f}), ahead of me now: localize it."
+
+
+@dataclass
+class _TargetChoice:
+    """The ways the target object is chosen (a conditional's choice, a size comparison, the nearest of a category,
+    the named one), each None when the command does not choose that way; all read the context, the plan, the
+    steps since the command's motions and the objects in view that the command does not exclude."""
+
+    ctx: PolicyContext
+    plan: Plan
+    rest: list[PastStep]
+    visible: list[Seen] = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.visible = [v for v in self.ctx.visible if v.category == "object" and not _excluded(v.label, self.plan)]
+
+    def by_choice(self) -> tuple[str | None, str] | None:
+        """A conditional ("if you see an orange, pick it up; otherwise grab the banana") picks one choice."""
+        choices = self.plan.choices
+        if not choices:
+            return None
+        # Decided from what is seen where the command says to look (after its motions), once: the first
+        # successful localization of either choice settles it; a failed look for the first means "otherwise".
+        for s in self.rest:
+            if s.skill == S.OBJ_LOCALIZATION and s.argument in choices and s.state == "succeeded":
+                return s.argument, f"I already chose the {s.argument} for the conditional."
+        first, other = choices
+        if any(s.skill == S.OBJ_LOCALIZATION and s.argument == first for s in self.rest):
+            return other, f"I looked for a {first} here and did not find one, so grab the {other}."
+        if any(_matches(v.label, first) for v in self.visible) or first in self.ctx.known_objects:
+            return first, f"I see a {first}, so the condition holds: pick the {first}."
+        return other, f"I do not see a {first}, so the command says to grab the {other}."
+
+    def by_size(self) -> tuple[str | None, str] | None:
+        """A size comparison ("the larger box") picks among the group's members in view, or by a name."""
+        selector, group = self.plan.selector, self.plan.group or ""
+        if not selector:
+            return None
+        # Sizes are compared while both are in view; once chosen, a turn that hides the other one (or the
+        # choice itself) must not flip the decision to "the larger of the one I see".
+        for s in self.rest:
+            if s.skill == S.OBJ_LOCALIZATION and s.argument and (not group or _matches(s.argument, group)
+                                                                 or group in s.argument):
+                return s.argument, f"I already chose the {s.argument} as the {selector} {group or 'one'}."
+        cands = [v for v in self.visible if not group or _matches(v.label, group) or group in v.label]
+        sized = [v for v in cands if v.volume is not None]
+        if len(sized) >= 2:
+            pick = (max if selector == "larger" else min)(sized, key=lambda v: v.volume or 0.0)
+            return pick.label, (f"Of the {len(sized)} {group or 'object'} candidates I compare sizes: the "
+                                f"{selector} is the {pick.label}.")
+        # Only one in view: a name that says its size ("large box") settles it, in view or seen earlier;
+        # one whose name says the opposite is not taken for want of the other.
+        want, avoid = SIZE_WORDS[selector], SIZE_WORDS["smaller" if selector == "larger" else "larger"]
+        names = [v.label for v in cands] + [n for n in self.ctx.positions
+                                            if not group or _matches(n, group) or group in n]
+        named = next((n for n in names if set(n.lower().split()) & want), None)
+        if named:
+            return named, f"The {named} is the {selector} {group or 'one'} by its name."
+        if len(sized) == 1 and not set(sized[0].label.lower().split()) & avoid:
+            return sized[0].label, f"The {sized[0].label} is the only {group or 'candidate'} I detect."
+        return None, f"I need both {group or 'candidate'}s in view to compare sizes."
+
+    def by_category(self) -> tuple[str | None, str] | None:
+        """A category ("a snack") picks its nearest member in view, else one in working memory."""
+        category = self.plan.category
+        if not category:
+            return None
+        words = CATEGORY_WORDS[category]
+        cands = [v for v in self.visible if any(w in v.label.lower() for w in words)]
+        if cands:
+            pick = min(cands, key=lambda v: v.distance if v.distance is not None else 1e9)
+            return pick.label, f"The {pick.label} is a {category}, and the nearest one I detect."
+        known = [k for k in self.ctx.known_objects
+                 if any(w in k.lower() for w in words) and not _excluded(k, self.plan)]
+        if known:
+            return known[0], f"The {known[0]} in working memory is a {category}."
+        return None, f"No {category} is detected yet."
+
+    def by_name(self) -> tuple[str | None, str] | None:
+        """A named object: one in view that matches the name, else one in working memory."""
+        target = self.plan.target
+        if not target:
+            return None
+        for v in self.visible:
+            if _matches(v.label, target):
+                return v.label, f"The {v.label} matches '{target}' and is detected."
+        for k in self.ctx.known_objects:
+            if _matches(k, target):
+                return k, f"The {k} is in working memory."
+        return None, f"The {target} is not detected yet."
 
 
 def _search_window(rest: list[PastStep]) -> list[PastStep]:

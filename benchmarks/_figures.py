@@ -1,0 +1,50 @@
+"""Structured output shared by the benchmarks: `--json PATH` writes a benchmark's figures as JSON.
+
+Every benchmark prints its figures for a reader; with `--json PATH` it also writes them, with the arguments
+that produced them, so `benchmarks/run_all.py` reads numbers instead of scraping text. Not a benchmark itself
+(the leading underscore keeps `run_all.py` from running it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+
+def add_json_option(ap: argparse.ArgumentParser) -> None:
+    """The `--json PATH` option every benchmark takes."""
+    ap.add_argument("--json", type=Path, default=None, metavar="PATH",
+                    help="also write the figures as JSON to PATH (read by benchmarks/run_all.py)")
+
+
+def _clean(value: Any) -> Any:
+    """JSON-safe: NaN/inf become None, numpy scalars plain numbers, tuples lists."""
+    if isinstance(value, dict):
+        return {str(k): _clean(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_clean(v) for v in value]
+    if isinstance(value, Path):
+        return str(value)
+    if hasattr(value, "item") and not isinstance(value, (str, bytes)):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def write_json(path: Path | None, benchmark: str, figures: dict[str, Any], args: argparse.Namespace | None = None,
+               **extra: Any) -> None:
+    """Write `figures` (name -> number, or a nested dict) for `benchmark` to `path`; nothing when path is None."""
+    if path is None:
+        return
+    config = {k: v for k, v in vars(args).items() if k != "json"} if args else {}
+    doc = {"benchmark": benchmark, "argv": sys.argv[1:], "config": config, "figures": figures,
+           "load_average": os.getloadavg(), "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z"), **extra}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(_clean(doc), indent=2) + "\n")
