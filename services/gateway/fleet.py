@@ -139,7 +139,7 @@ class Fleet:
                 self.view(vid).services[svc] = True
         for task in await self.store.running_tasks():
             if not self.view(task["vehicle_id"]).reasoner_alive:
-                await self._end_orphan(task, "the reasoner was not running when the gateway started")
+                await self.end_orphan(task, "the reasoner was not running when the gateway started")
 
         def sub(topic: Topic[Any], handler: Callable[[str, Any], Awaitable[None]], maxsize: int = 1000,
                 ordered: bool = False, **params: str) -> None:
@@ -327,9 +327,9 @@ class Fleet:
                 break  # a new reasoner process: the old one's tasks have nobody
             await asyncio.sleep(0.1)
         for task in await self.store.running_tasks(view.vehicle_id):
-            await self._end_orphan(task, f"the reasoner of {view.vehicle_id} stopped while the task was running")
+            await self.end_orphan(task, f"the reasoner of {view.vehicle_id} stopped while the task was running")
 
-    async def _end_orphan(self, task: dict[str, Any], why: str) -> None:
+    async def end_orphan(self, task: dict[str, Any], why: str) -> None:
         """No reasoner will ever finish this task: end it so it stops blocking its vehicle and its streams end."""
         prev = task.get("status") or {}
         st = TaskStatus(vehicle_id=task["vehicle_id"], task_id=task["task_id"], command=task["command"],

@@ -79,6 +79,24 @@ def test_conflict_abort_and_restart(gw, client: httpx.Client) -> None:
     assert gw.fake.aborts[-1].task_id is None
 
 
+def test_a_task_whose_end_was_missed_does_not_block_its_vehicle(gw, client: httpx.Client) -> None:
+    """The store still shows a task running whose final status was published while the gateway was away. The
+    reasoner is idle, so it accepts a new task, and the stale row ends with the reason instead of answering
+    409 forever. (While a task really runs, the reasoner refuses: the conflict test above.)"""
+    from shared.messages import TaskState, TaskStatus
+
+    store, stale = gw.app.state.store, "task-missedend01"
+    status = TaskStatus(vehicle_id="am1", task_id=stale, command="an old one", state=TaskState.RUNNING, steps=4)
+    gw.call(lambda: store.create_task(stale, "am1", "an old one", {"command": "an old one"}))
+    gw.call(lambda: store.record_status("am1", status.model_dump(mode="json")))
+    assert client.get(f"/tasks/{stale}").json()["state"] == "running"
+    r = client.post("/tasks", json={"command": "a fresh one", "vehicle_id": "am1"})
+    assert r.status_code == 202, r.text
+    old = client.get(f"/tasks/{stale}").json()
+    assert old["state"] == "failed" and "its end was not received" in old["message"], old
+    wait_task(client, r.json()["task_id"], {"succeeded", "failed"})
+
+
 @pytest.mark.parametrize(("body", "status", "where"), [
     ({"command": "x" * 501}, 422, "body.command"),
     ({"command": "fly\x00 away"}, 422, "body.command"),

@@ -64,10 +64,10 @@ async def create_task(body: TaskCreate, request: Request, fleet: FleetDep, store
     """Send a natural-language command to a vehicle's reasoner. Answers 202 once the reasoner has accepted
     the task; follow it at `links.events`."""
     vehicle = pick_vehicle(fleet, settings, body.vehicle_id)
-    running = await store.running_tasks(vehicle)
-    if running:
-        raise ApiError(409, f"task {running[0]['task_id']} is still {running[0]['state']} on {vehicle}; wait for "
-                            f"it to end or abort it (POST {links(running[0]['task_id']).abort})")
+    # A task the store still shows running may have ended while this gateway was away (its final status was
+    # never received). The reasoner, which runs one task at a time, is the authority: it refuses the new task
+    # while one runs (409 with its reason); when it accepts, the stored rows were stale and are closed.
+    stale = await store.running_tasks(vehicle)
     task_id = new_id("task-")
     req = TaskRequest(command=body.command, task_id=task_id, backend=body.backend, variant=body.variant,
                       t_max_s=body.t_max_s, takeoff=body.takeoff)
@@ -87,7 +87,14 @@ async def create_task(body: TaskCreate, request: Request, fleet: FleetDep, store
         raise ApiError(502, f"the reasoner of {vehicle} refused the request: {exc.payload[:300]}")
     if not accept.accepted:
         await store.delete_task(task_id)
-        raise ApiError(409, f"the reasoner of {vehicle} refused the task: {accept.reason or 'no reason given'}")
+        why = accept.reason or "no reason given"
+        if stale:
+            raise ApiError(409, f"task {stale[0]['task_id']} is still {stale[0]['state']} on {vehicle} (the reasoner: "
+                                f"{why}); wait for it to end or abort it (POST {links(stale[0]['task_id']).abort})")
+        raise ApiError(409, f"the reasoner of {vehicle} refused the task: {why}")
+    for old in stale:
+        await fleet.end_orphan(old, f"its end was not received (the gateway was away); the reasoner of {vehicle} "
+                                    f"was idle when task {task_id} started")
     row = await store.get_task(task_id)
     state = TaskState(row["state"]) if row else TaskState.PENDING
     return TaskCreated(task_id=task_id, vehicle_id=vehicle, state=state, links=links(task_id))
