@@ -329,6 +329,7 @@ def _observation(index: LogIndex, prompt_mod, vid: str, rec: ReasoningStep, hist
 async def _decide(mods, backend, settings, variant: str, library, command: str, history, obs):
     """One decision with the reasoner's own prompt compiler, parser and re-prompt budget."""
     _backends, _library, loop, parse, prompt_mod, _ = mods
+    from services.reasoner.backends.base import ModelRequest
     compiled = prompt_mod.PromptCompiler(variant, library).compile(command, history, obs)
     ctx = loop.policy_context(command, variant, library, history, obs)
     feedback: list[tuple[str, str]] = []
@@ -337,7 +338,7 @@ async def _decide(mods, backend, settings, variant: str, library, command: str, 
     for _attempt in range(settings.max_reprompts + 1):
         t0 = time.perf_counter()
         try:
-            reply = await backend.complete(_backends.ModelRequest(compiled, ctx, list(feedback)))
+            reply = await backend.complete(ModelRequest(compiled, ctx, list(feedback)))
         except AermaniError as exc:
             calls.append(ModelCall(raw_answer="", valid=False, error=f"model error: {exc}",
                                    latency_s=time.perf_counter() - t0))

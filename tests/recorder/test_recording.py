@@ -181,8 +181,9 @@ async def test_sigkill_then_recover_salvages_every_complete_chunk(tmp_path: Path
         async def record_then_kill() -> Health:
             async with bus_for(stack) as bus:
                 await wait_health(bus, lambda h: h.ok)
-                for i in range(n_sent):
-                    bus.publish(K.autopilot_state, VehicleState(stamp_ns=1_000_000 + i, message=f"#{i}"))
+                for i in range(n_sent):  # reliably: the key is best effort, and this tests recovery, not the bus
+                    bus.publish(K.autopilot_state, VehicleState(stamp_ns=1_000_000 + i, message=f"#{i}"),
+                                reliable=True)
                 # Nothing but our samples is recorded, so once all are written `durable` cannot change.
                 h = await wait_health(bus, lambda h: h.details["written"] == n_sent)
                 stack.kill("recorder", signal.SIGKILL)
