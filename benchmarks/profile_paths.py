@@ -19,6 +19,7 @@ import argparse
 import sys
 import time
 from collections import defaultdict
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -55,6 +56,23 @@ def top_frames(profiler: Profiler, n: int) -> tuple[float, list[dict[str, Any]]]
     rows = sorted(own.items(), key=lambda kv: -kv[1])[:n]
     return total, [{"function": f, "where": w, "self_ms": 1000 * t, "share_pct": 100 * t / total if total else 0.0}
                    for (f, w), t in rows]
+
+
+def profiled(title: str, iterations: int, html_name: str, html: Path | None, top: int,
+             work: Callable[[], object]) -> dict[str, Any]:
+    """Run `work` under pyinstrument; its top frames, wall time per iteration (profiler on), HTML if asked."""
+    profiler = Profiler(interval=INTERVAL_S)
+    t0 = time.perf_counter()
+    profiler.start()
+    work()
+    profiler.stop()
+    wall = time.perf_counter() - t0
+    if html:
+        html.mkdir(parents=True, exist_ok=True)
+        profiler.write_html(str(html / html_name))
+    total, rows = top_frames(profiler, top)
+    return {"title": title, "iterations": iterations, "per_iteration_ms": 1000 * wall / iterations,
+            "profiled_s": total, "interval_ms": INTERVAL_S * 1000, "top": rows}
 
 
 def _frames(n: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, str]]:
@@ -96,10 +114,8 @@ def camera_to_perception(frames: int, top: int, html: Path | None) -> dict[str, 
     perception = Perception(make_segmenter(s), s)
     store = FrameStore(need_segmentation=perception.segmenter.needs_segmentation)
     cam_in_base = base_to_camera()
-    profiler = Profiler(interval=INTERVAL_S)
-    t0 = time.perf_counter()
-    profiler.start()
-    for rgb, depth_mm, cam_to_world, name in views:
+
+    def one_frame(rgb: np.ndarray, depth_mm: np.ndarray, cam_to_world: np.ndarray, name: str) -> None:
         stamp = time.time_ns()
         # camera side: the payloads a camera (or the simulator) publishes for one frame
         color = color_message(rgb, stamp, jpeg=encode_jpeg(rgb, 85))
@@ -115,15 +131,13 @@ def camera_to_perception(frames: int, top: int, html: Path | None) -> dict[str, 
             raise SystemExit(f"perception built no frame (missing: {store.missing()})")
         perception.detections(frame)
         perception.localize_object(frame, LocalizeRequest(query=name), q.parse(name))
-    profiler.stop()
-    wall = time.perf_counter() - t0
-    if html:
-        html.mkdir(parents=True, exist_ok=True)
-        profiler.write_html(str(html / "camera_to_perception.html"))
-    total, rows = top_frames(profiler, top)
-    return {"title": "Camera frames -> perception (colour segmenter, 640x480)", "iterations": len(views),
-            "per_iteration_ms": 1000 * wall / len(views), "profiled_s": total, "interval_ms": INTERVAL_S * 1000,
-            "top": rows}
+
+    def work() -> None:
+        for view in views:
+            one_frame(*view)
+
+    return profiled("Camera frames -> perception (colour segmenter, 640x480)", len(views),
+                    "camera_to_perception.html", html, top, work)
 
 
 def reasoning_step(steps: int, top: int, html: Path | None) -> dict[str, Any]:
@@ -169,19 +183,8 @@ def reasoning_step(steps: int, top: int, html: Path | None) -> dict[str, Any]:
         return seen
 
     answers = run(None)  # the model stand-in, unprofiled
-    profiler = Profiler(interval=INTERVAL_S)
-    t0 = time.perf_counter()
-    profiler.start()
-    run(answers)
-    profiler.stop()
-    wall = time.perf_counter() - t0
-    if html:
-        html.mkdir(parents=True, exist_ok=True)
-        profiler.write_html(str(html / "reasoning_step.html"))
-    total, rows = top_frames(profiler, top)
-    return {"title": "One reasoning step (framework only, full variant)", "iterations": steps,
-            "per_iteration_ms": 1000 * wall / steps, "profiled_s": total, "interval_ms": INTERVAL_S * 1000,
-            "top": rows}
+    return profiled("One reasoning step (framework only, full variant)", steps, "reasoning_step.html", html, top,
+                    lambda: run(answers))
 
 
 def show(p: dict[str, Any]) -> None:

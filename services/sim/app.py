@@ -181,10 +181,7 @@ class CameraPublisher:
                     log.exception("rendering failed; retrying next frame")
                 else:
                     self.last_frames = (color, depth, seg)
-                    bus.publish(self.keys.camera_color, color)
-                    bus.publish(self.keys.camera_depth, depth)
-                    if seg is not None:
-                        bus.publish(self.keys.camera_segmentation, seg)
+                    self._publish_frames(color, depth, seg)
                     bus.publish(self.keys.tf, tf)
                     self.frames += 1
                     self.failures = 0
@@ -203,11 +200,14 @@ class CameraPublisher:
         assert self.bus is not None
         self.bus.publish(self.keys.tf, self.transforms(self.core.snapshot(), stamp), reliable=False)
         if self.fault == "stuck" and self.last_frames is not None:
-            color, depth, seg = self.last_frames
-            self.bus.publish(self.keys.camera_color, color)
-            self.bus.publish(self.keys.camera_depth, depth)
-            if seg is not None:
-                self.bus.publish(self.keys.camera_segmentation, seg)
+            self._publish_frames(*self.last_frames)
+
+    def _publish_frames(self, color: bytes, depth: bytes, seg: bytes | None) -> None:
+        assert self.bus is not None
+        self.bus.publish(self.keys.camera_color, color)
+        self.bus.publish(self.keys.camera_depth, depth)
+        if seg is not None:
+            self.bus.publish(self.keys.camera_segmentation, seg)
 
     def health(self) -> Health:
         st = self.stats()
