@@ -11,6 +11,7 @@ import argparse
 import json
 import math
 import os
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -38,13 +39,27 @@ def _clean(value: Any) -> Any:
     return value
 
 
+def git_commit() -> str:
+    """The checkout's short commit, marked when tracked files have uncommitted changes."""
+    root = Path(__file__).resolve().parent.parent
+
+    def git(*a: str) -> str:
+        try:
+            return subprocess.run(["git", *a], cwd=root, capture_output=True, text=True, timeout=30).stdout.strip()
+        except (OSError, subprocess.SubprocessError):
+            return ""
+    head = git("rev-parse", "--short", "HEAD") or "unknown"
+    dirty = git("status", "--porcelain", "--untracked-files=no")
+    return head + (" (with uncommitted changes)" if dirty else "")
+
+
 def write_json(path: Path | None, benchmark: str, figures: dict[str, Any], args: argparse.Namespace | None = None,
                **extra: Any) -> None:
     """Write `figures` (name -> number, or a nested dict) for `benchmark` to `path`; nothing when path is None."""
     if path is None:
         return
     config = {k: v for k, v in vars(args).items() if k != "json"} if args else {}
-    doc = {"benchmark": benchmark, "argv": sys.argv[1:], "config": config, "figures": figures,
+    doc = {"benchmark": benchmark, "commit": git_commit(), "argv": sys.argv[1:], "config": config, "figures": figures,
            "load_average": os.getloadavg(), "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z"), **extra}
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(_clean(doc), indent=2) + "\n")

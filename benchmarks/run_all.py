@@ -35,6 +35,10 @@ from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from benchmarks._figures import git_commit  # noqa: E402
+
 DOC = ROOT / "docs" / "performance.md"
 PARTIAL_DOC = ROOT / "runs" / "bench" / "performance.md"
 
@@ -76,6 +80,15 @@ PAPER_MEDIAN_RT_MS = 920.0
 PX4_OFFBOARD_PERIOD_MS = 500.0
 """PX4 leaves OFFBOARD unless setpoints arrive faster than 2 Hz: 500 ms is the longest allowed gap."""
 DEMO_FPS = 15.0
+SEGMENTER = {"color": "color segmenter", "sim": "sim segmenter (the simulator's ground-truth oracle)"}
+"""How each perception row names its segmenter: `sim` reads the simulator's own labels, so it says so."""
+PRODUCED_BY = (
+    "What produced the figures that depend on a policy or perception: the soak runs the `rules` baseline (a "
+    "rule-based policy, not a VLM) with the real colour segmenter on the MuJoCo simulator with `realistic` camera "
+    "and pose noise, one vehicle, four pick-and-place commands, seeds from 1001 (benchmarks/soak.py); the "
+    "cacheable-prefix share is measured on the prompts of the recorded `rules` episodes in docs/eval/rules-dev "
+    "(dev split, realistic MuJoCo, colour segmenter); the localization rows use the colour segmenter on realistic "
+    "renders; the bus, camera, recorder and abort rows involve no policy. No figure here is about a VLM.")
 """The simulator's camera rate (`AERMANI_SIM_FPS`, default 15 fps), used when the run does not report it."""
 
 Results = dict[str, dict[str, Any]]
@@ -173,14 +186,14 @@ FIGURES: list[Figure] = [
            fig("camera", "pairs_per_s"), "requested rate", fig("camera", "requested_fps")),
     Figure("camera.latency_p99", "camera service: stamp -> subscriber latency p99", "ms",
            fig("camera", "latency_ms_p99"), "requested frame period", requested_period_ms),
-    *(Figure(f"perception.{seg}_{q}", f"perception in-process, {seg} segmenter: localize_{q} p95, one core", "ms",
+    *(Figure(f"perception.{seg}_{q}", f"perception in-process, {SEGMENTER[seg]}: localize_{q} p95, one core", "ms",
              fig("perception", f"inproc_{seg}_{q}_p95_ms"), CAM, camera_period_ms,
              ("<=", 60.0 if q == "object" else 120.0), "value", "#4")
       for seg in ("color", "sim") for q in ("object", "placement")),
-    *(Figure(f"perception.{seg}_{q}_cpu", f"perception in-process, {seg} segmenter: localize_{q} CPU time p95", "ms",
+    *(Figure(f"perception.{seg}_{q}_cpu", f"perception in-process, {SEGMENTER[seg]}: localize_{q} CPU time p95", "ms",
              fig("perception", f"inproc_{seg}_{q}_cpu_p95_ms"), CAM, camera_period_ms)
       for seg in ("color", "sim") for q in ("object", "placement")),
-    *(Figure(f"perception.zenoh_{seg}_{q}", f"perception over Zenoh, {seg} segmenter: localize_{q} p95", "ms",
+    *(Figure(f"perception.zenoh_{seg}_{q}", f"perception over Zenoh, {SEGMENTER[seg]}: localize_{q} p95", "ms",
              fig("perception", f"zenoh_{seg}_{q}_p95_ms"), CAM, camera_period_ms)
       for seg in ("color", "sim") for q in ("object", "placement")),
     Figure("executor.abort_ack", "executor: abort -> AbortAck p95", "ms", fig("executor", "ack_p95_ms"), PX4,
@@ -365,17 +378,6 @@ def machine() -> dict[str, str]:
             "python": platform.python_version(), "os": platform.platform()}
 
 
-def commit() -> str:
-    def git(*a: str) -> str:
-        try:
-            return subprocess.run(["git", *a], cwd=ROOT, capture_output=True, text=True, timeout=30).stdout.strip()
-        except (OSError, subprocess.SubprocessError):
-            return ""
-    head = git("rev-parse", "--short", "HEAD") or "unknown"
-    dirty = git("status", "--porcelain", "--untracked-files=no")
-    return head + (" (with uncommitted changes)" if dirty else "")
-
-
 # ------------------------------------------------------------------------------------------------ running
 
 
@@ -524,6 +526,8 @@ def render(r: Results, info: dict[str, str], command: str, partial: bool) -> str
         "period (camera, simulator, perception). Ratios are figure / anchor, except throughput, where it is the "
         "anchor's rate over ours (time per item relative to raw).",
         "",
+        PRODUCED_BY,
+        "",
         *rows,
         "",
         "## Targets not met: why, and the plan",
@@ -588,7 +592,7 @@ def main(argv: list[str] | None = None) -> int:
     partial = args.quick or bool(args.only) or bool(args.skip)
     out = args.out or (PARTIAL_DOC if partial else DOC)
     info = machine()
-    info["commit"] = commit()
+    info["commit"] = git_commit()
     info["date"] = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
     command = shlex.join(["python", "benchmarks/run_all.py", *(sys.argv[1:] if argv is None else argv)])
     print(f"run_all: {len(names)} benchmarks ({', '.join(names)}); {info['cpu']}, {info['cores']} cores, "
@@ -603,7 +607,8 @@ def main(argv: list[str] | None = None) -> int:
         doc["command"] = f"(read from {args.soak_json}) python benchmarks/soak.py {shlex.join(doc.get('argv', []))}"
         doc.setdefault("seconds", 60 * float(doc.get("figures", {}).get("minutes", 0)))
         results["soak"] = doc
-        info["soak_from"] = f"`{args.soak_json}` (finished {doc.get('finished', '?')})"
+        info["soak_from"] = (f"`{args.soak_json}` (finished {doc.get('finished', '?')}, commit "
+                             f"{doc.get('commit', 'not recorded')})")
     info["duration"] = f"{(time.monotonic() - t_start) / 60:.1f} min"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(render(results, info, command, partial))
