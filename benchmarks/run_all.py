@@ -244,7 +244,9 @@ GAPS: dict[str, tuple[str, str]] = {
         "every sample crosses into the loop separately; raw zenoh drains on its own thread concurrently.",
         "Same as the latency plan: per-burst hand-off, publisher and subscriber in separate processes."),
     "bus.frame_latency": (
-        "Met on a quiet machine (1.17x); above 1.2 under load, when the loop wake-up competes for the core.",
+        "At the target's edge and noisy: 1.17x in stop 21's closing note, 1.11x and 1.36x in two runs on this "
+        "quiet machine on 2026-12-01. At a p50 near 0.5 ms, one wake-up of the event loop (the hop from Zenoh's "
+        "thread) is a large share of the whole.",
         "Zenoh shared memory for frames between processes on one host."),
     "bus.frame_throughput": (
         "About 2.9x on a quiet machine: the same single-loop hand-off, per sample, for 2 x ~300-600 KiB.",
