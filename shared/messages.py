@@ -18,7 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validat
 SCHEMA_VERSION = 1
 """Major version of the message schemas. A receiver rejects a message of a newer major version with an
 error naming both versions."""
-SCHEMA_MINOR = 2
+SCHEMA_MINOR = 3
 """Minor version: bumped when fields are added. A receiver accepts a message of a newer minor version,
 ignoring the fields it does not know (logged once per field)."""
 MAX_COMMAND_CHARS = 500
@@ -519,8 +519,61 @@ class WorkingMemory(Message):
     centroids), so a search can turn toward what was seen before instead of scanning again."""
 
 
+class OutcomeCode(StrEnum):
+    """Why a skill ended as it did: the fact a policy decides from (never the message's prose)."""
+
+    SUCCEEDED = "succeeded"
+    """The skill did what it was asked and its result was verified."""
+    OUT_OF_REACH = "out_of_reach"
+    """The target is farther than the skill may act (grasp reach, envelope, geofence)."""
+    NOT_DETECTED = "not_detected"
+    """Perception did not find the named object or surface."""
+    MISALIGNED = "misaligned"
+    """The gripper never came within its window of the object; nothing was closed."""
+    MISSED = "missed"
+    """The gripper closed but holds nothing (the object is still where it was)."""
+    SLIPPED = "slipped"
+    """The object was held and then lost (it slipped or fell from the gripper)."""
+    KNOCKED_OVER = "knocked_over"
+    """The object was moved or tipped by the attempt: re-localize it before trying again."""
+    BLOCKED = "blocked"
+    """A precondition or a safety limit refused the skill (clearance, altitude, holding, not airborne)."""
+    UNSTABLE = "unstable"
+    """The object was released but is not at rest on the named surface (rolled, toppled, fell off)."""
+    ABORTED = "aborted"
+    """An abort or a cancel stopped the skill; the vehicle holds."""
+    TIMED_OUT = "timed_out"
+    """The skill ran out of time before it could finish."""
+    FAILED = "failed"
+    """Another failure (the autopilot refused, the link was lost); the message says which."""
+
+
+class SkillFacts(Part):
+    """Measured facts behind an outcome code, in one fixed form the prompt shows and a policy reads."""
+
+    distance_m: float | None = None
+    """Distance from the vehicle (or gripper) to the target when the skill decided, metres."""
+    offset_m: float | None = None
+    """Remaining horizontal offset between the gripper and the target when the skill decided, metres."""
+    attempts: int = 0
+    """How many attempts the skill made (grasp and place retry a bounded number of times)."""
+    reasons: tuple[Annotated[str, Field(max_length=200)], ...] = Field(default=(), max_length=16)
+    """One short reason per failed attempt, in order."""
+    gripper_width_m: float | None = None
+    """Opening between the finger pads at the end, metres (from the gripper's own telemetry)."""
+    holding: str | None = None
+    """What the gripper holds at the end according to its contact sensing and width; None if empty."""
+    target: str | None = None
+    """The object or surface the skill acted on."""
+
+
 class SkillOutcome(Part):
     """Structured outcome of a skill: poses before and after, what was perceived, what is held."""
+
+    code: OutcomeCode | None = None
+    """Why the skill ended (None while running, and for messages older than schema minor 3)."""
+    facts: SkillFacts = SkillFacts()
+    """Measured facts behind the code."""
 
     start_pose: Pose | None = None
     """Vehicle pose when the skill started."""
