@@ -707,7 +707,10 @@ class ReasoningStep(Message):
 
     kind: Literal["reasoning_step"] = "reasoning_step"
     stamp_ns: int = Field(default_factory=now_ns)
-    """Publish time."""
+    """When the step was decided (the model's answer parsed); its skill runs after this."""
+    published_ns: int = 0
+    """When the reasoner published this record: after the step's skill ended, seconds after `stamp_ns` for a
+    long skill (0 in records older than schema minor 3). A consumer that was down between the two misses it."""
     vehicle_id: str = "am1"
     """Vehicle the task runs on."""
     task_id: str

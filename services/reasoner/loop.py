@@ -312,6 +312,7 @@ class TaskRunner:
                                                   "issued meanwhile; vehicle held (if it still listens)")
 
     def _publish(self, rec: ReasoningStep) -> None:
+        rec = rec.model_copy(update={"published_ns": now_ns()})
         self.records.append(rec)
         self.publish_step(rec)
 

@@ -14,6 +14,7 @@ from services.recorder.settings import RecorderSettings
 from services.recorder.writer import RecordWriter
 from shared.bus import Bus
 from shared.messages import Health
+from shared.service import announce
 
 log = logging.getLogger("aermani.recorder")
 
@@ -47,6 +48,7 @@ async def run(bus: Bus, settings: RecorderSettings, stop: asyncio.Event) -> None
     writer = RecordWriter(settings, static_metadata(settings))
     writer.start()
     sub = bus.subscribe(settings.key_expr, maxsize=settings.queue_size, overflow="drop_newest")
+    announce(bus, settings, "recorder")
     health_key = settings.keys.health("recorder")
 
     def health() -> Health:
