@@ -14,6 +14,7 @@ from rich.console import Console
 
 from shared.cli_helpers import command_group
 from shared.messages import VARIANTS
+from shared.text import terminal_text
 
 console = Console()
 
@@ -240,7 +241,7 @@ async def _demo_task(stack, command: str, scenario, accepted: tuple[str, ...], t
         console.print(f"perception: {seg}{note}")
         console.print(f"simulator: MuJoCo physics, realism {real}")
         result.update(segmenter=seg, realism=real)
-        console.print(f"[bold]task:[/bold] {command}")
+        console.print(f"[bold]task:[/bold] {terminal_text(command)}")
         request = TaskRequest(command=command, t_max_s=t_max)
         with Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(), console=console,
                       transient=True) as progress:
@@ -253,28 +254,28 @@ async def _demo_task(stack, command: str, scenario, accepted: tuple[str, ...], t
                 retries = f" [yellow]{s.retries} re-prompt(s)[/yellow]" if s.retries else ""
                 state = s.skill_state.value if s.skill_state else "-"
                 color = "green" if state == "succeeded" else "red"
-                console.print(f"  {s.step:>3} {call:<38} [{color}]{state:<9}[/{color}]{retries} "
-                              f"[dim]{why[:90]}[/dim]")
+                console.print(f"  {s.step:>3} {terminal_text(call):<38} [{color}]{state:<9}[/{color}]{retries} "
+                              f"[dim]{terminal_text(why[:90])}[/dim]")
                 progress.update(bar, description=f"step {s.step} done; thinking...")
 
             followed = await follow_task(bus, keys, request, on_step=on_step, timeout=t_max + 60)
         accept, final, steps = followed.accept, followed.final, followed.steps
         if not accept.accepted:
-            console.print(f"[red]the reasoner refused the task: {accept.reason}[/red]")
+            console.print(f"[red]the reasoner refused the task: {terminal_text(accept.reason)}[/red]")
             return 1
         if final is None:
             console.print(f"[red]the task did not end within {t_max + 60:.0f} s[/red]")
             return 1
         calls = final.model_calls or 1
-        console.print(f"task {final.state.value}: {final.message} ({final.steps} steps, {final.model_calls} model "
-                      f"calls, IAR {100 * final.invalid_answers / calls:.1f} %)")
+        console.print(f"task {final.state.value}: {terminal_text(final.message)} ({final.steps} steps, "
+                      f"{final.model_calls} model calls, IAR {100 * final.invalid_answers / calls:.1f} %)")
         # Judge what the command asked: the simulator fills in a destination for every layout, but a command
         # without one ("pick up the tissue box") succeeds when the object is held.
         objects = accepted or ((sc.target_object,) if sc.target_object else ())
         verdict_ = await judge_episode(bus, keys, objects, sc.destination if scenario.destination else None)
         ok, verdict = verdict_.success, verdict_.message
         console.print(("[bold green]SUCCESS[/bold green]" if ok else "[bold red]FAILURE[/bold red]") +
-                      f" (simulator judge: {verdict})")
+                      f" (simulator judge: {terminal_text(verdict)})")
         log_path = None
         try:
             h = health.latest_nowait() or await health.recv(timeout=3)

@@ -45,6 +45,7 @@ from shared.messages import (
     now_ns,
 )
 from shared.tasks import REFUSED_BEFORE_TAKEOFF
+from shared.text import well_formed
 
 log = logging.getLogger("aermani.reasoner.loop")
 
@@ -338,14 +339,15 @@ class TaskRunner:
             self.calls += 1
             try:
                 parsed = parse_answer(reply.text, self.variant, library, coverage=self.settings.prediction_coverage)
-                calls.append(ModelCall(raw_answer=reply.text, valid=True, latency_s=reply.latency_s,
+                calls.append(ModelCall(raw_answer=well_formed(reply.text), valid=True, latency_s=reply.latency_s,
                                        tokens_in=reply.tokens_in, tokens_out=reply.tokens_out,
                                        structured=reply.structured, tokens_cached=reply.cached_tokens))
                 failure = reply.failure
                 break
             except InvalidAnswer as exc:
                 self.invalid += 1
-                calls.append(ModelCall(raw_answer=reply.text, valid=False, error=str(exc), latency_s=reply.latency_s,
+                calls.append(ModelCall(raw_answer=well_formed(reply.text), valid=False, error=str(exc),
+                                       latency_s=reply.latency_s,
                                        tokens_in=reply.tokens_in, tokens_out=reply.tokens_out,
                                        structured=reply.structured, tokens_cached=reply.cached_tokens))
                 feedback.append((reply.text, str(exc)))

@@ -27,11 +27,13 @@ import ast
 import json
 import re
 from dataclasses import dataclass
+from typing import Any
 
 from services.reasoner.library import policy_skills
 from services.reasoner.prompt import DRT_FIELDS
 from shared.errors import InvalidAnswer
 from shared.messages import MAX_QUERY_CHARS, DescriptiveReasoningTrace, SkillLibrary, SkillToExecute
+from shared.text import well_formed
 
 _TRAILING_COMMA = re.compile(r",\s*([}\]])")
 _ALIASES = {"object_localization": "obj_localization", "obj_localisation": "obj_localization",
@@ -277,11 +279,24 @@ def _react_action(raw: str, work: Work) -> tuple[dict, str | None, bool]:
     return obj, _clean_thought(raw[: mark.start()]), True
 
 
+def _well_formed_values(obj: Any) -> Any:
+    """Every string in a decoded answer (keys and values, nested) through `well_formed`; the depth was bounded
+    before decoding."""
+    if isinstance(obj, str):
+        return well_formed(obj)
+    if isinstance(obj, dict):
+        return {_well_formed_values(k): _well_formed_values(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_well_formed_values(v) for v in obj]
+    return obj
+
+
 def parse_answer(raw: str, variant: str, library: SkillLibrary, *, coverage: float = 1.0,
                  work: Work | None = None) -> ParsedAnswer:
     """Parse and validate one raw model answer. Raises InvalidAnswer with the reason, and nothing else."""
     if not isinstance(raw, str) or not raw.strip():
         raise InvalidAnswer("The answer is empty.")
+    raw = well_formed(raw)
     if len(raw) > MAX_ANSWER_CHARS:
         raise InvalidAnswer(f"The answer is {len(raw)} characters long, more than the {MAX_ANSWER_CHARS} read; "
                             "reply with one short answer in the format given in the Rules.")
@@ -310,7 +325,7 @@ def _parse(raw: str, variant: str, library: SkillLibrary, coverage: float, work:
             return _validate(bare_skill, arg, {}, variant, specs, coverage, True, thought)
         raise InvalidAnswer("No JSON object found in the answer; reply with exactly one JSON object in the "
                             "format given in the Rules.")
-    obj = {norm_key(k): v for k, v in obj.items()}
+    obj = {norm_key(k): v for k, v in _well_formed_values(obj).items()}
     ste_obj = next((obj[k] for k in ("ste", "skill_to_execute", "action") if isinstance(obj.get(k), dict)), None)
     if variant == "react" and isinstance(obj.get("thought"), str) and not thought:
         thought = obj["thought"].strip() or None  # the schema-constrained form {"thought", "action"}

@@ -55,7 +55,12 @@ from fastapi.responses import JSONResponse
 
 from services.reasoner.backends.rules import answer_for_prompt
 
-FAULTS = ("invalid_json", "unknown_skill", "missing_fields", "missing_arg", "fences", "timeout", "500", "none", "ok")
+FAULTS = ("invalid_json", "unknown_skill", "missing_fields", "missing_arg", "fences", "timeout", "500", "none", "ok",
+          "hostile_text")
+# A valid answer whose reasoning holds what a model may send and a terminal or an encoder chokes on: half an
+# emoji (a lone surrogate, escaped in the JSON), Rich markup, a right-to-left override, a zero-width space and an
+# ANSI escape (JSON escapes: the parser decodes them).
+HOSTILE_TEXT = r" \ud83d [/dim][bold] \u202e \u200b \u001b[2J"
 
 
 def apply_fault(answer: str, fault: str | None) -> str:
@@ -80,6 +85,10 @@ def apply_fault(answer: str, fault: str | None) -> str:
         else:
             ste.pop("skill", None)
     prefix = answer[: answer.index("{")]
+    if fault == "hostile_text":
+        drt = obj.get("drt", obj)
+        drt["reasoning"] = f"{drt.get('reasoning') or ''}@@HOSTILE@@"
+        return prefix + json.dumps(obj).replace("@@HOSTILE@@", HOSTILE_TEXT)
     return prefix + json.dumps(obj)
 
 

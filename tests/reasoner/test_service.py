@@ -91,6 +91,23 @@ async def test_vlm_backend_process_with_injected_faults(tmp_path, kind: str) -> 
     assert final.invalid_answers == 2 and final.model_calls == sum(len(s.calls) for s in steps)
 
 
+async def test_hostile_model_text_is_data_and_every_step_is_published(tmp_path) -> None:
+    """A valid answer whose reasoning holds a lone surrogate, Rich markup, a bidi override and an ANSI escape runs
+    its skill and its step is published (the surrogate replaced); the task goes on to its end."""
+    with FakeVLMServer() as vlm:
+        vlm.faults.extend(["hostile_text", "hostile_text"])
+        env = {"AERMANI_REASONER_BACKEND": "openai", "AERMANI_REASONER_API_KEY": "none",
+               "AERMANI_REASONER_MODEL": "fake-vlm", "AERMANI_REASONER_BASE_URL": vlm.openai_base_url}
+        w = world()
+        with run_stack(["reasoner"], tmp_path, env=env) as stack:
+            final, steps = await run_task(stack, w, TaskRequest(command=CMD))
+    assert final.state is TaskState.SUCCEEDED, final.message
+    assert [s.step for s in steps] == list(range(1, final.steps + 1)), "a step was not published"
+    hostile = steps[:2]
+    assert all("\ufffd [/dim][bold] \u202e" in (s.drt.reasoning or "") for s in hostile), hostile[0].drt
+    assert all(s.calls[-1].raw_answer.encode("utf-8") for s in hostile)
+
+
 async def test_operator_approval_rejection_replans_and_approval_runs(tmp_path) -> None:
     """With approval on for grasp: the grasp waits; a rejection is recorded as rejected by the operator and
     the policy chooses again; an approval lets it run."""

@@ -1,0 +1,31 @@
+"""Text from a model or a network peer made safe to encode and to print: it is data, never markup or control."""
+
+from __future__ import annotations
+
+
+def well_formed(text: str) -> str:
+    """`text` with every lone UTF-16 surrogate replaced by U+FFFD (a pair stays the character it encodes).
+    A model's JSON may escape half an emoji (`"\\ud83d"`), and a string holding it cannot be encoded as UTF-8:
+    kept, it would fail the publish of whatever message carries it."""
+    try:
+        text.encode("utf-8")
+        return text
+    except UnicodeEncodeError:
+        return text.encode("utf-16", "surrogatepass").decode("utf-16", "replace")
+
+
+_C0_C1 = dict.fromkeys(c for c in (*range(0x00, 0x20), *range(0x7F, 0xA0)) if c != 0x09)
+# Bidirectional overrides and isolates, zero-width and other invisible format characters: shown, they reorder
+# or hide the text around them on a terminal (a reasoning that reads differently from what the model sent).
+_FORMAT = dict.fromkeys((0x200B, 0x200C, 0x200D, 0x200E, 0x200F, 0x2028, 0x2029, 0x202A, 0x202B, 0x202C, 0x202D,
+                         0x202E, 0x2060, 0x2066, 0x2067, 0x2068, 0x2069, 0xFEFF))
+
+
+def terminal_text(text: object) -> str:
+    """Text a model or a network peer sent, made safe to print with Rich: control characters (ANSI escapes
+    included), bidirectional overrides and zero-width characters removed, lone surrogates replaced, and Rich
+    markup escaped, so `[/dim]` in a model's reasoning is shown as written instead of raising MarkupError."""
+    from rich.markup import escape
+
+    s = well_formed(str(text)).translate(_C0_C1).translate(_FORMAT)
+    return escape(s)
