@@ -12,6 +12,7 @@ import httpx
 from mcp.server.mcpserver import MCPServer
 from mcp.server.mcpserver.exceptions import ToolError
 from mcp.server.mcpserver.utilities.types import Image
+from mcp.types import ToolAnnotations
 
 from services.mcp.settings import McpSettings
 
@@ -55,6 +56,24 @@ class Gateway:
     async def json(self, method: str, path: str, **kwargs: Any) -> Any:
         return (await self.call(method, path, **kwargs)).json()
 
+    async def vehicle(self, named: str | None) -> str:
+        """`named`, or the only vehicle the ground station knows; with several, an agent must say which (a
+        default that picks one would fly or show the wrong vehicle)."""
+        if named:
+            return named
+        known = sorted(v["vehicle_id"] for v in (await self.json("GET", "/health"))["vehicles"])
+        if len(known) == 1:
+            return str(known[0])
+        if not known:
+            raise ToolError("no vehicle is on the ground station's bus yet; list_vehicles shows when one is")
+        raise ToolError(f"{len(known)} vehicles are known ({', '.join(known)}): name one with `vehicle`")
+
+
+# What each tool does to the world, for clients that ask before calling (MCP tool annotations).
+READ = ToolAnnotations(read_only_hint=True, destructive_hint=False, idempotent_hint=True, open_world_hint=False)
+FLIES = ToolAnnotations(read_only_hint=False, destructive_hint=True, idempotent_hint=False, open_world_hint=True)
+STOPS = ToolAnnotations(read_only_hint=False, destructive_hint=False, idempotent_hint=True, open_world_hint=True)
+
 
 def _step_summary(step: dict[str, Any]) -> dict[str, Any]:
     ste = step.get("ste") or {}
@@ -64,12 +83,21 @@ def _step_summary(step: dict[str, Any]) -> dict[str, Any]:
             "reasoning": drt.get("reasoning"), "summary": drt.get("summary"), "valid": step.get("valid")}
 
 
+def _one_scope(task_id: str | None, vehicle: str | None, fleet: bool) -> None:
+    """An abort names exactly one scope: a call without one must not stop the whole fleet by default."""
+    scopes = [name for name, given in (("task_id", bool(task_id)), ("vehicle", bool(vehicle)), ("fleet", fleet))
+              if given]
+    if len(scopes) != 1:
+        raise ToolError("abort needs exactly one scope: task_id, vehicle, or fleet=true"
+                        + (f" (got {', '.join(scopes)})" if scopes else ""))
+
+
 def build_server(settings: McpSettings) -> MCPServer:
     """The MCP server with its tools and resources, talking to the gateway named in `settings`."""
     gw = Gateway(settings)
     server = MCPServer(name="aermani", instructions=INSTRUCTIONS, version="1")
 
-    @server.tool()
+    @server.tool(title="List vehicles", annotations=READ)
     async def list_vehicles() -> list[dict[str, Any]]:
         """The vehicles the ground station knows: which services answer, link and offboard health, battery,
         and the task each one runs now (if any)."""
@@ -78,18 +106,16 @@ def build_server(settings: McpSettings) -> MCPServer:
                  "armed": v.get("armed"), "mode": v.get("mode"), "battery_remaining": v.get("battery_remaining"),
                  "running_task": v.get("running_task")} for v in health["vehicles"]]
 
-    @server.tool()
+    @server.tool(title="Start a task (the vehicle flies)", annotations=FLIES)
     async def start_task(command: str, vehicle: str | None = None) -> dict[str, Any]:
         """Start a task from a natural-language command (e.g. "pick up the red cup and place it on the
-        table") on a vehicle (default: the only one). Returns the task id; follow it with task_status.
-        Refused while another task runs on that vehicle."""
-        body: dict[str, Any] = {"command": command}
-        if vehicle:
-            body["vehicle_id"] = vehicle
+        table") on a vehicle (required when the ground station knows several; default: the only one). Returns
+        the task id; follow it with task_status. Refused while another task runs on that vehicle."""
+        body: dict[str, Any] = {"command": command, "vehicle_id": await gw.vehicle(vehicle)}
         created = await gw.json("POST", "/tasks", json=body)
         return {"task_id": created["task_id"], "vehicle_id": created["vehicle_id"], "state": created["state"]}
 
-    @server.tool()
+    @server.tool(title="Task status", annotations=READ)
     async def task_status(task_id: str, last_steps: int = 5) -> dict[str, Any]:
         """A task's state (pending, running, succeeded, failed, aborted, timeout), its explanation, and its
         last reasoning steps: the skill chosen, the model's reasoning and how the skill ended."""
@@ -100,35 +126,42 @@ def build_server(settings: McpSettings) -> MCPServer:
                 "state": t.get("state"), "message": status.get("message", ""), "steps": len(steps),
                 "last_steps": steps[-max(0, min(last_steps, 50)):] if last_steps else []}
 
-    @server.tool()
-    async def abort(task_id: str | None = None, vehicle: str | None = None) -> dict[str, Any]:
-        """Stop now: the named task (or every task on every vehicle when neither is given); the vehicle holds
-        its position. Says which vehicles acknowledged."""
+    @server.tool(title="Abort (the vehicle holds)", annotations=STOPS)
+    async def abort(reason: str, task_id: str | None = None, vehicle: str | None = None,
+                    fleet: bool = False) -> dict[str, Any]:
+        """Stop now, with a reason (recorded by the vehicle): exactly one scope, a task (`task_id`), a vehicle
+        (`vehicle`), or every vehicle (`fleet: true`). The vehicles hold their position. Says which vehicles
+        acknowledged."""
+        _one_scope(task_id, vehicle, fleet)
+        body: dict[str, Any] = {"reason": reason.strip() or "abort via MCP"}
         if task_id:
-            return dict(await gw.json("POST", f"/tasks/{task_id}/abort", json={}))
-        body = {"vehicle_id": vehicle} if vehicle else {}
+            return dict(await gw.json("POST", f"/tasks/{task_id}/abort", json=body))
+        if vehicle:
+            body["vehicle_id"] = vehicle
         return dict(await gw.json("POST", "/abort", json=body))
 
-    @server.tool()
-    async def list_skills(vehicle: str = "am1") -> list[dict[str, Any]]:
-        """The skills the on-board policy chooses from (what a task can make the vehicle do)."""
-        lib = await gw.json("GET", f"/vehicles/{vehicle}/skills")
+    @server.tool(title="List skills", annotations=READ)
+    async def list_skills(vehicle: str | None = None) -> list[dict[str, Any]]:
+        """The skills the on-board policy chooses from (what a task can make the vehicle do), on `vehicle`
+        (required when several are known)."""
+        lib = await gw.json("GET", f"/vehicles/{await gw.vehicle(vehicle)}/skills")
         return [{"name": s["name"], "category": s["category"], "description": s["description"],
                  "argument": s.get("argument")} for s in lib["skills"] if s.get("policy_visible", True)]
 
-    @server.tool()
-    async def get_camera_frame(vehicle: str = "am1") -> Image:
-        """The newest colour frame of the vehicle's camera, as a JPEG image."""
-        r = await gw.call("GET", f"/vehicles/{vehicle}/camera.jpg")
+    @server.tool(title="Camera frame", annotations=READ)
+    async def get_camera_frame(vehicle: str | None = None) -> Image:
+        """The newest colour frame of the vehicle's camera, as a JPEG image (`vehicle` required when several
+        are known)."""
+        r = await gw.call("GET", f"/vehicles/{await gw.vehicle(vehicle)}/camera.jpg")
         return Image(data=r.content, format="jpeg")
 
-    @server.tool()
+    @server.tool(title="Pending approvals", annotations=READ)
     async def list_approvals() -> list[dict[str, Any]]:
         """Skills the on-board policy chose that wait for an operator's approval (set per vehicle and skill
         class on the reasoner), with the policy's reasoning and when the request expires."""
         return list(await gw.json("GET", "/approvals"))
 
-    @server.tool()
+    @server.tool(title="Approve or reject a skill", annotations=FLIES)
     async def decide_approval(approval_id: str, approve: bool, reason: str = "") -> dict[str, Any]:
         """Approve (the skill runs) or reject (the policy reads your reason and chooses again) a pending
         approval."""
@@ -136,11 +169,11 @@ def build_server(settings: McpSettings) -> MCPServer:
                                   json={"approve": approve, "reason": reason, "operator": "mcp"}))
 
     if settings.allow_skills:
-        @server.tool()
-        async def run_skill(skill: str, argument: str | None = None, vehicle: str = "am1") -> dict[str, Any]:
+        @server.tool(title="Run one skill (the vehicle flies)", annotations=FLIES)
+        async def run_skill(skill: str, argument: str | None = None, vehicle: str | None = None) -> dict[str, Any]:
             """Run one skill outside a task (e.g. yaw_left, obj_localization "red cup") and wait for its result.
             The executor's preconditions and safety envelope apply; the gateway must allow single skills."""
-            return dict(await gw.json("POST", f"/vehicles/{vehicle}/skills",
+            return dict(await gw.json("POST", f"/vehicles/{await gw.vehicle(vehicle)}/skills",
                                       json={"skill": skill, "argument": argument}))
 
     @server.resource("aermani://tasks", mime_type="application/json")

@@ -63,9 +63,16 @@ async def _wait_state(client: Client, task_id: str, states: set[str], timeout: f
 
 
 async def _drive(client: Client) -> None:
-    names = {t.name for t in (await client.list_tools()).tools}
+    tools = {t.name: t for t in (await client.list_tools()).tools}
+    names = set(tools)
     assert {"list_vehicles", "start_task", "task_status", "abort", "list_skills", "get_camera_frame"} <= names
     assert "run_skill" not in names  # task level only by default
+    # Every tool says what it does to the world: polling is read-only, starting a task is not.
+    assert all(t.title and t.annotations is not None for t in tools.values()), tools
+    for name in ("list_vehicles", "task_status", "list_skills", "get_camera_frame", "list_approvals"):
+        assert tools[name].annotations.read_only_hint is True and tools[name].annotations.destructive_hint is False
+    assert tools["start_task"].annotations.read_only_hint is False and tools["start_task"].annotations.destructive_hint
+    assert tools["abort"].annotations.idempotent_hint is True and tools["abort"].annotations.read_only_hint is False
     vehicles = _json(await client.call_tool("list_vehicles", {}))
     assert [v["vehicle_id"] for v in vehicles] == ["am1"]
 
@@ -78,6 +85,7 @@ async def _drive(client: Client) -> None:
 
     skills = _json(await client.call_tool("list_skills", {"vehicle": "am1"}))
     assert "grasp" in {s["name"] for s in skills} and "takeoff" not in {s["name"] for s in skills}
+    assert _json(await client.call_tool("list_skills", {})) == skills  # the only vehicle needs no name
 
     frame = await client.call_tool("get_camera_frame", {"vehicle": "am1"})
     image = next(c for c in frame.content if c.type == "image")
@@ -85,7 +93,11 @@ async def _drive(client: Client) -> None:
 
     endless = _json(await client.call_tool("start_task", {"command": "look around until abort"}))
     await _wait_state(client, endless["task_id"], {"running"})
-    aborted = _json(await client.call_tool("abort", {"task_id": endless["task_id"]}))
+    for scopeless in ({"reason": "test"}, {"reason": "test", "task_id": endless["task_id"], "fleet": True}):
+        refused = await client.call_tool("abort", scopeless)
+        assert refused.is_error and "exactly one scope" in refused.content[0].text, refused.content
+    assert (await _wait_state(client, endless["task_id"], {"running"}))["state"] == "running"  # nothing stopped
+    aborted = _json(await client.call_tool("abort", {"task_id": endless["task_id"], "reason": "mcp test"}))
     assert aborted["acknowledged"] == ["am1"]
     final = await _wait_state(client, endless["task_id"], {"aborted"})
     assert final["state"] == "aborted"
