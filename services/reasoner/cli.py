@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import os
 import time
 from pathlib import Path
 from typing import Annotated
@@ -145,11 +146,18 @@ def demo_command(
     base_url: Annotated[str | None, typer.Option(help="Endpoint of a model backend (e.g. a local vLLM).")] = None,
     t_max: Annotated[float, typer.Option(help="T_max, seconds.")] = 600.0,
     log_dir: Annotated[Path | None, typer.Option(help="Service logs directory (default runs/<time>/logs).")] = None,
+    api_key_env: Annotated[str | None, typer.Option(help="Name of the environment variable that holds the model "
+                                                         "backend's API key (the key itself never goes on the "
+                                                         "command line).")] = None,
 ) -> None:
     """Start the embedded stack (router, sim, bridge, perception, executor, reasoner, recorder), run the command,
     stream each step, and judge success with the simulator's ground truth."""
     if variant not in VARIANTS:
         console.print(f"[red]unknown variant {variant!r}; use one of {', '.join(VARIANTS)}[/red]")
+        raise typer.Exit(2)
+    key_env = backend_key_env(backend, api_key_env)
+    if isinstance(key_env, str):
+        console.print(f"[red]{terminal_text(key_env)}[/red]")
         raise typer.Exit(2)
     scenario, accepted = scenario_for(command, target, destination, seed)
     env = {"AERMANI_REASONER_BACKEND": backend, "AERMANI_REASONER_VARIANT": variant,
@@ -163,8 +171,33 @@ def demo_command(
         env["AERMANI_REASONER_MODEL"] = model
     if base_url:
         env["AERMANI_REASONER_BASE_URL"] = base_url
+    env.update(key_env)
     code = run_demo(command, scenario, accepted, env=env, t_max=t_max, log_dir=log_dir)
     raise typer.Exit(code)
+
+
+def backend_key_env(backend: str, api_key_env: str | None) -> dict[str, str] | str:
+    """Before anything starts: the reasoner's key settings for `backend` (from `api_key_env` when named), or why
+    it cannot run. A chat backend without its key would crash the reasoner at start and the demo would only time
+    out; this says what to set instead."""
+    from services.reasoner.backends import BACKENDS, load_backend_modules
+    from services.reasoner.backends.base import ChatBackend, missing_key
+    from services.reasoner.settings import ReasonerSettings
+
+    try:
+        load_backend_modules(ReasonerSettings().backend_modules)
+        cls = BACKENDS.lookup(backend)
+    except Exception as exc:  # an unknown backend or a broken plug-in module: its own message says which
+        return str(exc)
+    if api_key_env:
+        key = os.environ.get(api_key_env, "")
+        if not key:
+            return f"no API key: --api-key-env names {api_key_env}, which is not set in this environment"
+        return {"AERMANI_REASONER_API_KEY": key}
+    if issubclass(cls, ChatBackend) and cls.key_env and not (os.environ.get("AERMANI_REASONER_API_KEY")
+                                                             or os.environ.get(cls.key_env)):
+        return missing_key(backend, cls.key_env) + "; or pass --api-key-env NAME"
+    return {}
 
 
 def demo_env(extra: dict[str, str]) -> dict[str, str]:

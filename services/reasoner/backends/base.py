@@ -132,14 +132,19 @@ register = BACKENDS.register
 """Class decorator: make a backend selectable by its `kind`."""
 
 
+def missing_key(kind: str, env_var: str) -> str:
+    """The error for a chat backend started without its key: what to set, first."""
+    return (f"no API key: set AERMANI_REASONER_API_KEY or {env_var} for backend {kind} (a local server that "
+            "ignores keys still needs a placeholder such as 'none')")
+
+
 def api_key(settings: ReasonerSettings, kind: str, env_var: str) -> str:
     """The key for backend `kind`: AERMANI_REASONER_API_KEY, else `env_var`; a ConfigError naming both."""
     if settings.api_key is not None:
         return settings.api_key.get_secret_value()
     key = os.environ.get(env_var)
     if not key:
-        raise ConfigError(f"backend {kind} needs an API key: set AERMANI_REASONER_API_KEY or {env_var} "
-                          "(a local server that ignores keys still needs a placeholder such as 'none')")
+        raise ConfigError(missing_key(kind, env_var))
     return key
 
 
