@@ -17,10 +17,11 @@ faults, one per HTTP request, in the order queued:
 `outage=True` answers HTTP 503 to everything.
 
 Schema-constrained output: a request with an answer schema (OpenAI `response_format` of type
-`json_schema`, Anthropic `output_config.format`) is checked (a valid JSON schema, strict: every object
-closed and all its properties required, `strict: true` on OpenAI) and answered with JSON in the schema's
-shape (ReAct as {"thought", "action"}); every problem found, and every answer that does not validate
-against the schema it came with, is appended to `schema_errors` (tests assert it stays empty).
+`json_schema`; Anthropic a forced tool's `input_schema`, or `output_config.format`) is checked (a valid JSON
+schema, strict: every object closed and all its properties required, `strict: true` on OpenAI) and answered
+with JSON in the schema's shape (ReAct as {"thought", "action"}; on Anthropic as the tool call's input); every
+problem found, and every answer that does not validate against the schema it came with, is appended to
+`schema_errors` (tests assert it stays empty).
 `reject_schema=True` answers such requests HTTP 400, like a server without structured outputs.
 Prompt caching is imitated: a first text block seen before (OpenAI) or marked `cache_control` (Anthropic)
 is reported as cached prompt tokens (tokens here are characters / 4: the stand-in has no tokenizer).
@@ -90,6 +91,19 @@ def apply_fault(answer: str, fault: str | None) -> str:
         drt["reasoning"] = f"{drt.get('reasoning') or ''}@@HOSTILE@@"
         return prefix + json.dumps(obj).replace("@@HOSTILE@@", HOSTILE_TEXT)
     return prefix + json.dumps(obj)
+
+
+def _anthropic_content(body: dict, answer: str) -> list[dict]:
+    """A Messages API reply's content: the answer as the forced tool's input when it decodes to an object (a
+    faulty answer that does not stays text, as a model's malformed output would), else a text block."""
+    if body.get("tools"):
+        try:
+            obj = json.loads(answer[answer.index("{"):]) if "{" in answer else None
+        except ValueError:
+            obj = None
+        if isinstance(obj, dict):
+            return [{"type": "tool_use", "id": "toolu_fake", "name": body["tools"][0]["name"], "input": obj}]
+    return [{"type": "text", "text": answer}]
 
 
 def _prompt_text(content: Any) -> tuple[str, bool]:
@@ -198,6 +212,12 @@ class FakeVLMServer:
             if js.get("strict") is not True or not js.get("name"):
                 self.schema_errors.append("json_schema without strict: true or a name")
             schema = js.get("schema")
+        elif body.get("tools") is not None:  # Anthropic: the answer as a forced tool call
+            tools = body["tools"]
+            choice = body.get("tool_choice") or {}
+            if len(tools) != 1 or choice.get("type") != "tool" or choice.get("name") != tools[0].get("name"):
+                self.schema_errors.append(f"tools {[t.get('name') for t in tools]} not forced by tool_choice {choice}")
+            schema = tools[0].get("input_schema")
         else:
             fmt = (body.get("output_config") or {}).get("format")
             if fmt is None:
@@ -281,8 +301,8 @@ class FakeVLMServer:
             cached = self._cached(body["messages"][0].get("content", ""), anthropic=True)
             return JSONResponse({
                 "id": f"msg_{len(self.requests)}", "type": "message", "role": "assistant",
-                "model": body.get("model", self.model), "content": [{"type": "text", "text": answer}],
-                "stop_reason": "end_turn", "stop_sequence": None,
+                "model": body.get("model", self.model), "content": _anthropic_content(body, answer),
+                "stop_reason": "tool_use" if body.get("tools") else "end_turn", "stop_sequence": None,
                 "usage": {"input_tokens": len(json.dumps(body)) // 4 - cached, "output_tokens": len(answer) // 4,
                           "cache_read_input_tokens": cached, "cache_creation_input_tokens": 0},
             })

@@ -83,7 +83,7 @@ async def test_reasoner_process_runs_a_task_on_the_registered_backend_and_names_
         final, steps = await run_task(stack, w, TaskRequest(command=CMD, backend="counting_test"))
         refused = await missing_key()
     assert not refused.accepted
-    assert "backend openai needs an API key" in refused.reason and "OPENAI_API_KEY" in refused.reason
+    assert "no API key: set AERMANI_REASONER_API_KEY or OPENAI_API_KEY" in refused.reason
     assert "rules" not in refused.reason
     assert final.state is TaskState.SUCCEEDED, final.message
     assert final.backend == "counting_test:m2" and all(s.backend == "counting_test:m2" for s in steps)

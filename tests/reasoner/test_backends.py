@@ -68,7 +68,8 @@ def test_clean_run_sends_image_and_counts_tokens(kind: str, vlm: FakeVLMServer) 
         assert body["response_format"]["json_schema"]["strict"] is True
     else:
         assert content[2]["source"]["media_type"] == "image/jpeg"
-        assert content[0]["cache_control"] == {"type": "ephemeral"} and "output_config" in body
+        assert content[0]["cache_control"] == {"type": "ephemeral"} and body["tool_choice"]["type"] == "tool"
+        assert body["temperature"] == 0.0  # sent: the API's default would be 1.0
     # every request carried the skill-enum schema; the stand-in found nothing to object to
     assert all(sc is not None for sc in vlm.schemas[n0:]) and vlm.schema_errors == []
     assert all(c.structured for s in steps for c in s.calls)
@@ -174,6 +175,25 @@ def test_schema_rejected_falls_back_to_text_once_per_endpoint(kind: str, caplog:
     assert not any(c.structured for s in steps for c in s.calls)
     warned = [r for r in caplog.records if "rejected schema-constrained output" in r.getMessage()]
     assert len(warned) == 1 and srv.url.split("//")[1] in warned[0].getMessage()
+
+
+def test_schema_mode_is_tried_again_after_a_refusal_ages(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A refusal is remembered for SCHEMA_RETRY_S, not for the life of the process: once the server takes the
+    schema again (a transient 400), the next calls after that time are schema-constrained again."""
+    from services.reasoner.backends import base
+
+    with FakeVLMServer(reject_schema=True) as srv:
+        run(settings_for("openai", srv), world())
+        assert srv.schemas[0] is not None and srv.schemas[1] is None
+        srv.reject_schema = False
+        n0 = len(srv.requests)
+        run(settings_for("openai", srv, max_steps=2), world())
+        assert all(sc is None for sc in srv.schemas[n0:]), "a fresh refusal must still be honoured"
+        monkeypatch.setattr(base, "SCHEMA_RETRY_S", 0.0)
+        n1 = len(srv.requests)
+        final, steps = run(settings_for("openai", srv), world())
+    assert final.state is TaskState.SUCCEEDED, final.message
+    assert all(sc is not None for sc in srv.schemas[n1:]) and all(c.structured for s in steps for c in s.calls)
 
 
 def test_forced_modes(vlm: FakeVLMServer) -> None:

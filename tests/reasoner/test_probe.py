@@ -62,4 +62,4 @@ def test_probe_names_a_missing_key(tmp_path, monkeypatch) -> None:
     res = subprocess.run([sys.executable, "-m", "shared.cli", "vlm", "probe", "--backend", "anthropic", "--no-sim",
                           "--connect", f"tcp/127.0.0.1:{closed_port()}", "--out", str(tmp_path / "p.json")],
                          capture_output=True, text=True, timeout=120)
-    assert res.returncode == 2 and "backend anthropic needs an API key" in res.stdout
+    assert res.returncode == 2 and "no API key: set AERMANI_REASONER_API_KEY or ANTHROPIC_API_KEY" in res.stdout

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import logging
 import os
+import time
 from abc import ABC, abstractmethod
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -151,8 +152,12 @@ def api_key(settings: ReasonerSettings, kind: str, env_var: str) -> str:
 # --------------------------------------------------------------------------- chat-model backends
 
 log = logging.getLogger("aermani.reasoner.backends")
-_SCHEMA_REJECTED: dict[tuple[str, str, str], str] = {}
-"""(backend kind, base URL, model) -> why the server rejected schema-constrained output (auto mode)."""
+_SCHEMA_REJECTED: dict[tuple[str, str, str], tuple[str, float]] = {}
+"""(backend kind, base URL, model) -> (why the server rejected schema-constrained output, when: monotonic s), in
+auto mode. Free text is used while the rejection is younger than SCHEMA_RETRY_S, then the schema is tried again:
+a 400 can be transient (an overloaded proxy, a server restarting with other flags) and must not cost the
+structured output for the rest of the process."""
+SCHEMA_RETRY_S = 300.0
 
 
 class SchemaRejected(Exception):
@@ -247,9 +252,20 @@ class ChatBackend(Backend):
         """The answer schema to send with this request, or None for free text."""
         if request.prompt.schema is None or self.output_mode == "text":
             return None
-        if self.output_mode == "auto" and (not self.profile.schema or self._endpoint in _SCHEMA_REJECTED):
+        if self.output_mode == "auto" and (not self.profile.schema or self._schema_rejected_recently()):
             return None
         return request.prompt.schema
+
+    def _schema_rejected_recently(self) -> bool:
+        seen = _SCHEMA_REJECTED.get(self._endpoint)
+        if seen is None:
+            return False
+        if time.monotonic() - seen[1] < SCHEMA_RETRY_S:
+            return True
+        del _SCHEMA_REJECTED[self._endpoint]
+        log.info("%s endpoint %s: trying schema-constrained output again for model %s (refused %.0f s ago)",
+                 self.kind, self.base_url or "(default)", self.model, time.monotonic() - seen[1])
+        return False
 
     def image(self, request: ModelRequest) -> bytes | None:
         jpeg = request.prompt.image_jpeg
@@ -273,12 +289,12 @@ class ChatBackend(Backend):
             if self.output_mode == "schema":
                 raise ModelError(f"{self.kind} endpoint {self.base_url or '(default)'} rejected the answer schema "
                                  f"for model {self.model}: {exc}; set AERMANI_REASONER_OUTPUT_MODE=text or auto")
-            reply = await self._call(request, None)
-            if self._endpoint not in _SCHEMA_REJECTED:  # remembered per endpoint, logged once
-                _SCHEMA_REJECTED[self._endpoint] = str(exc)
+            reply = await self._call(request, None)  # raises when free text fails too: nothing is remembered
+            if self._endpoint not in _SCHEMA_REJECTED:  # remembered per endpoint for a while, logged once
                 log.warning("%s endpoint %s rejected schema-constrained output for model %s (%s); using free "
-                            "text and the lenient reader from now on", self.kind, self.base_url or "(default)",
-                            self.model, str(exc)[:200])
+                            "text and the lenient reader for %.0f s", self.kind, self.base_url or "(default)",
+                            self.model, str(exc)[:200], SCHEMA_RETRY_S)
+            _SCHEMA_REJECTED[self._endpoint] = (str(exc), time.monotonic())
             return reply
 
     async def aclose(self) -> None:
