@@ -63,6 +63,9 @@ class ModelError(AermaniError):
     calls: tuple[Any, ...] = ()
     """The step's model calls (`ModelCall`s) made before the failure, set by the reasoner loop so the step
     record keeps them (IAR counts their invalid answers)."""
+    kind: str = "server"
+    """What failed: `refused` (the server answered 400/422 to this request), `schema` (it refused the answer
+    schema), `server` (a 5xx after the retry budget) or `unreachable` (connection or timeout)."""
 
 
 class InvalidAnswer(AermaniError):

@@ -377,7 +377,8 @@ def probe_command(
     t = Table(title=f"{rep.backend}:{rep.model} at {rep.base_url} (profile {rep.profile})")
     t.add_column("check")
     t.add_column("result")
-    for k, v in (("image accepted", yes(rep.image_accepted)), ("schema mode supported", yes(rep.schema_supported)),
+    for k, v in (("server", "failed: " + rep.server_error[:60] if rep.server_error else "answers"),
+                 ("image accepted", yes(rep.image_accepted)), ("schema mode supported", yes(rep.schema_supported)),
                  ("free-text answer valid", yes(rep.text_mode_valid)), ("mode timed", rep.mode_used or "-"),
                  ("answers valid", "-" if rep.valid_rate is None else f"{100 * rep.valid_rate:.0f} %"),
                  (f"RT median over {calls} calls", num(rep.rt_median_s, ".3f") + " s"),

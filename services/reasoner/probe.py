@@ -42,6 +42,8 @@ class CallResult:
     tokens_cached: int | None = None
     answer: str = ""
     error: str = ""
+    error_kind: str = ""
+    """How the call failed (ModelError.kind): refused, schema, server or unreachable; empty when it answered."""
 
 
 @dataclass
@@ -54,9 +56,14 @@ class ProbeReport:
     profile: str
     frame_source: str
     frame_bytes: int
-    image_accepted: bool = False
+    image_accepted: bool | None = False
+    """True: a request with the image was answered; False: refused while the same request without it was
+    answered; None: unknown (the server failed either way)."""
     schema_supported: bool | None = None
-    """True: the server took the strict answer schema and answered under it; False: it refused it."""
+    """True: the server took the strict answer schema and answered under it; False: it refused it; None:
+    unknown (the server failed for another reason)."""
+    server_error: str = ""
+    """Set when the endpoint failed whatever was asked (5xx, unreachable): not a verdict on image or schema."""
     text_mode_valid: bool | None = None
     mode_used: str = ""
     calls: list[CallResult] = field(default_factory=list)
@@ -82,7 +89,7 @@ async def _call(settings: ReasonerSettings, mode: str, request: ModelRequest, li
     try:
         reply = await backend.complete(request)
     except AermaniError as exc:
-        return CallResult(mode, False, False, error=str(exc)[:300])
+        return CallResult(mode, False, False, error=str(exc)[:300], error_kind=getattr(exc, "kind", "server"))
     finally:
         await backend.aclose()
     res = CallResult(mode if reply.structured or mode == "text" else "text (schema refused)", True, False,
@@ -93,6 +100,42 @@ async def _call(settings: ReasonerSettings, mode: str, request: ModelRequest, li
     except InvalidAnswer as exc:
         res.error = str(exc)
     return res
+
+
+async def _classify(rep: ProbeReport, settings: ReasonerSettings, schema: CallResult, text: CallResult,
+                    compiler: PromptCompiler, library: SkillLibrary, variant: str) -> None:
+    """Image, schema and server failures told apart: a refused schema call whose free-text twin answers is the
+    schema; a refused free-text call is asked again without the image (answered: the image is what the server
+    refuses, and the schema is checked on that request); a 5xx or an unreachable server says nothing of either."""
+    if schema.ok:
+        rep.image_accepted, rep.schema_supported = True, schema.mode == "schema"
+        return
+    if text.ok:
+        rep.image_accepted = True
+        rep.schema_supported = False if schema.error_kind in ("schema", "refused") else None
+        rep.notes.append(f"schema mode: {schema.error}")
+        return
+    if text.error_kind != "refused":
+        rep.image_accepted = rep.schema_supported = None
+        rep.server_error = text.error
+        rep.notes.append(f"the endpoint failed ({text.error_kind}), so image and schema support are unknown: "
+                         f"{text.error}")
+        return
+    bare = compiler.compile(PROBE_COMMAND, History(), Observation())
+    request = ModelRequest(bare, policy_context(PROBE_COMMAND, variant, library, History(), Observation()))
+    plain = await _call(settings, "text", request, library, variant)
+    rep.calls.append(plain)
+    if not plain.ok:
+        rep.image_accepted = rep.schema_supported = None
+        rep.server_error = plain.error
+        rep.notes.append(f"the endpoint refused the request with and without the image: {plain.error}")
+        return
+    rep.image_accepted = False
+    rep.notes.append(f"the endpoint refuses the image (the same request without it was answered): {text.error}")
+    checked = await _call(settings, "schema", request, library, variant)
+    rep.calls.append(checked)
+    rep.schema_supported = checked.ok and checked.mode == "schema" if checked.ok or checked.error_kind in (
+        "schema", "refused") else None
 
 
 async def probe(settings: ReasonerSettings, jpeg: bytes, frame_source: str, *, calls: int = 5,
@@ -111,15 +154,11 @@ async def probe(settings: ReasonerSettings, jpeg: bytes, frame_source: str, *, c
     request = ModelRequest(prompt, policy_context(PROBE_COMMAND, variant, library, History(), obs))
     schema = await _call(settings, "schema", request, library, variant)
     rep.calls.append(schema)
-    rep.schema_supported = schema.ok and schema.mode == "schema"
-    if not schema.ok:
-        rep.notes.append(f"schema mode: {schema.error}")
     text = await _call(settings, "text", request, library, variant)
     rep.calls.append(text)
     rep.text_mode_valid = text.valid if text.ok else None
-    rep.image_accepted = schema.ok or text.ok
+    await _classify(rep, settings, schema, text, compiler, library, variant)
     if not rep.image_accepted:
-        rep.notes.append(f"the endpoint answered no request with the image: {text.error}")
         return rep
     rep.mode_used = "schema" if rep.schema_supported else "text"
     timed = [await _call(settings, rep.mode_used, request, library, variant) for _ in range(calls)]

@@ -156,7 +156,7 @@ def shaped_answer(answer: str, schema: dict) -> str:
 class FakeVLMServer:
     def __init__(self, *, timeout_delay: float = 3.0, outage: bool = False, model: str = "fake-vlm",
                  reject_schema: bool = False, fault_every: int = 0, periodic_fault: str = "invalid_json",
-                 port: int = 0) -> None:
+                 port: int = 0, reject_images: bool = False) -> None:
         self.faults: deque[str | None] = deque()
         self.fault_every = fault_every
         """When > 0 and no fault is queued, every fault_every-th answer gets `periodic_fault` (a standing schedule
@@ -169,6 +169,8 @@ class FakeVLMServer:
         """The answer schema of each request (None: free text), in order."""
         self.schema_errors: list[str] = []
         self.reject_schema = reject_schema
+        self.reject_images = reject_images
+        """Answer HTTP 400 to a request with an image, like a text-only model's server."""
         self._seen_prefixes: set[str] = set()
         self.timeout_delay = timeout_delay
         self.outage = outage
@@ -254,6 +256,8 @@ class FakeVLMServer:
         self.schemas.append(schema)
         if self.outage:
             return None, 503, "outage"
+        if image and self.reject_images:
+            return None, 400, "image_rejected"
         if schema is not None and self.reject_schema:
             return None, 400, "schema_rejected"
         fault = self._next_fault()

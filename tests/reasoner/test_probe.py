@@ -63,3 +63,17 @@ def test_probe_names_a_missing_key(tmp_path, monkeypatch) -> None:
                           "--connect", f"tcp/127.0.0.1:{closed_port()}", "--out", str(tmp_path / "p.json")],
                          capture_output=True, text=True, timeout=120)
     assert res.returncode == 2 and "no API key: set AERMANI_REASONER_API_KEY or ANTHROPIC_API_KEY" in res.stdout
+
+
+@pytest.mark.parametrize(("server", "image", "schema"), [
+    ({"reject_images": True}, False, True),  # a text-only model's server: the image, not the schema
+    ({"outage": True}, None, None),  # HTTP 503 to everything: nothing is known of either
+])
+def test_probe_tells_image_schema_and_server_errors_apart(tmp_path, server: dict, image, schema) -> None:
+    with FakeVLMServer(**server) as vlm:
+        res, rep = probe(["--base-url", vlm.openai_base_url, "--backend", "openai", "--calls", "1", "--no-sim"],
+                         tmp_path / "p.json")
+    assert res.returncode == 1, res.stdout + res.stderr  # not usable as a VLM either way
+    assert rep["image_accepted"] is image and rep["schema_supported"] is schema, rep
+    assert bool(rep["server_error"]) == (image is None), rep["notes"]
+    assert ("refuses the image" in " ".join(rep["notes"])) == (image is False)

@@ -160,6 +160,11 @@ structured output for the rest of the process."""
 SCHEMA_RETRY_S = 300.0
 
 
+def _kind(exc: ModelError, kind: str) -> ModelError:
+    exc.kind = kind
+    return exc
+
+
 class SchemaRejected(Exception):
     """The server refused the request because of the answer schema (HTTP 400/422 with a schema sent)."""
 
@@ -287,8 +292,9 @@ class ChatBackend(Backend):
             return await self._call(request, schema)
         except SchemaRejected as exc:
             if self.output_mode == "schema":
-                raise ModelError(f"{self.kind} endpoint {self.base_url or '(default)'} rejected the answer schema "
-                                 f"for model {self.model}: {exc}; set AERMANI_REASONER_OUTPUT_MODE=text or auto")
+                raise _kind(ModelError(f"{self.kind} endpoint {self.base_url or '(default)'} rejected the answer "
+                                       f"schema for model {self.model}: {exc}; set AERMANI_REASONER_OUTPUT_MODE=text "
+                                       "or auto"), "schema") from exc
             reply = await self._call(request, None)  # raises when free text fails too: nothing is remembered
             if self._endpoint not in _SCHEMA_REJECTED:  # remembered per endpoint for a while, logged once
                 log.warning("%s endpoint %s rejected schema-constrained output for model %s (%s); using free "
@@ -330,14 +336,16 @@ class ChatBackend(Backend):
         except (sdk.BadRequestError, sdk.UnprocessableEntityError) as exc:
             if schema is not None:
                 raise SchemaRejected(f"HTTP {exc.status_code}: {str(exc)[:200]}") from exc
-            raise ModelError(f"{self.endpoint} refused the request for model {self.model} (HTTP "
-                             f"{exc.status_code}): {str(exc)[:200]}") from exc
+            raise _kind(ModelError(f"{self.endpoint} refused the request for model {self.model} (HTTP "
+                                   f"{exc.status_code}): {str(exc)[:200]}"), "refused") from exc
         except sdk.APIStatusError as exc:
-            raise ModelError(f"{self.endpoint} answered HTTP {exc.status_code} for model {self.model} after the "
-                             f"retry budget: {str(exc)[:200]}") from exc
+            raise _kind(ModelError(f"{self.endpoint} answered HTTP {exc.status_code} for model {self.model} after "
+                                   f"the retry budget: {str(exc)[:200]}"),
+                        "refused" if 400 <= exc.status_code < 500 and exc.status_code not in (408, 429)
+                        else "server") from exc
         except sdk.APIError as exc:  # connection, timeout
-            raise ModelError(f"{self.endpoint} unreachable for model {self.model} after the retry budget: "
-                             f"{type(exc).__name__}: {str(exc)[:200]}") from exc
+            raise _kind(ModelError(f"{self.endpoint} unreachable for model {self.model} after the retry budget: "
+                                   f"{type(exc).__name__}: {str(exc)[:200]}"), "unreachable") from exc
 
     @abstractmethod
     async def _call(self, request: ModelRequest, schema: dict | None) -> ModelReply:
