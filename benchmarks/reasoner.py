@@ -120,6 +120,35 @@ def cache_report(path: Path, variant: str) -> dict[str, float]:
             "cache_tasks": len(rows), "cache_prefixes": len(prefixes)}
 
 
+HOSTILE = {  # answers up to the size cap built to make a lenient reader work hard (issue 31)
+    "{x} fragments": "{x} ", "{k:v} fragments": "{x:1} ", "python-literal dicts": "{'a': 1} ",
+    "[{x}] nests": "[{x}] ", "quoted fragments": "'{x}' ", "tiny JSON objects": '{"a":1} ', "open braces": "{ ",
+    "an apostrophe per object": "{it's} ",
+}
+
+
+def hostile_parse(lib, variants=("full", "react", "unstructured")) -> dict[str, float]:
+    """Worst CPU time (process time, so other load does not count) to read or reject each hostile answer at
+    the size cap, per variant; target <= 100 ms for any answer."""
+    from services.reasoner.parse import MAX_ANSWER_CHARS
+    from shared.errors import InvalidAnswer
+
+    worst: dict[str, float] = {}
+    for name, piece in HOSTILE.items():
+        raw = (piece * (MAX_ANSWER_CHARS // len(piece) + 1))[:MAX_ANSWER_CHARS]
+        for variant in variants:
+            best = math.inf
+            for _ in range(3):  # the least of three: the work, not a scheduling hiccup
+                t0 = time.process_time()
+                try:
+                    parse_answer(raw, variant, lib)
+                except InvalidAnswer:
+                    pass
+                best = min(best, time.process_time() - t0)
+            worst[name] = max(worst.get(name, 0.0), best)
+    return worst
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--steps", type=int, default=2000)
@@ -181,6 +210,11 @@ def main() -> None:
           f"{'met' if p95 <= 0.010 else 'NOT met'} (p95 on a shared, loaded machine includes scheduling noise)")
     figures = {f"{k}_{q}_ms": 1e3 * (statistics.median(xs) if q == "p50" else pct(xs, 0.95))
                for k, xs in parts.items() for q in ("p50", "p95")}
+    hostile = hostile_parse(lib)
+    print(f"hostile answers at the {len(HOSTILE)} shapes x 3 variants, CPU time to read or reject (target <= 100 ms):")
+    for name, t in hostile.items():
+        print(f"  {name:<26} {1e3 * t:7.1f} ms")
+    figures["hostile_parse_max_ms"] = 1e3 * max(hostile.values())
     figures |= cache_report(args.recorded, args.variant)
     write_json(args.json, "reasoner", figures, args, paper_median_rt_s=PAPER_MEDIAN_RT_S)
 

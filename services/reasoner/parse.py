@@ -40,6 +40,8 @@ _ALIASES = {"object_localization": "obj_localization", "obj_localisation": "obj_
             "object_localisation": "obj_localization", "placement_localisation": "placement_localization"}
 
 MAX_ANSWER_CHARS = 32_000
+MAX_DECODES = 48
+"""Candidate objects the lenient reader decodes per answer before it gives up (a real answer has a handful)."""
 """Longest answer read: a full DRT/STE answer is 1-4 kB; anything longer is rejected with the reason."""
 MAX_NESTING = 16
 """Deepest bracket nesting read: the answer format needs 3 levels (drt -> action_predictions -> value)."""
@@ -53,6 +55,11 @@ class Work:
 
     def __init__(self) -> None:
         self.chars = 0
+        self.decodes = 0
+        self.spans: dict[tuple[str, str], list[tuple[int, int]]] = {}
+        """`_object_spans` results by (text, quoting mode): the depth check and the reader scan a text once."""
+        """Candidate objects handed to the lenient decoders: bounded by MAX_DECODES, since each decoder call
+        has a fixed cost that thousands of tiny fragments (`{x} {x} ...`) would multiply."""
 
 
 @dataclass(frozen=True)
@@ -82,6 +89,14 @@ def _object_spans(text: str, quotes: str, work: Work) -> list[tuple[int, int]]:
     Quotes open strings only inside brackets (prose apostrophes are not strings); an unclosed `{` in the
     prose does not hide a later object, because every matched pair is recorded and the outermost ones kept.
     Raises InvalidAnswer when brackets nest deeper than MAX_NESTING."""
+    known = work.spans.get((text, quotes))
+    if known is not None:
+        return known
+    spans = work.spans[(text, quotes)] = _scan_spans(text, quotes, work)
+    return spans
+
+
+def _scan_spans(text: str, quotes: str, work: Work) -> list[tuple[int, int]]:
     stack: list[tuple[str, int]] = []
     pairs: list[tuple[int, int]] = []
     quote = ""
@@ -130,6 +145,12 @@ def _outermost(pairs: list[tuple[int, int]]) -> list[tuple[int, int]]:
 
 
 def _loads_lenient(text: str, work: Work) -> dict | None:
+    if ":" not in text:  # an object with no key-value pair (or `{x}`) is no answer: not worth a decoder call
+        return None
+    work.decodes += 1
+    if work.decodes > MAX_DECODES:
+        raise InvalidAnswer(f"The answer holds more than {MAX_DECODES} JSON-like fragments; reply with exactly one "
+                            "JSON object in the format given in the Rules.")
     for candidate in dict.fromkeys((text, _TRAILING_COMMA.sub(r"\1", text))):
         work.chars += 2 * len(candidate)
         try:
@@ -146,14 +167,46 @@ def _loads_lenient(text: str, work: Work) -> dict | None:
     return None
 
 
+def _named_skill(obj: dict) -> tuple[str, str] | None:
+    """(skill, argument) an object names the way `_parse` reads it, normalised for comparison; None if none."""
+    keys = {norm_key(k): v for k, v in obj.items()}
+    ste = next((keys[k] for k in ("ste", "skill_to_execute", "action") if isinstance(keys.get(k), dict)), keys)
+    if ste is not keys:
+        ste = {norm_key(k): v for k, v in ste.items()}
+    skill = ste.get("skill", ste.get("action", ste.get("name")))
+    if not isinstance(skill, str):
+        return None
+    arg = ste.get("argument", ste.get("arg", ste.get("query")))
+    return norm_skill(skill), str(arg).strip().lower() if arg is not None else ""
+
+
 def _first_object(text: str, work: Work) -> tuple[dict | None, int]:
-    """The first decodable outermost object of `text` and its start, or (None, -1). Each character is in at
-    most one outermost span, so the decoders read at most 2 x 2 x len(text) characters per quoting mode."""
+    """The answer object among the outermost objects of `text` and its start, or (None, -1): the first object
+    that names a skill (an object before it that names none, such as an example of a field, is passed over),
+    else the first decodable one. When several name different skills the answer is ambiguous and rejected
+    (never guessed: the model is asked for one object); several naming the same skill are one answer. Each
+    character is in at most one outermost span, so the decoders read at most 2 x 2 x len(text) characters per
+    quoting mode."""
     for quotes in ("\"'", "\"") if "'" in text else ("\"",):  # 2nd pass: an apostrophe in an object is prose
+        first: tuple[dict, int] | None = None
+        answer: tuple[dict, int] | None = None
+        named: dict[tuple[str, str], None] = {}
         for start, end in _object_spans(text, quotes, work):
             obj = _loads_lenient(text[start:end], work)
-            if obj is not None:
-                return obj, start
+            if obj is None:
+                continue
+            first = first or (obj, start)
+            skill = _named_skill(obj)
+            if skill is not None:
+                named[skill] = None
+                answer = answer or (obj, start)
+        if len(named) > 1:
+            which = ", ".join(f"{k}({a})" if a else k for k, a in named)
+            raise InvalidAnswer(f"The answer holds {len(named)} JSON objects naming different skills ({which}); "
+                                "reply with exactly one JSON object for the one skill to execute now.")
+        chosen = answer or first
+        if chosen is not None:
+            return chosen
     return None, -1
 
 
@@ -360,9 +413,11 @@ def _validate(skill_raw: str, arg: object, drt: dict, variant: str, specs: dict,
     spec = specs.get(skill)
     if spec is None:
         raise InvalidAnswer(f"Unknown skill {skill_raw!r}; choose exactly one of: {', '.join(specs)}.")
-    if arg is not None and not isinstance(arg, str | int | float):
-        raise InvalidAnswer(f"The argument of {skill} must be a string, got {type(arg).__name__}.")
-    argument = str(arg).strip() if arg is not None else None
+    if arg is not None and not isinstance(arg, str) and spec.argument is not None:
+        # A number or a boolean is not a name of something to find: the docs promise a string or null.
+        raise InvalidAnswer(f"The argument of {skill} must be a string or null, got {type(arg).__name__} "
+                            f"{repr(arg)[:40]}.")
+    argument = str(arg).strip() if isinstance(arg, str) else None
     if argument is not None and argument.lower() in ("", "null", "none", "n/a"):
         argument = None
     if spec.argument is None:

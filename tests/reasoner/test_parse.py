@@ -253,3 +253,44 @@ def test_braces_and_escaped_quotes_inside_strings_do_not_split_the_object() -> N
     raw = 'Sure: {"ste": {"skill": "obj_localization", "argument": "the \\"red\\" cup {left} \\\\"}} ok'
     p = parse_answer(raw, "no_drt", LIB)
     assert (p.ste.skill, p.ste.argument) == ("obj_localization", 'the "red" cup {left} \\')
+
+
+@pytest.mark.parametrize("arg", [1, 2.5, True, False, ["red cup"], {"name": "red cup"}])
+def test_a_non_string_argument_is_rejected_as_the_docs_say(arg: object) -> None:
+    raw = json.dumps({"drt": FULL_DRT, "ste": {"skill": "obj_localization", "argument": arg}})
+    with pytest.raises(InvalidAnswer, match="must be a string or null"):
+        parse_answer(raw, "full", LIB)
+
+
+def test_a_non_string_argument_to_a_skill_without_one_is_ignored() -> None:
+    p = parse_answer(json.dumps({"drt": FULL_DRT, "ste": {"skill": "yaw_left", "argument": 3}}), "full", LIB)
+    assert (p.ste.skill, p.ste.argument) == ("yaw_left", None)
+
+
+def test_of_several_objects_the_one_naming_a_skill_is_the_answer() -> None:
+    """An object that names no skill (an example of a field) is passed over; two objects naming the same skill
+    are one answer; two naming different skills are refused as ambiguous, never guessed."""
+    answer = json.dumps({"drt": FULL_DRT, "ste": {"skill": "obj_localization", "argument": "red cup"}})
+    p = parse_answer(f'For example {{"argument": "a cup"}} is an argument. My answer: {answer}', "full", LIB)
+    assert (p.ste.skill, p.ste.argument) == ("obj_localization", "red cup")
+    p = parse_answer(f"{answer}\nAgain, to be sure: {answer}", "full", LIB)
+    assert p.ste.skill == "obj_localization"
+    other = json.dumps({"drt": FULL_DRT, "ste": {"skill": "yaw_left", "argument": None}})
+    for raw in (f"Either {answer} or {other}", f"```json\n{other}\n{answer}\n```"):
+        with pytest.raises(InvalidAnswer, match=r"2 JSON objects naming different skills \(yaw_left, obj_loc"
+                                                r"alization\(red cup\)\)|2 JSON objects naming different skills "
+                                                r"\(obj_localization\(red cup\), yaw_left\)"):
+            parse_answer(raw, "full", LIB)
+
+
+def test_thousands_of_tiny_fragments_cost_a_bounded_number_of_decodes() -> None:
+    """The decoders have a fixed cost per call: an answer of many `{k:v}` fragments is rejected after
+    MAX_DECODES candidates, and `{x}` fragments (no key-value pair) never reach a decoder."""
+    from services.reasoner.parse import MAX_ANSWER_CHARS, MAX_DECODES, Work
+
+    for fragment, decodes in (("{x:1} ", MAX_DECODES + 1), ("{x} ", 0), ("{'a': 1} ", MAX_DECODES + 1)):
+        raw = (fragment * (MAX_ANSWER_CHARS // len(fragment)))[:MAX_ANSWER_CHARS]
+        work = Work()
+        with pytest.raises(InvalidAnswer):
+            parse_answer(raw, "full", LIB, work=work)
+        assert work.decodes == decodes, (fragment, work.decodes)
