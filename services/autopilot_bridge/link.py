@@ -42,7 +42,7 @@ def parse_connection(spec: str, baud: int = 921600) -> tuple[str, int]:
         rest = s[len("serial:"):]
         device, sep, rate = rest.rpartition(":")
         if not sep or not rate.isdigit():
-            device, rate = rest, ""
+            device, rate = rest, ""  # `...-usb-0:1.2:1.0` (a by-path name): the ':' are the device's own
         if not device:
             raise MavlinkError(f"MAVLink connection {spec!r}: no serial device (e.g. serial:/dev/ttyACM0:921600)")
         if rate and not 0 < int(rate) <= 12_000_000:
@@ -95,8 +95,14 @@ class MavlinkLink:
         self.connection = connection
         device, baud = parse_connection(connection, baud)
         try:
-            self.conn = mavutil.mavlink_connection(device, baud=baud, source_system=source_system,
-                                                   source_component=source_component, autoreconnect=True)
+            if device.startswith(UDP_TCP_SCHEMES):
+                self.conn = mavutil.mavlink_connection(device, baud=baud, source_system=source_system,
+                                                       source_component=source_component, autoreconnect=True)
+            else:
+                # A serial device opened as one: pymavlink's mavlink_connection takes any name with a ':' for a
+                # UDP address, and every /dev/serial/by-path/... name has several.
+                self.conn = mavutil.mavserial(device, baud=baud, source_system=source_system,
+                                              source_component=source_component, autoreconnect=True)
         except Exception as exc:
             raise MavlinkError(f"could not open MAVLink connection {connection!r}: {exc}. Check the port is "
                                "free (UDP) or the device exists and is readable (serial).") from exc

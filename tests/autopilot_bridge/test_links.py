@@ -29,6 +29,10 @@ def test_connection_strings() -> None:
     assert parse_connection("serial:/dev/serial/by-id/usb-CUAV_X7:57600") == ("/dev/serial/by-id/usb-CUAV_X7", 57600)
     assert parse_connection("serial:/dev/ttyAMA0", 115200) == ("/dev/ttyAMA0", 115200)
     assert parse_connection("/dev/ttyACM0", 57600) == ("/dev/ttyACM0", 57600)
+    by_path = "/dev/serial/by-path/pci-0000:00:14.0-usb-0:1.2:1.0"
+    assert parse_connection(f"serial:{by_path}") == (by_path, 921600)
+    assert parse_connection(f"serial:{by_path}:57600") == (by_path, 57600)
+    assert parse_connection(by_path, 115200) == (by_path, 115200)
     assert parse_connection("udpin:0.0.0.0:14540") == ("udpin:0.0.0.0:14540", 921600)
     assert parse_connection("tcp:127.0.0.1:5760")[0] == "tcp:127.0.0.1:5760"
     for bad in ("", "serial:", "ttyACM0", "http://px4", "serial:/dev/ttyACM0:99999999"):
@@ -93,10 +97,19 @@ class SerialPX4:
                 os.close(fd)
 
 
-async def test_bridge_over_a_serial_link() -> None:
+@pytest.mark.parametrize("by_path", [False, True], ids=["tty", "by-path name with ':'"])
+async def test_bridge_over_a_serial_link(by_path: bool, tmp_path) -> None:
+    """Over a pseudo-terminal; as `serial:/dev/serial/by-path/...-usb-0:1.2:1.0` names one too (a symlink with
+    the ':' of every by-path name, which pymavlink alone would take for a UDP address)."""
     fc = SerialPX4()
+    device = fc.device
+    if by_path:
+        link_dir = tmp_path / "serial" / "by-path"
+        link_dir.mkdir(parents=True)
+        device = str(link_dir / "platform-3610000.xhci-usb-0:1.2:1.0")
+        os.symlink(fc.device, device)
 
-    s = BridgeSettings(connection=f"serial:{fc.device}:921600", command_timeout_s=0.5, heartbeat_timeout_s=1.0)
+    s = BridgeSettings(connection=f"serial:{device}:921600", command_timeout_s=0.5, heartbeat_timeout_s=1.0)
     link = MavlinkLink(s.connection, baud=s.baud, source_system=s.source_system,
                        source_component=s.source_component)
     assert not link.is_udp
