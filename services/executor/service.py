@@ -13,6 +13,7 @@ from services.executor.envelope import DepthClearance, airborne, offboard_proble
 from services.executor.memory import Memory
 from services.executor.registry import Skill, build_library
 from services.executor.settings import ExecutorSettings
+from services.executor.skills.common import Refusal
 from shared.bus import Bus
 from shared.errors import BusError, DecodeError
 from shared.frames import DEFAULT_INTRINSICS
@@ -25,7 +26,9 @@ from shared.messages import (
     CancelReply,
     GripperState,
     HoldCommand,
+    OutcomeCode,
     SkillAccept,
+    SkillFacts,
     SkillLibrary,
     SkillOutcome,
     SkillRequest,
@@ -98,12 +101,18 @@ class Executor:
 
     # ---- preconditions
 
-    def validate(self, req: SkillRequest) -> tuple[Skill | None, str | None, str]:
-        """(skill, argument, '') when it may start, else (None, None, reason for the model)."""
+    def validate(self, req: SkillRequest) -> tuple[Skill | None, str | None, Refusal | None]:
+        """(skill, argument, None) when it may start, else (None, None, why not: a message with its code)."""
+        skill, arg, problem = self._validate(req)
+        if problem is None:
+            return skill, arg, None
+        return None, None, problem if isinstance(problem, Refusal) else Refusal(problem, OutcomeCode.BLOCKED)
+
+    def _validate(self, req: SkillRequest) -> tuple[Skill | None, str | None, str | None]:
         skill = self.skills.get(req.skill.strip())
         if skill is None:
             names = ", ".join(n for n, sk in self.skills.items() if sk.policy_visible)
-            return None, None, f"unknown skill {req.skill!r}; choose one of: {names}"
+            return None, None, Refusal(f"unknown skill {req.skill!r}; choose one of: {names}", OutcomeCode.FAILED)
         arg = (req.argument or "").strip() or None
         if skill.argument is None:
             arg = None  # a stray argument to a skill without one is harmless
@@ -127,10 +136,10 @@ class Executor:
             problem = skill.check(self.ctx, arg)
         except Exception as exc:  # a broken check must refuse, never fly
             log.exception("precondition of %s failed", skill.name)
-            problem = f"precondition check of {skill.name} failed: {exc}"
+            problem = Refusal(f"precondition check of {skill.name} failed: {exc}", OutcomeCode.FAILED)
         if problem:
             return None, None, problem
-        return skill, arg, ""
+        return skill, arg, None
 
     # ---- run_skill
 
@@ -140,13 +149,16 @@ class Executor:
         if self.goal is not None:
             reason = (f"skill {self.goal.request.skill} is still running (goal {self.goal.goal_id}): wait for its "
                       "status or abort it; nothing was started")
-            self._status(goal_id, req, SkillState.REJECTED, reason)
-            return SkillAccept(accepted=False, goal_id=goal_id, reason=reason)
-        skill, arg, reason = self.validate(req)
+            outcome = self._refused(OutcomeCode.BLOCKED)
+            self._status(goal_id, req, SkillState.REJECTED, reason, outcome)
+            return SkillAccept(accepted=False, goal_id=goal_id, reason=reason, outcome=outcome)
+        skill, arg, refusal = self.validate(req)
         if skill is None:
-            self._status(goal_id, req, SkillState.REJECTED, reason)
-            log.info("rejected %s(%s): %s", req.skill, req.argument or "", reason)
-            return SkillAccept(accepted=False, goal_id=goal_id, reason=reason)
+            assert refusal is not None
+            outcome = self._refused(refusal.code, refusal.facts, req.argument)
+            self._status(goal_id, req, SkillState.REJECTED, str(refusal), outcome)
+            log.info("rejected %s(%s): %s (%s)", req.skill, req.argument or "", refusal, refusal.code.value)
+            return SkillAccept(accepted=False, goal_id=goal_id, reason=str(refusal), outcome=outcome)
         goal = Goal(goal_id, req, skill, start_pose=pose_of(self.state.value))
         self.goal = goal  # set before any await: one skill at a time
         self.ctx.reset_outcome(req.task_id)
@@ -156,6 +168,25 @@ class Executor:
         goal.runner = asyncio.create_task(self._supervise(goal, arg), name=f"goal.{goal_id}")
         log.info("started %s(%s) goal %s", skill.name, arg or "", goal_id)
         return SkillAccept(accepted=True, goal_id=goal_id)
+
+    def _refused(self, code: OutcomeCode, facts: SkillFacts | None = None, target: str | None = None) -> SkillOutcome:
+        """The outcome of a skill refused before it started: the vehicle is where it was."""
+        pose = pose_of(self.state.value)
+        return SkillOutcome(code=code, facts=self._complete(facts or SkillFacts(), target), start_pose=pose,
+                            end_pose=pose, held_object=self.memory.held)
+
+    def _complete(self, facts: SkillFacts, target: str | None) -> SkillFacts:
+        """Facts the executor knows for every skill, added where the skill left them unset: what is held, the
+        gripper's opening, the skill's argument as its target."""
+        st = self.state.value
+        update: dict[str, object] = {}
+        if facts.holding is None and self.memory.held:
+            update["holding"] = self.memory.held
+        if facts.gripper_width_m is None and st is not None and st.gripper_width is not None:
+            update["gripper_width_m"] = round(st.gripper_width, 4)
+        if facts.target is None and target:
+            update["target"] = target
+        return facts.model_copy(update=update) if update else facts
 
     async def _hold(self) -> AutopilotResult | None:
         try:
@@ -168,7 +199,7 @@ class Executor:
         assert goal.task is not None
         skill = goal.skill
         timeout = skill.timeout_s(self.ctx, arg)
-        state, message = SkillState.FAILED, ""
+        state, message, code, facts = SkillState.FAILED, "", OutcomeCode.FAILED, SkillFacts()
         try:
             done, _ = await asyncio.wait({goal.task}, timeout=timeout)
             if goal.aborted_by and not done:
@@ -178,28 +209,31 @@ class Executor:
                 with contextlib.suppress(BaseException):
                     await goal.task
                 state, message = SkillState.TIMEOUT, f"{skill.name} did not finish within {timeout:.0f} s; holding"
+                code = OutcomeCode.TIMED_OUT
                 if skill.moves:
                     await self._hold()
             elif goal.task.cancelled() or (goal.aborted_by and isinstance(goal.task.exception(),
                                                                           asyncio.CancelledError)):
-                state = SkillState.ABORTED
+                state, code = SkillState.ABORTED, OutcomeCode.ABORTED
                 message = f"{skill.name} aborted ({goal.aborted_by or 'cancelled'}); holding position"
             else:
                 exc = goal.task.exception()
                 if exc is None:
-                    state, message = SkillState.SUCCEEDED, goal.task.result().message
+                    result = goal.task.result()
+                    state, message, code, facts = SkillState.SUCCEEDED, result.message, result.code, result.facts
                 elif isinstance(exc, TimeoutError):
-                    state, message = SkillState.TIMEOUT, f"{skill.name}: {exc}; holding"
+                    state, message, code = SkillState.TIMEOUT, f"{skill.name}: {exc}; holding", OutcomeCode.TIMED_OUT
                     if skill.moves:
                         await self._hold()
                 elif isinstance(exc, AuthorityLost) and goal.aborted_by:
                     # The bridge saw the abort first (it holds on its own): still this executor's abort.
-                    state = SkillState.ABORTED
+                    state, code = SkillState.ABORTED, OutcomeCode.ABORTED
                     message = f"{skill.name} aborted ({goal.aborted_by}); holding position"
                 elif isinstance(exc, AuthorityLost):
-                    state, message = SkillState.FAILED, str(exc)  # no hold: PX4 or the pilot is in charge
+                    # no hold: PX4 or the pilot is in charge
+                    state, message, code = SkillState.FAILED, str(exc), OutcomeCode.ABORTED
                 elif isinstance(exc, SkillFailed):
-                    state, message = SkillState.FAILED, str(exc)
+                    state, message, code, facts = SkillState.FAILED, str(exc), exc.code, exc.facts
                     if skill.moves:
                         await self._hold()
                 else:
@@ -210,7 +244,8 @@ class Executor:
         finally:
             if skill.moves:
                 self.ctx.settled_ns = time.time_ns()
-            outcome = SkillOutcome(start_pose=goal.start_pose, end_pose=pose_of(self.state.value),
+            outcome = SkillOutcome(code=code, facts=self._complete(facts, arg),
+                                   start_pose=goal.start_pose, end_pose=pose_of(self.state.value),
                                    perceived="; ".join(self.ctx.perceived), held_object=self.memory.held,
                                    estimate=self.ctx.estimate)
             entry = goal.skill.name + (f"({arg})" if arg else "")

@@ -36,6 +36,7 @@ from shared.messages import (
     ReasoningStep,
     SkillAccept,
     SkillLibrary,
+    SkillOutcome,
     SkillRequest,
     SkillState,
     SkillStatus,
@@ -88,7 +89,7 @@ def policy_context(command: str, variant: str, library: SkillLibrary, history: H
     mem = obs.memory
     return PolicyContext(
         command=command, variant=variant, skills=[s.name for s in policy_skills(library)],
-        steps=[PastStep(e.skill, e.argument, e.state, e.message) for e in history.entries],
+        steps=[PastStep.from_outcome(e.skill, e.argument, e.state, e.message, e.outcome) for e in history.entries],
         held=mem.held_object if mem else None, visible=seen,
         known_objects=[o.label for o in mem.objects] if mem else [],
         known_placements=[p.label for p in mem.placements] if mem else [],
@@ -227,7 +228,7 @@ class TaskRunner:
             last_skill = ste.skill
             self.history.append(HistoryEntry(
                 self.steps, ste.skill, ste.argument, st.state.value, st.message, st.outcome.perceived,
-                parsed.drt.summary or "", parsed.drt.reasoning or ""))
+                parsed.drt.summary or "", parsed.drt.reasoning or "", st.outcome))
             overhead += time.perf_counter() - t_upd
             rec = rec.model_copy(update={"skill_state": st.state, "skill_message": st.message, "outcome": st.outcome,
                                          "overhead_s": overhead, "skill_duration_s": skill_s})
@@ -400,9 +401,10 @@ class TaskRunner:
                                message=f"executor unreachable: {exc}", task_id=req.task_id, step=req.step,
                                started_ns=started, ended_ns=now_ns())
         if not accept.accepted:
+            # The refusal's code and facts (out_of_reach, blocked...) travel with the accept reply.
             return SkillStatus(goal_id="", skill=req.skill, argument=req.argument, state=SkillState.REJECTED,
                                message=accept.reason, task_id=req.task_id, step=req.step, started_ns=started,
-                               ended_ns=now_ns())
+                               ended_ns=now_ns(), outcome=accept.outcome or SkillOutcome())
         if st is None:
             await self.world.hold(req.task_id, "skill timeout")
             return SkillStatus(goal_id=accept.goal_id, skill=req.skill, argument=req.argument,
