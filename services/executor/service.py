@@ -14,6 +14,7 @@ from services.executor.memory import Memory
 from services.executor.registry import Skill, build_library
 from services.executor.settings import ExecutorSettings
 from services.executor.skills.common import Refusal
+from shared.action import SKILL_ACTION, ActionServer, ServerGoalHandle
 from shared.bus import Bus
 from shared.errors import BusError, DecodeError
 from shared.frames import DEFAULT_INTRINSICS
@@ -53,8 +54,10 @@ class Goal:
     skill: Skill
     started_ns: int = field(default_factory=now_ns)
     start_pose: object = None
+    argument: str | None = None
     task: asyncio.Task | None = None  # the skill's own run()
     runner: asyncio.Task | None = None  # supervises run(): timeout, status
+    handle: ServerGoalHandle[SkillRequest, SkillStatus] | None = None  # reports the goal (action protocol)
     aborted_by: str = ""
 
 
@@ -71,6 +74,8 @@ class Executor:
         self.clearance = DepthClearance(DEFAULT_INTRINSICS, mount=settings.mount)
         self.ctx = SkillContext(bus, settings, self.memory, self.state, self.clearance)
         self.goal: Goal | None = None
+        self.action = ActionServer(bus, SKILL_ACTION, settings.vehicle_id, goal_callback=self.handle_run_skill,
+                                   execute_callback=self._execute, cancel_callback=self._cancel)
         self._memory_dirty = False
         self._background: set[asyncio.Task] = set()
 
@@ -88,12 +93,16 @@ class Executor:
             self.bus.publish(self.keys.memory, self.memory.snapshot())
 
     def _status(self, goal_id: str, req: SkillRequest, state: SkillState, message: str = "",
-                outcome: SkillOutcome | None = None, started_ns: int = 0) -> SkillStatus:
+                outcome: SkillOutcome | None = None, started_ns: int = 0,
+                handle: ServerGoalHandle[SkillRequest, SkillStatus] | None = None) -> SkillStatus:
         st = SkillStatus(goal_id=goal_id, request_id=req.request_id, task_id=req.task_id, step=req.step,
                          skill=req.skill, argument=req.argument, state=state, message=message,
                          outcome=outcome or SkillOutcome(), started_ns=started_ns,
                          ended_ns=now_ns() if state.terminal else 0)
-        self.bus.publish(self.keys.skill_status, st)
+        if handle is not None:
+            handle.publish(st)
+        else:  # a rejection: no goal to follow
+            self.action.publish(st)
         return st
 
     def library(self) -> SkillLibrary:
@@ -144,6 +153,8 @@ class Executor:
     # ---- run_skill
 
     async def handle_run_skill(self, req: SkillRequest) -> SkillAccept:
+        """Goal callback: accept a skill that may start now (it is reserved at once: one skill at a time) or
+        reject it with its reason, code and facts; `_execute` runs an accepted one."""
         goal_id = new_id("goal-")
         self.memory.begin_task(req.task_id)
         if self.goal is not None:
@@ -159,15 +170,27 @@ class Executor:
             self._status(goal_id, req, SkillState.REJECTED, str(refusal), outcome)
             log.info("rejected %s(%s): %s (%s)", req.skill, req.argument or "", refusal, refusal.code.value)
             return SkillAccept(accepted=False, goal_id=goal_id, reason=str(refusal), outcome=outcome)
-        goal = Goal(goal_id, req, skill, start_pose=pose_of(self.state.value))
+        goal = Goal(goal_id, req, skill, start_pose=pose_of(self.state.value), argument=arg)
         self.goal = goal  # set before any await: one skill at a time
         self.ctx.reset_outcome(req.task_id)
-        self._status(goal_id, req, SkillState.RUNNING, f"{skill.name} started", started_ns=goal.started_ns,
-                     outcome=SkillOutcome(start_pose=goal.start_pose))
-        goal.task = asyncio.create_task(skill.run(self.ctx, arg), name=f"skill.{skill.name}")
-        goal.runner = asyncio.create_task(self._supervise(goal, arg), name=f"goal.{goal_id}")
-        log.info("started %s(%s) goal %s", skill.name, arg or "", goal_id)
+        log.info("accepted %s(%s) goal %s", skill.name, arg or "", goal_id)
         return SkillAccept(accepted=True, goal_id=goal_id)
+
+    async def _execute(self, handle: ServerGoalHandle[SkillRequest, SkillStatus]) -> None:
+        """Execute callback: run the accepted skill under supervision; its terminal status ends the goal."""
+        goal = self.goal
+        assert goal is not None and goal.goal_id == handle.goal_id, "an accepted goal is the running one"
+        goal.handle = handle
+        goal.runner = asyncio.current_task()
+        self._status(goal.goal_id, goal.request, SkillState.RUNNING, f"{goal.skill.name} started",
+                     started_ns=goal.started_ns, outcome=SkillOutcome(start_pose=goal.start_pose), handle=handle)
+        goal.task = asyncio.create_task(goal.skill.run(self.ctx, goal.argument), name=f"skill.{goal.skill.name}")
+        if goal.aborted_by:  # an abort came between the accept and this start: the skill never acts
+            goal.task.cancel()
+        await self._supervise(goal, goal.argument)
+
+    async def _cancel(self, handle: ServerGoalHandle[SkillRequest, SkillStatus], req: CancelGoal) -> CancelReply:
+        return await self.handle_cancel(req)
 
     def _refused(self, code: OutcomeCode, facts: SkillFacts | None = None, target: str | None = None) -> SkillOutcome:
         """The outcome of a skill refused before it started: the vehicle is where it was."""
@@ -252,7 +275,7 @@ class Executor:
             self.memory.record_executed(f"{entry}: {state.value}")
             self.goal = None
             with contextlib.suppress(BusError):
-                self._status(goal.goal_id, goal.request, state, message, outcome, goal.started_ns)
+                self._status(goal.goal_id, goal.request, state, message, outcome, goal.started_ns, goal.handle)
             log.info("%s goal %s %s: %s", skill.name, goal.goal_id, state.value, message)
 
     # ---- abort
@@ -264,10 +287,11 @@ class Executor:
                            message=f"no skill of task {abort.task_id} runs; nothing done")
             self.bus.publish(self.keys.abort_ack, ack)
             return ack
-        if goal is not None and goal.task is not None and not goal.task.done():
+        if goal is not None and (goal.task is None or not goal.task.done()):
             goal.aborted_by = f"{abort.source}: {abort.reason}"
             self.ctx.stop_requested = True
-            goal.task.cancel()
+            if goal.task is not None:  # else it is cancelled as it starts (_execute)
+                goal.task.cancel()
         result = None
         if airborne(self.state.value) or goal is not None:
             result = await self._hold()
@@ -359,8 +383,7 @@ class Executor:
             await asyncio.sleep(self.settings.memory_period_s)
 
     async def run(self, stop: asyncio.Event) -> None:
-        self.bus.serve(self.keys.run_skill, self.handle_run_skill)
-        self.bus.serve(self.keys.cancel_skill, self.handle_cancel)
+        self.action.start()
 
         async def skills(_req: object) -> SkillLibrary:
             return self.library()

@@ -76,6 +76,12 @@ class World(ABC):
         with contextlib.suppress(Exception):
             await self.run_skill(SkillRequest(skill=S.HOLD, task_id=task_id), 0.0)
 
+    async def cancel_skill(self, task_id: str, reason: str) -> SkillStatus | None:
+        """Cancel the running skill of the task (the executor stops it and holds) and return its terminal
+        status; with no skill running, hold. The default has no skill to cancel: it holds."""
+        await self.hold(task_id, reason)
+        return None
+
 
 def policy_context(command: str, variant: str, library: SkillLibrary, history: History,
                    obs: Observation) -> PolicyContext:
@@ -147,12 +153,14 @@ class TaskRunner:
             done, _ = await asyncio.wait({body, aborter}, timeout=self.t_max, return_when=asyncio.FIRST_COMPLETED)
             if body in done:
                 final = body.result()
+            elif aborter in done and getattr(abort, "cancel", False):
+                final = await self._cancelled(body, getattr(abort, "reason", "") or "cancelled")
             else:
                 body.cancel()
                 with contextlib.suppress(asyncio.CancelledError, Exception):
                     await body
                 if aborter in done:
-                    # The executor holds the vehicle itself on safety/abort.
+                    # The executor holds the vehicle itself on an abort it received.
                     final = self.status(TaskState.ABORTED, "aborted: " + (getattr(abort, "reason", "") or "abort"))
                 else:
                     await self.world.hold(self.req.task_id, "T_max")
@@ -165,6 +173,17 @@ class TaskRunner:
             aborter.cancel()
         self.publish_status(final)
         return final
+
+    async def _cancelled(self, body: asyncio.Task[TaskStatus], reason: str) -> TaskStatus:
+        """A cancel of the task: stop its running skill and hold (the executor does both and reports the skill
+        aborted) before the loop stops, then end ABORTED with the reason."""
+        stopped = await self.world.cancel_skill(self.req.task_id, reason)
+        body.cancel()
+        with contextlib.suppress(asyncio.CancelledError, Exception):
+            await body
+        what = (f"skill {stopped.skill} {stopped.state.value}" if stopped is not None
+                else "no skill was running")
+        return self.status(TaskState.ABORTED, f"cancelled: {reason}; {what}; vehicle held")
 
     async def _run(self) -> TaskStatus:
         try:
