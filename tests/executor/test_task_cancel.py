@@ -53,9 +53,11 @@ async def test_cancel_a_task_mid_grasp_stops_the_grasp_and_holds(stack):
                 if st.task_id == goal.goal_id and st.skill == "grasp" and st.state == SkillState.RUNNING:
                     grasp = st
                 assert not (st.task_id == goal.goal_id and st.skill == "done"), "the task ended before any grasp"
+            cancelled_at = time.monotonic()
             reply = await goal.cancel(reason="operator stop mid-grasp", source="test")
             assert reply.accepted, reply.reason
             final = await goal.result(timeout=60)
+            ended_after = time.monotonic() - cancelled_at
         assert final is not None and final.state == TaskState.ABORTED, final
         assert "operator stop mid-grasp" in final.message and "skill grasp aborted" in final.message, final.message
         # The grasp itself was stopped by the cancel (its terminal status came before the task's end).
@@ -75,6 +77,8 @@ async def test_cancel_a_task_mid_grasp_stops_the_grasp_and_holds(stack):
             if speed < 0.05:
                 break
             assert time.monotonic() < deadline, f"the vehicle did not come to rest after the cancel ({speed:.2f} m/s)"
+        print(f"cancel -> task aborted {ended_after:.2f} s, cancel -> at rest {time.monotonic() - cancelled_at:.2f} s "
+              f"(sim speed factor {ENV['AERMANI_SIM_SPEED_FACTOR']}, seed 1, mode {s.mode})")
         assert s.mode in ("AUTO.LOITER", "OFFBOARD"), s.mode
         assert s.landed_state.value == "in_air", s.landed_state
         assert (await bus.query(KEYS.sim_judge, JudgeRequest(op="held"), timeout=10)).held is None
