@@ -7,6 +7,12 @@ topic; a cancel request goes to the cancel queryable. `ActionClient.send_goal` r
 whose `result()` waits for the terminal status, `feedback` holds the statuses seen so far, and `cancel()`
 asks the server to stop. The client subscribes the status topic before it sends the goal, so no status
 is missed; it routes statuses to handles by goal id and keeps nothing once a goal has ended.
+
+`ActionServer` is the other half, after rclpy's: its goal callback accepts or rejects a goal (it builds the
+accept message, so the server decides the goal id), the execute callback runs an accepted goal with a
+`ServerGoalHandle` that publishes its feedback and, last, its terminal result; the cancel callback decides a
+cancel of a running goal (by default the execute task is cancelled), and a cancel of a goal that is not
+running is refused with a reason without reaching the callback. Every server and every test fake uses it.
 """
 
 from __future__ import annotations
@@ -14,7 +20,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from typing import Any, Generic, TypeVar
 
@@ -226,6 +232,109 @@ class ActionClient(Generic[G, A, S]):
                      timeout: float = 5.0) -> CancelReply:
         return await self.bus.query(self.spec.cancel.bind(self.vehicle_id),
                                     CancelGoal(goal_id=goal_id, reason=reason, source=source), timeout=timeout)
+
+
+class ServerGoalHandle(Generic[G, S]):
+    """A goal an `ActionServer` accepted: its request, whether a cancel was asked, and how to report on it."""
+
+    def __init__(self, server: ActionServer[G, Any, S], goal_id: str, request: G) -> None:
+        self.server = server
+        self.goal_id = goal_id
+        self.request = request
+        self.cancel_request: CancelGoal | None = None
+        """The cancel a client sent (None until one arrives): an execute callback that polls reads it."""
+        self.task: asyncio.Task[None] | None = None
+        """The execute callback's task (None without an execute callback)."""
+        self.active = True
+        """Until its terminal status was published."""
+
+    @property
+    def cancel_requested(self) -> bool:
+        return self.cancel_request is not None
+
+    def publish(self, status: S) -> None:
+        """Publish a status of this goal: feedback, or its terminal result (which ends the goal here)."""
+        self.server.publish(status)
+        if self.server.spec.terminal(status):
+            self.active = False
+            self.server._end(self.goal_id)
+
+
+GoalCallback = Callable[[G], Awaitable[A]]
+ExecuteCallback = Callable[[ServerGoalHandle[G, S]], Awaitable[None]]
+CancelCallback = Callable[[ServerGoalHandle[G, S], CancelGoal], Awaitable[CancelReply]]
+
+
+class ActionServer(Generic[G, A, S]):
+    """Server side of one action on one vehicle: serves the goal and cancel queryables (`start()`)."""
+
+    def __init__(self, bus: Bus, spec: ActionSpec[G, A, S], vehicle_id: str, *, goal_callback: GoalCallback[G, A],
+                 execute_callback: ExecuteCallback[G, S] | None = None,
+                 cancel_callback: CancelCallback[G, S] | None = None) -> None:
+        self.bus = bus
+        self.spec = spec
+        self.vehicle_id = vehicle_id
+        self.goal_callback = goal_callback
+        self.execute_callback = execute_callback
+        self.cancel_callback = cancel_callback
+        self.goals: dict[str, ServerGoalHandle[G, S]] = {}
+        """The running goals by id (a goal leaves when its terminal status is published)."""
+        self._started = False
+
+    def start(self) -> ActionServer[G, A, S]:
+        """Serve the goal and cancel queryables (once)."""
+        if not self._started:
+            self.bus.serve(self.spec.goal.bind(self.vehicle_id), self._on_goal)
+            self.bus.serve(self.spec.cancel.bind(self.vehicle_id), self._on_cancel)
+            self._started = True
+        return self
+
+    def publish(self, status: S) -> None:
+        """Publish a status on the action's status topic (a rejection's status has no handle)."""
+        self.bus.publish(self.spec.status.bind(self.vehicle_id), status)
+
+    def _end(self, goal_id: str) -> None:
+        self.goals.pop(goal_id, None)
+
+    async def _on_goal(self, request: G) -> A:
+        accept = await self.goal_callback(request)
+        if not bool(getattr(accept, "accepted", False)):
+            return accept
+        goal_id = self.spec.accept_id(accept) or self.spec.request_id(request)
+        handle: ServerGoalHandle[G, S] = ServerGoalHandle(self, goal_id, request)
+        self.goals[goal_id] = handle
+        if self.execute_callback is not None:
+            # Runs once the accept reply is on its way; a status that overtakes it waits in the client.
+            handle.task = asyncio.create_task(self._execute(handle), name=f"action.{self.spec.name}.{goal_id}")
+        return accept
+
+    async def _execute(self, handle: ServerGoalHandle[G, S]) -> None:
+        assert self.execute_callback is not None
+        try:
+            await self.execute_callback(handle)
+        except asyncio.CancelledError:
+            if handle.active:
+                log.warning("%s goal %s was cancelled before it reported a result", self.spec.name, handle.goal_id)
+            raise
+        except Exception:
+            log.exception("%s goal %s: the execute callback failed", self.spec.name, handle.goal_id)
+        finally:
+            if handle.active:  # it never reported its end: nobody may wait for it forever
+                log.error("%s goal %s ended without a terminal status", self.spec.name, handle.goal_id)
+                self._end(handle.goal_id)
+
+    async def _on_cancel(self, req: CancelGoal) -> CancelReply:
+        handle = self.goals.get(req.goal_id)
+        if handle is None or not handle.active:
+            return CancelReply(accepted=False, reason=f"{self.spec.name} goal {req.goal_id} is not running on "
+                                                      f"vehicle {self.vehicle_id} (unknown or already ended); "
+                                                      "nothing was cancelled")
+        handle.cancel_request = req
+        if self.cancel_callback is not None:
+            return await self.cancel_callback(handle, req)
+        if handle.task is not None:
+            handle.task.cancel()
+        return CancelReply(accepted=True)
 
 
 def skill_client(bus: Bus, vehicle_id: str) -> ActionClient[SkillRequest, SkillAccept, SkillStatus]:

@@ -5,7 +5,11 @@ For a service name, the declarations in `shared/keys.py` say what it must do: th
 (periodic ones must show a sample within the timeout, and every sample must decode to the declared type),
 the queryables it serves (each must answer a malformed request with an error or a valid reply, never
 time out; a queryable without a request body must answer with its declared reply type), its liveliness
-token and its health. `check_service` returns a report; `Report.raise_for_failures()` makes it an assert.
+token and its health. The action queryables also get a valid request that the contract says must be
+refused, never run (`VALID_PROBES`: a skill goal naming no skill, a cancel of a goal nobody sent); the
+reply must decode and refuse with a reason. With `library` (the live skill library), every skill a status
+or a reasoning step names must be in it. `check_service` returns a report; `Report.raise_for_failures()`
+makes it an assert.
 """
 
 from __future__ import annotations
@@ -18,10 +22,19 @@ from typing import Any
 from shared.bus import Bus, Subscription, decoder
 from shared.errors import AermaniError, NoResponder, QueryTimeout, RemoteError
 from shared.keys import ALIVE_TOKEN, DECLARATIONS, HEALTH_TOPIC, Keys, Protobuf, Query, Topic
-from shared.messages import ReasoningStep, SkillLibrary, SkillStatus
+from shared.messages import CancelGoal, ReasoningStep, SkillLibrary, SkillRequest, SkillStatus
 from shared.sensors import PROTO_TYPES, decode_proto
 
 MALFORMED = b"\x00 this is not a valid request \xff"
+PROBE_SKILL = "conformance_probe_no_such_skill"
+VALID_PROBES: dict[str, Any] = {
+    "executor/run_skill": SkillRequest(skill=PROBE_SKILL, task_id="conformance"),
+    "executor/cancel_skill": CancelGoal(goal_id="conformance-unknown-goal", reason="conformance probe",
+                                        source="conformance"),
+    "reasoner/cancel_task": CancelGoal(goal_id="conformance-unknown-task", reason="conformance probe",
+                                       source="conformance"),
+}
+"""Valid requests each action server must refuse (with `accepted=False` and a reason), by key name."""
 
 
 @dataclass
@@ -101,7 +114,7 @@ async def _check_topic(bus: Bus, keys: Keys, decl: Topic[Any], report: Report, t
             return
         if library is not None:
             names = {s.name for s in library.skills}
-            used = [s.skill for s in got if isinstance(s, SkillStatus)]
+            used = [s.skill for s in got if isinstance(s, SkillStatus) and s.skill != PROBE_SKILL]
             used += [s.ste.skill for s in got if isinstance(s, ReasoningStep) and s.ste is not None]
             bad = [n for n in used if n not in names]
             if bad:
@@ -146,6 +159,19 @@ async def _check_query(bus: Bus, keys: Keys, decl: Query[Any, Any], report: Repo
     report.add(key, True, f"a malformed request gets a structured refusal ({type(reply).__name__})")
 
 
+async def _check_valid_probe(bus: Bus, keys: Keys, decl: Query[Any, Any], report: Report, timeout: float) -> None:
+    target = decl.bind(keys.vehicle_id)
+    try:
+        reply: Any = await bus.query(target, VALID_PROBES[decl.name], timeout=timeout)
+    except AermaniError as exc:
+        report.add(target.key, False, f"a valid request got no structured reply: {exc}")
+        return
+    if getattr(reply, "accepted", True) or not getattr(reply, "reason", ""):
+        report.add(target.key, False, f"accepted a request it must refuse, or refused it without a reason: {reply!r}")
+        return
+    report.add(target.key, True, f"a valid request it must refuse is refused: {reply.reason[:80]}")
+
+
 async def check_service(bus: Bus, service: str, vehicle_id: str = "am1", *, timeout: float = 5.0,
                         expect_alive: bool = True, expect_health: bool = False, require_periodic: bool = True,
                         library: SkillLibrary | None = None, skip: tuple[str, ...] = ()) -> Report:
@@ -171,6 +197,8 @@ async def check_service(bus: Bus, service: str, vehicle_id: str = "am1", *, time
         if q.name not in skip:
             with contextlib.suppress(RemoteError):
                 await _check_query(bus, keys, q, report, timeout)
+            if q.name in VALID_PROBES:
+                await _check_valid_probe(bus, keys, q, report, timeout)
     if not report.findings:
         report.add(service, False, "the declarations name nothing this service does: is the name right?")
     return report

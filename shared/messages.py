@@ -475,6 +475,9 @@ class SkillAccept(Message):
     """Id to follow the skill's status (when accepted)."""
     reason: str = ""
     """Why it was rejected, written for the model to read."""
+    outcome: SkillOutcome | None = None
+    """A rejection's outcome (its code, e.g. out_of_reach, and facts), the same as its rejected status carries;
+    None when accepted (and from executors older than schema minor 3)."""
 
 
 class MemoryObject(Part):
@@ -553,6 +556,8 @@ class SkillFacts(Part):
 
     distance_m: float | None = None
     """Distance from the vehicle (or gripper) to the target when the skill decided, metres."""
+    reach_m: float | None = None
+    """The farthest the skill may act from (with `out_of_reach`: how close to come before trying again), metres."""
     offset_m: float | None = None
     """Remaining horizontal offset between the gripper and the target when the skill decided, metres."""
     attempts: int = 0

@@ -29,20 +29,31 @@ from shared.messages import (
     GripperState,
     LocalizeRequest,
     ObjectEstimate,
+    OutcomeCode,
     PlacementEstimate,
     Pose,
+    SkillFacts,
     Vec3,
     VehicleState,
 )
 
 
 class SkillFailed(SkillError):
-    """A skill could not reach its termination condition; the message is for the policy."""
+    """A skill could not reach its termination condition: `code` and `facts` are what a policy decides from,
+    the message is the same for a person (and a VLM) to read."""
+
+    def __init__(self, message: str, code: OutcomeCode = OutcomeCode.FAILED, facts: SkillFacts | None = None) -> None:
+        super().__init__(message)
+        self.code = code
+        self.facts = facts or SkillFacts()
 
 
 class AuthorityLost(SkillFailed):
     """PX4, the pilot or an abort took control while the skill ran: the stack must not fight it (no hold, no
     retry); the task ends with this reason."""
+
+    def __init__(self, message: str) -> None:
+        super().__init__(message, OutcomeCode.ABORTED)
 
 
 class StateTracker:
@@ -114,7 +125,7 @@ class SkillContext:
             raise asyncio.CancelledError("aborted")
         problem = state_problem(self.state.value, self.state.age_s, self.settings)
         if problem:
-            raise SkillFailed(problem.replace("nothing was moved", "the skill stopped and holds"))
+            raise SkillFailed(problem.replace("nothing was moved", "the skill stopped and holds"), OutcomeCode.BLOCKED)
         assert self.state.value is not None
         return self.state.value
 
@@ -126,7 +137,8 @@ class SkillContext:
         s = self.settings
         if outside_geofence(st.position, s, s.geofence_exit_margin):
             p = st.position
-            raise SkillFailed(f"vehicle left the geofence at ({p.x:.2f}, {p.y:.2f}, {p.z:.2f}); holding")
+            raise SkillFailed(f"vehicle left the geofence at ({p.x:.2f}, {p.y:.2f}, {p.z:.2f}); holding",
+                              OutcomeCode.BLOCKED)
         speed = math.sqrt(st.velocity.x ** 2 + st.velocity.y ** 2 + st.velocity.z ** 2)
         if speed <= s.max_speed + s.overspeed_margin:
             self.overspeed_since_ns = 0
@@ -134,7 +146,7 @@ class SkillContext:
         self.overspeed_since_ns = self.overspeed_since_ns or st.stamp_ns
         if (st.stamp_ns - self.overspeed_since_ns) / 1e9 >= s.overspeed_persist_s:
             raise SkillFailed(f"vehicle speed {speed:.2f} m/s exceeds the limit {s.max_speed:.2f} m/s "
-                              f"for {s.overspeed_persist_s:.1f} s; holding")
+                              f"for {s.overspeed_persist_s:.1f} s; holding", OutcomeCode.BLOCKED)
 
     async def wait_for(self, pred: Callable[[VehicleState], bool], timeout: float, what: str) -> VehicleState:
         """Wait until `pred(state)`, checking health and the envelope on every sample."""
@@ -170,9 +182,11 @@ class SkillContext:
         """Fly to `target` and wait for arrival. The envelope is checked first: a violating target raises
         SkillFailed before any setpoint is sent."""
         s = self.settings
-        problem = geofence_problem(target, s, what) or altitude_problem(target.z, s, low, what)
+        fence = geofence_problem(target, s, what)
+        problem = fence or altitude_problem(target.z, s, low, what)
         if problem:
-            raise SkillFailed(problem.replace("nothing was moved", "the routine stopped before that leg"))
+            raise SkillFailed(problem.replace("nothing was moved", "the routine stopped before that leg"),
+                              OutcomeCode.OUT_OF_REACH if fence else OutcomeCode.BLOCKED)
         speed = min(speed, s.max_speed)
         start = self.current()
         dist = math.dist(start.position.as_tuple(), target.as_tuple())
@@ -197,7 +211,8 @@ class SkillContext:
         try:
             await self.wait_for(lambda st: st.gripper == want, self.settings.gripper_timeout_s, f"gripper {action}")
         except TimeoutError as exc:
-            raise SkillFailed(f"gripper did not report {want.value} after the {action} command") from exc
+            raise SkillFailed(f"gripper did not report {want.value} after the {action} command",
+                              OutcomeCode.TIMED_OUT) from exc
 
     # ---- perception
 

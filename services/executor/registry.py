@@ -3,22 +3,25 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import ClassVar, Literal
 
 from services.executor.context import SkillContext
 from services.executor.settings import ExecutorSettings
 from shared.errors import ConfigError
-from shared.messages import SkillLibrary, SkillParameter, SkillSpec
+from shared.messages import OutcomeCode, SkillFacts, SkillLibrary, SkillParameter, SkillSpec
 
 Category = Literal["motion", "perception", "manipulation", "operator", "control"]
 
 
 @dataclass
 class SkillResult:
-    """What a successful run reports (the executor adds poses and the held object)."""
+    """What a successful run reports: its code and measured facts (what a policy reads) and a message (what a
+    person reads). The executor adds poses, the held object and the gripper's opening."""
 
     message: str = ""
+    code: OutcomeCode = OutcomeCode.SUCCEEDED
+    facts: SkillFacts = field(default_factory=SkillFacts)
 
 
 class Skill(ABC):
@@ -50,7 +53,8 @@ class Skill(ABC):
                          parameters=self.parameters(), policy_visible=self.policy_visible)
 
     def check(self, ctx: SkillContext, argument: str | None) -> str | None:
-        """Skill-specific preconditions: None when the skill may start, else why not (for the model)."""
+        """Skill-specific preconditions: None when the skill may start, else why not. A plain string is
+        refused as `blocked`; a `Refusal` (skills.common) carries its own code and facts."""
         return None
 
     def timeout_s(self, ctx: SkillContext, argument: str | None) -> float:

@@ -13,6 +13,8 @@ from services.executor.envelope import DepthClearance, airborne, offboard_proble
 from services.executor.memory import Memory
 from services.executor.registry import Skill, build_library
 from services.executor.settings import ExecutorSettings
+from services.executor.skills.common import Refusal
+from shared.action import SKILL_ACTION, ActionServer, ServerGoalHandle
 from shared.bus import Bus
 from shared.errors import BusError, DecodeError
 from shared.frames import DEFAULT_INTRINSICS
@@ -25,7 +27,9 @@ from shared.messages import (
     CancelReply,
     GripperState,
     HoldCommand,
+    OutcomeCode,
     SkillAccept,
+    SkillFacts,
     SkillLibrary,
     SkillOutcome,
     SkillRequest,
@@ -50,8 +54,10 @@ class Goal:
     skill: Skill
     started_ns: int = field(default_factory=now_ns)
     start_pose: object = None
+    argument: str | None = None
     task: asyncio.Task | None = None  # the skill's own run()
     runner: asyncio.Task | None = None  # supervises run(): timeout, status
+    handle: ServerGoalHandle[SkillRequest, SkillStatus] | None = None  # reports the goal (action protocol)
     aborted_by: str = ""
 
 
@@ -68,6 +74,8 @@ class Executor:
         self.clearance = DepthClearance(DEFAULT_INTRINSICS, mount=settings.mount)
         self.ctx = SkillContext(bus, settings, self.memory, self.state, self.clearance)
         self.goal: Goal | None = None
+        self.action = ActionServer(bus, SKILL_ACTION, settings.vehicle_id, goal_callback=self.handle_run_skill,
+                                   execute_callback=self._execute, cancel_callback=self._cancel)
         self._memory_dirty = False
         self._background: set[asyncio.Task] = set()
 
@@ -85,12 +93,16 @@ class Executor:
             self.bus.publish(self.keys.memory, self.memory.snapshot())
 
     def _status(self, goal_id: str, req: SkillRequest, state: SkillState, message: str = "",
-                outcome: SkillOutcome | None = None, started_ns: int = 0) -> SkillStatus:
+                outcome: SkillOutcome | None = None, started_ns: int = 0,
+                handle: ServerGoalHandle[SkillRequest, SkillStatus] | None = None) -> SkillStatus:
         st = SkillStatus(goal_id=goal_id, request_id=req.request_id, task_id=req.task_id, step=req.step,
                          skill=req.skill, argument=req.argument, state=state, message=message,
                          outcome=outcome or SkillOutcome(), started_ns=started_ns,
                          ended_ns=now_ns() if state.terminal else 0)
-        self.bus.publish(self.keys.skill_status, st)
+        if handle is not None:
+            handle.publish(st)
+        else:  # a rejection: no goal to follow
+            self.action.publish(st)
         return st
 
     def library(self) -> SkillLibrary:
@@ -98,12 +110,18 @@ class Executor:
 
     # ---- preconditions
 
-    def validate(self, req: SkillRequest) -> tuple[Skill | None, str | None, str]:
-        """(skill, argument, '') when it may start, else (None, None, reason for the model)."""
+    def validate(self, req: SkillRequest) -> tuple[Skill | None, str | None, Refusal | None]:
+        """(skill, argument, None) when it may start, else (None, None, why not: a message with its code)."""
+        skill, arg, problem = self._validate(req)
+        if problem is None:
+            return skill, arg, None
+        return None, None, problem if isinstance(problem, Refusal) else Refusal(problem, OutcomeCode.BLOCKED)
+
+    def _validate(self, req: SkillRequest) -> tuple[Skill | None, str | None, str | None]:
         skill = self.skills.get(req.skill.strip())
         if skill is None:
             names = ", ".join(n for n, sk in self.skills.items() if sk.policy_visible)
-            return None, None, f"unknown skill {req.skill!r}; choose one of: {names}"
+            return None, None, Refusal(f"unknown skill {req.skill!r}; choose one of: {names}", OutcomeCode.FAILED)
         arg = (req.argument or "").strip() or None
         if skill.argument is None:
             arg = None  # a stray argument to a skill without one is harmless
@@ -127,35 +145,71 @@ class Executor:
             problem = skill.check(self.ctx, arg)
         except Exception as exc:  # a broken check must refuse, never fly
             log.exception("precondition of %s failed", skill.name)
-            problem = f"precondition check of {skill.name} failed: {exc}"
+            problem = Refusal(f"precondition check of {skill.name} failed: {exc}", OutcomeCode.FAILED)
         if problem:
             return None, None, problem
-        return skill, arg, ""
+        return skill, arg, None
 
     # ---- run_skill
 
     async def handle_run_skill(self, req: SkillRequest) -> SkillAccept:
+        """Goal callback: accept a skill that may start now (it is reserved at once: one skill at a time) or
+        reject it with its reason, code and facts; `_execute` runs an accepted one."""
         goal_id = new_id("goal-")
         self.memory.begin_task(req.task_id)
         if self.goal is not None:
             reason = (f"skill {self.goal.request.skill} is still running (goal {self.goal.goal_id}): wait for its "
                       "status or abort it; nothing was started")
-            self._status(goal_id, req, SkillState.REJECTED, reason)
-            return SkillAccept(accepted=False, goal_id=goal_id, reason=reason)
-        skill, arg, reason = self.validate(req)
+            outcome = self._refused(OutcomeCode.BLOCKED)
+            self._status(goal_id, req, SkillState.REJECTED, reason, outcome)
+            return SkillAccept(accepted=False, goal_id=goal_id, reason=reason, outcome=outcome)
+        skill, arg, refusal = self.validate(req)
         if skill is None:
-            self._status(goal_id, req, SkillState.REJECTED, reason)
-            log.info("rejected %s(%s): %s", req.skill, req.argument or "", reason)
-            return SkillAccept(accepted=False, goal_id=goal_id, reason=reason)
-        goal = Goal(goal_id, req, skill, start_pose=pose_of(self.state.value))
+            assert refusal is not None
+            outcome = self._refused(refusal.code, refusal.facts, req.argument)
+            self._status(goal_id, req, SkillState.REJECTED, str(refusal), outcome)
+            log.info("rejected %s(%s): %s (%s)", req.skill, req.argument or "", refusal, refusal.code.value)
+            return SkillAccept(accepted=False, goal_id=goal_id, reason=str(refusal), outcome=outcome)
+        goal = Goal(goal_id, req, skill, start_pose=pose_of(self.state.value), argument=arg)
         self.goal = goal  # set before any await: one skill at a time
         self.ctx.reset_outcome(req.task_id)
-        self._status(goal_id, req, SkillState.RUNNING, f"{skill.name} started", started_ns=goal.started_ns,
-                     outcome=SkillOutcome(start_pose=goal.start_pose))
-        goal.task = asyncio.create_task(skill.run(self.ctx, arg), name=f"skill.{skill.name}")
-        goal.runner = asyncio.create_task(self._supervise(goal, arg), name=f"goal.{goal_id}")
-        log.info("started %s(%s) goal %s", skill.name, arg or "", goal_id)
+        log.info("accepted %s(%s) goal %s", skill.name, arg or "", goal_id)
         return SkillAccept(accepted=True, goal_id=goal_id)
+
+    async def _execute(self, handle: ServerGoalHandle[SkillRequest, SkillStatus]) -> None:
+        """Execute callback: run the accepted skill under supervision; its terminal status ends the goal."""
+        goal = self.goal
+        assert goal is not None and goal.goal_id == handle.goal_id, "an accepted goal is the running one"
+        goal.handle = handle
+        goal.runner = asyncio.current_task()
+        self._status(goal.goal_id, goal.request, SkillState.RUNNING, f"{goal.skill.name} started",
+                     started_ns=goal.started_ns, outcome=SkillOutcome(start_pose=goal.start_pose), handle=handle)
+        goal.task = asyncio.create_task(goal.skill.run(self.ctx, goal.argument), name=f"skill.{goal.skill.name}")
+        if goal.aborted_by:  # an abort came between the accept and this start: the skill never acts
+            goal.task.cancel()
+        await self._supervise(goal, goal.argument)
+
+    async def _cancel(self, handle: ServerGoalHandle[SkillRequest, SkillStatus], req: CancelGoal) -> CancelReply:
+        return await self.handle_cancel(req)
+
+    def _refused(self, code: OutcomeCode, facts: SkillFacts | None = None, target: str | None = None) -> SkillOutcome:
+        """The outcome of a skill refused before it started: the vehicle is where it was."""
+        pose = pose_of(self.state.value)
+        return SkillOutcome(code=code, facts=self._complete(facts or SkillFacts(), target), start_pose=pose,
+                            end_pose=pose, held_object=self.memory.held)
+
+    def _complete(self, facts: SkillFacts, target: str | None) -> SkillFacts:
+        """Facts the executor knows for every skill, added where the skill left them unset: what is held, the
+        gripper's opening, the skill's argument as its target."""
+        st = self.state.value
+        update: dict[str, object] = {}
+        if facts.holding is None and self.memory.held:
+            update["holding"] = self.memory.held
+        if facts.gripper_width_m is None and st is not None and st.gripper_width is not None:
+            update["gripper_width_m"] = round(st.gripper_width, 4)
+        if facts.target is None and target:
+            update["target"] = target
+        return facts.model_copy(update=update) if update else facts
 
     async def _hold(self) -> AutopilotResult | None:
         try:
@@ -168,7 +222,7 @@ class Executor:
         assert goal.task is not None
         skill = goal.skill
         timeout = skill.timeout_s(self.ctx, arg)
-        state, message = SkillState.FAILED, ""
+        state, message, code, facts = SkillState.FAILED, "", OutcomeCode.FAILED, SkillFacts()
         try:
             done, _ = await asyncio.wait({goal.task}, timeout=timeout)
             if goal.aborted_by and not done:
@@ -178,28 +232,31 @@ class Executor:
                 with contextlib.suppress(BaseException):
                     await goal.task
                 state, message = SkillState.TIMEOUT, f"{skill.name} did not finish within {timeout:.0f} s; holding"
+                code = OutcomeCode.TIMED_OUT
                 if skill.moves:
                     await self._hold()
             elif goal.task.cancelled() or (goal.aborted_by and isinstance(goal.task.exception(),
                                                                           asyncio.CancelledError)):
-                state = SkillState.ABORTED
+                state, code = SkillState.ABORTED, OutcomeCode.ABORTED
                 message = f"{skill.name} aborted ({goal.aborted_by or 'cancelled'}); holding position"
             else:
                 exc = goal.task.exception()
                 if exc is None:
-                    state, message = SkillState.SUCCEEDED, goal.task.result().message
+                    result = goal.task.result()
+                    state, message, code, facts = SkillState.SUCCEEDED, result.message, result.code, result.facts
                 elif isinstance(exc, TimeoutError):
-                    state, message = SkillState.TIMEOUT, f"{skill.name}: {exc}; holding"
+                    state, message, code = SkillState.TIMEOUT, f"{skill.name}: {exc}; holding", OutcomeCode.TIMED_OUT
                     if skill.moves:
                         await self._hold()
                 elif isinstance(exc, AuthorityLost) and goal.aborted_by:
                     # The bridge saw the abort first (it holds on its own): still this executor's abort.
-                    state = SkillState.ABORTED
+                    state, code = SkillState.ABORTED, OutcomeCode.ABORTED
                     message = f"{skill.name} aborted ({goal.aborted_by}); holding position"
                 elif isinstance(exc, AuthorityLost):
-                    state, message = SkillState.FAILED, str(exc)  # no hold: PX4 or the pilot is in charge
+                    # no hold: PX4 or the pilot is in charge
+                    state, message, code = SkillState.FAILED, str(exc), OutcomeCode.ABORTED
                 elif isinstance(exc, SkillFailed):
-                    state, message = SkillState.FAILED, str(exc)
+                    state, message, code, facts = SkillState.FAILED, str(exc), exc.code, exc.facts
                     if skill.moves:
                         await self._hold()
                 else:
@@ -210,14 +267,15 @@ class Executor:
         finally:
             if skill.moves:
                 self.ctx.settled_ns = time.time_ns()
-            outcome = SkillOutcome(start_pose=goal.start_pose, end_pose=pose_of(self.state.value),
+            outcome = SkillOutcome(code=code, facts=self._complete(facts, arg),
+                                   start_pose=goal.start_pose, end_pose=pose_of(self.state.value),
                                    perceived="; ".join(self.ctx.perceived), held_object=self.memory.held,
                                    estimate=self.ctx.estimate)
             entry = goal.skill.name + (f"({arg})" if arg else "")
             self.memory.record_executed(f"{entry}: {state.value}")
             self.goal = None
             with contextlib.suppress(BusError):
-                self._status(goal.goal_id, goal.request, state, message, outcome, goal.started_ns)
+                self._status(goal.goal_id, goal.request, state, message, outcome, goal.started_ns, goal.handle)
             log.info("%s goal %s %s: %s", skill.name, goal.goal_id, state.value, message)
 
     # ---- abort
@@ -229,10 +287,11 @@ class Executor:
                            message=f"no skill of task {abort.task_id} runs; nothing done")
             self.bus.publish(self.keys.abort_ack, ack)
             return ack
-        if goal is not None and goal.task is not None and not goal.task.done():
+        if goal is not None and (goal.task is None or not goal.task.done()):
             goal.aborted_by = f"{abort.source}: {abort.reason}"
             self.ctx.stop_requested = True
-            goal.task.cancel()
+            if goal.task is not None:  # else it is cancelled as it starts (_execute)
+                goal.task.cancel()
         result = None
         if airborne(self.state.value) or goal is not None:
             result = await self._hold()
@@ -324,8 +383,7 @@ class Executor:
             await asyncio.sleep(self.settings.memory_period_s)
 
     async def run(self, stop: asyncio.Event) -> None:
-        self.bus.serve(self.keys.run_skill, self.handle_run_skill)
-        self.bus.serve(self.keys.cancel_skill, self.handle_cancel)
+        self.action.start()
 
         async def skills(_req: object) -> SkillLibrary:
             return self.library()

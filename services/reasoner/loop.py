@@ -36,6 +36,7 @@ from shared.messages import (
     ReasoningStep,
     SkillAccept,
     SkillLibrary,
+    SkillOutcome,
     SkillRequest,
     SkillState,
     SkillStatus,
@@ -76,6 +77,12 @@ class World(ABC):
         with contextlib.suppress(Exception):
             await self.run_skill(SkillRequest(skill=S.HOLD, task_id=task_id), 0.0)
 
+    async def cancel_skill(self, task_id: str, reason: str) -> SkillStatus | None:
+        """Cancel the running skill of the task (the executor stops it and holds) and return its terminal
+        status; with no skill running, hold. The default has no skill to cancel: it holds."""
+        await self.hold(task_id, reason)
+        return None
+
 
 def policy_context(command: str, variant: str, library: SkillLibrary, history: History,
                    obs: Observation) -> PolicyContext:
@@ -89,7 +96,7 @@ def policy_context(command: str, variant: str, library: SkillLibrary, history: H
     mem = obs.memory
     return PolicyContext(
         command=command, variant=variant, skills=[s.name for s in policy_skills(library)],
-        steps=[PastStep(e.skill, e.argument, e.state, e.message) for e in history.entries],
+        steps=[PastStep.from_outcome(e.skill, e.argument, e.state, e.message, e.outcome) for e in history.entries],
         held=mem.held_object if mem else None, visible=seen,
         known_objects=[o.label for o in mem.objects] if mem else [],
         known_placements=[p.label for p in mem.placements] if mem else [],
@@ -147,12 +154,14 @@ class TaskRunner:
             done, _ = await asyncio.wait({body, aborter}, timeout=self.t_max, return_when=asyncio.FIRST_COMPLETED)
             if body in done:
                 final = body.result()
+            elif aborter in done and getattr(abort, "cancel", False):
+                final = await self._cancelled(body, getattr(abort, "reason", "") or "cancelled")
             else:
                 body.cancel()
                 with contextlib.suppress(asyncio.CancelledError, Exception):
                     await body
                 if aborter in done:
-                    # The executor holds the vehicle itself on safety/abort.
+                    # The executor holds the vehicle itself on an abort it received.
                     final = self.status(TaskState.ABORTED, "aborted: " + (getattr(abort, "reason", "") or "abort"))
                 else:
                     await self.world.hold(self.req.task_id, "T_max")
@@ -165,6 +174,17 @@ class TaskRunner:
             aborter.cancel()
         self.publish_status(final)
         return final
+
+    async def _cancelled(self, body: asyncio.Task[TaskStatus], reason: str) -> TaskStatus:
+        """A cancel of the task: stop its running skill and hold (the executor does both and reports the skill
+        aborted) before the loop stops, then end ABORTED with the reason."""
+        stopped = await self.world.cancel_skill(self.req.task_id, reason)
+        body.cancel()
+        with contextlib.suppress(asyncio.CancelledError, Exception):
+            await body
+        what = (f"skill {stopped.skill} {stopped.state.value}" if stopped is not None
+                else "no skill was running")
+        return self.status(TaskState.ABORTED, f"cancelled: {reason}; {what}; vehicle held")
 
     async def _run(self) -> TaskStatus:
         try:
@@ -228,7 +248,7 @@ class TaskRunner:
             last_skill = ste.skill
             self.history.append(HistoryEntry(
                 self.steps, ste.skill, ste.argument, st.state.value, st.message, st.outcome.perceived,
-                parsed.drt.summary or "", parsed.drt.reasoning or ""))
+                parsed.drt.summary or "", parsed.drt.reasoning or "", st.outcome))
             overhead += time.perf_counter() - t_upd
             rec = rec.model_copy(update={"skill_state": st.state, "skill_message": st.message, "outcome": st.outcome,
                                          "overhead_s": overhead, "skill_duration_s": skill_s})
@@ -403,9 +423,10 @@ class TaskRunner:
                                message=f"executor unreachable: {exc}", task_id=req.task_id, step=req.step,
                                started_ns=started, ended_ns=now_ns())
         if not accept.accepted:
+            # The refusal's code and facts (out_of_reach, blocked...) travel with the accept reply.
             return SkillStatus(goal_id="", skill=req.skill, argument=req.argument, state=SkillState.REJECTED,
                                message=accept.reason, task_id=req.task_id, step=req.step, started_ns=started,
-                               ended_ns=now_ns())
+                               ended_ns=now_ns(), outcome=accept.outcome or SkillOutcome())
         if st is None:
             await self.world.hold(req.task_id, "skill timeout")
             return SkillStatus(goal_id=accept.goal_id, skill=req.skill, argument=req.argument,

@@ -16,7 +16,7 @@ import math
 from dataclasses import dataclass
 
 from services.reasoner.library import library_text, policy_skills
-from shared.messages import Detection, SkillLibrary, VehicleState, WorkingMemory
+from shared.messages import Detection, OutcomeCode, SkillLibrary, SkillOutcome, VehicleState, WorkingMemory
 
 # Which prompt parts and DRT fields each variant has (paper Table IV; react is the ReAct baseline).
 PROMPT_PARTS: dict[str, tuple[str, ...]] = {
@@ -79,16 +79,23 @@ class HistoryEntry:
     perceived: str = ""
     summary: str = ""
     reasoning: str = ""
+    outcome: SkillOutcome | None = None
+    """The executor's outcome (its code and facts); None for a step the loop recorded itself."""
 
     def call(self) -> str:
         return f"{self.skill}({self.argument})" if self.argument else self.skill
 
     def condensed(self) -> str:
-        msg = f": {_clip(self.message, 60)}" if self.message and self.state != "succeeded" else ""
-        return f"#{self.step} {self.call()} -> {self.state}{msg}"
+        if self.outcome is None or self.outcome.code is None:  # the loop's own entries: only their message
+            msg = f": {_clip(self.message, 60)}" if self.message and self.state != "succeeded" else ""
+            return f"#{self.step} {self.call()} -> {self.state}{msg}"
+        out = f"; outcome: {outcome_text(self.outcome)}" if self.outcome.code != OutcomeCode.SUCCEEDED else ""
+        return f"#{self.step} {self.call()} -> {self.state}{out}"
 
     def full(self) -> str:
         lines = [f"#{self.step} {self.call()} -> {self.state}"]
+        if self.outcome is not None and self.outcome.code is not None:
+            lines.append(f"   outcome: {outcome_text(self.outcome)}")
         if self.message:
             lines.append(f"   executor: {_clip(self.message, 200)}")
         if self.perceived:
@@ -98,6 +105,24 @@ class HistoryEntry:
         if self.reasoning:
             lines.append(f"   your reasoning: {_clip(self.reasoning, 160)}")
         return "\n".join(lines)
+
+
+def outcome_text(outcome: SkillOutcome) -> str:
+    """A skill's outcome in the prompt's one fixed form: `missed (target red cup, attempts 2, offset 0.031 m,
+    holding none)`; only the facts the skill measured appear, always in this order, `holding` always."""
+    f = outcome.facts
+    parts: list[str] = []
+    if f.target:
+        parts.append(f"target {_clip(f.target, 40)}")
+    if f.attempts:
+        parts.append(f"attempts {f.attempts}")
+    for name, value in (("distance", f.distance_m), ("reach", f.reach_m), ("offset", f.offset_m),
+                        ("gripper", f.gripper_width_m)):
+        if value is not None:
+            parts.append(f"{name} {value:.3f} m")
+    parts.append(f"holding {_clip(f.holding, 40) if f.holding else 'none'}")
+    code = outcome.code.value if outcome.code is not None else "running"
+    return f"{code} ({', '.join(parts)})"
 
 
 def _clip(text: str, n: int) -> str:

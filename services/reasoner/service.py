@@ -15,9 +15,9 @@ from services.reasoner.backends.base import Backend
 from services.reasoner.loop import TaskRunner, World
 from services.reasoner.prompt import Observation
 from services.reasoner.settings import ReasonerSettings
-from shared.action import skill_client
+from shared.action import TASK_ACTION, ActionServer, GoalHandle, ServerGoalHandle, skill_client
 from shared.bus import Bus, Latest, Subscription
-from shared.errors import ConfigError
+from shared.errors import AermaniError, ConfigError
 from shared.keys import FLEET_ABORT
 from shared.messages import (
     Abort,
@@ -45,9 +45,13 @@ log = logging.getLogger("aermani.reasoner")
 
 
 class AbortSignal(asyncio.Event):
+    """Ends the running task: an abort (the executor got it too and holds) or a cancel (`cancel`: the loop
+    cancels the running skill, which holds, before it reports)."""
+
     def __init__(self) -> None:
         super().__init__()
         self.reason = ""
+        self.cancel = False
 
 
 class BusWorld(World):
@@ -63,6 +67,7 @@ class BusWorld(World):
         self.detections: Latest[Detections] = Latest(latest(self.keys.detections, maxsize=5))
         self.memory: Latest[WorkingMemory] = Latest(latest(self.keys.memory, maxsize=5))
         self.skills = skill_client(bus, settings.vehicle_id)
+        self.running: GoalHandle[SkillAccept, SkillStatus] | None = None
         self.approvals: dict[str, tuple[ApprovalStatus, asyncio.Future[ApprovalDecision]]] = {}
 
     async def pump(self) -> None:
@@ -94,10 +99,30 @@ class BusWorld(World):
 
     async def run_skill(self, request: SkillRequest, timeout: float) -> tuple[SkillAccept, SkillStatus | None]:
         goal = await self.skills.send_goal(request, timeout=10.0)
+        if goal.accepted and timeout > 0:
+            self.running = goal
         try:
             return goal.accept, await goal.result(timeout) if goal.accepted and timeout > 0 else None
         finally:
+            if self.running is goal:
+                self.running = None
             goal.close()
+
+    async def cancel_skill(self, task_id: str, reason: str) -> SkillStatus | None:
+        goal = self.running
+        if goal is None or goal.accept.goal_id == "":
+            await self.hold(task_id, reason)
+            return None
+        try:
+            reply = await goal.cancel(reason=reason, source="reasoner")
+        except AermaniError as exc:
+            log.warning("cancel of skill goal %s failed: %s", goal.goal_id, exc)
+            reply = CancelReply(accepted=False, reason=str(exc))
+        if not reply.accepted:  # it ended meanwhile, or the executor is gone: hold all the same
+            await self.hold(task_id, reason)
+        with contextlib.suppress(AermaniError):
+            return await goal.result(timeout=10.0)
+        return None
 
 
     async def request_approval(self, request: ApprovalStatus, timeout: float) -> ApprovalStatus:
@@ -145,6 +170,8 @@ class Reasoner:
         self.default_backend: Backend = make_backend(settings)
         self.current: tuple[TaskRequest, asyncio.Task, AbortSignal] | None = None
         self._lock = asyncio.Lock()
+        self.action = ActionServer(bus, TASK_ACTION, settings.vehicle_id, goal_callback=self.start_task,
+                                   execute_callback=self._follow, cancel_callback=self._cancel)
 
     async def start_task(self, req: TaskRequest) -> TaskAccept:
         async with self._lock:
@@ -182,7 +209,20 @@ class Reasoner:
         self.bus.publish(self.settings.keys.reasoning_step, rec)
 
     def _pub_status(self, st: TaskStatus) -> None:
-        self.bus.publish(self.settings.keys.task_status, st)
+        handle = self.action.goals.get(st.task_id)
+        if handle is not None:  # its terminal status ends the goal on the action server
+            handle.publish(st)
+        else:
+            self.action.publish(st)
+
+    async def _follow(self, handle: ServerGoalHandle[TaskRequest, TaskStatus]) -> None:
+        """Execute callback: the task runs as `start_task` started it; its statuses reach the handle."""
+        if self.current is not None and self.current[0].task_id == handle.goal_id:
+            with contextlib.suppress(Exception):
+                await asyncio.shield(self.current[1])
+
+    async def _cancel(self, handle: ServerGoalHandle[TaskRequest, TaskStatus], req: CancelGoal) -> CancelReply:
+        return await self.cancel_task(req)
 
     def on_abort(self, ab: Abort) -> None:
         if self.current is None or self.current[1].done():
@@ -193,11 +233,13 @@ class Reasoner:
             signal.set()
 
     async def cancel_task(self, req: CancelGoal) -> CancelReply:
-        """Action protocol: cancel the running task (it ends ABORTED with the reason, after a hold)."""
+        """Action protocol: cancel the running task. Its running skill is cancelled (the executor stops it
+        and holds) before the task ends ABORTED with the reason."""
         if self.current is None or self.current[1].done() or self.current[0].task_id != req.goal_id:
             return CancelReply(accepted=False, reason=f"task {req.goal_id} is not running on vehicle "
                                                       f"{self.settings.vehicle_id}")
         self.current[2].reason = f"{req.reason} (cancelled by {req.source})"
+        self.current[2].cancel = True
         self.current[2].set()
         return CancelReply(accepted=True)
 
@@ -214,8 +256,7 @@ class Reasoner:
 async def run(bus: Bus, settings: ReasonerSettings, stop: asyncio.Event) -> None:
     reasoner = Reasoner(bus, settings)
     aborts = [bus.subscribe(settings.keys.abort, maxsize=50), bus.subscribe(FLEET_ABORT, maxsize=50)]
-    bus.serve(settings.keys.start_task, reasoner.start_task)
-    bus.serve(settings.keys.cancel_task, reasoner.cancel_task)
+    reasoner.action.start()
     if isinstance(reasoner.world, BusWorld):
         bus.serve(settings.keys.decide_approval, reasoner.world.decide)
     log.info("reasoner ready: backend %s, variant %s", reasoner.default_backend.name, settings.variant)

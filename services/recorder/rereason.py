@@ -285,7 +285,7 @@ def _history_before(prompt_mod, steps: list[ReasoningStep], k: int, settings) ->
             history.append(prompt_mod.HistoryEntry(
                 rec.step, rec.ste.skill, rec.ste.argument, state, rec.skill_message,
                 rec.outcome.perceived if rec.outcome else "", (rec.drt.summary if rec.drt else None) or "",
-                (rec.drt.reasoning if rec.drt else None) or ""))
+                (rec.drt.reasoning if rec.drt else None) or "", rec.outcome))
     return history
 
 

@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from shared.action import TASK_ACTION, ActionServer
 from shared.bus import Bus
 from shared.keys import FLEET_ABORT, Keys
 from shared.messages import (
@@ -71,8 +72,9 @@ class FakeVehicle:
     async def start(self) -> None:
         for s in self.services:
             self.bus.declare_token(self.keys.alive(s))
-        self.bus.serve(self.keys.start_task, self._start)
-        self.bus.serve(self.keys.cancel_task, self._cancel)
+        # The task action through the one ActionServer, like the reasoner (statuses: _task_status).
+        self.action = ActionServer(self.bus, TASK_ACTION, self.vehicle_id, goal_callback=self._start,
+                                   cancel_callback=lambda _handle, req: self._cancel(req)).start()
         self.bus.serve(self.keys.decide_approval, self._decide)
         if "executor" in self.services:
             self.bus.serve(self.keys.skills, self._skills)
@@ -99,6 +101,13 @@ class FakeVehicle:
         self.current = asyncio.create_task(self._run_task(req))
         return TaskAccept(accepted=True, task_id=req.task_id)
 
+    def _task_status(self, st: TaskStatus) -> None:
+        handle = self.action.goals.get(st.task_id)
+        if handle is not None:
+            handle.publish(st)
+        else:
+            self.action.publish(st)
+
     async def _skills(self, _req: object) -> SkillLibrary:
         from services.reasoner.library import default_library
 
@@ -109,7 +118,7 @@ class FakeVehicle:
                 or self.current_req.task_id != req.goal_id:
             return CancelReply(accepted=False, reason=f"task {req.goal_id} is not running")
         self.current.cancel()
-        self.bus.publish(self.keys.task_status, self.status(self.current_req, TaskState.ABORTED, 0, req.reason))
+        self._task_status(self.status(self.current_req, TaskState.ABORTED, 0, req.reason))
         return CancelReply(accepted=True)
 
     async def _decide(self, d: ApprovalDecision) -> CancelReply:
@@ -137,7 +146,7 @@ class FakeVehicle:
                 return
 
     async def _run_task(self, req: TaskRequest) -> None:
-        self.bus.publish(self.keys.task_status, self.status(req, TaskState.RUNNING, 0))
+        self._task_status(self.status(req, TaskState.RUNNING, 0))
         endless = "until abort" in req.command
         step = 0
         while endless or step < self.n_steps:
@@ -166,10 +175,10 @@ class FakeVehicle:
                                               reasoning=f"{skill} is the next step of the plan"),
                 ste=SkillToExecute(skill=skill, argument="red cup" if "localization" in skill else None),
                 valid=True, retries=len(calls) - 1, skill_state=SkillState.SUCCEEDED, skill_message="ok"))
-            self.bus.publish(self.keys.task_status, self.status(req, TaskState.RUNNING, step))
+            self._task_status(self.status(req, TaskState.RUNNING, step))
             if step >= 500:
                 break
-        self.bus.publish(self.keys.task_status, self.status(req, TaskState.SUCCEEDED, step, "task complete"))
+        self._task_status(self.status(req, TaskState.SUCCEEDED, step, "task complete"))
 
     async def _aborts(self, sub) -> None:
         async for ab in sub:
@@ -178,7 +187,7 @@ class FakeVehicle:
             if self.current is not None and not self.current.done():
                 self.current.cancel()
                 req = self.current_req
-                self.bus.publish(self.keys.task_status, self.status(req, TaskState.ABORTED, 0, ab.reason))
+                self._task_status(self.status(req, TaskState.ABORTED, 0, ab.reason))
 
     async def _publish_sensors(self) -> None:
         t0 = time.monotonic()

@@ -54,7 +54,7 @@ import uvicorn
 from fastapi import FastAPI, Request
 from fastapi.responses import JSONResponse
 
-from services.reasoner.backends.rules import answer_for_prompt
+from tests.reasoner.prompt_reader import answer_for_prompt
 
 FAULTS = ("invalid_json", "unknown_skill", "missing_fields", "missing_arg", "fences", "timeout", "500", "none", "ok",
           "hostile_text")

@@ -16,6 +16,7 @@ from services.reasoner.library import default_library
 from services.reasoner.loop import World
 from services.reasoner.prompt import Observation
 from shared import skills as S  # noqa: N812
+from shared.action import SKILL_ACTION, ActionServer, ServerGoalHandle
 from shared.bus import Bus
 from shared.keys import Keys
 from shared.messages import (
@@ -25,6 +26,7 @@ from shared.messages import (
     Detections,
     LandedState,
     MemoryObject,
+    OutcomeCode,
     SkillAccept,
     SkillLibrary,
     SkillOutcome,
@@ -166,39 +168,40 @@ async def serve_executor(bus: Bus, world: MiniWorld, keys: Keys, *, skill_delay:
     async def skills(_req: object) -> SkillLibrary:
         return lib
 
-    async def run_skill(req: SkillRequest) -> SkillAccept:
-        goal = new_id("goal-")
+    names = {sk.name for sk in lib.skills}
 
-        async def execute() -> None:
-            async with lock:
-                started = now_ns()
-                bus.publish(keys.skill_status, SkillStatus(goal_id=goal, skill=req.skill, argument=req.argument,
-                                                           state=SkillState.RUNNING, task_id=req.task_id,
-                                                           started_ns=started))
-                if skill_delay:
-                    await asyncio.sleep(skill_delay)
-                state, msg, perceived = world.apply(req)
-                publish_world()
-                bus.publish(keys.skill_status, SkillStatus(
-                    goal_id=goal, skill=req.skill, argument=req.argument, state=state, message=msg,
-                    outcome=SkillOutcome(perceived=perceived, held_object=world.held), task_id=req.task_id,
-                    step=req.step, started_ns=started, ended_ns=now_ns()))
+    async def accept(req: SkillRequest) -> SkillAccept:
+        if req.skill not in names:  # like the executor: an unknown skill is refused, never run
+            return SkillAccept(accepted=False, goal_id=new_id("goal-"), reason=f"unknown skill {req.skill!r}",
+                               outcome=SkillOutcome(code=OutcomeCode.FAILED))
+        return SkillAccept(accepted=True, goal_id=new_id("goal-"))
 
-        # Publish the status after the reply has gone out, like a real action server.
-        asyncio.get_running_loop().call_later(0.05, lambda: asyncio.ensure_future(execute()))
-        return SkillAccept(accepted=True, goal_id=goal)
+    async def execute(handle: ServerGoalHandle[SkillRequest, SkillStatus]) -> None:
+        req, goal = handle.request, handle.goal_id
+        async with lock:
+            started = now_ns()
+            handle.publish(SkillStatus(goal_id=goal, skill=req.skill, argument=req.argument,
+                                       state=SkillState.RUNNING, task_id=req.task_id, started_ns=started))
+            if skill_delay:
+                await asyncio.sleep(skill_delay)
+            state, msg, perceived = world.apply(req)
+            publish_world()
+            handle.publish(SkillStatus(
+                goal_id=goal, skill=req.skill, argument=req.argument, state=state, message=msg,
+                outcome=SkillOutcome(perceived=perceived, held_object=world.held), task_id=req.task_id,
+                step=req.step, started_ns=started, ended_ns=now_ns()))
 
     def publish_world() -> None:
         bus.publish(keys.detections, Detections(items=world.detections()))
         bus.publish(keys.memory, world.memory())
         bus.publish(keys.autopilot_state, world.state())
 
-    async def cancel_skill(req: CancelGoal) -> CancelReply:
-        return CancelReply(accepted=False, reason=f"goal {req.goal_id} is not running (skills here end at once)")
+    async def cancel_skill(handle: ServerGoalHandle[SkillRequest, SkillStatus], req: CancelGoal) -> CancelReply:
+        return CancelReply(accepted=False, reason=f"goal {req.goal_id} cannot be cancelled (skills here end at once)")
 
     bus.serve(keys.skills, skills)
-    bus.serve(keys.run_skill, run_skill)
-    bus.serve(keys.cancel_skill, cancel_skill)
+    ActionServer(bus, SKILL_ACTION, keys.vehicle_id, goal_callback=accept, execute_callback=execute,
+                 cancel_callback=cancel_skill).start()
 
     async def ticker() -> None:
         while True:

@@ -89,3 +89,21 @@ def test_history_200_steps_stays_under_budget() -> None:
         assert rest == fixed  # only the History varies, so the whole prompt is bounded too
     assert "#200 obj_localization" in p.parts["history"]
     assert "earlier steps omitted" in p.parts["history"]
+
+
+def test_outcome_code_and_facts_in_one_fixed_form() -> None:
+    from services.reasoner.prompt import outcome_text
+    from shared.messages import OutcomeCode, SkillFacts, SkillOutcome
+
+    missed = SkillOutcome(code=OutcomeCode.MISSED, facts=SkillFacts(attempts=2, offset_m=0.031, target="red cup"))
+    assert outcome_text(missed) == "missed (target red cup, attempts 2, offset 0.031 m, holding none)"
+    h = History()
+    h.append(HistoryEntry(1, "grasp", "red cup", "failed", "the fingers closed on air", outcome=missed))
+    h.append(HistoryEntry(2, "forward", None, "succeeded", "moved",
+                          outcome=SkillOutcome(code=OutcomeCode.SUCCEEDED, facts=SkillFacts(distance_m=0.5))))
+    text = h.render(obs())
+    assert "   outcome: missed (target red cup, attempts 2, offset 0.031 m, holding none)" in text
+    assert "   outcome: succeeded (distance 0.500 m, holding none)" in text
+    assert h.entries[0].condensed() == ("#1 grasp(red cup) -> failed; outcome: missed (target red cup, attempts 2, "
+                                        "offset 0.031 m, holding none)")
+    assert h.entries[1].condensed() == "#2 forward -> succeeded"

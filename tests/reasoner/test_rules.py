@@ -11,7 +11,6 @@ from services.reasoner.backends.base import PastStep, PolicyContext, Seen
 from services.reasoner.backends.rules import (
     RulesBackend,
     RulesPolicy,
-    answer_for_prompt,
     parse_command,
     render_answer,
 )
@@ -19,8 +18,9 @@ from services.reasoner.loop import TaskRunner, policy_context
 from services.reasoner.parse import parse_answer
 from services.reasoner.prompt import History, PromptCompiler
 from services.reasoner.settings import ReasonerSettings
-from shared.messages import VARIANTS, TaskRequest, TaskState
+from shared.messages import VARIANTS, OutcomeCode, SkillFacts, TaskRequest, TaskState
 from tests.reasoner.fake_world import MiniWorld, MiniWorldPort, Thing
+from tests.reasoner.prompt_reader import answer_for_prompt
 
 TABLE = Thing("table", "surface", headings=(0, 1, 7), size=(1.2, 0.8, 0.75))
 
@@ -107,7 +107,8 @@ def _ctx(command: str, steps: list, **kw: object) -> PolicyContext:
 
 
 def _motion(skill: str, x: float, y: float, yaw_deg: float) -> PastStep:
-    return PastStep(skill, None, "succeeded", f"{skill} done: now at ({x:.2f}, {y:.2f}, 1.50), yaw {yaw_deg:.0f} deg")
+    return PastStep(skill, None, "succeeded", f"{skill} done: now at ({x:.2f}, {y:.2f}, 1.50), yaw {yaw_deg:.0f} deg",
+                    pose=(x, y, math.radians(yaw_deg)))
 
 
 def test_approach_turns_then_flies_until_close_then_decides() -> None:
@@ -131,29 +132,34 @@ def test_approach_turns_then_flies_until_close_then_decides() -> None:
     skill, arg, _ = policy.decide(_ctx(COUNTER_CMD, steps, pose=(2.5, 0.0, 0.0), positions=where, visible=seen[1:]))
     assert (skill, arg) == ("obj_localization", "banana")
     # A failed look for the orange there also means "otherwise".
-    failed = [*steps, PastStep("obj_localization", "orange", "failed", "orange not visible")]
+    failed = [*steps, PastStep("obj_localization", "orange", "failed", "orange not visible", OutcomeCode.NOT_DETECTED)]
     skill, arg, _ = policy.decide(_ctx(COUNTER_CMD, failed, pose=(2.5, 0.0, 0.0), positions=where, visible=seen))
     assert (skill, arg) == ("obj_localization", "banana")
 
 
 PLACE_CMD = "Pick up the red cup and place it on the table."
-_PICKED = [PastStep("obj_localization", "red cup", "succeeded", "localized red cup at (1.00, 0.00, 0.80)"),
-           PastStep("grasp", "red cup", "succeeded", "grasped the red cup; holding it at (0.30, 0.00, 1.50)"),
+_PICKED = [PastStep("obj_localization", "red cup", "succeeded", "localized red cup at (1.00, 0.00, 0.80)",
+                    found_at=(1.0, 0.0, 0.8)),
+           PastStep("grasp", "red cup", "succeeded", "grasped the red cup; holding it at (0.30, 0.00, 1.50)",
+                    facts=SkillFacts(target="red cup", holding="red cup")),
            PastStep("placement_localization", "table", "succeeded",
-                    "found placement spot on the table at (2.00, 0.00, 0.78) (surface z 0.75)")]
+                    "found placement spot on the table at (2.00, 0.00, 0.78) (surface z 0.75)",
+                    found_at=(2.0, 0.0, 0.78), surface_z=0.75)]
 
 
 def test_place_released_but_unconfirmed_looks_then_finishes_or_regrasps() -> None:
     policy = RulesPolicy()
     lost = PastStep("place", None, "failed", "released the red cup over the table but could not see it there "
-                                             "afterwards: red cup not visible")
+                                             "afterwards: red cup not visible", OutcomeCode.UNSTABLE)
     steps = [*_PICKED, lost]
     # Not holding any more: never loop on placement_localization + place; look for the object instead.
     skill, arg, _ = policy.decide(_ctx(PLACE_CMD, steps, pose=(2.0, -0.8, 1.57)))
     assert (skill, arg) == ("obj_localization", "red cup")
-    on_table = PastStep("obj_localization", "red cup", "succeeded", "localized red cup at (2.08, 0.05, 0.81)")
+    on_table = PastStep("obj_localization", "red cup", "succeeded", "localized red cup at (2.08, 0.05, 0.81)",
+                        found_at=(2.08, 0.05, 0.81))
     assert policy.decide(_ctx(PLACE_CMD, [*steps, on_table], pose=(2.0, -0.8, 1.57)))[0] == "done"
-    on_floor = PastStep("obj_localization", "red cup", "succeeded", "localized red cup at (2.60, 0.50, 0.05)")
+    on_floor = PastStep("obj_localization", "red cup", "succeeded", "localized red cup at (2.60, 0.50, 0.05)",
+                        found_at=(2.6, 0.5, 0.05))
     skill, arg, _ = policy.decide(_ctx(PLACE_CMD, [*steps, on_floor], pose=(2.0, -0.8, 1.57),
                                        known_objects=["red cup"]))
     assert (skill, arg) == ("grasp", "red cup")
@@ -161,7 +167,8 @@ def test_place_released_but_unconfirmed_looks_then_finishes_or_regrasps() -> Non
 
 def test_place_off_spot_but_on_surface_is_done() -> None:
     off = PastStep("place", None, "failed", "released the red cup but it lies at (2.25, 0.05, 0.80), 0.25 m from "
-                                            "the placement spot on the table")
+                                            "the placement spot on the table", OutcomeCode.UNSTABLE,
+                   found_at=(2.25, 0.05, 0.80))
     assert RulesPolicy().decide(_ctx(PLACE_CMD, [*_PICKED, off], pose=(2.0, -0.8, 1.57)))[0] == "done"
 
 
@@ -237,21 +244,23 @@ class Room:
                 if math.dist(p, (self.x, self.y)) <= 1.6]
 
     def apply(self, skill: str, arg: str | None) -> None:
-        state, msg = "succeeded", ""
+        state, msg, code = "succeeded", "", OutcomeCode.SUCCEEDED
         if skill in ("yaw_left", "yaw_right"):
             self.yaw += math.pi / 4 if skill == "yaw_left" else -math.pi / 4
         elif skill == "forward":
             nx, ny = self.x + 0.5 * math.cos(self.yaw), self.y + 0.5 * math.sin(self.yaw)
             if max(abs(nx), abs(ny)) > 3.8:
-                state, msg = "rejected", "geofence 0.20 m ahead"
+                state, msg, code = "rejected", "geofence 0.20 m ahead", OutcomeCode.OUT_OF_REACH
             else:
                 self.x, self.y = nx, ny
         elif skill == "obj_localization":
-            state, msg = "failed", f"{arg} not visible"
+            state, msg, code = "failed", f"{arg} not visible", OutcomeCode.NOT_DETECTED
+        pose = None
         if skill in ("yaw_left", "yaw_right", "forward") and state == "succeeded":
             msg = f"{skill} done: now at ({self.x:.2f}, {self.y:.2f}, 1.50), yaw {math.degrees(self.yaw):.0f} deg"
+            pose = (self.x, self.y, self.yaw)
         self.path.append((self.x, self.y))
-        self.steps.append(PastStep(skill, arg, state, msg))
+        self.steps.append(PastStep(skill, arg, state, msg, code, pose=pose))
 
     def fly(self, command: str, max_steps: int = 80):
         policy = RulesPolicy()
@@ -333,7 +342,8 @@ def test_out_of_reach_turns_toward_then_flies_closer_then_retries() -> None:
     from services.reasoner.backends.rules import RulesPolicy
 
     refused = PastStep("place", None, "rejected", "the placement spot on the table is 4.28 m away (reach 3.00 m): "
-                                                  "move closer")
+                                                  "move closer", OutcomeCode.OUT_OF_REACH,
+                       SkillFacts(distance_m=4.28, reach_m=3.0))
     base = {"command": "pick up the red cup and place it on the table", "variant": "full", "skills": [],
             "held": "red cup", "known_placements": ["table"], "positions": {"table": (0.0, 4.0)}}
     steps = [PastStep("grasp", "red cup", "succeeded"), PastStep("placement_localization", "table", "succeeded"),
@@ -357,7 +367,8 @@ def test_larger_box_choice_survives_losing_sight_of_the_other() -> None:
     both = [Seen("large box", "object", 0.02, 2.0), Seen("small box", "object", 0.005, 2.1)]
     policy = RulesPolicy()
     assert policy.decide(_ctx(cmd, [], visible=both))[:2] == ("obj_localization", "large box")
-    lost = [PastStep("obj_localization", "large box", "failed", "large box not visible: no large box in view")]
+    lost = [PastStep("obj_localization", "large box", "failed", "large box not visible: no large box in view",
+                     OutcomeCode.NOT_DETECTED)]
     # Only the small box in view now, and the large one remembered to the left: turn back, never take the small.
     skill, arg, _ = policy.decide(_ctx(cmd, lost, visible=both[1:], pose=(0.0, 0.0, 0.0),
                                        positions={"large box": (0.0, 2.0), "small box": (2.0, 0.0)}))
@@ -385,7 +396,7 @@ def test_larger_box_by_name_when_only_one_is_in_view() -> None:
 
 def test_approach_retries_one_blocked_forward_and_decides_after_two() -> None:
     where = {"counter": (4.0, 0.0)}
-    blocked = PastStep("forward", None, "rejected", "obstacle 0.15 m ahead")
+    blocked = PastStep("forward", None, "rejected", "obstacle 0.15 m ahead", OutcomeCode.BLOCKED)
     seen = [Seen("banana", "object", 0.002, 3.0)]
     policy = RulesPolicy()
     assert policy.decide(_ctx(COUNTER_CMD, [blocked], pose=(0.0, 0.0, 0.0), positions=where, visible=seen))[0] == \
@@ -416,3 +427,74 @@ def test_paraphrased_commands_place_on_the_named_destination(command: str, dest:
     final, *_ = run_task(command, w)
     assert final.state is TaskState.SUCCEEDED, final.message
     assert w.placed_on == {"red cup": dest} and w.held is None
+
+
+# --------------------------------------------------------------------------- decisions come from codes, not prose
+
+
+def _noisy(ctx: PolicyContext, seed: int) -> PolicyContext:
+    """The same context with every executor message replaced by seeded noise (and one by a misleading phrase)."""
+    import dataclasses
+    import random
+
+    rng = random.Random(seed)
+    words = ["released", "lies at (9.00, 9.00, 9.00)", "reach 0.10 m", "away", "closer", "now at (5.00, 5.00, 1.50), "
+             "yaw 90 deg", "surface z 3.00", "zzz", "grasped"]
+    steps = [dataclasses.replace(s, message=" ".join(rng.choice(words) for _ in range(rng.randint(0, 6))))
+             for s in ctx.steps]
+    return dataclasses.replace(ctx, steps=steps)
+
+
+def _scenarios() -> list[PolicyContext]:
+    where = {"counter": (4.0, 0.0)}
+    seen = [Seen("orange", "object", 0.001, 2.1), Seen("banana", "object", 0.002, 2.2)]
+    approach = [_motion("yaw_right", 0.0, 0.0, 45), _motion("yaw_right", 0.0, 0.0, 0),
+                *[_motion("forward", 0.5 * i, 0.0, 0) for i in range(1, 6)]]
+    refused = PastStep("place", None, "rejected", "", OutcomeCode.OUT_OF_REACH,
+                       SkillFacts(distance_m=4.28, reach_m=3.0))
+    lost = PastStep("place", None, "failed", "", OutcomeCode.UNSTABLE)
+    off = PastStep("place", None, "failed", "", OutcomeCode.UNSTABLE, found_at=(2.25, 0.05, 0.80))
+    far = PastStep("place", None, "failed", "", OutcomeCode.UNSTABLE, found_at=(3.25, 1.05, 0.05))
+    missed = PastStep("grasp", "red cup", "failed", "", OutcomeCode.MISSED, SkillFacts(attempts=2, offset_m=0.031))
+    room = Room()
+    room.fly("Could you look around and find the unicorn for me?", max_steps=30)
+    return [
+        _ctx(COUNTER_CMD, approach[:2], pose=(0.0, 0.0, 0.0), positions=where),
+        _ctx(COUNTER_CMD, approach, pose=(2.5, 0.0, 0.0), positions=where, visible=seen),
+        _ctx(PLACE_CMD, [*_PICKED, refused], held="red cup", pose=(0.0, 0.0, 1.57), positions={"table": (0.0, 4.0)}),
+        _ctx(PLACE_CMD, [*_PICKED, lost], pose=(2.0, -0.8, 1.57)),
+        _ctx(PLACE_CMD, [*_PICKED, off], pose=(2.0, -0.8, 1.57)),
+        _ctx(PLACE_CMD, [*_PICKED, far], pose=(2.0, -0.8, 1.57), known_objects=["red cup"]),
+        _ctx(PLACE_CMD, [*_PICKED[:1], missed], pose=(0.5, 0.0, 0.0), known_objects=["red cup"]),
+        _ctx("Could you look around and find the unicorn for me?", room.steps, pose=(room.x, room.y, room.yaw)),
+    ]
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_rewording_the_messages_changes_no_decision(seed: int) -> None:
+    """The policy decides from codes, facts and poses: the same decision (skill, argument, reasoning, failure)
+    with every message replaced by noise, including phrases the old text matching would have acted on."""
+    policy = RulesPolicy()
+    decisions = set()
+    for ctx in _scenarios():
+        plain = policy.decide_full(ctx)
+        assert policy.decide_full(_noisy(ctx, seed)) == plain
+        decisions.add(plain.skill)
+    assert len(decisions) >= 4  # the scenarios reach different branches: the comparison is not vacuous
+
+
+def test_place_codes_decide_release() -> None:
+    """An unstable place released the object (look for it), a blocked one did not (the cup is still held)."""
+    policy = RulesPolicy()
+    unstable = PastStep("place", None, "failed", "", OutcomeCode.UNSTABLE)
+    assert policy.decide(_ctx(PLACE_CMD, [*_PICKED, unstable], pose=(2.0, -0.8, 1.57)))[:2] == \
+        ("obj_localization", "red cup")
+    blocked = PastStep("place", None, "rejected", "", OutcomeCode.BLOCKED)
+    assert policy.decide(_ctx(PLACE_CMD, [*_PICKED, blocked], pose=(2.0, -0.8, 1.57)))[0] != "obj_localization"
+
+
+@pytest.mark.parametrize(("state", "code"), [("succeeded", OutcomeCode.SUCCEEDED), ("failed", OutcomeCode.FAILED),
+                                             ("rejected", OutcomeCode.BLOCKED), ("timeout", OutcomeCode.TIMED_OUT),
+                                             ("aborted", OutcomeCode.ABORTED)])
+def test_a_status_without_code_maps_from_its_state(state: str, code: OutcomeCode) -> None:
+    assert PastStep("forward", None, state, "older log").code == code

@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import sys
 
+from shared.action import SKILL_ACTION, ActionServer, ServerGoalHandle
 from shared.bus import Bus
 from shared.keys import Keys
 from shared.messages import CancelGoal, CancelReply, SkillAccept, SkillRequest, SkillState, SkillStatus
@@ -15,16 +16,20 @@ async def main(endpoint: str) -> None:
     bus = await Bus.open(connect=[endpoint])
     keys = Keys("am1")
 
-    async def run(req: SkillRequest) -> SkillAccept:
-        bus.publish(keys.skill_status, SkillStatus(goal_id="g-1", skill=req.skill, state=SkillState.RUNNING,
-                                                   task_id=req.task_id, step=req.step))
+    async def accept(req: SkillRequest) -> SkillAccept:
         return SkillAccept(accepted=True, goal_id="g-1")
 
-    async def cancel(req: CancelGoal) -> CancelReply:
+    async def execute(handle: ServerGoalHandle[SkillRequest, SkillStatus]) -> None:
+        req = handle.request
+        handle.publish(SkillStatus(goal_id=handle.goal_id, skill=req.skill, state=SkillState.RUNNING,
+                                   task_id=req.task_id, step=req.step))
+        await asyncio.Event().wait()  # never ends: the test kills this process
+
+    async def cancel(handle: ServerGoalHandle[SkillRequest, SkillStatus], req: CancelGoal) -> CancelReply:
         return CancelReply(accepted=False, reason="never")
 
-    bus.serve(keys.run_skill, run)
-    bus.serve(keys.cancel_skill, cancel)
+    ActionServer(bus, SKILL_ACTION, keys.vehicle_id, goal_callback=accept, execute_callback=execute,
+                 cancel_callback=cancel).start()
     bus.declare_token(keys.alive("executor"))
     print("ready", flush=True)
     await asyncio.Event().wait()

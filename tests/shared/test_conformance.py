@@ -128,3 +128,40 @@ async def test_every_real_service_conforms(tmp_path):
                                                    expect_health=health, skip=skip))
             failures = [r.summary() for r in reports if not r.ok]
             assert not failures, "\n".join(failures)
+
+
+async def test_an_executor_fake_that_runs_an_unknown_skill_fails_the_check(router):
+    """Valid requests too: a skill server that accepts a goal naming no skill, and reports running it, fails
+    on the goal queryable and on its status topic (the skill is not in the live library)."""
+    from services.reasoner.library import default_library
+    from shared.action import SKILL_ACTION, ActionServer
+    from shared.messages import SkillAccept, SkillState, SkillStatus
+
+    async with await Bus.open(connect=[router]) as bus:
+        async def accept(req):
+            return SkillAccept(accepted=True, goal_id="g-1")
+
+        async def execute(handle):
+            handle.publish(SkillStatus(goal_id=handle.goal_id, skill="teleport", state=SkillState.SUCCEEDED))
+
+        ActionServer(bus, SKILL_ACTION, "bad", goal_callback=accept, execute_callback=execute).start()
+        publisher = asyncio.create_task(_publish_forever(bus, SkillStatus(goal_id="g-0", skill="teleport",
+                                                                         state=SkillState.SUCCEEDED)))
+        try:
+            report = await check_service(bus, "executor", "bad", expect_alive=False, timeout=2.0,
+                                         require_periodic=False, library=default_library(),
+                                         skip=("executor/memory", "executor/skills"))
+        finally:
+            await cancel_all([publisher])
+        failed = {f.key.split("/", 3)[3]: f.detail for f in report.findings if not f.ok}
+        assert "accepted a request it must refuse" in failed.get("executor/run_skill", ""), report.summary()
+        assert "teleport" in failed.get("executor/skill_status", ""), report.summary()
+        assert "executor/cancel_skill" not in failed, report.summary()  # an unknown goal's cancel is refused
+
+
+async def _publish_forever(bus, status) -> None:
+    from shared.keys import Keys
+
+    while True:  # a status stream the topic check samples (its own subscription may come late)
+        bus.publish(Keys("bad").skill_status, status)
+        await asyncio.sleep(0.05)

@@ -5,13 +5,13 @@ from __future__ import annotations
 from abc import abstractmethod
 from typing import ClassVar
 
-from services.executor.context import SkillContext, SkillFailed
+from services.executor.context import SkillContext
 from services.executor.envelope import outside_geofence
 from services.executor.memory import horizontal_distance
 from services.executor.registry import Category, Skill, SkillResult, register
-from services.executor.skills.common import fmt, not_found
+from services.executor.skills.common import coded, failure, fmt, not_found
 from shared import skills as names
-from shared.messages import ObjectEstimate, PlacementEstimate
+from shared.messages import ObjectEstimate, OutcomeCode, PlacementEstimate
 
 # --------------------------------------------------------------------------- perception routines
 
@@ -32,10 +32,12 @@ class _Localization(Skill):
         assert argument
         est = await self.localize(ctx, argument)
         if not est.found or est.pose is None:
-            raise SkillFailed(not_found(argument, est))
+            raise failure(not_found(argument, est), OutcomeCode.NOT_DETECTED, target=argument)
         text, result = self.store(ctx, est, argument)
         ctx.note(text)
-        return SkillResult(result)
+        st = ctx.state.value
+        distance = None if st is None else round(horizontal_distance(est.pose.position, st.position), 3)
+        return coded(result, target=argument, distance_m=distance)
 
     @abstractmethod
     async def localize(self, ctx: SkillContext, argument: str) -> ObjectEstimate | PlacementEstimate:
@@ -62,8 +64,8 @@ class ObjLocalization(_Localization):
         assert isinstance(est, ObjectEstimate) and est.pose is not None
         if outside_geofence(est.pose.position, self.settings, 0.05):
             # e.g. depth through a gap or a pose/frame mismatch: never store a target no skill may fly to
-            raise SkillFailed(f"{argument} estimate {fmt(est.pose.position)} lies outside the flyable room: "
-                              "implausible, not stored; look again")
+            raise failure(f"{argument} estimate {fmt(est.pose.position)} lies outside the flyable room: "
+                          "implausible, not stored; look again", OutcomeCode.NOT_DETECTED, target=argument)
         mo = ctx.memory.store_object(est, argument)
         text = f"{mo.label} at {fmt(mo.position)}"
         st = ctx.state.value

@@ -8,9 +8,10 @@ from typing import ClassVar
 from services.executor.context import SkillContext
 from services.executor.envelope import altitude_problem, geofence_problem, wrap
 from services.executor.registry import Category, Skill, SkillResult, register
-from services.executor.skills.common import fmt
+from services.executor.skills.common import Refusal, coded, fmt
 from shared import skills as names
 from shared.messages import (
+    OutcomeCode,
     SkillParameter,
     Vec3,
     VehicleState,
@@ -51,8 +52,10 @@ class _Step(Skill):
         if self.turn:
             return None
         target, _ = self.target(st)
-        problem = geofence_problem(target, self.settings, f"{self.name} target") or altitude_problem(
-            target.z, self.settings, what=f"{self.name} target")
+        fence = geofence_problem(target, self.settings, f"{self.name} target")
+        if fence:
+            return Refusal(fence, OutcomeCode.OUT_OF_REACH)
+        problem = altitude_problem(target.z, self.settings, what=f"{self.name} target")
         if problem:
             return problem
         held = ctx.memory.held_size if ctx.memory.held else None
@@ -82,7 +85,9 @@ class _Step(Skill):
         target, yaw = self.target(st)
         end = await ctx.goto(target, yaw, self.settings.translation_speed, what=f"{self.name} target",
                              timeout=self.timeout_s(ctx, argument))
-        return SkillResult(f"{self.name} done: now at {fmt(end.position)}, yaw {math.degrees(end.yaw):.0f} deg")
+        moved = math.dist(st.position.as_tuple(), end.position.as_tuple())
+        return coded(f"{self.name} done: now at {fmt(end.position)}, yaw {math.degrees(end.yaw):.0f} deg",
+                     distance_m=round(moved, 3))
 
 
 # Paper Table II as a table: (name, Skill Library text, body-frame direction, turn).

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 
 from services.reasoner.prompt import CompiledPrompt, reprompt_text
 from shared.errors import ConfigError, ModelError
+from shared.messages import OutcomeCode, SkillFacts, SkillOutcome
 from shared.registry import Registry
 
 if TYPE_CHECKING:
@@ -31,14 +32,54 @@ class Seen:
     distance: float | None = None
 
 
+LEGACY_CODES: dict[str, OutcomeCode] = {
+    "succeeded": OutcomeCode.SUCCEEDED, "failed": OutcomeCode.FAILED, "rejected": OutcomeCode.BLOCKED,
+    "timeout": OutcomeCode.TIMED_OUT, "aborted": OutcomeCode.ABORTED,
+}
+"""The code of a status that has none (a log older than schema minor 3), from its state."""
+
+
+def code_of(state: str, code: OutcomeCode | str | None) -> OutcomeCode:
+    """A step's outcome code: its own, else the one its state implies (LEGACY_CODES; anything else failed)."""
+    if code:
+        return OutcomeCode(code)
+    return LEGACY_CODES.get(state, OutcomeCode.FAILED)
+
+
 @dataclass
 class PastStep:
-    """One earlier step of the task as the policy sees it: skill, argument, outcome state and message."""
+    """One earlier step of the task as the policy sees it: skill, argument, state, outcome code and facts, and
+    the poses the executor measured. `message` is the executor's prose, kept for people: no policy reads it."""
 
     skill: str
     argument: str | None
     state: str
     message: str = ""
+    code: OutcomeCode | None = None
+    """None is filled from `state` (LEGACY_CODES)."""
+    facts: SkillFacts = field(default_factory=SkillFacts)
+    pose: tuple[float, float, float] | None = None
+    """Vehicle x, y (world, m) and yaw (rad) when the step ended (its outcome's end pose)."""
+    found_at: tuple[float, float, float] | None = None
+    """Where the step's estimate put the object or placement spot (world x, y, z, m)."""
+    surface_z: float | None = None
+    """Height of the surface a placement_localization found, m."""
+
+    def __post_init__(self) -> None:
+        self.code = code_of(self.state, self.code)
+
+    @classmethod
+    def from_outcome(cls, skill: str, argument: str | None, state: str, message: str,
+                     outcome: SkillOutcome | None) -> PastStep:
+        """The step from an executor's status outcome (None for an entry the loop made itself)."""
+        if outcome is None:
+            return cls(skill, argument, state, message)
+        end, est = outcome.end_pose, outcome.estimate
+        where = est.pose.position if est is not None and est.pose is not None else None
+        return cls(skill, argument, state, message, outcome.code, outcome.facts,
+                   pose=(end.position.x, end.position.y, end.yaw) if end is not None else None,
+                   found_at=(where.x, where.y, where.z) if where is not None else None,
+                   surface_z=getattr(est, "surface_z", None))
 
 
 @dataclass

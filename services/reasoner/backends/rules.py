@@ -2,8 +2,9 @@
 
 It reads the same context the prompt is built from (command, history, working memory, perception's
 detections, the vehicle pose), never the pixels nor the simulator, and re-derives its plan from that
-context at every step, so it is stateless and also works from the prompt text alone
-(`context_from_prompt`, used by the fake VLM servers in tests). The command is read by `rules_parse`
+context at every step, so it is stateless. What happened at each step it learns from the step's outcome
+code, facts and measured poses, never from the executor's message (rewording a message changes nothing).
+The command is read by `rules_parse`
 (synonyms, polite and indirect requests, relative clauses, counts and amounts of motion, conditionals,
 negated distractors, size comparisons, categories); a command it cannot understand is refused before
 takeoff (`RulesBackend.refusal`). Then:
@@ -23,7 +24,6 @@ from __future__ import annotations
 
 import json
 import math
-import re
 import time
 from dataclasses import dataclass, field
 
@@ -47,9 +47,9 @@ from services.reasoner.backends.rules_parse import (
 )
 from services.reasoner.prompt import DRT_FIELDS
 from shared import skills as S  # noqa: N812 - reads like the paper tables
+from shared.messages import OutcomeCode
 
-__all__ = ["CATEGORY_WORDS", "SNACKS", "Plan", "RulesBackend", "RulesPolicy", "answer_for_prompt",
-           "context_from_prompt", "parse_command", "render_answer"]
+__all__ = ["CATEGORY_WORDS", "SNACKS", "Plan", "RulesBackend", "RulesPolicy", "parse_command", "render_answer"]
 
 SEEN_FOV_HALF_DEG = 30  # a remembered thing within this of the heading is in view (camera: +-42 deg)
 SCAN_LIMIT = 8  # consecutive yaw steps (one full turn at 45 deg) before trying something else
@@ -66,7 +66,9 @@ TRANSIT_LIMIT = 9  # motion steps toward one viewpoint before scanning from wher
 EXPLORE_BUDGET = 60  # steps of one search (since it began) after which the thing is reported not found
 _MOTION_SKILLS = (S.YAW_LEFT, S.YAW_RIGHT, S.FORWARD, S.BACKWARD, S.LEFT, S.RIGHT, S.UP, S.DOWN)
 _APPROACH = APPROACH  # motion token: fly to the named thing, as many steps as it takes
-_VEC = r"\((-?[\d.]+), (-?[\d.]+), (-?[\d.]+)\)"
+DEFAULT_REACH = 1.0  # an out_of_reach refusal that does not say its reach (an older log): assume this, metres
+# A place that reported one of these let the object go: succeeded, or released but not at rest on the spot.
+_RELEASED = (OutcomeCode.SUCCEEDED, OutcomeCode.UNSTABLE)
 NOT_FOUND = "not found"
 """Start of the failure reason when the room was explored without finding the target (or destination)."""
 _singular = singular
@@ -160,7 +162,7 @@ class RulesPolicy:
                 what = m[len(_APPROACH):]
                 if i < len(steps) and steps[i].skill in _MOTION_SKILLS and approach_steps < APPROACH_LIMIT:
                     # A past approach step: it ended the approach when it reported a pose close enough.
-                    pose = _pose_in(steps[i].message)
+                    pose = steps[i].pose
                     i, approach_steps = i + 1, approach_steps + 1
                     if pose is not None and self._approach_to(ctx, what, approach_steps, pose, steps[:i]) is None:
                         k, approach_steps = k + 1, 0
@@ -238,16 +240,17 @@ class RulesPolicy:
         place = rest[idx]
         spot = next((s for s in reversed(rest[:idx]) if s.skill == S.PLACEMENT_LOCALIZATION
                      and s.state == "succeeded"), None)
-        spot_m = re.search(_VEC + r".*surface z (-?[\d.]+)", spot.message) if spot else None
-        obj = re.search(r"^released the (.+?) (?:over|but)", place.message)
-        label = obj.group(1) if obj else (plan.target or "object")
+        grasped = next((s for s in reversed(rest[:idx]) if s.skill == S.GRASP and s.state == "succeeded"), None)
+        label = (grasped.facts.target or grasped.argument if grasped else None) or plan.target or "object"
         after = rest[idx + 1:]
-        seen_at = _pose_in(place.message, vec_only=True) if "lies at" in place.message else None
+        # An unstable place measured where the object came to rest; a later localization supersedes it.
+        seen_at = place.found_at if place.code == OutcomeCode.UNSTABLE else None
         for s in after:
             if s.skill == S.OBJ_LOCALIZATION and s.state == "succeeded":
-                seen_at = _pose_in(s.message, vec_only=True) or seen_at
-        if seen_at is not None and spot_m is not None:
-            sx, sy, surface_z = float(spot_m.group(1)), float(spot_m.group(2)), float(spot_m.group(4))
+                seen_at = s.found_at or seen_at
+        if seen_at is not None and spot is not None and spot.found_at is not None:
+            sx, sy = spot.found_at[0], spot.found_at[1]
+            surface_z = spot.surface_z if spot.surface_z is not None else spot.found_at[2]
             d = math.hypot(seen_at[0] - sx, seen_at[1] - sy)
             if d <= ON_SURFACE_XY and surface_z - 0.05 <= seen_at[2] <= surface_z + 0.4:
                 return S.DONE, None, (f"The released {label} rests at ({seen_at[0]:.2f}, {seen_at[1]:.2f}, "
@@ -256,8 +259,8 @@ class RulesPolicy:
             return None  # somewhere else: pick it up again
         if any(s.skill == S.OBJ_LOCALIZATION for s in after):
             return None  # not found where it was released: search for it like any target
-        return S.OBJ_LOCALIZATION, label, (f"place released the {label} but could not confirm it ({place.message}); "
-                                           "look for it where it was released.")
+        return S.OBJ_LOCALIZATION, label, (f"place released the {label} but could not confirm it "
+                                           f"({place.code}); look for it where it was released.")
 
     # ---- phases
 
@@ -290,10 +293,10 @@ class RulesPolicy:
         if last and last.skill == S.OBJ_LOCALIZATION and last.state != "succeeded" and last.argument == target:
             turn = self._toward_remembered(ctx, rest, target, S.OBJ_LOCALIZATION)
             if turn is not None and turn[0] != S.OBJ_LOCALIZATION:
-                return turn[0], turn[1], f"{why} Localization failed ({last.message or last.state}). {turn[2]}"
+                return turn[0], turn[1], f"{why} Localization failed ({last.code}). {turn[2]}"
             fails = _trailing_failures(rest, S.OBJ_LOCALIZATION)
             if fails % 2 == 1:
-                return S.FORWARD, None, f"{why} Localization failed ({last.message or last.state}); move closer."
+                return S.FORWARD, None, f"{why} Localization failed ({last.code}); move closer."
             return S.YAW_LEFT, None, f"{why} Localization failed again; re-align the view."
         return S.OBJ_LOCALIZATION, target, f"{why} Localize it before grasping."
 
@@ -324,7 +327,7 @@ class RulesPolicy:
         if last and last.skill == S.PLACEMENT_LOCALIZATION and last.state != "succeeded":
             fails = _trailing_failures(rest, S.PLACEMENT_LOCALIZATION)
             if fails % 2 == 1:
-                return S.FORWARD, None, f"Placement localization failed ({last.message or last.state}); move closer."
+                return S.FORWARD, None, f"Placement localization failed ({last.code}); move closer."
             return S.YAW_LEFT, None, "Placement localization failed again; re-align the view."
         if not seen:
             return self._search(ctx, rest, dest, S.PLACEMENT_LOCALIZATION,
@@ -339,17 +342,17 @@ class RulesPolicy:
                                                                                   S.PLACEMENT_LOCALIZATION)), None)
         if idx is None or rest[idx].skill != skill or rest[idx].state == "succeeded":
             return None
-        msg = rest[idx].message
-        if "closer" not in msg and "away" not in msg:
+        refused = rest[idx]
+        if refused.code != OutcomeCode.OUT_OF_REACH:
             return None
-        m = re.search(r"reach ([\d.]+) m", msg)
-        reach = float(m.group(1)) if m else 1.0
+        reach = refused.facts.reach_m or DEFAULT_REACH
+        far = f"{refused.facts.distance_m:.2f} m away" if refused.facts.distance_m is not None else "too far"
         moves = rest[idx + 1:]
         arg = label if skill == S.GRASP else None
         pos = next((xy for name, xy in ctx.positions.items() if _matches(name, label)), None)
         if pos is None or ctx.pose is None:
             if sum(1 for s in moves if s.skill == S.FORWARD) < 2:
-                return S.FORWARD, None, f"The {label} is out of reach ({msg}); fly closer."
+                return S.FORWARD, None, f"The {label} is out of reach ({far}, reach {reach:.2f} m); fly closer."
             return skill, arg, f"Approached the {label}; try {skill} again."
         x, y, yaw = ctx.pose
         dist = math.hypot(pos[0] - x, pos[1] - y)
@@ -556,7 +559,7 @@ class _Explorer:
 
 def _poses(window: list[PastStep], now: tuple[float, float, float] | None) -> list[tuple[float, float, float] | None]:
     """The vehicle's pose before each step of the window (from the motions' reports), then the pose now."""
-    known = [_pose_in(s.message) if s.skill in _MOTION_SKILLS else None for s in window]
+    known = [s.pose if s.skill in _MOTION_SKILLS else None for s in window]
     first = next((p for p in known if p is not None), now)
     out: list[tuple[float, float, float] | None] = [first]
     for p in known:
@@ -605,22 +608,12 @@ def explore(ctx: PolicyContext, window: list[PastStep], query: str | None, local
 
 def _short(rest: list[PastStep]) -> str:
     last = next((s for s in reversed(rest) if s.state != "succeeded"), None)
-    return (last.message or last.state)[:80] if last else ""
+    return f"{last.skill} {last.code}" if last else ""
 
 
 def _released(s: PastStep) -> bool:
     """A place that opened the gripper, whatever it reported: the object is no longer held."""
-    return s.skill == S.PLACE and (s.state == "succeeded" or s.message.startswith("released"))
-
-
-def _pose_in(message: str, vec_only: bool = False) -> tuple[float, float, float] | None:
-    """(x, y, yaw rad) from a motion's "now at (x, y, z), yaw N deg", or (x, y, z) of the first vector."""
-    m = re.search(_VEC + (r"" if vec_only else r", yaw (-?[\d.]+) deg"), message)
-    if not m:
-        return None
-    if vec_only:
-        return float(m.group(1)), float(m.group(2)), float(m.group(3))
-    return float(m.group(1)), float(m.group(2)), math.radians(float(m.group(4)))
+    return s.skill == S.PLACE and s.code in _RELEASED
 
 
 def _trailing_failures(rest: list[PastStep], skill: str) -> int:
@@ -695,71 +688,3 @@ class RulesBackend(Backend):
         d = self.policy.decide_full(request.context)
         text = render_answer(request.context, d.skill, d.argument, d.reasoning)
         return ModelReply(text=text, latency_s=time.perf_counter() - t0, failure=d.failure)
-
-
-# --------------------------------------------------------------------------- from the prompt text alone
-
-_STEP_LINE = re.compile(r"^\s*#(\d+) ([a-z_]+)(?:\((.*)\))? -> ([a-z]+)(?::\s*(.*))?$", re.M)
-_SEEN_ITEM = re.compile(r"^(.+?) \[([a-z]+)(?:, ([\d.]+) x ([\d.]+) x ([\d.]+) m)?(?:, ([\d.]+) m away)?\]$")
-
-
-def context_from_prompt(text: str) -> PolicyContext:
-    """Rebuild the PolicyContext from a compiled prompt's text (what an HTTP fake VLM receives)."""
-    sections = dict(re.findall(r"^# (Task command|Preamble|History|Skill Library|Rules)\n(.*?)(?=^# |\Z)", text,
-                               re.M | re.S))
-    if sections:
-        command = sections.get("Task command", "").strip()
-        lib = sections.get("Skill Library", "")
-        rules = sections.get("Rules", "")
-        history = sections.get("History", "")
-        if "Thought:" in rules:
-            variant = "react"
-        else:
-            present = tuple(f for f in DRT_FIELDS["full"] if f'"{f}"' in rules)
-            variant = next((v for v, fs in DRT_FIELDS.items() if fs == present and v not in ("unstructured", "react")),
-                           "full")
-    else:
-        lib, _, command = text.removeprefix("Skills:\n").rpartition("\n\nCommand: ")
-        command, rules, history, variant = command.strip(), "", "", "unstructured"
-    skills = re.findall(r"^- ([a-z_]+)", lib, re.M)
-    steps = []
-    matches = list(_STEP_LINE.finditer(history))
-    for i, m in enumerate(matches):
-        message = m.group(5) or ""
-        if not message:
-            # A recent step is written in full: its executor message on an indented line below it.
-            block = history[m.end(): matches[i + 1].start() if i + 1 < len(matches) else len(history)]
-            em = re.search(r"^\s+executor: (.*)$", block, re.M)
-            message = em.group(1) if em else ""
-        steps.append(PastStep(m.group(2), m.group(3), m.group(4), message))
-    held_m = re.search(r"holding: ([^.\n]+)\.", history)
-    held = held_m.group(1).strip() if held_m and held_m.group(1).strip() != "nothing" else None
-    visible: list[Seen] = []
-    seen_m = re.search(r"^Perception sees now: (.*)\.$", history, re.M)
-    if seen_m and seen_m.group(1) != "nothing recognised":
-        for item in seen_m.group(1).split("; "):
-            seen = _SEEN_ITEM.match(item.strip())
-            if not seen:
-                continue
-            vol = float(seen.group(3)) * float(seen.group(4)) * float(seen.group(5)) if seen.group(3) else None
-            visible.append(Seen(seen.group(1), seen.group(2), vol, float(seen.group(6)) if seen.group(6) else None))
-    objs = re.search(r"localized objects: (.*?)(?:\. |\.$|$)", history, re.M)
-    places = re.search(r"placement spots: (.*?)(?:\. |\.$|$)", history, re.M)
-
-    def labels(m: re.Match | None) -> list[str]:
-        return [x.split(" at (")[0].strip() for x in m.group(1).split("; ")] if m else []
-
-    positions = {name: (float(px), float(py)) for name, px, py in
-                 re.findall(r"(?:^|: |; )([^:;()]+?) at \((-?[\d.]+), (-?[\d.]+), -?[\d.]+\)", history, re.M)}
-    pose_m = re.search(r"^Now: position \((-?[\d.]+), (-?[\d.]+), -?[\d.]+\) m, yaw (-?[\d.]+) deg", history, re.M)
-    pose = (float(pose_m.group(1)), float(pose_m.group(2)), math.radians(float(pose_m.group(3)))) if pose_m else None
-    return PolicyContext(command=command, variant=variant, skills=skills, steps=steps, held=held, visible=visible,
-                         known_objects=labels(objs), known_placements=labels(places), pose=pose,
-                         positions={k.strip(): v for k, v in positions.items()})
-
-
-def answer_for_prompt(text: str) -> str:
-    """The rules policy's answer to a compiled prompt, as a VLM would send it."""
-    ctx = context_from_prompt(text)
-    skill, arg, why = RulesPolicy().decide(ctx)
-    return render_answer(ctx, skill, arg, why)

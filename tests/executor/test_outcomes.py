@@ -1,0 +1,62 @@
+"""Every skill's result is a code plus facts (no policy reads the message): the executor's own refusals,
+motion, localization, an out-of-reach grasp, a busy executor and a cancel, against the toy world on a
+real bus."""
+
+from __future__ import annotations
+
+from shared.action import skill_client
+from shared.messages import OutcomeCode, SkillRequest, SkillState
+from tests.executor.rig import rig
+from tests.helpers import wait_until
+
+
+async def test_codes_and_facts_of_skills_and_refusals():
+    async with rig() as r:
+        r.world.add_object("red cup", 3.0, 0.0, 0.75)
+        st = await r.run_skill("teleport")
+        assert st.state == SkillState.REJECTED and st.outcome.code == OutcomeCode.FAILED
+        st = await r.run_skill("obj_localization")  # its argument is required
+        assert st.state == SkillState.REJECTED and st.outcome.code == OutcomeCode.BLOCKED
+        st = await r.run_skill("takeoff")  # airborne already
+        assert st.state == SkillState.REJECTED and st.outcome.code == OutcomeCode.BLOCKED
+        st = await r.run_skill("forward")
+        assert st.state == SkillState.SUCCEEDED and st.outcome.code == OutcomeCode.SUCCEEDED
+        assert st.outcome.facts.distance_m is not None and abs(st.outcome.facts.distance_m - 0.5) < 0.1
+        assert st.outcome.facts.holding is None
+        st = await r.run_skill("obj_localization", "blue box")
+        assert st.state == SkillState.FAILED and st.outcome.code == OutcomeCode.NOT_DETECTED
+        assert st.outcome.facts.target == "blue box"
+        st = await r.run_skill("obj_localization", "red cup")
+        assert st.outcome.code == OutcomeCode.SUCCEEDED and st.outcome.facts.target == "red cup"
+        assert st.outcome.facts.distance_m is not None and st.outcome.facts.distance_m > 2.0
+        # Beyond the grasp's reach: refused as out_of_reach with the distance and the reach, in the accept too.
+        acc = await r.request("grasp")
+        assert not acc.accepted and acc.outcome is not None and acc.outcome.code == OutcomeCode.OUT_OF_REACH
+        facts = acc.outcome.facts
+        assert facts.reach_m == r.executor.settings.reach and facts.distance_m > facts.reach_m
+        st = await r.terminal(acc.goal_id)
+        assert st.state == SkillState.REJECTED and st.outcome == acc.outcome
+        # A geofence refusal is out of reach too: turn to face the near wall and step toward it repeatedly.
+        for _ in range(20):
+            st = await r.run_skill("forward")
+            if st.state != SkillState.SUCCEEDED:
+                break
+        assert st.state == SkillState.REJECTED and st.outcome.code in (OutcomeCode.OUT_OF_REACH, OutcomeCode.BLOCKED)
+
+
+async def test_a_cancelled_skill_is_aborted_and_a_busy_executor_blocks():
+    # The vehicle is frozen once the step's setpoint arrives, so the skill can only end by the cancel (its own
+    # timeout is minutes away).
+    async with rig(motion_slack_s=300.0) as r:
+        async with skill_client(r.bus, r.keys.vehicle_id) as client:
+            goal = await client.send_goal(SkillRequest(skill="backward", task_id="t1"))
+            assert goal.accepted, goal.reason
+            await wait_until(lambda: "goto" in r.vehicle.commands, what="the step's setpoint")
+            r.vehicle.speed = 0.0
+            busy = await r.request("yaw_left")
+            assert not busy.accepted and busy.outcome is not None and busy.outcome.code == OutcomeCode.BLOCKED
+            reply = await goal.cancel(reason="test stop", source="test")
+            assert reply.accepted, reply.reason
+            st = await goal.result(timeout=30)
+        assert st is not None and st.state == SkillState.ABORTED and st.outcome.code == OutcomeCode.ABORTED
+        assert "test stop" in st.message
