@@ -29,15 +29,23 @@ from shared.messages import (
     GripperState,
     LocalizeRequest,
     ObjectEstimate,
+    OutcomeCode,
     PlacementEstimate,
     Pose,
+    SkillFacts,
     Vec3,
     VehicleState,
 )
 
 
 class SkillFailed(SkillError):
-    """A skill could not reach its termination condition; the message is for the policy."""
+    """A skill could not reach its termination condition; the message is for the policy, `code` and `facts`
+    (when the skill measured them) for the outcome a policy decides from."""
+
+    def __init__(self, message: str, code: OutcomeCode | None = None, facts: SkillFacts | None = None) -> None:
+        super().__init__(message)
+        self.code = code
+        self.facts = facts
 
 
 class AuthorityLost(SkillFailed):

@@ -9,7 +9,7 @@ from typing import ClassVar, Literal
 from services.executor.context import SkillContext
 from services.executor.settings import ExecutorSettings
 from shared.errors import ConfigError
-from shared.messages import SkillLibrary, SkillParameter, SkillSpec
+from shared.messages import OutcomeCode, SkillFacts, SkillLibrary, SkillParameter, SkillSpec
 
 Category = Literal["motion", "perception", "manipulation", "operator", "control"]
 
@@ -19,6 +19,10 @@ class SkillResult:
     """What a successful run reports (the executor adds poses and the held object)."""
 
     message: str = ""
+    code: OutcomeCode | None = None
+    """The outcome code (None: the executor's default for a success, `succeeded`)."""
+    facts: SkillFacts | None = None
+    """What the skill measured (None: none reported)."""
 
 
 class Skill(ABC):

@@ -25,7 +25,9 @@ from shared.messages import (
     CancelReply,
     GripperState,
     HoldCommand,
+    OutcomeCode,
     SkillAccept,
+    SkillFacts,
     SkillLibrary,
     SkillOutcome,
     SkillRequest,
@@ -169,6 +171,8 @@ class Executor:
         skill = goal.skill
         timeout = skill.timeout_s(self.ctx, arg)
         state, message = SkillState.FAILED, ""
+        code: OutcomeCode | None = None  # what the skill itself declared (grasp and place measure theirs)
+        facts = SkillFacts()
         try:
             done, _ = await asyncio.wait({goal.task}, timeout=timeout)
             if goal.aborted_by and not done:
@@ -187,7 +191,9 @@ class Executor:
             else:
                 exc = goal.task.exception()
                 if exc is None:
-                    state, message = SkillState.SUCCEEDED, goal.task.result().message
+                    result = goal.task.result()
+                    state, message = SkillState.SUCCEEDED, result.message
+                    code, facts = result.code, result.facts or facts
                 elif isinstance(exc, TimeoutError):
                     state, message = SkillState.TIMEOUT, f"{skill.name}: {exc}; holding"
                     if skill.moves:
@@ -200,6 +206,7 @@ class Executor:
                     state, message = SkillState.FAILED, str(exc)  # no hold: PX4 or the pilot is in charge
                 elif isinstance(exc, SkillFailed):
                     state, message = SkillState.FAILED, str(exc)
+                    code, facts = exc.code, exc.facts or facts
                     if skill.moves:
                         await self._hold()
                 else:
@@ -210,8 +217,9 @@ class Executor:
         finally:
             if skill.moves:
                 self.ctx.settled_ns = time.time_ns()
-            outcome = SkillOutcome(start_pose=goal.start_pose, end_pose=pose_of(self.state.value),
-                                   perceived="; ".join(self.ctx.perceived), held_object=self.memory.held,
+            outcome = SkillOutcome(code=code, facts=facts, start_pose=goal.start_pose,
+                                   end_pose=pose_of(self.state.value), perceived="; ".join(self.ctx.perceived),
+                                   held_object=self.memory.held,
                                    estimate=self.ctx.estimate)
             entry = goal.skill.name + (f"({arg})" if arg else "")
             self.memory.record_executed(f"{entry}: {state.value}")

@@ -59,7 +59,8 @@ def build(settings: SimSettings) -> tuple[SimCore, MavlinkServer]:
     check_airframe(settings)
     params = realism_params(settings.realism, takeoff_alt=settings.takeoff_alt,
                             offboard_loss_timeout=settings.offboard_loss_timeout,
-                            failsafe_land_delay=settings.failsafe_land_delay, seed=settings.seed)
+                            failsafe_land_delay=settings.failsafe_land_delay, seed=settings.seed,
+                            hover_offset=settings.hover_offset)
     core = SimCore(scenario_from(settings), params, realism=settings.realism)
     links = [LinkSettings("api", settings.api_local_port, settings.api_host, settings.api_port, settings.bind_host)]
     if settings.gcs_enabled:

@@ -90,6 +90,9 @@ class VehicleParams:
     pose_drift_max: float = 0.0  # m: the bias is bounded (loop closures / fused references)
     yaw_drift: float = 0.0  # rad/sqrt(s): random walk of the estimated yaw's bias
     yaw_drift_max: float = 0.0  # rad
+    # m, ENU (x, y): where the vehicle settles relative to an OFFBOARD position setpoint, an error its own
+    # estimate shows (wind, a mistrimmed controller); tests use it to make closed-loop skills correct
+    hover_offset: tuple[float, float] = (0.0, 0.0)
     seed: int = 0
 
 
@@ -471,7 +474,8 @@ class Vehicle:
         yaw_rate_cmd: float | None = None
         if self.main_mode == MAIN_OFFBOARD:
             if self.sp_pos is not None:
-                target = self.sp_pos
+                ox, oy = self.params.hover_offset
+                target = self.sp_pos + enu_to_ned(np.array([ox, oy, 0.0])) if ox or oy else self.sp_pos
             elif self.sp_vel is not None:
                 vel_cmd = self.sp_vel
             yaw_target = self.sp_yaw
