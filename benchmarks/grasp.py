@@ -1,6 +1,6 @@
 """Closed-loop grasp and place success against the vehicle's position error, over the catalogue objects.
 
-Usage: .venv/bin/python benchmarks/grasp.py [--levels ideal,realistic,harsh] [--calls 4] [--seed 0] [--json PATH]
+Usage: .venv/bin/python benchmarks/grasp.py [--levels ideal,realistic,harsh,wander] [--calls 4] [--seed 0] [--json PATH]
 
 For each realism level a real stack runs (sim, autopilot bridge, perception with the colour segmenter, executor,
 as processes over Zenoh and MAVLink/UDP); each call resets the sim to a seeded layout with the next catalogue
@@ -10,7 +10,8 @@ destination. The simulator's ground truth judges: the target held after grasp, a
 after place. Levels (until the multirotor model lands, position error is emulated):
   ideal      the estimate is the truth, the vehicle settles on its setpoints;
   realistic  the sim's realistic estimate (2 mm noise, bias drifting up to 3 cm) and camera;
-  harsh      realistic plus a steady 4.6 cm hover offset off every setpoint (AERMANI_SIM_HOVER_OFFSET).
+  harsh      realistic plus a steady 4.6 cm hover offset off every setpoint (sim/fault hover offset);
+  wander     realistic plus a hover that circles its setpoint at 2 cm radius every 4 s (sim/fault hover wander).
 Calls whose object was never found or stayed beyond reach count separately (not a grasp question).
 """
 
@@ -29,14 +30,17 @@ from benchmarks._figures import add_json_option, write_json  # noqa: E402
 from services.sim.layout import OBJECTS  # noqa: E402
 from services.sim.scenarios import ScenarioError  # noqa: E402
 from shared.messages import SkillState  # noqa: E402
-from tests.executor.test_integration import Client  # noqa: E402
+from tests.executor.test_integration import KEYS, Client  # noqa: E402
 from tests.helpers import bus_for, run_stack  # noqa: E402
 
 SERVICES = ["sim", "autopilot_bridge", "perception", "executor"]
-LEVELS = {
-    "ideal": {"AERMANI_SIM_REALISM": "ideal"},
-    "realistic": {"AERMANI_SIM_REALISM": "realistic"},
-    "harsh": {"AERMANI_SIM_REALISM": "realistic", "AERMANI_SIM_HOVER_OFFSET": "0.035,-0.03"},
+LEVELS: dict[str, tuple[dict[str, str], list[dict]]] = {  # sim environment, sim/fault requests at the start
+    "ideal": ({"AERMANI_SIM_REALISM": "ideal"}, []),
+    "realistic": ({"AERMANI_SIM_REALISM": "realistic"}, []),
+    "harsh": ({"AERMANI_SIM_REALISM": "realistic"},
+              [{"unit": "hover", "type": "offset", "x": 0.035, "y": -0.03}]),
+    "wander": ({"AERMANI_SIM_REALISM": "realistic"},
+               [{"unit": "hover", "type": "wander", "radius_m": 0.02, "period_s": 4.0}]),
 }
 GRIPPABLE = [n for n, o in OBJECTS.items() if min(o.size[0], o.size[1]) <= 0.17]
 
@@ -91,10 +95,15 @@ def summary(rows: list[dict]) -> dict:
 
 async def run_level(level: str, calls: int, seed0: int, speed: float, tmp: Path) -> list[dict]:
     rows: list[dict] = []
-    env = {"AERMANI_SIM_SPEED_FACTOR": str(speed), "AERMANI_PERCEPTION_SEGMENTER": "color", **LEVELS[level]}
+    sim_env, faults = LEVELS[level]
+    env = {"AERMANI_SIM_SPEED_FACTOR": str(speed), "AERMANI_PERCEPTION_SEGMENTER": "color", **sim_env}
     with run_stack(SERVICES, tmp / level, env=env) as stack:
         async with bus_for(stack) as bus:
             c = Client(bus)
+            await c.reset(seed=seed0)  # the sim answers queries once it is up
+            for f in faults:  # they outlive every reset
+                res = await bus.query(KEYS.sim_fault, f, timeout=10)
+                assert res["ok"], res
             for i in range(calls):
                 target = GRIPPABLE[(seed0 + i) % len(GRIPPABLE)]
                 t0 = time.monotonic()
@@ -114,7 +123,7 @@ async def run_level(level: str, calls: int, seed0: int, speed: float, tmp: Path)
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--levels", default="ideal,realistic,harsh")
+    ap.add_argument("--levels", default="ideal,realistic,harsh,wander")
     ap.add_argument("--calls", type=int, default=4, help="grasp calls per level (the catalogue cycles)")
     ap.add_argument("--seed", type=int, default=0, help="first layout seed (call i uses seed + i)")
     ap.add_argument("--speed", type=float, default=3.0, help="sim speed factor")

@@ -33,6 +33,8 @@ LIFT_M = 0.15  # the first lift after closing: enough to clear the surface, low 
 TRACK_ITERATIONS = 4  # close-range re-localizations per tracked pose before going on with the newest one
 VERTICAL_WINDOW_M = 0.015  # the pads are 6 cm tall: close within this of the planned gripper height
 MAX_CORRECTION_M = 0.15  # an alignment that needs more than this is not a wandering vehicle: give up
+TIP_LOWER_M = 0.02  # a top this much lower than it stood: tipped (a cup on its side is 3 cm lower)
+TIP_M = 0.015  # an object both this much lower and this much longer than it stood lies on its side
 REST_GAP_S = 0.5  # between the two detections that must agree for a placed object to be at rest
 UNIDENTIFIED = "unidentified object"  # what the gripper holds when it is not the target (as the executor says)
 ROLLING_ASPECT = 1.2  # a round footprint no taller than this many diameters rolls (apple, orange)
@@ -245,8 +247,13 @@ def _on_surface(est: ObjectEstimate, before: Target, knock: float) -> str | None
     if shift > knock:
         return f"moved {100 * shift:.0f} cm"
     top = est.top_z if est.top_z is not None else est.pose.position.z + (est.size.z / 2 if est.size else 0.05)
-    if top < before.top - knock:
+    if top < before.top - TIP_LOWER_M:
         return f"its top is {100 * (before.top - top):.0f} cm lower (tipped over)"
+    a, b = before.size, est.size
+    if a is not None and b is not None and a.z - b.z > TIP_M and max(b.x, b.y) - max(a.x, a.y) > TIP_M:
+        # Lower and longer at once: it lies on its side (one of the two alone is measurement noise).
+        return (f"it now measures {100 * max(b.x, b.y):.0f} x {100 * b.z:.0f} cm (long side x height) instead of "
+                f"{100 * max(a.x, a.y):.0f} x {100 * a.z:.0f} cm: tipped over")
     return None
 
 
@@ -420,8 +427,10 @@ class Grasp(_Manipulation):
 
     async def relook(self, ctx: SkillContext, query: str, label: str, before: Target, yaw: float,
                      grip_z: float) -> Target:
-        """After a failed close: back to the pre-grasp pose and look again. A moved, tipped or vanished object
-        ends the grasp (knocked_over: the policy re-localizes it); otherwise the next attempt starts from it."""
+        """After a failed close: back beside the object at `grip_z` (where the last tracking detection was made:
+        the same view, so the comparison is not between two partial views) and look again. A moved, tipped or
+        vanished object ends the grasp (knocked_over: the policy re-localizes it); otherwise the next attempt
+        starts from it."""
         s = self.settings
         ux, uy = math.cos(yaw), math.sin(yaw)
         p = before.position
@@ -480,7 +489,7 @@ class Grasp(_Manipulation):
         ok, off, sp = await self.align(ctx, p.x, p.y, hover_z, yaw, window, f"aligned over the {label}")
         rec.offset = off
         if not ok:
-            await self.relook(ctx, query, label, target, yaw, pre_z)
+            await self.relook(ctx, query, label, target, yaw, hover_z)
             raise AttemptFailed(OutcomeCode.MISALIGNED, f"the gripper stayed {100 * off:.1f} cm from the {label} "
                                 "above it, outside the window")
         body_grip = body_for(ctx, p.x, p.y, grip_z, yaw).z
@@ -489,7 +498,7 @@ class Grasp(_Manipulation):
         ok, off, sp = await self.align(ctx, p.x, p.y, grip_z, yaw, window, f"aligned at the {label}")
         rec.offset = off
         if not ok:
-            new = await self.relook(ctx, query, label, target, yaw, pre_z)
+            new = await self.relook(ctx, query, label, target, yaw, hover_z)
             raise AttemptFailed(OutcomeCode.MISALIGNED, f"the gripper stayed {100 * off:.1f} cm from the {label} at "
                                 "grasp height, outside the window", target=new)
         await ctx.gripper("close")
@@ -505,12 +514,12 @@ class Grasp(_Manipulation):
             width = st.gripper_width or 0.0
             if not st.gripper_holding:
                 await ctx.gripper("open")
-                new = await self.relook(ctx, query, label, target, yaw, pre_z)
+                new = await self.relook(ctx, query, label, target, yaw, hover_z)
                 raise AttemptFailed(OutcomeCode.MISSED, f"the fingers closed to {100 * width:.1f} cm without "
                                     f"holding the {label}", target=new)
             if expected is not None and abs(width - expected) > s.hold_width_tolerance:
                 await ctx.gripper("open")
-                new = await self.relook(ctx, query, label, target, yaw, pre_z)
+                new = await self.relook(ctx, query, label, target, yaw, hover_z)
                 raise AttemptFailed(OutcomeCode.MISSED, f"the fingers hold something {100 * width:.1f} cm wide, "
                                     f"the {label} measures {100 * expected:.1f} cm", target=new)
             ctx.note(f"fingers hold the {label} at {100 * width:.1f} cm")
