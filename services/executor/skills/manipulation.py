@@ -542,12 +542,11 @@ class Grasp(_Manipulation):
                 _on_surface(check, target, s.knock_shift) is None:
             mem.store_object(check, query)
             if sensed and ctx.current().gripper_holding:
-                # Holding the wrong thing: put it back down where it came from, then the next attempt.
-                await ctx.goto(Vec3(x=sp.x, y=sp.y, z=body_grip + 0.01), yaw, s.final_descent_speed,
-                               low=s.manipulation_min_altitude, what="putting back what was picked by mistake")
-                await ctx.gripper("open")
-                raise AttemptFailed(OutcomeCode.MISSED, f"the fingers held something else: the {label} still "
-                                    f"stands at {fmt(check.pose.position)}; it was put back")
+                # Holding the wrong thing: it must be placed, never dropped (the gripper opens in the air only
+                # to place), so memory says what it knows of it and the grasp ends.
+                mem.set_held(UNIDENTIFIED, None)
+                raise AttemptFailed(OutcomeCode.MISSED, f"the fingers hold something else: the {label} still "
+                                    f"stands at {fmt(check.pose.position)}; place what is held first", final=True)
             await ctx.gripper("open")
             raise AttemptFailed(OutcomeCode.MISSED, f"the {label} is still at {fmt(check.pose.position)} after "
                                 "closing the gripper")
