@@ -61,18 +61,25 @@ async def one_call(c: Client, seed: int, target: str) -> dict:
     st = await c.run("grasp", target)
     facts = st.outcome.facts
     held = (await c.judge(op="held")).held
+    if st.state == SkillState.REJECTED:
+        # refused before moving (e.g. still beyond reach after the approach): not a grasp question either
+        row.update(eligible=False, why=f"grasp rejected: {st.message[:120]}")
+        await c.run("land")
+        return row
     row.update(grasp_state=st.state.value, code=st.outcome.code.value if st.outcome.code else None,
+               message=st.message[:200],
                attempts=facts.attempts, reasons=list(facts.reasons), offset_m=facts.offset_m,
                held=held, grasp_ok=held == target and st.state == SkillState.SUCCEEDED,
                grasp_claim_true=(st.state == SkillState.SUCCEEDED) == (held == target))
     if held and dest:
         try:
-            await c.search("placement_localization", dest)
+            await c.approach(dest, skill="placement_localization", within=2.5)
             pst = await c.run("place", dest)
             verdict = await c.judge(op="on_surface", object=held, surface=dest)
             row.update(place_state=pst.state.value, place_code=pst.outcome.code.value if pst.outcome.code else None,
                        place_ok=verdict.ok and pst.state == SkillState.SUCCEEDED,
-                       place_claim_true=(pst.state == SkillState.SUCCEEDED) == verdict.ok, place_judge=verdict.message)
+                       place_claim_true=(pst.state == SkillState.SUCCEEDED) == verdict.ok, place_judge=verdict.message,
+                       place_message=pst.message[:200])
         except AssertionError as exc:
             row.update(place_state="not_reached", place_ok=None, why=str(exc)[:120])
     await c.run("land")
