@@ -42,9 +42,10 @@ class SkillFailed(SkillError):
     """A skill could not reach its termination condition: `code` and `facts` are what a policy decides from,
     the message is the same for a person (and a VLM) to read."""
 
-    def __init__(self, message: str, code: OutcomeCode = OutcomeCode.FAILED, facts: SkillFacts | None = None) -> None:
+    def __init__(self, message: str, code: OutcomeCode | None = OutcomeCode.FAILED,
+                 facts: SkillFacts | None = None) -> None:
         super().__init__(message)
-        self.code = code
+        self.code = code or OutcomeCode.FAILED
         self.facts = facts or SkillFacts()
 
 

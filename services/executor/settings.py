@@ -86,7 +86,7 @@ class ExecutorSettings(ServiceSettings):
     """Timeout of land, seconds."""
     localize_timeout_s: float = 10.0
     """Timeout of a perception query, seconds."""
-    grasp_timeout_s: float = 120.0
+    grasp_timeout_s: float = 240.0
     """Timeout of the whole grasp routine, seconds."""
     place_timeout_s: float = 120.0
     """Timeout of the whole place routine, seconds."""
@@ -130,6 +130,39 @@ class ExecutorSettings(ServiceSettings):
     """A localization within this of the pre-grasp position means the object was not picked, metres."""
     place_tolerance: float = 0.2
     """After place, the object must be seen within this of the placement spot, metres."""
+    grasp_attempts: int = 3
+    """Closed-loop grasp attempts per call (each failed one leaves its reason in the outcome's facts)."""
+    pregrasp_backoff: float = 0.35
+    """Pre-grasp pose: the gripper point this far behind the object along the approach (body x) axis, where the
+    forward camera still sees the object (right above it, it cannot), metres."""
+    pregrasp_height: float = 0.12
+    """Pre-grasp pose: the gripper point this far above the object's top, metres."""
+    hover_clearance: float = 0.03
+    """The finger pads pass this far above the object's top on the last (blind) leg over it, metres."""
+    grasp_window_x: float = 0.018
+    """Closing is allowed only with the gripper point within this of the object along the pad width (body x;
+    the pads are 5 cm wide: +-2.5 cm lifts), metres."""
+    grasp_window_y: float = 0.03
+    """... and within this along the closing axis (body y; +-5 cm lifts a cup), metres."""
+    align_samples: int = 5
+    """Consecutive state samples (50 Hz) inside the window before the gripper closes: a wandering vehicle is
+    caught while it is aligned, not on one lucky sample."""
+    align_corrections: int = 4
+    """Setpoint corrections (by the measured mean offset) before an alignment gives up as misaligned."""
+    align_timeout_s: float = 2.0
+    """Time to wait for an aligned window after each correction, seconds."""
+    track_converged: float = 0.012
+    """Close-range re-localization: two consecutive detections closer than this agree, metres."""
+    knock_shift: float = 0.03
+    """After a failed close, an object re-detected this far from where it stood (or with its top this much
+    lower) was moved or tipped by the attempt: knocked_over, metres."""
+    hold_width_tolerance: float = 0.035
+    """A closed gripper whose finger gap differs from the object's measured width by more than this holds
+    something else, metres."""
+    rest_tolerance: float = 0.015
+    """After place, two detections of the released object closer than this mean it is at rest, metres."""
+    round_place_margin: float = 0.12
+    """Extra clearance from the surface's edges for a round (rolling) object's placement spot, metres."""
 
     memory_period_s: float = 1.0
     """Working memory is republished at this period besides every change, seconds."""

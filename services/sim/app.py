@@ -59,7 +59,8 @@ def build(settings: SimSettings) -> tuple[SimCore, MavlinkServer]:
     check_airframe(settings)
     params = realism_params(settings.realism, takeoff_alt=settings.takeoff_alt,
                             offboard_loss_timeout=settings.offboard_loss_timeout,
-                            failsafe_land_delay=settings.failsafe_land_delay, seed=settings.seed)
+                            failsafe_land_delay=settings.failsafe_land_delay, seed=settings.seed,
+                            hover_offset=settings.hover_offset)
     core = SimCore(scenario_from(settings), params, realism=settings.realism)
     links = [LinkSettings("api", settings.api_local_port, settings.api_host, settings.api_port, settings.bind_host)]
     if settings.gcs_enabled:
@@ -96,6 +97,7 @@ class CameraPublisher:
         self.fault = "ok"
         self.fault_until = math.inf
         self.last_frames: tuple[bytes, bytes, bytes | None] | None = None
+        self.mount_error = np.zeros(3)  # camera_mount fault: published camera offset minus the true one, body frame
 
     def inject(self, kind: str, duration_s: float) -> None:
         """Camera failure injection: `off`, `stuck` or `ok`, for `duration_s` seconds (0: until cleared)."""
@@ -124,13 +126,17 @@ class CameraPublisher:
         self.render_s += enc.render_s
         return enc.color, enc.depth, enc.segmentation, self.transforms(snap, stamp_ns)
 
-    @staticmethod
-    def transforms(snap, stamp_ns: int) -> bytes:
+    def transforms(self, snap, stamp_ns: int) -> bytes:
         """world -> body from the estimated pose (as a real stack gets it from its EKF), not the truth; the
-        camera and gripper frames of the simulated airframe (the default mount, see check_airframe)."""
+        camera and gripper frames of the simulated airframe (the default mount, see check_airframe; off by
+        `mount_error` while a camera_mount fault is injected)."""
         body = pose_matrix(float(snap.position[0]), float(snap.position[1]), float(snap.position[2]), snap.yaw)
+        cam = AIRFRAME.base_to_camera()
+        if self.mount_error.any():
+            cam = cam.copy()
+            cam[:3, 3] += self.mount_error
         return transforms_message([(WORLD_FRAME, BODY_FRAME, body),
-                                   (BODY_FRAME, CAMERA_FRAME, AIRFRAME.base_to_camera()),
+                                   (BODY_FRAME, CAMERA_FRAME, cam),
                                    (BODY_FRAME, GRIPPER_FRAME, AIRFRAME.base_to_gripper())], stamp_ns)
 
     def segmentation_watched(self) -> bool:
@@ -234,7 +240,8 @@ class CameraPublisher:
         self.frames, self.idle_frames, self.render_s, self.started = 0, 0, 0.0, time.monotonic()
 
 
-FAULT_UNITS = {"camera": ("off", "stuck", "ok"), "mavlink_signal": ("off", "ok")}
+FAULT_UNITS = {"camera": ("off", "stuck", "ok"), "mavlink_signal": ("off", "ok"), "hover": ("offset", "wander", "ok"),
+               "camera_mount": ("offset", "ok"), "estimate": ("offset", "ok"), "object": ("knock",)}
 
 
 def inject_fault(req: object, camera: CameraPublisher, server: MavlinkServer) -> dict:
@@ -256,9 +263,40 @@ def inject_fault(req: object, camera: CameraPublisher, server: MavlinkServer) ->
                                         f"units and types: {FAULT_UNITS}"}
     if unit == "camera":
         camera.inject(kind, duration)
-    else:
+    elif unit == "mavlink_signal":
         server.lose_signal(0.0 if kind == "ok" else duration or math.inf)
+    else:
+        return _world_fault(req, unit, kind, camera)
     return {"ok": True, "unit": unit, "type": kind, "duration_s": duration}
+
+
+def _world_fault(req: dict, unit: str, kind: str, camera: CameraPublisher) -> dict:
+    """The faults of the flown world (until cleared with `ok`): `hover` `offset` {x, y} (metres, the vehicle
+    settles that far off every position setpoint, its estimate shows it) or `wander` {radius_m, period_s} (it
+    circles there); `camera_mount` `offset` {x, y, z} (body frame, metres: the published base_link->camera
+    transform is that far from where the camera really is, a miscalibrated mount); `estimate` `offset` {x, y}
+    (world, metres: the pose estimate jumps that far from the truth, and the vehicle with it); `object` `knock`
+    {name} (the named object is tipped onto its side where it stands)."""
+    try:
+        num = {k: float(req.get(k, 0.0)) for k in ("x", "y", "z", "radius_m")}
+        period = float(req.get("period_s", 2.0))
+    except (TypeError, ValueError):
+        return {"ok": False, "message": f"{unit} {kind}: x, y, z, radius_m and period_s must be numbers"}
+    core = camera.core
+    with core.lock:
+        params = core.vehicle.params
+        if unit == "hover":
+            params.hover_offset = (num["x"], num["y"]) if kind == "offset" else (0.0, 0.0)
+            params.hover_wander = num["radius_m"] if kind == "wander" else 0.0
+            params.hover_wander_period = period
+        elif unit == "estimate":
+            params.estimate_offset = (num["x"], num["y"]) if kind == "offset" else (0.0, 0.0)
+        elif unit == "camera_mount":
+            camera.mount_error = np.array([num["x"], num["y"], num["z"]]) if kind == "offset" else np.zeros(3)
+        elif not core.world.knock_over(str(req.get("name", ""))):
+            return {"ok": False, "message": f"object knock: no free object named {req.get('name')!r}"}
+    log.warning("sim fault injected: %s %s %s", unit, kind, {k: v for k, v in req.items() if k not in ("unit", "type")})
+    return {"ok": True, "unit": unit, "type": kind}
 
 
 async def run(bus: Bus, settings: SimSettings, stop: asyncio.Event, *, core: SimCore | None = None,

@@ -419,6 +419,27 @@ class World:
                            f"(upright tolerance {math.degrees(upright_tolerance):.0f} deg)")
         return True, f"{obj.name} rests upright on the {surface.name}"
 
+    def knock_over(self, name: str) -> bool:
+        """Tip an object onto its side where it stands (fault injection: the knock a failed grasp can cause,
+        which the contact physics does not reproduce on demand); False when there is no such free object."""
+        e = self.by_name(name)
+        if e is None or e.category != "object" or e.attached:
+            return False
+        m, d = self.model, self.data
+        adr = self.obj_qadr[name]
+        dof = m.jnt_dofadr[m.body(self.obj_body[name]).jntadr[0]]
+        # A quarter turn about the world x axis, on top of its yaw: its own z axis now lies horizontal.
+        yaw_q = np.array([math.cos(e.yaw / 2), 0.0, 0.0, math.sin(e.yaw / 2)])
+        roll_q = np.array([math.cos(math.pi / 4), math.sin(math.pi / 4), 0.0, 0.0])
+        q = np.zeros(4)
+        mujoco.mju_mulQuat(q, roll_q, yaw_q)
+        d.qpos[adr + 3:adr + 7] = q
+        lying = min(e.size[0], e.size[1])  # the side it now lies on sets its height
+        d.qpos[adr + 2] = e.bottom_z + lying / 2 + 0.002
+        d.qvel[dof:dof + 6] = 0.0
+        mujoco.mj_forward(m, d)
+        return True
+
     def state_vector(self) -> np.ndarray:
         """qpos: what a renderer needs besides the model."""
         return self.data.qpos.copy()

@@ -73,6 +73,10 @@ class SimSettings(ServiceSettings):
     failsafe_land_delay: float = Field(3.0, ge=0)
     """Seconds of failsafe hold before landing."""
     takeoff_alt: float = Field(1.5, gt=0)
+    hover_offset: Annotated[tuple[float, float], NoDecode] = (0.0, 0.0)
+    """Where the vehicle settles relative to an OFFBOARD position setpoint (world x, y), metres, e.g. `0.04,0.03`:
+    a steady error the vehicle's own estimate shows (wind, a mistrimmed controller). For tests of closed-loop
+    skills; 0,0 flies to the setpoint."""
     """MIS_TAKEOFF_ALT: default take-off altitude above home, metres."""
 
     @field_validator("distractors", "extra_objects", mode="before")
@@ -80,6 +84,16 @@ class SimSettings(ServiceSettings):
     def _names(cls, v: object) -> object:
         if isinstance(v, str):
             return parse_endpoints(v) if v.strip() else None
+        return v
+
+    @field_validator("hover_offset", mode="before")
+    @classmethod
+    def _pair(cls, v: object) -> object:
+        if isinstance(v, str):
+            parts = [x for x in v.replace(",", " ").split() if x]
+            if len(parts) != 2:
+                raise ValueError(f"expected two numbers x,y (metres), got {v!r}")
+            return tuple(float(x) for x in parts)
         return v
 
     @field_validator("target_object", "destination", mode="before")

@@ -90,6 +90,14 @@ class VehicleParams:
     pose_drift_max: float = 0.0  # m: the bias is bounded (loop closures / fused references)
     yaw_drift: float = 0.0  # rad/sqrt(s): random walk of the estimated yaw's bias
     yaw_drift_max: float = 0.0  # rad
+    # m, ENU (x, y): where the vehicle settles relative to an OFFBOARD position setpoint, an error its own
+    # estimate shows (wind, a mistrimmed controller); tests use it to make closed-loop skills correct
+    hover_offset: tuple[float, float] = (0.0, 0.0)
+    hover_wander: float = 0.0  # m: the settling point also circles the setpoint with this radius (gusts) ...
+    hover_wander_period: float = 2.0  # s: ... once per this many seconds of simulated time
+    # m, ENU (x, y): a step in the estimate (estimate - truth) on top of the drift: a relocalization jump, which
+    # nothing on board sees (the camera's tf carries the same estimate); tests use it to send a release astray
+    estimate_offset: tuple[float, float] = (0.0, 0.0)
     seed: int = 0
 
 
@@ -211,6 +219,9 @@ class Vehicle:
         noise = self.rng.normal(0.0, self.params.pose_noise, 3) if self.params.pose_noise > 0 else 0.0
         self.p_true = enu_to_ned(w.vehicle_position())
         self.p = self.p_true + self.bias + noise
+        ox, oy = self.params.estimate_offset
+        if ox or oy:
+            self.p = self.p + enu_to_ned(np.array([ox, oy, 0.0]))
         self.v = enu_to_ned(w.vehicle_velocity())
         self.yaw = wrap(yaw_ned_to_enu(w.vehicle_yaw()) + self.yaw_bias)  # ENU<->NED yaw map is its own inverse
         self.yaw_rate = -w.vehicle_yaw_rate()
@@ -471,7 +482,7 @@ class Vehicle:
         yaw_rate_cmd: float | None = None
         if self.main_mode == MAIN_OFFBOARD:
             if self.sp_pos is not None:
-                target = self.sp_pos
+                target = self.sp_pos + enu_to_ned(self._hover_error())
             elif self.sp_vel is not None:
                 vel_cmd = self.sp_vel
             yaw_target = self.sp_yaw
@@ -523,6 +534,15 @@ class Vehicle:
             yaw_rate_cmd = self._yaw_rate_toward(yaw_target)
         torque = VEHICLE_YAW_INERTIA_TOTAL * (-yaw_rate_cmd - self.world.vehicle_yaw_rate()) / 0.05
         return force_enu, torque
+
+    def _hover_error(self) -> np.ndarray:
+        """ENU offset of where the vehicle settles from its position setpoint (hover_offset, hover_wander)."""
+        p = self.params
+        ox, oy = p.hover_offset
+        if p.hover_wander > 0:
+            phase = 2 * math.pi * self.sim_time / max(p.hover_wander_period, 0.1)
+            ox, oy = ox + p.hover_wander * math.cos(phase), oy + p.hover_wander * math.sin(phase)
+        return np.array([ox, oy, 0.0])
 
     def _yaw_rate_toward(self, yaw_target: float | None) -> float:
         """Yaw rate command towards `yaw_target` (P gain, rate limit, sqrt braking); 0 without a target."""

@@ -7,7 +7,7 @@ import asyncio
 import numpy as np
 
 from services.reasoner.prompt import memory_summary
-from shared.messages import Abort, SkillState
+from shared.messages import Abort, OutcomeCode, SkillState
 from tests.executor.rig import rig
 from tests.helpers import wait_until
 
@@ -152,3 +152,20 @@ async def test_grasp_beyond_reach_or_wider_than_the_fingers_is_refused_before_mo
         st = await r.run_skill("grasp", "cardboard box")
         assert st.state == SkillState.REJECTED and "wider than the gripper opens" in st.message, st.message
         assert np.allclose(r.vehicle.pos, before) and not r.world.objects["cardboard box"].attached
+
+
+async def test_grasp_outcome_carries_its_code_and_a_reason_per_attempt():
+    async with rig() as r:
+        _scene(r)
+        assert (await r.run_skill("obj_localization", "red cup")).state == SkillState.SUCCEEDED
+        grab = r.world.grab
+        r.world.grab = lambda g: None  # the first closes catch nothing
+        st = await r.run_skill("grasp")
+        facts = st.outcome.facts
+        assert st.outcome.code == OutcomeCode.MISSED and facts.attempts == 3 and len(facts.reasons) == 3, facts
+        assert facts.target == "red cup" and facts.holding is None
+        r.world.grab = grab
+        assert (await r.run_skill("obj_localization", "red cup")).state == SkillState.SUCCEEDED
+        st = await r.run_skill("grasp")
+        assert st.state == SkillState.SUCCEEDED and st.outcome.code == OutcomeCode.SUCCEEDED, st.message
+        assert st.outcome.facts.holding == "red cup" and st.outcome.facts.attempts == 1

@@ -1,31 +1,43 @@
-"""Manipulation routines (paper Table III): grasp and place."""
+"""Manipulation routines (paper Table III): grasp and place, closed loop on perception and the gripper's sensing."""
 
 from __future__ import annotations
 
-import contextlib
+import asyncio
 import math
+import time
+from collections import deque
+from dataclasses import dataclass, field
 from typing import ClassVar
 
-from services.executor.context import SkillContext, SkillFailed
+from services.executor.context import AuthorityLost, SkillContext, SkillFailed
 from services.executor.envelope import geofence_problem, wrap
 from services.executor.memory import age_s, horizontal_distance
 from services.executor.registry import Category, Skill, SkillResult, register
 from services.executor.skills.common import beyond_reach, fmt, not_found
 from shared import skills as names
 from shared.messages import (
+    GotoCommand,
     GripperState,
     MemoryObject,
     ObjectEstimate,
+    OutcomeCode,
+    SkillFacts,
     SkillParameter,
     Vec3,
     VehicleState,
 )
 
-GRASP_SETTLE_M = 0.02  # the body must be this close to the grasp point before the gripper closes
-GRASP_SETTLE_TIMEOUT_S = 3.0  # ... or close anyway after this (the verification then tells)
-FINAL_DESCENT_M = 0.10  # the last part of the descent onto an object runs at final_descent_speed
 PAD_BELOW_M = 0.03  # the finger pads reach this far below the gripper point (plus a few mm of margin)
 ROUND_TOLERANCE_M = 0.015  # footprint sides closer than this: a round object, any yaw grasps it
+LIFT_M = 0.15  # the first lift after closing: enough to clear the surface, low enough to fall back softly
+TRACK_ITERATIONS = 4  # close-range re-localizations per tracked pose before going on with the newest one
+VERTICAL_WINDOW_M = 0.015  # the pads are 6 cm tall: close within this of the planned gripper height
+MAX_CORRECTION_M = 0.15  # an alignment that needs more than this is not a wandering vehicle: give up
+TIP_LOWER_M = 0.02  # a top this much lower than it stood: tipped (a cup on its side is 3 cm lower)
+TIP_M = 0.015  # an object both this much lower and this much longer than it stood lies on its side
+REST_GAP_S = 0.5  # between the two detections that must agree for a placed object to be at rest
+UNIDENTIFIED = "unidentified object"  # what the gripper holds when it is not the target (as the executor says)
+ROLLING_ASPECT = 1.2  # a round footprint no taller than this many diameters rolls (apple, orange)
 
 
 def grip_depth(height: float, fraction: float) -> float:
@@ -43,6 +55,75 @@ def grasp_yaw(size: Vec3 | None, est_yaw: float, current_yaw: float) -> float:
     b = wrap(est_yaw + math.pi)
     return a if abs(wrap(a - current_yaw)) <= abs(wrap(b - current_yaw)) else b
 
+
+def _top(o: MemoryObject | ObjectEstimate) -> float:
+    if o.top_z is not None:
+        return o.top_z
+    pos = o.position if isinstance(o, MemoryObject) else o.pose.position  # type: ignore[union-attr]
+    return pos.z + (o.size.z / 2 if o.size is not None else 0.05)
+
+
+def rolls(size: Vec3 | None) -> bool:
+    """A round footprint about as tall as it is wide (a fruit, a can on its side): released near an edge or
+    from height it rolls away, so it gets a spot away from edges and a lower release."""
+    return size is not None and abs(size.x - size.y) < ROUND_TOLERANCE_M and size.z <= ROLLING_ASPECT * max(
+        size.x, size.y)
+
+
+@dataclass
+class Target:
+    """The object as the newest detection places it (world frame of the vehicle's own estimate, so a slowly
+    drifting estimate shifts object and vehicle alike and the offset between them stays true)."""
+
+    position: Vec3
+    top: float
+    size: Vec3 | None
+    yaw: float
+
+    @classmethod
+    def of(cls, mo: MemoryObject) -> Target:
+        return cls(mo.position, _top(mo), mo.size, mo.yaw)
+
+
+@dataclass
+class Attempt:
+    """What the outcome's facts report, gathered while the routine runs."""
+
+    target: str
+    attempts: int = 0
+    reasons: list[str] = field(default_factory=list)
+    offset: float | None = None
+    distance: float | None = None
+
+    def facts(self, ctx: SkillContext, holding: str | None = None) -> SkillFacts:
+        st = ctx.state.value
+        width = st.gripper_width if st is not None else None
+        return SkillFacts(distance_m=None if self.distance is None else round(self.distance, 4),
+                          offset_m=None if self.offset is None else round(self.offset, 4), attempts=self.attempts,
+                          reasons=tuple(r[:200] for r in self.reasons[-16:]), gripper_width_m=width,
+                          holding=holding, target=self.target)
+
+
+class AttemptFailed(Exception):
+    """One grasp attempt ended without a hold; `final` ends the skill (the object moved or is gone)."""
+
+    def __init__(self, code: OutcomeCode, reason: str, final: bool = False, target: Target | None = None) -> None:
+        super().__init__(reason)
+        self.code, self.reason, self.final, self.target = code, reason, final, target
+
+
+def gripper_xy(ctx: SkillContext, st: VehicleState) -> tuple[float, float]:
+    """The gripper point's horizontal position from the vehicle's estimated pose (the mount's offset)."""
+    gx, gy, _gz = ctx.settings.mount.gripper_offset
+    c, s = math.cos(st.yaw), math.sin(st.yaw)
+    return st.position.x + c * gx - s * gy, st.position.y + s * gx + c * gy
+
+
+def body_for(ctx: SkillContext, x: float, y: float, z: float, yaw: float) -> Vec3:
+    """Body setpoint that puts the gripper point at (x, y, z) with heading `yaw`."""
+    gx, gy, gz = ctx.settings.mount.gripper_offset
+    c, s = math.cos(yaw), math.sin(yaw)
+    return Vec3(x=x - (c * gx - s * gy), y=y - (s * gx + c * gy), z=z - gz)
 
 
 # --------------------------------------------------------------------------- manipulation routines
@@ -72,7 +153,8 @@ class _Manipulation(Skill):
                 return p, wrap(ang + math.pi)
         raise SkillFailed(f"no standoff point inside the geofence around {fmt(target)}")
 
-    async def travel(self, ctx: SkillContext, target: Vec3, yaw: float, what: str) -> VehicleState:
+    async def travel(self, ctx: SkillContext, target: Vec3, yaw: float, what: str,
+                     low: float | None = None) -> VehicleState:
         """Climb first when below the target height, cross at constant height, then settle vertically: the
         horizontal leg never runs lower than either end."""
         s = self.settings
@@ -80,13 +162,13 @@ class _Manipulation(Skill):
         cross_z = max(st.position.z, target.z)
         if st.position.z < cross_z - s.position_tolerance:
             st = await ctx.goto(Vec3(x=st.position.x, y=st.position.y, z=cross_z), st.yaw, s.descent_speed,
-                                what=f"{what} (climb)")
+                                low=low, what=f"{what} (climb)")
         problem = self.leg_problem(ctx, st, target, cross_z)
         if problem:
-            raise SkillFailed(f"{what}: {problem}")
-        st = await ctx.goto(Vec3(x=target.x, y=target.y, z=cross_z), yaw, s.approach_speed, what=what)
+            raise SkillFailed(f"{what}: {problem}", OutcomeCode.BLOCKED)
+        st = await ctx.goto(Vec3(x=target.x, y=target.y, z=cross_z), yaw, s.approach_speed, low=low, what=what)
         if abs(st.position.z - target.z) > s.position_tolerance:
-            st = await ctx.goto(target, yaw, s.descent_speed, what=f"{what} (height)")
+            st = await ctx.goto(target, yaw, s.descent_speed, low=low, what=f"{what} (height)")
         return st
 
     def leg_problem(self, ctx: SkillContext, st: VehicleState, target: Vec3, cross_z: float) -> str | None:
@@ -113,22 +195,79 @@ class _Manipulation(Skill):
     def timeout_s(self, ctx: SkillContext, argument: str | None) -> float:
         return self.settings.grasp_timeout_s
 
+    async def align(self, ctx: SkillContext, x: float, y: float, z: float, yaw: float, window: tuple[float, float],
+                    what: str) -> tuple[bool, float, Vec3]:
+        """Hold the gripper point over (x, y) at height `z` until it stays inside `window` (along the pad
+        width = body x, along the closing axis = body y) for `align_samples` consecutive state samples; when
+        it settles off target (wind, a trim error, a wandering hover), move the setpoint by the mean measured
+        offset and wait again. Returns (aligned, the last offset, the setpoint that aligned it)."""
+        s = self.settings
+        sp = body_for(ctx, x, y, z, yaw)
+        ux, uy = math.cos(yaw), math.sin(yaw)
+        offset = math.inf
+        recent: deque[tuple[float, float]] = deque(maxlen=25)
+        for _k in range(s.align_corrections + 1):
+            await ctx.command(GotoCommand(position=sp, yaw=wrap(yaw), max_speed=s.final_descent_speed))
+            recent.clear()
+            run = 0
 
-def _top(o: MemoryObject | ObjectEstimate) -> float:
-    if o.top_z is not None:
-        return o.top_z
-    pos = o.position if isinstance(o, MemoryObject) else o.pose.position  # type: ignore[union-attr]
-    return pos.z + (o.size.z / 2 if o.size is not None else 0.05)
+            def inside(st: VehicleState) -> bool:
+                nonlocal run, offset
+                gx, gy = gripper_xy(ctx, st)
+                ex, ey = x - gx, y - gy
+                along, across = ex * ux + ey * uy, -ex * uy + ey * ux
+                offset = math.hypot(ex, ey)
+                slow = math.hypot(st.velocity.x, st.velocity.y) <= s.settle_speed
+                level = abs(st.position.z + s.gripper_offset_z - z) <= VERTICAL_WINDOW_M
+                recent.append((ex, ey))
+                ok = abs(along) <= window[0] and abs(across) <= window[1] and slow and level
+                run = run + 1 if ok else 0
+                return run >= s.align_samples
+
+            try:
+                await ctx.wait_for(inside, s.align_timeout_s, what)
+                return True, offset, sp
+            except TimeoutError:
+                pass
+            mx = sum(e[0] for e in recent) / max(len(recent), 1)
+            my = sum(e[1] for e in recent) / max(len(recent), 1)
+            nxt = Vec3(x=sp.x + mx, y=sp.y + my, z=sp.z)
+            base = body_for(ctx, x, y, z, yaw)
+            moved = math.hypot(nxt.x - base.x, nxt.y - base.y)
+            if moved > MAX_CORRECTION_M or geofence_problem(nxt, s) is not None:
+                break
+            sp = nxt
+        return False, offset, sp
+
+
+def _on_surface(est: ObjectEstimate, before: Target, knock: float) -> str | None:
+    """Why a re-detected object is no longer as it stood (moved, or lower: tipped), or None."""
+    assert est.pose is not None
+    shift = horizontal_distance(est.pose.position, before.position)
+    if shift > knock:
+        return f"moved {100 * shift:.0f} cm"
+    top = est.top_z if est.top_z is not None else est.pose.position.z + (est.size.z / 2 if est.size else 0.05)
+    if top < before.top - TIP_LOWER_M:
+        return f"its top is {100 * (before.top - top):.0f} cm lower (tipped over)"
+    a, b = before.size, est.size
+    if a is not None and b is not None and a.z - b.z > TIP_M and max(b.x, b.y) - max(a.x, a.y) > TIP_M:
+        # Lower and longer at once: it lies on its side (one of the two alone is measurement noise).
+        return (f"it now measures {100 * max(b.x, b.y):.0f} x {100 * b.z:.0f} cm (long side x height) instead of "
+                f"{100 * max(a.x, a.y):.0f} x {100 * a.z:.0f} cm: tipped over")
+    return None
 
 
 @register
 class Grasp(_Manipulation):
-    """Skill grasp: approach, re-localize, descend on the localized object, close the gripper and verify the hold."""
+    """Skill grasp: a closed loop from a pre-grasp pose beside the object: re-localize at close range, track it
+    while descending, close only when aligned, verify the hold by the fingers and by looking, retry."""
 
     name = names.GRASP
-    description = ("Pick up the localized object: approach a standoff {s.standoff_distance:g} m from it facing it, "
-                   "re-localize with yaw alignment, move above it, descend, close the gripper, verify it is held, "
-                   "and retreat to {s.flight_altitude:g} m. Needs a recent obj_localization of the object.")
+    description = ("Pick up the localized object: re-localize it from a standoff {s.standoff_distance:g} m away, "
+                   "then from a pre-grasp pose {s.pregrasp_backoff:g} m beside it, track it while descending, "
+                   "close the gripper only when aligned with it, verify the hold (finger contact and width, the "
+                   "spot empty afterwards), retry up to {s.grasp_attempts} attempts, and retreat to "
+                   "{s.flight_altitude:g} m. Needs a recent obj_localization of the object.")
     argument = "object label (optional; defaults to the last localized object)"
 
     def parameters(self) -> tuple[SkillParameter, ...]:
@@ -136,7 +275,9 @@ class Grasp(_Manipulation):
         return (SkillParameter(name="standoff", value=s.standoff_distance, unit="m"),
                 SkillParameter(name="reach", value=s.reach, unit="m"),
                 SkillParameter(name="max_localization_age", value=s.localization_max_age_s, unit="s"),
-                SkillParameter(name="descent_speed", value=s.descent_speed, unit="m/s"))
+                SkillParameter(name="descent_speed", value=s.descent_speed, unit="m/s"),
+                SkillParameter(name="attempts", value=float(s.grasp_attempts), unit=""),
+                SkillParameter(name="alignment_window", value=s.grasp_window_x, unit="m"))
 
     def check(self, ctx: SkillContext, argument: str | None) -> str | None:
         s, mem = self.settings, ctx.memory
@@ -165,113 +306,281 @@ class Grasp(_Manipulation):
         return None
 
     async def run(self, ctx: SkillContext, argument: str | None) -> SkillResult:
-        s, mem = self.settings, ctx.memory
+        mem = ctx.memory
         obj = mem.find_object(argument)
         if obj is None:
-            raise SkillFailed("the object disappeared from working memory")
+            raise SkillFailed("the object disappeared from working memory", OutcomeCode.NOT_DETECTED,
+                              SkillFacts(target=argument))
+        rec = Attempt(target=obj.label)
+        try:
+            return await self._run(ctx, obj, rec)
+        except AuthorityLost:
+            raise
+        except SkillFailed as exc:
+            if exc.code is not None:
+                raise
+            # A leg the envelope refused, an autopilot that refused a command: the message says which.
+            holding = mem.held if ctx.state.value is not None and ctx.state.value.gripper_holding else None
+            raise SkillFailed(str(exc), OutcomeCode.FAILED, rec.facts(ctx, holding)) from exc
+
+    async def _run(self, ctx: SkillContext, obj: MemoryObject, rec: Attempt) -> SkillResult:
+        s, mem = self.settings, ctx.memory
         label, query = obj.label, obj.query or obj.label
         st = ctx.current()
+        rec.distance = horizontal_distance(obj.position, st.position)
         if st.gripper != GripperState.OPEN:
             await ctx.gripper("open")
 
-        # Iterative re-localization from a standoff, facing the object (it is invisible from right above).
+        # Iterative re-localization from a standoff, facing the object: it confirms the object is still where
+        # memory has it before anything flies close to it.
         remembered = obj.position
-        est_pos, est_top, size, yaw = obj.position, _top(obj), obj.size, 0.0
+        est_pos = obj.position
+        mo = obj
         for _ in range(max(1, s.relocalize_iterations)):
             sp, yaw = self.standoff(ctx, est_pos, ctx.current())
             await self.travel(ctx, sp, yaw, f"standoff facing the {label}")
             est = await ctx.localize_object(query)
             if not est.found or est.pose is None:
                 mem.forget_object(label)
+                rec.reasons.append(f"not visible from the standoff at {fmt(remembered)}")
                 raise SkillFailed(f"grasp aborted before contact: {not_found(label, est)} from the standoff at its "
-                                  f"remembered position {fmt(remembered)}; it may have moved: localize it again")
+                                  f"remembered position {fmt(remembered)}; it may have moved: localize it again",
+                                  OutcomeCode.NOT_DETECTED, rec.facts(ctx))
             shift = horizontal_distance(est.pose.position, remembered)
             if shift > s.max_object_shift:
                 mo = mem.store_object(est, query)
+                rec.reasons.append(f"moved {shift:.2f} m since it was localized")
                 raise SkillFailed(f"grasp aborted before contact: the {label} moved since it was localized "
                                   f"(remembered {fmt(remembered)}, now {fmt(mo.position)}, {shift:.2f} m); memory "
-                                  "updated, grasp again or re-localize")
+                                  "updated, grasp again or re-localize", OutcomeCode.NOT_DETECTED, rec.facts(ctx))
             step = horizontal_distance(est.pose.position, est_pos)
             mo = mem.store_object(est, query)
-            est_pos, est_top, size = mo.position, _top(mo), mo.size or size
+            est_pos = mo.position
             if step < s.relocalize_converged:
                 break
         ctx.note(f"{label} re-localized at {fmt(est_pos)}")
+        target = Target.of(mo)
 
-        # Align the fingers with the object's estimated yaw (they close across its short side), above it, then
-        # a controlled descent, slower for the last part, that puts the pads around the object's top part.
+        for attempt in range(1, max(1, s.grasp_attempts) + 1):
+            rec.attempts = attempt
+            try:
+                return await self.attempt(ctx, label, query, target, rec)
+            except AttemptFailed as fail:
+                rec.reasons.append(f"attempt {attempt}: {fail.code.value}: {fail.reason}")
+                ctx.note(f"grasp attempt {attempt}: {fail.reason}")
+                target = fail.target or target
+                if fail.final or attempt >= s.grasp_attempts:
+                    holding = UNIDENTIFIED if ctx.current().gripper_holding else None
+                    raise SkillFailed(self.failure_text(label, fail, attempt), fail.code,
+                                      rec.facts(ctx, holding)) from None
+        raise AssertionError("unreachable")  # pragma: no cover
+
+    @staticmethod
+    def failure_text(label: str, fail: AttemptFailed, attempts: int) -> str:
+        n = f"after {attempts} attempt{'s' if attempts > 1 else ''}"
+        if fail.code == OutcomeCode.KNOCKED_OVER:
+            return f"grasp failed {n}: the {label} was knocked: {fail.reason}; memory updated, localize it again"
+        if fail.code == OutcomeCode.SLIPPED:
+            return f"grasp failed {n}: the {label} slipped out of the fingers: {fail.reason}; localize it again"
+        if fail.code == OutcomeCode.NOT_DETECTED:
+            return f"grasp failed {n}: {fail.reason}; localize it again"
+        if fail.code == OutcomeCode.MISALIGNED:
+            return (f"grasp failed {n}: never aligned with the {label}: {fail.reason}; gripper left open, localize "
+                    "it again and retry")
+        return f"grasp missed {n}: {fail.reason}; gripper reopened, localize it again and retry"
+
+    async def look(self, ctx: SkillContext, query: str) -> ObjectEstimate | None:
+        """One detection on a frame captured from here and now (not one from before the last move)."""
+        ctx.settled_ns = time.time_ns()
+        est = await ctx.localize_object(query)
+        return est if est.found and est.pose is not None else None
+
+    async def track(self, ctx: SkillContext, query: str, label: str, target: Target, yaw: float, grip_z: float,
+                    what: str) -> Target:
+        """Put the gripper point `pregrasp_backoff` behind the object along the approach axis at `grip_z` and
+        re-detect it there until two detections agree; the pose follows each newer detection."""
+        s = self.settings
+        ux, uy = math.cos(yaw), math.sin(yaw)
+        seen = 0
+        for _ in range(TRACK_ITERATIONS):
+            p = target.position
+            sp = body_for(ctx, p.x - s.pregrasp_backoff * ux, p.y - s.pregrasp_backoff * uy, grip_z, yaw)
+            await ctx.goto(sp, yaw, s.descent_speed, low=s.manipulation_min_altitude, what=what)
+            est = await self.look(ctx, query)
+            if est is None:
+                continue
+            assert est.pose is not None
+            seen += 1
+            new = Target(est.pose.position, est.top_z if est.top_z is not None else target.top,
+                         est.size or target.size, est.pose.yaw)
+            step = horizontal_distance(new.position, target.position)
+            if step > s.max_object_shift:
+                raise AttemptFailed(OutcomeCode.KNOCKED_OVER, f"re-detected {step:.2f} m from where it stood",
+                                    final=True, target=new)
+            target = new
+            if step < s.track_converged and seen >= 2:
+                break
+        if not seen:
+            raise AttemptFailed(OutcomeCode.NOT_DETECTED, f"the {label} was not seen from the pre-grasp pose beside "
+                                f"{fmt(target.position)}", final=True)
+        return target
+
+    async def relook(self, ctx: SkillContext, query: str, label: str, before: Target, yaw: float,
+                     grip_z: float) -> Target:
+        """After a failed close: back beside the object at `grip_z` (where the last tracking detection was made:
+        the same view, so the comparison is not between two partial views) and look again. A moved, tipped or
+        vanished object ends the grasp (knocked_over: the policy re-localizes it); otherwise the next attempt
+        starts from it."""
+        s = self.settings
+        ux, uy = math.cos(yaw), math.sin(yaw)
+        p = before.position
+        sp = body_for(ctx, p.x - s.pregrasp_backoff * ux, p.y - s.pregrasp_backoff * uy, grip_z, yaw)
+        st = ctx.current()
+        if st.position.z < sp.z - s.position_tolerance:
+            await ctx.goto(Vec3(x=st.position.x, y=st.position.y, z=sp.z), yaw, s.descent_speed,
+                           low=s.manipulation_min_altitude, what="climb after the miss")
+        await ctx.goto(sp, yaw, s.descent_speed, low=s.manipulation_min_altitude, what=f"back beside the {label}")
+        est = await self.look(ctx, query)
+        if est is None:
+            ctx.memory.forget_object(label)
+            raise AttemptFailed(OutcomeCode.KNOCKED_OVER, f"the {label} is no longer seen where it stood "
+                                f"{fmt(p)} (it may have fallen)", final=True)
+        assert est.pose is not None
+        ctx.memory.store_object(est, query)
+        why = _on_surface(est, before, s.knock_shift)
+        new = Target(est.pose.position, est.top_z if est.top_z is not None else before.top, est.size or before.size,
+                     est.pose.yaw)
+        if why:
+            raise AttemptFailed(OutcomeCode.KNOCKED_OVER, f"the attempt moved it: {why}, now at "
+                                f"{fmt(est.pose.position)}", final=True, target=new)
+        return new
+
+    async def attempt(self, ctx: SkillContext, label: str, query: str, target: Target, rec: Attempt) -> SkillResult:
+        s, mem = self.settings, ctx.memory
+        st = ctx.current()
+        if st.gripper != GripperState.OPEN:
+            await ctx.gripper("open")
+        yaw = grasp_yaw(target.size, target.yaw, st.yaw)
+        ux, uy = math.cos(yaw), math.sin(yaw)
+        pre_z = target.top + s.pregrasp_height
+        hover_z = target.top + s.hover_clearance + PAD_BELOW_M
+        p = target.position
+        pre = body_for(ctx, p.x - s.pregrasp_backoff * ux, p.y - s.pregrasp_backoff * uy, pre_z, yaw)
+        await self.travel(ctx, pre, yaw, f"pre-grasp pose beside the {label}", low=s.manipulation_min_altitude)
+
+        # Close range: re-detect, then descend to the pads' height over the object while re-detecting, the
+        # pose following each detection (camera and vehicle share the estimate, so its drift cancels).
+        target = await self.track(ctx, query, label, target, yaw, pre_z, f"pre-grasp pose beside the {label}")
+        hover_z = target.top + s.hover_clearance + PAD_BELOW_M
+        target = await self.track(ctx, query, label, target, yaw, hover_z, f"beside the {label} (descent)")
+        yaw = grasp_yaw(target.size, target.yaw, yaw)
+        size = target.size
         height = size.z if size is not None else 0.1
-        est_yaw = mo.yaw if isinstance(mo, MemoryObject) else 0.0
-        yaw = grasp_yaw(size, est_yaw, yaw)
-        grip_z = est_top - grip_depth(height, s.grasp_depth_fraction)
-        body_z = grip_z - s.gripper_offset_z
-        hover = Vec3(x=est_pos.x, y=est_pos.y, z=max(ctx.current().position.z, body_z + FINAL_DESCENT_M))
-        await ctx.goto(hover, yaw, s.approach_speed, what=f"above the {label}")
-        near = Vec3(x=est_pos.x, y=est_pos.y, z=body_z + FINAL_DESCENT_M)
-        if hover.z > near.z + s.position_tolerance:
-            await ctx.goto(near, yaw, s.descent_speed, low=s.manipulation_min_altitude,
-                           what=f"above the {label} (descent)")
-        grip = Vec3(x=est_pos.x, y=est_pos.y, z=body_z)
-        await ctx.goto(grip, yaw, s.final_descent_speed, low=s.manipulation_min_altitude,
-                       what=f"grasp height over the {label}")
-        with contextlib.suppress(TimeoutError):
-            await ctx.wait_for(lambda st: math.dist(st.position.as_tuple(), grip.as_tuple()) <= GRASP_SETTLE_M,
-                               GRASP_SETTLE_TIMEOUT_S, "grasp point")
+        grip_z = target.top - grip_depth(height, s.grasp_depth_fraction)
+        p = target.position
+        ctx.note(f"{label} tracked at {fmt(p)} from {s.pregrasp_backoff:.2f} m")
+
+        # The last leg over the object is blind (the camera looks forward, the gripper hangs below the body):
+        # the offset is held from the vehicle's own estimate against the newest detection.
+        over = body_for(ctx, p.x, p.y, hover_z, yaw)
+        await ctx.goto(over, yaw, s.final_descent_speed * 2, low=s.manipulation_min_altitude,
+                       what=f"over the {label}")
+        window = (s.grasp_window_x, s.grasp_window_y)
+        ok, off, sp = await self.align(ctx, p.x, p.y, hover_z, yaw, window, f"aligned over the {label}")
+        rec.offset = off
+        if not ok:
+            await self.relook(ctx, query, label, target, yaw, hover_z)
+            raise AttemptFailed(OutcomeCode.MISALIGNED, f"the gripper stayed {100 * off:.1f} cm from the {label} "
+                                "above it, outside the window")
+        body_grip = body_for(ctx, p.x, p.y, grip_z, yaw).z
+        await ctx.goto(Vec3(x=sp.x, y=sp.y, z=body_grip), yaw, s.final_descent_speed,
+                       low=s.manipulation_min_altitude, what=f"grasp height over the {label}")
+        ok, off, sp = await self.align(ctx, p.x, p.y, grip_z, yaw, window, f"aligned at the {label}")
+        rec.offset = off
+        if not ok:
+            new = await self.relook(ctx, query, label, target, yaw, hover_z)
+            raise AttemptFailed(OutcomeCode.MISALIGNED, f"the gripper stayed {100 * off:.1f} cm from the {label} at "
+                                "grasp height, outside the window", target=new)
         await ctx.gripper("close")
-        sensed = ctx.current().gripper_width is not None
+        st = ctx.current()
+        sensed = st.gripper_width is not None
+        expected = min(size.x, size.y) if size is not None else None
         if sensed:
             # The gripper's own sensing: both pads in contact at an opening that fits the object.
             try:
                 st = await ctx.wait_for(lambda st: bool(st.gripper_holding), s.gripper_timeout_s, "fingers closing")
             except TimeoutError:
                 st = ctx.current()
+            width = st.gripper_width or 0.0
             if not st.gripper_holding:
                 await ctx.gripper("open")
-                raise SkillFailed(f"grasp missed: the fingers closed to {100 * (st.gripper_width or 0):.1f} cm "
-                                  f"without holding the {label}; gripper reopened, localize it again and retry")
-            ctx.note(f"fingers hold the {label} at {100 * (st.gripper_width or 0):.1f} cm")
-        up = max(s.flight_altitude, hover.z)
-        await ctx.goto(Vec3(x=est_pos.x, y=est_pos.y, z=up), yaw, s.descent_speed, what="retreat height")
-        if sensed:
-            st = ctx.current()
-            if not st.gripper_holding:
+                new = await self.relook(ctx, query, label, target, yaw, hover_z)
+                raise AttemptFailed(OutcomeCode.MISSED, f"the fingers closed to {100 * width:.1f} cm without "
+                                    f"holding the {label}", target=new)
+            if expected is not None and abs(width - expected) > s.hold_width_tolerance:
                 await ctx.gripper("open")
-                mem.forget_object(label)
-                raise SkillFailed(f"grasp failed: the {label} slipped out of the fingers while lifting (opening "
-                                  f"{100 * (st.gripper_width or 0):.1f} cm); gripper reopened, localize it again")
-            mem.forget_object(label)
-            mem.set_held(label, size)
-            end = ctx.current()
-            return SkillResult(f"grasped the {label} (fingers at {100 * (end.gripper_width or 0):.1f} cm, in "
-                               f"contact); holding it at {fmt(end.position)}")
-
-        # No gripper sensing (an autopilot that does not report it): from the standoff, the old spot must now
-        # be empty.
-        sp, yaw = self.standoff(ctx, est_pos, ctx.current())
-        await self.travel(ctx, Vec3(x=sp.x, y=sp.y, z=max(sp.z, ctx.current().position.z)), yaw, "verification view")
-        check = await ctx.localize_object(query)
-        if check.found and check.pose is not None and horizontal_distance(check.pose.position, est_pos) <= \
-                s.verify_tolerance:
-            mem.store_object(check, query)
+                new = await self.relook(ctx, query, label, target, yaw, hover_z)
+                raise AttemptFailed(OutcomeCode.MISSED, f"the fingers hold something {100 * width:.1f} cm wide, "
+                                    f"the {label} measures {100 * expected:.1f} cm", target=new)
+            ctx.note(f"fingers hold the {label} at {100 * width:.1f} cm")
+        lift = Vec3(x=sp.x, y=sp.y, z=body_grip + LIFT_M)
+        await ctx.goto(lift, yaw, s.descent_speed, what="lift")
+        if sensed and not ctx.current().gripper_holding:
             await ctx.gripper("open")
-            raise SkillFailed(f"grasp missed: the {label} is still at {fmt(check.pose.position)} after closing the "
-                              "gripper; gripper reopened, try grasp again")
+            mem.forget_object(label)
+            raise AttemptFailed(OutcomeCode.SLIPPED, f"lost while lifting (opening "
+                                f"{100 * (ctx.current().gripper_width or 0):.1f} cm)", final=True)
+
+        # Look back at the spot from beside it: the object must have left it (with the gripper). A target still
+        # standing there means the fingers hold something else, or (without sensing) nothing.
+        back = body_for(ctx, p.x - s.pregrasp_backoff * ux, p.y - s.pregrasp_backoff * uy,
+                        max(lift.z + s.gripper_offset_z, pre_z), yaw)
+        await ctx.goto(back, yaw, s.descent_speed, what=f"view of the {label}'s spot")
+        check = await self.look(ctx, query)
+        if check is not None and check.pose is not None and \
+                horizontal_distance(check.pose.position, p) <= s.verify_tolerance and \
+                _on_surface(check, target, s.knock_shift) is None:
+            mem.store_object(check, query)
+            if sensed and ctx.current().gripper_holding:
+                # Holding the wrong thing: it must be placed, never dropped (the gripper opens in the air only
+                # to place), so memory says what it knows of it and the grasp ends.
+                mem.set_held(UNIDENTIFIED, None)
+                raise AttemptFailed(OutcomeCode.MISSED, f"the fingers hold something else: the {label} still "
+                                    f"stands at {fmt(check.pose.position)}; place what is held first", final=True)
+            await ctx.gripper("open")
+            raise AttemptFailed(OutcomeCode.MISSED, f"the {label} is still at {fmt(check.pose.position)} after "
+                                "closing the gripper")
         mem.forget_object(label)
         mem.set_held(label, size)
-        ctx.note(f"{label} no longer at {fmt(est_pos)}: held")
+        up = max(s.flight_altitude, ctx.current().position.z)
+        here = ctx.current().position
+        await ctx.goto(Vec3(x=here.x, y=here.y, z=up), yaw, s.descent_speed, what="retreat height")
         end = ctx.current()
-        return SkillResult(f"grasped the {label}; holding it at {fmt(end.position)}")
+        if sensed and not end.gripper_holding:
+            mem.set_held(None)
+            raise AttemptFailed(OutcomeCode.SLIPPED, f"lost on the way up (opening "
+                                f"{100 * (end.gripper_width or 0):.1f} cm)", final=True)
+        ctx.note(f"{label} no longer at {fmt(p)}: held")
+        rec.distance = rec.offset  # the gripper point to the object when it closed
+        if sensed:
+            text = (f"grasped the {label} (fingers at {100 * (end.gripper_width or 0):.1f} cm, in contact) after "
+                    f"{rec.attempts} attempt{'s' if rec.attempts > 1 else ''}; holding it at {fmt(end.position)}")
+        else:
+            text = f"grasped the {label}; holding it at {fmt(end.position)}"
+        return SkillResult(text, OutcomeCode.SUCCEEDED, rec.facts(ctx, label))
 
 
 @register
 class Place(_Manipulation):
-    """Skill place: descend to the localized placement spot, release the held object and verify it rests there."""
+    """Skill place: descend over the placement spot until the object is just above the surface, release, back
+    off and verify by looking that it rests on the named surface."""
 
     name = names.PLACE
     description = ("Place the held object at the localized placement spot: approach above it, controlled descent "
                    "until the object's bottom is {s.place_vertical_offset:g} m above the surface, open the gripper, "
-                   "retreat to {s.flight_altitude:g} m and verify the object rests there. Needs a held object and "
-                   "a placement_localization.")
+                   "retreat to {s.flight_altitude:g} m and verify that the object rests on the surface (two "
+                   "detections that agree, on its top); a rolling object gets a spot away from edges. Needs a held "
+                   "object and a placement_localization.")
     argument = "surface label (optional; defaults to the last placement spot)"
 
     def timeout_s(self, ctx: SkillContext, argument: str | None) -> float:
@@ -288,47 +597,95 @@ class Place(_Manipulation):
         return beyond_reach(ctx, pl.position, s.place_reach, f"the placement spot on the {pl.label}")
 
     async def run(self, ctx: SkillContext, argument: str | None) -> SkillResult:
-        s, mem = self.settings, ctx.memory
+        mem = ctx.memory
         pl = mem.find_placement(argument)
         held = mem.held
         if pl is None or held is None:
-            raise SkillFailed("placement spot or held object vanished from working memory")
-        height = mem.held_size.z if mem.held_size is not None else 0.1
+            raise SkillFailed("placement spot or held object vanished from working memory", OutcomeCode.FAILED,
+                              SkillFacts(target=argument, holding=held))
+        rec = Attempt(target=pl.label, attempts=1)
+        try:
+            return await self._run(ctx, pl, held, rec)
+        except AuthorityLost:
+            raise
+        except SkillFailed as exc:
+            if exc.code is not None:
+                raise
+            raise SkillFailed(str(exc), OutcomeCode.FAILED, rec.facts(ctx, mem.held)) from exc
+
+    async def _run(self, ctx: SkillContext, pl: MemoryObject, held: str, rec: Attempt) -> SkillResult:
+        s, mem = self.settings, ctx.memory
+        size = mem.held_size
+        height = size.z if size is not None else 0.1
+        rolling = rolls(size)
+        if rolling and size is not None:
+            # A rolling object needs room all round: ask again for a spot with the extra margin (the surface is
+            # in view: placement_localization just saw it); keep the remembered spot when none is found.
+            wide = Vec3(x=size.x + 2 * s.round_place_margin, y=size.y + 2 * s.round_place_margin, z=size.z)
+            spot = await ctx.localize_placement(pl.query or pl.label, wide)
+            if spot.found and spot.pose is not None:
+                pl = mem.store_placement(spot, pl.query or pl.label)
+                ctx.note(f"spot away from the edges for the rolling {held}: {fmt(pl.position)}")
         surface_z = pl.top_z if pl.top_z is not None else pl.position.z
-        bottom = max(pl.position.z, surface_z + s.place_vertical_offset)
-        # The object hangs with the gripper point grip_depth below its top (as grasp took it).
-        body_z = bottom + height - grip_depth(height, s.grasp_depth_fraction) - s.gripper_offset_z
+        drop = s.place_vertical_offset / 2 if rolling else s.place_vertical_offset
+        bottom = surface_z + drop
         st = ctx.current()
-        transit = max(st.position.z, s.flight_altitude, body_z)
+        rec.distance = horizontal_distance(pl.position, st.position)
+        # The object hangs with the gripper point grip_depth below its top (as grasp took it).
+        grip_z = bottom + height - grip_depth(height, s.grasp_depth_fraction)
         yaw = st.yaw
-        spot = Vec3(x=pl.position.x, y=pl.position.y, z=transit)
-        await self.travel(ctx, spot, yaw, f"above the {pl.label} spot")
-        await ctx.goto(Vec3(x=spot.x, y=spot.y, z=body_z), yaw, s.descent_speed, low=s.manipulation_min_altitude,
+        body = body_for(ctx, pl.position.x, pl.position.y, grip_z, yaw)
+        transit = max(st.position.z, s.flight_altitude, body.z)
+        await self.travel(ctx, Vec3(x=body.x, y=body.y, z=transit), yaw, f"above the {pl.label} spot")
+        await ctx.goto(body, yaw, s.descent_speed, low=s.manipulation_min_altitude,
                        what=f"release height over the {pl.label}")
+        # Hold the release point against a steady offset (wind, trim): the object lands where the spot is.
+        _ok, off, sp = await self.align(ctx, pl.position.x, pl.position.y, grip_z, yaw,
+                                        (2 * s.grasp_window_x, 2 * s.grasp_window_x), f"over the {pl.label} spot")
+        rec.offset = off
         await ctx.gripper("open")
         if ctx.current().gripper_width is not None:
             # Verify the release with the gripper's sensing: no pad in contact any more.
             try:
                 await ctx.wait_for(lambda st: st.gripper_holding is False, s.gripper_timeout_s, "release")
             except TimeoutError as exc:
-                raise SkillFailed(f"the {held} did not come free of the opened fingers") from exc
+                raise SkillFailed(f"the {held} did not come free of the opened fingers", OutcomeCode.FAILED,
+                                  rec.facts(ctx, held)) from exc
         mem.set_held(None)
-        await ctx.goto(Vec3(x=spot.x, y=spot.y, z=max(s.flight_altitude, body_z)), yaw, s.descent_speed,
+        await ctx.goto(Vec3(x=sp.x, y=sp.y, z=max(s.flight_altitude, sp.z)), yaw, s.descent_speed,
                        what="retreat height")
 
-        # Verify: back off, look at the spot, the object must rest there.
+        # Verify: back off, look at the spot; the object must rest there: two detections a moment apart agree,
+        # its bottom on the surface's top, near the spot.
         target = Vec3(x=pl.position.x, y=pl.position.y, z=bottom + height / 2)
-        sp, vyaw = self.standoff(ctx, target, ctx.current())
-        await self.travel(ctx, Vec3(x=sp.x, y=sp.y, z=max(sp.z, s.min_altitude)), vyaw, "verification view")
-        est = await ctx.localize_object(held)
-        if not est.found or est.pose is None:
+        vp, vyaw = self.standoff(ctx, target, ctx.current())
+        await self.travel(ctx, Vec3(x=vp.x, y=vp.y, z=max(vp.z, s.min_altitude)), vyaw, "verification view")
+        first = await ctx.localize_object(held)
+        if not first.found or first.pose is None:
             raise SkillFailed(f"released the {held} over the {pl.label} but could not see it there afterwards: "
-                              f"{not_found(held, est)}")
-        off = horizontal_distance(est.pose.position, pl.position)
-        bottom_seen = est.pose.position.z - (est.size.z / 2 if est.size is not None else height / 2)
+                              f"{not_found(held, first)}", OutcomeCode.UNSTABLE, rec.facts(ctx))
+        await asyncio.sleep(REST_GAP_S)
+        ctx.settled_ns = time.time_ns()
+        second = await ctx.localize_object(held)
+        est = second if second.found and second.pose is not None else first
+        assert est.pose is not None and first.pose is not None
         mo = mem.store_object(est, held)
-        if off > s.place_tolerance or abs(bottom_seen - surface_z) > 0.1:
-            raise SkillFailed(f"released the {held} but it lies at {fmt(mo.position)}, {off:.2f} m from the "
-                              f"placement spot on the {pl.label}")
+        off = horizontal_distance(est.pose.position, pl.position)
+        rec.offset = off
+        bottom_seen = est.pose.position.z - (est.size.z / 2 if est.size is not None else height / 2)
+        if not second.found or second.pose is None:
+            why = "it was seen once and then no more (still moving?)"
+        elif (moved := math.dist(first.pose.position.as_tuple(), second.pose.position.as_tuple())) > s.rest_tolerance:
+            why = f"it is still moving ({100 * moved:.1f} cm between two looks {REST_GAP_S:g} s apart)"
+        elif abs(bottom_seen - surface_z) > 0.05:
+            why = f"its bottom is at {bottom_seen:.2f} m, not on the surface at {surface_z:.2f} m"
+        elif off > s.place_tolerance:
+            why = f"{off:.2f} m from the placement spot"
+        else:
+            why = ""
+        if why:
+            raise SkillFailed(f"released the {held} but it lies at {fmt(mo.position)}, not at rest on the "
+                              f"{pl.label}: {why}", OutcomeCode.UNSTABLE, rec.facts(ctx))
         ctx.note(f"{held} rests on the {pl.label} at {fmt(mo.position)}")
-        return SkillResult(f"placed the {held} on the {pl.label} at {fmt(mo.position)}")
+        return SkillResult(f"placed the {held} on the {pl.label} at {fmt(mo.position)} (at rest: two detections "
+                           "agree)", OutcomeCode.SUCCEEDED, rec.facts(ctx))
