@@ -230,10 +230,10 @@ def _can_label(rgb, accent, word: str, seed: int) -> np.ndarray:
     img[int(0.83 * h):] = alu[int(0.83 * h):]
     xs = np.arange(w)
     wave = (0.5 + 0.07 * np.sin(xs / w * 4 * math.pi)) * h
-    for x in xs:
-        cv2.line(img, (int(x), int(wave[x] - 7)), (int(x), int(wave[x] + 7)), _bgr(accent), 1)
+    for x in xs:  # a thin ribbon and a small word: the label's colour stays most of the can
+        cv2.line(img, (int(x), int(wave[x] - 3)), (int(x), int(wave[x] + 3)), _bgr(accent), 1)
     for k in range(2):
-        _text(img, word, (w * (0.25 + 0.5 * k), 0.36 * h), 26, accent, 2)
+        _text(img, word, (w * (0.25 + 0.5 * k), 0.36 * h), 16, accent, 1)
     return img
 
 
@@ -338,10 +338,10 @@ def _apple() -> tuple[dict[str, Mesh], dict[str, np.ndarray]]:
     tex = _solid((150, 210, 30), seed=31, amp=0.06, scale=16)
     rng = np.random.default_rng(32)
     for _ in range(120):  # lenticels
-        cv2.circle(tex, (int(rng.integers(0, TEX)), int(rng.integers(20, TEX - 20))), 1, _bgr((200, 230, 110)), -1)
-    for _ in range(40):  # a reddish-yellow blush in streaks on one cheek, near the top
-        x = int(rng.integers(0, TEX // 3))
-        cv2.line(tex, (x, TEX - 8), (x + int(rng.integers(-8, 8)), TEX - 110), _bgr((200, 140, 40)), 2)
+        cv2.circle(tex, (int(rng.integers(0, TEX)), int(rng.integers(20, TEX - 20))), 1, _bgr((170, 220, 70)), -1)
+    for _ in range(24):  # a reddish-yellow blush in streaks on one cheek, near the top
+        x = int(rng.integers(0, TEX // 4))
+        cv2.line(tex, (x, TEX - 8), (x + int(rng.integers(-8, 8)), TEX - 90), _bgr((200, 140, 40)), 2)
     tex[TEX - 14:] = _bgr((120, 150, 30))  # the stem cavity is darker
     return {"apple": body, "apple_stem": stem}, {"apple": tex}
 
@@ -531,8 +531,8 @@ OBJECT_MODELS: dict[str, ObjectModel] = {
          Part("purple_cup_handle", rgb=(125, 45, 200), specular=0.5, shininess=0.6)),
         (Collider("cylinder", (0.032, 0.055), (-0.008, 0, 0)),
          Collider("box", (0.006, 0.005, 0.03), (0.034, 0, 0.005)))),
-    "coke can": ObjectModel((Part("coke_can", "coke_can", specular=0.6, shininess=0.7),)),
-    "soda can": ObjectModel((Part("soda_can", "soda_can", specular=0.6, shininess=0.7),)),
+    "coke can": ObjectModel((Part("coke_can", "coke_can", specular=0.15, shininess=0.5),)),
+    "soda can": ObjectModel((Part("soda_can", "soda_can", specular=0.15, shininess=0.5),)),
     "tissue box": ObjectModel((Part("tissue_box", "tissue_box", specular=0.05),
                                Part("tissue_sheet", rgb=(250, 250, 250), specular=0.0))),
     "green bottle": ObjectModel((Part("green_bottle", "green_bottle", specular=0.7, shininess=0.8),),
@@ -597,7 +597,9 @@ def _parquet(seed: int) -> np.ndarray:
         for c in range(-1, 3):
             x0 = c * plank + off
             shade = rng.uniform(0.85, 1.12)
-            wood = _wood((int(150 * shade), int(120 * shade), int(90 * shade)), seed + 7 * r + c, plank, TEX // rows)
+            # Grey-washed oak, less saturated than the cardboard box and the wooden table (the colour segmenter
+            # separates them by saturation: a floor of the box's colour would join every box blob).
+            wood = _wood((int(145 * shade), int(127 * shade), int(108 * shade)), seed + 7 * r + c, plank, TEX // rows)
             xa, xb = max(x0, 0), min(x0 + plank, TEX)
             if xb > xa:
                 img[r * TEX // rows:(r + 1) * TEX // rows, xa:xb] = wood[:, xa - x0:xb - x0]
