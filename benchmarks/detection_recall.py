@@ -60,7 +60,8 @@ def measure(look: str, seeds: list[int], segmenter: str = "color",
             c = out[target.name]
             c["in_view"] += 1
             est = perception.localize_object(view.frame, LocalizeRequest(query=target.name), q.parse(target.name))
-            err = math.hypot(est.pose.position.x - target.center[0], est.pose.position.y - target.center[1])
+            err = math.hypot(est.pose.position.x - target.center[0],
+                             est.pose.position.y - target.center[1]) if est.found and est.pose else math.inf
             if est.found and err <= TOLERANCE:
                 c["detected"] += 1
                 continue

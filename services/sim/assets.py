@@ -339,10 +339,10 @@ def _apple() -> tuple[dict[str, Mesh], dict[str, np.ndarray]]:
     rng = np.random.default_rng(32)
     for _ in range(120):  # lenticels
         cv2.circle(tex, (int(rng.integers(0, TEX)), int(rng.integers(20, TEX - 20))), 1, _bgr((170, 220, 70)), -1)
-    for _ in range(24):  # a reddish-yellow blush in streaks on one cheek, near the top
-        x = int(rng.integers(0, TEX // 4))
-        cv2.line(tex, (x, TEX - 8), (x + int(rng.integers(-8, 8)), TEX - 90), _bgr((200, 140, 40)), 2)
-    tex[TEX - 14:] = _bgr((120, 150, 30))  # the stem cavity is darker
+    for _ in range(10):  # a reddish blush in a few streaks near the stem (most of the skin stays lime)
+        x = int(rng.integers(0, TEX // 5))
+        cv2.line(tex, (x, TEX - 8), (x + int(rng.integers(-6, 6)), TEX - 60), _bgr((195, 150, 40)), 2)
+    tex[TEX - 10:] = _bgr((130, 180, 30))  # the stem cavity is a little darker
     return {"apple": body, "apple_stem": stem}, {"apple": tex}
 
 
@@ -363,9 +363,9 @@ def _banana() -> tuple[dict[str, Mesh], dict[str, np.ndarray]]:
     s = np.linspace(-1, 1, n)
     # Curve in the table plane: sagitta 1.4 cm inside the 4.5 cm width, 18.6 cm chord.
     x = 0.093 * s
-    y = 0.014 * (1 - s ** 2) - 0.0085
+    y = 0.014 * (1 - s ** 2) - 0.0095
     z = 0.004 * s ** 2
-    r = 0.0155 * np.sqrt(np.clip(1 - np.abs(s) ** 3.0, 0, 1)) + 0.0015
+    r = 0.0165 * np.sqrt(np.clip(1 - np.abs(s) ** 3.0, 0, 1)) + 0.0015
     r[-1] = r[0] = 0.0
     r[-2], r[1] = 0.003, 0.002
     body = tube(np.stack([x, y, z], 1), r, 6, squash=(1.0, 1.2))
@@ -542,7 +542,7 @@ OBJECT_MODELS: dict[str, ObjectModel] = {
                           Part("apple_stem", rgb=(90, 60, 30), specular=0.0))),
     "orange": ObjectModel((Part("orange", "orange", specular=0.2),)),
     "banana": ObjectModel((Part("banana", "banana", specular=0.2),),
-                          (Collider("box", (0.032, 0.016, 0.016), (0.0, 0.0055, -0.004)),
+                          (Collider("box", (0.032, 0.017, 0.016), (0.0, 0.0045, -0.003)),
                            Collider("box", (0.03, 0.013, 0.014), (0.058, -0.001, -0.006), (0.9928, 0, 0, -0.1197)),
                            Collider("box", (0.03, 0.013, 0.014), (-0.058, -0.001, -0.006), (0.9928, 0, 0, 0.1197)))),
     "cracker box": ObjectModel((Part("cracker_box", "cracker_box", specular=0.1),)),
