@@ -41,11 +41,12 @@ def render_cmd(
     import cv2
     import numpy as np
 
+    from services.sim.physics import look_for
     from services.sim.render import preview
     from services.sim.scenarios import ScenarioError, generate
 
     try:
-        world, scen, start = generate(_scenario(seed, target, destination, out_of_view))
+        world, scen, start = generate(_scenario(seed, target, destination, out_of_view), look=look_for(realism))
     except ScenarioError as exc:
         console.print(f"[red]{exc}[/red]")
         raise typer.Exit(2)

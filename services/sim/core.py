@@ -10,6 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from services.sim.physics import look_for
 from services.sim.scenarios import ScenarioError, generate
 from services.sim.vehicle import Vehicle, VehicleParams, enu_to_ned, wrap
 from shared.messages import (
@@ -45,7 +46,7 @@ class SimCore:
     def __init__(self, scenario: Scenario, params: VehicleParams | None = None, realism: str = "realistic") -> None:
         self.lock = threading.RLock()
         self.realism = realism
-        world, filled, start = generate(scenario, light_variation=realism != "ideal")
+        world, filled, start = generate(scenario, light_variation=realism != "ideal", look=look_for(realism))
         self.world = world
         self.scenario = filled
         self.vehicle = Vehicle(world, params)
@@ -62,7 +63,8 @@ class SimCore:
 
     def reset(self, scenario: Scenario) -> SimResetResult:
         try:
-            world, filled, start = generate(scenario, light_variation=self.realism != "ideal")
+            world, filled, start = generate(scenario, light_variation=self.realism != "ideal",
+                                            look=look_for(self.realism))
         except ScenarioError as exc:
             return SimResetResult(ok=False, message=str(exc))
         with self.lock:

@@ -72,8 +72,22 @@ def entity_geom_name(e: Entity) -> str:
     return f"e{e.id}"
 
 
-def build_xml(entities: list[Entity], light_seed: int = 0, light_variation: bool = True) -> str:
-    """MJCF for a layout: structure and furniture static, objects free, the vehicle at the origin."""
+LOOKS = ("primitive", "textured")
+
+
+def look_for(realism: str) -> str:
+    """The look a camera realism level renders: `ideal` keeps the colour-coded primitives (debugging, geometry
+    tests), every other level the textured meshes of `services.sim.assets`."""
+    return "primitive" if realism == "ideal" else "textured"
+
+
+def build_xml(entities: list[Entity], light_seed: int = 0, light_variation: bool = True,
+              look: str = "primitive") -> str:
+    """MJCF for a layout: structure and furniture static, objects free, the vehicle at the origin. `look`:
+    `primitive` (colour-coded boxes, cylinders and spheres) or `textured` (meshes and textures, `_textured_*`)."""
+    if look not in LOOKS:
+        raise ValueError(f"unknown look {look!r}: {' or '.join(LOOKS)}")
+    textured = look == "textured"
     rng = np.random.default_rng(light_seed)
     intr = DEFAULT_INTRINSICS
     fovy = math.degrees(2 * math.atan(intr.height / 2 / intr.fy))
@@ -89,7 +103,8 @@ def build_xml(entities: list[Entity], light_seed: int = 0, light_variation: bool
         '<headlight ambient="0.3 0.3 0.3" diffuse="0.15 0.15 0.15" specular="0 0 0"/></visual>')
     add('<asset><texture name="tiles" type="2d" builtin="checker" width="256" height="256" '
         'rgb1="0.50 0.50 0.48" rgb2="0.42 0.42 0.40"/>'
-        '<material name="floor" texture="tiles" texrepeat="8 8" specular="0.05"/></asset>')
+        '<material name="floor" texture="tiles" texrepeat="8 8" specular="0.05"/>'
+        + (_textured_assets(entities) if textured else '') + '</asset>')
     add('<default><geom solref="0.004 1" solimp="0.95 0.99 0.001" condim="4"/></default>')
     add('<worldbody>')
     # Room light from above (a directional key light, slanted, and a weaker fill): its brightness and
@@ -105,6 +120,9 @@ def build_xml(entities: list[Entity], light_seed: int = 0, light_variation: bool
     for e in entities:
         name = quoteattr(entity_geom_name(e))
         if e.category == "object":
+            continue
+        if textured:
+            add(_textured_static(e))
             continue
         if e.name == "floor":
             add(f'<geom name={name} type="box" size="{_vec(np.array(e.size) / 2)}" pos="{_vec(e.center)}" '
@@ -122,6 +140,9 @@ def build_xml(entities: list[Entity], light_seed: int = 0, light_variation: bool
         if e.category != "object":
             continue
         spec = OBJECTS[e.name]
+        if textured:
+            add(_textured_object(e, spec.mass, spec.friction))
+            continue
         name = quoteattr(entity_geom_name(e))
         if e.shape == "cylinder":
             geom = f'type="cylinder" size="{_f(e.size[0] / 2)} {_f(e.size[2] / 2)}"'
@@ -170,6 +191,111 @@ def build_xml(entities: list[Entity], light_seed: int = 0, light_variation: bool
     return "\n".join(parts)
 
 
+# ---- the textured look (services.sim.assets): meshes and textures by absolute path in the asset cache, which the
+# render worker process finds as well.
+
+_OBJ_COLLIDE = f'contype="{GROUP_OBJ}" conaffinity="{GROUP_ENV | GROUP_OBJ | GROUP_FINGER | GROUP_FLOOR}"'
+
+
+def _asset_key(name: str) -> str:
+    return name.replace(" ", "_")
+
+
+def _textured_assets(entities: list[Entity]) -> str:
+    """Mesh, texture and material assets of the layout's objects, furniture and room."""
+    from services.sim import assets
+
+    root = assets.asset_dir()
+    out: list[str] = []
+    textures: set[tuple[str, str]] = set()
+
+    def texture(tex: str, kind: str = "2d") -> None:
+        if (tex, kind) not in textures:
+            textures.add((tex, kind))
+            suffix = "" if kind == "2d" else "_cube"
+            out.append(f'<texture name="{tex}{suffix}" type="{kind}" file={quoteattr(str(root / (tex + ".png")))}/>')
+
+    texture("floor_parquet")
+    out.append('<material name="floor_parquet" texture="floor_parquet" texrepeat="3 3" texuniform="true" '
+               'specular="0.1" shininess="0.3"/>')
+    texture("wall_paint")
+    out.append('<material name="wall_paint" texture="wall_paint" texrepeat="1 1" texuniform="true" specular="0"/>')
+    for e in entities:
+        key = _asset_key(e.name)
+        if e.category in ("surface", "furniture"):
+            tex = assets.furniture_texture(e.name)
+            texture(tex, "cube")
+            out.append(f'<material name="mat_{key}" texture="{tex}_cube" specular="0.1" shininess="0.2"/>')
+        elif e.category == "object":
+            for part in assets.OBJECT_MODELS[e.name].parts:
+                out.append(f'<mesh name="mesh_{part.mesh}" file={quoteattr(str(root / (part.mesh + ".obj")))} '
+                           'inertia="shell"/>')
+                attrs = f'specular="{_f(part.specular)}" shininess="{_f(part.shininess)}"'
+                if part.texture:
+                    texture(part.texture)
+                    out.append(f'<material name="mat_{part.mesh}" texture="{part.texture}" {attrs}/>')
+                else:
+                    out.append(f'<material name="mat_{part.mesh}" rgba="{_rgba(part.rgb)}" {attrs}/>')
+    return "".join(out)
+
+
+def _textured_static(e: Entity) -> str:
+    """Floor, walls, ceiling and furniture with their textures; the same colliders as the primitive look."""
+    name = quoteattr(entity_geom_name(e))
+    if e.name == "floor":
+        return (f'<geom name={name} type="box" size="{_vec(np.array(e.size) / 2)}" pos="{_vec(e.center)}" '
+                f'material="floor_parquet" contype="{GROUP_FLOOR}" conaffinity="0" friction="0.8 0.01 0.001"/>')
+    look = 'material="wall_paint"' if e.category == "structure" else f'material="mat_{_asset_key(e.name)}"'
+    if e.shape == "cylinder":
+        geom = f'type="cylinder" size="{_f(e.size[0] / 2)} {_f(e.size[2] / 2)}"'
+    else:
+        geom = f'type="box" size="{_vec(np.array(e.size) / 2)}"'
+    return (f'<geom name={name} {geom} pos="{_vec(e.center)}" quat="{_yaw_quat(e.yaw)}" {look} '
+            f'contype="{GROUP_ENV}" conaffinity="0" friction="0.6 0.01 0.001"/>')
+
+
+def _primitive_collider(e: Entity) -> tuple[str, str]:
+    if e.shape == "cylinder":
+        return "cylinder", f"{_f(e.size[0] / 2)} {_f(e.size[2] / 2)}"
+    if e.shape == "sphere":
+        return "sphere", _f(e.size[0] / 2)
+    return "box", _vec(np.array(e.size) / 2)
+
+
+def _textured_object(e: Entity, mass: float, friction: float) -> str:
+    """A free body: the object's mass and box inertia, primitive colliders (the first one named like the
+    primitive look's geom), and visual-only meshes (group 0, no contacts)."""
+    from services.sim import assets
+
+    model = assets.OBJECT_MODELS[e.name]
+    sx, sy, sz = e.size
+    inertia = [mass / 12 * (sy * sy + sz * sz), mass / 12 * (sx * sx + sz * sz), mass / 12 * (sx * sx + sy * sy)]
+    parts = [f'<body name={quoteattr("obj " + e.name)} pos="{_vec(e.center)}" quat="{_yaw_quat(e.yaw)}">',
+             f'<freejoint/><inertial pos="0 0 0" mass="{_f(mass)}" diaginertia="{_vec(inertia)}"/>']
+    fr = f'friction="{_f(friction)} 0.005 0.0005"'
+    colliders = model.colliders or (assets.Collider(*_primitive_collider(e)),)  # type: ignore[arg-type]
+    for i, c in enumerate(colliders):
+        name = entity_geom_name(e) if i == 0 else f"{entity_geom_name(e)}c{i}"
+        size = c.size if isinstance(c.size, str) else _vec(c.size)
+        parts.append(f'<geom name="{name}" type="{c.type}" size="{size}" pos="{_vec(c.pos)}" quat="{_vec(c.quat)}" '
+                     f'{fr} {_OBJ_COLLIDE} group="3" rgba="{_rgba(e.rgb)}"/>')
+    for k, part in enumerate(model.parts):
+        parts.append(f'<geom name="{entity_geom_name(e)}v{k}" type="mesh" mesh="mesh_{part.mesh}" '
+                     f'material="mat_{part.mesh}" contype="0" conaffinity="0" group="0"/>')
+    parts.append('</body>')
+    return "".join(parts)
+
+
+def entity_geoms(model: mujoco.MjModel, e: Entity) -> list[int]:
+    """Every geom of an entity: its named geom and, for an object, all geoms of its body (colliders, meshes)."""
+    gid = model.geom(entity_geom_name(e)).id
+    if e.category != "object":
+        return [gid]
+    b = int(model.geom_bodyid[gid])
+    adr, num = int(model.body_geomadr[b]), int(model.body_geomnum[b])
+    return list(range(adr, adr + num))
+
+
 @dataclass
 class Contact:
     """A contact the airframe made with something static (furniture, walls, ceiling)."""
@@ -187,13 +313,14 @@ class World:
     entities: list[Entity]
     light_seed: int = 0
     light_variation: bool = True
+    look: str = "primitive"  # `LOOKS`: what the camera sees (`look_for(realism)`); the physics is alike
     version: int = 0
     collisions: list[str] = field(default_factory=list)
     crash_speed: float = CRASH_SPEED
     settle_s: float = 0.3  # let the objects come to rest on their supports before anything else
 
     def __post_init__(self) -> None:
-        self.xml = build_xml(self.entities, self.light_seed, self.light_variation)
+        self.xml = build_xml(self.entities, self.light_seed, self.light_variation, self.look)
         self.model = mujoco.MjModel.from_xml_string(self.xml)
         self.data = mujoco.MjData(self.model)
         m = self.model
@@ -206,10 +333,13 @@ class World:
         self.geom_entity: dict[int, Entity] = {}
         self.obj_body: dict[str, int] = {}
         self.obj_qadr: dict[str, int] = {}
+        self.obj_geoms: dict[str, set[int]] = {}  # an object's colliders (contacts) and meshes
         for e in self.entities:
-            gid = m.geom(entity_geom_name(e)).id
-            self.geom_entity[gid] = e
+            geoms = entity_geoms(m, e)
+            for gid in geoms:
+                self.geom_entity[gid] = e
             if e.category == "object":
+                self.obj_geoms[e.name] = set(geoms)
                 b = m.body("obj " + e.name)
                 self.obj_body[e.name] = b.id
                 self.obj_qadr[e.name] = m.jnt_qposadr[b.jntadr[0]]
@@ -381,8 +511,7 @@ class World:
                 # (a held object shares the never-sleeping vehicle's island).
                 e.attached = False
                 continue
-            gid = self.model.body_geomadr[b]
-            others = touching.get(int(gid), set())
+            others = set().union(*(touching.get(g, set()) for g in self.obj_geoms[e.name]))
             e.attached = left in others and right in others and self.finger_width() > 0.005
             support = None
             lowest = math.inf

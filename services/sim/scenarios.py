@@ -178,9 +178,10 @@ def _place_object(rng: random.Random, name: str, choices: list[Entity], placed: 
     return None
 
 
-def generate(scenario: Scenario, light_variation: bool = True) -> tuple[World, Scenario, Pose]:
+def generate(scenario: Scenario, light_variation: bool = True,
+             look: str = "primitive") -> tuple[World, Scenario, Pose]:
     """Build the world for `scenario` (a MuJoCo simulation, objects settled on their supports); returns it, the
-    scenario with every choice filled in, and the start."""
+    scenario with every choice filled in, and the start. `look`: `physics.LOOKS` (the layout is the same)."""
     rng = random.Random(scenario.seed)
     target, dest, extras, fixed = _named(scenario)
 
@@ -239,7 +240,7 @@ def generate(scenario: Scenario, light_variation: bool = True) -> tuple[World, S
     if dest is None:
         dest = rng.choice([s for s in surfaces if s != placed[0].support])
     world = World(entities=_structure() + furniture + placed, light_seed=scenario.seed,
-                  light_variation=light_variation)
+                  light_variation=light_variation, look=look)
     filled = Scenario(seed=scenario.seed, target_object=target, destination=dest, distractors=distractors,
                       target_out_of_view=scenario.target_out_of_view, extra_objects=extras, start=start,
                       placements=fixed or None)

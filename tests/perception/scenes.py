@@ -73,8 +73,8 @@ def aim_at(world: World, target: np.ndarray, distance: float, rng: np.random.Gen
 _versions = iter(range(1_000_000, 2_000_000))
 
 
-def layout(seed: int) -> World:
-    world, _, _ = generate(Scenario(seed=seed))
+def layout(seed: int, look: str = "primitive") -> World:
+    world, _, _ = generate(Scenario(seed=seed), look=look)
     # The renderer caches its scene by world version; distinct layouts must not share one.
     world.version = next(_versions)
     return world
@@ -103,7 +103,7 @@ def projected_corners_in_view(e: Entity, frame: Frame, margin: int = 2) -> bool:
 
 def unoccluded_pixels(view: View, entity: Entity) -> int:
     """Pixels `entity` would cover from the view's pose with nothing in front of it (to judge occlusion)."""
-    alone = World(entities=[entity], version=next(_versions), settle_s=0.0)
+    alone = World(entities=[entity], version=next(_versions), settle_s=0.0, look=view.world.look)
     x, y, z, yaw = view.body
     f = Renderer(realism="ideal").render(snapshot_at(alone, np.array([x, y, z]), yaw))
     return int((f.instance == entity.id).sum())

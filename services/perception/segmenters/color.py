@@ -54,8 +54,10 @@ class SurfaceClass:
 DEFAULT_OBJECTS = (
     ColorClass("red cup", "red", (0, 225, 215), (0.08, 0.08, 0.11)),
     ColorClass("purple cup", "purple", (136, 198, 200), (0.08, 0.08, 0.11)),
-    ColorClass("coke can", "crimson", (173, 239, 160), (0.066, 0.066, 0.12)),
-    ColorClass("soda can", "blue", (108, 221, 225), (0.066, 0.066, 0.12)),
+    # Printed cans (the textured look): white lettering and aluminium rims anti-alias into the label's pixels and
+    # pull their saturation down; a wider saturation range keeps the label's blob whole.
+    ColorClass("coke can", "crimson", (173, 239, 160), (0.066, 0.066, 0.12), tol_s=80.0),
+    ColorClass("soda can", "blue", (108, 221, 225), (0.066, 0.066, 0.12), tol_s=80.0),
     ColorClass("tissue box", "cyan", (95, 136, 235), (0.24, 0.12, 0.10)),
     ColorClass("green bottle", "green", (66, 221, 150), (0.07, 0.07, 0.25)),
     ColorClass("apple", "lime", (40, 219, 210), (0.08, 0.08, 0.08)),
