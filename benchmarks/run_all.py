@@ -70,6 +70,7 @@ BENCHMARKS: dict[str, Bench] = {
     "soak": Bench(("--minutes", "30", "--out", "runs/bench/soak"), ("--minutes", "2", "--out", "runs/bench/soak"),
                   long=True, timeout_s=3000),
     "eval_parallel": Bench((), ("--episodes-per-suite", "1"), long=True, timeout_s=3600),
+    "detection_recall": Bench(("--seeds", "100-119"), ("--seeds", "100-101"), timeout_s=1800),
     # a full run is 48 grasp calls (about 40 s each at speed factor 3): long
     "grasp": Bench(("--levels", "ideal,realistic,harsh,wander", "--calls", "12"), ("--levels", "harsh", "--calls", "2"),
                    long=True, timeout_s=3600),
