@@ -124,17 +124,18 @@ class CameraPublisher:
             assert self.encoder is not None  # with the camera on and no render process, __init__ made it
             enc = self.encoder(snap, stamp_ns, seg)
         self.render_s += enc.render_s
-        return enc.color, enc.depth, enc.segmentation, self.transforms(snap, stamp_ns)
+        return enc.color, enc.depth, enc.segmentation, self.transforms(snap, stamp_ns, self.mount_error)
 
-    def transforms(self, snap, stamp_ns: int) -> bytes:
+    @staticmethod
+    def transforms(snap, stamp_ns: int, mount_error: np.ndarray | None = None) -> bytes:
         """world -> body from the estimated pose (as a real stack gets it from its EKF), not the truth; the
         camera and gripper frames of the simulated airframe (the default mount, see check_airframe; off by
         `mount_error` while a camera_mount fault is injected)."""
         body = pose_matrix(float(snap.position[0]), float(snap.position[1]), float(snap.position[2]), snap.yaw)
         cam = AIRFRAME.base_to_camera()
-        if self.mount_error.any():
+        if mount_error is not None and mount_error.any():
             cam = cam.copy()
-            cam[:3, 3] += self.mount_error
+            cam[:3, 3] += mount_error
         return transforms_message([(WORLD_FRAME, BODY_FRAME, body),
                                    (BODY_FRAME, CAMERA_FRAME, cam),
                                    (BODY_FRAME, GRIPPER_FRAME, AIRFRAME.base_to_gripper())], stamp_ns)
@@ -177,7 +178,8 @@ class CameraPublisher:
                 # Nobody consumes images (e.g. a MAVLink-only test or many idle evaluation vehicles): skip the
                 # raycast, keep tf flowing.
                 self.idle_frames += 1
-                bus.publish(self.keys.tf, self.transforms(self.core.snapshot(), stamp), reliable=False)
+                tf = self.transforms(self.core.snapshot(), stamp, self.mount_error)
+                bus.publish(self.keys.tf, tf, reliable=False)
             else:
                 try:
                     color, depth, seg, tf = await asyncio.to_thread(self.render_frame, stamp)
@@ -204,7 +206,7 @@ class CameraPublisher:
         """Under an injected camera failure the pose keeps flowing (tf is the autopilot's estimate, not the
         camera's); `stuck` re-sends the last frame, stamp and all, so a consumer sees it age."""
         assert self.bus is not None
-        self.bus.publish(self.keys.tf, self.transforms(self.core.snapshot(), stamp), reliable=False)
+        self.bus.publish(self.keys.tf, self.transforms(self.core.snapshot(), stamp, self.mount_error), reliable=False)
         if self.fault == "stuck" and self.last_frames is not None:
             self._publish_frames(*self.last_frames)
 
