@@ -118,22 +118,9 @@ def build_xml(entities: list[Entity], light_seed: int = 0, light_variation: bool
     add(f'<light name="fill" directional="true" pos="0 0 2.5" dir="{_vec([-key_dir[0], -key_dir[1], -0.6])}" '
         f'diffuse="{_vec([0.15, 0.15, 0.16])}" specular="0 0 0" castshadow="false"/>')
     for e in entities:
-        name = quoteattr(entity_geom_name(e))
         if e.category == "object":
             continue
-        if textured:
-            add(_textured_static(e))
-            continue
-        if e.name == "floor":
-            add(f'<geom name={name} type="box" size="{_vec(np.array(e.size) / 2)}" pos="{_vec(e.center)}" '
-                f'material="floor" contype="{GROUP_FLOOR}" conaffinity="0" friction="0.8 0.01 0.001"/>')
-            continue
-        if e.shape == "cylinder":
-            geom = f'type="cylinder" size="{_f(e.size[0] / 2)} {_f(e.size[2] / 2)}"'
-        else:
-            geom = f'type="box" size="{_vec(np.array(e.size) / 2)}"'
-        add(f'<geom name={name} {geom} pos="{_vec(e.center)}" quat="{_yaw_quat(e.yaw)}" rgba="{_rgba(e.rgb)}" '
-            f'contype="{GROUP_ENV}" conaffinity="0" friction="0.6 0.01 0.001"/>')
+        add(_textured_static(e) if textured else _static_geom(e, "floor", f'rgba="{_rgba(e.rgb)}"'))
     from services.sim.layout import OBJECTS
 
     for e in entities:
@@ -241,11 +228,17 @@ def _textured_assets(entities: list[Entity]) -> str:
 
 def _textured_static(e: Entity) -> str:
     """Floor, walls, ceiling and furniture with their textures; the same colliders as the primitive look."""
+    look = 'material="wall_paint"' if e.category == "structure" else f'material="mat_{_asset_key(e.name)}"'
+    return _static_geom(e, "floor_parquet", look)
+
+
+def _static_geom(e: Entity, floor_material: str, look: str) -> str:
+    """One static collider (floor, wall, ceiling, furniture): its shape and friction are the same in every look;
+    `look` is its appearance attribute (an rgba or a material), the floor's is `floor_material`."""
     name = quoteattr(entity_geom_name(e))
     if e.name == "floor":
         return (f'<geom name={name} type="box" size="{_vec(np.array(e.size) / 2)}" pos="{_vec(e.center)}" '
-                f'material="floor_parquet" contype="{GROUP_FLOOR}" conaffinity="0" friction="0.8 0.01 0.001"/>')
-    look = 'material="wall_paint"' if e.category == "structure" else f'material="mat_{_asset_key(e.name)}"'
+                f'material="{floor_material}" contype="{GROUP_FLOOR}" conaffinity="0" friction="0.8 0.01 0.001"/>')
     if e.shape == "cylinder":
         geom = f'type="cylinder" size="{_f(e.size[0] / 2)} {_f(e.size[2] / 2)}"'
     else:
