@@ -41,4 +41,3 @@ async def bus_if_up(connect: str, timeout: float) -> Bus | None:
         return await Bus.open(connect=[connect], connect_timeout_s=timeout)
     except Exception:
         return None
-

@@ -107,13 +107,10 @@ async def _classify(rep: ProbeReport, settings: ReasonerSettings, schema: CallRe
     """Image, schema and server failures told apart: a refused schema call whose free-text twin answers is the
     schema; a refused free-text call is asked again without the image (answered: the image is what the server
     refuses, and the schema is checked on that request); a 5xx or an unreachable server says nothing of either."""
-    if schema.ok:
-        rep.image_accepted, rep.schema_supported = True, schema.mode == "schema"
-        return
-    if text.ok:
-        rep.image_accepted = True
-        rep.schema_supported = False if schema.error_kind in ("schema", "refused") else None
-        rep.notes.append(f"schema mode: {schema.error}")
+    if schema.ok or text.ok:
+        rep.image_accepted, rep.schema_supported = True, _schema_verdict(schema)
+        if not schema.ok:
+            rep.notes.append(f"schema mode: {schema.error}")
         return
     if text.error_kind != "refused":
         rep.image_accepted = rep.schema_supported = None
@@ -134,8 +131,15 @@ async def _classify(rep: ProbeReport, settings: ReasonerSettings, schema: CallRe
     rep.notes.append(f"the endpoint refuses the image (the same request without it was answered): {text.error}")
     checked = await _call(settings, "schema", request, library, variant)
     rep.calls.append(checked)
-    rep.schema_supported = checked.ok and checked.mode == "schema" if checked.ok or checked.error_kind in (
-        "schema", "refused") else None
+    rep.schema_supported = _schema_verdict(checked)
+
+
+def _schema_verdict(call: CallResult) -> bool | None:
+    """What a call made in schema mode says of schema support: answered under the schema (True), answered as free
+    text or refused (False), failed for another reason (None: unknown)."""
+    if call.ok:
+        return call.mode == "schema"
+    return False if call.error_kind in ("schema", "refused") else None
 
 
 async def probe(settings: ReasonerSettings, jpeg: bytes, frame_source: str, *, calls: int = 5,
