@@ -167,16 +167,19 @@ def _loads_lenient(text: str, work: Work) -> dict | None:
     return None
 
 
+def _ste_of(obj: dict) -> tuple[Any, Any]:
+    """(skill, argument) of an answer object whose keys are normalised: from the nested `ste` (or
+    `skill_to_execute`, `action`) object, else from the answer itself (a flat `{"skill": ...}`)."""
+    ste_obj = next((obj[k] for k in ("ste", "skill_to_execute", "action") if isinstance(obj.get(k), dict)), None)
+    ste = {norm_key(k): v for k, v in ste_obj.items()} if ste_obj is not None else obj
+    return ste.get("skill", ste.get("action", ste.get("name"))), ste.get("argument", ste.get("arg", ste.get("query")))
+
+
 def _named_skill(obj: dict) -> tuple[str, str] | None:
     """(skill, argument) an object names the way `_parse` reads it, normalised for comparison; None if none."""
-    keys = {norm_key(k): v for k, v in obj.items()}
-    ste = next((keys[k] for k in ("ste", "skill_to_execute", "action") if isinstance(keys.get(k), dict)), keys)
-    if ste is not keys:
-        ste = {norm_key(k): v for k, v in ste.items()}
-    skill = ste.get("skill", ste.get("action", ste.get("name")))
+    skill, arg = _ste_of({norm_key(k): v for k, v in obj.items()})
     if not isinstance(skill, str):
         return None
-    arg = ste.get("argument", ste.get("arg", ste.get("query")))
     return norm_skill(skill), str(arg).strip().lower() if arg is not None else ""
 
 
@@ -379,19 +382,16 @@ def _parse(raw: str, variant: str, library: SkillLibrary, coverage: float, work:
         raise InvalidAnswer("No JSON object found in the answer; reply with exactly one JSON object in the "
                             "format given in the Rules.")
     obj = {norm_key(k): v for k, v in _well_formed_values(obj).items()}
-    ste_obj = next((obj[k] for k in ("ste", "skill_to_execute", "action") if isinstance(obj.get(k), dict)), None)
     if variant == "react" and isinstance(obj.get("thought"), str) and not thought:
         thought = obj["thought"].strip() or None  # the schema-constrained form {"thought", "action"}
-    ste = {norm_key(k): v for k, v in ste_obj.items()} if ste_obj is not None else obj
+    skill, arg = _ste_of(obj)
     drt_obj = next((obj[k] for k in ("drt", "descriptive_reasoning_trace") if isinstance(obj.get(k), dict)), None)
     drt = {norm_key(k): v for k, v in drt_obj.items()} if drt_obj is not None else obj
-    skill = ste.get("skill", ste.get("action", ste.get("name")))
     if skill is None:
         raise InvalidAnswer("The answer has no skill: put {\"skill\": <name>, \"argument\": <string or null>} in "
                             "\"ste\".")
     if not isinstance(skill, str):
         raise InvalidAnswer(f"The skill must be a string naming one skill, got {json.dumps(skill)[:60]}.")
-    arg = ste.get("argument", ste.get("arg", ste.get("query")))
     if "(" in skill and skill.rstrip().endswith(")") and arg is None:
         skill, _, inner = skill.partition("(")
         arg = inner.rstrip()[:-1].strip().strip("'\"") or None
