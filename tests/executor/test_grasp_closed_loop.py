@@ -134,17 +134,21 @@ def beyond_the_edge(table, spot, margin: float = 0.25) -> tuple[float, float]:
 
 async def test_place_reports_unstable_when_the_released_object_falls_off(client):
     c = client
-    await c.reset(seed=5, target_object="apple", destination="table")
+    # The red cup, not a rolling object: place asks a rolling one (apple, orange) a fresh spot away from the
+    # edges, and that re-localization, when the table happens to be in view, sees through the jumped estimate
+    # below, so the test would hinge on the camera's view. (The apple is also found from the take-off spot, 2.9
+    # m away, in only some frames: ~90 px against the colour segmenter's 60 px blob minimum.)
+    await c.reset(seed=5, target_object="red cup", destination="table")
     await c.takeoff()
-    await c.approach("apple")
+    await c.approach("red cup")
     st = await c.run("grasp")
     assert st.state == SkillState.SUCCEEDED, (st.message, st.outcome.facts)
-    assert (await c.judge(op="held")).held == "apple"
+    assert (await c.judge(op="held")).held == "red cup"
     loc = await c.search("placement_localization", "table")
     spot = loc.outcome.estimate.pose.position
     table = next(o for o in (await c.judge(op="world")).objects if o.name == "table")
     # The pose estimate jumps (a bad relocalization) so that flying to the spot truly ends 25 cm beyond the
-    # table's nearest edge: the apple is released over the floor. Camera and vehicle share the estimate, so
+    # table's nearest edge: the cup is released over the floor. Camera and vehicle share the estimate, so
     # only the object's height tells.
     tx, ty = beyond_the_edge(table, spot)
     await fault(c, "estimate", "offset", x=spot.x - tx, y=spot.y - ty)
@@ -153,7 +157,7 @@ async def test_place_reports_unstable_when_the_released_object_falls_off(client)
     assert st.state == SkillState.FAILED, st.message
     assert st.outcome.code == OutcomeCode.UNSTABLE, (st.outcome.code, st.message, facts)
     assert facts.target == "table" and facts.holding is None
-    assert not (await c.judge(op="on_surface", object="apple", surface="table")).ok
+    assert not (await c.judge(op="on_surface", object="red cup", surface="table")).ok
     assert (await c.judge(op="held")).held is None
     await fault(c, "estimate", "ok")
     await c.ok("land")

@@ -104,18 +104,23 @@ class Client:
         steps until it is within `within` m, and localize it again from there."""
         loc = await self.search(skill, label)
         for _ in range(16):
-            target = loc.outcome.estimate.pose.position
-            st = self.states.latest_nowait() or await self.states.recv(timeout=5)
-            dx, dy = target.x - st.position.x, target.y - st.position.y
-            if math.hypot(dx, dy) <= within:
+            if await self.step_toward(loc.outcome.estimate.pose.position, within):
                 return loc
-            bearing = math.atan2(math.sin(math.atan2(dy, dx) - st.yaw), math.cos(math.atan2(dy, dx) - st.yaw))
-            if abs(bearing) > math.radians(25):
-                await self.ok("yaw_left" if bearing > 0 else "yaw_right")
-            else:
-                await self.ok("forward")
             loc = await self.search(skill, label)
         raise AssertionError(f"could not approach the {label}")
+
+    async def step_toward(self, target, within: float) -> bool:
+        """True when `target` (x, y) is within `within` m; otherwise one turn toward it or one step forward."""
+        st = self.states.latest_nowait() or await self.states.recv(timeout=5)
+        dx, dy = target.x - st.position.x, target.y - st.position.y
+        if math.hypot(dx, dy) <= within:
+            return True
+        bearing = math.atan2(math.sin(math.atan2(dy, dx) - st.yaw), math.cos(math.atan2(dy, dx) - st.yaw))
+        if abs(bearing) > math.radians(25):
+            await self.ok("yaw_left" if bearing > 0 else "yaw_right")
+        else:
+            await self.ok("forward")
+        return False
 
     async def speed(self) -> float:
         s = await self.states.recv(timeout=5)
