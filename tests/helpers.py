@@ -7,8 +7,11 @@ import contextlib
 import time
 from collections.abc import AsyncIterator, Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 from shared.bus import Bus, Subscription
+from shared.errors import NoResponder
+from shared.keys import BoundTopic
 from shared.launcher import Stack, free_port, free_udp_port
 from shared.messages import SkillStatus
 
@@ -74,6 +77,25 @@ async def wait_until(pred: Callable[[], bool], timeout: float = 30.0, interval: 
         if time.monotonic() > deadline:
             raise TimeoutError(f"condition not met in {timeout} s: {what}")
         await asyncio.sleep(interval)
+
+
+async def matched(publisher: Bus, *topics: BoundTopic[Any]) -> None:
+    """Wait until the router has told `publisher` of a subscriber on every topic: a fixed pause before the first
+    publish races the subscription's way through the router, and loses it on a loaded machine."""
+    for t in topics:
+        await wait_until(lambda t=t: publisher.has_subscribers(t), 30, what=f"a subscriber on {t.key}")
+
+
+async def first_answer(bus: Bus, q: Any, request: Any, timeout: float = 30.0) -> Any:
+    """The first reply of `q` once its queryable is known behind the router (NoResponder until then)."""
+    deadline = asyncio.get_running_loop().time() + timeout
+    while True:
+        try:
+            return await bus.query(q, request, timeout=5)
+        except NoResponder:
+            if asyncio.get_running_loop().time() > deadline:
+                raise
+            await asyncio.sleep(0.1)
 
 
 async def skill_outcome(statuses: Subscription[SkillStatus], goal_id: str, timeout: float) -> SkillStatus:

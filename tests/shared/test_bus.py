@@ -16,27 +16,8 @@ from shared import messages as m
 from shared.bus import Bus, zenoh_config
 from shared.errors import NoResponder, QueryTimeout, RemoteError
 from shared.keys import Protobuf, Query, Topic
-from tests.helpers import bus_pair, wait_until
+from tests.helpers import bus_pair, first_answer, matched, wait_until
 from tests.shared.samples import sample_messages
-
-
-async def matched(publisher: Bus, *topics) -> None:
-    """Wait until the router has told `publisher` of a subscriber on every topic: a fixed pause before the first
-    publish races the subscription's way through the router, and loses it on a loaded machine."""
-    for t in topics:
-        await wait_until(lambda t=t: publisher.has_subscribers(t), 30, what=f"a subscriber on {t.key}")
-
-
-async def first_answer(bus: Bus, q, request, timeout: float = 30.0):
-    """The first reply of `q` once its queryable is known behind the router (NoResponder until then)."""
-    deadline = asyncio.get_running_loop().time() + timeout
-    while True:
-        try:
-            return await bus.query(q, request, timeout=5)
-        except NoResponder:
-            if asyncio.get_running_loop().time() > deadline:
-                raise
-            await asyncio.sleep(0.1)
 
 
 def topic(name: str, t: object, reliable: bool = True) -> object:

@@ -13,7 +13,7 @@ from shared import messages as m
 from shared.bus import QUERY_CONCURRENCY, RateLimitedWarning
 from shared.errors import RemoteError
 from shared.keys import MESSAGE_MAX_BYTES, Query, Topic
-from tests.helpers import bus_pair
+from tests.helpers import bus_pair, first_answer, matched, wait_until
 
 pytestmark = pytest.mark.integration
 
@@ -24,7 +24,7 @@ async def test_oversize_samples_are_dropped_and_counted(router):
         capped = Topic("test/capped", m.Health, "test", "test", max_bytes=4096).bind("t1")
         default = Topic("test/default", m.Health, "test", "test").bind("t1")
         sub, sub_default = b.subscribe(capped), b.subscribe(default)
-        await asyncio.sleep(0.3)
+        await matched(a, capped, default)
         a.publish(capped, m.Health(service="s", ok=True, message="x" * 10_000))
         a.publish(capped, m.Health(service="s", ok=True, message="small"))
         a.publish(default, m.Health(service="s", ok=True, message="y" * (MESSAGE_MAX_BYTES + 10)))
@@ -39,12 +39,12 @@ async def test_hand_off_is_bounded_while_the_loop_is_busy(router):
     async with bus_pair(router) as (a, b):
         t = Topic("test/flood", m.Health, "test", "test").bind("t1")
         sub = b.subscribe(t, maxsize=20)
-        await asyncio.sleep(0.3)
+        await matched(a, t)
         for i in range(500):
             a.publish(t, m.Health(service="s", ok=True, details={"i": i}))
         time.sleep(1.5)  # the loop is blocked: every sample waits in the hand-off, which must stay bounded
         assert len(sub._pending) <= 20
-        await asyncio.sleep(0.2)
+        await wait_until(lambda: sub.received == 500 and not sub._pending, 30, what="500 samples received and handed off")
         kept = []
         while (v := sub.recv_nowait()) is not None:
             kept.append(v.details["i"])
@@ -53,7 +53,7 @@ async def test_hand_off_is_bounded_while_the_loop_is_busy(router):
         # Health published on this bus now carries the counters.
         h = Topic("test/health", m.Health, "test", "test").bind("t1")
         hs = a.subscribe(h)
-        await asyncio.sleep(0.3)
+        await matched(b, h)
         b.publish(h, m.Health(service="s", ok=True))
         got = await hs.recv(timeout=5)
         assert got.details["bus"]["dropped"] == sub.dropped
@@ -65,11 +65,11 @@ async def test_latest_value_subscription_counts_superseded_not_dropped(router):
     async with bus_pair(router) as (a, b):
         t = Topic("test/state", m.Health, "test", "test").bind("t1")
         sub = b.subscribe(t, maxsize=2, overflow="latest")
-        await asyncio.sleep(0.3)
+        await matched(a, t)
         for i in range(200):
             a.publish(t, m.Health(service="s", ok=True, details={"i": i}))
         time.sleep(1.0)  # a busy loop: the samples wait in the hand-off
-        await asyncio.sleep(0.2)
+        await wait_until(lambda: sub.received == 200 and not sub._pending, 30, what="200 samples received and handed off")
         kept = []
         while (v := sub.recv_nowait()) is not None:
             kept.append(v.details["i"])
@@ -78,7 +78,7 @@ async def test_latest_value_subscription_counts_superseded_not_dropped(router):
         assert b.stats()["dropped"] == 0 and b.stats()["superseded"] == sub.superseded
         h = Topic("test/health", m.Health, "test", "test").bind("t1")
         hs = a.subscribe(h)
-        await asyncio.sleep(0.3)
+        await matched(b, h)
         b.publish(h, m.Health(service="s", ok=True))
         assert "bus" not in (await hs.recv(timeout=5)).details
 
@@ -93,7 +93,14 @@ async def test_concurrent_queries_beyond_the_cap_get_busy_and_big_requests_are_r
 
         q = Query("test/slowq", m.SkillRequest, m.SkillAccept, "test", "test").bind("t1")
         a.serve(q, slow)
-        await asyncio.sleep(0.3)
+        # A quick queryable declared after the slow one: once it answers, the router knows both.
+        ping = Query("test/ping", m.SkillRequest, m.SkillAccept, "test", "test").bind("t1")
+
+        async def pong(req: m.SkillRequest) -> m.SkillAccept:
+            return m.SkillAccept(accepted=True, goal_id="pong")
+
+        a.serve(ping, pong)
+        await first_answer(b, ping, m.SkillRequest(skill="x"))
         calls = [asyncio.create_task(b.query(q, m.SkillRequest(skill="x"), timeout=10))
                  for _ in range(QUERY_CONCURRENCY + 5)]
         for _ in range(100):  # every request has reached the server: the first QUERY_CONCURRENCY wait

@@ -29,6 +29,7 @@ from shared.security import (
     require_loopback,
     router_config,
 )
+from tests.helpers import first_answer
 
 K = Keys("am1")
 
@@ -280,8 +281,7 @@ async def test_queries_carry_the_senders_name_and_session_id():
 
         try:
             server.serve("test/caller", handler, with_caller=True)
-            await asyncio.sleep(0.3)
-            await client.query("test/caller", {"x": 1}, timeout=3.0)
+            await first_answer(client, "test/caller", {"x": 1})
             assert seen == [Caller("executor", str(client.session.zid()))]
         finally:
             await client.close()
