@@ -58,6 +58,7 @@ from shared.skills import (
     PLACE,
     PLACEMENT_LOCALIZATION,
 )
+from shared.stats import percentile
 
 LOCALIZATIONS = (OBJ_LOCALIZATION, PLACEMENT_LOCALIZATION)
 # Actions that change the view or the scene, so a localization after them is not a repeat.
@@ -227,16 +228,6 @@ def redundant_actions(actions: Sequence[Action], pos_tol: float = POS_TOL, yaw_t
 def redundancy_ratio(actions: Sequence[Action]) -> float:
     """n_redundant / n_total for one episode (0 when there is no action)."""
     return len(redundant_actions(actions)) / len(actions) if actions else 0.0
-
-
-def percentile(values: Sequence[float], q: float) -> float:
-    """q-th percentile with linear interpolation between closest ranks (numpy's default)."""
-    if not values:
-        raise ValueError("percentile of no values")
-    xs = sorted(values)
-    pos = (len(xs) - 1) * q / 100.0
-    lo, hi = math.floor(pos), math.ceil(pos)
-    return xs[lo] + (xs[hi] - xs[lo]) * (pos - lo)
 
 
 def reasoning_steps(rec: EpisodeRecord) -> int:

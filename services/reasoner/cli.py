@@ -407,5 +407,34 @@ def register(app: typer.Typer) -> None:
     command_group(app, "vlm", "Tools for VLM answers and backends.",
                   {"check": check_command, "backends": backends_command, "probe": probe_command})
     app.command("demo")(demo_command)
+    app.command("rereason")(rereason_cmd)
 
 
+LogArg = Annotated[Path, typer.Argument(help="An MCAP log written by the recorder.", exists=True, dir_okay=False)]
+
+
+def rereason_cmd(
+    log: LogArg,
+    backend: Annotated[str, typer.Option(help="Backend to re-run the decisions with (`aermani vlm backends`; "
+                                              "replay reads --answers).")] = "rules",
+    variant: Annotated[str | None, typer.Option(help="Prompt variant (default: the recorded one).")] = None,
+    model: Annotated[str | None, typer.Option(help="Model name for a model backend.")] = None,
+    task: Annotated[str | None, typer.Option(help="Only this task id.")] = None,
+    answers: Annotated[Path | None, typer.Option(help="For --backend replay: the log whose recorded answers "
+                                                     "to replay.")] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="Machine-readable output.")] = False,
+) -> None:
+    """Re-run the reasoner's decision step offline on the recorded observations (same frames, same history)
+    with another backend or variant; report agreement with the recorded decisions. No vehicle moves."""
+    from services.reasoner.rereason import RereasonError, rereason_log
+
+    try:
+        res = asyncio.run(rereason_log(log, backend=backend, variant=variant, model=model, task_id=task,
+                                       answers=answers))
+    except RereasonError as exc:
+        Console(stderr=True).print(f"[red]{exc}[/red]")
+        raise typer.Exit(2)
+    if as_json:
+        typer.echo(json.dumps(res.as_dict(), indent=2, default=str))
+    else:
+        typer.echo(res.render())

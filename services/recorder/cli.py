@@ -1,9 +1,8 @@
-"""`aermani replay`, `aermani rereason` and `aermani log show|export|recover`."""
+"""`aermani replay` and `aermani log show|export|recover` (`aermani rereason` is the reasoner's)."""
 
 from __future__ import annotations
 
 import asyncio
-import json
 from pathlib import Path
 from typing import Annotated
 
@@ -22,7 +21,6 @@ def register(app: typer.Typer) -> None:
     command_group(app, "log", "Inspect, report on and repair MCAP logs.",
                   {"show": show_cmd, "export": export_cmd, "recover": recover_cmd})
     app.command("replay")(replay_cmd)
-    app.command("rereason")(rereason_cmd)
 
 
 def replay_cmd(
@@ -115,7 +113,7 @@ def recover_cmd(
     = None,
 ) -> None:
     """Salvage every complete chunk of an unfinished log into a finished, indexed one."""
-    from services.recorder.mcaplog import recover
+    from shared.mcaplog import recover
 
     dst = out or log.with_suffix(".recovered.mcap")
     if dst.resolve() == log.resolve():
@@ -125,30 +123,3 @@ def recover_cmd(
     state = "the log was complete" if res.complete else f"stopped at: {res.error or 'end of file'}"
     typer.echo(f"recovered {res.messages} messages in {len(res.channels)} channels from {res.chunks} "
                f"complete chunks into {dst} ({state})")
-
-
-def rereason_cmd(
-    log: LogArg,
-    backend: Annotated[str, typer.Option(help="Backend to re-run the decisions with (`aermani vlm backends`; "
-                                              "replay reads --answers).")] = "rules",
-    variant: Annotated[str | None, typer.Option(help="Prompt variant (default: the recorded one).")] = None,
-    model: Annotated[str | None, typer.Option(help="Model name for a model backend.")] = None,
-    task: Annotated[str | None, typer.Option(help="Only this task id.")] = None,
-    answers: Annotated[Path | None, typer.Option(help="For --backend replay: the log whose recorded answers "
-                                                     "to replay.")] = None,
-    as_json: Annotated[bool, typer.Option("--json", help="Machine-readable output.")] = False,
-) -> None:
-    """Re-run the reasoner's decision step offline on the recorded observations (same frames, same history)
-    with another backend or variant; report agreement with the recorded decisions. No vehicle moves."""
-    from services.recorder.rereason import RereasonError, rereason_log
-
-    try:
-        res = asyncio.run(rereason_log(log, backend=backend, variant=variant, model=model, task_id=task,
-                                       answers=answers))
-    except RereasonError as exc:
-        err.print(f"[red]{exc}[/red]")
-        raise typer.Exit(2)
-    if as_json:
-        typer.echo(json.dumps(res.as_dict(), indent=2, default=str))
-    else:
-        typer.echo(res.render())

@@ -13,9 +13,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from services.recorder.mcaplog import iter_samples
 from shared import keys as k
 from shared.bus import Bus
+from shared.mcaplog import iter_samples
 
 # Keys (after aermani/v1/<vehicle>/) that act on a vehicle or a task when they arrive.
 CONTROL_SUFFIXES = tuple(d.name for d in (

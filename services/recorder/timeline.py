@@ -8,10 +8,11 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from services.recorder.mcaplog import iter_samples, metadata, read_topic, topic_of, vehicle_of
 from shared.keys import CAMERA_COLOR, REASONER_STEP, REASONER_TASK_STATUS
+from shared.mcaplog import iter_samples, metadata, read_topic, topic_of, vehicle_of
 from shared.messages import ReasoningStep, TaskStatus
 from shared.sensors import PROTO_TYPES, stamp_to_ns
+from shared.stats import percentile_or_none
 
 
 @dataclass
@@ -58,17 +59,6 @@ class TaskTimeline:
     ended_ns: int
     steps: list[StepRow] = field(default_factory=list)
     metrics: dict[str, Any] = field(default_factory=dict)
-
-
-def percentile(values: list[float], q: float) -> float | None:
-    """Linear-interpolation percentile, q in [0, 100]."""
-    if not values:
-        return None
-    xs = sorted(values)
-    pos = (len(xs) - 1) * q / 100.0
-    lo = int(pos)
-    hi = min(lo + 1, len(xs) - 1)
-    return xs[lo] + (xs[hi] - xs[lo]) * (pos - lo)
 
 
 def step_row(s: ReasoningStep) -> StepRow:
@@ -129,8 +119,8 @@ def metrics(tl: TaskTimeline, st: TaskStatus | None) -> dict[str, Any]:
         "model_calls": calls,
         "invalid_answers": invalid,
         "invalid_answer_rate": invalid / calls if calls else None,
-        "model_latency_p50_s": percentile(latencies, 50),
-        "model_latency_p95_s": percentile(latencies, 95),
+        "model_latency_p50_s": percentile_or_none(latencies, 50),
+        "model_latency_p95_s": percentile_or_none(latencies, 95),
         "skill_time_s": sum(r.skill_duration_s for r in tl.steps),
         "task_time_s": task_time,
         "state": tl.state,

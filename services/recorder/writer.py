@@ -21,7 +21,8 @@ from typing import IO, Any, BinaryIO, cast
 
 from mcap.writer import Writer
 
-from services.recorder.mcaplog import (
+from services.recorder.settings import RecorderSettings
+from shared.mcaplog import (
     ChannelTable,
     channel_spec,
     compression_type,
@@ -29,7 +30,6 @@ from services.recorder.mcaplog import (
     publish_time_ns,
     vehicle_of,
 )
-from services.recorder.settings import RecorderSettings
 
 log = logging.getLogger("aermani.recorder")
 

@@ -9,8 +9,8 @@ import cv2
 import numpy as np
 from mcap.writer import CompressionType, Writer
 
-from services.recorder.mcaplog import ChannelTable
 from shared.keys import Keys
+from shared.mcaplog import ChannelTable
 from shared.sensors import Intrinsics, calibration_message, color_message, raw16_message
 
 CAL = Intrinsics(width=320, height=240, fx=175.0, fy=175.0, cx=159.5, cy=119.5)

@@ -124,7 +124,7 @@ async def test_mcap_source_republishes_recorded_frames_with_fresh_stamps(tmp_pat
     with run_stack(["camera"], tmp_path, env=env) as stack:
         async with bus_for(stack) as bus:
             got, cals, _ = await pairs(bus, 6)
-    from services.recorder.mcaplog import iter_samples
+    from shared.mcaplog import iter_samples
 
     jpegs = {bytes(decode_proto(CompressedImage, s.payload).data)
              for s in iter_samples(log, "aermani/v1/am7/camera/color")}

@@ -25,9 +25,9 @@ import httpx
 import pytest
 
 from services.executor.settings import ExecutorSettings
-from services.recorder.mcaplog import iter_samples, recover
 from shared.keys import Keys
 from shared.launcher import available_services, free_port
+from shared.mcaplog import iter_samples, recover
 from shared.messages import Health, ReasoningStep
 from tests.gateway.conftest import TOKEN, read_sse
 from tests.gateway.test_fullstack import reset, wait_grounded

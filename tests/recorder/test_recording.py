@@ -19,7 +19,7 @@ from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 from mcap.reader import make_reader
 
-from services.recorder import mcaplog
+from shared import mcaplog
 from shared.messages import MESSAGE_TYPES, Health, ReasoningStep, VehicleState
 from tests.helpers import Stack, bus_for
 from tests.recorder.samples import K, calibration, example, frames, step_message

@@ -10,9 +10,9 @@ from pathlib import Path
 import pytest
 from mcap.reader import make_reader
 
-from services.recorder import mcaplog
 from services.recorder.settings import RecorderSettings
 from services.recorder.writer import RecordWriter
+from shared import mcaplog
 from shared.bus import encode
 from shared.messages import ReasoningStep, VehicleState
 from tests.recorder.samples import K, frames, step_message

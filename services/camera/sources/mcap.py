@@ -17,7 +17,7 @@ from shared.sensors import CompressedImage, decode_proto, parse_calibration, par
 
 
 def _vehicles_with_color(path: Path) -> list[str]:
-    from services.recorder.mcaplog import iter_samples, vehicle_of
+    from shared.mcaplog import iter_samples, vehicle_of
 
     seen: list[str] = []
     for s in iter_samples(path, CAMERA_COLOR.fleet().key):
@@ -39,7 +39,7 @@ class McapSource(PlayedSource):
             raise CameraError(f"AERMANI_CAMERA_PATH {self.settings.path} is not a file")
 
     def open(self) -> None:
-        from services.recorder.mcaplog import iter_samples
+        from shared.mcaplog import iter_samples
 
         path = Path(self.settings.path)
         vehicle = self.settings.mcap_vehicle or next(iter(_vehicles_with_color(path)), "")
@@ -63,7 +63,7 @@ class McapSource(PlayedSource):
 
     def _pairs(self) -> Iterator[Capture]:
         """Colour (and depth with the same stamp) in log order, once through the log."""
-        from services.recorder.mcaplog import iter_samples
+        from shared.mcaplog import iter_samples
 
         pending_color: dict[int, bytes] = {}
         pending_depth: dict[int, object] = {}

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import statistics
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Header, Path, Query, Request
@@ -27,6 +26,7 @@ from services.gateway.models import (
 from shared.errors import NoResponder, QueryTimeout, RemoteError
 from shared.keys import Keys
 from shared.messages import TaskRequest, TaskState, new_id
+from shared.stats import percentile_or_none
 
 router = APIRouter(prefix="/tasks", tags=["tasks"])
 
@@ -121,14 +121,6 @@ def summary(row: dict[str, Any], steps: int) -> TaskSummary:
                        updated_ns=row["updated_ns"], steps=steps)
 
 
-def _percentile(values: list[float], q: float) -> float | None:
-    if not values:
-        return None
-    if len(values) == 1:
-        return values[0]
-    return statistics.quantiles(values, n=100, method="inclusive")[int(q) - 1]
-
-
 @router.get("/{task_id}", response_model=TaskDetail, summary="Get a task with every step",
             responses=responses(404, 422))
 async def get_task(task_id: TaskId, store: StoreDep) -> TaskDetail:
@@ -158,8 +150,8 @@ async def get_task(task_id: TaskId, store: StoreDep) -> TaskDetail:
     start = status.get("started_ns") or row["created_ns"]
     end = status.get("ended_ns") or (row["updated_ns"] if row["state"] in TERMINAL else None)
     metrics = Metrics(steps=len(ordered), model_calls=len(calls), invalid_answers=invalid,
-                      iar=(invalid / len(calls)) if calls else None, latency_p50_s=_percentile(latencies, 50),
-                      latency_p95_s=_percentile(latencies, 95), skills=by_state, skill_time_s=skill_time,
+                      iar=(invalid / len(calls)) if calls else None, latency_p50_s=percentile_or_none(latencies, 50),
+                      latency_p95_s=percentile_or_none(latencies, 95), skills=by_state, skill_time_s=skill_time,
                       duration_s=((end or _now()) - start) / 1e9)
     return TaskDetail(**summary(row, len(ordered)).model_dump(), request=row["request"], status=row["status"],
                       reasoning_steps=ordered, skill_results=list(skills.values()), metrics=metrics,

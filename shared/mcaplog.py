@@ -278,7 +278,7 @@ def read_topic(path: str | Path, topic: BoundTopic[T]) -> list[tuple[LoggedSampl
 
 def topic_of(vehicle_id: str | None, decl: Topic[T]) -> BoundTopic[T]:
     """`decl` on one vehicle, or on every vehicle when `vehicle_id` is None or '*'."""
-    return decl.fleet() if vehicle_id in (None, "*") else decl.bind(vehicle_id)  # type: ignore[arg-type]
+    return decl.fleet() if vehicle_id in (None, "*") else decl.bind(vehicle_id)
 
 
 def reasoning_steps(path: str | Path, vehicle_id: str | None = None,
@@ -443,5 +443,5 @@ def recover(src: str | Path, dst: str | Path, *, chunk_size: int = 1 << 20) -> S
                 messages += 1
         writer.add_metadata("aermani.recovered", {"source": str(src), "messages": str(messages),
                                                   "chunks": str(scan.chunks), "error": scan.error})
-        writer.finish()
+        writer.finish()  # type: ignore[no-untyped-call]  # mcap.writer.Writer.finish has no annotations
     return Salvage([], schemas, channels, [], scan.chunks, scan.complete, scan.error, None, messages)

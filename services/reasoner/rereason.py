@@ -19,8 +19,6 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from services.recorder.mcaplog import iter_samples, vehicle_of
-from services.recorder.timeline import percentile
 from shared.errors import AermaniError
 from shared.keys import (
     AUTOPILOT_STATE,
@@ -30,6 +28,7 @@ from shared.keys import (
     REASONER_STEP,
     REASONER_TASK_STATUS,
 )
+from shared.mcaplog import iter_samples, vehicle_of
 from shared.messages import (
     Detections,
     ModelCall,
@@ -40,6 +39,7 @@ from shared.messages import (
     WorkingMemory,
 )
 from shared.sensors import PROTO_TYPES, stamp_to_ns
+from shared.stats import percentile_or_none as percentile
 
 SEARCH_BEFORE_NS = 3_000_000_000  # how far before the decision to look for the observed samples
 SEARCH_AFTER_NS = 500_000_000  # receive-time jitter between the reasoner and the recorder
@@ -257,7 +257,7 @@ class LogIndex:
 
 
 def _reasoner():
-    """The reasoner's modules, imported late so the recorder works without them."""
+    """The reasoner's loop modules, imported on first use (the backends load their SDKs)."""
     try:
         from services.reasoner import backends, library, loop, parse, prompt
         from services.reasoner.settings import ReasonerSettings
@@ -359,7 +359,7 @@ def make_offline_backend(name: str, model: str | None = None, answers: str | Pat
     backends, _library, _loop, _parse, _prompt, reasoner_settings = _reasoner()
     if name == "replay":
         from services.reasoner.backends.replay import ReplayBackend
-        from services.recorder.mcaplog import McapReplaySource
+        from shared.mcaplog import McapReplaySource
 
         if answers is None:
             raise RereasonError("backend replay needs --answers LOG.mcap (the log whose answers to replay)")

@@ -12,8 +12,8 @@ import pytest
 
 from services.reasoner.backends.base import Backend, ModelReply, ModelRequest
 from services.reasoner.backends.rules import RulesBackend
-from services.recorder.mcaplog import McapReplaySource, reasoning_steps
-from services.recorder.rereason import rereason_log
+from services.reasoner.rereason import rereason_log
+from shared.mcaplog import McapReplaySource, reasoning_steps
 from shared.messages import TaskRequest, TaskState, TaskStatus
 from shared.sensors import color_message
 from tests.helpers import bus_for, run_stack
