@@ -18,7 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validat
 SCHEMA_VERSION = 1
 """Major version of the message schemas. A receiver rejects a message of a newer major version with an
 error naming both versions."""
-SCHEMA_MINOR = 3
+SCHEMA_MINOR = 4
 """Minor version: bumped when fields are added. A receiver accepts a message of a newer minor version,
 ignoring the fields it does not know (logged once per field)."""
 MAX_COMMAND_CHARS = 500
@@ -260,10 +260,31 @@ class GripperCommand(Message):
     """Open (release) or close (grab)."""
 
 
+class PreflightCommand(Message):
+    """Run the bridge's preflight checks (PX4's failsafe parameters, the vehicle's state); nothing moves."""
+
+    kind: Literal["preflight"] = "preflight"
+
+
 AutopilotCommand = Annotated[
-    ArmCommand | DisarmCommand | TakeoffCommand | GotoCommand | HoldCommand | LandCommand | GripperCommand,
+    ArmCommand | DisarmCommand | TakeoffCommand | GotoCommand | HoldCommand | LandCommand | GripperCommand
+    | PreflightCommand,
     Field(discriminator="kind"),
 ]
+
+
+class PreflightCheck(Part):
+    """One preflight check: what was read from the autopilot, what is required, and the verdict."""
+
+    name: str
+    """The parameter (COM_OBL_RC_ACT...) or state (link, position, landed, battery) checked."""
+    ok: bool
+    value: str = ""
+    """What the autopilot reported ("" when it reported nothing)."""
+    expected: str = ""
+    """What is required to fly."""
+    reason: str = ""
+    """Why it matters, for a failed check."""
 
 
 class AutopilotResult(Message):
@@ -281,6 +302,9 @@ class AutopilotResult(Message):
     """MAV_RESULT name of ack_code."""
     message: str = ""
     """Human-readable explanation."""
+    checks: tuple[PreflightCheck, ...] = ()
+    """Every preflight check with its verdict: the answer to a preflight command, and to an arm or takeoff
+    that the preflight refused."""
 
 
 # --------------------------------------------------------------------------- perception
@@ -1088,7 +1112,7 @@ class SimResetResult(Message):
 # Every publishable message type, for tests and the recorder.
 MESSAGE_TYPES: tuple[type[Message], ...] = (
     VehicleState, ArmCommand, DisarmCommand, TakeoffCommand, GotoCommand, HoldCommand, LandCommand,
-    GripperCommand, AutopilotResult, LocalizeRequest, ObjectEstimate, PlacementEstimate, Detections,
+    GripperCommand, PreflightCommand, AutopilotResult, LocalizeRequest, ObjectEstimate, PlacementEstimate, Detections,
     SkillLibrary, SkillRequest, SkillAccept, WorkingMemory, SkillStatus, Abort, AbortAck, ReasoningStep,
     TaskRequest, TaskAccept, TaskStatus, Health, Scenario, SimLabels, JudgeRequest, JudgeResult, SimResetResult,
     CancelGoal, CancelReply, ResetNotice, ApprovalStatus, ApprovalDecision, Heartbeat,

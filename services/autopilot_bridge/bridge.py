@@ -14,6 +14,8 @@ from typing import Any
 
 from services.autopilot_bridge import px4
 from services.autopilot_bridge.link import MavlinkLink
+from services.autopilot_bridge.preflight import PARAM_NAMES, ParamReader, VehicleFacts, check_params, check_state
+from services.autopilot_bridge.preflight import summary as preflight_summary
 from services.autopilot_bridge.settings import BridgeSettings
 from services.autopilot_bridge.stream import SetpointStream, Target
 from shared.bus import Bus, Caller
@@ -32,6 +34,8 @@ from shared.messages import (
     HoldCommand,
     LandCommand,
     LandedState,
+    PreflightCheck,
+    PreflightCommand,
     TakeoffCommand,
     Vec3,
     VehicleState,
@@ -119,6 +123,7 @@ class Bridge:
         self.counters: dict[str, int] = defaultdict(int)
         self.warn = RateLimitedLog()
         self._tasks: set[asyncio.Task] = set()
+        self.params = ParamReader(link.send, link.mav)
 
     # ------------------------------------------------------------------ helpers
 
@@ -295,6 +300,9 @@ class Bridge:
         self.last_statustext_mono = time.monotonic()
         self.message = text
         log.info("PX4: %s", text)
+
+    def _on_param_value(self, msg: Any) -> None:
+        self.params.on_param_value(msg)
 
     def _on_command_ack(self, msg: Any) -> None:
         if getattr(msg, "target_system", 0) not in (0, self.s.source_system) or \
@@ -492,15 +500,45 @@ class Bridge:
             return self._result(kind, False, f"no link to PX4 ({why}) on {self.s.connection}")
         handlers: dict[type, Callable[[Any], Awaitable[AutopilotResult]]] = {
             ArmCommand: self.arm, DisarmCommand: self.disarm, TakeoffCommand: self.takeoff, GotoCommand: self.goto,
-            HoldCommand: self.hold, LandCommand: self.land, GripperCommand: self.gripper_cmd}
+            HoldCommand: self.hold, LandCommand: self.land, GripperCommand: self.gripper_cmd,
+            PreflightCommand: self.preflight}
         handler = handlers.get(type(cmd))
         if handler is None:
             return self._result(str(kind), False, f"unknown autopilot command {kind!r}")
         return await handler(cmd)
 
+    async def run_preflight(self) -> list[PreflightCheck]:
+        """Every preflight check (services.autopilot_bridge.preflight): PX4's failsafe parameters, read now,
+        and the vehicle's state."""
+        target = (self.target_system or 1, self.target_component)
+        params = await self.params.read(target, PARAM_NAMES, self.s.command_timeout_s, self.s.command_attempts)
+        facts = VehicleFacts(self.link_ok, self.have_position, self.armed, self.landed_state,
+                             self.battery_remaining, self.override)
+        return [*check_params(params), *check_state(facts, self.s.preflight_min_battery)]
+
+    async def preflight(self, _cmd: PreflightCommand) -> AutopilotResult:
+        checks = await self.run_preflight()
+        ok = all(c.ok for c in checks)
+        return self._result("preflight", ok, preflight_summary(checks)).model_copy(update={"checks": tuple(checks)})
+
+    async def preflight_refusal(self, command: str) -> AutopilotResult | None:
+        """None when the vehicle may arm: the preflight passed, or it failed and the operator overrode it."""
+        checks = await self.run_preflight()
+        if all(c.ok for c in checks):
+            return None
+        text = preflight_summary(checks)
+        if self.s.preflight_override:
+            log.warning("arming with a failed preflight (AERMANI_AUTOPILOT_BRIDGE_PREFLIGHT_OVERRIDE=1): %s", text)
+            return None
+        res = self._result(command, False, f"{text}. Fix the autopilot's configuration, or set "
+                           "AERMANI_AUTOPILOT_BRIDGE_PREFLIGHT_OVERRIDE=1 to fly anyway")
+        return res.model_copy(update={"checks": tuple(checks)})
+
     async def arm(self, cmd: ArmCommand) -> AutopilotResult:
         refused = self.authority_refusal("arm", cmd.task_id)
         if refused is not None:
+            return refused
+        if not self.armed and (refused := await self.preflight_refusal("arm")) is not None:
             return refused
         code = await self.command_long(px4.MAV_CMD_COMPONENT_ARM_DISARM, 1)
         if code == px4.MAV_RESULT_ACCEPTED:
@@ -551,6 +589,8 @@ class Bridge:
                                 "a position estimate")
         refused = self.authority_refusal("takeoff", cmd.task_id)
         if refused is not None:
+            return refused
+        if not self.armed and (refused := await self.preflight_refusal("takeoff")) is not None:
             return refused
         async with self._flight_lock:
             self.epoch += 1

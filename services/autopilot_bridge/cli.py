@@ -21,6 +21,7 @@ from shared.messages import (
     GripperCommand,
     HoldCommand,
     LandCommand,
+    PreflightCommand,
     TakeoffCommand,
     Vec3,
 )
@@ -133,5 +134,34 @@ def gripper(action: Annotated[str, typer.Argument(help="open or close")],
     _run(connect, vehicle, GripperCommand(action=action))  # type: ignore[arg-type]
 
 
+def preflight_cmd(connect: Connect = "tcp/127.0.0.1:7447", vehicle: Vehicle = "am1",
+                  timeout: Annotated[float, typer.Option(help="Seconds to wait for the bridge's answer.")] = 30.0,
+                  ) -> None:
+    """Check that the vehicle is fit to fly before a task: PX4's failsafe parameters (offboard-loss action,
+    geofence), read from the autopilot now, and the link, estimate, landed state and battery. Exit 0 when
+    every check passes, 1 when one fails (the bridge also refuses to arm then), 2 when no bridge answers."""
+    from rich.table import Table
+
+    try:
+        res: AutopilotResult = asyncio.run(query_once(connect, Keys(vehicle).autopilot_command, PreflightCommand(),
+                                                      timeout=timeout))
+    except AermaniError as exc:
+        console.print(f"[red]{exc}[/red]")
+        raise typer.Exit(2)
+    table = Table(title=f"preflight of {vehicle}")
+    for col in ("check", "value", "required", "verdict"):
+        table.add_column(col)
+    for c in res.checks:
+        verdict = "[green]ok[/green]" if c.ok else f"[red]FAIL[/red] {c.reason}"
+        table.add_row(c.name, c.value or "not reported", c.expected, verdict)
+    if res.checks:
+        console.print(table)
+    colour = "green" if res.ok else "red"
+    console.print(f"[{colour}]{res.message}[/{colour}]")
+    if not res.ok:
+        raise typer.Exit(1)
+
+
 def register(app: typer.Typer) -> None:
     app.add_typer(autopilot, name="autopilot")
+    app.command("preflight")(preflight_cmd)

@@ -87,6 +87,11 @@ class BridgeSettings(ServiceSettings):
     """Actuator value (-1..1) that opens the gripper."""
     gripper_actuator_closed: float = Field(1.0, ge=-1.0, le=1.0)
     """Actuator value (-1..1) that closes the gripper."""
+    preflight_override: bool = False
+    """Arm even when the preflight fails (PX4's failsafe parameters, link, estimate, battery); every such arm is
+    logged with the failed checks. For a bench or a simulator set up on purpose, never for a flight."""
+    preflight_min_battery: float = Field(30.0, ge=0.0, le=100.0)
+    """Preflight refuses to arm below this battery charge (percent, when PX4 reports one)."""
     publish_tf: bool = False
     """Publish tf world->base_link from LOCAL_POSITION_NED/ATTITUDE. Off by default because the simulator
     publishes tf itself; turn it on for real hardware and PX4 SITL."""

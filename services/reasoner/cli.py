@@ -149,6 +149,10 @@ def demo_command(
     api_key_env: Annotated[str | None, typer.Option(help="Name of the environment variable that holds the model "
                                                          "backend's API key (the key itself never goes on the "
                                                          "command line).")] = None,
+    override_preflight: Annotated[bool, typer.Option("--override-preflight", help="Fly even when the "
+                                                     "preflight fails (PX4's failsafe parameters, link, "
+                                                     "estimate, battery): for a simulator set up on purpose.")]
+    = False,
 ) -> None:
     """Start the embedded stack (router, sim, bridge, perception, executor, reasoner, recorder), run the command,
     stream each step, and judge success with the simulator's ground truth."""
@@ -172,6 +176,8 @@ def demo_command(
     if base_url:
         env["AERMANI_REASONER_BASE_URL"] = base_url
     env.update(key_env)
+    if override_preflight:
+        env["AERMANI_AUTOPILOT_BRIDGE_PREFLIGHT_OVERRIDE"] = "1"
     code = run_demo(command, scenario, accepted, env=env, t_max=t_max, log_dir=log_dir)
     raise typer.Exit(code)
 
@@ -232,7 +238,10 @@ def run_demo(command: str, scenario, accepted: tuple[str, ...], *, env: dict[str
     try:
         stack.start(wait=True, timeout=180)
         console.print(f"stack up in {time.monotonic() - t0:.1f} s")
-        return asyncio.run(_demo_task(stack, command, scenario, accepted, t_max, {} if result is None else result))
+        override = {**os.environ, **env}.get("AERMANI_AUTOPILOT_BRIDGE_PREFLIGHT_OVERRIDE", "").lower() in (
+            "1", "true", "yes")
+        return asyncio.run(_demo_task(stack, command, scenario, accepted, t_max, {} if result is None else result,
+                                      override_preflight=override))
     except KeyboardInterrupt:
         console.print("[yellow]interrupted[/yellow]")
         return 130
@@ -243,7 +252,32 @@ def run_demo(command: str, scenario, accepted: tuple[str, ...], *, env: dict[str
         stack.stop()
 
 
-async def _demo_task(stack, command: str, scenario, accepted: tuple[str, ...], t_max: float, result: dict) -> int:
+async def _preflight_passes(bus, keys, override: bool) -> bool:
+    """The bridge's preflight before the task: a failure refuses to take off (the bridge would refuse the arm
+    too) unless overridden, and is printed with every reason either way."""
+    from shared.bus import query_ready
+    from shared.messages import PreflightCommand
+
+    res = await query_ready(bus, keys.autopilot_command, PreflightCommand(), timeout=30)
+    for _ in range(20):  # "no link to PX4" until the simulator's first heartbeat reaches the bridge
+        if res.ok or "no link to PX4" not in res.message:
+            break
+        await asyncio.sleep(1.0)
+        res = await query_ready(bus, keys.autopilot_command, PreflightCommand(), timeout=30)
+    if res.ok:
+        console.print(f"[green]{res.message}[/green]")
+        return True
+    console.print(f"[red]{terminal_text(res.message)}[/red]")
+    if override:
+        console.print("[yellow]--override-preflight: flying anyway[/yellow]")
+        return True
+    console.print("[red]refusing to take off: fix the autopilot's configuration, or pass --override-preflight"
+                  "[/red]")
+    return False
+
+
+async def _demo_task(stack, command: str, scenario, accepted: tuple[str, ...], t_max: float, result: dict,
+                     override_preflight: bool = False) -> int:
     from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 
     from shared.bus import Bus, query_ready
@@ -274,6 +308,9 @@ async def _demo_task(stack, command: str, scenario, accepted: tuple[str, ...], t
         console.print(f"perception: {seg}{note}")
         console.print(f"simulator: MuJoCo physics, realism {real}")
         result.update(segmenter=seg, realism=real)
+        if not await _preflight_passes(bus, keys, override=override_preflight):
+            result["preflight"] = "refused"
+            return 2
         console.print(f"[bold]task:[/bold] {terminal_text(command)}")
         request = TaskRequest(command=command, t_max_s=t_max)
         with Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(), console=console,

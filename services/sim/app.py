@@ -66,7 +66,8 @@ def build(settings: SimSettings) -> tuple[SimCore, MavlinkServer]:
     if settings.gcs_enabled:
         links.append(LinkSettings("gcs", settings.gcs_local_port, settings.gcs_host, settings.gcs_port,
                                   settings.bind_host))
-    server = MavlinkServer(core, links, speed_factor=settings.speed_factor, physics_rate=settings.physics_rate)
+    server = MavlinkServer(core, links, speed_factor=settings.speed_factor, physics_rate=settings.physics_rate,
+                           params=settings.px4_params)
     return core, server
 
 

@@ -77,7 +77,16 @@ PARAMS: dict[str, float] = {
     "RTL_RETURN_ALT": 2.0,
     "SYS_FAILURE_EN": 0.0,  # PX4 answers MAV_CMD_INJECT_FAILURE only when this is 1
     "SIM_GRIP_ACT_SET": 1.0,  # the gripper is on "Peripheral via Actuator Set N" for MAV_CMD_DO_SET_ACTUATOR
+    # Failsafe configuration as reported to the bridge's preflight. The simulated vehicle flies its own failsafe
+    # whatever these say (hold, then land after failsafe_land_delay), like COM_OBL_RC_ACT=4 with a hold delay.
+    "COM_OBL_RC_ACT": 4.0,  # offboard loss: Land
+    "COM_FAIL_ACT_T": 3.0,
+    "GF_ACTION": 2.0,  # geofence breach: Hold
+    "GF_MAX_HOR_DIST": 6.0,
+    "GF_MAX_VER_DIST": 3.0,
 }
+FAILSAFE_PARAMS = ("COM_OBL_RC_ACT", "COM_FAIL_ACT_T", "GF_ACTION", "GF_MAX_HOR_DIST", "GF_MAX_VER_DIST")
+"""Reported only (AERMANI_SIM_PX4_PARAMS may set them at start): the vehicle's dynamics come from its settings."""
 
 # MAV_CMD_INJECT_FAILURE units that take the local position estimate away (GPS outdoors, VIO indoors).
 POSITION_SENSORS = {mav.FAILURE_UNIT_SENSOR_GPS, mav.FAILURE_UNIT_SENSOR_VIO}
@@ -141,7 +150,7 @@ class MavlinkServer:
     """Speaks MAVLink like PX4 on UDP for the simulated vehicle: heartbeats, telemetry, commands, offboard setpoints."""
 
     def __init__(self, core: SimCore, links: list[LinkSettings], speed_factor: float = 1.0,
-                 physics_rate: float = 200.0) -> None:
+                 physics_rate: float = 200.0, params: dict[str, float] | None = None) -> None:
         self.core = core
         self.speed_factor = speed_factor
         self.physics_dt = 1.0 / physics_rate
@@ -164,7 +173,7 @@ class MavlinkServer:
             m.robust_parsing = True
             self.links.append(Link(cfg, sock, m, (cfg.remote_host, cfg.remote_port),
                                    {k: 1.0 / v for k, v in DEFAULT_RATES.items()}))
-        self.params = dict(PARAMS)
+        self.params = {**PARAMS, **(params or {})}
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._boot = time.monotonic()

@@ -73,11 +73,15 @@ class SimSettings(ServiceSettings):
     failsafe_land_delay: float = Field(3.0, ge=0)
     """Seconds of failsafe hold before landing."""
     takeoff_alt: float = Field(1.5, gt=0)
+    """MIS_TAKEOFF_ALT: default take-off altitude above home, metres."""
     hover_offset: Annotated[tuple[float, float], NoDecode] = (0.0, 0.0)
     """Where the vehicle settles relative to an OFFBOARD position setpoint (world x, y), metres, e.g. `0.04,0.03`:
     a steady error the vehicle's own estimate shows (wind, a mistrimmed controller). For tests of closed-loop
     skills; 0,0 flies to the setpoint."""
-    """MIS_TAKEOFF_ALT: default take-off altitude above home, metres."""
+    px4_params: Annotated[dict[str, float], NoDecode] = Field(default_factory=dict)
+    """PX4 parameters the simulated autopilot reports instead of its defaults, `NAME=value,...` (e.g.
+    `COM_OBL_RC_ACT=7,GF_ACTION=0` for an airframe configured unsafely, which the bridge's preflight must
+    refuse). Only the failsafe names of services.sim.mavlink_server.FAILSAFE_PARAMS: they are reported, not flown."""
 
     @field_validator("distractors", "extra_objects", mode="before")
     @classmethod
@@ -85,6 +89,23 @@ class SimSettings(ServiceSettings):
         if isinstance(v, str):
             return parse_endpoints(v) if v.strip() else None
         return v
+
+    @field_validator("px4_params", mode="before")
+    @classmethod
+    def _params(cls, v: object) -> object:
+        if not isinstance(v, str):
+            return v
+        from services.sim.mavlink_server import FAILSAFE_PARAMS
+
+        out: dict[str, float] = {}
+        for item in (x.strip() for x in v.split(",")):
+            if not item:
+                continue
+            name, sep, value = item.partition("=")
+            if not sep or name.strip() not in FAILSAFE_PARAMS:
+                raise ValueError(f"{item!r}: expected NAME=value with NAME one of {', '.join(FAILSAFE_PARAMS)}")
+            out[name.strip()] = float(value)
+        return out
 
     @field_validator("hover_offset", mode="before")
     @classmethod

@@ -18,6 +18,22 @@ mavutil.set_dialect("common")
 mavlink = mavutil.mavlink
 
 
+# Failsafe parameters as a safely configured airframe reports them (the bridge's preflight reads them).
+SAFE_FAILSAFE_PARAMS = {"COM_OBL_RC_ACT": 4.0, "COM_OF_LOSS_T": 0.5, "GF_ACTION": 2.0, "GF_MAX_HOR_DIST": 6.0,
+                        "GF_MAX_VER_DIST": 3.0}
+
+
+def param_reply(mav, params: dict[str, float], request):
+    """PX4's PARAM_VALUE answer to a PARAM_REQUEST_READ by name, or None for a parameter it does not have."""
+    pid = request.param_id
+    name = pid.rstrip("\x00") if isinstance(pid, str) else pid.decode().rstrip("\x00")
+    if name not in params:
+        return None
+    names = list(params)
+    return mav.param_value_encode(name.encode(), params[name], mavlink.MAV_PARAM_TYPE_REAL32, len(names),
+                                  names.index(name))
+
+
 class FakePX4:
     """Sends to the bridge's UDP port like PX4 SITL's offboard link; records everything it receives."""
 
@@ -42,6 +58,7 @@ class FakePX4:
         self.heartbeats = True
         self.ack_commands = True
         self.last_setpoint_t = 0.0
+        self.params = dict(SAFE_FAILSAFE_PARAMS)
         self._stop = threading.Event()
         self._threads = [threading.Thread(target=self._rx, daemon=True), threading.Thread(target=self._tx, daemon=True)]
 
@@ -109,6 +126,10 @@ class FakePX4:
             if self.mode == "OFFBOARD" and self.armed:
                 self.ned = [m.x, m.y, m.z]
                 self.yaw_ned = m.yaw
+        elif t == "PARAM_REQUEST_READ":
+            reply = param_reply(self.mav, self.params, m)
+            if reply is not None:
+                self.send(reply)
         elif t == "COMMAND_LONG":
             with self.lock:
                 self.commands.append(m)

@@ -19,7 +19,7 @@ from services.autopilot_bridge.link import MavlinkLink, parse_connection
 from services.autopilot_bridge.settings import BridgeSettings
 from shared.errors import MavlinkError
 from shared.messages import ArmCommand, GripperCommand, GripperState
-from tests.autopilot_bridge.fake_px4 import FakePX4, mavlink
+from tests.autopilot_bridge.fake_px4 import SAFE_FAILSAFE_PARAMS, FakePX4, mavlink, param_reply
 from tests.autopilot_bridge.test_bridge import bridge_and_fake
 from tests.helpers import wait_until
 
@@ -83,6 +83,9 @@ class SerialPX4:
                 return
             for m in self.parser.parse_buffer(data) or []:
                 self.received.append(m)
+                if m.get_type() == "PARAM_REQUEST_READ" and (reply := param_reply(self.mav, SAFE_FAILSAFE_PARAMS,
+                                                                                 m)) is not None:
+                    self.send(reply)
                 if m.get_type() == "COMMAND_LONG":
                     if m.command == px4.MAV_CMD_COMPONENT_ARM_DISARM:
                         self.armed = m.param1 == 1

@@ -64,3 +64,17 @@ def test_demo_model_backend_with_schema_reprompt_and_done(tmp_path, kind: str) -
     first_error = steps[0].calls[0].error
     assert first_error and first_error in json.dumps(reprompts[0]["messages"][-1])
     assert all(c.structured for s in steps for c in s.calls)
+
+
+def test_demo_refuses_to_take_off_after_a_failed_preflight_until_overridden(tmp_path, monkeypatch) -> None:
+    """The simulated PX4 configured unsafely (offboard loss -> Disarm, no geofence action): the demo stops
+    before the task with the preflight's reasons; overridden, it flies the task (the bridge logs the override)."""
+    monkeypatch.setenv("AERMANI_SIM_PX4_PARAMS", "COM_OBL_RC_ACT=7,GF_ACTION=0")
+    code, result = demo(tmp_path / "refused", {"AERMANI_REASONER_BACKEND": "rules"})
+    assert code == 2 and result.get("preflight") == "refused", result
+    assert "steps" not in result  # no task was started
+    code, result = demo(tmp_path / "overridden", {"AERMANI_REASONER_BACKEND": "rules",
+                                                  "AERMANI_AUTOPILOT_BRIDGE_PREFLIGHT_OVERRIDE": "1"})
+    assert code == 0 and result["success"], result.get("verdict")
+    log = (tmp_path / "overridden" / "logs" / "autopilot_bridge-am1.log").read_text()
+    assert "arming with a failed preflight" in log and "COM_OBL_RC_ACT" in log
