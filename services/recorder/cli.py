@@ -96,10 +96,22 @@ def show_cmd(
 
 def export_cmd(
     log: LogArg,
-    out: Annotated[Path, typer.Option(help="Directory for index.html and the frames.")],
+    out: Annotated[Path, typer.Option(help="Directory for index.html and the frames (with --ros2: the new rosbag2 "
+                                           "directory).")],
     vehicle: Annotated[str | None, typer.Option(help="Only this vehicle id.")] = None,
+    ros2: Annotated[bool, typer.Option("--ros2", help="Write a ROS 2 bag instead (rosbag2, MCAP storage, CDR): "
+                                                      "camera, camera_info, /tf, pose and reasoning steps.")] = False,
 ) -> None:
-    """An HTML report: the camera frame of each step beside its DRT."""
+    """An HTML report (the camera frame of each step beside its DRT), or with --ros2 a ROS 2 bag."""
+    if ros2:
+        from services.recorder.ros2 import Ros2ExportError, export_ros2
+
+        try:
+            typer.echo(export_ros2(log, out, vehicle).render())
+        except Ros2ExportError as exc:
+            err.print(f"[red]{exc}[/red]")
+            raise typer.Exit(2)
+        return
     from services.recorder.timeline import export_html
 
     index = export_html(log, out, vehicle)

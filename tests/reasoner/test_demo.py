@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
+from collections import Counter
+from pathlib import Path
 
 import pytest
 
@@ -18,23 +22,64 @@ if not set(available_services()) >= NEEDED:
 CMD = "pick up the red cup and place it on the table"
 
 
-def demo(tmp_path, env: dict[str, str], command: str = CMD) -> tuple[int, dict]:
+def demo(tmp_path, env: dict[str, str], command: str = CMD,
+         services: tuple[str, ...] = ("sim", "autopilot_bridge", "perception", "executor", "reasoner"),
+         ) -> tuple[int, dict]:
     scenario, accepted = scenario_for(command, None, None, 0)
     result: dict = {}
     code = run_demo(command, scenario, accepted, env={"AERMANI_SIM_SPEED_FACTOR": "2", **env}, t_max=400,
-                    log_dir=tmp_path / "logs", services=("sim", "autopilot_bridge", "perception", "executor",
-                                                         "reasoner"), result=result)
+                    log_dir=tmp_path / "logs", services=services, result=result)
     return code, result
 
 
 def test_demo_rules(tmp_path) -> None:
-    code, result = demo(tmp_path, {"AERMANI_REASONER_BACKEND": "rules"})
+    """The default demo, recorded; its log exported as a ROS 2 bag reads back in full with rosbags and with
+    mcap-ros2-support (every message deserialized by both, the same counts)."""
+    code, result = demo(tmp_path, {"AERMANI_REASONER_BACKEND": "rules",
+                                   "AERMANI_RECORDER_OUT_DIR": str(tmp_path / "rec")},
+                        services=("sim", "autopilot_bridge", "perception", "executor", "reasoner", "recorder"))
     assert code == 0 and result["success"], result.get("verdict")
     skills = [s.ste.skill for s in result["steps"]]
     assert skills[-1] == "done" and "grasp" in skills and "place" in skills
     # The default demo: real computer vision on the rendered pixels, realistic camera and pose noise, as the
     # running services report it.
     assert result["segmenter"] == "color" and result["realism"] == "realistic", result
+    (log,) = sorted((tmp_path / "rec").glob("*.mcap"))
+    bag = tmp_path / "bag"
+    out = subprocess.run([sys.executable, "-m", "shared.cli", "log", "export", str(log), "--out", str(bag), "--ros2"],
+                         capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stdout + out.stderr
+    by_rosbags, by_mcap = read_bag_both_ways(bag)
+    assert by_rosbags == by_mcap
+    assert {"/am1/camera/color/image/compressed", "/am1/camera/depth/image", "/am1/camera/color/camera_info", "/tf",
+            "/am1/pose", "/am1/reasoner/step", "/am1/reasoner/task_status"} <= set(by_rosbags)
+    assert by_rosbags["/am1/reasoner/step"] == len(result["steps"])
+
+
+def read_bag_both_ways(bag: Path) -> tuple[Counter, Counter]:
+    """Messages per topic, every one deserialized: by rosbags (the rosbag2 directory, its own typestore) and by
+    mcap-ros2-support (the MCAP file alone, from the schemas it carries)."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    a: Counter = Counter()
+    with AnyReader([bag], default_typestore=get_typestore(Stores.ROS2_HUMBLE)) as reader:
+        for con, _t, raw in reader.messages():
+            msg = reader.deserialize(raw, con.msgtype)
+            if con.msgtype == "geometry_msgs/msg/PoseStamped":
+                assert msg.header.frame_id == "world"
+            a[con.topic] += 1
+    b: Counter = Counter()
+    (mcap_file,) = bag.glob("*.mcap")
+    with mcap_file.open("rb") as f:
+        for _schema, channel, _message, ros_msg in make_reader(
+                f, decoder_factories=[DecoderFactory()]).iter_decoded_messages():
+            if channel.topic == "/am1/camera/depth/image":
+                assert ros_msg.encoding == "16UC1" and len(ros_msg.data) == ros_msg.step * ros_msg.height
+            b[channel.topic] += 1
+    return a, b
 
 
 @pytest.mark.parametrize("kind", ["openai", "anthropic"])
