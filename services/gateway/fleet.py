@@ -102,6 +102,29 @@ class VehicleView:
         return self.services.get("reasoner", False)
 
 
+class Broadcast:
+    """Wakes every waiter on each `notify`, with no lock: a waiter waits on the current Event, which `notify`
+    sets and replaces. Event.wait holds nothing, so a waiter cancelled at any point (a client that leaves
+    mid-stream) leaves nothing behind; the abort path waits here too and can never queue behind streams (an
+    asyncio.Condition's lock is shared by every waiter, each of which re-acquires it on waking)."""
+
+    def __init__(self) -> None:
+        self._event = asyncio.Event()
+
+    def notify(self) -> None:
+        event, self._event = self._event, asyncio.Event()
+        event.set()
+
+    async def wait(self, timeout: float) -> bool:
+        """True when notified within `timeout` seconds. Check the condition, then call this with no await in
+        between: a notify cannot slip between the two on one event loop."""
+        try:
+            await asyncio.wait_for(self._event.wait(), max(0.0, timeout))
+            return True
+        except TimeoutError:
+            return False
+
+
 class Fleet:
     """Consumes the bus for every vehicle, writes task events to the store and wakes the streams."""
 
@@ -111,7 +134,7 @@ class Fleet:
         self.vehicles: dict[str, VehicleView] = {}
         self.version = 0  # bumped on every stored event; streams wait for a change
         self.frame_seq = 0
-        self.changed = asyncio.Condition()
+        self.changed = Broadcast()
         self.closing = asyncio.Event()
         self._tasks: list[asyncio.Task] = []
         self._subs: list[Subscription] = []
@@ -206,16 +229,16 @@ class Fleet:
                 log.exception("could not store a sample from %s", key)
 
     async def _notify(self) -> None:
-        async with self.changed:
-            self.version += 1
-            self.changed.notify_all()
+        self.version += 1
+        self.changed.notify()
 
     async def wait_change(self, since: int, timeout: float) -> None:
         """Return when `version` differs from `since`, the gateway closes, or `timeout` passes."""
-        async with self.changed:
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(
-                    self.changed.wait_for(lambda: self.version != since or self.closing.is_set()), timeout)
+        deadline = time.monotonic() + timeout
+        while self.version == since and not self.closing.is_set():
+            remaining = deadline - time.monotonic()
+            if remaining <= 0 or not await self.changed.wait(remaining):
+                return
 
     # ---- handlers
 
@@ -258,8 +281,7 @@ class Fleet:
     async def _on_frame(self, key: str, payload: bytes) -> None:
         self.frame_seq += 1
         self.view(vehicle_of(key)).frame = Frame(payload, time.time_ns(), self.frame_seq)
-        async with self.changed:
-            self.changed.notify_all()
+        self.changed.notify()
 
     async def _on_approval(self, key: str, st: ApprovalStatus) -> None:
         v = self.view(vehicle_of(key))
@@ -267,8 +289,7 @@ class Fleet:
             v.approvals[st.approval_id] = st
         else:
             v.approvals.pop(st.approval_id, None)
-        async with self.changed:
-            self.changed.notify_all()
+        self.changed.notify()
 
     def pending_approvals(self) -> list[ApprovalStatus]:
         """Every pending approval of the fleet, oldest first (expired ones the reasoner did not report yet are
@@ -294,8 +315,7 @@ class Fleet:
     async def _on_ack(self, key: str, ack: AbortAck) -> None:
         v = self.view(vehicle_of(key))
         v.acks = [*v.acks[-19:], ack]
-        async with self.changed:
-            self.changed.notify_all()
+        self.changed.notify()
 
     async def _liveliness(self, queue: asyncio.Queue[tuple[str, bool]]) -> None:
         while True:
@@ -377,11 +397,9 @@ class Fleet:
             return True
 
         deadline = time.monotonic() + wait_s
-        async with self.changed:
-            while not complete() and not self.closing.is_set():
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    break
-                with contextlib.suppress(TimeoutError):
-                    await asyncio.wait_for(self.changed.wait(), remaining)
+        while not complete() and not self.closing.is_set():
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                break
+            await self.changed.wait(remaining)
         return acked()

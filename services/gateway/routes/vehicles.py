@@ -117,11 +117,7 @@ async def camera_mjpeg(vehicle_id: VehicleId, fleet: FleetDep, settings: Setting
         while frames is None or sent < frames:
             frame = fleet.vehicles[vehicle_id].frame
             if frame is None or frame.seq == last_seq:
-                async with fleet.changed:
-                    try:
-                        await asyncio.wait_for(fleet.changed.wait(), 5.0)
-                    except TimeoutError:
-                        pass
+                await fleet.changed.wait(5.0)
                 if fleet.closing.is_set():
                     return
                 continue
