@@ -35,7 +35,7 @@ def parse_connection(spec: str, baud: int = 921600) -> tuple[str, int]:
     `COM3`) at `baud`. Anything else is a clear error, before any port is opened."""
     s = spec.strip()
     if not s:
-        raise MavlinkError("empty MAVLink connection: use udpin:0.0.0.0:14540 or serial:/dev/ttyACM0:921600")
+        raise MavlinkError("empty MAVLink connection: use udpin:127.0.0.1:14540 or serial:/dev/ttyACM0:921600")
     if s.startswith(UDP_TCP_SCHEMES):
         return s, baud
     if s.startswith("serial:"):

@@ -23,9 +23,11 @@ class BridgeSettings(ServiceSettings):
     model_config = SettingsConfigDict(env_prefix="AERMANI_AUTOPILOT_BRIDGE_", extra="ignore", populate_by_name=True,
                                       use_attribute_docstrings=True)
 
-    connection: str = "udpin:0.0.0.0:14540"
-    """MAVLink link: udpin:0.0.0.0:14540 for PX4 SITL's offboard link (also udpout:, udp:, tcp:), or
-    serial:/dev/ttyACM0:921600 (device and optional baud; /dev/serial/by-id/... paths work) for hardware."""
+    connection: str = "udpin:127.0.0.1:14540"
+    """MAVLink link: udpin:127.0.0.1:14540 for PX4 SITL's offboard link on this host (also udpout:, udp:, tcp:),
+    or serial:/dev/ttyACM0:921600 (device and optional baud; /dev/serial/by-id/... paths work) for hardware.
+    Loopback by default: whoever reaches this port first is taken for the autopilot, so listen on another
+    interface (udpin:0.0.0.0:...) only inside a network namespace that nothing else reaches (compose)."""
     baud: int = Field(921600, gt=0)
     """Serial baud rate when the connection names none (ignored for UDP)."""
     target_system: int = Field(0, ge=0, le=255)

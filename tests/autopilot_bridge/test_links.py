@@ -9,6 +9,7 @@ import contextlib
 import math
 import os
 import select
+import socket
 import threading
 
 import pytest
@@ -21,7 +22,7 @@ from shared.errors import MavlinkError
 from shared.messages import ArmCommand, GripperCommand, GripperState
 from tests.autopilot_bridge.fake_px4 import SAFE_FAILSAFE_PARAMS, FakePX4, mavlink, param_reply
 from tests.autopilot_bridge.test_bridge import bridge_and_fake
-from tests.helpers import wait_until
+from tests.helpers import free_udp_port, wait_until
 
 
 def test_connection_strings() -> None:
@@ -175,3 +176,39 @@ async def test_gripper_through_an_actuator_output() -> None:
         assert bridge.state().gripper == GripperState.OPEN
         assert not [c for c in fake.commands if c.command == px4.MAV_CMD_DO_GRIPPER]
 
+
+
+def _outside_address() -> str | None:
+    """An address of this machine that is not loopback (the interface a route to a documentation address uses)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        try:
+            s.connect(("192.0.2.1", 9))  # no packet is sent: connect on UDP only picks the route
+            addr = s.getsockname()[0]
+        except OSError:
+            return None
+    return None if addr.startswith("127.") else addr
+
+
+async def test_the_default_mavlink_port_is_not_reachable_from_outside_loopback() -> None:
+    """With the default connection the bridge listens on loopback only: a PX4 (or anyone) sending to the
+    machine's other address is never heard, while the same sender on loopback is."""
+    outside = _outside_address()
+    if outside is None:
+        pytest.skip("this machine has no address besides loopback")
+    port = free_udp_port()
+    default = BridgeSettings.model_fields["connection"].default
+    assert default.startswith("udpin:127.0.0.1:")
+    link = MavlinkLink(default.rsplit(":", 1)[0] + f":{port}")
+    seen: list[str] = []
+    link.start(asyncio.get_running_loop(), lambda msg, addr, t: seen.append(msg.get_type()))
+    mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    try:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as tx:
+            for _ in range(20):
+                tx.sendto(mav.heartbeat_encode(2, px4.MAV_AUTOPILOT_PX4, 0, 0, 4).pack(mav), (outside, port))
+                await asyncio.sleep(0.05)
+            assert seen == []
+            tx.sendto(mav.heartbeat_encode(2, px4.MAV_AUTOPILOT_PX4, 0, 0, 4).pack(mav), ("127.0.0.1", port))
+            await wait_until(lambda: "HEARTBEAT" in seen, 10, what="a heartbeat sent to loopback")
+    finally:
+        link.close()

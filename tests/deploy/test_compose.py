@@ -71,6 +71,8 @@ def test_routers_run_the_secure_templates():
     assert "${AERMANI_ROUTER_PUBLISH:-7448}:7448" in ground_ports
     assert not any(p.split(":")[-1].startswith("7447") for p in ground_ports)
     assert "ports" not in SERVICES["zenoh-drone"] or all("7447" not in p for p in SERVICES["zenoh-drone"]["ports"])
+    # The bridge's MAVLink port reaches the host's loopback only (the bridge locks onto the first autopilot).
+    assert SERVICES["zenoh-drone"]["ports"] == ["127.0.0.1:${AERMANI_MAVLINK_PUBLISH:-14540}:14540/udp"]
 
 
 def test_restart_policies_and_healthchecks():
