@@ -8,6 +8,12 @@ the prompt, the validator and the rules baseline read it from there.
 
 from __future__ import annotations
 
+import json
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from shared.messages import SkillLibrary
+
 # Motion primitives (paper Table II): fixed body-frame steps.
 YAW_LEFT = "yaw_left"
 YAW_RIGHT = "yaw_right"
@@ -39,3 +45,25 @@ OPPOSITE = {
     YAW_LEFT: YAW_RIGHT, YAW_RIGHT: YAW_LEFT, FORWARD: BACKWARD, BACKWARD: FORWARD,
     LEFT: RIGHT, RIGHT: LEFT, UP: DOWN, DOWN: UP,
 }
+
+
+# The built-in Skill Library, for offline tools with no executor to ask (`aermani vlm check`, re-reasoning a log
+# that lacks its library, tests). The executor serves the live one on executor/skills; this file is the same
+# library at default settings, written from the executor's registry by `python -m services.executor.registry
+# --write`; the executor's tests fail when it is stale. Skills of AERMANI_EXECUTOR_SKILL_MODULES are not in it.
+LIBRARY_FILE = "skill_library.json"
+
+
+def builtin_library() -> SkillLibrary:
+    """The Skill Library a default executor serves (its built-in skills at default settings)."""
+    from importlib import resources
+
+    from shared.messages import SkillLibrary, SkillSpec
+
+    data = json.loads(resources.files("shared").joinpath(LIBRARY_FILE).read_text(encoding="utf-8"))
+    return SkillLibrary(skills=tuple(SkillSpec.model_validate(s) for s in data["skills"]))
+
+
+def library_json(library: SkillLibrary) -> str:
+    """The file's text for `library`: its skills only (no stamps or versions), stable for diffs."""
+    return json.dumps({"skills": [s.model_dump(mode="json") for s in library.skills]}, indent=1) + "\n"

@@ -107,3 +107,43 @@ def build_library(settings: ExecutorSettings, names: list[str] | None = None) ->
     if unknown:
         raise ValueError(f"unknown skills {unknown}; registered: {sorted(REGISTRY)}")
     return {n: REGISTRY[n](settings) for n in chosen}
+
+
+def builtin_library() -> SkillLibrary:
+    """The built-in skills at default settings (the environment and plug-in skill modules left out): what
+    shared/skill_library.json holds for offline tools."""
+    from services.executor.skills import load_builtin
+
+    load_builtin()
+    settings = ExecutorSettings.model_construct()  # field defaults only: no environment, no .env file
+    return SkillLibrary(skills=tuple(cls(settings).spec() for cls in REGISTRY.values()
+                                     if cls.__module__.startswith("services.executor.skills.")))
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`python -m services.executor.registry --write` rewrites shared/skill_library.json; `--check` exits 1 when
+    the file is stale."""
+    import argparse
+    from pathlib import Path
+
+    from services.executor import registry  # this module as the skills register into it (not __main__)
+    from shared import skills
+
+    ap = argparse.ArgumentParser(description=main.__doc__)
+    ap.add_argument("--write", action="store_true", help="rewrite the file")
+    ap.add_argument("--check", action="store_true", help="exit 1 when the file differs from the registry")
+    args = ap.parse_args(argv)
+    path = Path(skills.__file__).with_name(skills.LIBRARY_FILE)
+    text = skills.library_json(registry.builtin_library())
+    if args.write:
+        path.write_text(text, encoding="utf-8")
+        print(f"wrote {path}")
+        return 0
+    stale = not path.exists() or path.read_text(encoding="utf-8") != text
+    if stale:
+        print(f"{path} is stale: run python -m services.executor.registry --write")
+    return 1 if stale and args.check else 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,7 +1,8 @@
 """The Skill Library part of the prompt, and the library for offline tools.
 
 The live loop always uses the library the executor serves (`executor/skills`); offline tools (`aermani vlm
-check`, re-reasoning a log without its library, tests) build the same library from the executor's registry.
+check`, re-reasoning a log without its library, tests) use the built-in library at default settings from the
+contract (`shared/skill_library.json`, kept current from the executor's registry by the executor's tests).
 """
 
 from __future__ import annotations
@@ -11,9 +12,9 @@ from shared.messages import SkillLibrary, SkillSpec
 
 def default_library() -> SkillLibrary:
     """The library a default executor serves (built-in skills, default settings), for offline checks."""
-    from services.executor.registry import library
+    from shared.skills import builtin_library
 
-    return library()
+    return builtin_library()
 
 
 def policy_skills(library: SkillLibrary) -> list[SkillSpec]:

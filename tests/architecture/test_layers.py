@@ -11,11 +11,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[2]
 
 # (importing module, imported module): why it still stands.
-KNOWN = {
-    ("services.reasoner.library", "services.executor.registry"):
-        "offline tools (vlm check/probe, rereason without a recorded library) build the executor's Skill Library "
-        "from its registry; the live loop reads it from executor/skills",
-}
+KNOWN: dict[tuple[str, str], str] = {}
 
 
 def imports_of(path: Path, module: str) -> set[str]:
