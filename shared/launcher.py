@@ -419,3 +419,12 @@ class Stack:
 
     def status_json(self) -> str:
         return json.dumps(self.status())
+
+
+def loopback_mavlink_env(extra: dict[str, str] | None = None) -> dict[str, str]:
+    """Free loopback UDP ports for the simulator/bridge MAVLink pair (and the simulator's ground-station link), so
+    a stack never collides with another one on the machine; `extra` settings win."""
+    api = free_udp_port()
+    return {"AERMANI_SIM_API_PORT": str(api), "AERMANI_SIM_API_LOCAL_PORT": str(free_udp_port()),
+            "AERMANI_SIM_GCS_PORT": str(free_udp_port()), "AERMANI_SIM_GCS_LOCAL_PORT": str(free_udp_port()),
+            "AERMANI_AUTOPILOT_BRIDGE_CONNECTION": f"udpin:127.0.0.1:{api}", **(extra or {})}

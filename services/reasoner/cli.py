@@ -206,16 +206,6 @@ def backend_key_env(backend: str, api_key_env: str | None) -> dict[str, str] | s
     return {}
 
 
-def demo_env(extra: dict[str, str]) -> dict[str, str]:
-    """Free loopback UDP ports for the sim/bridge MAVLink pair, so a demo never collides with another stack."""
-    from shared.launcher import free_udp_port
-
-    api = free_udp_port()
-    return {"AERMANI_SIM_API_PORT": str(api), "AERMANI_SIM_API_LOCAL_PORT": str(free_udp_port()),
-            "AERMANI_SIM_GCS_PORT": str(free_udp_port()), "AERMANI_SIM_GCS_LOCAL_PORT": str(free_udp_port()),
-            "AERMANI_AUTOPILOT_BRIDGE_CONNECTION": f"udpin:127.0.0.1:{api}", **extra}
-
-
 DEMO_SERVICES = ("sim", "autopilot_bridge", "perception", "executor", "reasoner", "recorder")
 
 
@@ -224,7 +214,7 @@ def run_demo(command: str, scenario, accepted: tuple[str, ...], *, env: dict[str
              result: dict | None = None) -> int:
     """Start the stack, run one task, print the verdict; returns the exit code (0 = success). `result`, when
     given, receives the final TaskStatus, the ReasoningSteps and the judge's verdict."""
-    from shared.launcher import Stack, available_services
+    from shared.launcher import Stack, available_services, loopback_mavlink_env
 
     have = available_services()
     missing = [s for s in services if s not in have and s != "recorder"]
@@ -232,7 +222,7 @@ def run_demo(command: str, scenario, accepted: tuple[str, ...], *, env: dict[str
         console.print(f"[red]this checkout lacks services {missing}; cannot run the demo[/red]")
         return 2
     names = [s for s in services if s in have]
-    stack = Stack(names, env=demo_env(env), log_dir=log_dir)
+    stack = Stack(names, env=loopback_mavlink_env(env), log_dir=log_dir)
     console.print(f"starting {', '.join(names)} (router {stack.endpoint}, logs in {stack.log_dir})")
     t0 = time.monotonic()
     try:

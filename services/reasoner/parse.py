@@ -29,8 +29,8 @@ import re
 from dataclasses import dataclass
 from typing import Any
 
+from services.reasoner.drt import DRT_FIELDS
 from services.reasoner.library import policy_skills
-from services.reasoner.prompt import DRT_FIELDS
 from shared.errors import InvalidAnswer
 from shared.messages import MAX_QUERY_CHARS, DescriptiveReasoningTrace, SkillLibrary, SkillToExecute
 from shared.text import well_formed

@@ -212,9 +212,10 @@ def frame_from_new_sim(timeout: float = 90.0) -> bytes | None:
 
     if "sim" not in available_services():
         return None
-    from services.reasoner.cli import demo_env
+    from shared.launcher import loopback_mavlink_env
 
-    stack = Stack(["sim"], env=demo_env({"AERMANI_SIM_TARGET_OBJECT": "red cup", "AERMANI_SIM_DESTINATION": "table"}))
+    stack = Stack(["sim"], env=loopback_mavlink_env({"AERMANI_SIM_TARGET_OBJECT": "red cup",
+                                                     "AERMANI_SIM_DESTINATION": "table"}))
     try:
         stack.start(wait=True, timeout=timeout)
         return asyncio.run(frame_from_stack(stack.endpoint, stack.procs[0].vehicle_id, 30.0))

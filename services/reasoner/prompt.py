@@ -15,6 +15,7 @@ import json
 import math
 from dataclasses import dataclass
 
+from services.reasoner.drt import DRT_FIELDS, FIELD_HELP
 from services.reasoner.library import library_text, policy_skills
 from shared.messages import Detection, OutcomeCode, SkillLibrary, SkillOutcome, VehicleState, WorkingMemory
 
@@ -27,15 +28,6 @@ PROMPT_PARTS: dict[str, tuple[str, ...]] = {
     "drt_v3": ("command", "preamble", "history", "skill_library", "rules"),
     "full": ("command", "preamble", "history", "skill_library", "rules"),
     "react": ("command", "preamble", "history", "skill_library", "rules"),
-}
-DRT_FIELDS: dict[str, tuple[str, ...]] = {
-    "unstructured": (),
-    "no_drt": (),
-    "drt_v1": ("image_description",),
-    "drt_v2": ("image_description", "summary"),
-    "drt_v3": ("image_description", "summary", "action_predictions"),
-    "full": ("image_description", "summary", "action_predictions", "reasoning"),
-    "react": (),
 }
 CONSTANT_PARTS = ("preamble", "skill_library", "rules")
 """Parts that depend only on the variant and the skill library: the cacheable prefix, in this order."""
@@ -58,13 +50,6 @@ PREAMBLE = (
     "approach it. Answer done when the command is complete."
 )
 
-FIELD_HELP = {
-    "image_description": "what is visible in the current image: objects, their spatial arrangement, cues",
-    "summary": "a short recap of previous observations and executed skills",
-    "action_predictions": "an object with one entry per available skill name, each the predicted outcome of "
-                          "executing that skill now",
-    "reasoning": "why the chosen skill is the right next step, from the observation, history and predictions",
-}
 
 
 @dataclass

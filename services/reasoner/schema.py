@@ -14,8 +14,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from services.reasoner.drt import DRT_FIELDS, FIELD_HELP
 from services.reasoner.library import policy_skills
-from services.reasoner.prompt import DRT_FIELDS, FIELD_HELP
 from shared.messages import SkillLibrary
 
 SCHEMA_NAME = "aermani_answer"

@@ -99,3 +99,76 @@ def test_the_check_sees_late_relative_and_from_package_imports(tmp_path):
         ("services.a.y", "services.b"): "a service imports another service",
         ("services.b.z", "services.a.x"): "a service imports another service",
     }
+
+
+def module_graph(root: Path) -> dict[str, set[str]]:
+    """module -> the modules of shared/ and services/ it imports (any depth of its code, TYPE_CHECKING too)."""
+    modules: dict[str, Path] = {}
+    for top in ("shared", "services"):
+        for path in sorted((root / top).rglob("*.py")):
+            rel = path.relative_to(root).with_suffix("")
+            modules[".".join(rel.parts[:-1] if rel.name == "__init__" else rel.parts)] = path
+    graph: dict[str, set[str]] = {}
+    for module, path in modules.items():
+        targets = {_module_part(root, n) for n in imports_of(path, module)}
+        graph[module] = {t for t in targets if t in modules and t != module}
+    return graph
+
+
+def circles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Every import circle: the strongly connected components with more than one module (Tarjan, iterative)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    found: list[list[str]] = []
+    for start in graph:
+        if start in index:
+            continue
+        work = [(start, iter(sorted(graph[start])))]
+        index[start] = low[start] = len(index)
+        stack.append(start)
+        on_stack.add(start)
+        while work:
+            v, children = work[-1]
+            child = next(children, None)
+            if child is not None:
+                if child not in index:
+                    index[child] = low[child] = len(index)
+                    stack.append(child)
+                    on_stack.add(child)
+                    work.append((child, iter(sorted(graph[child]))))
+                elif child in on_stack:
+                    low[v] = min(low[v], index[child])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[v])
+            if low[v] == index[v]:
+                component = []
+                while True:
+                    w = stack.pop()
+                    on_stack.discard(w)
+                    component.append(w)
+                    if w == v:
+                        break
+                if len(component) > 1:
+                    found.append(sorted(component))
+    return found
+
+
+def test_no_import_circles():
+    found = circles(module_graph(ROOT))
+    assert not found, "import circles:\n" + "\n".join("  " + " <-> ".join(c) for c in found)
+
+
+def test_the_circle_check_finds_a_circle_through_a_package_and_a_late_import(tmp_path):
+    pkg = tmp_path / "services" / "a"
+    pkg.mkdir(parents=True)
+    (tmp_path / "services" / "__init__.py").write_text("")
+    (tmp_path / "shared").mkdir()
+    (pkg / "__init__.py").write_text("from services.a import impl\n")
+    (pkg / "impl.py").write_text("from services.a.base import register\n")
+    (pkg / "base.py").write_text("def make():\n    from services import a\n")
+    (pkg / "alone.py").write_text("import services.a.base\n")
+    assert circles(module_graph(tmp_path)) == [["services.a", "services.a.base", "services.a.impl"]]

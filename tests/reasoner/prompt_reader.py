@@ -11,7 +11,7 @@ import re
 
 from services.reasoner.backends.base import PastStep, PolicyContext, Seen
 from services.reasoner.backends.rules import RulesPolicy, render_answer
-from services.reasoner.prompt import DRT_FIELDS
+from services.reasoner.drt import DRT_FIELDS
 from shared.messages import OutcomeCode, SkillFacts
 
 _VEC = r"\((-?[\d.]+), (-?[\d.]+), (-?[\d.]+)\)"

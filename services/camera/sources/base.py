@@ -119,15 +119,6 @@ register = SOURCES.register
 """Class decorator: make a source selectable by its `type` (AERMANI_CAMERA_SOURCE)."""
 
 
-def make_source(settings: CameraSettings) -> CameraSource:
-    """Build the configured source and check it (raises CameraError naming the fix; opens nothing)."""
-    from services.camera import sources  # noqa: F401 - registers the built-in ones
-
-    src = SOURCES.lookup(settings.source)(settings)
-    src.check()
-    return src
-
-
 # --------------------------------------------------------------------------- helpers shared by sources
 
 

@@ -88,12 +88,3 @@ SEGMENTERS: Registry[type[Segmenter]] = Registry("segmenter", "type", "AERMANI_P
                                                  PerceptionError)
 register = SEGMENTERS.register
 """Class decorator: make a segmenter selectable by its `type` (AERMANI_PERCEPTION_SEGMENTER)."""
-
-
-def make_segmenter(settings: PerceptionSettings) -> Segmenter:
-    """Build and start the configured segmenter; raises PerceptionError with a fix when it cannot start."""
-    from services.perception import segmenters  # noqa: F401 - registers the built-in ones
-
-    seg = SEGMENTERS.lookup(settings.segmenter)(settings)
-    seg.start()
-    return seg

@@ -45,7 +45,7 @@ from services.reasoner.backends.rules_parse import (
     parse_command,
     singular,
 )
-from services.reasoner.prompt import DRT_FIELDS
+from services.reasoner.drt import DRT_FIELDS
 from shared import skills as S  # noqa: N812 - reads like the paper tables
 from shared.messages import OutcomeCode
 
