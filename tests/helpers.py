@@ -12,7 +12,7 @@ from typing import Any
 from shared.bus import Bus, Subscription
 from shared.errors import NoResponder
 from shared.keys import BoundTopic
-from shared.launcher import Stack, free_port, free_udp_port
+from shared.launcher import Stack, free_port, free_udp_port, loopback_mavlink_env
 from shared.messages import SkillStatus
 
 __all__ = ["Stack", "free_port", "free_udp_port", "run_stack", "bus_for", "wait_until", "skill_outcome", "arun"]
@@ -25,16 +25,7 @@ def run_stack(services: list[str], tmp_path: Path, *, vehicle_id: str = "am1", e
 
     Services get free UDP ports for MAVLink (AERMANI_SIM_API_PORT / AERMANI_AUTOPILOT_BRIDGE_CONNECTION) so
     parallel test runs never collide. Logs go to tmp_path/logs; a failure prints their tails."""
-    api = free_udp_port()
-    gcs = free_udp_port()
-    base_env = {
-        "AERMANI_SIM_API_PORT": str(api),
-        "AERMANI_SIM_API_LOCAL_PORT": str(free_udp_port()),
-        "AERMANI_SIM_GCS_PORT": str(gcs),
-        "AERMANI_SIM_GCS_LOCAL_PORT": str(free_udp_port()),
-        "AERMANI_AUTOPILOT_BRIDGE_CONNECTION": f"udpin:127.0.0.1:{api}",
-        **(env or {}),
-    }
+    base_env = loopback_mavlink_env(env)
     stack = Stack(services, vehicle_id=vehicle_id, env=base_env, log_dir=tmp_path / "logs", supervise=supervise)
     try:
         stack.start(wait=True, timeout=timeout)
