@@ -878,13 +878,17 @@ class TaskState(StrEnum):
 
 def command_text(v: str) -> str:
     """A natural-language command as every receiver takes it (task requests, evaluation task files, the
-    gateway after its stricter check): stripped, not empty, no control characters but tab."""
+    gateway, MCP): stripped, not empty, no control characters but tab, no invisible formatting characters
+    (a right-to-left override or a zero-width space would make the command read otherwise than it acts)."""
+    from shared.text import hidden_characters
+
     v = v.strip()
     if not v:
         raise ValueError("command is empty")
-    bad = [c for c in v if (ord(c) < 32 and c not in "\t") or ord(c) == 127]
+    bad = hidden_characters(v)
     if bad:
-        raise ValueError("command contains control characters")
+        raise ValueError(f"command contains control or invisible formatting characters ({', '.join(bad[:8])}); "
+                         "send plain text")
     return v
 
 

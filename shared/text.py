@@ -29,3 +29,10 @@ def terminal_text(text: object) -> str:
 
     s = well_formed(str(text)).translate(_C0_C1).translate(_FORMAT)
     return escape(s)
+
+
+def hidden_characters(text: str) -> list[str]:
+    """The control characters (C0 but tab, DEL, C1) and invisible format characters (bidirectional overrides
+    and isolates, zero-width characters, line/paragraph separators, BOM) in `text`, as sorted U+XXXX codes: what
+    an operator reading the command cannot see, yet the receiver would act on."""
+    return sorted({f"U+{ord(c):04X}" for c in text if ord(c) in _C0_C1 or ord(c) in _FORMAT})

@@ -101,6 +101,8 @@ def test_a_task_whose_end_was_missed_does_not_block_its_vehicle(gw, client: http
     ({"command": "x" * 501}, 422, "body.command"),
     ({"command": "fly\x00 away"}, 422, "body.command"),
     ({"command": "line\nbreak"}, 422, "body.command"),
+    ({"command": "place it on the \u202eelbat"}, 422, "body.command"),  # right-to-left override
+    ({"command": "pick up the red\u200bcup"}, 422, "body.command"),  # zero-width space
     ({"command": "   "}, 422, "body.command"),
     ({"command": "ok", "variant": "nope"}, 422, "body.variant"),
     ({"command": "ok", "surprise": 1}, 422, "body.surprise"),

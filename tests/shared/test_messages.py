@@ -37,6 +37,11 @@ def test_autopilot_command_union_discriminates():
 def test_task_request_rejects_control_characters_and_empty():
     with pytest.raises(ValidationError):
         m.TaskRequest(command="pick\x00up")
+    # Invisible formatting: what the operator reads is not what the reasoner would act on.
+    for hidden in ("\u202e", "\u200b", "\u2066", "\ufeff", "\x85"):
+        with pytest.raises(ValidationError, match=f"U\\+{ord(hidden):04X}"):
+            m.TaskRequest(command=f"pick up the red{hidden} cup")
+    assert m.TaskRequest(command="  put the café mug in the sink\t").command == "put the café mug in the sink"
     with pytest.raises(ValidationError):
         m.TaskRequest(command="   ")
     with pytest.raises(ValidationError):
