@@ -89,7 +89,8 @@ async def test_a_miss_fails_and_its_code_agrees_with_what_happened_to_the_cup(cl
     assert (await c.judge(op="held")).held is None
     # What the skill reports must agree with what happened. Usually the pads close on air and the cup stands
     # where it was: missed, three attempts, a reason each. The open fingers, with the vehicle's hover wander,
-    # sometimes brush the cup; moved beyond a few centimetres the honest report is knocked_over.
+    # sometimes brush the cup; moved beyond a few centimetres the honest report is knocked_over. From the
+    # pre-grasp pose the miscalibrated camera may also lose the cup: not_detected.
     # Known defect (issue 25): the knock check compares detections, and under this miscalibrated mount a
     # re-detection from another heading lands ~3 cm off (the mount error turns with the vehicle), so the skill
     # sometimes reports knocked_over for a cup that never moved (1 of 3 runs here). That report still stops the
@@ -99,7 +100,9 @@ async def test_a_miss_fails_and_its_code_agrees_with_what_happened_to_the_cup(cl
     if moved > 0.05:
         assert code == OutcomeCode.KNOCKED_OVER, (moved, code, st.message, facts)
     else:
-        assert code in (OutcomeCode.MISSED, OutcomeCode.KNOCKED_OVER), (moved, code, st.message, facts)
+        # not_detected: the miscalibrated camera lost the cup from the pre-grasp pose beside it (also honest)
+        assert code in (OutcomeCode.MISSED, OutcomeCode.KNOCKED_OVER, OutcomeCode.NOT_DETECTED), (
+            moved, code, st.message, facts)
     if code == OutcomeCode.MISSED:
         assert facts.attempts == 3 and len(facts.reasons) == 3, facts
         assert all("missed" in r for r in facts.reasons), facts.reasons

@@ -25,6 +25,7 @@ def example(cls: type[m.Message], i: int = 0) -> m.Message:
         m.LandCommand: lambda: m.LandCommand(),
         m.GripperCommand: lambda: m.GripperCommand(action="close"),
         m.AutopilotResult: lambda: m.AutopilotResult(ok=True, command="arm"),
+        m.PreflightCommand: lambda: m.PreflightCommand(),
         m.LocalizeRequest: lambda: m.LocalizeRequest(query="red cup"),
         m.ObjectEstimate: lambda: m.ObjectEstimate(query="red cup", found=True, pose=pose, size=v),
         m.PlacementEstimate: lambda: m.PlacementEstimate(query="table", found=True, pose=pose, plane=(0, 0, 1, -0.7)),
