@@ -98,6 +98,16 @@ async def _fly_and_check(stack, segmenter: str) -> None:
             judge = await ask(bus, KEYS.sim_judge, JudgeRequest(op="world"))
             v = judge.vehicle
             view = render_view(world, v.position.x, v.position.y, v.position.z, v.yaw)
+            believed = state.value  # the bridge's estimate of the same settled pose
+
+            def in_truth_frame(p: Vec3, top_z: float) -> tuple[float, float, float]:
+                """A point perception gave in the estimated frame, moved into the true one."""
+                dyaw = believed.yaw - v.yaw
+                dx, dy = p.x - believed.position.x, p.y - believed.position.y
+                c, s_ = math.cos(-dyaw), math.sin(-dyaw)
+                return (v.position.x + c * dx - s_ * dy, v.position.y + s_ * dx + c * dy,
+                        top_z - (believed.position.z - v.position.z))
+
             checked = 0
             for truth in judge.objects:
                 e = world.by_name(truth.name)
@@ -112,9 +122,14 @@ async def _fly_and_check(stack, segmenter: str) -> None:
                         assert not est.found and est.reason == "not_visible", est
                     elif in_view and (segmenter == "sim" or truth.name in COLOR_SET):
                         assert est.found, est
-                        p = est.pose.position
-                        assert math.hypot(p.x - truth.position.x, p.y - truth.position.y) <= 0.03, (truth, est)
-                        assert abs(est.top_z - truth.top_z) <= 0.03, (truth, est)
+                        # Perception answers in the vehicle's estimated frame, which drifts from the truth (the
+                        # realistic estimate: bias up to 3 cm, yaw up to 1 deg): judge it in that frame.
+                        px_, py_, pz_ = in_truth_frame(est.pose.position, est.top_z)
+                        # 4 cm: the centre of an object seen from one side comes from its visible half; at 1.1 m
+                        # the colour segmenter's centre error reached 3.2-3.3 cm in about 1 run of 4 (measured
+                        # over 12 runs on 2026-12-02), so 3 cm failed on camera noise alone.
+                        assert math.hypot(px_ - truth.position.x, py_ - truth.position.y) <= 0.04, (truth, est)
+                        assert abs(pz_ - truth.top_z) <= 0.03, (truth, est)
                         checked += 1
                 elif truth.category == "surface":
                     est = await ask(bus, KEYS.localize_placement, LocalizeRequest(
