@@ -50,6 +50,9 @@ from shared.sensors import CompressedImage, decode_proto
 log = logging.getLogger("aermani.gateway.fleet")
 
 FINISH_GRACE_S = 2.0
+# Skill ends the executor publishes a status for (a rejected request or a timeout the reasoner declared may have
+# none: the grace bounds the wait for those).
+_SKILL_RAN = ("succeeded", "failed", "aborted")
 # A reasoner's liveliness token also vanishes when only the way to it breaks (a router restart, a network blip)
 # while the process goes on with its task. Its tasks are ended as orphans unless that same process (its
 # heartbeat's pid) is back within this grace; a restarted reasoner (another pid) ends them at once.
@@ -258,11 +261,24 @@ class Fleet:
         deadline = time.monotonic() + FINISH_GRACE_S
         while time.monotonic() < deadline and not self.closing.is_set():
             seen = self.version
-            if (await self.store.step_counts([st.task_id])).get(st.task_id, 0) >= st.steps:
+            if await self._all_stored(st):
                 break
             await self.wait_change(seen, max(0.01, deadline - time.monotonic()))
         await self.store.record_status(vehicle_id, st.model_dump(mode="json"))
         await self._notify()
+
+    async def _all_stored(self, st: TaskStatus) -> bool:
+        """Whether the steps a terminal status counts are stored, and for every stored step whose skill ran to
+        an end, that skill's terminal status: the executor publishes it on its own key, so it too can arrive
+        after the reasoner's terminal status."""
+        if (await self.store.step_counts([st.task_id])).get(st.task_id, 0) < st.steps:
+            return False
+        events = await self.store.events(st.task_id, kinds=("step", "skill_status"), limit=100_000)
+        ran = {e.data.get("step") for e in events if e.kind == "step"
+               and e.data.get("skill_state") in _SKILL_RAN}
+        ended = {e.data.get("step") for e in events if e.kind == "skill_status"
+                 and e.data.get("state") in _SKILL_RAN}
+        return ran <= ended
 
     async def _on_step(self, key: str, step: ReasoningStep) -> None:
         await self.store.add_event(step.task_id, "step", step.stamp_ns, step.model_dump(mode="json"))
