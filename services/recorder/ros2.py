@@ -19,9 +19,9 @@ times. Other keys (health, heartbeats, skill statuses...) are counted, not expor
 
 from __future__ import annotations
 
+import contextlib
 import json
 from collections import Counter
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -32,7 +32,7 @@ from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 
 from shared.errors import AermaniError
-from shared.mcaplog import LoggedSample, iter_samples
+from shared.mcaplog import iter_samples
 from shared.sensors import (
     decode_proto,
     quat_from_rpy,
@@ -62,15 +62,15 @@ class Ros2Export:
         return "\n".join(lines)
 
 
-# aermani key suffix -> (ROS 2 topic template, ROS 2 type)
-TOPICS: dict[str, tuple[str, str]] = {
-    "camera/color": ("/{v}/camera/color/image/compressed", "sensor_msgs/msg/CompressedImage"),
-    "camera/depth": ("/{v}/camera/depth/image", "sensor_msgs/msg/Image"),
-    "camera/calibration": ("/{v}/camera/color/camera_info", "sensor_msgs/msg/CameraInfo"),
-    "tf": ("/tf", "tf2_msgs/msg/TFMessage"),
-    "autopilot/state": ("/{v}/pose", "geometry_msgs/msg/PoseStamped"),
-    "reasoner/step": ("/{v}/reasoner/step", "std_msgs/msg/String"),
-    "reasoner/task_status": ("/{v}/reasoner/task_status", "std_msgs/msg/String"),
+# aermani key suffix -> (ROS 2 topic template, ROS 2 type, the _Builder method that converts a payload)
+TOPICS: dict[str, tuple[str, str, str]] = {
+    "camera/color": ("/{v}/camera/color/image/compressed", "sensor_msgs/msg/CompressedImage", "color"),
+    "camera/depth": ("/{v}/camera/depth/image", "sensor_msgs/msg/Image", "depth"),
+    "camera/calibration": ("/{v}/camera/color/camera_info", "sensor_msgs/msg/CameraInfo", "calibration"),
+    "tf": ("/tf", "tf2_msgs/msg/TFMessage", "tf"),
+    "autopilot/state": ("/{v}/pose", "geometry_msgs/msg/PoseStamped", "pose"),
+    "reasoner/step": ("/{v}/reasoner/step", "std_msgs/msg/String", "string"),
+    "reasoner/task_status": ("/{v}/reasoner/task_status", "std_msgs/msg/String", "string"),
 }
 
 
@@ -89,11 +89,6 @@ class _Builder:
         self.ts = typestore
         t = typestore.types
         self.Time, self.Header = t["builtin_interfaces/msg/Time"], t["std_msgs/msg/Header"]
-        self.builders: dict[str, Callable[[bytes], Any]] = {
-            "camera/color": self.color, "camera/depth": self.depth, "camera/calibration": self.calibration,
-            "tf": self.tf, "autopilot/state": self.pose, "reasoner/step": self.string,
-            "reasoner/task_status": self.string,
-        }
 
     def header(self, ns: int, frame_id: str) -> Any:
         return self.Header(stamp=self.Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000), frame_id=frame_id)
@@ -171,32 +166,30 @@ def export_ros2(log: str | Path, out: str | Path, vehicle: str | None = None) ->
     build = _Builder(typestore)
     result = Ros2Export(out)
     connections: dict[str, Any] = {}
-    samples: list[tuple[LoggedSample, str, str]] = []
-    for s in iter_samples(log):
-        split = _split(s.key)
-        if split is None:
-            continue
-        vid, suffix = split
-        if vehicle not in (None, vid):
-            continue
-        if suffix not in TOPICS:
-            result.skipped[suffix] += 1
-            continue
-        samples.append((s, vid, suffix))
-    if not samples:
-        raise Ros2ExportError(f"{log} has no camera, tf, pose or reasoning samples"
-                              + (f" of vehicle {vehicle}" if vehicle else ""))
-    with Writer(out, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
-        for s, vid, suffix in samples:
-            template, msgtype = TOPICS[suffix]
+    with contextlib.ExitStack() as stack:
+        writer = None  # opened on the first sample to export: a log with none leaves no directory behind
+        for s in iter_samples(log):  # streamed: a log's camera frames never sit in memory together
+            split = _split(s.key)
+            if split is None or vehicle not in (None, split[0]):
+                continue
+            vid, suffix = split
+            if suffix not in TOPICS:
+                result.skipped[suffix] += 1
+                continue
+            template, msgtype, method = TOPICS[suffix]
             topic = template.format(v=vid)
             try:
-                msg = build.builders[suffix](s.payload)
+                msg = getattr(build, method)(s.payload)
             except Exception:  # a malformed sample is counted, never fatal: the rest of the log still exports
                 result.skipped[f"{suffix} (undecodable)"] += 1
                 continue
+            if writer is None:
+                writer = stack.enter_context(Writer(out, version=9, storage_plugin=StoragePlugin.MCAP))
             if topic not in connections:
                 connections[topic] = writer.add_connection(topic, msgtype, typestore=typestore)
             writer.write(connections[topic], s.log_time_ns, typestore.serialize_cdr(msg, msgtype))
             result.messages[topic] += 1
+    if not result.messages:
+        raise Ros2ExportError(f"{log} has no camera, tf, pose or reasoning samples"
+                              + (f" of vehicle {vehicle}" if vehicle else ""))
     return result
