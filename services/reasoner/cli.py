@@ -228,8 +228,11 @@ def run_demo(command: str, scenario, accepted: tuple[str, ...], *, env: dict[str
     try:
         stack.start(wait=True, timeout=180)
         console.print(f"stack up in {time.monotonic() - t0:.1f} s")
-        override = {**os.environ, **env}.get("AERMANI_AUTOPILOT_BRIDGE_PREFLIGHT_OVERRIDE", "").lower() in (
-            "1", "true", "yes")
+        from pydantic import TypeAdapter
+
+        # read as the bridge reads it (pydantic's bool: 1/true/yes/on...), from what the bridge will be given
+        override = TypeAdapter(bool).validate_python(
+            {**os.environ, **env}.get("AERMANI_AUTOPILOT_BRIDGE_PREFLIGHT_OVERRIDE") or "false")
         return asyncio.run(_demo_task(stack, command, scenario, accepted, t_max, {} if result is None else result,
                                       override_preflight=override))
     except KeyboardInterrupt:
@@ -249,8 +252,8 @@ async def _preflight_passes(bus, keys, override: bool) -> bool:
     from shared.messages import PreflightCommand
 
     res = await query_ready(bus, keys.autopilot_command, PreflightCommand(), timeout=30)
-    for _ in range(20):  # "no link to PX4" until the simulator's first heartbeat reaches the bridge
-        if res.ok or "no link to PX4" not in res.message:
+    for _ in range(20):  # no checks ran until the simulator's first heartbeat reaches the bridge (no link)
+        if res.checks:
             break
         await asyncio.sleep(1.0)
         res = await query_ready(bus, keys.autopilot_command, PreflightCommand(), timeout=30)
