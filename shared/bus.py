@@ -302,6 +302,25 @@ class Received(Generic[T]):
     receive_ns: int
 
 
+@dataclass(frozen=True)
+class RawReply:
+    """A queryable's reply sent as it is: bytes with an exact encoding and an attachment (another protocol's
+    reply on the same router, e.g. a ROS 2 service response over rmw_zenoh)."""
+
+    data: bytes
+    encoding: str
+    attachment: bytes | None = None
+
+
+def _reply(query: zenoh.Query, key: str, result: Any) -> None:
+    """A handler's return value as the query's reply: a RawReply verbatim, anything else encoded."""
+    if isinstance(result, RawReply):
+        query.reply(key, result.data, encoding=zenoh.Encoding(result.encoding), attachment=result.attachment)
+    else:
+        payload, enc = encode(result)
+        query.reply(key, payload, encoding=enc)
+
+
 class RateLimitedWarning:
     """A warning logged at most once per `period_s` per source, with the count of those it held back."""
 
@@ -683,13 +702,17 @@ class Bus:
         return b""
 
     def serve(self, target: BoundQuery[Req, Rep] | str, handler: Callable[..., Awaitable[Rep]], *,
-              concurrent: bool = True, raw: bool = False, with_caller: bool = False) -> Any:
+              concurrent: bool = True, raw: bool = False, with_caller: bool = False,
+              with_attachment: bool = False, complete: bool = False) -> Any:
         """Declare a queryable. `handler(request)` runs on the loop with the request decoded to its declared
         type (`raw=True`: the bytes, for a handler that answers a malformed request itself); its return
         value is the reply. A malformed request gets an error reply naming the problem and the handler is
         not called; an exception in the handler becomes an error reply, never a crash. With `with_caller`,
-        the handler is called as `handler(request, caller)` with the querier's Caller. A plain key expression
-        (not a declaration) serves raw bytes."""
+        the handler is called as `handler(request, caller)` with the querier's Caller; with `with_attachment`,
+        as `handler(request, attachment)` with the query's attachment bytes (or None). A plain key expression
+        (not a declaration) serves raw bytes; a handler that returns a `RawReply` has it sent verbatim.
+        `complete`: the queryable answers for every key it covers (queries that target complete queryables
+        only, as ROS 2's service clients over rmw_zenoh do, reach it)."""
         key = target.key if isinstance(target, BoundQuery) else target
         request_model = target.decl.request if isinstance(target, BoundQuery) and not raw else None
         decode = decoder(request_model)
@@ -710,7 +733,11 @@ class Bus:
                     log.warning("rejected malformed query on %s: %s", key, exc)
                     query.reply_err(json.dumps({"error": str(exc)}).encode())
                     return
-                args = (req, Caller.from_attachment(attachment)) if with_caller else (req,)
+                args: tuple[Any, ...] = (req,)
+                if with_caller:
+                    args = (req, Caller.from_attachment(attachment))
+                elif with_attachment:
+                    args = (req, attachment)
                 try:
                     if concurrent:
                         result = await handler(*args)
@@ -724,8 +751,7 @@ class Bus:
                     log.exception("handler for %s failed", key)
                     query.reply_err(json.dumps({"error": f"{type(exc).__name__}: {exc}"}).encode())
                     return
-                payload, enc = encode(result)
-                query.reply(key, payload, encoding=enc)
+                _reply(query, key, result)
             finally:
                 with contextlib.suppress(Exception):
                     query.drop()  # type: ignore[no-untyped-call]
@@ -759,7 +785,7 @@ class Bus:
             self._to_loop(start, query, payload.to_bytes() if payload is not None else None,
                           attachment.to_bytes() if attachment is not None else None)
 
-        q = self.session.declare_queryable(key, on_query)
+        q = self.session.declare_queryable(key, on_query, complete=complete)
         self._declared.append(q)
         return q
 

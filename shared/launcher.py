@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import zenoh
+from pydantic import TypeAdapter, ValidationError
 
 from shared.bus import _init_zenoh_log, zenoh_config
 from shared.keys import DEFAULT_VEHICLE_ID, alive_pattern, heartbeat_pattern, parse_alive_key
@@ -33,15 +34,17 @@ from shared.security import require_loopback
 log = logging.getLogger("aermani.launcher")
 
 # Start order: the world and the link first, the decision makers last.
-SERVICE_ORDER = ("sim", "camera", "autopilot_bridge", "perception", "executor", "reasoner", "recorder", "gateway")
+SERVICE_ORDER = ("sim", "camera", "autopilot_bridge", "perception", "executor", "reasoner", "recorder", "gateway",
+                 "ros2")
 # Services that exist once per vehicle (the rest serve a whole ground station).
-PER_VEHICLE = ("sim", "camera", "autopilot_bridge", "perception", "executor", "reasoner")
+PER_VEHICLE = ("sim", "camera", "autopilot_bridge", "perception", "executor", "reasoner", "ros2")
 # Services started by default only when configured. The camera service runs when AERMANI_CAMERA_SOURCE names
 # a source (not `none`); then it owns the camera keys and tf's camera/gripper frames, so a simulator in the
 # same stack runs with its camera off (AERMANI_SIM_CAMERA=0) and the autopilot bridge publishes
 # world->base_link (AERMANI_AUTOPILOT_BRIDGE_PUBLISH_TF=1), exactly as on a real drone. Without it the
-# simulator is the camera. Explicit settings in the environment win over these defaults.
-OPTIONAL = ("camera",)
+# simulator is the camera. Explicit settings in the environment win over these defaults. The ROS 2 bridge
+# runs when AERMANI_ROS2_ENABLED is true (it republishes the camera, which the router then carries twice).
+OPTIONAL = ("camera", "ros2")
 
 
 def camera_configured(env: dict[str, str] | os._Environ[str] | None = None) -> bool:
@@ -53,7 +56,17 @@ def camera_configured(env: dict[str, str] | os._Environ[str] | None = None) -> b
 def default_services(env: dict[str, str] | os._Environ[str] | None = None) -> list[str]:
     """What `aermani up` starts without --services: every service in this checkout, the optional ones only
     when configured."""
-    return [s for s in available_services() if s not in OPTIONAL or (s == "camera" and camera_configured(env))]
+    wanted = {"camera": camera_configured(env), "ros2": ros2_enabled(env)}
+    return [s for s in available_services() if s not in OPTIONAL or wanted.get(s, False)]
+
+
+def ros2_enabled(env: dict[str, str] | os._Environ[str] | None = None) -> bool:
+    """Whether the ROS 2 bridge is asked for (AERMANI_ROS2_ENABLED true, as pydantic reads a bool)."""
+    value = (os.environ if env is None else env).get("AERMANI_ROS2_ENABLED", "").strip()
+    try:
+        return bool(value) and TypeAdapter(bool).validate_python(value)
+    except ValidationError:
+        return False
 # Services that run on the vehicle (behind the drone router in a --secure stack); the rest are the ground's.
 DRONE_SIDE = ("sim", "camera", "autopilot_bridge", "perception", "executor")
 

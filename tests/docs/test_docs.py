@@ -8,7 +8,8 @@ Each command in a ```bash / ```sh / ```shell / ```console block must be one of:
     `pytest ...` must name existing test files, tests and markers;
 (b) covered by an existing test named in a marker comment right above the block:
     `<!-- tested-by: tests/gateway/test_fullstack.py::test_full_stack_task_restart_and_abort -->`;
-(c) marked as needing what this machine has not: `<!-- needs: hardware -->` (also `model-key`, `docker`, `long`).
+(c) marked as needing what this machine has not: `<!-- needs: hardware -->` (also `model-key`, `docker`, `long`,
+    `ros2`: a ROS 2 install).
 
 An unmarked command that is not run fails with its file and line. Markers must name tests that exist. Every
 relative link in the docs must point to an existing file (and, for a markdown file, an existing heading).
@@ -34,7 +35,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[2]
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 SHELL = {"bash", "sh", "shell", "console"}
-NEEDS = {"hardware", "model-key", "docker", "long"}
+NEEDS = {"hardware", "model-key", "docker", "long", "ros2"}
 FENCE = re.compile(r"^(\s*)```(\S*)")
 MARKER = re.compile(r"<!--\s*(tested-by|needs):\s*(.*?)\s*-->")
 ASSIGNMENT = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*=")
