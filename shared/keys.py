@@ -31,6 +31,7 @@ from shared.messages import (
     LocalizeRequest,
     ObjectEstimate,
     PlacementEstimate,
+    PreflightReport,
     ReasoningStep,
     ResetNotice,
     Scenario,
@@ -275,6 +276,9 @@ SIM_RESET_NOTICE: Topic[ResetNotice] = Topic(
 AUTOPILOT_STATE: Topic[VehicleState] = Topic(
     "autopilot/state", VehicleState, "pose, velocity, armed, mode, landed state, battery, gripper, link health",
     "autopilot_bridge", reliable=False, periodic=True)
+AUTOPILOT_PREFLIGHT: Topic[PreflightReport] = Topic(
+    "autopilot/preflight", PreflightReport, "each preflight verdict: the take-off gate, on request, the operator's",
+    "autopilot_bridge, aermani preflight")
 AUTOPILOT_COMMAND: Query[AutopilotCommand, AutopilotResult] = Query(
     "autopilot/command", AutopilotCommand, AutopilotResult, "arm, takeoff, goto, hold, land, gripper",
     "autopilot_bridge")
@@ -325,7 +329,8 @@ FLEET_ABORT: BoundTopic[Abort] = BoundTopic(f"{ROOT}/{FLEET_ID}/{SAFETY_ABORT.na
 
 DECLARATIONS: tuple[Topic[Any] | Query[Any, Any] | Token, ...] = (
     CAMERA_COLOR, CAMERA_DEPTH, CAMERA_CALIBRATION, CAMERA_SEGMENTATION, TF, SIM_LABELS, SIM_JUDGE, SIM_RESET,
-    SIM_STATS, SIM_FAULT, SIM_RESET_NOTICE, AUTOPILOT_STATE, AUTOPILOT_COMMAND, PERCEPTION_LOCALIZE_OBJECT,
+    SIM_STATS, SIM_FAULT, SIM_RESET_NOTICE, AUTOPILOT_STATE, AUTOPILOT_PREFLIGHT, AUTOPILOT_COMMAND,
+    PERCEPTION_LOCALIZE_OBJECT,
     PERCEPTION_LOCALIZE_PLACEMENT, PERCEPTION_DETECTIONS, EXECUTOR_RUN_SKILL, EXECUTOR_CANCEL_SKILL,
     EXECUTOR_SKILL_STATUS, EXECUTOR_SKILLS, EXECUTOR_MEMORY, REASONER_START_TASK, REASONER_CANCEL_TASK, REASONER_STEP,
     REASONER_TASK_STATUS, REASONER_APPROVAL, REASONER_DECIDE_APPROVAL, SAFETY_ABORT, SAFETY_ABORT_ACK, HEALTH_TOPIC,
@@ -390,6 +395,7 @@ class Keys:
     sim_fault = _QueryOn(SIM_FAULT)
     sim_reset_notice = _TopicOn(SIM_RESET_NOTICE)
     autopilot_state = _TopicOn(AUTOPILOT_STATE)
+    autopilot_preflight = _TopicOn(AUTOPILOT_PREFLIGHT)
     autopilot_command = _QueryOn(AUTOPILOT_COMMAND)
     localize_object = _QueryOn(PERCEPTION_LOCALIZE_OBJECT)
     localize_placement = _QueryOn(PERCEPTION_LOCALIZE_PLACEMENT)

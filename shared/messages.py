@@ -18,7 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validat
 SCHEMA_VERSION = 1
 """Major version of the message schemas. A receiver rejects a message of a newer major version with an
 error naming both versions."""
-SCHEMA_MINOR = 4
+SCHEMA_MINOR = 5
 """Minor version: bumped when fields are added. A receiver accepts a message of a newer minor version,
 ignoring the fields it does not know (logged once per field)."""
 MAX_COMMAND_CHARS = 500
@@ -285,6 +285,27 @@ class PreflightCheck(Part):
     """What is required to fly."""
     reason: str = ""
     """Why it matters, for a failed check."""
+
+
+class PreflightReport(Message):
+    """One preflight verdict, published for the record (the recorder keeps it in the flight's log): the
+    bridge's gate before an arm or take-off and on request, the operator's full check from `aermani preflight`."""
+
+    kind: Literal["preflight_report"] = "preflight_report"
+    stamp_ns: int = Field(default_factory=now_ns, ge=0)
+    """When the checks ran."""
+    vehicle_id: str = Field("am1", pattern=r"^[A-Za-z0-9_-]{1,32}$")
+    """Vehicle checked."""
+    trigger: Literal["request", "arm", "takeoff", "operator"]
+    """What ran it: a preflight command, the gate before an arm or a take-off, or `aermani preflight`."""
+    ok: bool
+    """Every check passed."""
+    checks: tuple[PreflightCheck, ...] = Field((), max_length=64)
+    """Each check with its value and verdict."""
+    overridden: bool = False
+    """The gate failed and the operator's override let the vehicle arm anyway."""
+    override_reason: str = Field("", max_length=200)
+    """The reason the operator gave for the override."""
 
 
 class AutopilotResult(Message):
@@ -1116,7 +1137,8 @@ class SimResetResult(Message):
 # Every publishable message type, for tests and the recorder.
 MESSAGE_TYPES: tuple[type[Message], ...] = (
     VehicleState, ArmCommand, DisarmCommand, TakeoffCommand, GotoCommand, HoldCommand, LandCommand,
-    GripperCommand, PreflightCommand, AutopilotResult, LocalizeRequest, ObjectEstimate, PlacementEstimate, Detections,
+    GripperCommand, PreflightCommand, PreflightReport, AutopilotResult, LocalizeRequest, ObjectEstimate,
+    PlacementEstimate, Detections,
     SkillLibrary, SkillRequest, SkillAccept, WorkingMemory, SkillStatus, Abort, AbortAck, ReasoningStep,
     TaskRequest, TaskAccept, TaskStatus, Health, Scenario, SimLabels, JudgeRequest, JudgeResult, SimResetResult,
     CancelGoal, CancelReply, ResetNotice, ApprovalStatus, ApprovalDecision, Heartbeat,

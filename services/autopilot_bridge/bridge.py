@@ -10,7 +10,7 @@ import sys
 import time
 from collections import defaultdict
 from collections.abc import Awaitable, Callable
-from typing import Any
+from typing import Any, Literal
 
 from services.autopilot_bridge import px4
 from services.autopilot_bridge.link import MavlinkLink
@@ -20,6 +20,7 @@ from services.autopilot_bridge.settings import BridgeSettings
 from services.autopilot_bridge.stream import SetpointStream, Target
 from shared.bus import Bus, Caller
 from shared.envelope import altitude_problem, geofence_problem, speed_problem
+from shared.errors import BusError
 from shared.keys import FLEET_ABORT, BoundTopic
 from shared.messages import (
     Abort,
@@ -36,6 +37,7 @@ from shared.messages import (
     LandedState,
     PreflightCheck,
     PreflightCommand,
+    PreflightReport,
     TakeoffCommand,
     Vec3,
     VehicleState,
@@ -507,31 +509,45 @@ class Bridge:
             return self._result(str(kind), False, f"unknown autopilot command {kind!r}")
         return await handler(cmd)
 
-    async def run_preflight(self) -> list[PreflightCheck]:
+    async def run_preflight(self, trigger: Literal["request", "arm", "takeoff"]) -> list[PreflightCheck]:
         """Every preflight check (services.autopilot_bridge.preflight): PX4's failsafe parameters, read now,
-        and the vehicle's state."""
+        and the vehicle's state. The verdict is published on autopilot/preflight (the flight's log keeps it)."""
         target = (self.target_system or 1, self.target_component)
         params = await self.params.read(target, PARAM_NAMES, self.s.command_timeout_s, self.s.command_attempts)
         facts = VehicleFacts(self.link_ok, self.have_position, self.armed, self.landed_state,
                              self.battery_remaining, self.override)
-        return [*check_params(params), *check_state(facts, self.s.preflight_min_battery)]
+        checks = [*check_params(params), *check_state(facts, self.s.preflight_min_battery)]
+        ok = all(c.ok for c in checks)
+        overridden = not ok and trigger != "request" and self.s.preflight_override
+        self._publish_report(PreflightReport(
+            vehicle_id=self.s.vehicle_id, trigger=trigger, ok=ok, checks=tuple(checks), overridden=overridden,
+            override_reason=(self.s.preflight_override_reason or "no reason given") if overridden else ""))
+        return checks
+
+    def _publish_report(self, report: PreflightReport) -> None:
+        if self.bus is not None:
+            with contextlib.suppress(BusError):  # the record is best effort: a closing bus never stops the gate
+                self.bus.publish(self.keys.autopilot_preflight, report)
 
     async def preflight(self, _cmd: PreflightCommand) -> AutopilotResult:
-        checks = await self.run_preflight()
+        checks = await self.run_preflight("request")
         ok = all(c.ok for c in checks)
         return self._result("preflight", ok, preflight_summary(checks)).model_copy(update={"checks": tuple(checks)})
 
-    async def preflight_refusal(self, command: str) -> AutopilotResult | None:
-        """None when the vehicle may arm: the preflight passed, or it failed and the operator overrode it."""
-        checks = await self.run_preflight()
+    async def preflight_refusal(self, command: Literal["arm", "takeoff"]) -> AutopilotResult | None:
+        """None when the vehicle may arm: the preflight passed, or it failed and the operator overrode it (the
+        override and its reason are in the published verdict)."""
+        checks = await self.run_preflight(command)
         if all(c.ok for c in checks):
             return None
         text = preflight_summary(checks)
         if self.s.preflight_override:
-            log.warning("arming with a failed preflight (AERMANI_AUTOPILOT_BRIDGE_PREFLIGHT_OVERRIDE=1): %s", text)
+            log.warning("arming with a failed preflight (%s; AERMANI_AUTOPILOT_BRIDGE_PREFLIGHT_OVERRIDE=1, reason: "
+                        "%s): %s", command, self.s.preflight_override_reason or "no reason given", text)
             return None
         res = self._result(command, False, f"{text}. Fix the autopilot's configuration, or set "
-                           "AERMANI_AUTOPILOT_BRIDGE_PREFLIGHT_OVERRIDE=1 to fly anyway")
+                           "AERMANI_AUTOPILOT_BRIDGE_PREFLIGHT_OVERRIDE=1 (with "
+                           "AERMANI_AUTOPILOT_BRIDGE_PREFLIGHT_OVERRIDE_REASON) to fly anyway")
         return res.model_copy(update={"checks": tuple(checks)})
 
     async def arm(self, cmd: ArmCommand) -> AutopilotResult:

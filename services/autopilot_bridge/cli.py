@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import math
+import time
 from typing import Annotated, Any
 
 import typer
 from rich.console import Console
 
+from services.autopilot_bridge.preflight import summary
 from shared.bus import Bus
 from shared.cli_helpers import Connect, Vehicle, query_once
 from shared.errors import AermaniError
@@ -21,7 +24,9 @@ from shared.messages import (
     GripperCommand,
     HoldCommand,
     LandCommand,
+    PreflightCheck,
     PreflightCommand,
+    PreflightReport,
     TakeoffCommand,
     Vec3,
 )
@@ -134,31 +139,92 @@ def gripper(action: Annotated[str, typer.Argument(help="open or close")],
     _run(connect, vehicle, GripperCommand(action=action))  # type: ignore[arg-type]
 
 
+async def _measure_operator(bus: Bus, keys: Keys, window_s: float) -> tuple[float | None, float | None,
+                                                                            float | None, float | None]:
+    """(camera fps, newest frame's age s, MAVLink messages/s at the bridge, bus round trip ms) over `window_s`."""
+    from shared.keys import alive_pattern
+    from shared.sensors import CompressedImage, decode_proto, stamp_to_ns
+
+    frames = bus.subscribe(keys.camera_color, maxsize=256, overflow="drop_oldest")
+    health = bus.subscribe(keys.health("autopilot_bridge"), maxsize=16, overflow="drop_oldest")
+    t0 = time.monotonic()
+    await bus.alive(alive_pattern(keys.vehicle_id), timeout=2.0)
+    bus_ms = (time.monotonic() - t0) * 1e3
+    arrivals: list[float] = []
+    newest_stamp_ns: int | None = None
+    counts: list[tuple[int, int]] = []  # (health stamp ns, mavlink_received)
+    deadline = time.monotonic() + window_s
+    while (left := deadline - time.monotonic()) > 0:
+        with contextlib.suppress(TimeoutError):
+            data = await frames.recv(timeout=min(left, 0.1))
+            arrivals.append(time.monotonic())
+            with contextlib.suppress(AermaniError):
+                newest_stamp_ns = stamp_to_ns(decode_proto(CompressedImage, data).timestamp)
+        while (h := health.recv_nowait()) is not None:
+            if isinstance(h.details.get("mavlink_received"), int):
+                counts.append((h.stamp_ns, h.details["mavlink_received"]))
+    fps = (len(arrivals) - 1) / (arrivals[-1] - arrivals[0]) if len(arrivals) >= 2 and arrivals[-1] > arrivals[0] \
+        else None
+    age = (time.time_ns() - newest_stamp_ns) / 1e9 if newest_stamp_ns is not None else None
+    link_hz = None
+    if len(counts) >= 2 and counts[-1][0] > counts[0][0]:
+        link_hz = (counts[-1][1] - counts[0][1]) / ((counts[-1][0] - counts[0][0]) / 1e9)
+    return fps, age, link_hz, bus_ms
+
+
 def preflight_cmd(connect: Connect = "tcp/127.0.0.1:7447", vehicle: Vehicle = "am1",
                   timeout: Annotated[float, typer.Option(help="Seconds to wait for the bridge's answer.")] = 30.0,
+                  window: Annotated[float, typer.Option(help="Seconds to watch the camera and the link.")] = 3.0,
+                  min_fps: Annotated[float, typer.Option(help="Camera frame rate required.")] = 5.0,
+                  max_frame_age: Annotated[float, typer.Option(help="Newest camera frame's age allowed, s.")] = 0.5,
+                  min_link_hz: Annotated[float, typer.Option(help="MAVLink messages/s the bridge must receive.")]
+                  = 10.0,
+                  max_bus_ms: Annotated[float, typer.Option(help="Bus round trip through the router allowed, ms.")]
+                  = 200.0,
                   ) -> None:
     """Check that the vehicle is fit to fly before a task: PX4's failsafe parameters (offboard-loss action,
-    geofence), read from the autopilot now, and the link, estimate, landed state and battery. Exit 0 when
-    every check passes, 1 when one fails (the bridge also refuses to arm then), 2 when no bridge answers."""
+    geofence), read from the autopilot now, the link, estimate, landed state and battery (the bridge's take-off
+    gate), and from here the camera's frame rate and frame age, the MAVLink message rate and the bus round trip.
+    The verdict is published on autopilot/preflight, so a recording keeps it. Exit 0 when every check passes, 1
+    when one fails (the bridge refuses to arm when one of its own fails), 2 when no bridge answers."""
     from rich.table import Table
 
+    from services.autopilot_bridge.preflight import OperatorLimits, check_operator
+
+    limits = OperatorLimits(min_fps=min_fps, max_frame_age_s=max_frame_age, min_link_hz=min_link_hz,
+                            max_bus_ms=max_bus_ms)
+    keys = Keys(vehicle)
+
+    async def body() -> tuple[AutopilotResult, list[PreflightCheck]]:
+        async with await Bus.open(connect=[connect]) as bus:
+            res: AutopilotResult = await bus.query(keys.autopilot_command, PreflightCommand(), timeout=timeout)
+            if not res.checks:
+                return res, []
+            checks = [*res.checks, *check_operator(*await _measure_operator(bus, keys, window), limits)]
+            bus.publish(keys.autopilot_preflight, PreflightReport(
+                vehicle_id=vehicle, trigger="operator", ok=all(c.ok for c in checks), checks=tuple(checks)))
+            await asyncio.sleep(0.2)  # let the report leave before the session closes
+            return res, checks
+
     try:
-        res: AutopilotResult = asyncio.run(query_once(connect, Keys(vehicle).autopilot_command, PreflightCommand(),
-                                                      timeout=timeout))
+        res, checks = asyncio.run(body())
     except AermaniError as exc:
         console.print(f"[red]{exc}[/red]")
         raise typer.Exit(2)
+    if not checks:  # the bridge ran no check (no link yet): its message says why
+        console.print(f"[red]{res.message}[/red]")
+        raise typer.Exit(1)
     table = Table(title=f"preflight of {vehicle}")
     for col in ("check", "value", "required", "verdict"):
         table.add_column(col)
-    for c in res.checks:
+    for c in checks:
         verdict = "[green]ok[/green]" if c.ok else f"[red]FAIL[/red] {c.reason}"
         table.add_row(c.name, c.value or "not reported", c.expected, verdict)
-    if res.checks:
-        console.print(table)
-    colour = "green" if res.ok else "red"
-    console.print(f"[{colour}]{res.message}[/{colour}]")
-    if not res.ok:
+    console.print(table)
+    ok = all(c.ok for c in checks)
+    text = summary(checks)
+    console.print(f"[{'green' if ok else 'red'}]{text}[/{'green' if ok else 'red'}]")
+    if not ok:
         raise typer.Exit(1)
 
 

@@ -114,6 +114,45 @@ def check_state(f: VehicleFacts, min_battery: float) -> list[PreflightCheck]:
     ]
 
 
+@dataclass(frozen=True)
+class OperatorLimits:
+    """What `aermani preflight` requires of the parts the bridge cannot see from the vehicle's link."""
+
+    min_fps: float = 5.0
+    max_frame_age_s: float = 0.5
+    min_link_hz: float = 10.0
+    max_bus_ms: float = 200.0
+
+
+def check_operator(fps: float | None, frame_age_s: float | None, link_hz: float | None, bus_ms: float | None,
+                   lim: OperatorLimits) -> list[PreflightCheck]:
+    """Camera frame rate and the newest frame's age, the MAVLink message rate the bridge receives, and the bus
+    round trip through the router, measured from the operator's side over a few seconds."""
+    camera_ok = (fps is not None and fps >= lim.min_fps and frame_age_s is not None
+                 and frame_age_s <= lim.max_frame_age_s)
+    return [
+        PreflightCheck(
+            name="camera", ok=camera_ok,
+            value="no frame" if fps is None else f"{fps:.1f} fps, newest frame {frame_age_s:.2f} s old",
+            expected=f">= {lim.min_fps:g} fps, frames <= {lim.max_frame_age_s:g} s old",
+            reason="" if camera_ok else "perception localizes from the newest frame: a slow, stale or absent camera "
+                                        "grasps at where the object was (check the camera's health and cable)"),
+        PreflightCheck(
+            name="mavlink_rate", ok=link_hz is not None and link_hz >= lim.min_link_hz,
+            value="no bridge health" if link_hz is None else f"{link_hz:.0f} messages/s",
+            expected=f">= {lim.min_link_hz:g} messages/s",
+            reason="" if link_hz is not None and link_hz >= lim.min_link_hz else
+            "a thin link delays the pose the skills close their loops on (check the baud rate and PX4's "
+            "MAV_x_RATE / stream configuration)"),
+        PreflightCheck(
+            name="bus_round_trip", ok=bus_ms is not None and bus_ms <= lim.max_bus_ms,
+            value="no answer" if bus_ms is None else f"{bus_ms:.0f} ms",
+            expected=f"<= {lim.max_bus_ms:g} ms through the router",
+            reason="" if bus_ms is not None and bus_ms <= lim.max_bus_ms else
+            "aborts and skill commands cross this link (check the Wi-Fi between ground and drone)"),
+    ]
+
+
 def summary(checks: list[PreflightCheck]) -> str:
     failed = [c for c in checks if not c.ok]
     if not failed:

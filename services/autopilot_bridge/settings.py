@@ -92,6 +92,8 @@ class BridgeSettings(ServiceSettings):
     preflight_override: bool = False
     """Arm even when the preflight fails (PX4's failsafe parameters, link, estimate, battery); every such arm is
     logged with the failed checks. For a bench or a simulator set up on purpose, never for a flight."""
+    preflight_override_reason: str = Field("", max_length=200)
+    """Why the override is on (recorded with every overridden verdict on autopilot/preflight)."""
     preflight_min_battery: float = Field(30.0, ge=0.0, le=100.0)
     """Preflight refuses to arm below this battery charge (percent, when PX4 reports one)."""
     publish_tf: bool = False

@@ -178,6 +178,7 @@ def demo_command(
     env.update(key_env)
     if override_preflight:
         env["AERMANI_AUTOPILOT_BRIDGE_PREFLIGHT_OVERRIDE"] = "1"
+        env.setdefault("AERMANI_AUTOPILOT_BRIDGE_PREFLIGHT_OVERRIDE_REASON", "aermani demo --override-preflight")
     code = run_demo(command, scenario, accepted, env=env, t_max=t_max, log_dir=log_dir)
     raise typer.Exit(code)
 

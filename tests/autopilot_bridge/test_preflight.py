@@ -4,6 +4,7 @@ bridge arms; a failed preflight refuses arm and takeoff with every reason until 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import os
 import subprocess
 import sys
@@ -65,17 +66,25 @@ async def test_a_parameter_px4_never_reports_fails_the_preflight():
         assert not res.ok and "GF_MAX_HOR_DIST = not reported" in res.message
 
 
-async def test_override_arms_despite_a_failed_preflight():
-    async with bridge_and_fake(preflight_override=True) as (bridge, fake):
+async def test_override_arms_despite_a_failed_preflight_and_the_verdict_records_it():
+    async with bridge_and_fake(preflight_override=True, preflight_override_reason="bench, props off") as (bridge,
+                                                                                                       fake):
+        reports: list = []
+        bridge._publish_report = reports.append  # what the bridge publishes on autopilot/preflight
         fake.params["GF_ACTION"] = 0.0
         assert not (await bridge.handle(PreflightCommand())).ok  # the verdict is still told
         res = await bridge.handle(ArmCommand())
         assert res.ok, res.message
         assert fake.armed
+        assert [(r.trigger, r.ok, r.overridden) for r in reports] == [("request", False, False), ("arm", False, True)]
+        assert reports[-1].override_reason == "bench, props off"
+        assert any(c.name == "GF_ACTION" and not c.ok for c in reports[-1].checks)
 
 
 def _preflight_cli(endpoint: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "shared.cli", "preflight", "--connect", endpoint, "--timeout", "30"],
+    # The simulator renders 2 fps here (a fast suite): the camera check is held to that.
+    return subprocess.run([sys.executable, "-m", "shared.cli", "preflight", "--connect", endpoint, "--timeout", "30",
+                           "--min-fps", "1", "--max-frame-age", "2"],
                           capture_output=True, text=True, timeout=120, env={**os.environ, "COLUMNS": "200"})
 
 
@@ -89,6 +98,7 @@ def test_aermani_preflight_against_the_simulator(tmp_path, unsafe):
     if unsafe:
         env["AERMANI_SIM_PX4_PARAMS"] = "COM_OBL_RC_ACT=7,GF_ACTION=0"
     with run_stack(["sim", "autopilot_bridge"], tmp_path, env=env) as stack:
+        reports, stop_listening = _listen_for_reports(stack)
         out = _preflight_cli(stack.endpoint)
         for _ in range(20):  # the bridge answers "no link to PX4" until the simulator's first heartbeat
             if "no link to PX4" not in out.stdout:
@@ -99,6 +109,12 @@ def test_aermani_preflight_against_the_simulator(tmp_path, unsafe):
         if not unsafe:
             assert out.returncode == 0, text
             assert "preflight passed" in text and "COM_OBL_RC_ACT" in text and "4 (Land)" in text
+            print(text)
+            assert "camera" in text and "mavlink_rate" in text and "bus_round_trip" in text
+            stop_listening()
+            operator = [r for r in reports if r.trigger == "operator"]
+            assert operator and operator[-1].ok, reports  # the verdict is on the bus, so a recording keeps it
+            assert {"camera", "mavlink_rate", "bus_round_trip", "GF_ACTION"} <= {c.name for c in operator[-1].checks}
             return
         assert out.returncode == 1, text
         assert "preflight failed" in text and "7 (Disarm)" in text and "0 (None)" in text
@@ -111,3 +127,34 @@ def test_aermani_preflight_against_the_simulator(tmp_path, unsafe):
                 assert not state.armed
 
         asyncio.run(takeoff())
+        stop_listening()
+        gate = [r for r in reports if r.trigger == "takeoff"]
+        assert gate and not gate[-1].ok and not gate[-1].overridden, reports
+
+
+def _listen_for_reports(stack):
+    """Collect autopilot/preflight in a thread while the test runs the CLI (which runs its own event loop)."""
+    import threading
+
+    reports: list = []
+    done = threading.Event()
+
+    async def listen() -> None:
+        async with bus_for(stack) as bus:
+            sub = bus.subscribe(Keys("am1").autopilot_preflight)
+            ready.set()
+            while not done.is_set():
+                with contextlib.suppress(TimeoutError):
+                    reports.append(await sub.recv(timeout=0.2))
+
+    ready = threading.Event()
+    thread = threading.Thread(target=lambda: asyncio.run(listen()), daemon=True)
+    thread.start()
+    assert ready.wait(30), "no bus for the listener"
+
+    def stop() -> None:
+        time.sleep(0.5)  # the last report is on its way
+        done.set()
+        thread.join(10)
+
+    return reports, stop

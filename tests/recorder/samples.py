@@ -26,6 +26,8 @@ def example(cls: type[m.Message], i: int = 0) -> m.Message:
         m.GripperCommand: lambda: m.GripperCommand(action="close"),
         m.AutopilotResult: lambda: m.AutopilotResult(ok=True, command="arm"),
         m.PreflightCommand: lambda: m.PreflightCommand(),
+        m.PreflightReport: lambda: m.PreflightReport(
+            trigger="operator", ok=True, checks=(m.PreflightCheck(name="camera", ok=True, value="15 fps"),)),
         m.LocalizeRequest: lambda: m.LocalizeRequest(query="red cup"),
         m.ObjectEstimate: lambda: m.ObjectEstimate(query="red cup", found=True, pose=pose, size=v),
         m.PlacementEstimate: lambda: m.PlacementEstimate(query="table", found=True, pose=pose, plane=(0, 0, 1, -0.7)),

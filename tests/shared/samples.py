@@ -23,6 +23,8 @@ def sample_messages() -> list[m.Message]:
         m.GripperCommand(action="close"),
         m.AutopilotResult(ok=False, command="arm", ack_code=2, ack_name="MAV_RESULT_DENIED", message="denied"),
         m.PreflightCommand(),
+        m.PreflightReport(trigger="takeoff", ok=False, overridden=True, override_reason="bench test, props off",
+                          checks=(m.PreflightCheck(name="GF_ACTION", ok=False, value="0 (None)"),)),
         m.AutopilotResult(ok=False, command="preflight", message="preflight failed: GF_ACTION",
                           checks=(m.PreflightCheck(name="GF_ACTION", ok=False, value="0 (None)",
                                                    expected="2 Hold or 5 Land", reason="a runaway vehicle leaves"),
