@@ -9,7 +9,6 @@ paper's measure) median and p95 and the tokens per call. Nothing moves: no skill
 
 from __future__ import annotations
 
-import asyncio
 import statistics
 import time
 from dataclasses import asdict, dataclass, field
@@ -204,25 +203,6 @@ async def frame_from_stack(connect: str, vehicle_id: str, timeout: float) -> byt
         return None
     finally:
         await bus.close()
-
-
-def frame_from_new_sim(timeout: float = 90.0) -> bytes | None:
-    """Start the simulator service alone (free ports), take one camera frame, stop it."""
-    from shared.launcher import Stack, available_services
-
-    if "sim" not in available_services():
-        return None
-    from shared.launcher import loopback_mavlink_env
-
-    stack = Stack(["sim"], env=loopback_mavlink_env({"AERMANI_SIM_TARGET_OBJECT": "red cup",
-                                                     "AERMANI_SIM_DESTINATION": "table"}))
-    try:
-        stack.start(wait=True, timeout=timeout)
-        return asyncio.run(frame_from_stack(stack.endpoint, stack.procs[0].vehicle_id, 30.0))
-    except Exception:
-        return None
-    finally:
-        stack.stop()
 
 
 def generated_frame() -> bytes:

@@ -75,7 +75,7 @@ async def test_override_arms_despite_a_failed_preflight():
 
 
 def _preflight_cli(endpoint: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "shared.cli", "preflight", "--connect", endpoint, "--timeout", "30"],
+    return subprocess.run([sys.executable, "-m", "aermani.cli", "preflight", "--connect", endpoint, "--timeout", "30"],
                           capture_output=True, text=True, timeout=120, env={**os.environ, "COLUMNS": "200"})
 
 
