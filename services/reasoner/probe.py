@@ -4,7 +4,8 @@ With a camera frame (from a running stack's simulator, else from a simulator sta
 generated room-like frame; the report says which) and the full-variant prompt of a first step, it checks:
 the image is accepted, schema-constrained output is supported (or rejected, and free text works), answers
 parse and validate against the skill library; then it makes N calls and reports the response time (RT, the
-paper's measure) median and p95 and the tokens per call. Nothing moves: no skill is executed.
+paper's measure) median and p95 and the tokens per call. Nothing moves: no skill is executed. The command and
+the simulator started for its frame are the application's (aermani/probe.py): a service starts no other.
 """
 
 from __future__ import annotations
