@@ -23,11 +23,12 @@ WORKDIR /app
 COPY pyproject.toml ./
 # The dependencies first, in a layer that changes only with pyproject.toml (the package is installed empty
 # and removed again): a code change then rebuilds in seconds instead of reinstalling Open3D and MuJoCo.
-RUN mkdir -p shared services && touch README.md && pip install --no-cache-dir . && pip uninstall -y -q aermani \
- && rm -rf shared services build
+RUN mkdir -p shared services aermani && touch README.md && pip install --no-cache-dir . && pip uninstall -y -q aermani \
+ && rm -rf shared services aermani build
 COPY README.md ./
 COPY shared ./shared
 COPY services ./services
+COPY aermani ./aermani
 RUN pip install --no-cache-dir --no-deps .
 
 ENV PYTHONUNBUFFERED=1 \

@@ -14,11 +14,12 @@ demo: setup
 up: setup
 	$(VENV)/bin/aermani up
 
-# ruff (style, line length, complexity, class docstrings), mypy strict on the shared contract, mypy on services.
+# ruff (style, line length, complexity, class docstrings), mypy strict on the shared contract, mypy on the services
+# and on the application (aermani/: CLI, launcher, demo, evaluation).
 lint-only:
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/mypy --strict shared
-	$(VENV)/bin/mypy services
+	$(VENV)/bin/mypy services aermani
 
 lint: setup
 	$(MAKE) --no-print-directory lint-only

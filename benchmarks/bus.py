@@ -22,10 +22,10 @@ import zenoh
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from aermani.launcher import free_port, open_router  # noqa: E402
 from benchmarks._figures import add_json_option, write_json  # noqa: E402
 from shared.bus import Bus, zenoh_config  # noqa: E402
 from shared.keys import Protobuf, Topic  # noqa: E402
-from shared.launcher import free_port, open_router  # noqa: E402
 from shared.messages import Health  # noqa: E402
 from shared.sensors import color_message, raw16_message  # noqa: E402
 

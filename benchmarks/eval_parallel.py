@@ -17,9 +17,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from aermani.evaluation.metrics import compute  # noqa: E402
+from aermani.evaluation.runner import RunConfig, run  # noqa: E402
 from benchmarks._figures import add_json_option, write_json  # noqa: E402
-from services.evaluation.metrics import compute  # noqa: E402
-from services.evaluation.runner import RunConfig, run  # noqa: E402
 
 
 def sweep(parallel: int, episodes: int, speed: float, root: Path) -> tuple[float, int, int]:

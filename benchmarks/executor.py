@@ -23,10 +23,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from aermani.launcher import Stack, free_udp_port  # noqa: E402
 from benchmarks._figures import add_json_option, write_json  # noqa: E402
 from shared.bus import Bus  # noqa: E402
 from shared.keys import Keys  # noqa: E402
-from shared.launcher import Stack, free_udp_port  # noqa: E402
 from shared.messages import (  # noqa: E402
     Abort,
     SkillRequest,

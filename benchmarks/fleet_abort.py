@@ -24,11 +24,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from aermani.launcher import Stack, free_udp_port  # noqa: E402
 from benchmarks._figures import add_json_option, write_json  # noqa: E402
 from shared.action import skill_client  # noqa: E402
 from shared.bus import Bus, Subscription  # noqa: E402
 from shared.keys import FLEET_ABORT, Keys  # noqa: E402
-from shared.launcher import Stack, free_udp_port  # noqa: E402
 from shared.messages import Abort, AbortAck, SkillRequest, SkillState, VehicleState  # noqa: E402
 
 

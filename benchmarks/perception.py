@@ -25,6 +25,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from aermani.launcher import free_port  # noqa: E402
 from benchmarks._figures import add_json_option, write_json  # noqa: E402
 from services.perception import query as q  # noqa: E402
 from services.perception.pipeline import Perception  # noqa: E402
@@ -34,7 +35,6 @@ from shared.bus import Bus  # noqa: E402
 from shared.errors import NoResponder  # noqa: E402
 from shared.frames import base_to_camera  # noqa: E402
 from shared.keys import Keys  # noqa: E402
-from shared.launcher import free_port  # noqa: E402
 from shared.messages import LocalizeRequest, Vec3  # noqa: E402
 from shared.sensors import raw16_message, transforms_message  # noqa: E402
 from tests.perception.scenes import aim_at, layout, render_view  # noqa: E402

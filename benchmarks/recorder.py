@@ -19,10 +19,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from aermani.launcher import Stack  # noqa: E402
 from benchmarks._figures import add_json_option, write_json  # noqa: E402
 from shared.bus import Bus  # noqa: E402
 from shared.keys import Keys  # noqa: E402
-from shared.launcher import Stack  # noqa: E402
 from shared.messages import VehicleState  # noqa: E402
 from shared.sensors import color_message, encode_jpeg, raw16_message  # noqa: E402
 

@@ -26,6 +26,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from aermani.launcher import Stack, available_services, free_udp_port  # noqa: E402
 from benchmarks._figures import add_json_option, write_json  # noqa: E402
 from services.sim.app import CameraPublisher  # noqa: E402
 from services.sim.core import SimCore, Snapshot  # noqa: E402
@@ -33,7 +34,6 @@ from services.sim.layout import OBJECTS  # noqa: E402
 from services.sim.settings import SimSettings  # noqa: E402
 from shared.bus import Bus  # noqa: E402
 from shared.keys import Keys  # noqa: E402
-from shared.launcher import Stack, available_services, free_udp_port  # noqa: E402
 from shared.messages import ArmCommand, Scenario, TakeoffCommand  # noqa: E402
 
 

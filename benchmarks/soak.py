@@ -26,11 +26,11 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from aermani.launcher import Stack, free_udp_port  # noqa: E402
 from benchmarks._figures import add_json_option, write_json  # noqa: E402
 from services.executor.settings import ExecutorSettings  # noqa: E402
 from shared.bus import Bus  # noqa: E402
 from shared.keys import HEALTH_TOPIC, HEARTBEAT_TOPIC, Keys  # noqa: E402
-from shared.launcher import Stack, free_udp_port  # noqa: E402
 from shared.messages import Health, Heartbeat, Scenario, TaskRequest, VehicleState  # noqa: E402
 from shared.tasks import follow_task  # noqa: E402
 

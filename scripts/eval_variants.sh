@@ -17,7 +17,7 @@ SERVER=$!
 trap 'kill -INT "$SERVER" 2>/dev/null || true; wait "$SERVER" 2>/dev/null || true; rm -f "$LOG"' EXIT
 for _ in $(seq 120); do grep -q "OpenAI-compatible" "$LOG" && break; sleep 0.5; done
 grep -q "OpenAI-compatible" "$LOG" || { cat "$LOG"; echo "the test server did not start" >&2; exit 1; }
-AERMANI_REASONER_API_KEY=none "$PY" -m shared.cli eval --backend openai --model fake-vlm \
+AERMANI_REASONER_API_KEY=none "$PY" -m aermani.cli eval --backend openai --model fake-vlm \
   --base-url "http://127.0.0.1:$PORT/v1" --variant unstructured,no_drt,drt_v1,drt_v2,drt_v3,full --episodes 1 \
   --parallel 3 --t-max 300 --out "$OUT" \
   --note "Numbers reflect the local OpenAI-compatible test server (tests/reasoner/fake_vlm.py: it answers every prompt with the rules policy's decision read from the prompt text alone, and every 20th answer is truncated to exercise re-prompting), not a real VLM." \

@@ -1,5 +1,5 @@
 """What the services' `cli.py` files share: the `--connect`/`--vehicle` options, a command group, one query to
-a running stack, and a bus that exists only when a router answers in time (`shared/cli.py` loads the files)."""
+a running stack, and a bus that exists only when a router answers in time (`aermani/cli.py` loads the files)."""
 
 from __future__ import annotations
 

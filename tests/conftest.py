@@ -32,7 +32,7 @@ def pytest_pycollect_makeitem(collector: pytest.Collector, name: str, obj: objec
 @pytest.fixture
 def router() -> object:
     """One Zenoh router on a free loopback port (multicast scouting off); yields its endpoint."""
-    from shared.launcher import free_port, open_router
+    from aermani.launcher import free_port, open_router
 
     port = free_port()
     session = open_router(port)

@@ -9,10 +9,10 @@ from collections.abc import AsyncIterator, Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+from aermani.launcher import Stack, free_port, free_udp_port, loopback_mavlink_env
 from shared.bus import Bus, Subscription
 from shared.errors import NoResponder
 from shared.keys import BoundTopic
-from shared.launcher import Stack, free_port, free_udp_port, loopback_mavlink_env
 from shared.messages import SkillStatus
 
 __all__ = ["Stack", "free_port", "free_udp_port", "run_stack", "bus_for", "wait_until", "skill_outcome", "arun"]

@@ -4,12 +4,12 @@ With a camera frame (from a running stack's simulator, else from a simulator sta
 generated room-like frame; the report says which) and the full-variant prompt of a first step, it checks:
 the image is accepted, schema-constrained output is supported (or rejected, and free text works), answers
 parse and validate against the skill library; then it makes N calls and reports the response time (RT, the
-paper's measure) median and p95 and the tokens per call. Nothing moves: no skill is executed.
+paper's measure) median and p95 and the tokens per call. Nothing moves: no skill is executed. The command and
+the simulator started for its frame are the application's (aermani/probe.py): a service starts no other.
 """
 
 from __future__ import annotations
 
-import asyncio
 import statistics
 import time
 from dataclasses import asdict, dataclass, field
@@ -204,25 +204,6 @@ async def frame_from_stack(connect: str, vehicle_id: str, timeout: float) -> byt
         return None
     finally:
         await bus.close()
-
-
-def frame_from_new_sim(timeout: float = 90.0) -> bytes | None:
-    """Start the simulator service alone (free ports), take one camera frame, stop it."""
-    from shared.launcher import Stack, available_services
-
-    if "sim" not in available_services():
-        return None
-    from shared.launcher import loopback_mavlink_env
-
-    stack = Stack(["sim"], env=loopback_mavlink_env({"AERMANI_SIM_TARGET_OBJECT": "red cup",
-                                                     "AERMANI_SIM_DESTINATION": "table"}))
-    try:
-        stack.start(wait=True, timeout=timeout)
-        return asyncio.run(frame_from_stack(stack.endpoint, stack.procs[0].vehicle_id, 30.0))
-    except Exception:
-        return None
-    finally:
-        stack.stop()
 
 
 def generated_frame() -> bytes:

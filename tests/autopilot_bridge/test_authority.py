@@ -18,9 +18,9 @@ import httpx
 import pytest
 from pymavlink.dialects.v20 import common as mav
 
+from aermani.launcher import free_udp_port
 from shared.bus import Bus, Latest
 from shared.keys import Keys
-from shared.launcher import free_udp_port
 from shared.messages import (
     GotoCommand,
     Scenario,

@@ -75,7 +75,7 @@ async def test_state_health_commands_over_zenoh() -> None:
 
         # The hand-control CLI reads the same state and health.
         proc = await asyncio.create_subprocess_exec(
-            sys.executable, "-m", "shared.cli", "autopilot", "state", "--connect", f"tcp/127.0.0.1:{zport}",
+            sys.executable, "-m", "aermani.cli", "autopilot", "state", "--connect", f"tcp/127.0.0.1:{zport}",
             "--vehicle", "t1", stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.STDOUT,
             env={**os.environ, "COLUMNS": "200"})
         out, _ = await asyncio.wait_for(proc.communicate(), 60)

@@ -83,7 +83,7 @@ async def test_override_arms_despite_a_failed_preflight_and_the_verdict_records_
 
 def _preflight_cli(endpoint: str) -> subprocess.CompletedProcess:
     # The simulator renders 2 fps here (a fast suite): the camera check is held to that.
-    return subprocess.run([sys.executable, "-m", "shared.cli", "preflight", "--connect", endpoint, "--timeout", "30",
+    return subprocess.run([sys.executable, "-m", "aermani.cli", "preflight", "--connect", endpoint, "--timeout", "30",
                            "--min-fps", "1", "--max-frame-age", "2"],
                           capture_output=True, text=True, timeout=120, env={**os.environ, "COLUMNS": "200"})
 

@@ -19,11 +19,11 @@ import cv2
 import numpy as np
 import pytest
 
+from aermani.launcher import Stack
 from services.sim.scenarios import generate
 from shared.bus import Latest
 from shared.frames import DEFAULT_INTRINSICS
 from shared.keys import Keys
-from shared.launcher import Stack
 from shared.messages import (
     ArmCommand,
     JudgeRequest,

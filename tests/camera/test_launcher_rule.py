@@ -3,7 +3,7 @@ the same stack keeps its camera off while the bridge publishes world->base_link 
 
 from __future__ import annotations
 
-from shared.launcher import Stack, available_services, camera_configured, default_services
+from aermani.launcher import Stack, available_services, camera_configured, default_services
 
 
 def test_camera_is_started_only_when_configured():

@@ -159,7 +159,7 @@ async def test_camera_service_conforms_to_its_declarations(tmp_path):
 
 def _cli_health(endpoint: str) -> str:
     env = {**os.environ, "COLUMNS": "250", "PYTHONPATH": os.getcwd()}
-    out = subprocess.run([sys.executable, "-m", "shared.cli", "health", "--connect", endpoint, "--timeout", "2.5"],
+    out = subprocess.run([sys.executable, "-m", "aermani.cli", "health", "--connect", endpoint, "--timeout", "2.5"],
                          capture_output=True, text=True, env=env, timeout=60)
     return out.stdout + out.stderr
 

@@ -25,7 +25,7 @@ from typing import Any
 import httpx
 import pytest
 
-from shared.launcher import free_port
+from aermani.launcher import free_port
 
 ROOT = Path(__file__).resolve().parents[2]
 IMAGE = "localhost/aermani:latest"  # what `image: aermani:latest` in the compose file resolves to
@@ -122,7 +122,7 @@ class Stack:
         self.token = secrets.token_hex(16)
         self.http_port = free_port()
         certs = work / "certs"
-        cli = _run([sys.executable, "-m", "shared.cli", "certs", "init", "--out", str(certs)], cwd=ROOT)
+        cli = _run([sys.executable, "-m", "aermani.cli", "certs", "init", "--out", str(certs)], cwd=ROOT)
         assert cli.returncode == 0, cli.stderr
         for f in certs.iterdir():  # containers run as uid 1000 (README: `chown 1000` the keys)
             if os.geteuid() == 0:

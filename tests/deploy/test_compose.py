@@ -26,7 +26,7 @@ def test_every_python_service_runs_a_real_module():
         if svc.get("image", "").startswith(("eclipse/zenoh", "px4io/")):
             continue
         cmd = svc["command"]
-        if cmd[:2] == ["shared.cli", "router"]:  # a secure router from shared/routers/
+        if cmd[:2] == ["aermani.cli", "router"]:  # a secure router from shared/routers/
             assert name.startswith("zenoh-"), name
             continue
         assert len(cmd) == 1 and cmd[0].startswith("services."), (name, cmd)

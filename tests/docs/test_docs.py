@@ -154,9 +154,9 @@ def _split(block: Block, line: int, text: str) -> list[Command]:
 def _cli():
     import typer.main
 
-    import shared.cli as cli
+    import aermani.cli as cli
 
-    cli._register_service_commands()
+    cli._register_commands()
     return cli.app, typer.main.get_command(cli.app)
 
 
@@ -319,7 +319,7 @@ def test_markers_name_existing_tests_and_known_needs(block: Block) -> None:
 def test_the_installed_aermani_command_runs() -> None:
     """The entry point itself (the in-process help checks above share its code, not its installation)."""
     exe = Path(sys.executable).parent / "aermani"
-    cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "shared.cli"]
+    cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "aermani.cli"]
     res = subprocess.run([*cmd, "--help"], capture_output=True, text=True, timeout=120, cwd=ROOT)
     assert res.returncode == 0 and "eval" in res.stdout, res.stderr[-500:]
 

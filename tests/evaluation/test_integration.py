@@ -12,9 +12,9 @@ from pathlib import Path
 
 import pytest
 
-from services.evaluation.records import RESULTS_FILE, ResultsFile
-from services.evaluation.runner import PER_VEHICLE_SERVICES, RunConfig, run, vehicle_env
-from shared.launcher import Stack, free_port
+from aermani.evaluation.records import RESULTS_FILE, ResultsFile
+from aermani.evaluation.runner import PER_VEHICLE_SERVICES, RunConfig, run, vehicle_env
+from aermani.launcher import Stack, free_port
 
 pytestmark = pytest.mark.integration
 
@@ -73,7 +73,7 @@ def test_parallel_vehicles_have_no_cross_talk(tmp_path):
 
 def test_interrupted_run_resumes_without_rerunning_finished_episodes(tmp_path):
     out = tmp_path / "eval"
-    args = [sys.executable, "-m", "shared.cli", "eval", "--suites", "localization", "--episodes", "2",
+    args = [sys.executable, "-m", "aermani.cli", "eval", "--suites", "localization", "--episodes", "2",
             "--out", str(out), "--speed-factor", "4", "--t-max", "240", "--no-progress"]
     env = {**os.environ, "AERMANI_SIM_FPS": "5"}
     proc = subprocess.Popen(args, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,

@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from services.evaluation.metrics import (
+from aermani.evaluation.metrics import (
     Action,
     actions_of,
     compute,
@@ -19,9 +19,9 @@ from services.evaluation.metrics import (
     repeated_localizations,
     zero_net_sequences,
 )
-from services.evaluation.records import EpisodeRecord
-from services.evaluation.runner import success_verdict
-from services.evaluation.tasks import EvalTask
+from aermani.evaluation.records import EpisodeRecord
+from aermani.evaluation.runner import success_verdict
+from aermani.evaluation.tasks import EvalTask
 from shared.messages import (
     ModelCall,
     Pose,
@@ -348,9 +348,9 @@ def test_displacement_rules_from_step_records():
 def test_a_refused_command_is_a_failed_episode_not_an_excluded_one() -> None:
     """A command the policy refuses before takeoff is its answer: counted as a failure, never restarted or
     left out of the metrics (records written by older harnesses are read the same way)."""
-    from services.evaluation.records import EpisodeRecord
-    from services.evaluation.runner import _failed_before_first_step
-    from services.evaluation.tasks import EvalTask
+    from aermani.evaluation.records import EpisodeRecord
+    from aermani.evaluation.runner import _failed_before_first_step
+    from aermani.evaluation.tasks import EvalTask
     from shared.messages import TaskState, TaskStatus
 
     task = EvalTask(command="tissue box -> shelf", suite="localization", target_object="tissue box",

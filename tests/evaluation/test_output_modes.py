@@ -3,10 +3,10 @@ are compared side by side."""
 
 from __future__ import annotations
 
-from services.evaluation.records import EpisodeRecord, ResultsFile
-from services.evaluation.report import write_mode_comparison, write_report
-from services.evaluation.runner import RunConfig, vehicle_env
-from services.evaluation.tasks import load_suites
+from aermani.evaluation.records import EpisodeRecord, ResultsFile
+from aermani.evaluation.report import write_mode_comparison, write_report
+from aermani.evaluation.runner import RunConfig, vehicle_env
+from aermani.evaluation.tasks import load_suites
 from shared.messages import ModelCall, ReasoningStep, SkillState, SkillToExecute
 
 

@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from services.evaluation.records import RESULTS_FILE, ResultsFile
+from aermani.evaluation.records import RESULTS_FILE, ResultsFile
 from tests.reasoner.fake_vlm import FakeVLMServer
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
@@ -18,7 +18,7 @@ pytestmark = [pytest.mark.integration, pytest.mark.slow]
 def test_eval_both_output_modes(tmp_path) -> None:
     with FakeVLMServer(fault_every=4) as vlm:
         env = {**os.environ, "AERMANI_REASONER_API_KEY": "none", "AERMANI_SIM_FPS": "5"}
-        res = subprocess.run([sys.executable, "-m", "shared.cli", "eval", "--backend", "openai", "--model", "fake-vlm",
+        res = subprocess.run([sys.executable, "-m", "aermani.cli", "eval", "--backend", "openai", "--model", "fake-vlm",
                               "--base-url", vlm.openai_base_url, "--suites", "localization", "--episodes", "1",
                               "--t-max", "240", "--speed-factor", "4", "--output-mode", "both", "--no-progress",
                               "--out", str(tmp_path)], capture_output=True, text=True, env=env, timeout=900)

@@ -6,10 +6,10 @@ import json
 
 import pytest
 
-from services.evaluation.records import EpisodeRecord, ResultsFile
-from services.evaluation.report import backend_note, write_report
-from services.evaluation.runner import RunConfig, episode_specs
-from services.evaluation.tasks import PAPER_SUITES, derive_seed, expand, load_jsonl, load_suites
+from aermani.evaluation.records import EpisodeRecord, ResultsFile
+from aermani.evaluation.report import backend_note, write_report
+from aermani.evaluation.runner import RunConfig, episode_specs
+from aermani.evaluation.tasks import PAPER_SUITES, derive_seed, expand, load_jsonl, load_suites
 from services.sim.layout import OBJECTS, SURFACES
 from shared.errors import ConfigError
 from shared.messages import ModelCall, ReasoningStep, SkillState, SkillToExecute
@@ -85,7 +85,7 @@ def test_run_config_names_the_split_and_the_command_that_reproduces_it(tmp_path)
     assert "--segmenter color --realism realistic --speed-factor 4 " in line and "--suites search" in line
     import inspect
 
-    from services.evaluation.cli import eval_command  # the line's options are the CLI's own
+    from aermani.evaluation.cli import eval_command  # the line's options are the CLI's own
     params = set(inspect.signature(eval_command).parameters)
     opts = [a[2:].replace("-", "_") for a in line.split() if a.startswith("--")]
     assert set(opts) <= params | {"t_max"}, set(opts) - params
@@ -178,7 +178,7 @@ def test_report_states_the_configuration_names_the_rules_baseline_and_lists_ever
     rf.append(_rec("rules/full/localization/002-s13", False, backend="rules").model_copy(
         update={"seed": 13, "harness_error": "sim/reset refused the scenario: no room"}))
     cfg = RunConfig(out=tmp_path, split="dev", episodes=3)
-    from services.evaluation.runner import run_config_of
+    from aermani.evaluation.runner import run_config_of
     doc_cfg = run_config_of(cfg)
     paths = write_report(tmp_path, config=doc_cfg)
     md = paths["markdown"].read_text()

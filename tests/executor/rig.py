@@ -6,12 +6,12 @@ import asyncio
 import contextlib
 from dataclasses import dataclass
 
+from aermani.launcher import free_port, open_router
 from services.executor.service import Executor
 from services.executor.settings import ExecutorSettings
 from shared.bus import Bus, Subscription
 from shared.errors import BusError
 from shared.keys import Keys
-from shared.launcher import free_port, open_router
 from shared.messages import SkillAccept, SkillRequest, SkillState, SkillStatus, WorkingMemory
 from tests.executor.fakes import FakeAutopilot, FakeDepth, FakePerception, ToyWorld, cancel_all
 from tests.helpers import skill_outcome, wait_until

@@ -24,9 +24,9 @@ from pathlib import Path
 import httpx
 import pytest
 
+from aermani.launcher import available_services, free_port
 from services.executor.settings import ExecutorSettings
 from shared.keys import Keys
-from shared.launcher import available_services, free_port
 from shared.mcaplog import iter_samples, recover
 from shared.messages import Health, ReasoningStep
 from tests.gateway.conftest import TOKEN, read_sse

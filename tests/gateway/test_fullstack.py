@@ -10,7 +10,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from shared.launcher import available_services
+from aermani.launcher import available_services
 from shared.messages import Scenario
 from tests.gateway.conftest import TOKEN, read_sse, wait_task
 from tests.gateway.test_process import GatewayProcess

@@ -17,7 +17,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from shared.launcher import free_port, open_router
+from aermani.launcher import free_port, open_router
 from shared.security import init_certs
 from tests.gateway.conftest import TOKEN
 from tests.gateway.fakes import Harness

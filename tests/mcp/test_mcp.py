@@ -109,7 +109,7 @@ async def _drive(client: Client) -> None:
 
 
 def test_stdio_client_starts_follows_sees_and_aborts(gw):
-    params = StdioServerParameters(command=sys.executable, args=["-m", "shared.cli", "mcp"], env=_env(gw))
+    params = StdioServerParameters(command=sys.executable, args=["-m", "aermani.cli", "mcp"], env=_env(gw))
 
     async def main():
         async with Client(params) as client:
@@ -166,7 +166,7 @@ def test_refuses_an_open_http_bind_without_a_token():
 
 def test_stdio_client_decides_approvals(tmp_path):
     h = Harness(tmp_path, gateway_settings={"token": GW_TOKEN}, steps=5, step_delay_s=0.2).start()
-    params = StdioServerParameters(command=sys.executable, args=["-m", "shared.cli", "mcp"], env=_env(h))
+    params = StdioServerParameters(command=sys.executable, args=["-m", "aermani.cli", "mcp"], env=_env(h))
 
     async def pending(client: Client) -> list[dict]:
         deadline = time.monotonic() + 30

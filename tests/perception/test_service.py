@@ -17,11 +17,11 @@ import time
 import numpy as np
 import pytest
 
+from aermani.launcher import free_port
 from services.sim.scenarios import generate
 from shared.bus import Bus, Latest
 from shared.errors import NoResponder
 from shared.keys import Keys
-from shared.launcher import free_port
 from shared.messages import (
     ArmCommand,
     GotoCommand,

@@ -59,10 +59,10 @@ def test_registered_backend_is_selectable_by_settings_and_gateway_input() -> Non
 
 def test_cli_lists_a_backend_from_a_module_setting() -> None:
     env = {**os.environ, "AERMANI_REASONER_BACKEND_MODULES": THIS_MODULE}
-    out = subprocess.run([sys.executable, "-m", "shared.cli", "vlm", "backends"], capture_output=True, text=True,
+    out = subprocess.run([sys.executable, "-m", "aermani.cli", "vlm", "backends"], capture_output=True, text=True,
                          env=env, timeout=120, check=True).stdout
     assert "counting_test" in out and "rules" in out
-    bad = subprocess.run([sys.executable, "-m", "shared.cli", "vlm", "backends"], capture_output=True, text=True,
+    bad = subprocess.run([sys.executable, "-m", "aermani.cli", "vlm", "backends"], capture_output=True, text=True,
                          env={**env, "AERMANI_REASONER_BACKEND_MODULES": "no_such_module_xyz"}, timeout=120)
     assert bad.returncode != 0 and "no_such_module_xyz" in bad.stdout + bad.stderr
 
@@ -92,7 +92,7 @@ async def test_reasoner_process_runs_a_task_on_the_registered_backend_and_names_
 def test_no_help_text_lists_the_backends() -> None:
     """The names live in the registry only: `--backend` help points to `aermani vlm backends`."""
     for cmd in (["demo"], ["eval"], ["rereason"], ["vlm", "probe"]):
-        out = subprocess.run([sys.executable, "-m", "shared.cli", *cmd, "--help"], capture_output=True, text=True,
+        out = subprocess.run([sys.executable, "-m", "aermani.cli", *cmd, "--help"], capture_output=True, text=True,
                              timeout=120, env={**os.environ, "COLUMNS": "200"}).stdout
         assert "--backend" in out and "vlm backends" in out, cmd
         assert "anthropic" not in out and "openai, " not in out, cmd

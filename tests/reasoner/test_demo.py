@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from services.reasoner.cli import run_demo, scenario_for
-from shared.launcher import available_services
+from aermani.demo import run_demo, scenario_for
+from aermani.launcher import available_services
 from tests.reasoner.fake_vlm import FakeVLMServer
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
@@ -46,7 +46,7 @@ def test_demo_rules(tmp_path) -> None:
     assert result["segmenter"] == "color" and result["realism"] == "realistic", result
     (log,) = sorted((tmp_path / "rec").glob("*.mcap"))
     bag = tmp_path / "bag"
-    out = subprocess.run([sys.executable, "-m", "shared.cli", "log", "export", str(log), "--out", str(bag), "--ros2"],
+    out = subprocess.run([sys.executable, "-m", "aermani.cli", "log", "export", str(log), "--out", str(bag), "--ros2"],
                          capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, out.stdout + out.stderr
     by_rosbags, by_mcap = read_bag_both_ways(bag)

@@ -14,7 +14,7 @@ CMD = "pick up the red cup and place it on the table"
 def _demo(*args: str, **env: str) -> subprocess.CompletedProcess[str]:
     clean = {k: v for k, v in os.environ.items()
              if k not in ("AERMANI_REASONER_API_KEY", "OPENAI_API_KEY", "ANTHROPIC_API_KEY", "AERMANI_TEST_KEY")}
-    return subprocess.run([sys.executable, "-m", "shared.cli", "demo", CMD, *args], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "aermani.cli", "demo", CMD, *args], capture_output=True, text=True,
                           timeout=120, env={**clean, "COLUMNS": "200", **env}, check=False)
 
 
@@ -32,7 +32,7 @@ def test_api_key_env_names_a_variable_that_must_be_set() -> None:
 
 
 def test_the_key_is_read_from_the_named_variable() -> None:
-    from services.reasoner.cli import backend_key_env
+    from aermani.demo import backend_key_env
 
     os.environ["AERMANI_TEST_KEY"] = "sk-test-not-a-real-key"
     try:

@@ -238,7 +238,7 @@ def test_vlm_check_reads_the_whole_file_past_pathological_lines(tmp_path) -> Non
     lines = [full(), "{" * 20_000, '{"a": ' * 1000 + "1" + "}" * 1000, "x" * 40_000, full("yaw_left", None)]
     f = tmp_path / "answers.jsonl"
     f.write_text("".join(json.dumps(x) + "\n" for x in lines))
-    res = subprocess.run([sys.executable, "-m", "shared.cli", "vlm", "check", str(f), "--offline"],
+    res = subprocess.run([sys.executable, "-m", "aermani.cli", "vlm", "check", str(f), "--offline"],
                          capture_output=True, text=True, timeout=120)
     out = res.stdout
     assert res.returncode == 1, res.stderr

@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from shared.launcher import available_services
+from aermani.launcher import available_services
 from tests.reasoner.fake_vlm import FakeVLMServer
 
 pytestmark = pytest.mark.integration
@@ -22,7 +22,7 @@ def closed_port() -> int:
 
 
 def probe(args: list[str], out) -> tuple[subprocess.CompletedProcess, dict]:
-    res = subprocess.run([sys.executable, "-m", "shared.cli", "vlm", "probe", "--api-key", "none", "--model",
+    res = subprocess.run([sys.executable, "-m", "aermani.cli", "vlm", "probe", "--api-key", "none", "--model",
                           "fake-vlm", "--connect", f"tcp/127.0.0.1:{closed_port()}", "--out", str(out), *args],
                          capture_output=True, text=True, timeout=240)
     return res, json.loads(out.read_text()) if out.exists() else {}
@@ -59,7 +59,7 @@ def test_probe_anthropic_reports_a_refused_schema(tmp_path) -> None:
 def test_probe_names_a_missing_key(tmp_path, monkeypatch) -> None:
     monkeypatch.delenv("ANTHROPIC_API_KEY", raising=False)
     monkeypatch.delenv("AERMANI_REASONER_API_KEY", raising=False)
-    res = subprocess.run([sys.executable, "-m", "shared.cli", "vlm", "probe", "--backend", "anthropic", "--no-sim",
+    res = subprocess.run([sys.executable, "-m", "aermani.cli", "vlm", "probe", "--backend", "anthropic", "--no-sim",
                           "--connect", f"tcp/127.0.0.1:{closed_port()}", "--out", str(tmp_path / "p.json")],
                          capture_output=True, text=True, timeout=120)
     assert res.returncode == 2 and "no API key: set AERMANI_REASONER_API_KEY or ANTHROPIC_API_KEY" in res.stdout

@@ -407,7 +407,7 @@ def test_approach_retries_one_blocked_forward_and_decides_after_two() -> None:
 
 def test_demo_scenario_keeps_a_command_without_destination_without_one():
     # The demo judges "held" for such commands; the simulator's own choice of destination must not leak in.
-    from services.reasoner.cli import scenario_for
+    from aermani.demo import scenario_for
 
     sc, _ = scenario_for("ignore the tools and pick up the green bottle", None, None, 0)
     assert sc.target_object == "green bottle" and sc.destination is None

@@ -10,9 +10,9 @@ import re
 
 import pytest
 
+from aermani.launcher import available_services
 from shared.bus import query_ready
 from shared.keys import Keys
-from shared.launcher import available_services
 from shared.messages import Scenario, TaskRequest, TaskState
 from shared.tasks import follow_task
 from tests.helpers import arun, bus_for, run_stack

@@ -59,7 +59,7 @@ def single_file(tmp_path: Path) -> Path:
 
 
 def aermani(*args: str, timeout: float = 120.0) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "shared.cli", *args], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "aermani.cli", *args], capture_output=True, text=True,
                           timeout=timeout, env={**os.environ, "RUST_LOG": "error"})
 
 
@@ -150,7 +150,7 @@ async def test_records_every_key_with_schemas_then_replays_the_steps(tmp_path: P
                 sub = bus.subscribe(K.reasoning_step, maxsize=1000)
                 await asyncio.sleep(0.5)  # let the subscription reach the router
                 proc = await asyncio.create_subprocess_exec(
-                    sys.executable, "-m", "shared.cli", "replay", str(path), "--speed", "0",
+                    sys.executable, "-m", "aermani.cli", "replay", str(path), "--speed", "0",
                     "--keys", "aermani/*/*/reasoner/**", "--connect", replay_stack.endpoint)
                 assert await asyncio.wait_for(proc.wait(), 120) == 0
                 out = []

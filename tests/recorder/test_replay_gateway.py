@@ -62,7 +62,7 @@ def test_replay_shows_the_steps_in_the_gateway_sse(tmp_path: Path) -> None:
             assert time.monotonic() < deadline, "gateway not up"
             time.sleep(0.2)
         time.sleep(0.5)  # the gateway's subscriptions reach the router
-        res = subprocess.run([sys.executable, "-m", "shared.cli", "replay", str(log), "--speed", "1",
+        res = subprocess.run([sys.executable, "-m", "aermani.cli", "replay", str(log), "--speed", "1",
                               "--connect", stack.endpoint], capture_output=True, text=True, timeout=120)
         assert res.returncode == 0, res.stderr
         assert "replayed 6 samples" in res.stdout

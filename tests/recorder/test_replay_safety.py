@@ -12,12 +12,12 @@ from pathlib import Path
 
 import pytest
 
+from aermani.launcher import free_port, open_router
 from services.recorder.replay import is_control_key, remap_sample
 from services.recorder.settings import RecorderSettings
 from services.recorder.writer import RecordWriter
 from shared.bus import Bus, encode
 from shared.keys import Keys
-from shared.launcher import free_port, open_router
 from shared.messages import Abort, GotoCommand, Vec3, VehicleState
 from tests.helpers import arun
 from tests.recorder.samples import step_message
@@ -54,7 +54,7 @@ def replay_and_listen(log: Path, *args: str) -> tuple[str, list[tuple[str, bytes
             sub = bus.subscribe("aermani/**", maxsize=1000)
             await asyncio.sleep(0.5)
             proc = await asyncio.create_subprocess_exec(
-                sys.executable, "-m", "shared.cli", "replay", str(log), "--speed", "0", "--connect", endpoint,
+                sys.executable, "-m", "aermani.cli", "replay", str(log), "--speed", "0", "--connect", endpoint,
                 *args, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
             out, errout = await asyncio.wait_for(proc.communicate(), 120)
             assert proc.returncode == 0, errout.decode()
@@ -104,7 +104,7 @@ def test_vehicle_remap_moves_keys_and_payload(log) -> None:
 
 
 def test_bad_remap_is_refused_before_publishing(log) -> None:
-    res = subprocess.run([sys.executable, "-m", "shared.cli", "replay", str(log), "--vehicle", "a/b",
+    res = subprocess.run([sys.executable, "-m", "aermani.cli", "replay", str(log), "--vehicle", "a/b",
                           "--connect", "tcp/127.0.0.1:1"], capture_output=True, text=True, timeout=60)
     assert res.returncode == 2 and "invalid vehicle id" in res.stderr
 

@@ -15,7 +15,7 @@ import httpx
 import numpy as np
 import pytest
 
-from shared.launcher import available_services
+from aermani.launcher import available_services
 from shared.messages import VehicleState
 from shared.ros2.convert import CHANNELS
 from shared.ros2.wire import data_key, rihs01

@@ -11,10 +11,10 @@ from pathlib import Path
 
 import pytest
 
-from shared.launcher import free_port
+from aermani.launcher import free_port
 
 pytestmark = pytest.mark.integration
-AERMANI = [sys.executable, "-m", "shared.cli"]
+AERMANI = [sys.executable, "-m", "aermani.cli"]
 
 
 def _health(port: int) -> str:
@@ -99,7 +99,7 @@ def _wait_event(stack, text: str, timeout: float) -> str:
 
 
 def test_a_hung_service_is_noticed_by_its_heartbeat_and_restarted(tmp_path: Path):
-    from shared.launcher import Stack
+    from aermani.launcher import Stack
 
     with Stack(["reasoner"], log_dir=tmp_path / "logs", hung_after_s=3.0) as stack:
         p = stack.find("reasoner")
@@ -117,7 +117,7 @@ def test_a_hung_service_is_noticed_by_its_heartbeat_and_restarted(tmp_path: Path
 
 
 def test_a_failed_restart_does_not_end_supervision(tmp_path: Path):
-    from shared.launcher import Stack
+    from aermani.launcher import Stack
 
     logs = tmp_path / "logs"
     with Stack(["reasoner"], log_dir=logs) as stack:
@@ -141,7 +141,7 @@ def test_a_router_restart_is_reconnected_to_and_kills_nobody(tmp_path: Path):
     """The router closes for longer than the hung limit and reopens on its endpoint: the service (a Zenoh
     client) reconnects by itself, its token and heartbeat come back, and the supervisor, which could not hear
     it meanwhile, did not take it for hung."""
-    from shared.launcher import Stack
+    from aermani.launcher import Stack
 
     with Stack(["reasoner"], log_dir=tmp_path / "logs", hung_after_s=2.0) as stack:
         p = stack.find("reasoner")

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
+from aermani.launcher import free_udp_port
 from shared.frames import Mount, base_to_camera, base_to_gripper
-from shared.launcher import free_udp_port
 from shared.sensors import parse_transforms
 
 MOUNT_ENV = {"AERMANI_MOUNT_CAMERA_OFFSET": "0.2, 0.01, -0.08", "AERMANI_MOUNT_CAMERA_PITCH_DEG": "50",

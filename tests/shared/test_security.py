@@ -16,10 +16,10 @@ import stat
 import pytest
 import zenoh
 
+from aermani.launcher import free_port, open_router
 from shared.bus import Bus
 from shared.errors import ConfigError, NoResponder
 from shared.keys import Keys
-from shared.launcher import free_port, open_router
 from shared.security import (
     IDENTITIES,
     ROUTERS_DIR,
@@ -232,7 +232,7 @@ async def test_abort_works_from_every_identity_and_state_only_from_the_drone(rou
 async def test_secure_stack_real_bridge_obeys_the_ground_only(tmp_path):
     """`aermani up --secure` in miniature: the launcher's two routers, the real simulator and bridge as
     processes on the drone side; an outsider with the drone certificate cannot command, the ground can."""
-    from shared.launcher import Stack, free_udp_port
+    from aermani.launcher import Stack, free_udp_port
 
     init_certs(tmp_path / "certs")
     api = free_udp_port()
@@ -309,7 +309,7 @@ async def test_router_command_used_by_compose(tmp_path, certs):
     root = Path(__file__).resolve().parents[2]
     ground_local, tls, drone_local = free_port(), free_port(), free_port()
     env = {**os.environ, "PYTHONPATH": str(root)}
-    cmd = [sys.executable, "-m", "shared.cli", "router", "--certs", str(certs)]
+    cmd = [sys.executable, "-m", "aermani.cli", "router", "--certs", str(certs)]
     procs = [subprocess.Popen([*cmd, "--role", "ground", "--local", f"tcp/127.0.0.1:{ground_local}",
                                "--tls-listen", f"tls/127.0.0.1:{tls}"], env=env, cwd=root,
                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True),

@@ -11,10 +11,10 @@ import pytest
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mav
 
+from aermani.launcher import free_udp_port
 from services.sim.core import SimCore
 from services.sim.mavlink_server import LinkSettings, MavlinkServer
 from services.sim.vehicle import VehicleParams
-from shared.launcher import free_udp_port
 from shared.messages import Scenario
 
 OFFBOARD = (mavutil.PX4_CUSTOM_MAIN_MODE_OFFBOARD, 0)

@@ -23,10 +23,10 @@ from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
 from mavsdk.plugins.failure import FailureType, FailureUnit
 from mavsdk.plugins.telemetry import FlightMode
 
+from aermani.launcher import free_udp_port
 from services.sim.core import SimCore
 from services.sim.mavlink_server import LinkSettings, MavlinkServer
 from services.sim.vehicle import VehicleParams
-from shared.launcher import free_udp_port
 from shared.messages import Scenario
 
 

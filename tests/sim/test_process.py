@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from pymavlink.dialects.v20 import common as mav
 
-from shared.launcher import free_port, free_udp_port
+from aermani.launcher import free_port, free_udp_port
 from tests.sim.test_mavlink import Client
 
 pytestmark = pytest.mark.integration

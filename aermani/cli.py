@@ -1,4 +1,5 @@
-"""The `aermani` command: `up`, `health`, and the sub-commands each service registers from its `cli.py`."""
+"""The `aermani` command: the application's own (`up`, `health`, `router`, `certs`, and `demo`, `eval`,
+`vlm probe`, which start stacks) and the sub-commands each service registers from its `cli.py`."""
 
 from __future__ import annotations
 
@@ -14,7 +15,9 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from shared.launcher import SERVICE_ORDER, Stack, available_services, default_services
+from aermani import demo, probe
+from aermani.evaluation import cli as evaluation_cli
+from aermani.launcher import OPTIONAL, SERVICE_ORDER, Stack, available_services, default_services
 
 app = typer.Typer(help="aermani: language-driven aerial manipulation (AERMANI-VLM) on PX4.", no_args_is_help=True,
                   pretty_exceptions_enable=False)
@@ -113,7 +116,6 @@ def health(
     camera, a lost autopilot link...)."""
     from shared.bus import Bus, Subscription
     from shared.keys import HEALTH_TOPIC, alive_pattern, parse_alive_key
-    from shared.launcher import OPTIONAL
     from shared.messages import Health
 
     async def run() -> tuple[list[str], dict[tuple[str, str], Health]]:
@@ -225,9 +227,11 @@ def router(
         session.close()  # type: ignore[no-untyped-call]
 
 
-def _register_service_commands() -> None:
-    """Each service may add sub-commands with `services/<name>/cli.py: register(app)`."""
-    for name in [*SERVICE_ORDER, "evaluation", "mcp"]:
+def _register_commands() -> None:
+    """Each service may add sub-commands with `services/<name>/cli.py: register(app)` (a checkout without the
+    service has none); then the application's commands that start stacks: `demo`, `eval`, and `probe` in the
+    reasoner's `vlm` group."""
+    for name in [*SERVICE_ORDER, "mcp"]:
         try:
             mod = importlib.import_module(f"services.{name}.cli")
         except ModuleNotFoundError as exc:
@@ -237,10 +241,15 @@ def _register_service_commands() -> None:
         register = getattr(mod, "register", None)
         if register is not None:
             register(app)
+    demo.register(app)
+    evaluation_cli.register(app)
+    vlm = next((g.typer_instance for g in app.registered_groups if g.name == "vlm"), None)
+    if vlm is not None:  # the probe checks an endpoint the way the reasoner uses it: only with the reasoner
+        probe.register(vlm)
 
 
 def main() -> None:
-    _register_service_commands()
+    _register_commands()
     with contextlib.suppress(BrokenPipeError):
         app()
     sys.stdout.flush()

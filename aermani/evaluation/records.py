@@ -8,7 +8,7 @@ from pathlib import Path
 
 from pydantic import BaseModel, ConfigDict, model_validator
 
-from services.evaluation.tasks import EvalTask
+from aermani.evaluation.tasks import EvalTask
 from shared.messages import JudgeResult, ReasoningStep, TaskStatus
 from shared.tasks import REFUSED_BEFORE_TAKEOFF
 

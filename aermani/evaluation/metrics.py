@@ -47,7 +47,7 @@ from dataclasses import dataclass
 
 from pydantic import BaseModel, ConfigDict
 
-from services.evaluation.records import EpisodeRecord
+from aermani.evaluation.records import EpisodeRecord
 from shared.messages import Pose, ReasoningStep
 from shared.skills import (
     DONE,

@@ -62,9 +62,9 @@ def eval_command(
     progress: Annotated[bool, typer.Option(help="Show the progress bar.")] = True,
 ) -> None:
     """Evaluate a backend and prompt variants on the paper's task suites: SR, ARR, RS, IAR, RT, TT."""
-    from services.evaluation.report import write_report
-    from services.evaluation.runner import RunConfig, run
-    from services.evaluation.tasks import SPLITS
+    from aermani.evaluation.report import write_report
+    from aermani.evaluation.runner import RunConfig, run
+    from aermani.evaluation.tasks import SPLITS
 
     if report_only:
         paths = write_report(out)
@@ -109,7 +109,7 @@ def eval_command(
             console.print("[yellow]interrupted: rerun the same command to resume[/yellow]")
             raise typer.Exit(130)
     if len(modes) > 1:
-        from services.evaluation.report import write_mode_comparison
+        from aermani.evaluation.report import write_mode_comparison
 
         console.print(f"modes compared: {write_mode_comparison(out, modes)}")
 

@@ -21,8 +21,8 @@ from pathlib import Path
 
 from pydantic import BaseModel, ConfigDict
 
-from services.evaluation.records import RESULTS_FILE, EpisodeRecord, ResultsFile
-from services.evaluation.tasks import (
+from aermani.evaluation.records import RESULTS_FILE, EpisodeRecord, ResultsFile
+from aermani.evaluation.tasks import (
     DEFAULT_SPLIT,
     DEFAULT_T_MAX_S,
     EpisodeSpec,
@@ -32,11 +32,11 @@ from services.evaluation.tasks import (
     load_jsonl,
     load_suites,
 )
+from aermani.launcher import OPTIONAL, PER_VEHICLE, Stack, available_services, free_udp_port
 from shared.action import skill_client
 from shared.bus import Bus, Subscription, query_ready
 from shared.errors import AermaniError, BusError, ConfigError
 from shared.keys import Keys
-from shared.launcher import OPTIONAL, PER_VEHICLE, Stack, available_services, free_udp_port
 from shared.messages import (
     Abort,
     GripperCommand,
@@ -417,7 +417,7 @@ async def run_episodes(bus: Bus, specs: list[EpisodeSpec], cfg: RunConfig, resul
 
 def run(cfg: RunConfig) -> RunSummary:
     """Run (or resume) an evaluation and write its report; blocking. Ctrl-C stops after saving what finished."""
-    from services.evaluation.report import write_report
+    from aermani.evaluation.report import write_report
 
     cfg.out.mkdir(parents=True, exist_ok=True)
     run_config = run_config_of(cfg)

@@ -122,7 +122,7 @@ def check_split(split: str) -> str:
 
 
 def load_suites(names: list[str] | None = None, split: str | None = DEFAULT_SPLIT) -> dict[str, list[EvalTask]]:
-    """The built-in suites (services/evaluation/suites/<name>.jsonl), in paper order, with the tasks of one
+    """The built-in suites (aermani/evaluation/suites/<name>.jsonl), in paper order, with the tasks of one
     split (None: both splits, for checks of the suites themselves)."""
     if split is not None:
         check_split(split)

@@ -10,9 +10,9 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import urlparse
 
-from services.evaluation.metrics import compute, iar_by_mode, judged_ok, reasoning_steps
-from services.evaluation.records import RESULTS_FILE, EpisodeRecord, ResultsFile
-from services.evaluation.tasks import PAPER_RS, PAPER_SUITES, SUITE_TITLES
+from aermani.evaluation.metrics import compute, iar_by_mode, judged_ok, reasoning_steps
+from aermani.evaluation.records import RESULTS_FILE, EpisodeRecord, ResultsFile
+from aermani.evaluation.tasks import PAPER_RS, PAPER_SUITES, SUITE_TITLES
 from shared.messages import VARIANTS
 
 VARIANT_TITLES = {
