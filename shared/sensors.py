@@ -161,6 +161,12 @@ def quat_from_rpy(roll: float, pitch: float, yaw: float) -> tuple[float, float, 
             cr * cp * cy + sr * sp * sy)
 
 
+def body_quat(roll: float, pitch_nose_up: float, yaw: float) -> tuple[float, float, float, float]:
+    """The body's orientation in the world (ENU/FLU) from a VehicleState's angles: its pitch is positive nose
+    up, which is a negative rotation about FLU's y axis (left), as the bridge's tf has it."""
+    return quat_from_rpy(roll, -pitch_nose_up, yaw)
+
+
 def quat_to_matrix(q: tuple[float, float, float, float]) -> np.ndarray:
     x, y, z, w = q
     return np.array([

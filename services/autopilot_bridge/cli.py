@@ -139,37 +139,60 @@ def gripper(action: Annotated[str, typer.Argument(help="open or close")],
     _run(connect, vehicle, GripperCommand(action=action))  # type: ignore[arg-type]
 
 
-async def _measure_operator(bus: Bus, keys: Keys, window_s: float) -> tuple[float | None, float | None,
-                                                                            float | None, float | None]:
-    """(camera fps, newest frame's age s, MAVLink messages/s at the bridge, bus round trip ms) over `window_s`."""
+async def _bus_round_trip_ms(bus: Bus, keys: Keys) -> tuple[float | None, str]:
+    """Median of three round trips to a drone-side service (the executor's skill list, a small answer from
+    the vehicle's side of the link), or through the router alone when no executor runs; and which it was."""
+    from shared.errors import NoResponder
+
+    times = []
+    for _ in range(3):
+        t0 = time.monotonic()
+        try:
+            await bus.query(keys.skills, timeout=2.0)
+        except NoResponder:
+            break
+        except AermaniError:
+            return None, "executor"
+        times.append((time.monotonic() - t0) * 1e3)
+    if times:
+        return sorted(times)[len(times) // 2], "executor"
     from shared.keys import alive_pattern
+
+    t0 = time.monotonic()
+    await bus.alive(alive_pattern(keys.vehicle_id), timeout=2.0)
+    return (time.monotonic() - t0) * 1e3, "router only: no executor runs"
+
+
+async def _measure_operator(bus: Bus, keys: Keys, window_s: float) -> tuple[float | None, float | None,
+                                                                            float | None, float | None, str]:
+    """(camera fps, newest frame's age s, MAVLink messages/s at the bridge, bus round trip ms, what the round
+    trip reached) over `window_s`. Frame rates come from receive times; the frame's age compares its stamp with
+    this machine's clock, so the drone's and the ground's clocks must agree (chrony/NTP)."""
     from shared.sensors import CompressedImage, decode_proto, stamp_to_ns
 
     frames = bus.subscribe(keys.camera_color, maxsize=256, overflow="drop_oldest")
     health = bus.subscribe(keys.health("autopilot_bridge"), maxsize=16, overflow="drop_oldest")
-    t0 = time.monotonic()
-    await bus.alive(alive_pattern(keys.vehicle_id), timeout=2.0)
-    bus_ms = (time.monotonic() - t0) * 1e3
-    arrivals: list[float] = []
+    bus_ms, reached = await _bus_round_trip_ms(bus, keys)
+    arrivals: list[int] = []
     newest_stamp_ns: int | None = None
     counts: list[tuple[int, int]] = []  # (health stamp ns, mavlink_received)
     deadline = time.monotonic() + window_s
     while (left := deadline - time.monotonic()) > 0:
         with contextlib.suppress(TimeoutError):
-            data = await frames.recv(timeout=min(left, 0.1))
-            arrivals.append(time.monotonic())
+            sample = await frames.recv_sample(timeout=min(left, 0.1))
+            arrivals.append(sample.receive_ns)
             with contextlib.suppress(AermaniError):
-                newest_stamp_ns = stamp_to_ns(decode_proto(CompressedImage, data).timestamp)
+                newest_stamp_ns = stamp_to_ns(decode_proto(CompressedImage, sample.payload).timestamp)
         while (h := health.recv_nowait()) is not None:
             if isinstance(h.details.get("mavlink_received"), int):
                 counts.append((h.stamp_ns, h.details["mavlink_received"]))
-    fps = (len(arrivals) - 1) / (arrivals[-1] - arrivals[0]) if len(arrivals) >= 2 and arrivals[-1] > arrivals[0] \
-        else None
+    fps = (len(arrivals) - 1) / ((arrivals[-1] - arrivals[0]) / 1e9) \
+        if len(arrivals) >= 2 and arrivals[-1] > arrivals[0] else None
     age = (time.time_ns() - newest_stamp_ns) / 1e9 if newest_stamp_ns is not None else None
     link_hz = None
     if len(counts) >= 2 and counts[-1][0] > counts[0][0]:
         link_hz = (counts[-1][1] - counts[0][1]) / ((counts[-1][0] - counts[0][0]) / 1e9)
-    return fps, age, link_hz, bus_ms
+    return fps, age, link_hz, bus_ms, reached
 
 
 def preflight_cmd(connect: Connect = "tcp/127.0.0.1:7447", vehicle: Vehicle = "am1",
@@ -200,7 +223,8 @@ def preflight_cmd(connect: Connect = "tcp/127.0.0.1:7447", vehicle: Vehicle = "a
             res: AutopilotResult = await bus.query(keys.autopilot_command, PreflightCommand(), timeout=timeout)
             if not res.checks:
                 return res, []
-            checks = [*res.checks, *check_operator(*await _measure_operator(bus, keys, window), limits)]
+            fps, age, link_hz, bus_ms, reached = await _measure_operator(bus, keys, window)
+            checks = [*res.checks, *check_operator(fps, age, link_hz, bus_ms, limits, reached)]
             bus.publish(keys.autopilot_preflight, PreflightReport(
                 vehicle_id=vehicle, trigger="operator", ok=all(c.ok for c in checks), checks=tuple(checks)))
             await asyncio.sleep(0.2)  # let the report leave before the session closes

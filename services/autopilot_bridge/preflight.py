@@ -125,7 +125,7 @@ class OperatorLimits:
 
 
 def check_operator(fps: float | None, frame_age_s: float | None, link_hz: float | None, bus_ms: float | None,
-                   lim: OperatorLimits) -> list[PreflightCheck]:
+                   lim: OperatorLimits, bus_reached: str = "executor") -> list[PreflightCheck]:
     """Camera frame rate and the newest frame's age, the MAVLink message rate the bridge receives, and the bus
     round trip through the router, measured from the operator's side over a few seconds."""
     camera_ok = (fps is not None and fps >= lim.min_fps and frame_age_s is not None
@@ -146,8 +146,8 @@ def check_operator(fps: float | None, frame_age_s: float | None, link_hz: float 
             "MAV_x_RATE / stream configuration)"),
         PreflightCheck(
             name="bus_round_trip", ok=bus_ms is not None and bus_ms <= lim.max_bus_ms,
-            value="no answer" if bus_ms is None else f"{bus_ms:.0f} ms",
-            expected=f"<= {lim.max_bus_ms:g} ms through the router",
+            value="no answer" if bus_ms is None else f"{bus_ms:.0f} ms ({bus_reached})",
+            expected=f"<= {lim.max_bus_ms:g} ms to the vehicle's services",
             reason="" if bus_ms is not None and bus_ms <= lim.max_bus_ms else
             "aborts and skill commands cross this link (check the Wi-Fi between ground and drone)"),
     ]

@@ -17,6 +17,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import math
 import secrets
 from collections import Counter
 from dataclasses import dataclass, field
@@ -27,7 +28,7 @@ import httpx
 from services.ros2.settings import Ros2Settings
 from shared.bus import Bus, RawReply
 from shared.messages import Health, now_ns
-from shared.ros2.convert import CHANNELS, Channel, Converter
+from shared.ros2.convert import CHANNELS, Channel, Converter, ros_token
 from shared.ros2.wire import (
     DEFAULT_QOS,
     SENSOR_QOS,
@@ -47,6 +48,8 @@ SERVICE = "ros2"
 START_TASK = "aermani_msgs/srv/StartTask"
 CDR = "application/cdr"
 IMAGE_SUFFIXES = ("camera/color", "camera/depth")
+MAX_REQUEST_BYTES = 8192  # a command is at most 500 characters: a StartTask request is far below this
+MAX_T_MAX_S = 3600.0  # the gateway's own bound
 
 
 @dataclass
@@ -77,8 +80,8 @@ class Bridge:
             topic = channel.topic_for(settings.vehicle_id)
             key = data_key(settings.domain_id, topic, channel.ros_type, rihs01(channel.ros_type, self.ts))
             self.publishers.setdefault(channel.suffix, []).append(Publisher(channel, topic, key))
-        self.service_key = data_key(settings.domain_id, f"/{settings.vehicle_id}/start_task", START_TASK,
-                                    rihs01(START_TASK, self.ts))
+        self.service_name = f"/{ros_token(settings.vehicle_id)}/start_task"
+        self.service_key = data_key(settings.domain_id, self.service_name, START_TASK, rihs01(START_TASK, self.ts))
         headers = {"Accept": "application/json"}
         if settings.gateway_token is not None:
             headers["Authorization"] = f"Bearer {settings.gateway_token.get_secret_value()}"
@@ -101,7 +104,7 @@ class Bridge:
                     p.channel.ros_type, p.key.rsplit("/", 1)[1], qos))
         self.bus.declare_token(endpoint_token(
             s.domain_id, self.zid, 0, self._next_entity(), "SS", s.namespace, s.node_name,
-            f"/{s.vehicle_id}/start_task", START_TASK, self.service_key.rsplit("/", 1)[1], DEFAULT_QOS))
+            self.service_name, START_TASK, self.service_key.rsplit("/", 1)[1], DEFAULT_QOS))
         # rmw_zenoh's clients query complete queryables only (target ALL_COMPLETE), as its servers declare.
         self.bus.serve(self.service_key, self.start_task, raw=True, with_attachment=True, complete=True)
 
@@ -119,20 +122,33 @@ class Bridge:
             self.counts[p.topic] += 1
 
     async def start_task(self, data: bytes | None, att: bytes | None) -> RawReply:
-        """A ROS 2 StartTask call: the command goes to the gateway; its answer is the reply."""
+        """A ROS 2 StartTask call: the command goes to the gateway; its answer is the reply. A request without
+        rmw_zenoh's attachment gets an error reply (there is no caller to answer); any other bad request gets a
+        StartTask response that refuses it with the reason, so `ros2 service call` never waits in vain."""
         if att is None:
             raise ValueError("a ROS 2 service request carries rmw_zenoh's attachment (sequence number and gid)")
         sequence, _, gid = parse_attachment(att)
-        if not data:
-            raise ValueError(f"empty request: {START_TASK} expects a CDR StartTask_Request")
-        req = self.ts.deserialize_cdr(data, store_name(f"{START_TASK}_Request"))
         self.counts["start_task calls"] += 1
-        accepted, task_id, reason = await self._create(str(req.command), float(req.t_max_s))
-        log.info("ROS 2 start_task %r: %s", str(req.command)[:80], f"task {task_id}" if accepted else reason)
+        accepted, task_id, reason = await self._answer(data)
+        log.info("ROS 2 start_task (caller gid %s, request %d): %s", gid.hex(), sequence,
+                 f"task {task_id}" if accepted else reason)
         reply = self.ts.types[store_name(f"{START_TASK}_Response")](accepted=accepted, task_id=task_id,
                                                                     reason=reason)
         cdr = self.ts.serialize_cdr(reply, store_name(f"{START_TASK}_Response"))
         return RawReply(bytes(cdr), CDR, attachment(sequence, now_ns(), gid))
+
+    async def _answer(self, data: bytes | None) -> tuple[bool, str, str]:
+        """(accepted, task id, reason) for a request's bytes."""
+        if not data or len(data) > MAX_REQUEST_BYTES:
+            return False, "", f"a StartTask request is 1 to {MAX_REQUEST_BYTES} bytes of CDR, got {len(data or b'')}"
+        try:
+            req = self.ts.deserialize_cdr(data, store_name(f"{START_TASK}_Request"))
+        except Exception as exc:  # rosbags raises assorted errors on bytes that are not a StartTask_Request
+            return False, "", f"not a CDR {START_TASK}_Request: {type(exc).__name__}"
+        t_max_s = float(req.t_max_s)
+        if t_max_s != 0 and not (math.isfinite(t_max_s) and 0 < t_max_s <= MAX_T_MAX_S):
+            return False, "", f"t_max_s must be 0 (the reasoner's default) or in (0, {MAX_T_MAX_S:g}] s, got {t_max_s}"
+        return await self._create(str(req.command), t_max_s)
 
     async def _create(self, command: str, t_max_s: float) -> tuple[bool, str, str]:
         """(accepted, task id, reason) of POST /tasks."""
@@ -141,6 +157,9 @@ class Bridge:
             body["t_max_s"] = t_max_s
         try:
             r = await self.http.post("/tasks", json=body)
+        except httpx.TimeoutException:
+            return False, "", (f"the gateway did not answer within {self.settings.start_timeout_s:g} s: the task may "
+                               f"have started, see /{ros_token(self.settings.vehicle_id)}/reasoner/task_status")
         except httpx.HTTPError as exc:
             return False, "", f"the gateway at {self.settings.gateway_url} did not answer: {type(exc).__name__}"
         try:
@@ -171,9 +190,9 @@ async def run(bus: Bus, settings: Ros2Settings, stop: asyncio.Event) -> None:
             bridge.forward(suffix, await sub.recv())
 
     tasks = [asyncio.create_task(pump(suffix), name=f"ros2 {suffix}") for suffix in bridge.publishers]
-    log.info("ROS 2 bridge for %s: node %s, domain %d, %d topics, service /%s/start_task", settings.vehicle_id,
+    log.info("ROS 2 bridge for %s: node %s, domain %d, %d topics, service %s", settings.vehicle_id,
              settings.node_name, settings.domain_id, sum(len(p) for p in bridge.publishers.values()),
-             settings.vehicle_id)
+             bridge.service_name)
     try:
         while not stop.is_set():
             for t in tasks:

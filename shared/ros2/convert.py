@@ -32,7 +32,9 @@ from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 
-from shared.sensors import BODY_FRAME, WORLD_FRAME, decode_proto, quat_from_rpy, quat_to_matrix, stamp_to_ns
+from shared.sensors import BODY_FRAME, WORLD_FRAME, body_quat, decode_proto, quat_to_matrix, stamp_to_ns
+
+UNKNOWN_VARIANCE = 1e6  # a covariance entry for a quantity not measured (ROS's convention: very large)
 
 
 @dataclass(frozen=True)
@@ -51,7 +53,14 @@ class Channel:
     """Sensor data (best effort, shallow history, as rclcpp's SensorDataQoS)."""
 
     def topic_for(self, vehicle: str) -> str:
-        return self.topic.format(v=vehicle)
+        return self.topic.format(v=ros_token(vehicle))
+
+
+def ros_token(vehicle: str) -> str:
+    """A vehicle id as a ROS 2 name token (letters, digits, underscores, not starting with a digit): `am-1` ->
+    `am_1`, `7x` -> `v7x`."""
+    token = vehicle.replace("-", "_")
+    return f"v{token}" if token[:1].isdigit() else token
 
 
 CHANNELS: tuple[Channel, ...] = (
@@ -140,7 +149,7 @@ class Converter:
 
         t = self.ts.types
         s = VehicleState.model_validate_json(data)
-        q = quat_from_rpy(s.roll, s.pitch, s.yaw)
+        q = body_quat(s.roll, s.pitch, s.yaw)
         pose = t["geometry_msgs/msg/Pose"](
             position=t["geometry_msgs/msg/Point"](x=s.position.x, y=s.position.y, z=s.position.z),
             orientation=t["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]))
@@ -152,16 +161,18 @@ class Converter:
 
     def odometry(self, data: bytes) -> Any:
         """nav_msgs/Odometry: the pose in the world frame, the twist in base_link (REP 105: the twist is in
-        the child frame); the state carries no covariance or angular rate, so those are zero."""
+        the child frame). The state carries no covariance (zero: not estimated) and no angular rate (zero, with
+        a huge variance on the diagonal: unknown)."""
         t = self.ts.types
         s, pose, q = self._pose(data)
         body_velocity = quat_to_matrix(q).T @ np.array([s.velocity.x, s.velocity.y, s.velocity.z])
         twist = t["geometry_msgs/msg/Twist"](linear=self._vector(*body_velocity), angular=self._vector(0, 0, 0))
-        zeros = np.zeros(36, dtype=np.float64)
+        twist_cov = np.zeros(36, dtype=np.float64)
+        twist_cov[[21, 28, 35]] = UNKNOWN_VARIANCE
         return t["nav_msgs/msg/Odometry"](
             header=self.header(s.stamp_ns, WORLD_FRAME), child_frame_id=BODY_FRAME,
-            pose=t["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=zeros),
-            twist=t["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=zeros.copy()))
+            pose=t["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36, dtype=np.float64)),
+            twist=t["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=twist_cov))
 
     def string(self, data: bytes) -> Any:
         json.loads(data)  # only well-formed JSON goes out

@@ -46,13 +46,14 @@ def service_types(srv_type: str, text: str) -> dict[str, Any]:
     """The message types of a service definition (`pkg/srv/Name` and its .srv text): Name_Request,
     Name_Response, Name_Event (what rosidl generates for service introspection) and Name itself, the type
     whose description a service's type hash is taken over (request_message, response_message, event_message)."""
-    request, sep, response = text.partition("\n---")
-    if not sep:
+    lines = text.splitlines()
+    cut = next((i for i, line in enumerate(lines) if line.strip() == "---"), None)
+    if cut is None:
         raise ValueError(f"{srv_type}: a .srv definition has a '---' line between request and response")
     name = srv_type.rsplit("/", 1)[1]
     out: dict[str, Any] = {}
-    out.update(get_types_from_msg(request, f"{srv_type}_Request"))
-    out.update(get_types_from_msg(response.partition("\n")[2], f"{srv_type}_Response"))
+    out.update(get_types_from_msg("\n".join(lines[:cut]), f"{srv_type}_Request"))
+    out.update(get_types_from_msg("\n".join(lines[cut + 1:]), f"{srv_type}_Response"))
     out.update(get_types_from_msg(f"service_msgs/ServiceEventInfo info\n{name}_Request[<=1] request\n"
                                   f"{name}_Response[<=1] response", f"{srv_type}_Event"))
     out.update(get_types_from_msg(f"{name}_Request request_message\n{name}_Response response_message\n"

@@ -24,7 +24,16 @@ def test_service_hash_is_the_one_ros2_computes():
     ts = get_typestore(Stores.ROS2_JAZZY)
     ts.register(wire.service_types("example_interfaces/srv/AddTwoInts", "int64 a\nint64 b\n---\nint64 sum\n"))
     assert wire.rihs01("example_interfaces/srv/AddTwoInts", ts) == ADD_TWO_INTS_HASH
-    assert ts.hash_rihs01("example_interfaces/srv/msg/AddTwoInts") != ADD_TWO_INTS_HASH  # the rosbags difference
+
+
+def test_a_service_without_request_fields_gets_rosidl_placeholder_member():
+    """std_srvs/srv/Trigger's request is empty (the .srv starts with its '---'): rosidl gives such a struct one
+    uint8 member, so the hash is the one of a request that declares it."""
+    empty, declared = get_typestore(Stores.ROS2_JAZZY), get_typestore(Stores.ROS2_JAZZY)
+    empty.register(wire.service_types("std_srvs/srv/Trigger", "---\nbool success\nstring message\n"))
+    declared.register(wire.service_types("std_srvs/srv/Trigger", f"uint8 {wire.EMPTY_MEMBER}\n---\nbool success\n"
+                                                                 "string message\n"))
+    assert wire.rihs01("std_srvs/srv/Trigger", empty) == wire.rihs01("std_srvs/srv/Trigger", declared)
 
 
 def test_every_bridged_type_hashes_as_the_sdk_computes_it(tmp_path):
