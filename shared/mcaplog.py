@@ -117,6 +117,19 @@ def vehicle_of(key: str) -> str | None:
     return parts[2] if len(parts) > 3 and parts[0] == "aermani" else None
 
 
+def log_vehicles(path: str | Path) -> set[str]:
+    """The vehicle ids a log holds samples for: from its summary's channels, or (an unfinished log) from its
+    samples."""
+    try:
+        with Path(path).open("rb") as f:
+            summary = make_reader(f).get_summary()
+        if summary is not None:
+            return {v for c in summary.channels.values() if (v := vehicle_of(c.topic)) is not None}
+    except (McapError, ValueError, KeyError, EOFError, AssertionError):
+        pass
+    return {v for s in salvage(path).samples if (v := vehicle_of(s.key)) is not None}
+
+
 # --------------------------------------------------------------------------- key expressions
 
 

@@ -37,10 +37,14 @@ def replay_cmd(
     vehicle: Annotated[str | None, typer.Option(help="Republish every vehicle's samples under this vehicle id.")]
     = None,
     remap: Annotated[list[str] | None, typer.Option(help="OLD=NEW vehicle id (repeatable).")] = None,
+    onto_live: Annotated[bool, typer.Option("--onto-live", help="Replay onto a vehicle id whose autopilot bridge "
+                                            "or simulator answers now (off: refused; replay beside it with "
+                                            "--vehicle or --remap).")] = False,
 ) -> None:
     """Republish a log on Zenoh verbatim (same keys, bytes, encodings) so the web page, Foxglove and any
-    service see the flight again. Abort and command keys are left out unless --include-control."""
-    from services.recorder.replay import replay
+    service see the flight again. Abort and command keys are left out unless --include-control; a vehicle that
+    is live now is refused unless --onto-live."""
+    from services.recorder.replay import ReplayOntoLive, replay
     from shared.bus import Bus
     from shared.keys import vehicle_prefix
 
@@ -62,7 +66,7 @@ def replay_cmd(
         bus = await Bus.open(connect=[connect])
         try:
             res = await replay(bus, log, speed=speed, keys=keys, start_s=start, end_s=end,
-                               include_control=include_control, remap=mapping or None)
+                               include_control=include_control, remap=mapping or None, onto_live=onto_live)
             # Let the last samples leave the session before it closes.
             await asyncio.sleep(0.5)
         finally:
@@ -77,6 +81,9 @@ def replay_cmd(
         asyncio.run(run())
     except KeyboardInterrupt:
         raise typer.Exit(130)
+    except ReplayOntoLive as exc:
+        err.print(f"[red]{exc}[/red]")
+        raise typer.Exit(2)
 
 
 def show_cmd(

@@ -1,8 +1,9 @@
 """Replay: republish a recorded log on Zenoh verbatim (same key, bytes, encoding) with its original timing.
 
 Control keys (commands and abort) are left out unless asked: republished onto a live bus, a recorded abort
-would stop a flight and a recorded command could move a vehicle. `remap` moves samples to other vehicle ids
-(key and the payload's top-level `vehicle_id`), so a log can be watched beside the live fleet."""
+would stop a flight and a recorded command could move a vehicle. Nor does a replay publish onto a vehicle that
+is live now (its state and detections would pass for the vehicle's own) unless asked. `remap` moves samples to
+other vehicle ids (key and the payload's top-level `vehicle_id`), so a log can be watched beside the live fleet."""
 
 from __future__ import annotations
 
@@ -15,7 +16,8 @@ from pathlib import Path
 
 from shared import keys as k
 from shared.bus import Bus
-from shared.mcaplog import iter_samples
+from shared.errors import AermaniError
+from shared.mcaplog import iter_samples, log_vehicles
 
 # Keys (after aermani/v1/<vehicle>/) that act on a vehicle or a task when they arrive.
 CONTROL_SUFFIXES = tuple(d.name for d in (
@@ -80,16 +82,41 @@ def log_bounds(path: str | Path) -> tuple[int, int]:
     return first, last
 
 
+# A vehicle is live when the services that own its state answer: the autopilot bridge (pose, link, mode) or the
+# simulator standing in for the vehicle. Ground services (gateway, recorder) alone leave a vehicle id free.
+VEHICLE_OWNERS = ("autopilot_bridge", "sim")
+
+
+class ReplayOntoLive(AermaniError):
+    """The replay would publish onto a vehicle that is flying or could fly now."""
+
+
+async def live_targets(bus: Bus, path: str | Path, remap: dict[str, str] | None) -> list[str]:
+    """The vehicle ids the replay of `path` (after `remap`) would publish onto whose state owners answer."""
+    targets = {(remap or {}).get(v, (remap or {}).get("*", v)) for v in log_vehicles(path)}
+    live = []
+    for v in sorted(targets):
+        alive = await bus.alive(k.alive_pattern(v), timeout=2.0)
+        if any(key.rsplit("/", 1)[-1] in VEHICLE_OWNERS for key in alive):
+            live.append(v)
+    return live
+
+
 async def replay(bus: Bus, path: str | Path, *, speed: float = 1.0, keys: str | None = None,
                  start_s: float | None = None, end_s: float | None = None,
                  on_sample: Callable[[int], None] | None = None, include_control: bool = False,
-                 remap: dict[str, str] | None = None) -> ReplayResult:
+                 remap: dict[str, str] | None = None, onto_live: bool = False) -> ReplayResult:
     """Publish the samples of `path` in log-time order. `speed` 1 keeps the original timing, 2 is twice as
     fast, 0 (or less) as fast as possible. `start_s`/`end_s` are seconds from the start of the log.
     Abort and command keys are skipped unless `include_control`; `remap` maps old vehicle ids to new ones
     ("*" for every vehicle)."""
     for new in (remap or {}).values():
         k.vehicle_prefix(new)  # a bad id fails before anything is published
+    if not onto_live and (live := await live_targets(bus, path, remap)):
+        raise ReplayOntoLive(
+            f"vehicle {', '.join(live)} is live (its autopilot bridge or simulator answers): the log's state, "
+            "detections and camera would reach its services and its operators as if they were now. Replay beside "
+            "it under another id (--vehicle replay1, or --remap OLD=NEW), or pass --onto-live on purpose")
     skipped: dict[str, int] = {}
     first, _ = log_bounds(path)
     start_ns = first + int(start_s * 1e9) if start_s is not None else None

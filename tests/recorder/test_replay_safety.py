@@ -43,7 +43,10 @@ def write_log(tmp_path: Path) -> Path:
     return path
 
 
-def replay_and_listen(log: Path, *args: str) -> tuple[str, list[tuple[str, bytes]]]:
+def replay_and_listen(log: Path, *args: str, alive: tuple[str, ...] = (),
+                      code: int = 0) -> tuple[str, list[tuple[str, bytes]]]:
+    """Run `aermani replay LOG ARGS` onto a router and collect what it published; `alive` tokens are declared
+    first (services that answer for a vehicle), `code` is the exit status expected (its output: stdout+stderr)."""
     port = free_port()
     router = open_router(port)
     endpoint = f"tcp/127.0.0.1:{port}"
@@ -52,12 +55,14 @@ def replay_and_listen(log: Path, *args: str) -> tuple[str, list[tuple[str, bytes
         bus = await Bus.open(connect=[endpoint])
         try:
             sub = bus.subscribe("aermani/**", maxsize=1000)
+            for token in alive:
+                bus.declare_token(token)
             await asyncio.sleep(0.5)
             proc = await asyncio.create_subprocess_exec(
                 sys.executable, "-m", "aermani.cli", "replay", str(log), "--speed", "0", "--connect", endpoint,
                 *args, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
             out, errout = await asyncio.wait_for(proc.communicate(), 120)
-            assert proc.returncode == 0, errout.decode()
+            assert proc.returncode == code, errout.decode()
             got = []
             while True:
                 try:
@@ -65,7 +70,7 @@ def replay_and_listen(log: Path, *args: str) -> tuple[str, list[tuple[str, bytes
                 except TimeoutError:
                     break
                 got.append((rec.key, rec.payload))
-            return out.decode(), got
+            return out.decode() + errout.decode(), got
         finally:
             await bus.close()
 
@@ -101,6 +106,21 @@ def test_vehicle_remap_moves_keys_and_payload(log) -> None:
     assert state.vehicle_id == "replay1" and state.position.z == 1.5
     _, got = replay_and_listen(log, "--remap", "am1=am7")
     assert {k.split("/")[2] for k, _ in got} == {"am7"}
+
+
+def test_a_live_vehicle_is_refused_unless_asked_and_a_remap_replays_beside_it(log) -> None:
+    """The log is am1's; am1's autopilot bridge answers now: nothing is published onto it (its recorded state
+    would pass for the vehicle's own), replaying under another id works, --onto-live does it on purpose. A
+    ground service alone (the gateway under am1's prefix) leaves the id free."""
+    bridge = f"{Keys('am1').key('alive')}/autopilot_bridge"
+    out, got = replay_and_listen(log, alive=(bridge,), code=2)
+    assert got == [] and "am1 is live" in out and "--onto-live" in out, out
+    _, got = replay_and_listen(log, "--vehicle", "replay1", alive=(bridge,))
+    assert {k.split("/")[2] for k, _ in got} == {"replay1"}
+    _, got = replay_and_listen(log, "--onto-live", alive=(bridge,))
+    assert [k for k, _ in got] == [K.autopilot_state, K.reasoning_step, K.reasoning_step]
+    _, got = replay_and_listen(log, alive=(f"{Keys('am1').key('alive')}/gateway",))
+    assert len(got) == 3
 
 
 def test_bad_remap_is_refused_before_publishing(log) -> None:
