@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import threading
 import time
-from collections.abc import AsyncIterator, Callable, Iterator
+from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -105,3 +106,40 @@ async def skill_outcome(statuses: Subscription[SkillStatus], goal_id: str, timeo
 def arun(coro, timeout: float = 240.0):
     """Run a coroutine to completion from a sync test, with an overall timeout."""
     return asyncio.run(asyncio.wait_for(coro, timeout))
+
+
+class BusCollector:
+    """What a bus source yields, collected on a thread with its own bus and event loop while a sync test drives
+    processes (a CLI, signals). `source(bus)` declares what to read and returns the coroutine function that gives
+    the next item; the collector is ready once `ready(items)` holds (default: at once, the source declared)."""
+
+    def __init__(self, endpoint: str, source: Callable[[Bus], Callable[[], Awaitable[Any]]],
+                 ready: Callable[[list[Any]], bool] = lambda items: True) -> None:
+        self.endpoint, self.source, self.ready = endpoint, source, ready
+        self.items: list[Any] = []
+        self._ready, self._done = threading.Event(), threading.Event()
+        self._thread = threading.Thread(target=lambda: asyncio.run(self._collect()), daemon=True)
+
+    async def _collect(self) -> None:
+        async with await Bus.open(connect=[self.endpoint]) as bus:
+            next_item = self.source(bus)
+            while not self._done.is_set():
+                if self.ready(self.items):
+                    self._ready.set()
+                with contextlib.suppress(TimeoutError):
+                    self.items.append(await asyncio.wait_for(next_item(), 0.2))
+
+    def wait_for(self, pred: Callable[[list[Any]], bool], timeout: float, what: str) -> None:
+        deadline = time.monotonic() + timeout
+        while not pred(self.items):
+            assert time.monotonic() < deadline, f"timed out waiting for {what}; collected {self.items}"
+            time.sleep(0.05)
+
+    def __enter__(self) -> BusCollector:
+        self._thread.start()
+        assert self._ready.wait(30), "the collector's source never became ready"
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._done.set()
+        self._thread.join(10)

@@ -4,7 +4,6 @@ bridge arms; a failed preflight refuses arm and takeoff with every reason until 
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import os
 import subprocess
 import sys
@@ -16,7 +15,7 @@ from services.autopilot_bridge.preflight import PARAM_NAMES, check_params
 from shared.keys import Keys
 from shared.messages import ArmCommand, PreflightCommand, TakeoffCommand
 from tests.autopilot_bridge.test_bridge import bridge_and_fake
-from tests.helpers import bus_for, run_stack
+from tests.helpers import BusCollector, bus_for, run_stack
 
 SAFE = {"COM_OBL_RC_ACT": 4.0, "COM_OF_LOSS_T": 0.5, "GF_ACTION": 2.0, "GF_MAX_HOR_DIST": 6.0,
         "GF_MAX_VER_DIST": 3.0}
@@ -98,8 +97,10 @@ def test_aermani_preflight_against_the_simulator(tmp_path, unsafe):
     env = {"AERMANI_SIM_FPS": "2"}
     if unsafe:
         env["AERMANI_SIM_PX4_PARAMS"] = "COM_OBL_RC_ACT=7,GF_ACTION=0"
-    with run_stack(["sim", "autopilot_bridge"], tmp_path, env=env) as stack:
-        reports, stop_listening = _listen_for_reports(stack)
+    with run_stack(["sim", "autopilot_bridge"], tmp_path, env=env) as stack, \
+            BusCollector(stack.endpoint, lambda bus: bus.subscribe(Keys("am1").autopilot_preflight).recv) as listener:
+        # autopilot/preflight is collected on the listener's own thread while the CLI runs its own event loop
+        reports = listener.items
         out = _preflight_cli(stack.endpoint)
         for _ in range(20):  # the bridge answers "no link to PX4" until the simulator's first heartbeat
             if "no link to PX4" not in out.stdout:
@@ -111,7 +112,7 @@ def test_aermani_preflight_against_the_simulator(tmp_path, unsafe):
             assert out.returncode == 0, text
             assert "preflight passed" in text and "COM_OBL_RC_ACT" in text and "4 (Land)" in text
             assert "camera" in text and "mavlink_rate" in text and "bus_round_trip" in text
-            stop_listening(lambda: any(r.trigger == "operator" for r in reports))
+            listener.wait_for(lambda rs: any(r.trigger == "operator" for r in rs), 30, "the operator's report")
             operator = [r for r in reports if r.trigger == "operator"]
             assert operator and operator[-1].ok, reports  # the verdict is on the bus, so a recording keeps it
             assert {"camera", "mavlink_rate", "bus_round_trip", "GF_ACTION"} <= {c.name for c in operator[-1].checks}
@@ -127,37 +128,6 @@ def test_aermani_preflight_against_the_simulator(tmp_path, unsafe):
                 assert not state.armed
 
         asyncio.run(takeoff())
-        stop_listening(lambda: any(r.trigger == "takeoff" for r in reports))
+        listener.wait_for(lambda rs: any(r.trigger == "takeoff" for r in rs), 30, "the take-off gate's report")
         gate = [r for r in reports if r.trigger == "takeoff"]
         assert gate and not gate[-1].ok and not gate[-1].overridden, reports
-
-
-def _listen_for_reports(stack):
-    """Collect autopilot/preflight in a thread while the test runs the CLI (which runs its own event loop)."""
-    import threading
-
-    reports: list = []
-    done = threading.Event()
-
-    async def listen() -> None:
-        async with bus_for(stack) as bus:
-            sub = bus.subscribe(Keys("am1").autopilot_preflight)
-            ready.set()
-            while not done.is_set():
-                with contextlib.suppress(TimeoutError):
-                    reports.append(await sub.recv(timeout=0.2))
-
-    ready = threading.Event()
-    thread = threading.Thread(target=lambda: asyncio.run(listen()), daemon=True)
-    thread.start()
-    assert ready.wait(30), "no bus for the listener"
-
-    def stop(arrived) -> None:
-        """Once `arrived()` holds (the report the test waits for is in), or after 30 s."""
-        deadline = time.monotonic() + 30
-        while not arrived() and time.monotonic() < deadline:
-            time.sleep(0.05)
-        done.set()
-        thread.join(10)
-
-    return reports, stop

@@ -12,6 +12,8 @@ from pathlib import Path
 import pytest
 
 from aermani.launcher import free_port
+from shared.keys import alive_pattern, parse_alive_key
+from tests.helpers import BusCollector
 
 pytestmark = pytest.mark.integration
 AERMANI = [sys.executable, "-m", "aermani.cli"]
@@ -46,6 +48,17 @@ def _wait(pred, timeout: float, what: str):
     raise AssertionError(f"timed out waiting for {what}")
 
 
+def _service_of(pid: int) -> str:
+    """The service a child runs (`python -m services.<name>`), from its command line."""
+    argv = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+    return argv[argv.index(b"-m") + 1].decode().removeprefix("services.")
+
+
+def _changes(events: list[tuple[str, bool]]) -> list[tuple[str, bool]]:
+    """Liveliness events as (service, appeared)."""
+    return [(parse_alive_key(key)[1], appeared) for key, appeared in events]
+
+
 def _alive_pids(pids: set[int]) -> set[int]:
     alive = set()
     for p in pids:
@@ -68,10 +81,20 @@ def test_up_health_restart_and_clean_stop(tmp_path: Path):
         table = _wait(lambda: (h := _health(port)).count("alive") >= 2 and h, 90, "both services alive")
         assert "reasoner" in table and "recorder" in table
         children = _wait(lambda: _children(up.pid) if len(_children(up.pid)) >= 2 else None, 10, "children")
-        # SIGKILL one service: the launcher sees it die and restarts it.
+        # SIGKILL one service: the launcher sees it die and restarts it. Its liveliness token goes and comes
+        # back within a second or two, less than one `aermani health` call takes (3-5 s of interpreter start
+        # on a busy machine), so the gap is seen on a liveliness watch, which cannot miss it, not by polling.
         victim = next(iter(children))
-        os.kill(victim, signal.SIGKILL)
-        _wait(lambda: _health(port).count("alive") < 2, 30, "killed service to disappear")
+        name = _service_of(victim)
+        # The watch reports the tokens alive now first: once both are in, it is declared at the router.
+        watch = BusCollector(f"tcp/127.0.0.1:{port}", lambda bus: bus.watch_liveliness(alive_pattern()).get,
+                             ready=lambda items: len(items) >= 2)
+        with watch:
+            os.kill(victim, signal.SIGKILL)
+            gone = (name, False)
+            watch.wait_for(lambda ev: gone in _changes(ev), 30, "killed service to disappear")
+            watch.wait_for(lambda ev: (name, True) in _changes(ev)[_changes(ev).index(gone):], 90,
+                           "killed service back")
         _wait(lambda: _health(port).count("alive") >= 2, 90, "killed service restarted and alive")
         new_children = _children(up.pid)
         assert victim not in new_children and len(new_children) == 2
