@@ -94,12 +94,9 @@ class ReplayOntoLive(AermaniError):
 async def live_targets(bus: Bus, path: str | Path, remap: dict[str, str] | None) -> list[str]:
     """The vehicle ids the replay of `path` (after `remap`) would publish onto whose state owners answer."""
     targets = {(remap or {}).get(v, (remap or {}).get("*", v)) for v in log_vehicles(path)}
-    live = []
-    for v in sorted(targets):
-        alive = await bus.alive(k.alive_pattern(v), timeout=2.0)
-        if any(key.rsplit("/", 1)[-1] in VEHICLE_OWNERS for key in alive):
-            live.append(v)
-    return live
+    owned = {vehicle for vehicle, service in map(k.parse_alive_key, await bus.alive(k.alive_pattern(), timeout=2.0))
+             if service in VEHICLE_OWNERS}  # one liveliness query for the whole fleet
+    return sorted(targets & owned)
 
 
 async def replay(bus: Bus, path: str | Path, *, speed: float = 1.0, keys: str | None = None,
