@@ -14,8 +14,6 @@ import base64
 import json
 import time
 
-import anthropic
-
 from services.reasoner.backends.base import ChatBackend, ModelReply, ModelRequest, register
 from services.reasoner.schema import SCHEMA_NAME
 
@@ -42,7 +40,8 @@ class AnthropicBackend(ChatBackend):
     default_model = "claude-sonnet-4-5"
     key_env = "ANTHROPIC_API_KEY"
     endpoint = "Anthropic endpoint"
-    client_class = anthropic.AsyncAnthropic
+    sdk_name = "anthropic"
+    client_name = "AsyncAnthropic"
 
     def prefix_part(self, prefix: str) -> dict:
         return {"type": "text", "text": prefix, "cache_control": {"type": "ephemeral"}}
@@ -60,7 +59,7 @@ class AnthropicBackend(ChatBackend):
         if self.temperature is not None:
             # In the body: this SDK's `create` no longer names the parameter, the Messages API still reads it.
             kw["extra_body"] = {"temperature": self.temperature}
-        with self.sdk_errors(anthropic, schema):
+        with self.sdk_errors(schema):
             # The messages are plain dicts in the wire format; the SDK types them as TypedDicts.
             resp = await self.client.messages.create(model=self.model, max_tokens=self.max_tokens,
                                                      messages=self.messages(request), **kw)  # type: ignore[arg-type]

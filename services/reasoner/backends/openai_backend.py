@@ -10,8 +10,6 @@ from __future__ import annotations
 import base64
 import time
 
-import openai
-
 from services.reasoner.backends.base import ChatBackend, ModelReply, ModelRequest, register
 from services.reasoner.schema import SCHEMA_NAME
 
@@ -34,7 +32,8 @@ class OpenAIBackend(ChatBackend):
     default_model = "gpt-4o"
     key_env = "OPENAI_API_KEY"
     endpoint = "OpenAI-compatible endpoint"
-    client_class = openai.AsyncOpenAI
+    sdk_name = "openai"
+    client_name = "AsyncOpenAI"
 
     def image_part(self, jpeg: bytes) -> dict:
         return {"type": "image_url", "image_url": {"url": image_data_url(jpeg)}}
@@ -42,7 +41,7 @@ class OpenAIBackend(ChatBackend):
     async def _call(self, request: ModelRequest, schema: dict | None) -> ModelReply:
         t0 = time.perf_counter()
         extra = {"response_format": response_format(schema)} if schema is not None else {}
-        with self.sdk_errors(openai, schema):
+        with self.sdk_errors(schema):
             # The messages are plain dicts in the wire format; the SDK types them as TypedDicts.
             resp = await self.client.chat.completions.create(  # type: ignore[call-overload]
                 model=self.model, messages=self.messages(request), max_tokens=self.max_tokens,
