@@ -118,8 +118,10 @@ def test_demo_refuses_to_take_off_after_a_failed_preflight_until_overridden(tmp_
     code, result = demo(tmp_path / "refused", {"AERMANI_REASONER_BACKEND": "rules"})
     assert code == 2 and result.get("preflight") == "refused", result
     assert "steps" not in result  # no task was started
+    # overridden, it arms and flies a task (a pick without the place: the flight, not the task, is under test)
     code, result = demo(tmp_path / "overridden", {"AERMANI_REASONER_BACKEND": "rules",
-                                                  "AERMANI_AUTOPILOT_BRIDGE_PREFLIGHT_OVERRIDE": "1"})
+                                                  "AERMANI_AUTOPILOT_BRIDGE_PREFLIGHT_OVERRIDE": "1"},
+                        command="pick up the red cup")
     assert code == 0 and result["success"], result.get("verdict")
     log = (tmp_path / "overridden" / "logs" / "autopilot_bridge-am1.log").read_text()
     assert "arming with a failed preflight" in log and "COM_OBL_RC_ACT" in log
