@@ -50,6 +50,13 @@ from shared.text import well_formed
 
 log = logging.getLogger("aermani.reasoner.loop")
 
+AIRBORNE = (LandedState.IN_AIR, LandedState.TAKEOFF, LandedState.LANDING)
+"""Flight phases in which a skill needs healthy offboard control."""
+
+
+class ExecutorUnreachable(AermaniError):
+    """No executor answered a skill, even after waiting `link_wait_s` for one: the task ends."""
+
 
 class World(ABC):
     """What the loop needs from the stack."""
@@ -61,9 +68,11 @@ class World(ABC):
     async def observe(self, newer_than_ns: int) -> Observation: ...
 
     @abstractmethod
-    async def run_skill(self, request: SkillRequest, timeout: float) -> tuple[SkillAccept, SkillStatus | None]:
+    async def run_skill(self, request: SkillRequest, timeout: float,
+                        ready_timeout: float = 0.0) -> tuple[SkillAccept, SkillStatus | None]:
         """Send the skill goal (action protocol); when accepted, wait up to `timeout` for its terminal status
-        (None when none came in time)."""
+        (None when none came in time). With `ready_timeout` > 0, wait that long for an executor to answer
+        (a supervised restart) before giving up with an AermaniError."""
 
     async def request_approval(self, request: ApprovalStatus, timeout: float) -> ApprovalStatus:
         """Ask the operator whether `request.skill` may run; the decided status (approved, rejected, or
@@ -239,9 +248,14 @@ class TaskRunner:
             overhead = time.perf_counter() - t_step - model_time
             ste = parsed.ste
             t_skill = time.perf_counter()
-            st = await self._execute(SkillRequest(skill=ste.skill, argument=ste.argument, task_id=self.req.task_id,
-                                                  step=self.steps), self.settings.skill_timeout_s,
-                                     reasoning=parsed.drt.reasoning or "")
+            try:
+                st = await self._execute(SkillRequest(skill=ste.skill, argument=ste.argument,
+                                                      task_id=self.req.task_id, step=self.steps),
+                                         self.settings.skill_timeout_s, reasoning=parsed.drt.reasoning or "")
+            except ExecutorUnreachable as exc:
+                self._publish(rec.model_copy(update={"skill_state": SkillState.FAILED, "skill_message": str(exc),
+                                                     "overhead_s": overhead}))
+                return self.status(TaskState.FAILED, str(exc))
             skill_s = time.perf_counter() - t_skill
             t_upd = time.perf_counter()
             last_end_ns = now_ns()  # local clock: the next frame must arrive after this
@@ -274,8 +288,11 @@ class TaskRunner:
             self._override_ns = obs.state.override_ns
         if self.req.takeoff and obs.state is not None and obs.state.landed_state in (
                 LandedState.ON_GROUND, LandedState.UNKNOWN) and not obs.state.armed:
-            st = await self._execute(SkillRequest(skill=S.TAKEOFF, task_id=self.req.task_id, step=0),
-                                     self.settings.takeoff_timeout_s)
+            try:
+                st = await self._execute(SkillRequest(skill=S.TAKEOFF, task_id=self.req.task_id, step=0),
+                                         self.settings.takeoff_timeout_s)
+            except ExecutorUnreachable as exc:
+                return self.status(TaskState.FAILED, f"takeoff failed: {exc}")
             if st.state is not SkillState.SUCCEEDED:
                 return self.status(TaskState.FAILED, f"takeoff {st.state.value}: {st.message}")
         return None
@@ -304,8 +321,10 @@ class TaskRunner:
             return f"no vehicle state from the autopilot bridge for {obs.state_age_s:.1f} s"
         if not st.link_ok:
             return "no link to the autopilot"
-        if st.landed_state is LandedState.IN_AIR and not st.offboard_ok:
-            return f"offboard control is not healthy (mode {st.mode})"
+        if st.landed_state in AIRBORNE and not st.offboard_ok:
+            # Taking off or landing counts too: a vehicle that PX4 is bringing down after a bridge kill is
+            # not one to send a skill to (7 were issued in 4.7 s when only "in_air" was checked).
+            return f"offboard control is not healthy (mode {st.mode}, {st.landed_state.value})"
         return None
 
     async def _await_link(self, obs: Observation, newer_than_ns: int,
@@ -419,9 +438,21 @@ class TaskRunner:
                                message=f"executor stopped mid-skill: {exc}", task_id=req.task_id, step=req.step,
                                started_ns=started, ended_ns=now_ns())
         except AermaniError as exc:
-            return SkillStatus(goal_id="", skill=req.skill, argument=req.argument, state=SkillState.REJECTED,
-                               message=f"executor unreachable: {exc}", task_id=req.task_id, step=req.step,
-                               started_ns=started, ended_ns=now_ns())
+            # No answer from the executor: wait for one (a restart takes 1-2 s) and send the same skill again,
+            # instead of spending the next steps on "executor unreachable"; still none, and the task ends.
+            log.warning("task %s: executor unreachable (%s); waiting up to %.0f s for it", req.task_id, exc,
+                        self.settings.link_wait_s)
+            try:
+                accept, st = await self.world.run_skill(req, timeout, ready_timeout=self.settings.link_wait_s)
+            except ServerLost as lost:
+                await self.world.hold(req.task_id, "executor lost")
+                return SkillStatus(goal_id="", skill=req.skill, argument=req.argument, state=SkillState.FAILED,
+                                   message=f"executor stopped mid-skill: {lost}", task_id=req.task_id,
+                                   step=req.step, started_ns=started, ended_ns=now_ns())
+            except AermaniError as again:
+                await self.world.hold(req.task_id, "executor unreachable")
+                raise ExecutorUnreachable(f"executor unreachable for {self.settings.link_wait_s:.0f} s "
+                                          f"({again}); vehicle held (if it still listens)") from again
         if not accept.accepted:
             # The refusal's code and facts (out_of_reach, blocked...) travel with the accept reply.
             return SkillStatus(goal_id="", skill=req.skill, argument=req.argument, state=SkillState.REJECTED,

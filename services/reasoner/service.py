@@ -97,8 +97,9 @@ class BusWorld(World):
                            state=self.state.value, state_age_s=self.state.age_s if self.state.value else 0.0,
                            detections=det.items if det else (), memory=self.memory.value)
 
-    async def run_skill(self, request: SkillRequest, timeout: float) -> tuple[SkillAccept, SkillStatus | None]:
-        goal = await self.skills.send_goal(request, timeout=10.0)
+    async def run_skill(self, request: SkillRequest, timeout: float,
+                        ready_timeout: float = 0.0) -> tuple[SkillAccept, SkillStatus | None]:
+        goal = await self.skills.send_goal(request, timeout=10.0, ready_timeout=ready_timeout)
         if goal.accepted and timeout > 0:
             self.running = goal
         try:

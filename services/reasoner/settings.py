@@ -73,9 +73,11 @@ class ReasonerSettings(ServiceSettings):
     link_wait_s: float = Field(20.0, ge=0)
     """While the autopilot link or offboard control is down mid-task, the reasoner issues no skill and waits
     this long for it to come back before it holds and ends the task (no step is spent waiting)."""
-    state_stale_s: float = Field(2.0, gt=0)
-    """A vehicle state older than this (the bridge publishes at >= 20 Hz) counts as a lost link: a dead or
-    silent bridge leaves its last state, still showing `link_ok`, behind."""
+    state_stale_s: float = Field(0.5, gt=0)
+    """A vehicle state older than this counts as a lost link: a dead or silent bridge leaves its last state,
+    still showing `link_ok`, behind. 0.5 s is 15 periods of the bridge's default 30 Hz (`state_rate_hz`);
+    raise it with a slower state rate. (It was 2 s: skills went out on a 1.35 s-old state after a bridge
+    kill.)"""
     skill_timeout_s: float = Field(180.0, gt=0)
     """Longest wait for one skill's terminal status before the reasoner holds and records a timeout."""
     frame_wait_s: float = Field(1.0, ge=0)

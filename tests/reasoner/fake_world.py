@@ -150,7 +150,8 @@ class MiniWorldPort(World):
         return Observation(image_jpeg=b"\xff\xd8fake-jpeg\xff\xd9", image_stamp_ns=now_ns(), state=self.world.state(),
                            detections=self.world.detections(), memory=self.world.memory())
 
-    async def run_skill(self, request: SkillRequest, timeout: float) -> tuple[SkillAccept, SkillStatus | None]:
+    async def run_skill(self, request: SkillRequest, timeout: float,
+                        ready_timeout: float = 0.0) -> tuple[SkillAccept, SkillStatus | None]:
         goal = new_id("goal-")
         state, msg, perceived = self.world.apply(request)
         status = SkillStatus(goal_id=goal, skill=request.skill, argument=request.argument, state=state,

@@ -11,7 +11,8 @@ from services.reasoner.backends.rules import RulesBackend
 from services.reasoner.loop import TaskRunner
 from services.reasoner.prompt import Observation
 from services.reasoner.settings import ReasonerSettings
-from shared.messages import SkillAccept, SkillRequest, SkillStatus, TaskRequest, TaskState
+from shared.errors import NoResponder
+from shared.messages import LandedState, SkillAccept, SkillRequest, SkillState, SkillStatus, TaskRequest, TaskState
 from tests.reasoner.fake_world import MiniWorld, MiniWorldPort, Thing
 
 TABLE = Thing("table", "surface", headings=(0, 1, 7), size=(1.2, 0.8, 0.75))
@@ -37,10 +38,11 @@ class SilentBridgeWorld(MiniWorldPort):
             return dataclasses.replace(obs, state_age_s=3.0 + 0.5 * self.gated)
         return obs
 
-    async def run_skill(self, request: SkillRequest, timeout: float) -> tuple[SkillAccept, SkillStatus | None]:
+    async def run_skill(self, request: SkillRequest, timeout: float,
+                        ready_timeout: float = 0.0) -> tuple[SkillAccept, SkillStatus | None]:
         if request.skill == "hold":
             self.holds.append(request.task_id or "")
-        return await super().run_skill(request, timeout)
+        return await super().run_skill(request, timeout, ready_timeout)
 
 
 def _run(port: SilentBridgeWorld, **settings: object):
@@ -68,3 +70,72 @@ def test_the_task_continues_when_the_state_comes_back() -> None:
     assert final.state is TaskState.SUCCEEDED, final.message
     assert port.gated == 3 and not port.holds
     assert w.placed_on == {"red cup": "table"}
+
+
+class LandingWorld(MiniWorldPort):
+    """After the take-off PX4 brings the vehicle down on its own (AUTO.LAND, as after a bridge kill): the
+    state says landing, with offboard control gone."""
+
+    def __init__(self, world: MiniWorld) -> None:
+        super().__init__(world)
+        self.skills: list[str] = []
+
+    async def observe(self, newer_than_ns: int) -> Observation:
+        obs = await super().observe(newer_than_ns)
+        if self.world.executed and obs.state is not None:
+            landing = obs.state.model_copy(update={"landed_state": LandedState.LANDING, "offboard_ok": False,
+                                                   "mode": "AUTO.LAND"})
+            return dataclasses.replace(obs, state=landing)
+        return obs
+
+    async def run_skill(self, request: SkillRequest, timeout: float,
+                        ready_timeout: float = 0.0) -> tuple[SkillAccept, SkillStatus | None]:
+        self.skills.append(request.skill)
+        return await super().run_skill(request, timeout, ready_timeout)
+
+
+def test_no_skill_while_the_vehicle_lands_without_offboard_control() -> None:
+    port = LandingWorld(MiniWorld([Thing("red cup"), TABLE]))
+    final, steps = _run(port, link_wait_s=1.0)
+    assert final.state is TaskState.FAILED
+    assert "offboard control is not healthy (mode AUTO.LAND, landing)" in final.message, final.message
+    assert port.skills == ["takeoff", "hold"] and steps == []
+
+
+class GoneExecutorWorld(MiniWorldPort):
+    """The executor stops answering after the take-off: `back_after` more calls fail with NoResponder (the
+    reasoner's retry waits for it with `ready_timeout`), None for an executor that never comes back."""
+
+    def __init__(self, world: MiniWorld, back_after: int | None) -> None:
+        super().__init__(world)
+        self.failing = back_after
+        self.calls: list[tuple[str, float]] = []
+
+    async def run_skill(self, request: SkillRequest, timeout: float,
+                        ready_timeout: float = 0.0) -> tuple[SkillAccept, SkillStatus | None]:
+        self.calls.append((request.skill, ready_timeout))
+        if self.world.executed and (self.failing is None or self.failing > 0):
+            if self.failing is not None:
+                self.failing -= 1
+            raise NoResponder(f"no queryable for {request.skill}")
+        return await super().run_skill(request, timeout, ready_timeout)
+
+
+def test_an_executor_that_comes_back_gets_the_same_skill_again_without_a_spent_step() -> None:
+    w = MiniWorld([Thing("red cup"), TABLE])
+    port = GoneExecutorWorld(w, back_after=1)
+    final, steps = _run(port, link_wait_s=5.0)
+    assert final.state is TaskState.SUCCEEDED, final.message
+    first, retry = port.calls[1], port.calls[2]
+    assert first[0] == retry[0] and (first[1], retry[1]) == (0.0, 5.0)  # the same skill, now waiting for a server
+    assert all("unreachable" not in (s.skill_message or "") for s in steps)
+
+
+def test_an_absent_executor_ends_the_task_after_one_step() -> None:
+    w = MiniWorld([Thing("red cup"), TABLE])
+    port = GoneExecutorWorld(w, back_after=None)
+    final, steps = _run(port, link_wait_s=5.0)
+    assert final.state is TaskState.FAILED
+    assert "executor unreachable for 5 s" in final.message, final.message
+    assert len(steps) == 1 and steps[0].skill_state is SkillState.FAILED  # the one step, logged with the reason
+    assert "executor unreachable" in steps[0].skill_message
