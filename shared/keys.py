@@ -309,7 +309,8 @@ REASONER_CANCEL_TASK: Query[CancelGoal, CancelReply] = Query(
 REASONER_STEP: Topic[ReasoningStep] = Topic(
     "reasoner/step", ReasoningStep, "every reasoning step: DRT, STE, raw answer, latency", "reasoner")
 REASONER_TASK_STATUS: Topic[TaskStatus] = Topic(
-    "reasoner/task_status", TaskStatus, "feedback and result of each task", "reasoner")
+    "reasoner/task_status", TaskStatus, "feedback and result of each task", "reasoner (the gateway: the end of a "
+    "task whose reasoner died)")
 REASONER_APPROVAL: Topic[ApprovalStatus] = Topic(
     "reasoner/approval", ApprovalStatus, "operator approval of a critical skill: pending, then decided",
     "reasoner")

@@ -373,6 +373,9 @@ class Fleet:
                         model_calls=prev.get("model_calls", 0), invalid_answers=prev.get("invalid_answers", 0),
                         started_ns=prev.get("started_ns", 0), ended_ns=now_ns())
         log.warning("task %s on %s: %s", task["task_id"], task["vehicle_id"], why)
+        # On the task's own status key too, so the end reaches the flight's log (the recorder) and every
+        # follower, not only this store: the reasoner that would have published it is gone.
+        self.bus.publish(Keys(task["vehicle_id"]).task_status, st)
         await self.store.record_status(task["vehicle_id"], st.model_dump(mode="json"))
         await self._notify()
 

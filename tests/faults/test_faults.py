@@ -28,7 +28,7 @@ from aermani.launcher import available_services, free_port
 from services.executor.settings import ExecutorSettings
 from shared.keys import Keys
 from shared.mcaplog import iter_samples, recover
-from shared.messages import Health, ReasoningStep
+from shared.messages import Health, ReasoningStep, TaskStatus
 from tests.gateway.conftest import TOKEN, read_sse
 from tests.gateway.test_fullstack import reset, wait_grounded
 from tests.helpers import arun, bus_for, run_stack
@@ -510,10 +510,16 @@ def test_the_log_has_every_stored_step(rig) -> None:
     rec.proc.wait(timeout=60)
     paths = sorted((tmp / "rec").glob("*.mcap"))  # before the launcher's new recorder opens its file
     logged: dict[str, dict[int, int]] = {}
+    ends: dict[str, str] = {}  # task -> the terminal state its log shows
     for path in paths:
-        for sample in iter_samples(_readable(path, tmp / "recovered"), keys="aermani/v1/am1/reasoner/step"):
+        readable = _readable(path, tmp / "recovered")
+        for sample in iter_samples(readable, keys="aermani/v1/am1/reasoner/step"):
             step = ReasoningStep.model_validate_json(sample.payload)
             logged.setdefault(step.task_id, {})[step.step] = step.stamp_ns
+        for sample in iter_samples(readable, keys="aermani/v1/am1/reasoner/task_status"):
+            st = TaskStatus.model_validate_json(sample.payload)
+            if st.state.value in TERMINAL:
+                ends[st.task_id] = st.state.value
     excused = 0
     for tid in TASKS:
         stored = [s["step"] for s in c.get(f"/tasks/{tid}").json()["reasoning_steps"]]
@@ -523,6 +529,10 @@ def test_the_log_has_every_stored_step(rig) -> None:
                    if not any(a <= steps[n] <= b for a, b in NOT_RECORDING.get(tid, []))}
         assert not missing, f"task {tid}: steps stored but not logged: {missing}"
         excused += len(set(steps) - set(logged.get(tid, {})))
+        # The task's end is in the log, even where its reasoner was killed (the gateway publishes that end).
+        end = c.get(f"/tasks/{tid}").json()["status"]
+        if not any(a <= end["ended_ns"] <= b for a, b in NOT_RECORDING.get(tid, [])):
+            assert ends.get(tid) == end["state"], f"task {tid}: its end ({end['state']}) is not in the log"
         if tid in GATEWAY_BACK:
             later = {n for n, ns in logged.get(tid, {}).items() if ns > GATEWAY_BACK[tid]}
             assert later <= set(steps), f"task {tid}: the restarted gateway missed {later - set(steps)}"
