@@ -110,6 +110,8 @@ class Bridge:
         # PX4's authority: the mode we last asked for; a switch to anything else while armed means PX4 (a
         # failsafe) or the pilot took over, and latches `override` until a new operator command.
         self.mode_requested: str | None = None
+        self.climbing = False
+        """A take-off is climbing to its altitude (an abort then lands instead of holding)."""
         self.mode_pending: str | None = None  # asked for, not yet seen in a HEARTBEAT
         self.override = ""
         self.override_ns = 0
@@ -363,13 +365,23 @@ class Bridge:
                            message=f"not flying for task {abort.task_id} (its commands are refused from now on); "
                                    "nothing else done")
         else:
+            mid_takeoff = self.armed and (self.climbing or self.landed_state is LandedState.TAKEOFF)
             self.epoch += 1  # ends a takeoff that is waiting for its altitude
             self.take_over(f"aborted by {abort.source}: {abort.reason}", abort.task_id)
-            ack = AbortAck(abort_stamp_ns=abort.stamp_ns, service=SERVICE, message=await self.hold_through_px4())
+            # Mid-takeoff a hold would leave the vehicle armed a few centimetres up, in ground effect, below
+            # every skill's minimum altitude: it lands (the executor does the same).
+            what = await (self.land_on_abort() if mid_takeoff else self.hold_through_px4())
+            ack = AbortAck(abort_stamp_ns=abort.stamp_ns, service=SERVICE, message=what)
         log.warning("abort from %s (%s): %s", abort.source, abort.reason, ack.message)
         if self.bus is not None:
             self.bus.publish(self.keys.abort_ack, ack)
         return ack
+
+    async def land_on_abort(self) -> str:
+        if not self.link_ok:
+            return "no link to PX4: cannot command a landing"
+        res = await self.land(LandCommand())
+        return "landing (aborted mid-takeoff)" if res.ok else f"{res.message}; {await self.hold_through_px4()}"
 
     async def hold_through_px4(self) -> str:
         if not self.link_ok:
@@ -377,6 +389,8 @@ class Bridge:
         if not self.armed:
             self.stream.stop()
             return "disarmed: nothing to hold"
+        if self.mode == "AUTO.LAND":
+            return "landing (AUTO.LAND): an abort does not stop a landing"
         in_our_hands = self.offboard_expected or (self.mode_requested is not None and self.mode == self.mode_requested)
         if not in_our_hands:
             return f"PX4 has control in {self.mode}: left to it"
@@ -638,7 +652,11 @@ class Bridge:
                 there = math.dist((px, py, pz), (x, y, alt)) <= tol and self.landed_state == LandedState.IN_AIR
                 return there or epoch != self.epoch or not self.offboard_expected or not self.armed
 
-            reached = await self.wait_for(settled, self.s.takeoff_timeout_s)
+            self.climbing = True
+            try:
+                reached = await self.wait_for(settled, self.s.takeoff_timeout_s)
+            finally:
+                self.climbing = False
             if self.override:
                 return self._result("takeoff", False, f"takeoff stopped: {self.override}", code)
             if epoch != self.epoch:

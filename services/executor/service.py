@@ -14,6 +14,7 @@ from services.executor.memory import Memory
 from services.executor.registry import Skill, build_library
 from services.executor.settings import ExecutorSettings
 from services.executor.skills.common import Refusal
+from shared import skills as S  # noqa: N812
 from shared.action import SKILL_ACTION, ActionServer, ServerGoalHandle
 from shared.bus import Bus
 from shared.errors import BusError, DecodeError
@@ -27,6 +28,8 @@ from shared.messages import (
     CancelReply,
     GripperState,
     HoldCommand,
+    LandCommand,
+    LandedState,
     OutcomeCode,
     SkillAccept,
     SkillFacts,
@@ -218,6 +221,13 @@ class Executor:
             log.warning("hold command failed: %s", exc)
             return None
 
+    async def _land(self) -> AutopilotResult | None:
+        try:
+            return await self.bus.query(self.keys.autopilot_command, LandCommand(), timeout=2.0)
+        except BusError as exc:
+            log.warning("land command failed: %s", exc)
+            return None
+
     async def _supervise(self, goal: Goal, arg: str | None) -> None:
         assert goal.task is not None
         skill = goal.skill
@@ -293,16 +303,25 @@ class Executor:
             if goal.task is not None:  # else it is cancelled as it starts (_execute)
                 goal.task.cancel()
         result = None
-        if airborne(self.state.value) or goal is not None:
+        st = self.state.value
+        taking_off = (goal is not None and goal.skill.name == S.TAKEOFF) or (
+            st is not None and st.armed and st.landed_state is LandedState.TAKEOFF)
+        if taking_off:
+            # Holding mid-takeoff leaves the vehicle armed a few centimetres up, in ground effect, where the
+            # next task can neither take off nor move (below the minimum altitude): it lands instead.
+            result = await self._land()
+        elif airborne(st) or goal is not None:
             result = await self._hold()
         if goal is not None and goal.runner is not None:
             # Wait for the status so the executor is ready for the next skill when the ack arrives.
             with contextlib.suppress(TimeoutError, asyncio.CancelledError):
                 await asyncio.wait_for(asyncio.shield(goal.runner), 1.0)
         if result is None and (goal is not None or airborne(self.state.value)):
-            text = "hold command failed"
+            text = "land command failed" if taking_off else "hold command failed"
         elif result is None:
             text = "vehicle on the ground; nothing to hold"
+        elif taking_off:
+            text = "landing (aborted mid-takeoff)" if result.ok else f"land refused: {result.message}"
         else:
             text = "holding position"
         what = f"stopped {goal.skill.name} (goal {goal.goal_id}), " if goal is not None else "no skill running, "

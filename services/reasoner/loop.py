@@ -284,10 +284,17 @@ class TaskRunner:
         if refused:
             return self.status(TaskState.FAILED, f"{REFUSED_BEFORE_TAKEOFF}: {refused}")
         obs = await self.world.observe(0)
+        deadline = time.monotonic() + self.settings.link_wait_s
+        while (obs.state is not None and obs.state.landed_state is LandedState.LANDING
+               and time.monotonic() < deadline):
+            # A landing in progress (an abort mid-takeoff lands): take off again once it is down.
+            await asyncio.sleep(0.5)
+            obs = await self.world.observe(0)
         if obs.state is not None:
             self._override_ns = obs.state.override_ns
-        if self.req.takeoff and obs.state is not None and obs.state.landed_state in (
-                LandedState.ON_GROUND, LandedState.UNKNOWN) and not obs.state.armed:
+        grounded = obs.state is not None and (obs.state.landed_state is LandedState.ON_GROUND or (
+            obs.state.landed_state is LandedState.UNKNOWN and not obs.state.armed))
+        if self.req.takeoff and grounded:
             try:
                 st = await self._execute(SkillRequest(skill=S.TAKEOFF, task_id=self.req.task_id, step=0),
                                          self.settings.takeoff_timeout_s)

@@ -250,3 +250,33 @@ async def test_world_reset_clears_working_memory_so_no_grasp_runs_on_the_old_lay
         assert "run obj_localization first" in st.message, st.message
         assert (await c.judge(op="held")).held is None
         await c.ok("land")
+
+
+async def test_abort_mid_takeoff_lands_disarmed_and_the_next_takeoff_is_clean(stack):
+    """An abort while the take-off climbs lands the vehicle (a hold would leave it armed a few centimetres up,
+    where no skill can move it); once down and disarmed, the next take-off reaches the flight altitude."""
+    async with bus_for(stack) as bus:
+        c = Client(bus)
+        await c.reset(seed=2)
+        acks = c.bus.subscribe(KEYS.abort_ack, maxsize=100)
+        acc = await c.request("takeoff")
+        assert acc.accepted, acc.reason
+        deadline = time.monotonic() + 60
+        while (st := await c.states.recv(timeout=5)).position.z < 0.05:  # climbing
+            assert time.monotonic() < deadline, "the take-off never climbed"
+        abort = Abort(reason="abort mid-takeoff", source="test")
+        c.bus.publish(KEYS.abort, abort)
+        said = {}
+        while set(said) != {"executor", "autopilot_bridge"}:  # the bridge obeys the abort on its own too
+            ack = await acks.recv(timeout=10)
+            assert ack.abort_stamp_ns == abort.stamp_ns, ack
+            said[ack.service] = ack.message
+        assert all("landing" in m for m in said.values()), said  # neither holds low: one lands, the other lets it
+        assert (await c.terminal(acc.goal_id, 15)).state == SkillState.ABORTED
+        deadline = time.monotonic() + 60
+        while (st := await c.states.recv(timeout=5)).armed or st.landed_state.value != "on_ground":
+            assert time.monotonic() < deadline, f"not down: {st.landed_state} armed={st.armed} z={st.position.z:.2f}"
+        await c.takeoff()
+        st = c.states.latest_nowait() or await c.states.recv(timeout=5)
+        assert st.position.z > ExecutorSettings().min_altitude, st.position
+        await c.ok("land")
