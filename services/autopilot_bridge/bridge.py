@@ -291,12 +291,15 @@ class Bridge:
 
     def _on_debug_vect(self, msg: Any) -> None:
         """The gripper's sensing (the simulator's payload, or a real gripper reporting the same way): DEBUG_VECT
-        named GRIPPER, x = finger opening (m), y = holding (1/0)."""
+        named GRIPPER, x = finger opening (m), y = holding (1/0), z = closing commanded (1/0). The gripper's
+        own word sets its state, so a restarted bridge knows at once that it holds (it said "unknown" until
+        its first gripper command, and a restarted executor then opened the fingers on a held cup)."""
         name = msg.name.rstrip("\x00") if isinstance(msg.name, str) else bytes(msg.name).rstrip(b"\x00").decode()
-        if name != "GRIPPER" or not self._finite(msg, msg.x, msg.y):
+        if name != "GRIPPER" or not self._finite(msg, msg.x, msg.y, msg.z):
             return
         self.gripper_width = float(msg.x)
         self.gripper_holding = msg.y > 0.5
+        self.gripper = GripperState.CLOSED if msg.z > 0.5 else GripperState.OPEN
 
     def _on_statustext(self, msg: Any) -> None:
         text = msg.text.rstrip("\x00") if isinstance(msg.text, str) else str(msg.text)

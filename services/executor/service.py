@@ -359,8 +359,7 @@ class Executor:
                 self.memory.set_held(None)
             # The gripper's own report wins over memory, which a restart of this service empties: an object
             # between closed fingers is held, whatever the memory says, so no skill opens the gripper on it.
-            elif (self.goal is None and not self.memory.held and rec.value.gripper == GripperState.CLOSED
-                  and rec.value.gripper_holding):
+            elif self.goal is None and not self.memory.held and rec.value.gripper_holding:
                 log.warning("the gripper reports an object between its fingers that memory did not know of")
                 self.memory.set_held(UNKNOWN_HELD)
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import asyncio
 import math
+import signal
 import time
 
 import pytest
@@ -279,4 +280,43 @@ async def test_abort_mid_takeoff_lands_disarmed_and_the_next_takeoff_is_clean(st
         await c.takeoff()
         st = c.states.latest_nowait() or await c.states.recv(timeout=5)
         assert st.position.z > ExecutorSettings().min_altitude, st.position
+        await c.ok("land")
+
+
+async def test_bridge_and_executor_killed_while_holding_then_another_grasp_keeps_the_cup(stack):
+    """Gripper truth survives restarts: with the cup held, the autopilot bridge and the executor are killed and
+    started again (the executor's memory is empty, the bridge has never commanded the gripper); the new
+    bridge reports the gripper closed on an object from the gripper's own telemetry at once, the executor
+    takes that over memory, and a grasp of another object is refused instead of opening the fingers."""
+    async with bus_for(stack) as bus:
+        c = Client(bus)
+        await c.reset(seed=1, target_object="red cup", destination="table", extra_objects=["apple"])
+        await c.takeoff()
+        await c.approach("red cup")
+        await c.ok("grasp", "red cup")
+        assert (await c.judge(op="held")).held == "red cup"
+        for name in ("autopilot_bridge", "executor"):
+            p = stack.find(name)
+            stack.kill(name, signal.SIGKILL)
+            p.proc.wait(timeout=10)
+        for name in ("autopilot_bridge", "executor"):
+            stack.find(name).start()
+        stack.wait_alive(timeout=120)
+        deadline = time.monotonic() + 60
+        while not ((st := await c.states.recv(timeout=10)).link_ok and st.gripper_holding
+                   and st.gripper.value == "closed"):
+            assert time.monotonic() < deadline, f"the new bridge does not report the held cup: {st.gripper}"
+        skills = await bus.query(KEYS.skills, None, timeout=10)  # the new executor answers
+        assert skills.skills
+        # The bridge's death was an offboard loss for PX4: its failsafe holds, then lands and disarms (the
+        # simulated PX4's hold lasts 3 s, the restart about as long). Wait for it to finish, then fly again.
+        deadline = time.monotonic() + 90
+        while (st := await c.states.recv(timeout=10)).armed or st.landed_state.value != "on_ground":
+            assert time.monotonic() < deadline, f"PX4's failsafe did not end: {st.mode} {st.landed_state}"
+        assert st.gripper_holding, "the cup fell out during the failsafe landing"
+        await c.takeoff()
+        st = await c.run("grasp", "apple")
+        assert st.state == SkillState.REJECTED, f"{st.state.value}: {st.message}"
+        assert "already holding" in st.message or "between its fingers" in st.message, st.message
+        assert (await c.judge(op="held")).held == "red cup", "the cup was dropped"
         await c.ok("land")

@@ -284,7 +284,7 @@ class Grasp(_Manipulation):
         if mem.held:
             return f"already holding the {mem.held}: place it before grasping something else"
         st = ctx.state.value
-        if st is not None and st.gripper == GripperState.CLOSED and st.gripper_holding:
+        if st is not None and st.gripper_holding:
             # The autopilot's word over memory (which a restart empties): opening now would drop it.
             return ("the gripper reports an object between its fingers: place it on a localized surface before "
                     "grasping something else (the gripper never opens in the air except to place)")
@@ -458,6 +458,8 @@ class Grasp(_Manipulation):
     async def attempt(self, ctx: SkillContext, label: str, query: str, target: Target, rec: Attempt) -> SkillResult:
         s, mem = self.settings, ctx.memory
         st = ctx.current()
+        if st.gripper_holding:  # the fingers hold something (the check ran on an older state): never drop it
+            raise SkillFailed("the gripper reports an object between its fingers: not opening it in the air")
         if st.gripper != GripperState.OPEN:
             await ctx.gripper("open")
         yaw = grasp_yaw(target.size, target.yaw, st.yaw)
