@@ -38,12 +38,16 @@ from shared.messages import (
     SkillRequest,
     SkillState,
     SkillStatus,
+    VehicleState,
     new_id,
     now_ns,
 )
 from shared.sensors import parse_calibration, parse_raw16
 
 UNKNOWN_HELD = "unidentified object"
+SLIP_S = 0.3
+"""How long a held object's pads may show no contact (closed fingers) before it counts as slipped: contact
+flickers for a sample or two as a held object swings or touches down."""
 """What memory calls an object the gripper reports holding that this executor did not grasp itself."""
 log = logging.getLogger("aermani.executor")
 
@@ -74,6 +78,9 @@ class Executor:
         self.skills = build_library(settings)
         self.memory = Memory(on_change=self._memory_changed)
         self.state = StateTracker()
+        self._lost_since: int | None = None  # receive time of the first state showing a held object's pads apart
+        self.slipped: str = ""
+        """The held object lost in flight (noticed from the gripper's contact), reported with the next status."""
         self.clearance = DepthClearance(DEFAULT_INTRINSICS, mount=settings.mount)
         self.ctx = SkillContext(bus, settings, self.memory, self.state, self.clearance)
         self.goal: Goal | None = None
@@ -277,6 +284,7 @@ class Executor:
         finally:
             if skill.moves:
                 self.ctx.settled_ns = time.time_ns()
+            message, code = self._with_slip(message, code)
             outcome = SkillOutcome(code=code, facts=self._complete(facts, arg),
                                    start_pose=goal.start_pose, end_pose=pose_of(self.state.value),
                                    perceived="; ".join(self.ctx.perceived), held_object=self.memory.held,
@@ -362,6 +370,36 @@ class Executor:
             elif self.goal is None and not self.memory.held and rec.value.gripper_holding:
                 log.warning("the gripper reports an object between its fingers that memory did not know of")
                 self.memory.set_held(UNKNOWN_HELD)
+            self._watch_slip(rec.value, rec.receive_ns)
+
+    def _with_slip(self, message: str, code: OutcomeCode) -> tuple[str, OutcomeCode]:
+        """A slip noticed while (or since) the skill ran is part of its status: the message says it, and a skill
+        that otherwise succeeded reports `slipped`."""
+        if not self.slipped:
+            return message, code
+        message = f"{message}; {self.slipped}" if message else self.slipped
+        self.slipped = ""
+        return message, OutcomeCode.SLIPPED if code is OutcomeCode.SUCCEEDED else code
+
+    def _watch_slip(self, st: VehicleState, receive_ns: int) -> None:
+        """A held object whose pads lost contact while the fingers stay closed, for SLIP_S, has slipped out (grasp
+        and place watch the contact themselves while they run): memory forgets it and the next skill status
+        says so (code `slipped`), instead of a later place releasing nothing."""
+        manipulating = self.goal is not None and self.goal.skill.name in (S.GRASP, S.PLACE)
+        if (not self.memory.held or manipulating or st.gripper_holding is not False
+                or st.gripper != GripperState.CLOSED):
+            self._lost_since = None
+            return
+        if self._lost_since is None:
+            self._lost_since = receive_ns
+            return
+        if receive_ns - self._lost_since >= SLIP_S * 1e9:
+            p = st.position
+            self.slipped = (f"the {self.memory.held} slipped out of the gripper in flight near "
+                            f"({p.x:.2f}, {p.y:.2f}, {p.z:.2f}) (finger contact lost for {SLIP_S:.1f} s)")
+            log.warning("%s", self.slipped)
+            self.memory.set_held(None)
+            self._lost_since = None
 
     async def _pump_aborts(self, key: BoundTopic[Abort]) -> None:
         sub = self.bus.subscribe(key, maxsize=16, overflow="drop_newest")

@@ -244,7 +244,7 @@ class CameraPublisher:
 
 
 FAULT_UNITS = {"camera": ("off", "stuck", "ok"), "mavlink_signal": ("off", "ok"), "hover": ("offset", "wander", "ok"),
-               "camera_mount": ("offset", "ok"), "estimate": ("offset", "ok"), "object": ("knock",)}
+               "camera_mount": ("offset", "ok"), "estimate": ("offset", "ok"), "object": ("knock", "slip")}
 
 
 def inject_fault(req: object, camera: CameraPublisher, server: MavlinkServer) -> dict:
@@ -279,7 +279,8 @@ def _world_fault(req: dict, unit: str, kind: str, camera: CameraPublisher) -> di
     circles there); `camera_mount` `offset` {x, y, z} (body frame, metres: the published base_link->camera
     transform is that far from where the camera really is, a miscalibrated mount); `estimate` `offset` {x, y}
     (world, metres: the pose estimate jumps that far from the truth, and the vehicle with it); `object` `knock`
-    {name} (the named object is tipped onto its side where it stands)."""
+    {name} (the named object is tipped onto its side where it stands) or `slip` {name} (the held object drops
+    out of the gripper)."""
     try:
         num = {k: float(req.get(k, 0.0)) for k in ("x", "y", "z", "radius_m")}
         period = float(req.get("period_s", 2.0))
@@ -296,7 +297,9 @@ def _world_fault(req: dict, unit: str, kind: str, camera: CameraPublisher) -> di
             params.estimate_offset = (num["x"], num["y"]) if kind == "offset" else (0.0, 0.0)
         elif unit == "camera_mount":
             camera.mount_error = np.array([num["x"], num["y"], num["z"]]) if kind == "offset" else np.zeros(3)
-        elif not core.world.knock_over(str(req.get("name", ""))):
+        elif kind == "slip" and not core.world.slip(str(req.get("name", ""))):
+            return {"ok": False, "message": f"object slip: the gripper does not hold {req.get('name')!r}"}
+        elif kind == "knock" and not core.world.knock_over(str(req.get("name", ""))):
             return {"ok": False, "message": f"object knock: no free object named {req.get('name')!r}"}
     log.warning("sim fault injected: %s %s %s", unit, kind, {k: v for k, v in req.items() if k not in ("unit", "type")})
     return {"ok": True, "unit": unit, "type": kind}

@@ -562,6 +562,21 @@ class World:
         mujoco.mj_forward(m, d)
         return True
 
+    def slip(self, name: str) -> bool:
+        """Pull a held object out of the gripper (fault injection: a grasp that gives way in flight, which the
+        contact physics does not produce on demand): it drops from 10 cm below the pads; False when the named
+        object is not held."""
+        e = self.by_name(name)
+        if e is None or e.category != "object" or not e.attached:
+            return False
+        m, d = self.model, self.data
+        adr = self.obj_qadr[name]
+        dof = m.jnt_dofadr[m.body(self.obj_body[name]).jntadr[0]]
+        d.qpos[adr + 2] -= 0.10 + e.size[2]
+        d.qvel[dof:dof + 6] = 0.0
+        mujoco.mj_forward(m, d)
+        return True
+
     def state_vector(self) -> np.ndarray:
         """qpos: what a renderer needs besides the model."""
         return self.data.qpos.copy()

@@ -320,3 +320,28 @@ async def test_bridge_and_executor_killed_while_holding_then_another_grasp_keeps
         assert "already holding" in st.message or "between its fingers" in st.message, st.message
         assert (await c.judge(op="held")).held == "red cup", "the cup was dropped"
         await c.ok("land")
+
+
+async def test_a_slip_in_flight_is_noticed_and_reported(stack):
+    """The held cup drops out of the gripper between skills (sim/fault object slip): the executor sees the
+    pads lose contact, forgets the cup, and the next skill's status says it slipped (code `slipped`); a place
+    is then refused instead of releasing nothing."""
+    async with bus_for(stack) as bus:
+        c = Client(bus)
+        await c.reset(seed=1, target_object="red cup", destination="table")
+        await c.takeoff()
+        await c.approach("red cup")
+        await c.ok("grasp", "red cup")
+        await c.ok("up")
+        memory = bus.subscribe(KEYS.memory, maxsize=100)
+        res = await bus.query(KEYS.sim_fault, {"unit": "object", "type": "slip", "name": "red cup"}, timeout=10)
+        assert res["ok"], res
+        deadline = time.monotonic() + 30
+        while (await memory.recv(timeout=10)).held_object is not None:
+            assert time.monotonic() < deadline, "the executor never noticed the slip"
+        st = await c.ok("hold")
+        assert st.outcome.code.value == "slipped" and "red cup slipped out of the gripper" in st.message, st
+        assert st.outcome.held_object is None and (await c.judge(op="held")).held is None
+        placed = await c.run("place")
+        assert placed.state == SkillState.REJECTED, placed.message
+        await c.ok("land")
