@@ -18,9 +18,9 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validat
 SCHEMA_VERSION = 1
 """Major version of the message schemas. A receiver rejects a message of a newer major version with an
 error naming both versions."""
-SCHEMA_MINOR = 5
-"""Minor version: bumped when fields are added. A receiver accepts a message of a newer minor version,
-ignoring the fields it does not know (logged once per field)."""
+SCHEMA_MINOR = 6
+"""Minor version: bumped when fields are added (or deprecated and ignored, never removed). A receiver accepts a
+message of a newer minor version, ignoring the fields it does not know (logged once per field)."""
 MAX_COMMAND_CHARS = 500
 MAX_QUERY_CHARS = 200
 # Physical bounds: a value beyond them is a broken estimate or a forged message, never a state to act on.
@@ -1020,6 +1020,24 @@ class Heartbeat(Message):
 # --------------------------------------------------------------------------- simulator (evaluation only)
 
 
+class JudgeCriteria(Part):
+    """What the simulator's judge requires of a pick or a placement (minor version 6). Part of a task's own
+    definition (its suite line), laid out with its scenario at reset, so no caller of the judge can loosen it
+    afterwards."""
+
+    lift_m: float = Field(0.03, ge=0.0, le=1.0)
+    """Picked: the object's bottom at least this far above the top of what it stood on, metres."""
+    hold_s: float = Field(1.0, ge=0.0, le=60.0)
+    """Picked: lifted and touching nothing but the vehicle for this long (simulated time), seconds."""
+    rest_s: float = Field(2.0, ge=0.0, le=60.0)
+    """Placed: at rest (the simulator's rest speed and spin) for this long (simulated time), seconds."""
+    upright_tolerance_deg: float = Field(20.0, ge=0.0, le=180.0)
+    """Placed: the object's own up axis within this angle of the world's up, signed (upside down is 180 deg;
+    spheres have no up), degrees."""
+    top_tolerance_m: float = Field(0.02, ge=0.0, le=0.5)
+    """Placed: |object bottom - surface top| at most this, metres (contact penetration is a few mm)."""
+
+
 class Scenario(Message):
     """A simulator layout to reset to (evaluation): seed, target, destination, distractors."""
 
@@ -1040,6 +1058,8 @@ class Scenario(Message):
     """Vehicle start pose on the ground; None lets the seed choose."""
     placements: dict[str, str] | None = None
     """Object -> surface it must start on (e.g. {"orange": "counter"}); others go where the seed puts them."""
+    criteria: JudgeCriteria = JudgeCriteria()
+    """Success criteria the judge applies in this layout, from the task's definition (minor version 6)."""
 
 
 class SimLabel(Part):
@@ -1093,13 +1113,34 @@ class JudgeRequest(Message):
 
     kind: Literal["judge_request"] = "judge_request"
     op: Literal["world", "on_surface", "held"] = "world"
-    """world: everything; on_surface: is `object` on `surface`; held: what the gripper holds."""
+    """world: everything; on_surface: is `object` placed on `surface` (out of the gripper, resting on it by
+    contact, upright, inside its top's footprint, its bottom on the top, at rest for the scenario's
+    `criteria.rest_s`); held: has the gripper picked an object (in both pads, lifted `criteria.lift_m` clear,
+    touching nothing else, for `criteria.hold_s`)."""
     object: str | None = None
     """Object name for on_surface."""
     surface: str | None = None
     """Surface name for on_surface."""
     tolerance: float = 0.05
-    """Tolerance in metres."""
+    """Deprecated (minor version 6) and ignored: the criteria are the task's (`Scenario.criteria`, fixed at
+    reset), not the caller's, so no caller can loosen them. Kept so older senders still validate."""
+
+
+class JudgeCheck(Part):
+    """One check behind a judge's verdict, with what it measured (minor version 6)."""
+
+    name: str
+    """in_gripper, clear, lift, hold (a pick); released, support, upright, footprint, top, rest (a placement)."""
+    ok: bool
+    """Whether this check passed."""
+    detail: str = ""
+    """Why, in words."""
+    measured: float | None = None
+    """The measured number (lift m, hold s, tilt deg, distance inside the edge m, bottom - top m, rest s)."""
+    limit: float | None = None
+    """The criterion it is held to (from the scenario's `criteria`)."""
+    unit: str = ""
+    """Unit of `measured` and `limit`."""
 
 
 class JudgeResult(Message):
@@ -1107,13 +1148,18 @@ class JudgeResult(Message):
 
     kind: Literal["judge_result"] = "judge_result"
     ok: bool = True
-    """Answer to the question (on_surface: whether it is)."""
+    """Answer to the question (on_surface: whether it is placed; held: whether an object is picked)."""
     message: str = ""
-    """Explanation."""
+    """Why: the first failed check, or what passed, with the measured numbers."""
+    checks: tuple[JudgeCheck, ...] = ()
+    """Every check of the verdict with its measured number and limit (on_surface, held; minor version 6)."""
+    pending_s: float | None = None
+    """Simulated seconds after which the verdict would turn true if nothing moves (only a hold or rest time is
+    short); None when waiting would not change it (minor version 6)."""
     objects: tuple[SimObjectTruth, ...] = ()
     """Ground truth of every object and surface (op=world)."""
     held: str | None = None
-    """Object in the gripper."""
+    """Object in both pads, picked or not (`ok` of op held says whether it is picked)."""
     vehicle: Pose | None = None
     """Vehicle pose (ground truth)."""
     collisions: tuple[str, ...] = ()

@@ -134,24 +134,39 @@ class Verdict:
     result: JudgeResult
 
 
+async def ask_judge(bus: Bus, keys: Keys, req: JudgeRequest, *, timeout: float = 10.0,
+                    settle_timeout: float = 15.0) -> JudgeResult:
+    """Ask the simulator's judge; while its answer is only waiting on a duration (`pending_s`: an object at
+    rest but not yet for the task's rest time, a lift not yet held for its hold time), ask again as that time
+    passes, up to `settle_timeout` wall seconds. The judge's simulated clock runs at the simulator's speed
+    factor, so the wait between asks is at most `pending_s` wall seconds (less when the simulator is faster)."""
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + settle_timeout
+    while True:
+        j = await query_ready(bus, keys.sim_judge, req, timeout=timeout)
+        if j.ok or j.pending_s is None or loop.time() >= deadline:
+            return j
+        await asyncio.sleep(min(max(j.pending_s, 0.05), 0.5, max(0.0, deadline - loop.time())))
+
+
 async def judge_episode(bus: Bus, keys: Keys, accepted: Sequence[str], destination: str | None, *,
-                        tolerance: float | None = None, timeout: float = 10.0) -> Verdict:
-    """The one episode judge, as the paper scores a trial: one of the `accepted` objects resting on the
-    `destination`, or, for a task without a destination, one of them in the gripper at the end."""
+                        timeout: float = 10.0, settle_timeout: float = 15.0) -> Verdict:
+    """The one episode judge, as the paper scores a trial: one of the `accepted` objects placed on the
+    `destination`, or, for a task without a destination, one of them picked (lifted clear and held) at the end.
+    The criteria are the task's, laid out with its scenario (`Scenario.criteria`), not chosen here; a verdict
+    that only waits on a rest or hold time is asked again as that time passes (`ask_judge`)."""
     if destination:
         first: JudgeResult | None = None
         for obj in accepted:
             req = JudgeRequest(op="on_surface", object=obj, surface=destination)
-            if tolerance is not None:
-                req = req.model_copy(update={"tolerance": tolerance})
-            j = await query_ready(bus, keys.sim_judge, req, timeout=timeout)
+            j = await ask_judge(bus, keys, req, timeout=timeout, settle_timeout=settle_timeout)
             if j.ok:
                 return Verdict(True, j.message, j)
             first = first or j
         assert first is not None, "judge_episode needs at least one accepted object"
         return Verdict(False, first.message, first)
-    j = await query_ready(bus, keys.sim_judge, JudgeRequest(op="held"), timeout=timeout)
+    j = await ask_judge(bus, keys, JudgeRequest(op="held"), timeout=timeout, settle_timeout=settle_timeout)
     want = " or ".join(accepted)
     if j.held in accepted:
-        return Verdict(True, f"holding {j.held}", j)
-    return Verdict(False, f"holding {j.held}, expected {want}" if j.held else f"holding nothing, expected {want}", j)
+        return Verdict(j.ok, j.message if j.ok else f"{j.message}: not picked", j)
+    return Verdict(False, f"holding {j.held}, expected {want}" if j.held else f"{j.message}, expected {want}", j)

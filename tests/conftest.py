@@ -14,6 +14,10 @@ import inspect  # noqa: E402
 
 import pytest  # noqa: E402
 
+# MuJoCo picks its OpenGL platform when first imported: the simulator's default (headless EGL) is set before any
+# test module imports mujoco itself, whatever the collection order (services/sim/render.py check_gl_platform).
+import services.sim  # noqa: E402, F401
+
 
 @pytest.fixture
 def anyio_backend() -> str:

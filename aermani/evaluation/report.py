@@ -150,7 +150,9 @@ def configuration_lines(records: list[EpisodeRecord], config: dict[str, Any]) ->
         ("episodes per suite", str(config.get("episodes"))),
         ("N (episodes in the metrics / recorded)", f"{len(ran)} / {len(records)}"),
         ("seeds", _seeds_text(records)),
-        ("T_max, tolerance", f"{config.get('t_max_s', '?')} s, {config.get('tolerance', '?')} m"),
+        ("T_max, judge criteria", f"{config.get('t_max_s', '?')} s, " + (
+            f"a caller's placement tolerance of {config['tolerance']} m (a run before the task criteria)"
+            if "tolerance" in config else "each task's (`criteria` in its scenario; docs/evaluation.md)")),
         ("vehicles", ", ".join(sorted({r.vehicle_id for r in records if r.vehicle_id})) or "--"),
     ]
     return ["## Configuration", "", "| | |", "|---|---|"] + [f"| {k} | {v} |" for k, v in rows] + [""]
@@ -299,10 +301,11 @@ def markdown(records: list[EpisodeRecord], config: dict[str, Any], plots: list[s
     lines += _paper_section(records, suites, configs, multi)
     lines += paper_comparison_lines(records, config)
     lines += ["", "Metrics (definitions in docs/evaluation.md): SR = % of episodes where the simulator's ground "
-              "truth has the right object on the destination within tolerance (or held, when the command has no "
-              "destination) before T_max; ARR = mean % of redundant actions over successful episodes; RS = mean "
-              "reasoning steps per episode; IAR = % of model answers that were invalid; RT = model latency per "
-              "query; TT = mean end-to-end time of successful episodes (wall clock, simulator speed factor "
+              "truth has the right object placed on the destination (or picked, when the command has no "
+              "destination) by the task's criteria before T_max; ARR = mean % of redundant actions over successful "
+              "episodes; RS = mean reasoning steps per episode; IAR = % of model answers that were invalid; "
+              "RT = model latency per query; TT = mean end-to-end time of successful episodes (wall clock, "
+              "simulator speed factor "
               f"{config.get('speed_factor', '?')}).", ""]
     failed = [r for r in records if not r.success and not r.harness_error]
     if failed:

@@ -81,7 +81,6 @@ class RunConfig(BaseModel):
     parallel: int = 1
     speed_factor: float = 4.0
     t_max_s: float = DEFAULT_T_MAX_S
-    tolerance: float = 0.05
     # Use vehicles already running behind a router (e.g. on other hosts) instead of launching a stack.
     connect: str | None = None
     vehicles: list[str] | None = None
@@ -115,7 +114,7 @@ class RunConfig(BaseModel):
             args += ["--episodes", str(self.episodes)]
         args += ["--seed", str(self.seed), "--segmenter", self.segmenter, "--realism", self.realism,
                  "--speed-factor", f"{self.speed_factor:g}", "--t-max", f"{self.t_max_s:g}",
-                 "--tolerance", f"{self.tolerance:g}", "--output-mode", self.output_mode]
+                 "--output-mode", self.output_mode]
         if self.connect:
             args += ["--connect", self.connect, "--vehicles", ",".join(self.vehicle_ids())]
         else:
@@ -332,7 +331,7 @@ class VehicleWorker:
             self.bus.publish(self.keys.abort, Abort(reason="evaluation: no terminal status", source="evaluation",
                                                     task_id=task_id))
 
-        v = await judge_episode(self.bus, self.keys, task.accepted, task.destination, tolerance=self.cfg.tolerance,
+        v = await judge_episode(self.bus, self.keys, task.accepted, task.destination,
                                 timeout=QUERY_TIMEOUT_S)
         judge, judged_ok = v.result, v.success
         state = status.state.value if status else "timeout"

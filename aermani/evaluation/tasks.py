@@ -9,7 +9,7 @@ from pathlib import Path
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from shared.errors import ConfigError
-from shared.messages import MAX_COMMAND_CHARS, Scenario, command_text
+from shared.messages import MAX_COMMAND_CHARS, JudgeCriteria, Scenario, command_text
 
 SUITES_DIR = Path(__file__).resolve().parent / "suites"
 # Paper order (Section IV-B, Table II); also the row order of the report.
@@ -61,6 +61,9 @@ class EvalTask(BaseModel):
     """Object -> surface it must start on (e.g. {"orange": "counter"} for "approach the counter ...")."""
     t_max_s: float | None = Field(None, gt=0, le=3600)
     """T_max override for this task, seconds."""
+    criteria: JudgeCriteria = JudgeCriteria()
+    """What the judge requires (a pick's lift and hold; a placement's rest time, upright and height tolerances).
+    Part of the task, laid out with its scenario, so no caller of the judge can loosen it."""
 
     @field_validator("command")
     @classmethod
@@ -74,7 +77,7 @@ class EvalTask(BaseModel):
     def scenario(self, seed: int) -> Scenario:
         return Scenario(seed=seed, target_object=self.target_object, destination=self.destination,
                         distractors=self.distractors, target_out_of_view=self.target_out_of_view,
-                        extra_objects=self.extra_objects, placements=self.placements)
+                        extra_objects=self.extra_objects, placements=self.placements, criteria=self.criteria)
 
 
 class EpisodeSpec(BaseModel):

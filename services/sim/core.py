@@ -77,27 +77,28 @@ class SimCore:
         return SimResetResult(ok=True, message=f"world reset with seed {filled.seed}", scenario=filled)
 
     def judge(self, req: JudgeRequest) -> JudgeResult:
+        """The ground-truth verdict by the scenario's criteria (set by the task at reset, held by the world);
+        `req.tolerance` is deprecated and ignored, so no caller can loosen them."""
         with self.lock:
-            w, v = self.world, self.vehicle
+            w = self.world
             held = w.holding()
             common = {"held": held.name if held else None, "vehicle": self.vehicle_pose(),
                       "collisions": tuple(w.collisions), "scenario": self.scenario}
             if req.op == "held":
-                return JudgeResult(ok=held is not None, message=f"holding {held.name}" if held else
-                                   ("gripper closed, empty" if v.gripper_closed else "gripper open"), **common)
+                v = w.picked()
+                return JudgeResult(ok=v.ok, message=v.message, checks=v.checks, pending_s=v.pending_s, **common)
             if req.op == "on_surface":
                 obj = w.by_name(req.object or "")
                 surf = w.by_name(req.surface or "")
                 if obj is None or obj.category != "object":
                     return JudgeResult(ok=False, message=f"unknown object {req.object!r}", **common)
                 if req.surface and req.surface.strip().lower() == "floor":
-                    ok = not obj.attached and obj.support == "floor" and obj.tilt <= math.radians(20)
-                    return JudgeResult(ok=ok, message=f"{obj.name} {'is' if ok else 'is not'} on the floor",
-                                       **common)
-                if surf is None or surf.category not in ("surface", "furniture"):
+                    v = w.placed(obj, None)
+                elif surf is None or surf.category not in ("surface", "furniture"):
                     return JudgeResult(ok=False, message=f"unknown surface {req.surface!r}", **common)
-                ok, msg = w.on_surface(obj, surf, req.tolerance)
-                return JudgeResult(ok=ok, message=msg, **common)
+                else:
+                    v = w.placed(obj, surf)
+                return JudgeResult(ok=v.ok, message=v.message, checks=v.checks, pending_s=v.pending_s, **common)
             truths = tuple(
                 SimObjectTruth(name=e.name, category=e.category, position=Vec3(x=e.center[0], y=e.center[1],
                                                                                z=e.center[2]),

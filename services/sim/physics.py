@@ -23,6 +23,7 @@ import numpy as np
 
 from services.sim.layout import FLOOR_Z, VEHICLE_BELOW, VEHICLE_HEIGHT, VEHICLE_RADIUS, Entity
 from shared.frames import CAMERA_OFFSET_BODY, CAMERA_PITCH_DOWN, DEFAULT_INTRINSICS, GRIPPER_OFFSET_BODY
+from shared.messages import JudgeCheck, JudgeCriteria
 
 TIMESTEP = 0.002  # s; contacts of small objects in a gripper want a few ms at most
 VEHICLE_MASS = 1.5  # kg, airframe (fingers add FINGER_MASS each)
@@ -37,6 +38,10 @@ FINGER_FRICTION = 1.2  # rubber pads
 GEAR_OFFSETS = ((0.12, 0.12), (0.12, -0.12), (-0.12, 0.12), (-0.12, -0.12))
 GEAR_RADIUS = 0.02
 CRASH_SPEED = 0.5  # m/s: the airframe meeting furniture or a wall faster than this is a crash
+# An object is at rest while both stay below these (a sleeping body is at rest by definition): a ball rolling at
+# 5 mm/s turns at 0.125 rad/s (a 8 cm orange), so a slow roll is movement, not rest.
+REST_SPEED = 0.005  # m/s
+REST_SPIN = 0.1  # rad/s
 
 GROUP_ENV, GROUP_OBJ, GROUP_FINGER, GROUP_AIRFRAME, GROUP_FLOOR = 1, 2, 4, 8, 16
 
@@ -298,6 +303,29 @@ class Contact:
     crash: bool
 
 
+@dataclass(frozen=True)
+class Verdict:
+    """A judge's answer: whether, why (the first failed check, or what passed), every check with its measured
+    number, and how many more simulated seconds would turn it true if nothing moved (only a hold or a rest time
+    is short; None otherwise)."""
+
+    ok: bool
+    message: str
+    checks: tuple[JudgeCheck, ...]
+    pending_s: float | None = None
+
+
+@dataclass
+class ObjectTrack:
+    """What the judge needs of one object's history, in simulated time (`World.sim_time`), advanced every step:
+    durations are the world's, never sampled by the judge's caller."""
+
+    rest_since: float | None = None  # at rest (REST_SPEED, REST_SPIN, or asleep) continuously since
+    clear_since: float | None = None  # in both pads and touching no other thing continuously since
+    lifted_since: float | None = None  # ... and its bottom `criteria.lift_m` above `lifted_from` since
+    lifted_from: float | None = None  # top z of what it stood on when both pads took it
+
+
 @dataclass
 class World:
     """A layout simulated by MuJoCo. `entities` mirror the simulation (object poses, support, held) after every
@@ -311,6 +339,7 @@ class World:
     collisions: list[str] = field(default_factory=list)
     crash_speed: float = CRASH_SPEED
     settle_s: float = 0.3  # let the objects come to rest on their supports before anything else
+    criteria: JudgeCriteria = field(default_factory=JudgeCriteria)  # the task's (`Scenario.criteria`)
 
     def __post_init__(self) -> None:
         self.xml = build_xml(self.entities, self.light_seed, self.light_variation, self.look)
@@ -341,6 +370,7 @@ class World:
         for gid, e in self.geom_entity.items():
             self.geom_instance[gid] = e.id
         self._static_contact: set[int] = set()
+        self.tracks: dict[str, ObjectTrack] = {e.name: ObjectTrack() for e in self.objects}
         self.contacts: list[Contact] = []
         self.sim_time = 0.0
         self._pending = 0.0
@@ -349,6 +379,11 @@ class World:
         mujoco.mj_forward(self.model, self.data)
         if self.settle_s > 0:
             self.settle(self.settle_s)
+        # The layout's objects stand where the generator put them (the settling only absorbed the contact
+        # penetration): those at rest count as at rest since the layout.
+        for t in self.tracks.values():
+            if t.rest_since is not None:
+                t.rest_since = -math.inf
 
     # ---- lookup (same names as the layout)
 
@@ -498,14 +533,22 @@ class World:
             e.center = d.xpos[b].copy()
             rot = d.xmat[b].reshape(3, 3)
             e.yaw = math.atan2(rot[1, 0], rot[0, 0])
-            e.tilt = math.acos(min(1.0, abs(float(rot[2, 2])))) if e.shape != "sphere" else 0.0
+            # Signed: the object's own z axis against the world's up, so upside down is pi, not 0. A sphere has no
+            # up.
+            e.tilt = math.acos(max(-1.0, min(1.0, float(rot[2, 2])))) if e.shape != "sphere" else 0.0
+            track = self.tracks.setdefault(e.name, ObjectTrack())
             if not d.body_awake[b]:
                 # Asleep: at rest, no contacts computed; what it rests on stays as it was, and it is not held
                 # (a held object shares the never-sleeping vehicle's island).
                 e.attached = False
+                self._advance(e, track, at_rest=True, clear=False)
                 continue
             others = set().union(*(touching.get(g, set()) for g in self.obj_geoms[e.name]))
+            was_attached = e.attached
             e.attached = left in others and right in others and self.finger_width() > 0.005
+            if e.attached and not was_attached:
+                below = self.by_name(e.support) if e.support else None
+                track.lifted_from = below.top_z if below is not None else e.bottom_z
             support = None
             lowest = math.inf
             for o in others:
@@ -516,30 +559,156 @@ class World:
                 if z < e.center[2] and z < lowest:
                     support, lowest = oe.name, z
             e.support = None if e.attached else support
+            speed, spin = self._motion(e.name)
+            # Clear: nothing but the vehicle (pads, airframe) touches it; every other thing is an entity.
+            clear = e.attached and not any(o in self.geom_entity for o in others)
+            self._advance(e, track, at_rest=speed < REST_SPEED and spin < REST_SPIN and not e.attached, clear=clear)
+
+    def _motion(self, name: str) -> tuple[float, float]:
+        """Linear speed (world, m/s) and spin (rad/s) of an object's free joint."""
+        b = self.obj_body[name]
+        da = int(self.model.jnt_dofadr[self.model.body_jntadr[b]])
+        qv = self.data.qvel
+        return float(np.linalg.norm(qv[da:da + 3])), float(np.linalg.norm(qv[da + 3:da + 6]))
+
+    def _advance(self, e: Entity, t: ObjectTrack, at_rest: bool, clear: bool) -> None:
+        now = self.sim_time
+        if not at_rest:
+            t.rest_since = None
+        elif t.rest_since is None:
+            t.rest_since = now
+        if not clear:
+            t.clear_since = t.lifted_since = None
+            return
+        if t.clear_since is None:
+            t.clear_since = now
+        top = t.lifted_from if t.lifted_from is not None else e.bottom_z
+        if e.bottom_z - top < self.criteria.lift_m:
+            t.lifted_since = None
+        elif t.lifted_since is None:
+            t.lifted_since = now
 
     def object_speed(self, name: str) -> float:
-        b = self.obj_body[name]
-        return float(np.linalg.norm(self.data.cvel[b][3:]))
+        return self._motion(name)[0]
 
     def holding(self) -> Entity | None:
         """The object both finger pads touch, if any."""
         return self.attached()
 
-    def on_surface(self, obj: Entity, surface: Entity, tolerance: float = 0.05,
-                   upright_tolerance: float = math.radians(20)) -> tuple[bool, str]:
-        """Resting on `surface`'s top by contact, upright within `upright_tolerance`."""
-        if obj.attached:
-            return False, f"{obj.name} is in the gripper"
-        if obj.support != surface.name:
-            where = f"rests on the {obj.support}" if obj.support else "touches nothing below it"
-            return False, f"{obj.name} {where}, not on the {surface.name}"
-        gap = obj.bottom_z - surface.top_z
-        if abs(gap) > tolerance + (obj.size[2] if obj.tilt > upright_tolerance else 0.0):
-            return False, f"{obj.name} bottom is {gap:+.3f} m from the {surface.name} top (tolerance {tolerance})"
-        if obj.tilt > upright_tolerance:
-            return False, (f"{obj.name} lies on the {surface.name} tilted {math.degrees(obj.tilt):.0f} deg "
-                           f"(upright tolerance {math.degrees(upright_tolerance):.0f} deg)")
-        return True, f"{obj.name} rests upright on the {surface.name}"
+    # ---- the judge's questions: criteria from the task (`criteria`), durations in simulated time
+
+    def picked(self) -> Verdict:
+        """Whether the gripper has picked an object: in both pads, touching nothing else, its bottom
+        `criteria.lift_m` above the top it was taken from, continuously for `criteria.hold_s`. Returns the
+        verdict, why, and each check with its measured number."""
+        c = self.criteria
+        held = self.holding()
+        if held is None:
+            state = "closed" if self.fingers_closing() else "open"
+            return Verdict(False, f"gripper {state} ({self.finger_width():.3f} m), nothing in both pads", (
+                JudgeCheck(name="in_gripper", ok=False, detail="no object touches both pads"),))
+        t = self.tracks[held.name]
+        top = t.lifted_from if t.lifted_from is not None else held.bottom_z
+        lift = held.bottom_z - top
+        checks = [JudgeCheck(name="in_gripper", ok=True, detail=f"{held.name} touches both pads"),
+                  JudgeCheck(name="clear", ok=t.clear_since is not None,
+                             detail="touches nothing but the vehicle" if t.clear_since is not None else
+                             "still touches something besides the vehicle"),
+                  JudgeCheck(name="lift", ok=t.lifted_since is not None, measured=lift, limit=c.lift_m, unit="m")]
+        held_for = self.sim_time - t.lifted_since if t.lifted_since is not None else 0.0
+        checks.append(JudgeCheck(name="hold", ok=t.lifted_since is not None and held_for >= c.hold_s,
+                                 measured=held_for, limit=c.hold_s, unit="s"))
+        if t.clear_since is None:
+            why = (f"{held.name} is in the pads but not lifted clear: it still touches something besides the "
+                   f"vehicle (bottom {lift:+.3f} m from the top it stood on)")
+        elif t.lifted_since is None:
+            why = (f"{held.name} is in the pads, lifted only {lift:.3f} m above the top it stood on (needs "
+                   f"{c.lift_m:.3f} m)")
+        elif held_for < c.hold_s:
+            return Verdict(False, f"{held.name} is lifted {lift:.3f} m but held clear for only {held_for:.2f} s "
+                           f"(needs {c.hold_s:.2f} s)", tuple(checks), c.hold_s - held_for)
+        else:
+            return Verdict(True, f"picked {held.name}: lifted {lift:.3f} m, held clear for {held_for:.2f} s",
+                           tuple(checks))
+        return Verdict(False, why, tuple(checks))
+
+    def placed(self, obj: Entity, surface: Entity | None) -> Verdict:
+        """Whether `obj` is placed on `surface` (None: the floor): out of the gripper, resting on it by contact,
+        upright within the tolerance (signed: upside down fails; a sphere has no up), its centre inside the
+        top's footprint, its bottom within `criteria.top_tolerance_m` of the top, and at rest for
+        `criteria.rest_s`. Returns the verdict, why (the first check that fails), and every check."""
+        c = self.criteria
+        where = surface.name if surface is not None else "floor"
+        checks: list[JudgeCheck] = []
+        why: list[str] = []
+
+        def check(name: str, ok: bool, reason: str, **kw: float | str | None) -> None:
+            checks.append(JudgeCheck(name=name, ok=ok, detail=reason, **kw))  # type: ignore[arg-type]
+            if not ok:
+                why.append(reason)
+
+        check("released", not obj.attached, "out of the gripper" if not obj.attached else
+              f"{obj.name} is in the gripper, not placed on the {where}")
+        on = obj.support == where
+        check("support", on, f"rests on the {where} by contact" if on else
+              f"{obj.name} {'rests on the ' + obj.support if obj.support else 'touches nothing below it'}, not on "
+              f"the {where}")
+        tilt = math.degrees(obj.tilt)
+        upright = tilt <= c.upright_tolerance_deg
+        how = "upside down" if tilt > 90 else "tilted"
+        check("upright", upright, f"tilt {tilt:.0f} deg" if upright else
+              f"{obj.name} lies {how}: its up axis {tilt:.0f} deg from vertical (tolerance "
+              f"{c.upright_tolerance_deg:.0f} deg)", measured=tilt, limit=c.upright_tolerance_deg, unit="deg")
+        if surface is not None:
+            edge = _edge_distance(obj, surface)
+            check("footprint", edge >= 0.0, f"centre {edge:.3f} m inside the edge" if edge >= 0 else
+                  f"{obj.name}'s centre is {-edge:.3f} m outside the {where}'s top", measured=edge, limit=0.0,
+                  unit="m")
+            gap = obj.bottom_z - surface.top_z
+            check("top", abs(gap) <= c.top_tolerance_m, f"bottom {gap:+.3f} m from the top"
+                  if abs(gap) <= c.top_tolerance_m else f"{obj.name}'s bottom is {gap:+.3f} m from the {where}'s "
+                  f"top (tolerance {c.top_tolerance_m:.3f} m)", measured=gap, limit=c.top_tolerance_m, unit="m")
+        t = self.tracks[obj.name]
+        if t.rest_since is None:
+            check("rest", False, f"{obj.name} is moving ({self.object_speed(obj.name):.3f} m/s, "
+                  f"{self._motion(obj.name)[1]:.2f} rad/s; at rest below {REST_SPEED} m/s and {REST_SPIN} rad/s)",
+                  measured=0.0, limit=c.rest_s, unit="s")
+        else:
+            rest_for = self.sim_time - t.rest_since
+            shown = "since the layout" if math.isinf(rest_for) else f"for {rest_for:.2f} s"
+            check("rest", rest_for >= c.rest_s, f"at rest {shown}" if rest_for >= c.rest_s else
+                  f"{obj.name} at rest for only {rest_for:.2f} s (needs {c.rest_s:.2f} s)",
+                  measured=min(rest_for, 1e6), limit=c.rest_s, unit="s")
+        failed = [k for k in checks if not k.ok]
+        if failed:
+            more = "" if len(failed) == 1 else f" (and {len(failed) - 1} more: {', '.join(k.name for k in failed[1:])})"
+            rest = checks[-1]
+            pending = (rest.limit - rest.measured if [k.name for k in failed] == ["rest"] and t.rest_since is not None
+                       and rest.limit is not None and rest.measured is not None else None)
+            return Verdict(False, why[0] + more, tuple(checks), pending)
+        return Verdict(True, f"{obj.name} placed on the {where}: " + ", ".join(k.detail for k in checks[1:]),
+                       tuple(checks))
+
+    def set_object_state(self, name: str, center, quat=(1.0, 0.0, 0.0, 0.0), velocity=(0.0, 0.0, 0.0),
+                         spin=(0.0, 0.0, 0.0)) -> Entity:
+        """Put an object at `center` (ENU) with orientation `quat` (w, x, y, z), linear `velocity` (world, m/s) and
+        `spin` (body frame, rad/s); its judge history restarts (tests and scenario tooling; physics from then
+        on)."""
+        e = self.by_name(name)
+        if e is None or e.category != "object":
+            raise KeyError(f"no object {name!r} in this layout; objects: {', '.join(o.name for o in self.objects)}")
+        b, qa = self.obj_body[e.name], self.obj_qadr[e.name]
+        da = int(self.model.jnt_dofadr[self.model.body_jntadr[b]])
+        d = self.data
+        d.qpos[qa:qa + 3] = center
+        d.qpos[qa + 3:qa + 7] = np.asarray(quat, float) / np.linalg.norm(quat)
+        d.qvel[da:da + 3] = velocity
+        d.qvel[da + 3:da + 6] = spin
+        mujoco.mj_forward(self.model, d)
+        self.tracks[e.name] = ObjectTrack()
+        e.attached, e.support = False, None
+        self.sync()
+        return e
 
     def knock_over(self, name: str) -> bool:
         """Tip an object onto its side where it stands (fault injection: the knock a failed grasp can cause,
@@ -580,3 +749,13 @@ class World:
     def state_vector(self) -> np.ndarray:
         """qpos: what a renderer needs besides the model."""
         return self.data.qpos.copy()
+
+
+def _edge_distance(obj: Entity, surface: Entity) -> float:
+    """How far `obj`'s centre lies inside `surface`'s footprint (negative: outside), metres."""
+    dx, dy = obj.center[0] - surface.center[0], obj.center[1] - surface.center[1]
+    if surface.shape in ("cylinder", "sphere"):
+        return float(surface.size[0] / 2 - math.hypot(dx, dy))
+    c, s = math.cos(-surface.yaw), math.sin(-surface.yaw)
+    lx, ly = c * dx - s * dy, s * dx + c * dy
+    return float(min(surface.size[0] / 2 - abs(lx), surface.size[1] / 2 - abs(ly)))

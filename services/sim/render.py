@@ -24,6 +24,26 @@ MIN_DEPTH_M = 0.2  # closer than this the stereo pair cannot match
 DEPTH_K = 0.004  # sigma of the depth error = DEPTH_K * z^2 (m; ~1.6 cm at 2 m, like a 5 cm-baseline camera)
 EDGE_JUMP = 0.06  # relative depth jump between neighbours that makes an occlusion edge
 REALISM = ("realistic", "ideal")
+# MUJOCO_GL -> the module of the GLContext class MuJoCo picks for it (`mujoco.GLContext`).
+GL_MODULES = {"egl": "mujoco.egl", "osmesa": "mujoco.osmesa", "glfw": "mujoco.glfw", "": "mujoco.glfw"}
+
+
+def check_gl_platform() -> None:
+    """Refuse, with the cause, to render on an OpenGL platform other than the one MUJOCO_GL names. MuJoCo reads
+    MUJOCO_GL once, when it is first imported; `services.sim` sets the default (EGL) on its own import, so code
+    that imports `mujoco` before any `services.sim` module gets MuJoCo's own default, GLFW, which needs a display:
+    on a headless machine its context never exists, `MjrContext` raises a FatalError and the next renderer
+    aborts the whole Python process (SIGABRT: what once killed a test run that imported mujoco first)."""
+    import os
+
+    wanted = os.environ.get("MUJOCO_GL", "").lower().strip()
+    got = getattr(getattr(mujoco, "GLContext", None), "__module__", None)
+    expected = GL_MODULES.get(wanted)
+    if expected is not None and got != expected:
+        raise RuntimeError(
+            f"MuJoCo renders through {got or 'no OpenGL platform'} but MUJOCO_GL={wanted!r} asks for {expected}: "
+            "mujoco was imported before services.sim set MUJOCO_GL (import services.sim first, or set MUJOCO_GL "
+            "before starting Python)")
 
 
 @dataclass
@@ -55,6 +75,7 @@ class Renderer:
             return
         if self._renderer is not None:
             self._renderer.close()
+        check_gl_platform()
         self.model = mujoco.MjModel.from_xml_string(snap.xml)
         scale = self.intr.height / DEFAULT_INTRINSICS.height
         if scale != 1.0:  # a coarse camera keeps the field of view

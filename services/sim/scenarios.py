@@ -240,8 +240,8 @@ def generate(scenario: Scenario, light_variation: bool = True,
     if dest is None:
         dest = rng.choice([s for s in surfaces if s != placed[0].support])
     world = World(entities=_structure() + furniture + placed, light_seed=scenario.seed,
-                  light_variation=light_variation, look=look)
+                  light_variation=light_variation, look=look, criteria=scenario.criteria)
     filled = Scenario(seed=scenario.seed, target_object=target, destination=dest, distractors=distractors,
                       target_out_of_view=scenario.target_out_of_view, extra_objects=extras, start=start,
-                      placements=fixed or None)
+                      placements=fixed or None, criteria=scenario.criteria)
     return world, filled, start

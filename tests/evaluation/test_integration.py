@@ -33,8 +33,12 @@ def _check_episode(rec) -> None:
     assert rec.judge is not None and rec.verdict and rec.judge_success is not None
     # success is the task's own end state AND the simulator's ground truth, never the reasoner's claim alone
     assert rec.success == (rec.state == "succeeded" and rec.judge_success)
+    # every verdict says why: its reason and each check with the measured number, by the task's criteria
+    assert rec.judge.checks and rec.judge.scenario is not None
+    assert rec.judge.scenario.criteria == rec.task.criteria
     if rec.judge_success:
-        assert rec.judge.ok if rec.task.destination else rec.held in rec.task.accepted
+        assert rec.judge.ok and all(c.ok for c in rec.judge.checks), rec.judge
+        assert rec.task.destination or rec.held in rec.task.accepted
 
 
 def test_smoke_two_suites_one_episode_each(tmp_path):

@@ -12,7 +12,7 @@ from aermani.evaluation.runner import RunConfig, episode_specs
 from aermani.evaluation.tasks import PAPER_SUITES, derive_seed, expand, load_jsonl, load_suites
 from services.sim.layout import OBJECTS, SURFACES
 from shared.errors import ConfigError
-from shared.messages import ModelCall, ReasoningStep, SkillState, SkillToExecute
+from shared.messages import JudgeCriteria, ModelCall, ReasoningStep, SkillState, SkillToExecute
 
 
 def test_builtin_suites_parse_and_name_only_things_the_simulator_has():
@@ -105,6 +105,41 @@ def test_user_task_file(tmp_path):
     assert specs[0].task.scenario(specs[0].seed).destination == "shelf"
 
 
+def test_the_judges_criteria_are_the_tasks_and_travel_with_its_scenario(tmp_path):
+    """A task line's own criteria (or the defaults when it says none) are laid out with its scenario at reset;
+    nothing run-wide (no RunConfig field, no option on the command line) can set them."""
+    f = tmp_path / "strict.jsonl"
+    f.write_text(json.dumps({"command": "Put the red cup on the table.", "target_object": "red cup",
+                             "destination": "table", "criteria": {"rest_s": 5.0, "upright_tolerance_deg": 10}})
+                 + "\n" + json.dumps({"command": "Grab the banana.", "target_object": "banana"}) + "\n")
+    strict, plain = load_jsonl(f)
+    assert strict.scenario(3).criteria == JudgeCriteria(rest_s=5.0, upright_tolerance_deg=10.0)
+    assert plain.scenario(3).criteria == JudgeCriteria()
+    c = JudgeCriteria()
+    assert (c.lift_m, c.hold_s, c.rest_s, c.upright_tolerance_deg, c.top_tolerance_m) == (0.03, 1.0, 2.0, 20.0, 0.02)
+    f.write_text(json.dumps({"command": "x", "target_object": "apple", "criteria": {"rest_s": -1}}) + "\n")
+    with pytest.raises(ConfigError, match=r"strict.jsonl:1"):
+        load_jsonl(f)
+    assert "tolerance" not in RunConfig.model_fields
+    assert "--tolerance" not in RunConfig(out=tmp_path / "ev").command_line()
+
+
+def test_a_deprecated_tolerance_option_is_ignored_with_a_warning(tmp_path):
+    """The option stays so the commands in older reports still run; its value loosens nothing."""
+    import typer
+    from typer.testing import CliRunner
+
+    from aermani.evaluation.cli import register
+
+    app = typer.Typer()
+    app.callback()(lambda: None)
+    register(app)
+    (tmp_path / "episodes.jsonl").write_text("")
+    res = CliRunner().invoke(app, ["eval", "--tolerance", "0.5", "--out", str(tmp_path), "--report-only"])
+    assert res.exit_code == 0, res.output
+    assert "--tolerance 0.5 is ignored" in " ".join(res.output.split()), res.output
+
+
 def test_bad_task_file_names_the_line(tmp_path):
     f = tmp_path / "bad.jsonl"
     f.write_text('{"command": "x", "target_object": "apple"}\n{"command": "y"}\n')
@@ -186,6 +221,7 @@ def test_report_states_the_configuration_names_the_rules_baseline_and_lists_ever
     for needle in (f"`{cfg.command_line()}`", f"`{doc_cfg['commit']}`", "segmenter -- real: the colour segmenter",
                    "| simulator realism | `realistic` |", "| speed factor | 4.0 |", "| split | `dev` |",
                    "| seeds | 11, 12, 13 |", "| N (episodes in the metrics / recorded) | 2 / 3 |",
+                   "| T_max, judge criteria | 600.0 s, each task's (`criteria` in its scenario",
                    "excluded (left out of the metrics, retried by the next run of the command): "
                    "rules/full/localization/002-s13 on ?: sim/reset refused the scenario: no room",
                    "restarted (2 trials, the last one is in the metrics): rules/full/localization/001-s12",

@@ -48,7 +48,7 @@ def example(cls: type[m.Message], i: int = 0) -> m.Message:
         m.Scenario: lambda: m.Scenario(seed=i, target_object="red cup"),
         m.SimLabels: lambda: m.SimLabels(labels=(m.SimLabel(id=1, name="red cup", category="object"),)),
         m.JudgeRequest: lambda: m.JudgeRequest(),
-        m.JudgeResult: lambda: m.JudgeResult(held="red cup"),
+        m.JudgeResult: lambda: m.JudgeResult(held="red cup", checks=(m.JudgeCheck(name="hold", ok=i % 2 == 0),)),
         m.SimResetResult: lambda: m.SimResetResult(ok=True),
         m.CancelGoal: lambda: m.CancelGoal(goal_id=f"g{i}"),
         m.CancelReply: lambda: m.CancelReply(accepted=True),

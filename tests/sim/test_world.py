@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import math
+import os
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -136,3 +140,39 @@ def test_placements_put_objects_on_the_named_surface(seed):
         generate(Scenario(seed=seed, target_object="orange", placements={"orange": "coffee machine"}))
     with pytest.raises(ScenarioError, match="destination"):
         generate(Scenario(seed=seed, target_object="orange", destination="counter", placements={"orange": "counter"}))
+
+
+_RENDER_TWICE = """
+{first}
+import numpy as np
+from services.sim.render import preview
+from services.sim.scenarios import generate
+from shared.messages import Scenario
+
+world, _, start = generate(Scenario(seed=0))
+for attempt in (1, 2):  # a second renderer after a failed context is what aborted the process
+    try:
+        frame = preview(world, np.array([start.position.x, start.position.y, 1.5]), start.yaw, "ideal")
+        print("rendered", int(frame.rgb.max()))
+    except RuntimeError as exc:
+        print("refused:", exc)
+"""
+
+
+@pytest.mark.parametrize("first", ["import mujoco", "import services.sim"])
+def test_mujoco_imported_before_the_simulator_is_refused_with_the_cause_not_an_abort(first):
+    """MuJoCo picks its OpenGL platform (MUJOCO_GL) when first imported; `services.sim` sets the headless default
+    on import. A process that imports mujoco first got GLFW, which has no context without a display: MjrContext
+    raised and the next renderer aborted Python. Now each render is refused with the cause; with the simulator
+    imported first it renders."""
+    env = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", "PYOPENGL_PLATFORM", "DISPLAY")}
+    root = Path(__file__).resolve().parents[2]
+    env["PYTHONPATH"] = str(root)
+    p = subprocess.run([sys.executable, "-c", _RENDER_TWICE.format(first=first)], env=env, cwd=root,
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, (p.returncode, p.stdout, p.stderr[-2000:])
+    lines = p.stdout.splitlines()
+    if first == "import mujoco":
+        assert len(lines) == 2 and all("mujoco was imported before services.sim" in x for x in lines), lines
+    else:
+        assert len(lines) == 2 and all(x.startswith("rendered ") and int(x.split()[1]) > 0 for x in lines), lines
