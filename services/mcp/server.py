@@ -120,8 +120,9 @@ def build_server(settings: McpSettings) -> MCPServer:
 
     @server.tool(title="Task status", annotations=READ)
     async def task_status(task_id: str, last_steps: int = 5) -> dict[str, Any]:
-        """A task's state (pending, running, succeeded, failed, aborted, timeout), its explanation, and its
-        last reasoning steps: the skill chosen, the model's reasoning and how the skill ended."""
+        """A task's state (pending, running, aborting: an abort was sent and its end has not arrived yet; then
+        succeeded, failed, aborted or timeout), its explanation, and its last reasoning steps: the skill
+        chosen, the model's reasoning and how the skill ended."""
         t = await gw.json("GET", f"/tasks/{task_id}")
         steps = [_step_summary(s["step"]) for s in t.get("reasoning_steps", [])]
         status = t.get("status") or {}

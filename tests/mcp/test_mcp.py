@@ -119,6 +119,24 @@ def test_stdio_client_starts_follows_sees_and_aborts(gw):
     asyncio.run(asyncio.wait_for(main(), 180))
 
 
+def test_task_status_says_aborting_until_the_end_arrives(gw):
+    """The stand-in vehicle acknowledges the abort at once and reports the task's end only when released."""
+    params = StdioServerParameters(command=sys.executable, args=["-m", "aermani.cli", "mcp"], env=_env(gw))
+    gw.call(lambda: setattr(gw.fake, "release", asyncio.Event()))
+
+    async def main():
+        async with Client(params) as client:
+            started = _json(await client.call_tool("start_task", {"command": "look around until abort, slow to stop"}))
+            await _wait_state(client, started["task_id"], {"running"})
+            _json(await client.call_tool("abort", {"vehicle": "am1", "reason": "mcp aborting test"}))
+            st = _json(await client.call_tool("task_status", {"task_id": started["task_id"]}))
+            assert st["state"] == "aborting", st
+            gw.call(gw.fake.release.set)
+            assert (await _wait_state(client, started["task_id"], {"aborted"}))["state"] == "aborted"
+
+    asyncio.run(asyncio.wait_for(main(), 120))
+
+
 @contextlib.contextmanager
 def _http_server(gw: Harness, **settings: object) -> Iterator[str]:
     """The MCP HTTP app on a real uvicorn server on loopback; yields its /mcp URL."""
