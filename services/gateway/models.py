@@ -51,7 +51,7 @@ class TaskCreate(ApiModel):
     command: str = Field(..., min_length=1, max_length=MAX_COMMAND_CHARS)
     """Natural-language command (printable text, at most 500 characters)."""
     vehicle_id: str | None = Field(None, pattern=VEHICLE_ID_PATTERN)
-    """Target vehicle; omitted picks the gateway's default vehicle, or the only one whose reasoner is alive."""
+    """Target vehicle; may be omitted only while one vehicle's reasoner is alive (422 with several)."""
     backend: str | None = Field(None, pattern=r"^[a-z][a-z0-9_]{0,31}$")
     """Override of the reasoner's policy backend: a kind registered in the reasoner (`aermani vlm backends`);
     the reasoner refuses an unknown one, or one it cannot build, with the reason (409)."""

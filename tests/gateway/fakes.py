@@ -245,6 +245,7 @@ class Harness:
         self._error: BaseException | None = None
         self._stop: asyncio.Event | None = None
         self._thread = threading.Thread(target=self._main, name="gateway-harness", daemon=True)
+        self._extra: list[tuple[FakeVehicle, Bus]] = []
 
     def start(self, timeout: float = 60.0) -> Harness:
         self._thread.start()
@@ -258,6 +259,17 @@ class Harness:
         if self.loop and self._stop:
             self.loop.call_soon_threadsafe(self._stop.set)
         self._thread.join(30)
+
+    def add_vehicle(self, vehicle_id: str, **kwargs: Any) -> FakeVehicle:
+        """Another stand-in vehicle on its own bus session to the router (a fleet); stopped with the harness."""
+        async def add() -> FakeVehicle:
+            bus = await Bus.open(connect=[self.endpoint])
+            fake = FakeVehicle(bus, vehicle_id, **kwargs)
+            await fake.start()
+            self._extra.append((fake, bus))
+            return fake
+
+        return self.call(add)
 
     def call(self, fn: Callable[[], Any]) -> Any:
         """Run `fn` on the harness loop (coroutine functions are awaited) and return its result."""
@@ -295,6 +307,9 @@ class Harness:
                     await asyncio.wait_for(serving, 20)
             if self.fake:
                 await self.fake.stop()
+            for extra, extra_bus in self._extra:
+                await extra.stop()
+                await extra_bus.close()
             for b in (fake_bus, router):
                 if b is not None:
                     await b.close()

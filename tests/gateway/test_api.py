@@ -270,3 +270,27 @@ def test_abort_on_an_ended_task_is_refused_while_its_last_step_is_stored(gw, cli
     task = wait_task(client, tid, {"succeeded", "failed", "aborted"})
     assert task["state"] == "succeeded" and task["steps"] == 3
     assert fleet.ended(tid) is None
+
+
+def test_in_a_fleet_a_task_names_its_vehicle(tmp_path) -> None:
+    """With two reasoners alive, a task without a vehicle is refused (the gateway's own id is no default) and
+    nothing starts; named, it runs on that vehicle."""
+    from tests.gateway.fakes import Harness
+
+    h = Harness(tmp_path, gateway_settings={"token": TOKEN}, steps=1, step_delay_s=0.05).start()
+    try:
+        am2 = h.add_vehicle("am2", steps=1, step_delay_s=0.05)
+        with httpx.Client(base_url=h.base_url + "/api/v1", timeout=30.0,
+                          headers={"Authorization": f"Bearer {TOKEN}"}) as c:
+            _wait_for("both reasoners", lambda: sorted(v["vehicle_id"] for v in c.get("/health").json()["vehicles"]
+                                                       if v["services"].get("reasoner")) == ["am1", "am2"])
+            r = c.post("/tasks", json={"command": "pick up the red cup"})
+            assert r.status_code == 422 and "am1, am2" in r.json()["detail"], r.text
+            assert c.get("/tasks").json()["total"] == 0
+            assert h.fake.current_req is None and am2.current_req is None
+            r = c.post("/tasks", json={"command": "pick up the red cup", "vehicle_id": "am2"})
+            assert r.status_code == 202 and r.json()["vehicle_id"] == "am2", r.text
+            assert wait_task(c, r.json()["task_id"], {"succeeded"})["vehicle_id"] == "am2"
+            assert h.fake.current_req is None
+    finally:
+        h.stop()

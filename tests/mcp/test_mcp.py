@@ -137,6 +137,38 @@ def test_task_status_says_aborting_until_the_end_arrives(gw):
     asyncio.run(asyncio.wait_for(main(), 120))
 
 
+def test_in_a_fleet_every_vehicle_tool_needs_a_vehicle(tmp_path):
+    """Two vehicles: no tool falls back to the gateway's own one or to "am1"; named, each reaches its own."""
+    h = Harness(tmp_path, gateway_settings={"token": GW_TOKEN}, steps=1, step_delay_s=0.05).start()
+    am2 = h.add_vehicle("am2", steps=1, step_delay_s=0.05)
+    params = StdioServerParameters(command=sys.executable, args=["-m", "aermani.cli", "mcp"], env=_env(h))
+
+    async def main():
+        async with Client(params) as client:
+            deadline = time.monotonic() + 30
+            while sorted(v["vehicle_id"] for v in _json(await client.call_tool("list_vehicles", {}))) != ["am1", "am2"]:
+                assert time.monotonic() < deadline, "the second vehicle never appeared"
+                await asyncio.sleep(0.2)
+            for tool, args in (("start_task", {"command": "pick up the red cup"}), ("list_skills", {}),
+                               ("get_camera_frame", {})):
+                refused = await client.call_tool(tool, args)
+                assert refused.is_error and "2 vehicles are known (am1, am2)" in refused.content[0].text, \
+                    (tool, refused.content)
+            started = _json(await client.call_tool("start_task", {"command": "pick up the red cup", "vehicle": "am2"}))
+            assert started["vehicle_id"] == "am2"
+            assert (await _wait_state(client, started["task_id"], {"succeeded"}))["vehicle_id"] == "am2"
+            assert _json(await client.call_tool("list_skills", {"vehicle": "am2"}))
+            aborted = _json(await client.call_tool("abort", {"vehicle": "am2", "reason": "only am2"}))
+            assert aborted["vehicles"] == ["am2"] and aborted["acknowledged"] == ["am2"]
+
+    try:
+        asyncio.run(asyncio.wait_for(main(), 120))
+        assert h.fake.current_req is None and not h.fake.aborts  # am1 was never touched
+        assert [a.reason for a in am2.aborts] == ["only am2"]
+    finally:
+        h.stop()
+
+
 @contextlib.contextmanager
 def _http_server(gw: Harness, **settings: object) -> Iterator[str]:
     """The MCP HTTP app on a real uvicorn server on loopback; yields its /mcp URL."""

@@ -42,7 +42,9 @@ def links(task_id: str) -> TaskLinks:
     return TaskLinks(self=base, events=f"{base}/events", abort=f"{base}/abort")
 
 
-def pick_vehicle(fleet: FleetDep, settings: SettingsDep, wanted: str | None) -> str:
+def pick_vehicle(fleet: FleetDep, wanted: str | None) -> str:
+    """`wanted`, or the only vehicle whose reasoner is alive. With several, the caller must name one: the
+    gateway's own vehicle id is no default then, a task sent to the wrong vehicle would fly it."""
     alive = fleet.reasoner_vehicles()
     if wanted is not None:
         if wanted not in alive:
@@ -50,8 +52,6 @@ def pick_vehicle(fleet: FleetDep, settings: SettingsDep, wanted: str | None) -> 
             raise ApiError(404, f"unknown vehicle {wanted!r}: no reasoner is alive for it (vehicles with a "
                                 f"reasoner: {known})")
         return wanted
-    if settings.vehicle_id in alive:
-        return settings.vehicle_id
     if len(alive) == 1:
         return alive[0]
     if not alive:
@@ -65,7 +65,7 @@ async def create_task(body: TaskCreate, request: Request, fleet: FleetDep, store
                       settings: SettingsDep) -> TaskCreated:
     """Send a natural-language command to a vehicle's reasoner. Answers 202 once the reasoner has accepted
     the task; follow it at `links.events`."""
-    vehicle = pick_vehicle(fleet, settings, body.vehicle_id)
+    vehicle = pick_vehicle(fleet, body.vehicle_id)
     # A task the store still shows running may have ended while this gateway was away (its final status was
     # never received). The reasoner, which runs one task at a time, is the authority: it refuses the new task
     # while one runs (409 with its reason); when it accepts, the stored rows were stale and are closed.
