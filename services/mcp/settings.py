@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import ipaddress
-import re
 from typing import Literal
 
 from pydantic import AliasChoices, Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from shared.errors import ConfigError
+from shared.settings import exact_origins, is_loopback
 
 
 class McpSettings(BaseSettings):
@@ -47,18 +46,11 @@ class McpSettings(BaseSettings):
     @field_validator("allowed_origins")
     @classmethod
     def _exact_origins(cls, origins: list[str]) -> list[str]:
-        for origin in origins:
-            if not _ORIGIN.fullmatch(origin):
-                raise ValueError(f"allowed origin {origin!r} is not an exact origin: write scheme://host[:port], "
-                                 "e.g. http://127.0.0.1:3000 (no wildcard, no path, no trailing slash)")
-        return origins
+        return exact_origins(origins)
 
     @property
     def loopback(self) -> bool:
-        try:
-            return ipaddress.ip_address(self.host).is_loopback
-        except ValueError:
-            return self.host == "localhost"
+        return is_loopback(self.host)
 
     @property
     def lends_gateway_token(self) -> bool:
@@ -73,6 +65,3 @@ class McpSettings(BaseSettings):
         if not self.loopback:
             raise ConfigError(f"AERMANI_MCP_HOST={self.host} is not loopback: set AERMANI_MCP_TOKEN so only clients "
                               "holding it can start tasks")
-
-
-_ORIGIN = re.compile(r"(https?)://(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9.-]+)(:[0-9]{1,5})?")
