@@ -29,12 +29,14 @@ MALFORMED = b"\x00 this is not a valid request \xff"
 PROBE_SKILL = "conformance_probe_no_such_skill"
 VALID_PROBES: dict[str, Any] = {
     "executor/run_skill": SkillRequest(skill=PROBE_SKILL, task_id="conformance"),
+    "executor/check_skill": SkillRequest(skill=PROBE_SKILL, task_id="conformance"),
     "executor/cancel_skill": CancelGoal(goal_id="conformance-unknown-goal", reason="conformance probe",
                                         source="conformance"),
     "reasoner/cancel_task": CancelGoal(goal_id="conformance-unknown-task", reason="conformance probe",
                                        source="conformance"),
 }
-"""Valid requests each action server must refuse (with `accepted=False` and a reason), by key name."""
+"""Valid requests each action server (and the executor's check) must refuse (with `accepted=False` and a
+reason), by key name."""
 
 
 @dataclass

@@ -291,6 +291,10 @@ PERCEPTION_DETECTIONS: Topic[Detections] = Topic(
 EXECUTOR_RUN_SKILL: Query[SkillRequest, SkillAccept] = Query(
     "executor/run_skill", SkillRequest, SkillAccept, "skill goal -> accepted/rejected (action protocol)",
     "executor")
+EXECUTOR_CHECK_SKILL: Query[SkillRequest, SkillAccept] = Query(
+    "executor/check_skill", SkillRequest, SkillAccept,
+    "could this skill start now (run_skill's preconditions and envelope)? starts nothing; asked before an approval",
+    "executor")
 EXECUTOR_CANCEL_SKILL: Query[CancelGoal, CancelReply] = Query(
     "executor/cancel_skill", CancelGoal, CancelReply, "cancel a running skill goal (action protocol)",
     "executor")
@@ -332,8 +336,9 @@ DECLARATIONS: tuple[Topic[Any] | Query[Any, Any] | Token, ...] = (
     CAMERA_COLOR, CAMERA_DEPTH, CAMERA_CALIBRATION, CAMERA_SEGMENTATION, TF, SIM_LABELS, SIM_JUDGE, SIM_RESET,
     SIM_STATS, SIM_FAULT, SIM_RESET_NOTICE, AUTOPILOT_STATE, AUTOPILOT_PREFLIGHT, AUTOPILOT_COMMAND,
     PERCEPTION_LOCALIZE_OBJECT,
-    PERCEPTION_LOCALIZE_PLACEMENT, PERCEPTION_DETECTIONS, EXECUTOR_RUN_SKILL, EXECUTOR_CANCEL_SKILL,
-    EXECUTOR_SKILL_STATUS, EXECUTOR_SKILLS, EXECUTOR_MEMORY, REASONER_START_TASK, REASONER_CANCEL_TASK, REASONER_STEP,
+    PERCEPTION_LOCALIZE_PLACEMENT, PERCEPTION_DETECTIONS, EXECUTOR_RUN_SKILL, EXECUTOR_CHECK_SKILL,
+    EXECUTOR_CANCEL_SKILL, EXECUTOR_SKILL_STATUS, EXECUTOR_SKILLS, EXECUTOR_MEMORY, REASONER_START_TASK,
+    REASONER_CANCEL_TASK, REASONER_STEP,
     REASONER_TASK_STATUS, REASONER_APPROVAL, REASONER_DECIDE_APPROVAL, SAFETY_ABORT, SAFETY_ABORT_ACK, HEALTH_TOPIC,
     HEARTBEAT_TOPIC,
     ALIVE_TOKEN,
@@ -402,6 +407,7 @@ class Keys:
     localize_placement = _QueryOn(PERCEPTION_LOCALIZE_PLACEMENT)
     detections = _TopicOn(PERCEPTION_DETECTIONS)
     run_skill = _QueryOn(EXECUTOR_RUN_SKILL)
+    check_skill = _QueryOn(EXECUTOR_CHECK_SKILL)
     cancel_skill = _QueryOn(EXECUTOR_CANCEL_SKILL)
     skill_status = _TopicOn(EXECUTOR_SKILL_STATUS)
     skills = _QueryOn(EXECUTOR_SKILLS)

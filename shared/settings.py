@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import ipaddress
 import logging
 import os
+import re
 from typing import Annotated
 
 from pydantic import AliasChoices, Field, field_validator
@@ -43,6 +45,28 @@ class ServiceSettings(BaseSettings):
     @property
     def keys(self) -> Keys:
         return Keys(self.vehicle_id)
+
+
+_ORIGIN = re.compile(r"https?://(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9.-]+)(:[0-9]{1,5})?")
+
+
+def exact_origins(origins: list[str]) -> list[str]:
+    """`origins` when each is an exact web origin, `scheme://host[:port]`: a server that checks a browser's
+    `Origin` header compares it with these as they are, so a wildcard, a path or a trailing slash (which no
+    browser sends) is refused here rather than silently never matching or matching too much."""
+    for origin in origins:
+        if not _ORIGIN.fullmatch(origin):
+            raise ValueError(f"allowed origin {origin!r} is not an exact origin: write scheme://host[:port], "
+                             "e.g. http://127.0.0.1:3000 (no wildcard, no path, no trailing slash)")
+    return origins
+
+
+def is_loopback(host: str) -> bool:
+    """Whether a bind address reaches this host only."""
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return host == "localhost"
 
 
 def parse_endpoints(value: str) -> list[str]:

@@ -186,6 +186,24 @@ class Executor:
         log.info("accepted %s(%s) goal %s", skill.name, arg or "", goal_id)
         return SkillAccept(accepted=True, goal_id=goal_id)
 
+    async def handle_check_skill(self, req: SkillRequest) -> SkillAccept:
+        """`executor/check_skill`: whether `req` would be accepted now, by the same preconditions and envelope as
+        run_skill, starting nothing and publishing nothing. The reasoner asks before it asks an operator, so an
+        approval is only ever asked for a skill that could start (the answer holds only for now: run_skill
+        checks again)."""
+        self.memory.begin_task(req.task_id)  # judged with the task's memory, as run_skill would
+        if self.goal is not None:
+            reason = f"skill {self.goal.request.skill} is still running (goal {self.goal.goal_id})"
+            return SkillAccept(accepted=False, goal_id="", reason=reason, outcome=self._refused(OutcomeCode.BLOCKED))
+        skill, _arg, refusal = self.validate(req)
+        if skill is None:
+            assert refusal is not None
+            log.info("check of %s(%s): would be refused: %s (%s)", req.skill, req.argument or "", refusal,
+                     refusal.code.value)
+            return SkillAccept(accepted=False, goal_id="", reason=str(refusal),
+                               outcome=self._refused(refusal.code, refusal.facts, req.argument))
+        return SkillAccept(accepted=True, goal_id="")
+
     async def _execute(self, handle: ServerGoalHandle[SkillRequest, SkillStatus]) -> None:
         """Execute callback: run the accepted skill under supervision; its terminal status ends the goal."""
         goal = self.goal
@@ -445,6 +463,7 @@ class Executor:
             return self.library()
 
         self.bus.serve(self.keys.skills, skills)
+        self.bus.serve(self.keys.check_skill, self.handle_check_skill)
         log.info("executor serving %d skills: %s", len(self.skills), ", ".join(self.skills))
         try:
             async with asyncio.TaskGroup() as tg:

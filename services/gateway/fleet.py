@@ -19,6 +19,7 @@ from shared.keys import (
     CAMERA_COLOR,
     EXECUTOR_SKILL_STATUS,
     FLEET_ABORT,
+    FLEET_ID,
     HEALTH_TOPIC,
     HEARTBEAT_TOPIC,
     PERCEPTION_DETECTIONS,
@@ -142,6 +143,13 @@ class Fleet:
         self._tasks: list[asyncio.Task] = []
         self._subs: list[Subscription] = []
         self._finishing: set[asyncio.Task] = set()
+        self.ending: dict[str, TaskStatus] = {}
+        """Terminal statuses received and held for the task's last steps (FINISH_GRACE_S at most), by task id:
+        the task has ended though its stored row does not say so yet."""
+        self.abort_ns: dict[str, int] = {}
+        """When the latest abort was sent to each vehicle (the fleet-wide one under FLEET_ABORT's id): a task
+        older than its vehicle's abort is `aborting` until its end is stored. In memory only: set without
+        touching the store, so the abort path waits for nothing the streams use."""
         self._gone: set[asyncio.Task] = set()
         self._ordered: asyncio.Queue[tuple[Callable[[str, Any], Awaitable[None]], str, Any]] = asyncio.Queue()
 
@@ -250,6 +258,7 @@ class Fleet:
             # Zenoh does not order samples across keys (large ones travel by shared memory), so the last
             # step can arrive after the terminal status. The status ends the task's streams: hold it until
             # the steps it counts are stored, or a short grace has passed.
+            self.ending[st.task_id] = st
             t = asyncio.create_task(self._finish(vehicle_of(key), st), name=f"gateway.finish.{st.task_id}")
             self._finishing.add(t)
             t.add_done_callback(self._finishing.discard)
@@ -264,8 +273,24 @@ class Fleet:
             if await self._all_stored(st):
                 break
             await self.wait_change(seen, max(0.01, deadline - time.monotonic()))
-        await self.store.record_status(vehicle_id, st.model_dump(mode="json"))
+        try:
+            await self.store.record_status(vehicle_id, st.model_dump(mode="json"))
+        finally:
+            self.ending.pop(st.task_id, None)
         await self._notify()
+
+    def phase(self, row: dict[str, Any]) -> str:
+        """A stored task's state as the API shows it: `aborting` from an abort sent to its vehicle (or the
+        fleet) after it was created until its end is stored, else the stored state."""
+        state = str(row["state"])
+        if TaskState(state).terminal:
+            return state
+        sent = max(self.abort_ns.get(row["vehicle_id"], 0), self.abort_ns.get(FLEET_ID, 0))
+        return "aborting" if sent >= row["created_ns"] else state
+
+    def ended(self, task_id: str) -> TaskStatus | None:
+        """The terminal status of a task that has ended but whose end is not stored yet, if any."""
+        return self.ending.get(task_id)
 
     async def _all_stored(self, st: TaskStatus) -> bool:
         """Whether the steps a terminal status counts are stored, and for every stored step whose skill ran to
@@ -390,6 +415,9 @@ class Fleet:
         from shared.messages import Abort
 
         stamps: dict[str, int] = {}
+        sent = time.time_ns()  # the clock of a task row's created_ns, so `phase` compares like with like
+        for vid in [FLEET_ID] if fleet_wide else vehicles:
+            self.abort_ns[vid] = sent
         if fleet_wide:
             msg = Abort(reason=reason, source="gateway")
             self.bus.publish(FLEET_ABORT, msg)

@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+from enum import StrEnum
 from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from shared.messages import MAX_COMMAND_CHARS, SkillStatus, TaskState, Variant, VehicleState, command_text
+from shared.messages import MAX_COMMAND_CHARS, SkillStatus, Variant, VehicleState, command_text
 
 VEHICLE_ID_PATTERN = r"^[A-Za-z0-9_-]{1,32}$"
 
@@ -50,7 +51,7 @@ class TaskCreate(ApiModel):
     command: str = Field(..., min_length=1, max_length=MAX_COMMAND_CHARS)
     """Natural-language command (printable text, at most 500 characters)."""
     vehicle_id: str | None = Field(None, pattern=VEHICLE_ID_PATTERN)
-    """Target vehicle; omitted picks the gateway's default vehicle, or the only one whose reasoner is alive."""
+    """Target vehicle; may be omitted only while one vehicle's reasoner is alive (422 with several)."""
     backend: str | None = Field(None, pattern=r"^[a-z][a-z0-9_]{0,31}$")
     """Override of the reasoner's policy backend: a kind registered in the reasoner (`aermani vlm backends`);
     the reasoner refuses an unknown one, or one it cannot build, with the reason (409)."""
@@ -78,6 +79,19 @@ class TaskLinks(ApiModel):
     """URL to abort it (POST)."""
 
 
+class TaskPhase(StrEnum):
+    """A task's state as the API shows it: the reasoner's TaskState, plus `aborting` between an abort the
+    gateway sent and the task's end being stored (the reasoner has not said yet how the task ended)."""
+
+    PENDING = "pending"
+    RUNNING = "running"
+    ABORTING = "aborting"
+    SUCCEEDED = "succeeded"
+    FAILED = "failed"
+    ABORTED = "aborted"
+    TIMEOUT = "timeout"
+
+
 class TaskCreated(ApiModel):
     """Response to POST /tasks: the accepted task's id, vehicle, state and links."""
 
@@ -90,7 +104,7 @@ class TaskCreated(ApiModel):
     """Id of the accepted task."""
     vehicle_id: str
     """Vehicle it runs on."""
-    state: TaskState
+    state: TaskPhase
     """State right after acceptance (pending or running)."""
     links: TaskLinks
     """Where to follow it."""
@@ -105,8 +119,9 @@ class TaskSummary(ApiModel):
     """Vehicle."""
     command: str
     """The command L."""
-    state: TaskState
-    """pending, running, succeeded, failed, aborted, timeout."""
+    state: TaskPhase
+    """pending, running, aborting (an abort was sent, the task's end is not stored yet), then succeeded,
+    failed, aborted or timeout."""
     message: str = ""
     """Why it ended the way it did."""
     created_ns: int

@@ -34,4 +34,8 @@ def register(app: typer.Typer) -> None:
 
         print(f"aermani MCP server on http://{settings.host}:{settings.port}/mcp -> {settings.gateway_url}",
               file=sys.stderr)
+        if settings.token is None:
+            print("no AERMANI_MCP_TOKEN: clients are not authenticated, so the gateway is called without its token "
+                  "(a gateway that has one refuses them); set AERMANI_MCP_TOKEN",
+                  file=sys.stderr)
         uvicorn.run(http_app(settings), host=settings.host, port=settings.port, log_level="warning")

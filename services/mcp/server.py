@@ -12,6 +12,7 @@ import httpx
 from mcp.server.mcpserver import MCPServer
 from mcp.server.mcpserver.exceptions import ToolError
 from mcp.server.mcpserver.utilities.types import Image
+from mcp.server.transport_security import TransportSecuritySettings
 from mcp.types import ToolAnnotations
 
 from services.mcp.settings import McpSettings
@@ -34,7 +35,9 @@ class Gateway:
 
     def __init__(self, settings: McpSettings) -> None:
         headers = {"Accept": "application/json"}
-        if settings.gateway_token is not None:
+        # Over HTTP without its own token this server cannot tell who calls: it must not lend the gateway's
+        # rights to them, so it calls the gateway as they would (reads answer, a task start gets the 401).
+        if settings.gateway_token is not None and settings.lends_gateway_token:
             headers["Authorization"] = f"Bearer {settings.gateway_token.get_secret_value()}"
         self.http = httpx.AsyncClient(base_url=settings.gateway_url.rstrip("/"), headers=headers,
                                       timeout=settings.request_timeout_s)
@@ -117,8 +120,9 @@ def build_server(settings: McpSettings) -> MCPServer:
 
     @server.tool(title="Task status", annotations=READ)
     async def task_status(task_id: str, last_steps: int = 5) -> dict[str, Any]:
-        """A task's state (pending, running, succeeded, failed, aborted, timeout), its explanation, and its
-        last reasoning steps: the skill chosen, the model's reasoning and how the skill ended."""
+        """A task's state (pending, running, aborting: an abort was sent and its end has not arrived yet; then
+        succeeded, failed, aborted or timeout), its explanation, and its last reasoning steps: the skill
+        chosen, the model's reasoning and how the skill ended."""
         t = await gw.json("GET", f"/tasks/{task_id}")
         steps = [_step_summary(s["step"]) for s in t.get("reasoning_steps", [])]
         status = t.get("status") or {}
@@ -189,6 +193,29 @@ def build_server(settings: McpSettings) -> MCPServer:
     return server
 
 
+class OriginCheck:
+    """ASGI middleware: a request that carries an `Origin` header (a web page's) must name one of the allowed
+    origins exactly; `null` and every origin not listed get 403 before anything else is read. The SDK's own
+    check allows any port of localhost, so a page on any local port could drive the vehicle."""
+
+    def __init__(self, app: Any, allowed: list[str]) -> None:
+        self.app = app
+        self.allowed = {o.encode() for o in allowed}
+
+    async def __call__(self, scope: dict[str, Any], receive: Any, send: Any) -> None:
+        if scope["type"] == "http":
+            origin = dict(scope.get("headers") or []).get(b"origin")
+            if origin is not None and origin not in self.allowed:
+                shown = origin.decode("latin-1")[:100].encode("unicode_escape").decode()
+                body = json.dumps({"error": f"origin {shown!r} is not allowed (AERMANI_MCP_ALLOWED_ORIGINS lists "
+                                            "the exact origins that may call this server)"}).encode()
+                await send({"type": "http.response.start", "status": 403,
+                            "headers": [(b"content-type", b"application/json")]})
+                await send({"type": "http.response.body", "body": body})
+                return
+        await self.app(scope, receive, send)
+
+
 class BearerAuth:
     """ASGI middleware: every HTTP request must carry `Authorization: Bearer <token>` (constant-time check)."""
 
@@ -210,6 +237,15 @@ class BearerAuth:
 
 
 def http_app(settings: McpSettings) -> Any:
-    """The streamable-HTTP app at /mcp, behind the bearer token when one is set."""
-    app = build_server(settings).streamable_http_app(host=settings.host)
-    return BearerAuth(app, settings.token.get_secret_value()) if settings.token is not None else app
+    """The streamable-HTTP app at /mcp: Origin checked exactly, then the bearer token when one is set. On
+    loopback the SDK's Host check (DNS rebinding) also runs, with this server's own host and port exactly."""
+    if settings.loopback:
+        hosts = [f"{h}:{settings.port}" for h in ("127.0.0.1", "localhost", "[::1]")]
+        security = TransportSecuritySettings(enable_dns_rebinding_protection=True, allowed_hosts=hosts,
+                                             allowed_origins=list(settings.allowed_origins))
+    else:  # reached by names this server cannot know; the token (required here) is the protection
+        security = TransportSecuritySettings(enable_dns_rebinding_protection=False)
+    app: Any = build_server(settings).streamable_http_app(host=settings.host, transport_security=security)
+    if settings.token is not None:
+        app = BearerAuth(app, settings.token.get_secret_value())
+    return OriginCheck(app, settings.allowed_origins)

@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-import ipaddress
 from typing import Literal
 
-from pydantic import AliasChoices, Field, SecretStr
+from pydantic import AliasChoices, Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from shared.errors import ConfigError
+from shared.settings import exact_origins, is_loopback
 
 
 class McpSettings(BaseSettings):
@@ -29,21 +29,39 @@ class McpSettings(BaseSettings):
     port: int = Field(8765, ge=0, le=65535)
     """Port for the HTTP transport."""
     token: SecretStr | None = Field(None, validation_alias=AliasChoices("token", "AERMANI_MCP_TOKEN"))
-    """Bearer token MCP clients must send over HTTP (environment only)."""
+    """Bearer token MCP clients must send over HTTP (environment only). Without one (loopback only) the HTTP
+    server calls the gateway without the gateway token too: a client that proves nothing gets what an
+    unauthenticated client gets from the gateway directly (a 401 from a gateway that has a token), never the
+    gateway token's rights."""
+    allowed_origins: list[str] = []
+    """Browser origins allowed to call the HTTP transport, each exactly `scheme://host[:port]` (no wildcard, no
+    path): a request with an `Origin` header not in this list gets 403. Empty (the default): every request that
+    carries an Origin, `null` included, is refused; MCP clients that are not web pages send none."""
     allow_skills: bool = False
     """Also offer `run_skill` (one skill outside a task). Off by default: agents drive tasks, not raw motion;
     the gateway must allow it too (AERMANI_GATEWAY_SKILL_API) and the executor's envelope still applies."""
     request_timeout_s: float = Field(30.0, gt=0)
     """HTTP timeout towards the gateway."""
 
+    @field_validator("allowed_origins")
+    @classmethod
+    def _exact_origins(cls, origins: list[str]) -> list[str]:
+        return exact_origins(origins)
+
+    @property
+    def loopback(self) -> bool:
+        return is_loopback(self.host)
+
+    @property
+    def lends_gateway_token(self) -> bool:
+        """Whether the gateway token goes with this server's calls: over stdio (the client started this process
+        and holds its environment) or over HTTP to a client that sent AERMANI_MCP_TOKEN."""
+        return self.transport == "stdio" or self.token is not None
+
     def check_safe(self) -> None:
         """Refuse an HTTP bind beyond loopback without a token."""
         if self.transport != "http" or self.token is not None:
             return
-        try:
-            loopback = ipaddress.ip_address(self.host).is_loopback
-        except ValueError:
-            loopback = self.host == "localhost"
-        if not loopback:
+        if not self.loopback:
             raise ConfigError(f"AERMANI_MCP_HOST={self.host} is not loopback: set AERMANI_MCP_TOKEN so only clients "
                               "holding it can start tasks")

@@ -74,6 +74,12 @@ class World(ABC):
         (None when none came in time). With `ready_timeout` > 0, wait that long for an executor to answer
         (a supervised restart) before giving up with an AermaniError."""
 
+    async def check_skill(self, request: SkillRequest) -> SkillAccept:
+        """Whether the executor would accept `request` now (its preconditions and envelope), starting nothing:
+        asked before an operator's approval. A world that cannot ask its executor says no, so no approval is
+        asked for a skill nobody checked."""
+        return SkillAccept(accepted=False, goal_id="", reason="this world has no executor to check the skill with")
+
     async def request_approval(self, request: ApprovalStatus, timeout: float) -> ApprovalStatus:
         """Ask the operator whether `request.skill` may run; the decided status (approved, rejected, or
         expired after `timeout`). A world without an operator channel refuses, so nothing that needs an
@@ -409,6 +415,23 @@ class TaskRunner:
         wanted = set(self.settings.approval)
         return bool(wanted) and (skill in wanted or self.categories.get(skill, "") in wanted)
 
+    async def _feasible(self, req: SkillRequest) -> SkillStatus | None:
+        """None when the executor would accept the skill now; else the rejection that ends the step, with the
+        executor's reason and outcome code, as if run_skill had refused it. An operator is never asked to approve
+        a skill the executor would then refuse (a grasp out of reach)."""
+        started = now_ns()
+        try:
+            check = await self.world.check_skill(req)
+        except AermaniError as exc:
+            check = SkillAccept(accepted=False, goal_id="", reason=f"executor unreachable: {exc}")
+        if check.accepted:
+            return None
+        log.info("no approval asked for %s(%s): the executor refuses it: %s", req.skill, req.argument or "",
+                 check.reason)
+        return SkillStatus(goal_id="", skill=req.skill, argument=req.argument, state=SkillState.REJECTED,
+                           message=check.reason, task_id=req.task_id, step=req.step, started_ns=started,
+                           ended_ns=now_ns(), outcome=check.outcome or SkillOutcome())
+
     async def _approved(self, req: SkillRequest, reasoning: str) -> SkillStatus | None:
         """None when the skill may run; else the status that ends the step (rejected, or failed on timeout)."""
         timeout = self.settings.approval_timeout_s
@@ -433,7 +456,7 @@ class TaskRunner:
         """Run one skill on the executor and wait for its terminal status (never raises). A skill that needs
         the operator's approval waits for it first."""
         if self._needs_approval(req.skill):
-            refused = await self._approved(req, reasoning)
+            refused = await self._feasible(req) or await self._approved(req, reasoning)
             if refused is not None:
                 return refused
         started = now_ns()

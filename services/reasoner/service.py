@@ -97,6 +97,10 @@ class BusWorld(World):
                            state=self.state.value, state_age_s=self.state.age_s if self.state.value else 0.0,
                            detections=det.items if det else (), memory=self.memory.value)
 
+    async def check_skill(self, request: SkillRequest) -> SkillAccept:
+        reply: SkillAccept = await self.bus.query(self.keys.check_skill, request, timeout=10.0)
+        return reply
+
     async def run_skill(self, request: SkillRequest, timeout: float,
                         ready_timeout: float = 0.0) -> tuple[SkillAccept, SkillStatus | None]:
         goal = await self.skills.send_goal(request, timeout=10.0, ready_timeout=ready_timeout)

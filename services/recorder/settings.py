@@ -4,10 +4,10 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import SettingsConfigDict
 
-from shared.settings import ServiceSettings
+from shared.settings import ServiceSettings, exact_origins, is_loopback
 
 
 class RecorderSettings(ServiceSettings):
@@ -46,8 +46,28 @@ class RecorderSettings(ServiceSettings):
     retry_s: float = Field(5.0, gt=0)
     """After a write error (disk full, unwritable path), wait this long before opening a new file."""
     foxglove: bool = False
-    """Also serve the live stream to the Foxglove app over foxglove-sdk's WebSocket server."""
+    """Also serve the live stream to the Foxglove app over the Foxglove WebSocket protocol (services/recorder/
+    live.py, which checks Origin and the token; foxglove-sdk's own server checks neither)."""
     foxglove_host: str = "127.0.0.1"
-    """Address of the Foxglove WebSocket server."""
+    """Address of the Foxglove WebSocket server; anything but loopback requires `foxglove_token`."""
     foxglove_port: int = Field(8765, ge=0, le=65535)
     """Port of the Foxglove WebSocket server."""
+    foxglove_token: SecretStr | None = None
+    """Token a Foxglove client must present (`ws://host:port/?token=...`; environment only, never logged). Unset:
+    loopback only, where any local process can read the bus anyway."""
+    foxglove_allowed_origins: list[str] = []
+    """Web origins allowed to connect, each exactly `scheme://host[:port]` (e.g. `https://app.foxglove.dev` for
+    the web app): a handshake with any other `Origin`, `null` included, gets 403. Empty (the default): only
+    clients that send no Origin (not a web page)."""
+
+    @field_validator("foxglove_allowed_origins")
+    @classmethod
+    def _exact_origins(cls, origins: list[str]) -> list[str]:
+        return exact_origins(origins)
+
+    @model_validator(mode="after")
+    def _token_off_loopback(self) -> RecorderSettings:
+        if self.foxglove and self.foxglove_token is None and not is_loopback(self.foxglove_host):
+            raise ValueError(f"AERMANI_RECORDER_FOXGLOVE_HOST={self.foxglove_host} is not loopback: set "
+                             "AERMANI_RECORDER_FOXGLOVE_TOKEN so only clients holding it see the camera and state")
+        return self

@@ -24,7 +24,6 @@ from mcap.writer import Writer
 from services.recorder.settings import RecorderSettings
 from shared.mcaplog import (
     ChannelTable,
-    channel_spec,
     compression_type,
     key_matches,
     publish_time_ns,
@@ -96,9 +95,7 @@ class RecordWriter:
         self._drain_deadline = 0.0
         self.dropped_at_stop = 0
         self._pending = 0
-        self._fox: Any = None
         self._fox_server: Any = None
-        self._fox_channels: dict[tuple[str, str], Any] = {}
         self._flush_keys: dict[str, bool] = {}
         self._held: deque[tuple[str, bytes, str, int]] = deque()
         # Figures for health (read from any thread; ints are updated atomically enough for reporting).
@@ -381,28 +378,26 @@ class RecordWriter:
 
     def _start_foxglove(self) -> None:
         try:
-            import foxglove
+            from services.recorder.live import LiveServer
 
-            self._fox = foxglove
-            self._fox_server = foxglove.start_server(host=self.settings.foxglove_host, port=self.settings.foxglove_port)
-            self.foxglove_url = f"ws://{self.settings.foxglove_host}:{self._fox_server.port}"
-            log.info("Foxglove live server on %s", self.foxglove_url)
+            s = self.settings
+            token = s.foxglove_token.get_secret_value() if s.foxglove_token is not None else None
+            self._fox_server = LiveServer(s.foxglove_host, s.foxglove_port, token=token,
+                                          allowed_origins=list(s.foxglove_allowed_origins))
+            self.foxglove_url = f"ws://{s.foxglove_host}:{self._fox_server.port}"
+            log.info("Foxglove live server on %s (%s)", self.foxglove_url,
+                     "token required" if token else "no token: loopback only")
         except Exception as exc:
             log.error("Foxglove live server not started: %s", exc)
-            self._fox = None
+            self._fox_server = None
 
     def _live(self, key: str, payload: bytes, encoding: str, receive_ns: int) -> None:
-        if self._fox is None:
+        if self._fox_server is None:
             return
         try:
-            ch = self._fox_channels.get((key, encoding))
-            if ch is None:
-                spec = channel_spec(encoding)
-                schema = (self._fox.Schema(name=spec.schema_name, encoding=spec.schema_encoding, data=spec.schema_data)
-                          if spec.has_schema else None)
-                ch = self._fox.Channel(key, schema=schema, message_encoding=spec.message_encoding)
-                self._fox_channels[(key, encoding)] = ch
-            ch.log(payload, log_time=receive_ns)
+            self._fox_server.log(key, encoding, payload, receive_ns)
         except Exception as exc:  # the live view must never stop the recording
             log.warning("Foxglove live view disabled: %s", exc)
-            self._fox = None
+            with contextlib.suppress(Exception):
+                self._fox_server.stop()
+            self._fox_server = None

@@ -5,7 +5,7 @@ real bus."""
 from __future__ import annotations
 
 from shared.action import skill_client
-from shared.messages import OutcomeCode, SkillRequest, SkillState
+from shared.messages import OutcomeCode, SkillAccept, SkillRequest, SkillState
 from tests.executor.rig import rig
 from tests.helpers import wait_until
 
@@ -60,3 +60,38 @@ async def test_a_cancelled_skill_is_aborted_and_a_busy_executor_blocks():
             st = await goal.result(timeout=30)
         assert st is not None and st.state == SkillState.ABORTED and st.outcome.code == OutcomeCode.ABORTED
         assert "test stop" in st.message
+
+
+async def test_check_skill_answers_as_run_skill_would_and_starts_nothing():
+    """executor/check_skill (asked before an operator's approval): the same refusal, code and facts as run_skill
+    for a grasp out of reach, an accept for a feasible skill, and neither moves the vehicle, reserves the
+    executor or publishes a status."""
+    async with rig() as r:
+        r.world.add_object("red cup", 3.0, 0.0, 0.75)
+        assert (await r.run_skill("obj_localization", "red cup")).outcome.code == OutcomeCode.SUCCEEDED
+        commands = list(r.vehicle.commands)
+
+        async def check(skill: str, argument: str | None = None) -> SkillAccept:
+            return await r.bus.query(r.keys.check_skill, SkillRequest(skill=skill, argument=argument, task_id="t1"),
+                                     timeout=5.0)
+
+        far = await check("grasp", "red cup")
+        assert not far.accepted and far.goal_id == "" and far.outcome is not None
+        assert far.outcome.code == OutcomeCode.OUT_OF_REACH
+        assert far.outcome.facts.distance_m > far.outcome.facts.reach_m == r.executor.settings.reach
+        assert not (await check("teleport")).accepted
+        ok = await check("yaw_left")
+        assert ok.accepted and ok.goal_id == "" and ok.reason == ""
+        assert r.executor.goal is None and r.vehicle.commands == commands
+        refused = await r.request("grasp", "red cup")  # run_skill agrees with the check
+        assert not refused.accepted and refused.reason == far.reason and refused.outcome.code == far.outcome.code
+        # Statuses on the key arrive in order, and the localization's were read to its end above: up to
+        # yaw_left's end, only the two run_skill goals published any.
+        acc = await r.request("yaw_left")
+        seen = set()
+        while True:
+            st = await r.statuses.recv(timeout=60)
+            seen.add(st.goal_id)
+            if st.goal_id == acc.goal_id and st.state.terminal:
+                break
+        assert seen == {refused.goal_id, acc.goal_id}, seen

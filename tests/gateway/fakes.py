@@ -51,7 +51,9 @@ SKILLS = ["takeoff", "obj_localization", "forward", "grasp", "placement_localiza
 class FakeVehicle:
     """A real queryable `reasoner/start_task` that runs a scripted task: a few steps, each with a skill
     status, then `succeeded`; a command containing "until abort" keeps stepping until an Abort arrives.
-    Also publishes vehicle state, camera frames and answers aborts like the executor (AbortAck)."""
+    Also publishes vehicle state, camera frames and answers aborts like the executor (AbortAck).
+    Held by `release` (set it on the harness loop): "slow to stop" acknowledges an abort at once but reports
+    the task aborted only then; "withholds its last step" reports the end before its last step, sent then."""
 
     def __init__(self, bus: Bus, vehicle_id: str = "am1", steps: int = 3, step_delay_s: float = 0.3,
                  services: tuple[str, ...] = ("reasoner", "executor", "autopilot_bridge")) -> None:
@@ -68,6 +70,7 @@ class FakeVehicle:
         self.decisions: list[ApprovalDecision] = []
         self._pending: dict[str, asyncio.Future[ApprovalDecision]] = {}
         self._tasks: list[asyncio.Task] = []
+        self.release = asyncio.Event()
 
     async def start(self) -> None:
         for s in self.services:
@@ -148,6 +151,7 @@ class FakeVehicle:
     async def _run_task(self, req: TaskRequest) -> None:
         self._task_status(self.status(req, TaskState.RUNNING, 0))
         endless = "until abort" in req.command
+        withhold = "withholds its last step" in req.command
         step = 0
         while endless or step < self.n_steps:
             step += 1
@@ -166,6 +170,10 @@ class FakeVehicle:
             self.bus.publish(self.keys.skill_status, SkillStatus(
                 goal_id=goal, task_id=req.task_id, step=step, skill=skill, state=SkillState.SUCCEEDED,
                 message=f"{skill} done", started_ns=started, ended_ns=time.time_ns()))
+            last = not endless and step >= self.n_steps
+            if withhold and last:
+                self._task_status(self.status(req, TaskState.SUCCEEDED, step, "task complete"))
+                await self.release.wait()
             self.bus.publish(self.keys.reasoning_step, ReasoningStep(
                 vehicle_id=self.vehicle_id, task_id=req.task_id, step=step, backend="rules",
                 prompt={"command": req.command}, calls=tuple(calls),
@@ -175,6 +183,8 @@ class FakeVehicle:
                                               reasoning=f"{skill} is the next step of the plan"),
                 ste=SkillToExecute(skill=skill, argument="red cup" if "localization" in skill else None),
                 valid=True, retries=len(calls) - 1, skill_state=SkillState.SUCCEEDED, skill_message="ok"))
+            if withhold and last:
+                return
             self._task_status(self.status(req, TaskState.RUNNING, step))
             if step >= 500:
                 break
@@ -187,7 +197,14 @@ class FakeVehicle:
             if self.current is not None and not self.current.done():
                 self.current.cancel()
                 req = self.current_req
-                self._task_status(self.status(req, TaskState.ABORTED, 0, ab.reason))
+                if "slow to stop" in req.command:
+                    self._tasks.append(asyncio.create_task(self._aborted_on_release(req, ab.reason)))
+                else:
+                    self._task_status(self.status(req, TaskState.ABORTED, 0, ab.reason))
+
+    async def _aborted_on_release(self, req: TaskRequest, reason: str) -> None:
+        await self.release.wait()
+        self._task_status(self.status(req, TaskState.ABORTED, 0, reason))
 
     async def _publish_sensors(self) -> None:
         t0 = time.monotonic()
@@ -228,6 +245,7 @@ class Harness:
         self._error: BaseException | None = None
         self._stop: asyncio.Event | None = None
         self._thread = threading.Thread(target=self._main, name="gateway-harness", daemon=True)
+        self._extra: list[tuple[FakeVehicle, Bus]] = []
 
     def start(self, timeout: float = 60.0) -> Harness:
         self._thread.start()
@@ -241,6 +259,17 @@ class Harness:
         if self.loop and self._stop:
             self.loop.call_soon_threadsafe(self._stop.set)
         self._thread.join(30)
+
+    def add_vehicle(self, vehicle_id: str, **kwargs: Any) -> FakeVehicle:
+        """Another stand-in vehicle on its own bus session to the router (a fleet); stopped with the harness."""
+        async def add() -> FakeVehicle:
+            bus = await Bus.open(connect=[self.endpoint])
+            fake = FakeVehicle(bus, vehicle_id, **kwargs)
+            await fake.start()
+            self._extra.append((fake, bus))
+            return fake
+
+        return self.call(add)
 
     def call(self, fn: Callable[[], Any]) -> Any:
         """Run `fn` on the harness loop (coroutine functions are awaited) and return its result."""
@@ -278,6 +307,9 @@ class Harness:
                     await asyncio.wait_for(serving, 20)
             if self.fake:
                 await self.fake.stop()
+            for extra, extra_bus in self._extra:
+                await extra.stop()
+                await extra_bus.close()
             for b in (fake_bus, router):
                 if b is not None:
                     await b.close()

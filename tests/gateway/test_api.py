@@ -210,3 +210,87 @@ def test_cli_task_command(gw, monkeypatch) -> None:
     monkeypatch.setenv("AERMANI_GATEWAY_TOKEN", "wrong-token")
     result = CliRunner().invoke(app, ["task", "again", "--url", gw.base_url])
     assert result.exit_code == 1 and "invalid bearer token" in result.output
+
+
+def _new_gate(gw) -> None:
+    import asyncio
+
+    gw.call(lambda: setattr(gw.fake, "release", asyncio.Event()))
+
+
+def _wait_for(what: str, cond, timeout: float = 60.0) -> None:
+    import time
+
+    deadline = time.monotonic() + timeout
+    while not cond():
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        time.sleep(0.05)
+
+
+def test_a_task_is_aborting_until_its_end_arrives(gw, client: httpx.Client) -> None:
+    """From the abort until the reasoner's end is stored, the task says `aborting` (no longer `running`); the
+    vehicle here acknowledges at once but reports the end only when the test releases it."""
+    _new_gate(gw)
+    r = client.post("/tasks", json={"command": "look around until abort, slow to stop", "vehicle_id": "am1"})
+    assert r.status_code == 202, r.text
+    tid = r.json()["task_id"]
+    wait_task(client, tid, {"running"})
+    assert client.post(f"/tasks/{tid}/abort", json={"reason": "stop slowly"}).status_code == 202
+    task = client.get(f"/tasks/{tid}").json()
+    assert task["state"] == "aborting", task["state"]
+    listed = client.get("/tasks", params={"state": "aborting"}).json()
+    assert [t["task_id"] for t in listed["items"]] == [tid] and listed["total"] == 1
+    assert tid not in {t["task_id"] for t in client.get("/tasks", params={"state": "running"}).json()["items"]}
+    assert client.get("/tasks").json()["items"][0]["state"] == "aborting"
+    # Still unfinished: a second abort is sent again, not refused.
+    assert client.post(f"/tasks/{tid}/abort", json={"reason": "again"}).status_code == 202
+    gw.call(gw.fake.release.set)
+    assert wait_task(client, tid, {"aborted", "running", "failed", "succeeded"})["state"] == "aborted"
+    assert client.post(f"/tasks/{tid}/abort").status_code == 409
+
+
+def test_abort_on_an_ended_task_is_refused_while_its_last_step_is_stored(gw, client: httpx.Client,
+                                                                         monkeypatch) -> None:
+    """The reasoner's end arrived but waits for its last step (held here until released): the task is over,
+    so an abort gets 409 then too, not 202 during the grace."""
+    import services.gateway.fleet as fleet_module
+
+    monkeypatch.setattr(fleet_module, "FINISH_GRACE_S", 600.0)  # the end waits for the step, not the clock
+    _new_gate(gw)
+    fleet = gw.app.state.fleet
+    r = client.post("/tasks", json={"command": "pick up the red cup, withholds its last step", "vehicle_id": "am1"})
+    assert r.status_code == 202, r.text
+    tid = r.json()["task_id"]
+    _wait_for("the held end", lambda: fleet.ended(tid) is not None)
+    refused = client.post(f"/tasks/{tid}/abort", json={"reason": "too late"})
+    assert refused.status_code == 409, refused.text
+    assert "already ended (succeeded)" in refused.json()["detail"]
+    assert client.get(f"/tasks/{tid}").json()["state"] == "running"  # not aborting: no abort was sent
+    gw.call(gw.fake.release.set)
+    task = wait_task(client, tid, {"succeeded", "failed", "aborted"})
+    assert task["state"] == "succeeded" and task["steps"] == 3
+    assert fleet.ended(tid) is None
+
+
+def test_in_a_fleet_a_task_names_its_vehicle(tmp_path) -> None:
+    """With two reasoners alive, a task without a vehicle is refused (the gateway's own id is no default) and
+    nothing starts; named, it runs on that vehicle."""
+    from tests.gateway.fakes import Harness
+
+    h = Harness(tmp_path, gateway_settings={"token": TOKEN}, steps=1, step_delay_s=0.05).start()
+    try:
+        am2 = h.add_vehicle("am2", steps=1, step_delay_s=0.05)
+        with httpx.Client(base_url=h.base_url + "/api/v1", timeout=30.0,
+                          headers={"Authorization": f"Bearer {TOKEN}"}) as c:
+            _wait_for("both reasoners", lambda: sorted(v["vehicle_id"] for v in c.get("/health").json()["vehicles"]
+                                                       if v["services"].get("reasoner")) == ["am1", "am2"])
+            r = c.post("/tasks", json={"command": "pick up the red cup"})
+            assert r.status_code == 422 and "am1, am2" in r.json()["detail"], r.text
+            assert c.get("/tasks").json()["total"] == 0
+            assert h.fake.current_req is None and am2.current_req is None
+            r = c.post("/tasks", json={"command": "pick up the red cup", "vehicle_id": "am2"})
+            assert r.status_code == 202 and r.json()["vehicle_id"] == "am2", r.text
+            assert wait_task(c, r.json()["task_id"], {"succeeded"})["vehicle_id"] == "am2"
+            assert h.fake.current_req is None
+    finally:
+        h.stop()

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import base64
+import contextlib
 import json
 import os
 import sys
@@ -118,16 +119,69 @@ def test_stdio_client_starts_follows_sees_and_aborts(gw):
     asyncio.run(asyncio.wait_for(main(), 180))
 
 
-def test_http_client_needs_the_token_then_drives_a_task(gw):
+def test_task_status_says_aborting_until_the_end_arrives(gw):
+    """The stand-in vehicle acknowledges the abort at once and reports the task's end only when released."""
+    params = StdioServerParameters(command=sys.executable, args=["-m", "aermani.cli", "mcp"], env=_env(gw))
+    gw.call(lambda: setattr(gw.fake, "release", asyncio.Event()))
+
+    async def main():
+        async with Client(params) as client:
+            started = _json(await client.call_tool("start_task", {"command": "look around until abort, slow to stop"}))
+            await _wait_state(client, started["task_id"], {"running"})
+            _json(await client.call_tool("abort", {"vehicle": "am1", "reason": "mcp aborting test"}))
+            st = _json(await client.call_tool("task_status", {"task_id": started["task_id"]}))
+            assert st["state"] == "aborting", st
+            gw.call(gw.fake.release.set)
+            assert (await _wait_state(client, started["task_id"], {"aborted"}))["state"] == "aborted"
+
+    asyncio.run(asyncio.wait_for(main(), 120))
+
+
+def test_in_a_fleet_every_vehicle_tool_needs_a_vehicle(tmp_path):
+    """Two vehicles: no tool falls back to the gateway's own one or to "am1"; named, each reaches its own."""
+    h = Harness(tmp_path, gateway_settings={"token": GW_TOKEN}, steps=1, step_delay_s=0.05).start()
+    am2 = h.add_vehicle("am2", steps=1, step_delay_s=0.05)
+    params = StdioServerParameters(command=sys.executable, args=["-m", "aermani.cli", "mcp"], env=_env(h))
+
+    async def main():
+        async with Client(params) as client:
+            deadline = time.monotonic() + 30
+            while sorted(v["vehicle_id"] for v in _json(await client.call_tool("list_vehicles", {}))) != ["am1", "am2"]:
+                assert time.monotonic() < deadline, "the second vehicle never appeared"
+                await asyncio.sleep(0.2)
+            for tool, args in (("start_task", {"command": "pick up the red cup"}), ("list_skills", {}),
+                               ("get_camera_frame", {})):
+                refused = await client.call_tool(tool, args)
+                assert refused.is_error and "2 vehicles are known (am1, am2)" in refused.content[0].text, \
+                    (tool, refused.content)
+            started = _json(await client.call_tool("start_task", {"command": "pick up the red cup", "vehicle": "am2"}))
+            assert started["vehicle_id"] == "am2"
+            assert (await _wait_state(client, started["task_id"], {"succeeded"}))["vehicle_id"] == "am2"
+            assert _json(await client.call_tool("list_skills", {"vehicle": "am2"}))
+            aborted = _json(await client.call_tool("abort", {"vehicle": "am2", "reason": "only am2"}))
+            assert aborted["vehicles"] == ["am2"] and aborted["acknowledged"] == ["am2"]
+
+    try:
+        asyncio.run(asyncio.wait_for(main(), 120))
+        assert h.fake.current_req is None and not h.fake.aborts  # am1 was never touched
+        assert [a.reason for a in am2.aborts] == ["only am2"]
+    finally:
+        h.stop()
+
+
+@contextlib.contextmanager
+def _http_server(gw: Harness, **settings: object) -> Iterator[str]:
+    """The MCP HTTP app on a real uvicorn server on loopback; yields its /mcp URL."""
     import uvicorn
 
     from services.mcp.server import http_app
     from services.mcp.settings import McpSettings
 
     port = free_port()
-    settings = McpSettings(transport="http", port=port, gateway_url=gw.base_url + "/api/v1", gateway_token=GW_TOKEN,
-                           token=MCP_TOKEN)
-    server = uvicorn.Server(uvicorn.Config(http_app(settings), host="127.0.0.1", port=port, log_config=None))
+    config = McpSettings(transport="http", port=port, gateway_url=gw.base_url + "/api/v1", gateway_token=GW_TOKEN,
+                         **settings)
+    config.check_safe()
+    server = uvicorn.Server(uvicorn.Config(http_app(config), host="127.0.0.1", port=port, log_config=None))
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
     try:
@@ -135,25 +189,93 @@ def test_http_client_needs_the_token_then_drives_a_task(gw):
         while not server.started:
             assert time.monotonic() < deadline, "MCP HTTP server did not start"
             time.sleep(0.05)
-        url = f"http://127.0.0.1:{port}/mcp"
-        r = httpx.post(url, json={"jsonrpc": "2.0", "id": 1, "method": "tools/list"})
-        assert r.status_code == 401
-        r = httpx.post(url, json={"jsonrpc": "2.0", "id": 1, "method": "tools/list"},
-                       headers={"Authorization": "Bearer wrong"})
-        assert r.status_code == 401
-
-        async def main():
-            import httpx2
-            from mcp.client.streamable_http import streamable_http_client
-
-            http = httpx2.AsyncClient(headers={"Authorization": f"Bearer {MCP_TOKEN}"}, timeout=30)
-            async with http, Client(streamable_http_client(url, http_client=http)) as client:
-                await _drive(client)
-
-        asyncio.run(asyncio.wait_for(main(), 180))
+        yield f"http://127.0.0.1:{port}/mcp"
     finally:
         server.should_exit = True
         thread.join(10)
+
+
+def _client(url: str, **headers: str):
+    import httpx2
+    from mcp.client.streamable_http import streamable_http_client
+
+    http = httpx2.AsyncClient(headers=headers, timeout=30)
+    return http, Client(streamable_http_client(url, http_client=http))
+
+
+INIT = {"jsonrpc": "2.0", "id": 1, "method": "initialize",
+        "params": {"protocolVersion": "2025-06-18", "capabilities": {}, "clientInfo": {"name": "t", "version": "1"}}}
+MCP_HEADERS = {"Accept": "application/json, text/event-stream"}
+
+
+def test_http_client_needs_the_token_then_drives_a_task(gw):
+    with _http_server(gw, token=MCP_TOKEN) as url:
+        r = httpx.post(url, json=INIT, headers=MCP_HEADERS)
+        assert r.status_code == 401
+        r = httpx.post(url, json=INIT, headers={**MCP_HEADERS, "Authorization": "Bearer wrong"})
+        assert r.status_code == 401
+
+        async def main():
+            http, client = _client(url, Authorization=f"Bearer {MCP_TOKEN}")
+            async with http, client:
+                await _drive(client)
+
+        asyncio.run(asyncio.wait_for(main(), 180))
+
+
+def test_http_checks_origin_exactly(gw):
+    allowed = "http://127.0.0.1:3000"
+    with _http_server(gw, token=MCP_TOKEN, allowed_origins=[allowed]) as url:
+        auth = {**MCP_HEADERS, "Authorization": f"Bearer {MCP_TOKEN}"}
+        # The SDK's own default allowed any port of localhost; a page on another port, or a sandboxed one
+        # (Origin: null), or an unrelated site is refused before the token is even looked at.
+        for origin in ("http://localhost:5173", "http://127.0.0.1:3001", "https://127.0.0.1:3000", "null",
+                       "http://evil.example", allowed + "/"):
+            r = httpx.post(url, json=INIT, headers={**auth, "Origin": origin})
+            assert r.status_code == 403, (origin, r.status_code, r.text)
+            assert "AERMANI_MCP_ALLOWED_ORIGINS" in r.json()["error"]
+        r = httpx.post(url, json=INIT, headers={**auth, "Origin": allowed})
+        assert r.status_code == 200, r.text
+
+        async def main():
+            http, client = _client(url, Authorization=f"Bearer {MCP_TOKEN}", Origin=allowed)
+            async with http, client:
+                assert [v["vehicle_id"] for v in _json(await client.call_tool("list_vehicles", {}))] == ["am1"]
+
+        asyncio.run(asyncio.wait_for(main(), 60))
+
+
+def test_http_without_its_token_does_not_lend_the_gateways(gw):
+    """On loopback with no AERMANI_MCP_TOKEN the server cannot tell who calls it, so it calls the gateway as
+    an unauthenticated client would: this gateway (it has a token) refuses every call, and nothing flies."""
+    with _http_server(gw) as url:
+        tasks = (gw.base_url + "/api/v1/tasks", {"Authorization": f"Bearer {GW_TOKEN}"})
+        before = httpx.get(tasks[0], headers=tasks[1]).json()["total"]
+        r = httpx.post(url, json=INIT, headers={**MCP_HEADERS, "Origin": "http://localhost:8765"})
+        assert r.status_code == 403  # no origin is allowed by default, a local one included
+
+        async def main():
+            http, client = _client(url)
+            async with http, client:
+                for tool, args in (("start_task", {"command": "pick up the red cup", "vehicle": "am1"}),
+                                   ("abort", {"reason": "t", "fleet": True}), ("list_vehicles", {})):
+                    refused = await client.call_tool(tool, args)
+                    assert refused.is_error and "401" in refused.content[0].text, (tool, refused.content)
+
+        asyncio.run(asyncio.wait_for(main(), 60))
+        after = httpx.get(tasks[0], headers=tasks[1]).json()["total"]
+        assert after == before
+
+
+def test_allowed_origins_must_be_exact():
+    from pydantic import ValidationError
+
+    from services.mcp.settings import McpSettings
+
+    for bad in ("http://localhost:*", "*", "http://127.0.0.1:3000/", "localhost:3000", "http://a.example/x"):
+        with pytest.raises(ValidationError, match="not an exact origin"):
+            McpSettings(allowed_origins=[bad])
+    assert McpSettings(allowed_origins=["http://[::1]:3000", "https://ops.example"]).allowed_origins
 
 
 def test_refuses_an_open_http_bind_without_a_token():

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from services.reasoner.library import default_library
@@ -63,6 +64,8 @@ class MiniWorld:
     held: str | None = None
     placed_on: dict[str, str] = field(default_factory=dict)
     executed: list[str] = field(default_factory=list)
+    checks: list[SkillRequest] = field(default_factory=list)
+    """Requests the served executor was asked to check (executor/check_skill), in order."""
     fail_next: dict[str, int] = field(default_factory=dict)
     """Skill -> how many of its next runs fail (fault injection)."""
 
@@ -161,21 +164,36 @@ class MiniWorldPort(World):
 
 
 async def serve_executor(bus: Bus, world: MiniWorld, keys: Keys, *, skill_delay: float = 0.0,
-                         library: SkillLibrary | None = None) -> asyncio.Task:
-    """Serve the MiniWorld on the bus like the executor (plus detections and state); returns the publisher task."""
+                         library: SkillLibrary | None = None,
+                         refuse: Callable[[SkillRequest], tuple[str, SkillOutcome] | None] | None = None,
+                         ) -> asyncio.Task:
+    """Serve the MiniWorld on the bus like the executor (plus detections and state); returns the publisher task.
+    `refuse(request)` adds a precondition (a reason and outcome when the skill may not start), applied like the
+    executor's to both run_skill and check_skill."""
     lib = library or default_library()
     lock = asyncio.Lock()
+    checks = world.checks
 
     async def skills(_req: object) -> SkillLibrary:
         return lib
 
     names = {sk.name for sk in lib.skills}
 
-    async def accept(req: SkillRequest) -> SkillAccept:
+    def refusal(req: SkillRequest) -> tuple[str, SkillOutcome] | None:
         if req.skill not in names:  # like the executor: an unknown skill is refused, never run
-            return SkillAccept(accepted=False, goal_id=new_id("goal-"), reason=f"unknown skill {req.skill!r}",
-                               outcome=SkillOutcome(code=OutcomeCode.FAILED))
+            return f"unknown skill {req.skill!r}", SkillOutcome(code=OutcomeCode.FAILED)
+        return refuse(req) if refuse is not None else None
+
+    async def accept(req: SkillRequest) -> SkillAccept:
+        no = refusal(req)
+        if no is not None:
+            return SkillAccept(accepted=False, goal_id=new_id("goal-"), reason=no[0], outcome=no[1])
         return SkillAccept(accepted=True, goal_id=new_id("goal-"))
+
+    async def check(req: SkillRequest) -> SkillAccept:
+        checks.append(req)
+        no = refusal(req)
+        return SkillAccept(accepted=no is None, goal_id="", reason=no[0] if no else "", outcome=no[1] if no else None)
 
     async def execute(handle: ServerGoalHandle[SkillRequest, SkillStatus]) -> None:
         req, goal = handle.request, handle.goal_id
@@ -201,6 +219,7 @@ async def serve_executor(bus: Bus, world: MiniWorld, keys: Keys, *, skill_delay:
         return CancelReply(accepted=False, reason=f"goal {req.goal_id} cannot be cancelled (skills here end at once)")
 
     bus.serve(keys.skills, skills)
+    bus.serve(keys.check_skill, check)
     ActionServer(bus, SKILL_ACTION, keys.vehicle_id, goal_callback=accept, execute_callback=execute,
                  cancel_callback=cancel_skill).start()
 

@@ -22,9 +22,10 @@ def world() -> MiniWorld:
     return MiniWorld([Thing("red cup"), Thing("table", "surface", size=(1.2, 0.8, 0.75))])
 
 
-async def run_task(stack, w: MiniWorld, request: TaskRequest, *, skill_delay: float = 0.0, on_running=None):
+async def run_task(stack, w: MiniWorld, request: TaskRequest, *, skill_delay: float = 0.0, on_running=None,
+                   refuse=None):
     async with bus_for(stack) as bus:
-        ticker = await serve_executor(bus, w, KEYS, skill_delay=skill_delay)
+        ticker = await serve_executor(bus, w, KEYS, skill_delay=skill_delay, refuse=refuse)
         steps = bus.subscribe(KEYS.reasoning_step, maxsize=1000)
         statuses = bus.subscribe(KEYS.task_status, maxsize=100)
         try:
@@ -149,6 +150,54 @@ async def test_operator_approval_rejection_replans_and_approval_runs(tmp_path) -
     assert grasps[0].skill_state.value == "rejected" and "rejected by the operator (test): wrong cup" in \
         grasps[0].skill_message
     assert grasps[-1].skill_state.value == "succeeded"
+    assert sum(e.startswith("grasp") for e in w.executed) == 1 and w.placed_on == {"red cup": "table"}
+
+
+async def test_approval_is_asked_only_for_a_skill_the_executor_would_start(tmp_path) -> None:
+    """The executor refuses the first grasp as out of reach (until the vehicle has flown closer): no operator
+    is asked about it, the step is rejected with the executor's reason and code, and the grasp the executor
+    would start is the one the operator approves."""
+    from shared.messages import ApprovalDecision, ApprovalState, OutcomeCode, SkillFacts, SkillOutcome
+
+    w = world()
+    env = {"AERMANI_REASONER_APPROVAL": '["grasp"]', "AERMANI_REASONER_APPROVAL_TIMEOUT_S": "60"}
+    refused_at: list[int] = []
+    asked: list[tuple[int, int]] = []  # (step, grasps checked so far) of each approval request
+
+    def too_far(req):
+        if req.skill != "grasp":
+            return None
+        if not refused_at:
+            refused_at.append(len(w.executed))
+        if any(e.startswith("forward") for e in w.executed[refused_at[0]:]):
+            return None
+        return ("the red cup is 1.90 m away, beyond the grasp's 0.60 m reach; nothing was moved",
+                SkillOutcome(code=OutcomeCode.OUT_OF_REACH, facts=SkillFacts(distance_m=1.9, reach_m=0.6)))
+
+    async def operator(bus) -> None:
+        approvals = bus.subscribe(KEYS.approval, maxsize=100)
+        while True:
+            st = await approvals.recv(timeout=60)
+            if st.state is not ApprovalState.PENDING:
+                continue
+            asked.append((st.step, sum(c.skill == "grasp" for c in w.checks)))
+            reply = await bus.query(KEYS.decide_approval, ApprovalDecision(approval_id=st.approval_id, approved=True,
+                                                                          operator="test"), timeout=10)
+            assert reply.accepted, reply.reason
+
+    async def start_operator(bus) -> None:
+        asyncio.get_running_loop().create_task(operator(bus))
+
+    with run_stack(["reasoner"], tmp_path, env=env) as stack:
+        final, steps = await run_task(stack, w, TaskRequest(command=CMD), on_running=start_operator, refuse=too_far)
+    assert final.state is TaskState.SUCCEEDED, final.message
+    grasps = [s for s in steps if s.ste and s.ste.skill == "grasp"]
+    assert len(grasps) >= 2, [s.ste.skill for s in steps if s.ste]
+    first, last = grasps[0], grasps[-1]
+    assert first.skill_state.value == "rejected" and "beyond the grasp's 0.60 m reach" in first.skill_message
+    assert last.skill_state.value == "succeeded"
+    assert [step for step, _ in asked] == [last.step]  # one request, for the grasp that could start
+    assert asked[0][1] == len(grasps)  # asked after its own check, never before one
     assert sum(e.startswith("grasp") for e in w.executed) == 1 and w.placed_on == {"red cup": "table"}
 
 

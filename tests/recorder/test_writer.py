@@ -256,21 +256,91 @@ def test_channel_specs() -> None:
     assert not mcaplog.channel_spec("zenoh/bytes").has_schema
 
 
-def test_foxglove_live_server_gets_every_channel(tmp_path: Path) -> None:
-    w = RecordWriter(settings(tmp_path, foxglove=True, foxglove_port=0))
+FOX_TOKEN = "fox-token-for-tests-5e1d"
+
+
+def _fox_connect(url: str, origin: str | None = None, token: str | None = FOX_TOKEN, **headers: str):
+    from websockets.sync.client import connect
+
+    if origin is not None:
+        headers["Origin"] = origin
+    return connect(url + (f"/?token={token}" if token is not None else "/"), subprotocols=["foxglove.websocket.v1"],
+                   additional_headers=headers, open_timeout=10)
+
+
+def test_foxglove_live_server_checks_origin_and_token_then_streams(tmp_path: Path) -> None:
+    """The live view over a real WebSocket: a web page's origin (evil.example, a sandboxed page's null, a
+    look-alike, any localhost port) gets 403 and a client without the token 401, before anything is sent; a
+    client with the token sees every channel advertised and gets the frames it subscribes to."""
+    import json
+    import struct
+
+    from websockets.exceptions import InvalidStatus
+
+    w = RecordWriter(settings(tmp_path, foxglove=True, foxglove_port=0, foxglove_token=FOX_TOKEN,
+                              foxglove_allowed_origins=["https://app.foxglove.dev"]))
     w.start()
-    stamp = time.time_ns()
-    for key, data in frames(stamp).items():
-        schema = "foxglove.CompressedImage" if key == K.camera_color else "foxglove.RawImage"
-        assert w.submit(key, data, f"application/protobuf;{schema}", stamp)
-    submit_model(w, K.autopilot_state, VehicleState())
-    wait_for(lambda: w.written == 4)
-    url = w.foxglove_url
-    channels = {ch.topic(): ch.schema_name() for ch in w._fox_channels.values()}
-    w.stop()
-    assert url.startswith("ws://127.0.0.1:") and not url.endswith(":0")
-    assert channels[K.camera_color] == "foxglove.CompressedImage"
-    assert channels[K.autopilot_state] == "aermani.VehicleState"
+    try:
+        stamp = time.time_ns()
+        sent = frames(stamp)
+        for key, data in sent.items():
+            schema = "foxglove.CompressedImage" if key == K.camera_color else "foxglove.RawImage"
+            assert w.submit(key, data, f"application/protobuf;{schema}", stamp)
+        submit_model(w, K.autopilot_state, VehicleState())
+        wait_for(lambda: w.written == 4)
+        url = w.foxglove_url
+        assert url.startswith("ws://127.0.0.1:") and not url.endswith(":0")
+        for origin, token, status in (("http://evil.example", FOX_TOKEN, 403), ("null", FOX_TOKEN, 403),
+                                      ("https://app.foxglove.dev.evil.example", FOX_TOKEN, 403),
+                                      ("http://localhost:5173", FOX_TOKEN, 403), (None, None, 401),
+                                      (None, "wrong-token", 401), ("https://app.foxglove.dev", None, 401)):
+            with pytest.raises(InvalidStatus) as refused:
+                _fox_connect(url, origin, token)
+            assert refused.value.response.status_code == status, (origin, token)
+        with _fox_connect(url, token=None, Authorization=f"Bearer {FOX_TOKEN}") as ws:  # a header works too
+            assert json.loads(ws.recv(timeout=10))["op"] == "serverInfo"
+
+        with _fox_connect(url, "https://app.foxglove.dev") as ws:
+            info = json.loads(ws.recv(timeout=10))
+            assert info["op"] == "serverInfo"
+            adverts = json.loads(ws.recv(timeout=10))
+            assert adverts["op"] == "advertise"
+            channels = {c["topic"]: c for c in adverts["channels"]}
+            assert channels[K.camera_color]["schemaName"] == "foxglove.CompressedImage"
+            assert channels[K.camera_color]["encoding"] == "protobuf" and channels[K.camera_color]["schema"]
+            assert channels[K.autopilot_state]["schemaName"] == "aermani.VehicleState"
+            assert channels[K.autopilot_state]["schemaEncoding"] == "jsonschema"
+            ws.send(json.dumps({"op": "subscribe", "subscriptions": [{"id": 7,
+                                                                      "channelId": channels[K.camera_color]["id"]}]}))
+            # The subscription takes effect when the server has read it: keep sending frames until one arrives.
+            deadline = time.monotonic() + 30
+            payloads = {}
+            while True:
+                assert time.monotonic() < deadline, "no frame reached the subscriber"
+                t = time.time_ns()
+                payloads[t] = frames(t)[K.camera_color]
+                assert w.submit(K.camera_color, payloads[t], "application/protobuf;foxglove.CompressedImage", t)
+                try:
+                    msg = ws.recv(timeout=0.5)
+                except TimeoutError:
+                    continue
+                if isinstance(msg, bytes):
+                    break
+            op, sid, log_time = struct.unpack_from("<BIQ", msg)
+            assert (op, sid) == (1, 7) and msg[13:] == payloads[log_time]
+    finally:
+        w.stop()
+
+
+def test_foxglove_settings_refuse_an_open_bind_without_a_token_and_inexact_origins(tmp_path: Path) -> None:
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError, match="AERMANI_RECORDER_FOXGLOVE_TOKEN"):
+        settings(tmp_path, foxglove=True, foxglove_host="0.0.0.0")
+    assert settings(tmp_path, foxglove=True, foxglove_host="0.0.0.0", foxglove_token=FOX_TOKEN).foxglove
+    for bad in ("*", "https://app.foxglove.dev/", "http://localhost:*"):
+        with pytest.raises(ValidationError, match="not an exact origin"):
+            settings(tmp_path, foxglove_allowed_origins=[bad])
 
 
 class SlowFile(io.RawIOBase):

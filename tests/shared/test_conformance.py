@@ -20,7 +20,8 @@ from tests.helpers import bus_for, run_stack
 def test_declarations_name_what_each_service_does():
     topics, queries = declared_by("executor")
     assert {t.name for t in topics} >= {"executor/skill_status", "executor/memory", "safety/abort_ack"}
-    assert {q.name for q in queries} == {"executor/run_skill", "executor/cancel_skill", "executor/skills"}
+    assert {q.name for q in queries} == {"executor/run_skill", "executor/check_skill", "executor/cancel_skill",
+                                         "executor/skills"}
     topics, queries = declared_by("reasoner")
     assert {q.name for q in queries} == {"reasoner/start_task", "reasoner/cancel_task", "reasoner/decide_approval"}
 
@@ -44,7 +45,8 @@ async def test_a_silent_or_wrong_fake_fails_the_check(router):
             await cancel_all([task])
         failed = {f.key.split("/", 3)[3] for f in report.findings if not f.ok}
         assert not report.ok
-        assert {"executor/memory", "executor/run_skill", "executor/skills"} <= failed, report.summary()
+        assert {"executor/memory", "executor/run_skill", "executor/check_skill", "executor/skills"} <= failed, \
+            report.summary()
 
 
 async def test_executor_test_fakes_conform(router):
@@ -97,7 +99,7 @@ async def test_gateway_fake_conforms_as_a_reasoner(router):
             # Its steps and skill statuses (it stands in for the executor too) name only real skills.
             skills = asyncio.create_task(check_service(
                 bus, "executor", "gw", expect_alive=False, timeout=2.0, require_periodic=False, library=lib,
-                skip=("executor/memory", "executor/run_skill", "executor/cancel_skill")))
+                skip=("executor/memory", "executor/run_skill", "executor/check_skill", "executor/cancel_skill")))
             await asyncio.sleep(0.3)
             accept = await bus.query(Keys("gw").start_task, TaskRequest(command="pick up the red cup"))
             assert accept.accepted

@@ -10,6 +10,7 @@ from sse_starlette import EventSourceResponse, ServerSentEvent
 
 from services.gateway.deps import Authorized, FleetDep, SettingsDep, StoreDep
 from services.gateway.errors import ApiError, responses
+from services.gateway.fleet import Fleet
 from services.gateway.models import (
     AbortIn,
     AbortOut,
@@ -20,6 +21,7 @@ from services.gateway.models import (
     TaskDetail,
     TaskLinks,
     TaskPage,
+    TaskPhase,
     TaskSummary,
     abort_summary,
 )
@@ -40,7 +42,9 @@ def links(task_id: str) -> TaskLinks:
     return TaskLinks(self=base, events=f"{base}/events", abort=f"{base}/abort")
 
 
-def pick_vehicle(fleet: FleetDep, settings: SettingsDep, wanted: str | None) -> str:
+def pick_vehicle(fleet: FleetDep, wanted: str | None) -> str:
+    """`wanted`, or the only vehicle whose reasoner is alive. With several, the caller must name one: the
+    gateway's own vehicle id is no default then, a task sent to the wrong vehicle would fly it."""
     alive = fleet.reasoner_vehicles()
     if wanted is not None:
         if wanted not in alive:
@@ -48,8 +52,6 @@ def pick_vehicle(fleet: FleetDep, settings: SettingsDep, wanted: str | None) -> 
             raise ApiError(404, f"unknown vehicle {wanted!r}: no reasoner is alive for it (vehicles with a "
                                 f"reasoner: {known})")
         return wanted
-    if settings.vehicle_id in alive:
-        return settings.vehicle_id
     if len(alive) == 1:
         return alive[0]
     if not alive:
@@ -63,7 +65,7 @@ async def create_task(body: TaskCreate, request: Request, fleet: FleetDep, store
                       settings: SettingsDep) -> TaskCreated:
     """Send a natural-language command to a vehicle's reasoner. Answers 202 once the reasoner has accepted
     the task; follow it at `links.events`."""
-    vehicle = pick_vehicle(fleet, settings, body.vehicle_id)
+    vehicle = pick_vehicle(fleet, body.vehicle_id)
     # A task the store still shows running may have ended while this gateway was away (its final status was
     # never received). The reasoner, which runs one task at a time, is the authority: it refuses the new task
     # while one runs (409 with its reason); when it accepts, the stored rows were stale and are closed.
@@ -96,34 +98,40 @@ async def create_task(body: TaskCreate, request: Request, fleet: FleetDep, store
         await fleet.end_orphan(old, f"its end was not received (the gateway was away); the reasoner of {vehicle} "
                                     f"was idle when task {task_id} started")
     row = await store.get_task(task_id)
-    state = TaskState(row["state"]) if row else TaskState.PENDING
+    state = TaskPhase(fleet.phase(row)) if row else TaskPhase.PENDING
     return TaskCreated(task_id=task_id, vehicle_id=vehicle, state=state, links=links(task_id))
 
 
 @router.get("", response_model=TaskPage, summary="List tasks", responses=responses(422))
-async def list_tasks(store: StoreDep, settings: SettingsDep,
+async def list_tasks(store: StoreDep, settings: SettingsDep, fleet: FleetDep,
                      offset: Annotated[int, Query(ge=0, le=1_000_000, description="Items to skip.")] = 0,
                      limit: Annotated[int, Query(ge=1, le=1000, description="Page size.")] = 20,
                      vehicle_id: Annotated[str | None, Query(pattern=r"^[A-Za-z0-9_-]{1,32}$")] = None,
-                     state: Annotated[TaskState | None, Query(description="Only tasks in this state.")] = None,
+                     state: Annotated[TaskPhase | None, Query(description="Only tasks in this state.")] = None,
                      ) -> TaskPage:
     """Tasks, newest first, from the gateway's database (survives restarts)."""
     limit = min(limit, settings.page_size_max)
-    rows, total = await store.list_tasks(offset, limit, vehicle_id, state.value if state else None)
+    if state is not None and state.value not in TERMINAL:
+        # `aborting` is not stored (the abort path writes nothing): the unfinished tasks, at most a few per
+        # vehicle, are filtered by the state the API shows.
+        unfinished = [r for r in reversed(await store.running_tasks(vehicle_id)) if fleet.phase(r) == state.value]
+        rows, total = unfinished[offset:offset + limit], len(unfinished)
+    else:
+        rows, total = await store.list_tasks(offset, limit, vehicle_id, state.value if state else None)
     counts = await store.step_counts([r["task_id"] for r in rows])
-    return TaskPage(items=[summary(r, counts.get(r["task_id"], 0)) for r in rows], total=total, offset=offset,
-                    limit=limit)
+    return TaskPage(items=[summary(r, counts.get(r["task_id"], 0), fleet) for r in rows], total=total,
+                    offset=offset, limit=limit)
 
 
-def summary(row: dict[str, Any], steps: int) -> TaskSummary:
+def summary(row: dict[str, Any], steps: int, fleet: Fleet) -> TaskSummary:
     return TaskSummary(task_id=row["task_id"], vehicle_id=row["vehicle_id"], command=row["command"],
-                       state=TaskState(row["state"]), message=row["message"], created_ns=row["created_ns"],
+                       state=TaskPhase(fleet.phase(row)), message=row["message"], created_ns=row["created_ns"],
                        updated_ns=row["updated_ns"], steps=steps)
 
 
 @router.get("/{task_id}", response_model=TaskDetail, summary="Get a task with every step",
             responses=responses(404, 422))
-async def get_task(task_id: TaskId, store: StoreDep) -> TaskDetail:
+async def get_task(task_id: TaskId, store: StoreDep, fleet: FleetDep) -> TaskDetail:
     """Status, every reasoning step (DRT and STE), skill results and metrics so far."""
     row = await store.get_task(task_id)
     if row is None:
@@ -153,7 +161,7 @@ async def get_task(task_id: TaskId, store: StoreDep) -> TaskDetail:
                       iar=(invalid / len(calls)) if calls else None, latency_p50_s=percentile_or_none(latencies, 50),
                       latency_p95_s=percentile_or_none(latencies, 95), skills=by_state, skill_time_s=skill_time,
                       duration_s=((end or _now()) - start) / 1e9)
-    return TaskDetail(**summary(row, len(ordered)).model_dump(), request=row["request"], status=row["status"],
+    return TaskDetail(**summary(row, len(ordered), fleet).model_dump(), request=row["request"], status=row["status"],
                       reasoning_steps=ordered, skill_results=list(skills.values()), metrics=metrics,
                       last_event_id=events[-1].id if events else 0)
 
@@ -217,8 +225,11 @@ async def abort_task(task_id: TaskId, store: StoreDep, fleet: FleetDep, settings
     row = await store.get_task(task_id)
     if row is None:
         raise ApiError(404, f"no task {task_id!r}")
-    if row["state"] in TERMINAL:
-        raise ApiError(409, f"task {task_id} has already ended ({row['state']}); POST /api/v1/abort stops "
+    held = fleet.ended(task_id)
+    ended = row["state"] if row["state"] in TERMINAL else (held.state.value if held else None)
+    if ended is not None:
+        # Also while its end waits for its last steps to be stored: the task is over, nothing to stop.
+        raise ApiError(409, f"task {task_id} has already ended ({ended}); POST /api/v1/abort stops "
                             "every vehicle")
     reason = (body or AbortIn()).reason
     acked = await fleet.abort([row["vehicle_id"]], reason, task_id, settings.abort_ack_timeout_s)
