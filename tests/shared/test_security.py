@@ -346,11 +346,24 @@ async def test_router_command_used_by_compose(tmp_path, certs):
         finally:
             await bridge.close()
 
+    seen = ["", ""]
+
+    def wait_up(i: int, role: str) -> None:
+        """Until the router process says it is up (its start is seconds of interpreter start on a busy
+        machine: a fixed connect timeout raced it)."""
+        for line in procs[i].stdout:
+            seen[i] += line
+            if f"{role} router up" in line:
+                return
+        raise AssertionError(f"the {role} router exited before it was up: {seen[i]}")
+
     try:
+        await asyncio.to_thread(wait_up, 0, "ground")
+        await asyncio.to_thread(wait_up, 1, "drone")
         await main()
     finally:
         for p in procs:
             p.send_signal(signal.SIGTERM)
-        outs = [p.communicate(timeout=20)[0] for p in procs]
+        outs = [seen[i] + procs[i].communicate(timeout=20)[0] for i in range(2)]
     assert [p.returncode for p in procs] == [0, 0], outs
     assert "ground router up" in outs[0] and "drone router up" in outs[1]
