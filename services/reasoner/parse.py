@@ -384,6 +384,17 @@ def _well_formed_values(obj: Any) -> Any:
     return obj
 
 
+def recorded_answer(raw: str) -> str:
+    """A model's answer as a step records it (`ModelCall.raw_answer`): well formed (a lone surrogate would fail
+    the step's publish) and at most the MAX_ANSWER_CHARS the parser reads, with the count of the rest, so that
+    a step with every re-prompt's answer stays far below a message's 1 MiB cap (a larger one is dropped by every
+    subscriber: the step would be missing from the log and the store)."""
+    text = well_formed(raw)
+    if len(text) > MAX_ANSWER_CHARS:
+        text = f"{text[:MAX_ANSWER_CHARS]}\n[... {len(text) - MAX_ANSWER_CHARS} more characters not recorded]"
+    return text
+
+
 def parse_answer(raw: str, variant: str, library: SkillLibrary, *, coverage: float = 1.0,
                  work: Work | None = None) -> ParsedAnswer:
     """Parse and validate one raw model answer. Raises InvalidAnswer with the reason, and nothing else."""

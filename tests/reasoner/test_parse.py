@@ -327,3 +327,15 @@ def test_the_work_per_answer_has_a_ceiling_not_only_a_linear_bound() -> None:
     p = parse_answer("grasp is premature " * 10 + "so I will yaw_left", "unstructured", LIB)
     assert p.ste.skill == "yaw_left"
 
+
+def test_an_answer_is_recorded_and_echoed_well_formed_and_bounded() -> None:
+    """What a step records of an answer and what a re-prompt repeats of it can always be encoded, and a huge
+    answer is cut (a step over a message's 1 MiB cap would be dropped by every subscriber)."""
+    from services.reasoner.backends.base import ECHO_CHARS, echoed
+    from services.reasoner.parse import MAX_ANSWER_CHARS, recorded_answer
+
+    assert recorded_answer("x \ud83d") == echoed("x \ud83d") == "x \ufffd"
+    huge = "y" * (3 * MAX_ANSWER_CHARS)
+    assert recorded_answer(huge).startswith("y" * MAX_ANSWER_CHARS)
+    assert recorded_answer(huge).endswith(f"[... {2 * MAX_ANSWER_CHARS} more characters not recorded]")
+    assert len(echoed(huge)) < ECHO_CHARS + 80 and echoed("") == "(empty)"
