@@ -52,6 +52,13 @@ def up(
     if unknown:
         console.print(f"[red]unknown services: {unknown}; available: {available_services()}[/red]")
         raise typer.Exit(2)
+    if "reasoner" in names:  # a model backend without its key: said now, not as a reasoner crashing in a loop
+        import os
+
+        problem = demo.backend_problem(os.environ.get("AERMANI_REASONER_BACKEND") or "rules")
+        if problem is not None:
+            console.print(f"[red]{terminal_text(problem)}[/red]")
+            raise typer.Exit(2)
     env = {"AERMANI_RECORDER_FOXGLOVE": "1"} if foxglove else {}
     from shared.errors import ConfigError
 

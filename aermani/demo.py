@@ -109,6 +109,24 @@ def backend_key_env(backend: str, api_key_env: str | None) -> dict[str, str] | s
     """Before anything starts: the reasoner's key settings for `backend` (from `api_key_env` when named), or why
     it cannot run. A chat backend without its key would crash the reasoner at start and the demo would only time
     out; this says what to set instead."""
+    if api_key_env:
+        unknown = backend_problem(backend, key_needed=False)
+        if unknown:
+            return unknown
+        key = os.environ.get(api_key_env, "")
+        if not key:
+            return f"no API key: --api-key-env names {api_key_env}, which is not set in this environment"
+        return {"AERMANI_REASONER_API_KEY": key}
+    problem = backend_problem(backend)
+    if problem is not None:
+        return problem + ("; or pass --api-key-env NAME" if problem.startswith("no API key") else "")
+    return {}
+
+
+def backend_problem(backend: str, *, key_needed: bool = True) -> str | None:
+    """Why a reasoner set to `backend` could not start, said before anything starts (`aermani demo`, `aermani
+    up`): an unknown backend or a broken plug-in module, or a chat backend whose key is set nowhere
+    (AERMANI_REASONER_API_KEY or the provider's variable); None when it can start."""
     from services.reasoner.backends import BACKENDS, load_backend_modules
     from services.reasoner.backends.base import ChatBackend, missing_key
     from services.reasoner.settings import ReasonerSettings
@@ -118,15 +136,10 @@ def backend_key_env(backend: str, api_key_env: str | None) -> dict[str, str] | s
         cls = BACKENDS.lookup(backend)
     except Exception as exc:  # an unknown backend or a broken plug-in module: its own message says which
         return str(exc)
-    if api_key_env:
-        key = os.environ.get(api_key_env, "")
-        if not key:
-            return f"no API key: --api-key-env names {api_key_env}, which is not set in this environment"
-        return {"AERMANI_REASONER_API_KEY": key}
-    if issubclass(cls, ChatBackend) and cls.key_env and not (os.environ.get("AERMANI_REASONER_API_KEY")
-                                                             or os.environ.get(cls.key_env)):
-        return missing_key(backend, cls.key_env) + "; or pass --api-key-env NAME"
-    return {}
+    if key_needed and issubclass(cls, ChatBackend) and cls.key_env and not (
+            os.environ.get("AERMANI_REASONER_API_KEY") or os.environ.get(cls.key_env)):
+        return missing_key(backend, cls.key_env)
+    return None
 
 
 DEMO_SERVICES = ("sim", "autopilot_bridge", "perception", "executor", "reasoner", "recorder")
