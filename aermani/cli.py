@@ -18,6 +18,7 @@ from rich.table import Table
 from aermani import demo, probe
 from aermani.evaluation import cli as evaluation_cli
 from aermani.launcher import OPTIONAL, SERVICE_ORDER, Stack, available_services, default_services
+from shared.text import terminal_text
 
 app = typer.Typer(help="aermani: language-driven aerial manipulation (AERMANI-VLM) on PX4.", no_args_is_help=True,
                   pretty_exceptions_enable=False)
@@ -51,6 +52,13 @@ def up(
     if unknown:
         console.print(f"[red]unknown services: {unknown}; available: {available_services()}[/red]")
         raise typer.Exit(2)
+    if "reasoner" in names:  # a model backend without its key: said now, not as a reasoner crashing in a loop
+        import os
+
+        problem = demo.backend_problem(os.environ.get("AERMANI_REASONER_BACKEND") or "rules")
+        if problem is not None:
+            console.print(f"[red]{terminal_text(problem)}[/red]")
+            raise typer.Exit(2)
     env = {"AERMANI_RECORDER_FOXGLOVE": "1"} if foxglove else {}
     from shared.errors import ConfigError
 
@@ -63,7 +71,7 @@ def up(
             check_cert_files(certs, "ground")
             check_cert_files(certs, "drone")
     except ConfigError as exc:
-        console.print(f"[red]{exc}[/red]")
+        console.print(f"[red]{terminal_text(exc)}[/red]")
         raise typer.Exit(2)
     stopping = False
 
@@ -97,7 +105,7 @@ def up(
                     console.print(f"  {mark}  {p.label}", highlight=False)
             for ev in stack.events[seen_events:]:
                 if "exited" in ev or "restarted" in ev:
-                    console.print(f"  [yellow]{ev}[/yellow]")
+                    console.print(f"  [yellow]{terminal_text(ev)}[/yellow]")
             seen_events = len(stack.events)
             time.sleep(0.5)
     finally:
@@ -138,7 +146,7 @@ def health(
     try:
         keys, reports = asyncio.run(asyncio.wait_for(run(), timeout + 10))
     except Exception as exc:
-        console.print(f"[red]cannot reach the router at {connect}: {exc}[/red]")
+        console.print(f"[red]cannot reach the router at {terminal_text(connect)}: {terminal_text(exc)}[/red]")
         raise typer.Exit(1)
     table = Table("vehicle", "service", "state", "health")
 
@@ -146,18 +154,18 @@ def health(
         h = reports.get((vid, name))
         if h is None:
             return ""
-        return "[green]ok[/green]" if h.ok else f"[red]{h.message or 'not ok'}[/red]"
+        return "[green]ok[/green]" if h.ok else f"[red]{terminal_text(h.message or 'not ok')}[/red]"
 
     live = {parse_alive_key(k) for k in keys}
     for vid, name in sorted(live):
-        table.add_row(vid, name, "[green]alive[/green]", said(vid, name))
+        table.add_row(terminal_text(vid), terminal_text(name), "[green]alive[/green]", said(vid, name))
     vehicles = {v for v, _ in live} or {vehicle or "am1"}
     for vid in sorted(vehicles):
         for name in available_services():
             if name in OPTIONAL:
                 continue  # started only when configured: absence is not a fault
             if (vid, name) not in live and not any(n == name for _, n in live if name in ("recorder", "gateway")):
-                table.add_row(vid, name, "[red]not running[/red]", said(vid, name))
+                table.add_row(terminal_text(vid), name, "[red]not running[/red]", said(vid, name))
     console.print(table)
     if not live:
         raise typer.Exit(1)
@@ -182,7 +190,7 @@ def certs_init(
     try:
         files = init_certs(out, sans=san or (), days=days, force=force)
     except ConfigError as exc:
-        console.print(f"[red]{exc}[/red]")
+        console.print(f"[red]{terminal_text(exc)}[/red]")
         raise typer.Exit(2)
     for identity, f in files.items():
         console.print(f"{identity:7s} CN={IDENTITIES[identity]:15s} {f.cert}  {f.key}")
@@ -213,7 +221,7 @@ def router(
         cfg = router_config(role, certs, local=local, tls_listen=[tls_listen] if tls_listen else None,
                             connect=[c.strip() for c in connect.split(",") if c.strip()] if connect else None)
     except ConfigError as exc:
-        console.print(f"[red]{exc}[/red]")
+        console.print(f"[red]{terminal_text(exc)}[/red]")
         raise typer.Exit(2)
     _init_zenoh_log()
     done = threading.Event()

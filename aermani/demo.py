@@ -79,7 +79,7 @@ def demo_command(
     """Start the embedded stack (router, sim, bridge, perception, executor, reasoner, recorder), run the command,
     stream each step, and judge success with the simulator's ground truth."""
     if variant not in VARIANTS:
-        console.print(f"[red]unknown variant {variant!r}; use one of {', '.join(VARIANTS)}[/red]")
+        console.print(f"[red]unknown variant {terminal_text(repr(variant))}; use one of {', '.join(VARIANTS)}[/red]")
         raise typer.Exit(2)
     key_env = backend_key_env(backend, api_key_env)
     if isinstance(key_env, str):
@@ -109,6 +109,24 @@ def backend_key_env(backend: str, api_key_env: str | None) -> dict[str, str] | s
     """Before anything starts: the reasoner's key settings for `backend` (from `api_key_env` when named), or why
     it cannot run. A chat backend without its key would crash the reasoner at start and the demo would only time
     out; this says what to set instead."""
+    if api_key_env:
+        unknown = backend_problem(backend, key_needed=False)
+        if unknown:
+            return unknown
+        key = os.environ.get(api_key_env, "")
+        if not key:
+            return f"no API key: --api-key-env names {api_key_env}, which is not set in this environment"
+        return {"AERMANI_REASONER_API_KEY": key}
+    problem = backend_problem(backend)
+    if problem is not None:
+        return problem + ("; or pass --api-key-env NAME" if problem.startswith("no API key") else "")
+    return {}
+
+
+def backend_problem(backend: str, *, key_needed: bool = True) -> str | None:
+    """Why a reasoner set to `backend` could not start, said before anything starts (`aermani demo`, `aermani
+    up`): an unknown backend or a broken plug-in module, or a chat backend whose key is set nowhere
+    (AERMANI_REASONER_API_KEY or the provider's variable); None when it can start."""
     from services.reasoner.backends import BACKENDS, load_backend_modules
     from services.reasoner.backends.base import ChatBackend, missing_key
     from services.reasoner.settings import ReasonerSettings
@@ -118,15 +136,10 @@ def backend_key_env(backend: str, api_key_env: str | None) -> dict[str, str] | s
         cls = BACKENDS.lookup(backend)
     except Exception as exc:  # an unknown backend or a broken plug-in module: its own message says which
         return str(exc)
-    if api_key_env:
-        key = os.environ.get(api_key_env, "")
-        if not key:
-            return f"no API key: --api-key-env names {api_key_env}, which is not set in this environment"
-        return {"AERMANI_REASONER_API_KEY": key}
-    if issubclass(cls, ChatBackend) and cls.key_env and not (os.environ.get("AERMANI_REASONER_API_KEY")
-                                                             or os.environ.get(cls.key_env)):
-        return missing_key(backend, cls.key_env) + "; or pass --api-key-env NAME"
-    return {}
+    if key_needed and issubclass(cls, ChatBackend) and cls.key_env and not (
+            os.environ.get("AERMANI_REASONER_API_KEY") or os.environ.get(cls.key_env)):
+        return missing_key(backend, cls.key_env)
+    return None
 
 
 DEMO_SERVICES = ("sim", "autopilot_bridge", "perception", "executor", "reasoner", "recorder")
@@ -142,7 +155,7 @@ def run_demo(command: str, scenario, accepted: tuple[str, ...], *, env: dict[str
     have = available_services()
     missing = [s for s in services if s not in have and s != "recorder"]
     if missing:
-        console.print(f"[red]this checkout lacks services {missing}; cannot run the demo[/red]")
+        console.print(f"[red]this checkout lacks services {terminal_text(missing)}; cannot run the demo[/red]")
         return 2
     names = [s for s in services if s in have]
     stack = Stack(names, env=loopback_mavlink_env(env), log_dir=log_dir)
@@ -162,7 +175,7 @@ def run_demo(command: str, scenario, accepted: tuple[str, ...], *, env: dict[str
         console.print("[yellow]interrupted[/yellow]")
         return 130
     except Exception as exc:
-        console.print(f"[red]demo failed: {type(exc).__name__}: {exc}[/red]")
+        console.print(f"[red]demo failed: {type(exc).__name__}: {terminal_text(exc)}[/red]")
         return 1
     finally:
         stack.stop()
@@ -181,7 +194,7 @@ async def _preflight_passes(bus, keys, override: bool) -> bool:
         await asyncio.sleep(1.0)
         res = await query_ready(bus, keys.autopilot_command, PreflightCommand(), timeout=30)
     if res.ok:
-        console.print(f"[green]{res.message}[/green]")
+        console.print(f"[green]{terminal_text(res.message)}[/green]")
         return True
     console.print(f"[red]{terminal_text(res.message)}[/red]")
     if override:
@@ -209,11 +222,13 @@ async def _demo_task(stack, command: str, scenario, accepted: tuple[str, ...], t
         sim_health = bus.subscribe(keys.health("sim"), maxsize=5)
         reset = await query_ready(bus, keys.sim_reset, scenario, timeout=30)
         if not reset.ok:
-            console.print(f"[red]the simulator refused the scenario: {reset.message} (use --target/--destination)"
+            console.print(f"[red]the simulator refused the scenario: {terminal_text(reset.message)} (use --target/"
+                          "--destination)"
                           "[/red]")
             return 2
         sc = reset.scenario or scenario
-        console.print(f"scenario: seed {sc.seed}, target {sc.target_object}, destination {sc.destination}")
+        console.print(f"scenario: seed {sc.seed}, target {terminal_text(sc.target_object)}, destination "
+                      f"{terminal_text(sc.destination)}")
         # What actually runs, from the services' own health reports (not from what was asked for).
         seg, real = "unknown", "unknown"
         with contextlib.suppress(TimeoutError):
@@ -221,8 +236,8 @@ async def _demo_task(stack, command: str, scenario, accepted: tuple[str, ...], t
         with contextlib.suppress(TimeoutError):
             real = str((await sim_health.recv(timeout=10)).details.get("realism", "unknown"))
         note = " (ground-truth oracle: the simulator's masks, not real perception)" if seg == "sim" else ""
-        console.print(f"perception: {seg}{note}")
-        console.print(f"simulator: MuJoCo physics, realism {real}")
+        console.print(f"perception: {terminal_text(seg)}{note}")
+        console.print(f"simulator: MuJoCo physics, realism {terminal_text(real)}")
         result.update(segmenter=seg, realism=real)
         if not await _preflight_passes(bus, keys, override=override_preflight):
             result["preflight"] = "refused"
@@ -269,7 +284,8 @@ async def _demo_task(stack, command: str, scenario, accepted: tuple[str, ...], t
         except TimeoutError:
             pass
         result.update(final=final, steps=steps, success=ok, verdict=verdict, log=log_path)
-        console.print(f"log: {log_path}" if log_path else "log: no recorder running (no MCAP log written)")
+        console.print(f"log: {terminal_text(log_path)}" if log_path else
+                      "log: no recorder running (no MCAP log written)")
         console.print(f"service logs: {stack.log_dir}")
         return 0 if ok and final.state.value == "succeeded" else 1
     finally:

@@ -14,6 +14,7 @@ from rich.console import Console
 
 from aermani.launcher import Stack, available_services, loopback_mavlink_env
 from services.reasoner.probe import frame_from_stack
+from shared.text import plain_text, terminal_text
 
 console = Console()
 
@@ -62,7 +63,7 @@ def probe_command(
         settings = ReasonerSettings(backend=backend, base_url=base_url, model=model, api_key=api_key,
                                     profile=profile, request_timeout_s=timeout, transport_retries=1)
     except ValueError as exc:
-        console.print(f"[red]bad option: {exc}[/red]")
+        console.print(f"[red]bad option: {terminal_text(exc)}[/red]")
         raise typer.Exit(2)
     jpeg, source = asyncio.run(frame_from_stack(connect, vehicle, 2.0)), f"running stack's camera ({connect})"
     if jpeg is None and sim:
@@ -74,7 +75,7 @@ def probe_command(
     try:
         rep = asyncio.run(probe(settings, jpeg, source, calls=calls))
     except AermaniError as exc:
-        console.print(f"[red]{exc}[/red]")
+        console.print(f"[red]{terminal_text(exc)}[/red]")
         raise typer.Exit(2)
     out.write_text(json.dumps(rep.to_json(), indent=1))
 
@@ -84,10 +85,10 @@ def probe_command(
     def num(v: float | None, fmt: str) -> str:
         return "-" if v is None else format(v, fmt)
 
-    t = Table(title=f"{rep.backend}:{rep.model} at {rep.base_url} (profile {rep.profile})")
+    t = Table(title=terminal_text(f"{rep.backend}:{rep.model} at {rep.base_url} (profile {rep.profile})"))
     t.add_column("check")
     t.add_column("result")
-    for k, v in (("server", "failed: " + rep.server_error[:60] if rep.server_error else "answers"),
+    for k, v in (("server", "failed: " + terminal_text(rep.server_error[:60]) if rep.server_error else "answers"),
                  ("image accepted", yes(rep.image_accepted)), ("schema mode supported", yes(rep.schema_supported)),
                  ("free-text answer valid", yes(rep.text_mode_valid)), ("mode timed", rep.mode_used or "-"),
                  ("answers valid", "-" if rep.valid_rate is None else f"{100 * rep.valid_rate:.0f} %"),
@@ -98,7 +99,7 @@ def probe_command(
         t.add_row(k, v)
     console.print(t)
     for n in rep.notes:
-        console.print(f"note: {n}", markup=False)
+        console.print(f"note: {plain_text(n)}", markup=False)  # a note may quote the server's error
     console.print(f"JSON: {out}")
     raise typer.Exit(0 if rep.image_accepted and rep.valid_rate else 1)
 

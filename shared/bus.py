@@ -32,10 +32,12 @@ from typing import Any, Generic, Literal, TypeVar, overload
 
 import zenoh
 from pydantic import BaseModel, TypeAdapter, ValidationError
+from pydantic_core import PydanticSerializationError
 
 from shared.errors import BusError, DecodeError, NoResponder, QueryTimeout, RemoteError
 from shared.keys import BoundQuery, BoundToken, BoundTopic, Json, Protobuf, max_bytes_of, schema_name
 from shared.messages import SCHEMA_MINOR, SCHEMA_VERSION, Health
+from shared.text import well_formed
 
 QUERY_CONCURRENCY = 64
 """Requests one queryable serves at once; beyond that a request gets a "busy" error reply at once."""
@@ -135,12 +137,36 @@ def _encoding(base: str, schema: str) -> zenoh.Encoding:
     return enc.with_schema(schema) if schema else enc
 
 
+def _json_safe(value: Any) -> Any:
+    """A `model_dump(mode="json")` tree as `model_dump_json` writes it, with every string well formed."""
+    if isinstance(value, str):
+        return well_formed(value)
+    if isinstance(value, float) and not math.isfinite(value):
+        return None  # pydantic's JSON writes null for inf and nan
+    if isinstance(value, dict):
+        return {_json_safe(k): _json_safe(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_json_safe(v) for v in value]
+    return value
+
+
+def _well_formed_json(obj: BaseModel) -> bytes:
+    """JSON of a model holding a lone surrogate (half an emoji a model or an HTTP client sent as `\\ud83d`,
+    which UTF-8 cannot encode): the surrogate replaced by U+FFFD, so a message is never lost to the text a peer
+    put in it."""
+    return json.dumps(_json_safe(obj.model_dump(mode="json")), ensure_ascii=False, separators=(",", ":")).encode()
+
+
 def encode(obj: Any, schema: str | None = None) -> tuple[bytes, zenoh.Encoding]:
     """Model -> JSON bytes with `application/json;aermani.<Model>`; protobuf message -> bytes with
     `application/protobuf;<full name>`; bytes pass through (not copied) with the given schema (protobuf if
     it names a foxglove type)."""
     if isinstance(obj, BaseModel):
-        return obj.model_dump_json().encode(), _encoding("json", schema or schema_of(obj))
+        try:
+            data = obj.model_dump_json().encode()
+        except PydanticSerializationError:
+            data = _well_formed_json(obj)
+        return data, _encoding("json", schema or schema_of(obj))
     if hasattr(obj, "SerializeToString") and hasattr(obj, "DESCRIPTOR"):
         return obj.SerializeToString(), _encoding("protobuf", obj.DESCRIPTOR.full_name)
     if isinstance(obj, bytes | bytearray | memoryview):

@@ -900,7 +900,8 @@ class TaskState(StrEnum):
 def command_text(v: str) -> str:
     """A natural-language command as every receiver takes it (task requests, evaluation task files, the
     gateway, MCP): stripped, not empty, no control characters but tab, no invisible formatting characters
-    (a right-to-left override or a zero-width space would make the command read otherwise than it acts)."""
+    (a right-to-left override or a zero-width space would make the command read otherwise than it acts), no
+    lone surrogates (a JSON `\\ud83d` decodes to one; it is no character and UTF-8 cannot carry it)."""
     from shared.text import hidden_characters
 
     v = v.strip()
@@ -908,8 +909,8 @@ def command_text(v: str) -> str:
         raise ValueError("command is empty")
     bad = hidden_characters(v)
     if bad:
-        raise ValueError(f"command contains control or invisible formatting characters ({', '.join(bad[:8])}); "
-                         "send plain text")
+        raise ValueError(f"command contains control, invisible formatting or lone surrogate characters "
+                         f"({', '.join(bad[:8])}); send plain text")
     return v
 
 

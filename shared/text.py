@@ -21,18 +21,29 @@ _FORMAT = dict.fromkeys((0x200B, 0x200C, 0x200D, 0x200E, 0x200F, 0x2028, 0x2029,
                          0x202E, 0x2060, 0x2066, 0x2067, 0x2068, 0x2069, 0xFEFF))
 
 
+_C0_C1_BUT_NEWLINE = {c: v for c, v in _C0_C1.items() if c != 0x0A}
+
+
+def plain_text(text: object, *, lines: bool = False) -> str:
+    """Text a model or a network peer sent, made safe to write to a terminal as it is (Rich with
+    `markup=False`, a plain print): control characters (ANSI escapes included; newlines too unless `lines`),
+    bidirectional overrides and zero-width characters removed, lone surrogates replaced."""
+    return well_formed(str(text)).translate(_C0_C1_BUT_NEWLINE if lines else _C0_C1).translate(_FORMAT)
+
+
 def terminal_text(text: object) -> str:
-    """Text a model or a network peer sent, made safe to print with Rich: control characters (ANSI escapes
-    included), bidirectional overrides and zero-width characters removed, lone surrogates replaced, and Rich
-    markup escaped, so `[/dim]` in a model's reasoning is shown as written instead of raising MarkupError."""
+    """Text a model or a network peer sent, made safe to print inside Rich markup: `plain_text`, and the
+    markup escaped, so `[/dim]` in a model's reasoning is shown as written instead of raising MarkupError (and
+    `[link=...]` is shown, not made a hyperlink)."""
     from rich.markup import escape
 
-    s = well_formed(str(text)).translate(_C0_C1).translate(_FORMAT)
-    return escape(s)
+    return escape(plain_text(text))
 
 
 def hidden_characters(text: str) -> list[str]:
-    """The control characters (C0 but tab, DEL, C1) and invisible format characters (bidirectional overrides
-    and isolates, zero-width characters, line/paragraph separators, BOM) in `text`, as sorted U+XXXX codes: what
-    an operator reading the command cannot see, yet the receiver would act on."""
-    return sorted({f"U+{ord(c):04X}" for c in text if ord(c) in _C0_C1 or ord(c) in _FORMAT})
+    """The control characters (C0 but tab, DEL, C1), invisible format characters (bidirectional overrides
+    and isolates, zero-width characters, line/paragraph separators, BOM) and lone surrogates (half an emoji
+    sent as `\\ud83d`: no character at all, and UTF-8 cannot carry it) in `text`, as sorted U+XXXX codes: what
+    an operator reading the command cannot see, yet the receiver would act on or fail to encode."""
+    return sorted({f"U+{ord(c):04X}" for c in text
+                   if ord(c) in _C0_C1 or ord(c) in _FORMAT or 0xD800 <= ord(c) <= 0xDFFF})

@@ -12,6 +12,7 @@ from rich.console import Console
 
 from shared.errors import ConfigError
 from shared.messages import VARIANTS
+from shared.text import terminal_text
 
 console = Console()
 
@@ -107,7 +108,7 @@ def eval_command(
         try:
             summary = run(mode_cfg)
         except ConfigError as exc:
-            console.print(f"[red]{exc}[/red]")
+            console.print(f"[red]{terminal_text(exc)}[/red]")
             raise typer.Exit(2)
         console.print(f"{summary.ran} episodes run ({mode} answers), {summary.skipped} already finished (resumed), "
                       f"{summary.wall_s:.0f} s; report: {mode_cfg.out / 'report.md'}")

@@ -472,6 +472,8 @@ async def _run_async(endpoint: str, todo: list[EpisodeSpec], cfg: RunConfig, res
             return await run_episodes(bus, todo, cfg, results)
         from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
+        from shared.text import terminal_text
+
         with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
                       TextColumn("{task.fields[sr]}"), TimeElapsedColumn()) as progress:
             bar = progress.add_task(f"eval {cfg.backend} on {len(cfg.vehicle_ids())} vehicle(s)", total=total,
@@ -483,8 +485,9 @@ async def _run_async(endpoint: str, todo: list[EpisodeSpec], cfg: RunConfig, res
                 wins[1] += 1
                 mark = "[green]ok[/green]" if rec.success else ("[yellow]not run[/yellow]" if rec.harness_error
                                                                else "[red]fail[/red]")
-                progress.console.print(f"{mark} {rec.episode_id} ({rec.vehicle_id}, {len(rec.steps)} steps, "
-                                       f"{rec.duration_s:.0f} s): {rec.verdict or rec.harness_error}")
+                progress.console.print(f"{mark} {terminal_text(rec.episode_id)} ({terminal_text(rec.vehicle_id)}, "
+                                       f"{len(rec.steps)} steps, {rec.duration_s:.0f} s): "
+                                       f"{terminal_text(rec.verdict or rec.harness_error)}")
                 progress.update(bar, advance=1, sr=f"success {wins[0]}/{wins[1]}")
 
             return await run_episodes(bus, todo, cfg, results, on_done)

@@ -30,6 +30,7 @@ from shared.messages import (
     TakeoffCommand,
     Vec3,
 )
+from shared.text import terminal_text
 
 console = Console()
 autopilot = typer.Typer(help="Vehicle state and autopilot commands through the autopilot bridge.",
@@ -42,11 +43,12 @@ def _run(connect: str, vehicle: str, cmd: Any, timeout: float = 60.0) -> None:
         res: AutopilotResult = asyncio.run(query_once(connect, Keys(vehicle).autopilot_command, cmd,
                                                       timeout=timeout))
     except AermaniError as exc:
-        console.print(f"[red]{exc}[/red]")
+        console.print(f"[red]{terminal_text(exc)}[/red]")
         raise typer.Exit(2)
     colour = "green" if res.ok else "red"
-    ack = f" [{res.ack_name}]" if res.ack_name else ""
-    console.print(f"[{colour}]{res.command}: {'ok' if res.ok else 'failed'}{ack}[/{colour}] {res.message}")
+    ack = f" {terminal_text(f'[{res.ack_name}]')}" if res.ack_name else ""
+    console.print(f"[{colour}]{terminal_text(res.command)}: {'ok' if res.ok else 'failed'}{ack}[/{colour}] "
+                  f"{terminal_text(res.message)}")
     if not res.ok:
         raise typer.Exit(1)
 
@@ -65,10 +67,10 @@ def state(connect: Connect = "tcp/127.0.0.1:7447", vehicle: Vehicle = "am1",
             while True:
                 s = await states.recv(5.0)
                 console.print(
-                    f"{s.mode:<12} armed={s.armed!s:<5} {s.landed_state.value:<9} "
+                    f"{terminal_text(s.mode):<12} armed={s.armed!s:<5} {s.landed_state.value:<9} "
                     f"pos=({s.position.x:6.2f}, {s.position.y:6.2f}, {s.position.z:5.2f}) "
                     f"yaw={math.degrees(s.yaw):6.1f} deg link={s.link_ok} offboard={s.offboard_ok} "
-                    f"gripper={s.gripper.value} {s.message}")
+                    f"gripper={s.gripper.value} {terminal_text(s.message)}")
                 h = health.latest_nowait()
                 if h is not None and "jitter_p99_ms" in h.details:
                     d = h.details
@@ -233,20 +235,21 @@ def preflight_cmd(connect: Connect = "tcp/127.0.0.1:7447", vehicle: Vehicle = "a
     try:
         res, checks = asyncio.run(body())
     except AermaniError as exc:
-        console.print(f"[red]{exc}[/red]")
+        console.print(f"[red]{terminal_text(exc)}[/red]")
         raise typer.Exit(2)
     if not checks:  # the bridge ran no check (no link yet): its message says why
-        console.print(f"[red]{res.message}[/red]")
+        console.print(f"[red]{terminal_text(res.message)}[/red]")
         raise typer.Exit(1)
-    table = Table(title=f"preflight of {vehicle}")
+    table = Table(title=f"preflight of {terminal_text(vehicle)}")
     for col in ("check", "value", "required", "verdict"):
         table.add_column(col)
     for c in checks:
-        verdict = "[green]ok[/green]" if c.ok else f"[red]FAIL[/red] {c.reason}"
-        table.add_row(c.name, c.value or "not reported", c.expected, verdict)
+        verdict = "[green]ok[/green]" if c.ok else f"[red]FAIL[/red] {terminal_text(c.reason)}"
+        table.add_row(terminal_text(c.name), terminal_text(c.value or "not reported"), terminal_text(c.expected),
+                      verdict)
     console.print(table)
     ok = all(c.ok for c in checks)
-    text = summary(checks)
+    text = terminal_text(summary(checks))
     console.print(f"[{'green' if ok else 'red'}]{text}[/{'green' if ok else 'red'}]")
     if not ok:
         raise typer.Exit(1)

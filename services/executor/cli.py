@@ -12,6 +12,7 @@ from shared.bus import Bus
 from shared.keys import Keys
 from shared.messages import SkillAccept, SkillLibrary, SkillRequest, SkillStatus
 from shared.settings import env_endpoints
+from shared.text import plain_text
 
 
 async def _run_skill(vehicle: str, skill: str, argument: str | None, timeout: float) -> SkillStatus | SkillAccept:
@@ -49,11 +50,11 @@ def register(app: typer.Typer) -> None:
         """Run one skill on the executor and print its result (router from AERMANI_ZENOH_CONNECT)."""
         res = asyncio.run(_run_skill(vehicle, name, argument, timeout))
         if isinstance(res, SkillAccept):
-            typer.echo(f"rejected: {res.reason}")
+            typer.echo(f"rejected: {plain_text(res.reason)}")
             raise typer.Exit(2)
-        typer.echo(f"{res.state.value}: {res.message}")
+        typer.echo(f"{res.state.value}: {plain_text(res.message)}")
         if res.outcome.perceived:
-            typer.echo(f"perceived: {res.outcome.perceived}")
+            typer.echo(f"perceived: {plain_text(res.outcome.perceived)}")
         raise typer.Exit(0 if res.state.value == "succeeded" else 1)
 
     @app.command("skills")
@@ -63,4 +64,4 @@ def register(app: typer.Typer) -> None:
         for s in lib.skills:
             arg = f"({s.argument})" if s.argument else ""
             hidden = "" if s.policy_visible else " [operator]"
-            typer.echo(f"{s.name}{arg}{hidden}: {s.description}")
+            typer.echo(plain_text(f"{s.name}{arg}{hidden}: {s.description}"))

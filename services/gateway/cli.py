@@ -8,6 +8,8 @@ from typing import Annotated
 
 import typer
 
+from shared.text import plain_text
+
 
 def register(app: typer.Typer) -> None:
     @app.command()
@@ -30,10 +32,10 @@ def register(app: typer.Typer) -> None:
                 typer.echo(f"cannot reach the gateway at {url}: {exc}", err=True)
                 raise typer.Exit(1)
             if r.status_code != 202:
-                typer.echo(f"refused ({r.status_code}): {r.json().get('detail', r.text)}", err=True)
+                typer.echo(f"refused ({r.status_code}): {plain_text(r.json().get('detail', r.text))}", err=True)
                 raise typer.Exit(1)
             created = r.json()
-            typer.echo(f"task {created['task_id']} on {created['vehicle_id']}")
+            typer.echo(plain_text(f"task {created['task_id']} on {created['vehicle_id']}"))
             if not follow:
                 return
             state = "?"
@@ -48,10 +50,11 @@ def register(app: typer.Typer) -> None:
                             ste = data.get("ste") or {}
                             arg = f"({ste['argument']})" if ste.get("argument") else ""
                             why = (data.get("drt") or {}).get("reasoning") or ""
-                            typer.echo(f"  step {data['step']}: {ste.get('skill', 'no valid answer')}{arg} -> "
-                                       f"{data.get('skill_state') or '...'}  {why[:100]}")
+                            # The model's text and the services' messages are data: no escape reaches the terminal.
+                            typer.echo(plain_text(f"  step {data['step']}: {ste.get('skill', 'no valid answer')}{arg} "
+                                                  f"-> {data.get('skill_state') or '...'}  {why[:100]}"))
                         elif event == "task_status":
                             state = data["state"]
                             if state not in ("pending", "running"):
-                                typer.echo(f"{state}: {data.get('message', '')}")
+                                typer.echo(plain_text(f"{state}: {data.get('message', '')}"))
             raise typer.Exit(0 if state == "succeeded" else 1)

@@ -10,6 +10,8 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from shared.text import well_formed
+
 log = logging.getLogger("aermani.gateway")
 
 _NAMES = {400: "bad_request", 401: "unauthorized", 403: "forbidden", 404: "not_found", 405: "method_not_allowed",
@@ -32,7 +34,9 @@ class ApiError(Exception):
 
 def error_response(status: int, detail: str, error: str | None = None, headers: dict[str, str] | None = None,
                    fields: list[dict[str, Any]] | None = None) -> JSONResponse:
-    body: dict[str, Any] = {"error": error or _NAMES.get(status, "error"), "detail": detail, "status": status}
+    # well_formed: a detail may quote what a client sent, and a lone surrogate in it would fail the response.
+    body: dict[str, Any] = {"error": error or _NAMES.get(status, "error"), "detail": well_formed(detail),
+                            "status": status}
     if fields is not None:
         body["fields"] = fields
     return JSONResponse(body, status_code=status, headers=headers)

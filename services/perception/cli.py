@@ -9,6 +9,7 @@ import typer
 from rich.console import Console
 
 from shared.cli_helpers import Connect, Vehicle, command_group, query_once
+from shared.text import terminal_text
 
 console = Console()
 
@@ -31,7 +32,8 @@ async def _ask(connect: str, vehicle: str, key_name: str, query: str, size: tupl
 
 def _show(est) -> None:
     color = "green" if est.found else "yellow"
-    console.print(f"[{color}]{est.reason}[/{color}] {est.label or est.query}: {est.message}")
+    console.print(f"[{color}]{terminal_text(est.reason)}[/{color}] {terminal_text(est.label or est.query)}: "
+                  f"{terminal_text(est.message)}")
     console.print_json(est.model_dump_json(exclude_none=True))
 
 
@@ -67,4 +69,5 @@ def detections_cmd(connect: Connect = "tcp/127.0.0.1:7447", vehicle: Vehicle = "
     for d in dets.items:
         c = d.centroid
         where = f"({c.x:.2f}, {c.y:.2f}, {c.z:.2f})" if c else "-"
-        console.print(f"{d.category:9s} {d.label:15s} {where} conf {d.confidence:.2f} points {d.n_points}")
+        console.print(f"{terminal_text(d.category):9s} {terminal_text(d.label):15s} {where} conf {d.confidence:.2f} "
+                      f"points {d.n_points}")

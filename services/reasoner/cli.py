@@ -14,6 +14,7 @@ from rich.console import Console
 
 from shared.cli_helpers import command_group
 from shared.messages import VARIANTS
+from shared.text import plain_text, terminal_text
 
 console = Console()
 
@@ -57,7 +58,7 @@ def check_command(
     try:
         lines = file.read_text(encoding="utf-8").splitlines()
     except OSError as exc:
-        console.print(f"[red]cannot read {file}: {exc}[/red]")
+        console.print(f"[red]cannot read {terminal_text(file)}: {terminal_text(exc)}[/red]")
         raise typer.Exit(2)
     library = None if offline else asyncio.run(_live_library(connect, 2.0))
     source = "executor's live registry" if library is not None else "built-in default library"
@@ -74,20 +75,22 @@ def check_command(
                 raise ValueError("the line is JSON but not a string")
         except ValueError as exc:
             rejected += 1
-            console.print(f"{n}: rejected: line is not a JSON-encoded string ({exc})", markup=False)
+            console.print(f"{n}: rejected: line is not a JSON-encoded string ({plain_text(exc)})", markup=False)
             continue
         try:
             p = parse_answer(raw, variant, library, coverage=coverage)
         except InvalidAnswer as exc:
             rejected += 1
-            console.print(f"{n}: rejected: {exc}", markup=False)
+            console.print(f"{n}: rejected: {plain_text(exc)}", markup=False)  # it may quote the answer
             continue
         except Exception as exc:  # the parser promises InvalidAnswer only; a bug still must not stop the file
             rejected += 1
-            console.print(f"{n}: rejected: parser error {type(exc).__name__}: {exc} (please report)", markup=False)
+            console.print(f"{n}: rejected: parser error {type(exc).__name__}: {plain_text(exc)} (please report)",
+                          markup=False)
             continue
         call = f"{p.ste.skill}({p.ste.argument})" if p.ste.argument else p.ste.skill
-        console.print(f"{n}: accepted: {call}" + (" (recovered leniently)" if p.recovered else ""), markup=False)
+        console.print(f"{n}: accepted: {plain_text(call)}" + (" (recovered leniently)" if p.recovered else ""),
+                      markup=False)
     console.print(f"{total - rejected}/{total} accepted, {rejected} rejected")
     if rejected:
         raise typer.Exit(1)
@@ -131,9 +134,9 @@ def rereason_cmd(
         res = asyncio.run(rereason_log(log, backend=backend, variant=variant, model=model, task_id=task,
                                        answers=answers))
     except RereasonError as exc:
-        Console(stderr=True).print(f"[red]{exc}[/red]")
+        Console(stderr=True).print(f"[red]{terminal_text(exc)}[/red]")
         raise typer.Exit(2)
     if as_json:
         typer.echo(json.dumps(res.as_dict(), indent=2, default=str))
     else:
-        typer.echo(res.render())
+        typer.echo(plain_text(res.render(), lines=True))  # it quotes the answers' arguments and errors

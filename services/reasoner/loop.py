@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 from services.reasoner.backends.base import Backend, ModelRequest, PastStep, PolicyContext, Seen
 from services.reasoner.library import policy_skills
-from services.reasoner.parse import ParsedAnswer, parse_answer
+from services.reasoner.parse import ParsedAnswer, parse_answer, recorded_answer
 from services.reasoner.prompt import (
     CompiledPrompt,
     History,
@@ -46,7 +46,7 @@ from shared.messages import (
     now_ns,
 )
 from shared.tasks import REFUSED_BEFORE_TAKEOFF
-from shared.text import well_formed
+from shared.text import plain_text
 
 log = logging.getLogger("aermani.reasoner.loop")
 
@@ -391,19 +391,19 @@ class TaskRunner:
             self.calls += 1
             try:
                 parsed = parse_answer(reply.text, self.variant, library, coverage=self.settings.prediction_coverage)
-                calls.append(ModelCall(raw_answer=well_formed(reply.text), valid=True, latency_s=reply.latency_s,
+                calls.append(ModelCall(raw_answer=recorded_answer(reply.text), valid=True, latency_s=reply.latency_s,
                                        tokens_in=reply.tokens_in, tokens_out=reply.tokens_out,
                                        structured=reply.structured, tokens_cached=reply.cached_tokens))
                 failure = reply.failure
                 break
             except InvalidAnswer as exc:
                 self.invalid += 1
-                calls.append(ModelCall(raw_answer=well_formed(reply.text), valid=False, error=str(exc),
+                calls.append(ModelCall(raw_answer=recorded_answer(reply.text), valid=False, error=str(exc),
                                        latency_s=reply.latency_s,
                                        tokens_in=reply.tokens_in, tokens_out=reply.tokens_out,
                                        structured=reply.structured, tokens_cached=reply.cached_tokens))
                 feedback.append((reply.text, str(exc)))
-                log.info("invalid answer (step %d): %s", self.steps, exc)
+                log.info("invalid answer (step %d): %s", self.steps, plain_text(exc))  # it may quote the answer
         rec = ReasoningStep(
             vehicle_id=self.settings.vehicle_id, task_id=self.req.task_id, step=self.steps, backend=self.backend.name,
             variant=self.variant, prompt=prompt.parts, image_stamp_ns=obs.image_stamp_ns if prompt.has_image else 0,
@@ -439,7 +439,8 @@ class TaskRunner:
                              argument=req.argument, reasoning=reasoning, expires_ns=now_ns() + int(timeout * 1e9))
         started = now_ns()
         decided = await self.world.request_approval(ask, timeout)
-        log.info("approval of %s(%s): %s %s", req.skill, req.argument or "", decided.state.value, decided.reason)
+        log.info("approval of %s(%s): %s %s", req.skill, plain_text(req.argument or ""), decided.state.value,
+                 plain_text(decided.reason))
         base = {"goal_id": "", "skill": req.skill, "argument": req.argument, "task_id": req.task_id, "step": req.step,
                 "started_ns": started}
         if decided.state is ApprovalState.APPROVED:

@@ -5,9 +5,11 @@ trailing commas, single-quoted (Python-style) objects, and the case/spacing of s
 "obj localization"). Anything that still does not name one valid skill with valid arguments raises
 InvalidAnswer with one specific sentence that is sent back to the model on re-prompt.
 
-Bounded: at most MAX_ANSWER_CHARS characters and MAX_NESTING bracket levels are read, one pass finds the
-candidate objects, each character reaches a decoder a constant number of times (linear time), and every
-failure, whatever the input, is an InvalidAnswer (re-prompted), never another exception.
+Bounded: at most MAX_ANSWER_CHARS characters, MAX_STRUCTURE brackets/quotes/backslashes and MAX_NESTING
+bracket levels are read, one pass finds the candidate objects, each distinct candidate is decoded once, at
+most MAX_DECODES candidates and MAX_LITERAL_CHARS characters of Python literals are read: the total work per
+answer has a fixed ceiling (about 30 ms of CPU for the worst answer found, benchmarks/reasoner.py), not only a
+linear one. Every failure, whatever the input, is an InvalidAnswer (re-prompted), never another exception.
 
 Exact: ReAct takes the object after the last `Action:` line (never one quoted in the Thought); the
 unstructured variant takes the skill the answer commits to, not the first one it mentions.
@@ -40,12 +42,23 @@ _ALIASES = {"object_localization": "obj_localization", "obj_localisation": "obj_
             "object_localisation": "obj_localization", "placement_localisation": "placement_localization"}
 
 MAX_ANSWER_CHARS = 32_000
+"""Longest answer read: a full DRT/STE answer is 1-4 kB; anything longer is rejected with the reason."""
+MAX_STRUCTURE = 4_000
+"""Brackets, quotes and backslashes read per answer: a full answer has 100-300; each costs the bracket scan a
+step of Python, so 32 kB of nothing but `{}` would cost 50-100 ms to scan."""
 MAX_DECODES = 48
 """Candidate objects the lenient reader decodes per answer before it gives up (a real answer has a handful)."""
-"""Longest answer read: a full DRT/STE answer is 1-4 kB; anything longer is rejected with the reason."""
+MAX_LITERAL_CHARS = 16_000
+"""Characters the Python-literal reader (single quotes, True/None) is given per answer, over all candidates:
+it costs about 1.5 us a character, against a few ns for the JSON decoder, so without this one 32 kB literal
+read in both quoting modes and with and without its trailing commas took 0.2-0.4 s."""
+MAX_MENTIONS = 256
+"""Skill mentions the unstructured reader weighs per answer (each is a few regular-expression searches)."""
 MAX_NESTING = 16
 """Deepest bracket nesting read: the answer format needs 3 levels (drt -> action_predictions -> value)."""
 _SPECIAL = re.compile(r"[{}\[\]\"'\\]")
+_STRUCTURE = "{}[]\"'\\"
+_PYTHON_WORDS = re.compile(r"\b(True|False|None)\b")
 _ACTION_LINE = re.compile(r"^[ \t>*#_`-]*action[ \t*_`]*:", re.I | re.M)
 
 
@@ -56,10 +69,15 @@ class Work:
     def __init__(self) -> None:
         self.chars = 0
         self.decodes = 0
+        """Candidate objects handed to the lenient decoders: bounded by MAX_DECODES, since each decoder call
+        has a fixed cost that thousands of tiny fragments (`{x:1} {x:1} ...`) would multiply."""
+        self.literal_chars = 0
+        """Characters given to the Python-literal reader so far: bounded by MAX_LITERAL_CHARS."""
         self.spans: dict[tuple[str, str], list[tuple[int, int]]] = {}
         """`_object_spans` results by (text, quoting mode): the depth check and the reader scan a text once."""
-        """Candidate objects handed to the lenient decoders: bounded by MAX_DECODES, since each decoder call
-        has a fixed cost that thousands of tiny fragments (`{x} {x} ...`) would multiply."""
+        self.decoded: dict[str, dict | None] = {}
+        """`_loads_lenient` results by candidate text: a candidate met again (in the other quoting mode, or in a
+        fenced block and then in the whole answer) is not decoded again."""
 
 
 @dataclass(frozen=True)
@@ -151,20 +169,35 @@ def _loads_lenient(text: str, work: Work) -> dict | None:
     if work.decodes > MAX_DECODES:
         raise InvalidAnswer(f"The answer holds more than {MAX_DECODES} JSON-like fragments; reply with exactly one "
                             "JSON object in the format given in the Rules.")
+    if text not in work.decoded:
+        work.decoded[text] = _decode(text, work)
+    return work.decoded[text]
+
+
+def _decode(text: str, work: Work) -> dict | None:
+    """The object `text` holds as JSON (trailing commas dropped if need be) or else as a Python literal."""
     for candidate in dict.fromkeys((text, _TRAILING_COMMA.sub(r"\1", text))):
-        work.chars += 2 * len(candidate)
+        work.chars += len(candidate)
         try:
             obj = json.loads(candidate, strict=False)
             return obj if isinstance(obj, dict) else None
         except (ValueError, RecursionError):
             pass
-        try:  # single quotes, True/None: a Python literal
-            obj = ast.literal_eval(candidate)
-            if isinstance(obj, dict):
-                return obj
-        except (ValueError, TypeError, SyntaxError, MemoryError, RecursionError):
-            pass
-    return None
+    # Single quotes, True/None: a Python literal (which may end in trailing commas). Without a single quote or
+    # one of those words JSON's failure is the literal's too, and the costly reader is not called.
+    if "'" not in text and not _PYTHON_WORDS.search(text):
+        return None
+    work.chars += len(text)
+    work.literal_chars += len(text)
+    if work.literal_chars > MAX_LITERAL_CHARS:
+        raise InvalidAnswer(f"The answer holds more than {MAX_LITERAL_CHARS} characters of objects that are not "
+                            "JSON; reply with exactly one JSON object (double quotes) in the format given in the "
+                            "Rules.")
+    try:
+        obj = ast.literal_eval(text)
+    except (ValueError, TypeError, SyntaxError, MemoryError, RecursionError):
+        return None
+    return obj if isinstance(obj, dict) else None
 
 
 def _ste_of(obj: dict) -> tuple[Any, Any]:
@@ -190,7 +223,8 @@ def _first_object(text: str, work: Work) -> tuple[dict | None, int]:
     (never guessed: the model is asked for one object); several naming the same skill are one answer. Each
     character is in at most one outermost span, so the decoders read at most 2 x 2 x len(text) characters per
     quoting mode."""
-    for quotes in ("\"'", "\"") if "'" in text else ("\"",):  # 2nd pass: an apostrophe in an object is prose
+    # 2nd pass: an apostrophe in an object is prose. Without one the modes scan alike: one scan (the depth check's).
+    for quotes in ("\"'", "\"") if "'" in text else ("\"'",):
         first: tuple[dict, int] | None = None
         answer: tuple[dict, int] | None = None
         named: dict[tuple[str, str], None] = {}
@@ -295,6 +329,9 @@ def _bare_skill(raw: str, names: list[str], work: Work) -> tuple[str, str | None
         weak = bool(_WEAK.search(before) or _INSTEAD_AFTER.search(after))
         mentions.append((norm_skill(m.group(0)), m.end(), negated, strong, weak))
         prev_end = m.end()
+        if len(mentions) > MAX_MENTIONS:
+            raise InvalidAnswer(f"The answer mentions skills more than {MAX_MENTIONS} times; answer with exactly "
+                                "one skill, e.g. yaw_left or obj_localization(red cup).")
     if not mentions:
         raise InvalidAnswer(f"The answer names no skill; answer with one of: {', '.join(names)}.")
     live = [x for x in mentions if not x[2]]
@@ -347,6 +384,17 @@ def _well_formed_values(obj: Any) -> Any:
     return obj
 
 
+def recorded_answer(raw: str) -> str:
+    """A model's answer as a step records it (`ModelCall.raw_answer`): well formed (a lone surrogate would fail
+    the step's publish) and at most the MAX_ANSWER_CHARS the parser reads, with the count of the rest, so that
+    a step with every re-prompt's answer stays far below a message's 1 MiB cap (a larger one is dropped by every
+    subscriber: the step would be missing from the log and the store)."""
+    text = well_formed(raw)
+    if len(text) > MAX_ANSWER_CHARS:
+        text = f"{text[:MAX_ANSWER_CHARS]}\n[... {len(text) - MAX_ANSWER_CHARS} more characters not recorded]"
+    return text
+
+
 def parse_answer(raw: str, variant: str, library: SkillLibrary, *, coverage: float = 1.0,
                  work: Work | None = None) -> ParsedAnswer:
     """Parse and validate one raw model answer. Raises InvalidAnswer with the reason, and nothing else."""
@@ -356,6 +404,11 @@ def parse_answer(raw: str, variant: str, library: SkillLibrary, *, coverage: flo
     if len(raw) > MAX_ANSWER_CHARS:
         raise InvalidAnswer(f"The answer is {len(raw)} characters long, more than the {MAX_ANSWER_CHARS} read; "
                             "reply with one short answer in the format given in the Rules.")
+    structure = sum(raw.count(c) for c in _STRUCTURE)
+    if structure > MAX_STRUCTURE:
+        raise InvalidAnswer(f"The answer holds {structure} brackets, quotes and backslashes, more than the "
+                            f"{MAX_STRUCTURE} read (one answer needs a few hundred); reply with one flat JSON object "
+                            "in the format given in the Rules.")
     work = work or Work()
     try:
         return _parse(raw, variant, library, coverage, work)

@@ -345,10 +345,11 @@ async def _decide(mods, backend, settings, variant: str, library, command: str, 
             break
         try:
             parsed = parse.parse_answer(reply.text, variant, library, coverage=settings.prediction_coverage)
-            calls.append(ModelCall(raw_answer=reply.text, valid=True, latency_s=reply.latency_s))
+            calls.append(ModelCall(raw_answer=parse.recorded_answer(reply.text), valid=True, latency_s=reply.latency_s))
             break
         except AermaniError as exc:  # InvalidAnswer
-            calls.append(ModelCall(raw_answer=reply.text, valid=False, error=str(exc), latency_s=reply.latency_s))
+            calls.append(ModelCall(raw_answer=parse.recorded_answer(reply.text), valid=False, error=str(exc),
+                                   latency_s=reply.latency_s))
             feedback.append((reply.text, str(exc)))
     return parsed, calls
 

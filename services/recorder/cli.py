@@ -10,6 +10,7 @@ import typer
 from rich.console import Console
 
 from shared.cli_helpers import command_group
+from shared.text import plain_text, terminal_text
 
 console = Console()
 err = Console(stderr=True)
@@ -59,7 +60,7 @@ def replay_cmd(
         for new in mapping.values():
             vehicle_prefix(new)
     except ValueError as exc:
-        err.print(f"[red]{exc}[/red]")
+        err.print(f"[red]{terminal_text(exc)}[/red]")
         raise typer.Exit(2)
 
     async def run() -> None:
@@ -82,7 +83,7 @@ def replay_cmd(
     except KeyboardInterrupt:
         raise typer.Exit(130)
     except ReplayOntoLive as exc:
-        err.print(f"[red]{exc}[/red]")
+        err.print(f"[red]{terminal_text(exc)}[/red]")
         raise typer.Exit(2)
 
 
@@ -98,7 +99,7 @@ def show_cmd(
     if as_json:
         typer.echo(to_json(log, vehicle))
     else:
-        typer.echo(render_text(log, vehicle))
+        typer.echo(plain_text(render_text(log, vehicle), lines=True))  # the models' reasoning, as data
 
 
 def export_cmd(
@@ -116,7 +117,7 @@ def export_cmd(
         try:
             typer.echo(export_ros2(log, out, vehicle).render())
         except Ros2ExportError as exc:
-            err.print(f"[red]{exc}[/red]")
+            err.print(f"[red]{terminal_text(exc)}[/red]")
             raise typer.Exit(2)
         return
     from services.recorder.timeline import export_html

@@ -13,6 +13,15 @@ faults, one per HTTP request, in the order queued:
     timeout         the answer is delayed by `timeout_delay` s     -> client timeout, transport retry
     500             HTTP 500                                        -> transport retry
     none / ok       a normal answer
+    hostile_text    a valid answer whose reasoning holds a lone surrogate (escaped), Rich markup, a bidi override,
+                    a zero-width space and an ANSI escape              -> valid, its step published
+    fragments       31 kB of tiny `{x}` pairs                        -> invalid answer, re-prompt
+    int_argument    obj_localization with the argument 5             -> invalid answer, re-prompt
+    bool_argument   obj_localization with the argument true          -> invalid answer, re-prompt
+    two_objects     the answer, then a second object naming another skill -> invalid (ambiguous), re-prompt
+    surrogate_text  the answer cut in half with a lone surrogate (a real one: the HTTP body escapes it)
+                                                                     -> invalid answer, re-prompt that echoes it
+    python_literal  an 18 kB Python literal that fails at its end     -> invalid answer, re-prompt
 
 `outage=True` answers HTTP 503 to everything.
 
@@ -52,16 +61,25 @@ from typing import Any
 import jsonschema
 import uvicorn
 from fastapi import FastAPI, Request
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse as _JSONResponse
 
 from tests.reasoner.prompt_reader import answer_for_prompt
 
 FAULTS = ("invalid_json", "unknown_skill", "missing_fields", "missing_arg", "fences", "timeout", "500", "none", "ok",
-          "hostile_text")
+          "hostile_text", "fragments", "int_argument", "bool_argument", "two_objects", "surrogate_text",
+          "python_literal")
 # A valid answer whose reasoning holds what a model may send and a terminal or an encoder chokes on: half an
 # emoji (a lone surrogate, escaped in the JSON), Rich markup, a right-to-left override, a zero-width space and an
 # ANSI escape (JSON escapes: the parser decodes them).
 HOSTILE_TEXT = r" \ud83d [/dim][bold] \u202e \u200b \u001b[2J"
+
+
+class JSONResponse(_JSONResponse):
+    """A JSON response with everything outside ASCII escaped, as many servers write it: a lone surrogate in an
+    answer travels as `\\ud83d` (UTF-8 could not carry it), and the client's JSON decoder makes it one again."""
+
+    def render(self, content: Any) -> bytes:
+        return json.dumps(content, ensure_ascii=True, separators=(",", ":")).encode()
 
 
 def apply_fault(answer: str, fault: str | None) -> str:
@@ -71,6 +89,12 @@ def apply_fault(answer: str, fault: str | None) -> str:
         return answer[: max(1, len(answer) // 2)]
     if fault == "fences":
         return f"```json\n{answer}\n```"
+    if fault == "fragments":
+        return ("{x} " * 7800)[:31_200]
+    if fault == "surrogate_text":
+        return answer[: max(1, len(answer) // 2)] + " \ud83d"
+    if fault == "python_literal":
+        return "{'a': [" + "1," * 9000 + "], 'b': x}"
     try:
         obj = json.loads(answer[answer.index("{"):])
     except ValueError:
@@ -80,12 +104,20 @@ def apply_fault(answer: str, fault: str | None) -> str:
         ste["skill"] = "fly_to_target"
     elif fault == "missing_arg":
         ste["skill"], ste["argument"] = "obj_localization", None
+    elif fault in ("int_argument", "bool_argument"):
+        ste["skill"], ste["argument"] = "obj_localization", 5 if fault == "int_argument" else True
     elif fault == "missing_fields":
         if "drt" in obj:
             obj.pop("drt")
         else:
             ste.pop("skill", None)
     prefix = answer[: answer.index("{")]
+    if fault == "two_objects":
+        other = json.loads(json.dumps(obj))
+        other_ste = other.get("ste", other)
+        other_ste["skill"] = "yaw_left" if ste.get("skill") != "yaw_left" else "yaw_right"
+        other_ste["argument"] = None
+        return f"{prefix}{json.dumps(obj)}\nOr, if that fails: {json.dumps(other)}"
     if fault == "hostile_text":
         drt = obj.get("drt", obj)
         drt["reasoning"] = f"{drt.get('reasoning') or ''}@@HOSTILE@@"

@@ -41,3 +41,16 @@ def test_the_key_is_read_from_the_named_variable() -> None:
         del os.environ["AERMANI_TEST_KEY"]
     assert backend_key_env("rules", None) == {}
     assert "no-such-backend" in str(backend_key_env("no-such-backend", None))
+
+
+def test_up_with_a_model_backend_and_no_key_fails_before_anything_starts() -> None:
+    """`aermani up` with a model backend and no key says what to set and starts nothing (it used to start the
+    stack with a reasoner that crashed in a loop, the reason only in the reasoner's log)."""
+    clean = {k: v for k, v in os.environ.items()
+             if k not in ("AERMANI_REASONER_API_KEY", "OPENAI_API_KEY", "ANTHROPIC_API_KEY")}
+    r = subprocess.run([sys.executable, "-m", "aermani.cli", "up", "--services", "reasoner", "--port", "1"],
+                       capture_output=True, text=True, timeout=120, check=False,
+                       env={**clean, "COLUMNS": "200", "AERMANI_REASONER_BACKEND": "anthropic"})
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert "no API key: set AERMANI_REASONER_API_KEY or ANTHROPIC_API_KEY" in r.stdout, r.stdout
+    assert "router on" not in r.stdout and "starting" not in r.stdout

@@ -155,11 +155,12 @@ def test_json_after_an_unclosed_brace_in_prose_is_found() -> None:
 
 
 @pytest.mark.parametrize(("raw", "reason"), [
-    ("{" * 20_000, "deeper than"),
+    ("{" * 20_000, "20000 brackets, quotes and backslashes"),
     ("{" * 200_000, "characters long"),
     ('{"a": ' * 1000 + "1" + "}" * 1000, "deeper than"),
     ('{"ste": {"skill": "up", "argument": ' + "[" * 1000 + "]" * 1000 + "}}", "deeper than"),
-    ("[" * 5000 + "]" * 5000, "No JSON object"),
+    ("[" * 5000 + "]" * 5000, "10000 brackets"),
+    ("[" * 1900 + "]" * 1900, "No JSON object"),
     ('{"ste": {"skill": "' + "9" * 5000 + '"}}', "Unknown skill"),
     ("{'ste': {'skill': " + "(" * 500 + "'up'" + ")" * 500 + "}}", "No JSON object"),
 ])
@@ -243,7 +244,7 @@ def test_vlm_check_reads_the_whole_file_past_pathological_lines(tmp_path) -> Non
     out = res.stdout
     assert res.returncode == 1, res.stderr
     assert "1: accepted: obj_localization(red cup)" in out and "5: accepted: yaw_left" in out
-    assert "2: rejected: The answer nests brackets deeper than 16" in out
+    assert "2: rejected: The answer holds 20000 brackets, quotes and backslashes" in out
     assert "3: rejected: The answer nests brackets deeper than 16" in out
     assert "4: rejected: The answer is 40000 characters long" in out
     assert "2/5 accepted, 3 rejected" in out
@@ -284,13 +285,57 @@ def test_of_several_objects_the_one_naming_a_skill_is_the_answer() -> None:
 
 
 def test_thousands_of_tiny_fragments_cost_a_bounded_number_of_decodes() -> None:
-    """The decoders have a fixed cost per call: an answer of many `{k:v}` fragments is rejected after
-    MAX_DECODES candidates, and `{x}` fragments (no key-value pair) never reach a decoder."""
-    from services.reasoner.parse import MAX_ANSWER_CHARS, MAX_DECODES, Work
+    """The decoders have a fixed cost per call: an answer of many `{k:v}` fragments (as many as the structure
+    cap lets through) is rejected after MAX_DECODES candidates, and `{x}` fragments (no key-value pair) never
+    reach a decoder."""
+    from services.reasoner.parse import MAX_DECODES, MAX_STRUCTURE, Work
 
     for fragment, decodes in (("{x:1} ", MAX_DECODES + 1), ("{x} ", 0), ("{'a': 1} ", MAX_DECODES + 1)):
-        raw = (fragment * (MAX_ANSWER_CHARS // len(fragment)))[:MAX_ANSWER_CHARS]
+        specials = sum(fragment.count(c) for c in "{}'")
+        raw = fragment * (MAX_STRUCTURE // specials)
         work = Work()
         with pytest.raises(InvalidAnswer):
             parse_answer(raw, "full", LIB, work=work)
         assert work.decodes == decodes, (fragment, work.decodes)
+
+
+def test_the_work_per_answer_has_a_ceiling_not_only_a_linear_bound() -> None:
+    """Linear is not enough at 32 kB (17 decoder passes over it took 0.2-0.4 s): the structure scanned, the
+    text the Python-literal reader gets and the skill mentions weighed are capped per answer, each candidate is
+    decoded once, and a cap reached is an InvalidAnswer saying so (benchmarks/reasoner.py times the worst)."""
+    from services.reasoner.parse import MAX_ANSWER_CHARS, MAX_LITERAL_CHARS, MAX_MENTIONS, MAX_STRUCTURE, Work
+
+    with pytest.raises(InvalidAnswer, match=f"32000 brackets, quotes and backslashes, more than the {MAX_STRUCTURE}"):
+        parse_answer("{}" * (MAX_ANSWER_CHARS // 2), "full", LIB)
+    # A literal that fails at its very end, fenced: met in the fence and in the whole answer, in both quoting
+    # modes, and read once.
+    lit = "{'a': [" + "1," * 3000 + "], 'b': x}"
+    work = Work()
+    with pytest.raises(InvalidAnswer, match="No JSON object"):
+        parse_answer(f"```\n{lit}\n```", "full", LIB, work=work)
+    assert work.literal_chars == len(lit), work.literal_chars
+    # No single quote and no True/False/None: JSON's failure is the literal's too, the costly reader is skipped.
+    work = Work()
+    with pytest.raises(InvalidAnswer, match="No JSON object"):
+        parse_answer('{"a": [' + "1 " * 3000 + "]}", "full", LIB, work=work)
+    assert work.literal_chars == 0
+    big = "{'a': [" + "1," * (MAX_LITERAL_CHARS // 2) + "], 'b': x}"
+    with pytest.raises(InvalidAnswer, match=f"more than {MAX_LITERAL_CHARS} characters of objects that are not JSON"):
+        parse_answer(big, "full", LIB)
+    with pytest.raises(InvalidAnswer, match=f"mentions skills more than {MAX_MENTIONS} times"):
+        parse_answer("so I will grasp " * (MAX_MENTIONS + 1), "unstructured", LIB)
+    p = parse_answer("grasp is premature " * 10 + "so I will yaw_left", "unstructured", LIB)
+    assert p.ste.skill == "yaw_left"
+
+
+def test_an_answer_is_recorded_and_echoed_well_formed_and_bounded() -> None:
+    """What a step records of an answer and what a re-prompt repeats of it can always be encoded, and a huge
+    answer is cut (a step over a message's 1 MiB cap would be dropped by every subscriber)."""
+    from services.reasoner.backends.base import ECHO_CHARS, echoed
+    from services.reasoner.parse import MAX_ANSWER_CHARS, recorded_answer
+
+    assert recorded_answer("x \ud83d") == echoed("x \ud83d") == "x \ufffd"
+    huge = "y" * (3 * MAX_ANSWER_CHARS)
+    assert recorded_answer(huge).startswith("y" * MAX_ANSWER_CHARS)
+    assert recorded_answer(huge).endswith(f"[... {2 * MAX_ANSWER_CHARS} more characters not recorded]")
+    assert len(echoed(huge)) < ECHO_CHARS + 80 and echoed("") == "(empty)"

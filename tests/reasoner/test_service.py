@@ -7,6 +7,7 @@ import asyncio
 import pytest
 
 from shared.keys import Keys
+from shared.mcaplog import reasoning_steps, task_statuses
 from shared.messages import Abort, TaskRequest, TaskState
 from shared.tasks import submit_task
 from tests.helpers import bus_for, run_stack
@@ -92,21 +93,47 @@ async def test_vlm_backend_process_with_injected_faults(tmp_path, kind: str) -> 
     assert final.invalid_answers == 2 and final.model_calls == sum(len(s.calls) for s in steps)
 
 
-async def test_hostile_model_text_is_data_and_every_step_is_published(tmp_path) -> None:
-    """A valid answer whose reasoning holds a lone surrogate, Rich markup, a bidi override and an ANSI escape runs
-    its skill and its step is published (the surrogate replaced); the task goes on to its end."""
+async def test_hostile_answers_go_through_the_live_loop_and_every_step_is_logged(tmp_path) -> None:
+    """Every answer issue 31 found failing, through the real reasoner process over the bus against the local
+    model server, one stack for all: the task goes on (re-prompts) to its end, and every step is published and
+    in the recorder's MCAP log. A valid answer whose reasoning holds a lone surrogate, Rich markup, a bidi
+    override and an ANSI escape runs its skill (the surrogate replaced); 31 kB of `{x}` pairs, an integer and a
+    boolean argument, two objects naming different skills, an invalid answer holding a lone surrogate (echoed
+    back on the re-prompt) and an 18 kB Python literal are each re-prompted with the reason."""
     with FakeVLMServer() as vlm:
-        vlm.faults.extend(["hostile_text", "hostile_text"])
+        vlm.faults.extend(["fragments", "int_argument", "hostile_text",  # step 1: two re-prompts, then runs
+                           "bool_argument", "two_objects", None,  # step 2
+                           "surrogate_text", "python_literal", "hostile_text"])  # step 3
         env = {"AERMANI_REASONER_BACKEND": "openai", "AERMANI_REASONER_API_KEY": "none",
-               "AERMANI_REASONER_MODEL": "fake-vlm", "AERMANI_REASONER_BASE_URL": vlm.openai_base_url}
+               "AERMANI_REASONER_MODEL": "fake-vlm", "AERMANI_REASONER_BASE_URL": vlm.openai_base_url,
+               "AERMANI_REASONER_MAX_REPROMPTS": "2", "AERMANI_RECORDER_OUT_DIR": str(tmp_path / "rec")}
         w = world()
-        with run_stack(["reasoner"], tmp_path, env=env) as stack:
+        with run_stack(["reasoner", "recorder"], tmp_path, env=env) as stack:
             final, steps = await run_task(stack, w, TaskRequest(command=CMD))
+            await asyncio.sleep(1.0)  # the last samples reach the recorder before it stops
+        requests = list(vlm.requests)
     assert final.state is TaskState.SUCCEEDED, final.message
     assert [s.step for s in steps] == list(range(1, final.steps + 1)), "a step was not published"
-    hostile = steps[:2]
+    assert [s.retries for s in steps[:3]] == [2, 2, 2] and final.invalid_answers == 6
+    errors = [[c.error for c in s.calls if not c.valid] for s in steps[:3]]
+    expected = [["brackets, quotes and backslashes", "must be a string or null"],
+                ["must be a string or null", "2 JSON objects naming different skills"],
+                ["", "characters of objects that are not JSON"]]
+    for got, want in zip(errors, expected, strict=True):
+        assert all(w in g for g, w in zip(got, want, strict=True)), errors
+    assert len(steps[0].calls[0].raw_answer) == 31_200  # recorded whole: within what the parser reads
+    surrogate = steps[2].calls[0]
+    assert "\ufffd" in surrogate.raw_answer and surrogate.error, surrogate
+    # The re-prompt after it echoed the answer to the model, the surrogate replaced (it used to fail the request).
+    echoes = [m["content"] for r in requests for m in r["messages"] if m["role"] == "assistant"]
+    assert any(e.endswith(" \ufffd") for e in echoes), [e[-20:] for e in echoes]
+    hostile = [steps[0], steps[2]]
     assert all("\ufffd [/dim][bold] \u202e" in (s.drt.reasoning or "") for s in hostile), hostile[0].drt
-    assert all(s.calls[-1].raw_answer.encode("utf-8") for s in hostile)
+    assert all(c.raw_answer.encode("utf-8") for s in steps for c in s.calls)
+    [log] = sorted((tmp_path / "rec").glob("*.mcap"))
+    logged = reasoning_steps(log)
+    assert [(s.step, len(s.calls)) for s in logged] == [(s.step, len(s.calls)) for s in steps], "a step is not logged"
+    assert task_statuses(log)[final.task_id].state is TaskState.SUCCEEDED
 
 
 async def test_operator_approval_rejection_replans_and_approval_runs(tmp_path) -> None:

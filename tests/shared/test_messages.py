@@ -41,6 +41,11 @@ def test_task_request_rejects_control_characters_and_empty():
     for hidden in ("\u202e", "\u200b", "\u2066", "\ufeff", "\x85"):
         with pytest.raises(ValidationError, match=f"U\\+{ord(hidden):04X}"):
             m.TaskRequest(command=f"pick up the red{hidden} cup")
+    # Half an emoji (an HTTP client's JSON `\ud83d`): refused by the string check, and by command_text itself.
+    with pytest.raises(ValidationError, match="unicode"):
+        m.TaskRequest(command="pick up the red\ud83d cup")
+    with pytest.raises(ValueError, match="U\\+D83D"):
+        m.command_text("pick up the red\ud83d cup")
     assert m.TaskRequest(command="  put the café mug in the sink\t").command == "put the café mug in the sink"
     with pytest.raises(ValidationError):
         m.TaskRequest(command="   ")

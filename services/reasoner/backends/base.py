@@ -18,6 +18,7 @@ from services.reasoner.prompt import CompiledPrompt, reprompt_text
 from shared.errors import ConfigError, ModelError
 from shared.messages import OutcomeCode, SkillFacts, SkillOutcome
 from shared.registry import Registry
+from shared.text import well_formed
 
 if TYPE_CHECKING:
     from services.reasoner.settings import ReasonerSettings
@@ -129,12 +130,27 @@ class ModelReply:
     "not found: ..." after exploring the room); the task then ends FAILED instead of SUCCEEDED."""
 
 
+ECHO_CHARS = 4000
+"""Longest invalid answer sent back verbatim in a re-prompt (a real one is 1-4 kB); a longer one is cut, with
+the count of what was left out, so 32 kB of junk is not paid for again as prompt tokens on every re-prompt."""
+
+
+def echoed(raw: str) -> str:
+    """An invalid answer as the re-prompt repeats it to the model: well formed (a lone surrogate would fail
+    the HTTP request's UTF-8 encoding, ending the task on the re-prompt meant to recover it), at most
+    ECHO_CHARS characters."""
+    text = well_formed(raw) if raw else "(empty)"
+    if len(text) > ECHO_CHARS:
+        text = f"{text[:ECHO_CHARS]}\n[... {len(text) - ECHO_CHARS} more characters of this answer not repeated]"
+    return text
+
+
 def conversation(request: ModelRequest, first_user_content: list[dict]) -> list[dict]:
     """Chat messages for a step: the prompt (with its image) as the first user turn, then each earlier
-    invalid answer and its re-prompt, so the model sees exactly what it got wrong."""
+    invalid answer (`echoed`) and its re-prompt, so the model sees what it got wrong."""
     msgs: list[dict] = [{"role": "user", "content": first_user_content}]
     for raw, error in request.feedback:
-        msgs.append({"role": "assistant", "content": raw or "(empty)"})
+        msgs.append({"role": "assistant", "content": echoed(raw)})
         msgs.append({"role": "user", "content": reprompt_text(request.prompt.variant, error)})
     return msgs
 
