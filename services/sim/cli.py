@@ -11,6 +11,7 @@ import typer
 from rich.console import Console
 
 from shared.cli_helpers import Connect, Vehicle, command_group, query_once
+from shared.text import terminal_text
 
 console = Console()
 
@@ -48,14 +49,14 @@ def render_cmd(
     try:
         world, scen, start = generate(_scenario(seed, target, destination, out_of_view), look=look_for(realism))
     except ScenarioError as exc:
-        console.print(f"[red]{exc}[/red]")
+        console.print(f"[red]{terminal_text(exc)}[/red]")
         raise typer.Exit(2)
     frame = preview(world, np.array([start.position.x, start.position.y, altitude]), start.yaw, realism)
     cv2.imwrite(str(out), cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR))
     palette = np.random.default_rng(0).integers(40, 255, (int(frame.instance.max()) + 1, 3), dtype=np.uint8)
     palette[0] = 0
     cv2.imwrite(str(out.with_name(out.stem + "_seg.png")), palette[frame.instance])
-    console.print(scen.model_dump_json(indent=2))
+    console.print(scen.model_dump_json(indent=2), markup=False, highlight=False)
     visible = set(np.unique(frame.instance).tolist())
     for e in world.entities:
         if e.category in ("object", "surface", "furniture"):
@@ -81,7 +82,7 @@ def reset_cmd(
 ) -> None:
     """Reset the running simulator to a scenario (vehicle back on the ground, disarmed)."""
     res = asyncio.run(_query(connect, "sim_reset", vehicle, _scenario(seed, target, destination, out_of_view)))
-    console.print(res.model_dump_json(indent=2))
+    console.print(res.model_dump_json(indent=2), markup=False, highlight=False)
     if not res.ok:
         raise typer.Exit(1)
 
@@ -97,7 +98,7 @@ def judge_cmd(
 
     req = JudgeRequest(op="on_surface", object=obj, surface=surface) if obj else JudgeRequest(op="world")
     res = asyncio.run(_query(connect, "sim_judge", vehicle, req))
-    console.print(res.model_dump_json(indent=2))
+    console.print(res.model_dump_json(indent=2), markup=False, highlight=False)
 
 
 def stats_cmd(connect: Connect = "tcp/127.0.0.1:7447", vehicle: Vehicle = "am1") -> None:
