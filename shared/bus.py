@@ -37,7 +37,7 @@ from pydantic_core import PydanticSerializationError
 from shared.errors import BusError, DecodeError, NoResponder, QueryTimeout, RemoteError
 from shared.keys import BoundQuery, BoundToken, BoundTopic, Json, Protobuf, max_bytes_of, schema_name
 from shared.messages import SCHEMA_MINOR, SCHEMA_VERSION, Health
-from shared.text import well_formed
+from shared.text import well_formed_tree
 
 QUERY_CONCURRENCY = 64
 """Requests one queryable serves at once; beyond that a request gets a "busy" error reply at once."""
@@ -137,24 +137,17 @@ def _encoding(base: str, schema: str) -> zenoh.Encoding:
     return enc.with_schema(schema) if schema else enc
 
 
-def _json_safe(value: Any) -> Any:
-    """A `model_dump(mode="json")` tree as `model_dump_json` writes it, with every string well formed."""
-    if isinstance(value, str):
-        return well_formed(value)
-    if isinstance(value, float) and not math.isfinite(value):
-        return None  # pydantic's JSON writes null for inf and nan
-    if isinstance(value, dict):
-        return {_json_safe(k): _json_safe(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_json_safe(v) for v in value]
-    return value
+def _json_null(value: Any) -> Any:
+    """inf and nan as null, as pydantic's JSON writes them."""
+    return None if isinstance(value, float) and not math.isfinite(value) else value
 
 
 def _well_formed_json(obj: BaseModel) -> bytes:
     """JSON of a model holding a lone surrogate (half an emoji a model or an HTTP client sent as `\\ud83d`,
     which UTF-8 cannot encode): the surrogate replaced by U+FFFD, so a message is never lost to the text a peer
     put in it."""
-    return json.dumps(_json_safe(obj.model_dump(mode="json")), ensure_ascii=False, separators=(",", ":")).encode()
+    tree = well_formed_tree(obj.model_dump(mode="json"), _json_null)
+    return json.dumps(tree, ensure_ascii=False, separators=(",", ":")).encode()
 
 
 def encode(obj: Any, schema: str | None = None) -> tuple[bytes, zenoh.Encoding]:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import ipaddress
 import logging
 import os
 import re
@@ -59,14 +58,6 @@ def exact_origins(origins: list[str]) -> list[str]:
             raise ValueError(f"allowed origin {origin!r} is not an exact origin: write scheme://host[:port], "
                              "e.g. http://127.0.0.1:3000 (no wildcard, no path, no trailing slash)")
     return origins
-
-
-def is_loopback(host: str) -> bool:
-    """Whether a bind address reaches this host only."""
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return host == "localhost"
 
 
 def parse_endpoints(value: str) -> list[str]:

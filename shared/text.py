@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Any
+
 
 def well_formed(text: str) -> str:
     """`text` with every lone UTF-16 surrogate replaced by U+FFFD (a pair stays the character it encodes).
@@ -12,6 +15,18 @@ def well_formed(text: str) -> str:
         return text
     except UnicodeEncodeError:
         return text.encode("utf-16", "surrogatepass").decode("utf-16", "replace")
+
+
+def well_formed_tree(value: Any, leaf: Callable[[Any], Any] | None = None) -> Any:
+    """A decoded JSON tree (dicts, lists or tuples, nested) with every string, keys included, through
+    `well_formed`; tuples become lists; `leaf` maps every other value (unchanged without one)."""
+    if isinstance(value, str):
+        return well_formed(value)
+    if isinstance(value, dict):
+        return {well_formed_tree(k, leaf): well_formed_tree(v, leaf) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [well_formed_tree(v, leaf) for v in value]
+    return value if leaf is None else leaf(value)
 
 
 _C0_C1 = dict.fromkeys(c for c in (*range(0x00, 0x20), *range(0x7F, 0xA0)) if c != 0x09)

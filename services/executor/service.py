@@ -240,17 +240,14 @@ class Executor:
         return facts.model_copy(update=update) if update else facts
 
     async def _hold(self) -> AutopilotResult | None:
-        try:
-            return await self.bus.query(self.keys.autopilot_command, HoldCommand(), timeout=2.0)
-        except BusError as exc:
-            log.warning("hold command failed: %s", exc)
-            return None
+        return await self._stop_command(HoldCommand())
 
-    async def _land(self) -> AutopilotResult | None:
+    async def _stop_command(self, cmd: HoldCommand | LandCommand) -> AutopilotResult | None:
+        """A hold or a land for the bridge, outside any skill (timeouts, aborts); None when it did not answer."""
         try:
-            return await self.bus.query(self.keys.autopilot_command, LandCommand(), timeout=2.0)
+            return await self.bus.query(self.keys.autopilot_command, cmd, timeout=2.0)
         except BusError as exc:
-            log.warning("land command failed: %s", exc)
+            log.warning("%s command failed: %s", cmd.kind, exc)
             return None
 
     async def _supervise(self, goal: Goal, arg: str | None) -> None:
@@ -335,7 +332,7 @@ class Executor:
         if taking_off:
             # Holding mid-takeoff leaves the vehicle armed a few centimetres up, in ground effect, where the
             # next task can neither take off nor move (below the minimum altitude): it lands instead.
-            result = await self._land()
+            result = await self._stop_command(LandCommand())
         elif airborne(st) or goal is not None:
             result = await self._hold()
         if goal is not None and goal.runner is not None:

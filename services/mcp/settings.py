@@ -8,7 +8,8 @@ from pydantic import AliasChoices, Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from shared.errors import ConfigError
-from shared.settings import exact_origins, is_loopback
+from shared.security import is_loopback_host
+from shared.settings import exact_origins
 
 
 class McpSettings(BaseSettings):
@@ -50,7 +51,7 @@ class McpSettings(BaseSettings):
 
     @property
     def loopback(self) -> bool:
-        return is_loopback(self.host)
+        return is_loopback_host(self.host)
 
     @property
     def lends_gateway_token(self) -> bool:

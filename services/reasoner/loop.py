@@ -453,37 +453,42 @@ class TaskRunner:
         return SkillStatus(**base, state=SkillState.FAILED, ended_ns=now_ns(),
                            message=f"no operator decision within {timeout:.0f} s; vehicle held")
 
+    async def _send(self, req: SkillRequest, timeout: float) -> tuple[SkillAccept, SkillStatus | None]:
+        """`world.run_skill`; with no executor answering, wait for one (a restart takes 1-2 s) and send the same
+        skill again, instead of spending the next steps on "executor unreachable". ServerLost (the executor
+        died mid-skill) passes through; no answer after the wait holds and raises ExecutorUnreachable."""
+        try:
+            return await self.world.run_skill(req, timeout)
+        except ServerLost:
+            raise
+        except AermaniError as exc:
+            log.warning("task %s: executor unreachable (%s); waiting up to %.0f s for it", req.task_id, exc,
+                        self.settings.link_wait_s)
+        try:
+            return await self.world.run_skill(req, timeout, ready_timeout=self.settings.link_wait_s)
+        except ServerLost:
+            raise
+        except AermaniError as again:
+            await self.world.hold(req.task_id, "executor unreachable")
+            raise ExecutorUnreachable(f"executor unreachable for {self.settings.link_wait_s:.0f} s "
+                                      f"({again}); vehicle held (if it still listens)") from again
+
     async def _execute(self, req: SkillRequest, timeout: float, reasoning: str = "") -> SkillStatus:
-        """Run one skill on the executor and wait for its terminal status (never raises). A skill that needs
-        the operator's approval waits for it first."""
+        """Run one skill on the executor and wait for its terminal status; raises only ExecutorUnreachable (no
+        executor answered, even after waiting for one: the task ends). A skill that needs the operator's
+        approval waits for it first."""
         if self._needs_approval(req.skill):
             refused = await self._feasible(req) or await self._approved(req, reasoning)
             if refused is not None:
                 return refused
         started = now_ns()
         try:
-            accept, st = await self.world.run_skill(req, timeout)
+            accept, st = await self._send(req, timeout)
         except ServerLost as exc:  # the executor died mid-skill: known within Zenoh's lease, not at the timeout
             await self.world.hold(req.task_id, "executor lost")
             return SkillStatus(goal_id="", skill=req.skill, argument=req.argument, state=SkillState.FAILED,
                                message=f"executor stopped mid-skill: {exc}", task_id=req.task_id, step=req.step,
                                started_ns=started, ended_ns=now_ns())
-        except AermaniError as exc:
-            # No answer from the executor: wait for one (a restart takes 1-2 s) and send the same skill again,
-            # instead of spending the next steps on "executor unreachable"; still none, and the task ends.
-            log.warning("task %s: executor unreachable (%s); waiting up to %.0f s for it", req.task_id, exc,
-                        self.settings.link_wait_s)
-            try:
-                accept, st = await self.world.run_skill(req, timeout, ready_timeout=self.settings.link_wait_s)
-            except ServerLost as lost:
-                await self.world.hold(req.task_id, "executor lost")
-                return SkillStatus(goal_id="", skill=req.skill, argument=req.argument, state=SkillState.FAILED,
-                                   message=f"executor stopped mid-skill: {lost}", task_id=req.task_id,
-                                   step=req.step, started_ns=started, ended_ns=now_ns())
-            except AermaniError as again:
-                await self.world.hold(req.task_id, "executor unreachable")
-                raise ExecutorUnreachable(f"executor unreachable for {self.settings.link_wait_s:.0f} s "
-                                          f"({again}); vehicle held (if it still listens)") from again
         if not accept.accepted:
             # The refusal's code and facts (out_of_reach, blocked...) travel with the accept reply.
             return SkillStatus(goal_id="", skill=req.skill, argument=req.argument, state=SkillState.REJECTED,

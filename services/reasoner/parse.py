@@ -35,7 +35,7 @@ from services.reasoner.drt import DRT_FIELDS
 from services.reasoner.library import policy_skills
 from shared.errors import InvalidAnswer
 from shared.messages import MAX_QUERY_CHARS, DescriptiveReasoningTrace, SkillLibrary, SkillToExecute
-from shared.text import well_formed
+from shared.text import well_formed, well_formed_tree
 
 _TRAILING_COMMA = re.compile(r",\s*([}\]])")
 _ALIASES = {"object_localization": "obj_localization", "obj_localisation": "obj_localization",
@@ -372,18 +372,6 @@ def _react_action(raw: str, work: Work) -> tuple[dict, str | None, bool]:
     return obj, _clean_thought(raw[: mark.start()]), True
 
 
-def _well_formed_values(obj: Any) -> Any:
-    """Every string in a decoded answer (keys and values, nested) through `well_formed`; the depth was bounded
-    before decoding."""
-    if isinstance(obj, str):
-        return well_formed(obj)
-    if isinstance(obj, dict):
-        return {_well_formed_values(k): _well_formed_values(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [_well_formed_values(v) for v in obj]
-    return obj
-
-
 def recorded_answer(raw: str) -> str:
     """A model's answer as a step records it (`ModelCall.raw_answer`): well formed (a lone surrogate would fail
     the step's publish) and at most the MAX_ANSWER_CHARS the parser reads, with the count of the rest, so that
@@ -434,7 +422,7 @@ def _parse(raw: str, variant: str, library: SkillLibrary, coverage: float, work:
             return _validate(bare_skill, arg, {}, variant, specs, coverage, True, thought)
         raise InvalidAnswer("No JSON object found in the answer; reply with exactly one JSON object in the "
                             "format given in the Rules.")
-    obj = {norm_key(k): v for k, v in _well_formed_values(obj).items()}
+    obj = {norm_key(k): v for k, v in well_formed_tree(obj).items()}  # its depth was bounded before decoding
     if variant == "react" and isinstance(obj.get("thought"), str) and not thought:
         thought = obj["thought"].strip() or None  # the schema-constrained form {"thought", "action"}
     skill, arg = _ste_of(obj)

@@ -7,7 +7,8 @@ from typing import Literal
 from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import SettingsConfigDict
 
-from shared.settings import ServiceSettings, exact_origins, is_loopback
+from shared.security import is_loopback_host
+from shared.settings import ServiceSettings, exact_origins
 
 
 class RecorderSettings(ServiceSettings):
@@ -67,7 +68,7 @@ class RecorderSettings(ServiceSettings):
 
     @model_validator(mode="after")
     def _token_off_loopback(self) -> RecorderSettings:
-        if self.foxglove and self.foxglove_token is None and not is_loopback(self.foxglove_host):
+        if self.foxglove and self.foxglove_token is None and not is_loopback_host(self.foxglove_host):
             raise ValueError(f"AERMANI_RECORDER_FOXGLOVE_HOST={self.foxglove_host} is not loopback: set "
                              "AERMANI_RECORDER_FOXGLOVE_TOKEN so only clients holding it see the camera and state")
         return self
