@@ -88,7 +88,9 @@ def demo_command(
     scenario, accepted = scenario_for(command, target, destination, seed)
     env = {"AERMANI_REASONER_BACKEND": backend, "AERMANI_REASONER_VARIANT": variant,
            "AERMANI_SIM_SPEED_FACTOR": str(speed_factor), "AERMANI_SIM_SEED": str(seed),
-           "AERMANI_PERCEPTION_SEGMENTER": segmenter, "AERMANI_SIM_REALISM": realism}
+           "AERMANI_PERCEPTION_SEGMENTER": segmenter, "AERMANI_SIM_REALISM": realism,
+           # The oracle's masks belong in the log (replay needs them); otherwise they are neither sent nor kept.
+           "AERMANI_RECORDER_SEGMENTATION": "1" if segmenter == "sim" else "0"}
     if scenario.target_object:
         env["AERMANI_SIM_TARGET_OBJECT"] = scenario.target_object
     if scenario.destination:

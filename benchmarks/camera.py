@@ -24,7 +24,7 @@ from aermani.launcher import Stack  # noqa: E402
 from benchmarks._figures import add_json_option, write_json  # noqa: E402
 from shared.bus import Bus  # noqa: E402
 from shared.keys import Keys  # noqa: E402
-from shared.sensors import CompressedImage, decode_proto, parse_raw16, stamp_to_ns  # noqa: E402
+from shared.sensors import CompressedImage, decode_proto, parse_depth, stamp_to_ns  # noqa: E402
 
 
 def write_frames(folder: Path, n: int, w: int, h: int) -> None:
@@ -53,7 +53,7 @@ async def measure(endpoint: str, seconds: float) -> dict:
                 c = await color.recv(timeout=0.2)
                 colors[stamp_to_ns(decode_proto(CompressedImage, c).timestamp)] = time.time_ns()
             while (d := depth.recv_nowait()) is not None:
-                depths.add(parse_raw16(d)[0])
+                depths.add(parse_depth(d)[0])
         elapsed = time.monotonic() - t0
         paired = [s for s in colors if s in depths]
         lat = sorted((colors[s] - s) / 1e6 for s in colors)

@@ -36,7 +36,7 @@ from shared.errors import NoResponder  # noqa: E402
 from shared.frames import base_to_camera  # noqa: E402
 from shared.keys import Keys  # noqa: E402
 from shared.messages import LocalizeRequest, Vec3  # noqa: E402
-from shared.sensors import raw16_message, transforms_message  # noqa: E402
+from shared.sensors import depth_message, raw16_message, transforms_message  # noqa: E402
 from tests.perception.scenes import aim_at, layout, render_view  # noqa: E402
 
 OBJECT_NAMES = ("red cup", "green bottle", "purple cup", "orange", "banana", "coke can", "tissue box")
@@ -135,7 +135,7 @@ async def over_bus(requests: int, cpu: int | None) -> dict[str, float]:
                                                           @ np.linalg.inv(base_to_camera())),
                                                          ("base_link", "camera", base_to_camera())], stamp))
                 bus.publish(keys.camera_segmentation, raw16_message(v.segmentation, stamp))
-                bus.publish(keys.camera_depth, raw16_message(v.depth_mm, stamp))
+                bus.publish(keys.camera_depth, depth_message(v.depth_mm, stamp))
                 bus.publish(keys.camera_color, msg.SerializeToString())
                 i += 1
                 await asyncio.sleep(0.2)

@@ -107,7 +107,7 @@ def camera_to_perception(frames: int, top: int, html: Path | None) -> dict[str, 
     from services.perception.settings import PerceptionSettings
     from shared.frames import base_to_camera
     from shared.messages import LocalizeRequest
-    from shared.sensors import color_message, encode_jpeg, raw16_message, transforms_message
+    from shared.sensors import color_message, depth_message, encode_jpeg, transforms_message
 
     views = _frames(frames)
     s = PerceptionSettings(segmenter="color")
@@ -119,7 +119,7 @@ def camera_to_perception(frames: int, top: int, html: Path | None) -> dict[str, 
         stamp = time.time_ns()
         # camera side: the payloads a camera (or the simulator) publishes for one frame
         color = color_message(rgb, stamp, jpeg=encode_jpeg(rgb, 85))
-        depth = raw16_message(depth_mm, stamp)
+        depth = depth_message(depth_mm, stamp)
         tf = transforms_message([("world", "base_link", cam_to_world @ np.linalg.inv(cam_in_base)),
                                  ("base_link", "camera", cam_in_base)], stamp)
         # perception side: ingest, build the frame, detections (published at detections_hz), one query

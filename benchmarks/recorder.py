@@ -24,7 +24,7 @@ from benchmarks._figures import add_json_option, write_json  # noqa: E402
 from shared.bus import Bus  # noqa: E402
 from shared.keys import Keys  # noqa: E402
 from shared.messages import VehicleState  # noqa: E402
-from shared.sensors import color_message, encode_jpeg, raw16_message  # noqa: E402
+from shared.sensors import color_message, depth_message, encode_depth_png, encode_jpeg, raw16_message  # noqa: E402
 
 DEMO_FPS = 15.0
 
@@ -41,7 +41,7 @@ def scene(n: int, w: int, h: int) -> list[tuple[bytes, np.ndarray, np.ndarray]]:
         seg = np.zeros((h, w), np.uint16)
         seg[h // 3: h // 2, w // 3: w // 2] = 1
         seg[2 * h // 3:, :] = 2
-        out.append((encode_jpeg(rgb), depth, seg))
+        out.append((encode_jpeg(rgb), encode_depth_png(depth), seg))
     return out
 
 
@@ -55,7 +55,7 @@ async def publish(bus: Bus, keys: Keys, seconds: float, fps: float, frames) -> t
         stamp = time.time_ns()
         for key, data in (
             (keys.camera_color, color_message(None, stamp, jpeg=jpeg)),  # type: ignore[arg-type]
-            (keys.camera_depth, raw16_message(depth, stamp)),
+            (keys.camera_depth, depth_message(None, stamp, png=depth)),
             (keys.camera_segmentation, raw16_message(seg, stamp)),
         ):
             bus.publish(key, data)
@@ -88,7 +88,9 @@ async def main_async(args: argparse.Namespace) -> None:
     keys = Keys("am1")
     out = Path(args.out or tempfile.mkdtemp(prefix="aermani-bench-"))
     env = {"AERMANI_RECORDER_OUT_DIR": str(out), "AERMANI_RECORDER_CHUNK_SIZE": str(args.chunk_kib * 1024),
-           "AERMANI_RECORDER_HEALTH_PERIOD_S": "0.5", "AERMANI_LOG_LEVEL": "WARNING"}
+           "AERMANI_RECORDER_HEALTH_PERIOD_S": "0.5", "AERMANI_LOG_LEVEL": "WARNING",
+           # every frame and the oracle's masks too: the heaviest recording there is
+           "AERMANI_RECORDER_SEGMENTATION": "1", "AERMANI_RECORDER_FRAME_MAX_HZ": "0"}
     frames = scene(8, args.width, args.height)
     stack = Stack(["recorder"], env=env, log_dir=out / "logs", supervise=False)
     stack.start(wait=True)

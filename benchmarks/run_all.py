@@ -60,6 +60,7 @@ BENCHMARKS: dict[str, Bench] = {
     "bus": Bench(("--n", "300"), ("--n", "30"), timeout_s=300),
     "camera": Bench(("--seconds", "8"), ("--seconds", "2"), timeout_s=180),
     "recorder": Bench(("--seconds", "10"), ("--seconds", "2"), timeout_s=300),
+    "link_budget": Bench(("--minutes", "3"), ("--minutes", "0.5", "--warmup", "10"), timeout_s=600),
     "sim": Bench(("--physics-seconds", "20", "--frames", "40", "--seconds", "10", "--cpu", "0"),
                  ("--physics-seconds", "2", "--frames", "5", "--no-stack", "--cpu", "0"), timeout_s=600),
     "perception": Bench(("--requests", "60"), ("--requests", "5", "--no-bus"), timeout_s=600),
@@ -92,7 +93,10 @@ PRODUCED_BY = (
     "and pose noise, one vehicle, four pick-and-place commands, seeds from 1001 (benchmarks/soak.py); the "
     "cacheable-prefix share is measured on the prompts of the recorded `rules` episodes in docs/eval/rules-dev "
     "(dev split, realistic MuJoCo, colour segmenter); the localization rows use the colour segmenter on realistic "
-    "renders; the bus, camera, recorder and abort rows involve no policy. No figure here is about a VLM.")
+    "renders; the link and log rows run the same `rules` baseline and colour segmenter on the realistic "
+    "simulator at real time, every other setting at its default, pick-and-place commands from seed 2001 "
+    "(benchmarks/link_budget.py); the bus, camera, recorder and abort rows involve no policy. No figure here is "
+    "about a VLM.")
 """The simulator's camera rate (`AERMANI_SIM_FPS`, default 15 fps), used when the run does not report it."""
 
 Results = dict[str, dict[str, Any]]
@@ -216,6 +220,17 @@ FIGURES: list[Figure] = [
     Figure("recorder.missing", "recorder: messages sent but not in the MCAP file", "msgs", fig("recorder", "missing"),
            target=("==", 0.0), source="#8"),
     Figure("recorder.throughput", "recorder: sustained write rate", "MB/s", fig("recorder", "mb_per_s")),
+    Figure("link.rate", "link: drone -> ground over the routers' TLS link at default settings (every sample at the "
+           "ground router; depth 16-bit PNG, thinned to 1 Hz by the drone router)", "MB/s",
+           fig("link_budget", "link_mb_per_s"), "the same samples with every depth frame",
+           fig("link_budget", "link_mb_per_s_every_depth_frame"), ("<=", 2.0), "value", "#31"),
+    Figure("link.raw", "link: the same with every depth frame as raw 16UC1 (before this stop)", "MB/s",
+           fig("link_budget", "link_mb_per_s_with_raw_depth")),
+    Figure("link.depth", "link: of which depth", "MB/s", fig("link_budget", "depth_mb_per_s"),
+           "every depth frame as the vehicle gets it (PNG)", fig("link_budget", "depth_onboard_mb_per_s")),
+    Figure("log.hour", "log: one hour of task loop at default settings (recorder keeps 1 frame pair/s + every "
+           "step's frame)", "GB", fig("link_budget", "log_gb_per_hour"), target=("<=", 2.0), source="#31"),
+    Figure("log.rate", "log: MCAP growth at default settings", "MB/s", fig("link_budget", "log_mb_per_s")),
     Figure("parser.heldout", "rules parser: held-out phrasings understood exactly", "%",
            fig("parser_accuracy", "accuracy_pct")),
     Figure("localization.err_1m", "localization (colour, realistic camera): median error at 1.0 m", "cm",
@@ -238,6 +253,14 @@ FIGURES: list[Figure] = [
 # ------------------------------------------------------------------------------------ gaps: reason + plan
 
 GAPS: dict[str, tuple[str, str]] = {
+    "link.rate": (
+        "Colour at the camera's full rate is what remains (the ground's reasoner and gateway use it); depth is "
+        "already thinned to 1 Hz on the link.",
+        "Thin colour on the link too (a second downsampling rule), at the cost of the reasoner's frame wait."),
+    "log.hour": (
+        "The recorder keeps 1 colour+depth pair per second and every step's frame (frame_max_hz); more than that "
+        "at a realistic depth PNG's 240 kB is over 2 GB an hour.",
+        "Lower AERMANI_RECORDER_FRAME_MAX_HZ, or record depth less often than colour."),
     "bus.json_latency": (
         "Measured about 2.8x on a quiet machine (0.301 vs 0.108 ms, the closing note of stop 21). The benchmark "
         "publishes and receives on one asyncio loop in one process, so each ping pays the hop from Zenoh's thread "

@@ -178,7 +178,7 @@ async def check_service(bus: Bus, service: str, vehicle_id: str = "am1", *, time
                         expect_alive: bool = True, expect_health: bool = False, require_periodic: bool = True,
                         library: SkillLibrary | None = None, skip: tuple[str, ...] = ()) -> Report:
     """Check the running `service` of `vehicle_id` against its declarations. `skip` names declarations
-    (by key name) that this deployment of the service legitimately leaves out, e.g. `camera/segmentation`
+    (by key name) that this deployment of the service legitimately leaves out, e.g. `camera/@segmentation`
     for a camera that has no oracle."""
     keys = Keys(vehicle_id)
     report = Report(service, vehicle_id)

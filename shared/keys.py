@@ -248,19 +248,22 @@ CAMERA_COLOR: Topic[bytes] = Topic(
     "camera/color", Protobuf("foxglove.CompressedImage"), "colour frame, JPEG", "sim, camera", reliable=False,
     periodic=True)
 CAMERA_DEPTH: Topic[bytes] = Topic(
-    "camera/depth", Protobuf("foxglove.RawImage"), "depth, 16UC1 millimetres, aligned to colour, same stamp",
+    "camera/depth", Protobuf("foxglove.CompressedImage"),
+    "depth, 16-bit PNG (lossless) millimetres, aligned to colour, same stamp",
     "sim, camera", reliable=False, periodic=True)
 CAMERA_CALIBRATION: Topic[bytes] = Topic(
     "camera/calibration", Protobuf("foxglove.CameraCalibration"), "pinhole intrinsics of the colour camera",
     "sim, camera", periodic=True)
 CAMERA_SEGMENTATION: Topic[bytes] = Topic(
-    "camera/segmentation", Protobuf("foxglove.RawImage"), "16UC1 instance ids (oracle only)", "sim",
+    "camera/@segmentation", Protobuf("foxglove.RawImage"),
+    "16UC1 instance ids (oracle only; a verbatim chunk: `**` does not match it, so only an explicit subscriber such"
+    " as the oracle segmenter makes the simulator render it, and the recorder takes it only when asked)", "sim",
     reliable=False, periodic=True)
 TF: Topic[bytes] = Topic(
     "tf", Protobuf("foxglove.FrameTransforms"), "world->base_link, base_link->camera, base_link->gripper",
     "autopilot_bridge, sim, camera", reliable=False, periodic=True)
 SIM_LABELS: Topic[SimLabels] = Topic(
-    "sim/labels", SimLabels, "instance id -> name for camera/segmentation (oracle only)", "sim",
+    "sim/labels", SimLabels, "instance id -> name for camera/@segmentation (oracle only)", "sim",
     periodic=True)
 SIM_JUDGE: Query[JudgeRequest, JudgeResult] = Query(
     "sim/judge", JudgeRequest, JudgeResult, "ground-truth judge (evaluation only; no policy may read it)", "sim")

@@ -1,7 +1,9 @@
 """Sensor data in Foxglove's protobuf schemas: encode/decode colour, depth, calibration and transforms.
 
-Colour frames travel as foxglove.CompressedImage (JPEG), depth as foxglove.RawImage 16UC1 in millimetres
-with the same timestamp as its colour frame, calibration as foxglove.CameraCalibration, transforms as
+Colour frames travel as foxglove.CompressedImage (JPEG), depth as foxglove.CompressedImage holding a 16-bit
+greyscale PNG in millimetres (lossless, as ROS's compressedDepth; 2-4x smaller than raw 16UC1, which matters on
+the drone-to-ground link and in the log) with the same timestamp as its colour frame, the simulator's
+segmentation (oracle only) as foxglove.RawImage 16UC1, calibration as foxglove.CameraCalibration, transforms as
 foxglove.FrameTransforms. A recording opens in Foxglove without conversion.
 """
 
@@ -101,6 +103,52 @@ def raw16_message(img: np.ndarray, stamp_ns: int, frame_id: str = CAMERA_FRAME) 
     msg = RawImage(timestamp=ns_to_stamp(stamp_ns), frame_id=frame_id, width=w, height=h, encoding="16UC1",
                    step=w * 2, data=np.ascontiguousarray(img, dtype="<u2").tobytes())
     return bytes(msg.SerializeToString())
+
+
+DEPTH_FORMAT = "png"
+DEPTH_PNG_LEVEL = 1  # zlib level: 13 ms for a noisy 640x480 frame on one core here, 3 only 5 % smaller at 2x the time
+
+
+def encode_depth_png(img: np.ndarray) -> bytes:
+    """HxW uint16 -> 16-bit greyscale PNG bytes (lossless)."""
+    import cv2
+
+    if img.dtype != np.uint16 or img.ndim != 2:
+        raise ValueError(f"expected HxW uint16, got {img.dtype} {img.shape}")
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(img), [cv2.IMWRITE_PNG_COMPRESSION, DEPTH_PNG_LEVEL])
+    if not ok:
+        raise DecodeError("PNG encoding failed")
+    return buf.tobytes()
+
+
+def depth_message(img: np.ndarray | None, stamp_ns: int, frame_id: str = CAMERA_FRAME,
+                  png: bytes | None = None) -> bytes:
+    """HxW uint16 depth (mm), or its `encode_depth_png` bytes -> serialized foxglove.CompressedImage, format png
+    (16-bit, lossless)."""
+    if png is None:
+        if img is None:
+            raise ValueError("depth_message needs the image or its PNG")
+        png = encode_depth_png(img)
+    msg = CompressedImage(timestamp=ns_to_stamp(stamp_ns), frame_id=frame_id, format=DEPTH_FORMAT, data=png)
+    return bytes(msg.SerializeToString())
+
+
+def parse_depth(payload: bytes) -> tuple[int, np.ndarray]:
+    """Serialized depth -> (stamp_ns, HxW uint16 mm). The bus carries a CompressedImage with a 16-bit PNG; a log
+    recorded before depth was compressed holds RawImage 16UC1, which is read too (a RawImage parses as a
+    CompressedImage without a format, since protobuf keeps unknown fields, so the format tells them apart)."""
+    import cv2
+
+    msg = decode_proto(CompressedImage, payload)
+    if not msg.format:
+        return parse_raw16(payload)
+    if msg.format != DEPTH_FORMAT:
+        raise DecodeError(f"expected a {DEPTH_FORMAT} depth image, got format {msg.format!r}")
+    img = cv2.imdecode(np.frombuffer(msg.data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if img is None or img.dtype != np.uint16 or img.ndim != 2:
+        got = "undecodable bytes" if img is None else f"{img.dtype} {img.shape}"
+        raise DecodeError(f"depth PNG is not a 16-bit greyscale image: {got}")
+    return stamp_to_ns(msg.timestamp), img
 
 
 def parse_raw16(payload: bytes) -> tuple[int, np.ndarray]:

@@ -172,6 +172,7 @@ def vehicle_env(cfg: RunConfig) -> dict[str, str]:
         "AERMANI_REASONER_OUTPUT_MODE": cfg.output_mode,
         "AERMANI_REASONER_T_MAX_S": str(cfg.t_max_s),
         "AERMANI_PERCEPTION_SEGMENTER": cfg.segmenter,
+        "AERMANI_RECORDER_SEGMENTATION": "1" if cfg.segmenter == "sim" else "0",
         "AERMANI_SIM_REALISM": cfg.realism,
     }
     if cfg.model:

@@ -24,7 +24,7 @@ from shared.sensors import (
     GRIPPER_FRAME,
     calibration_message,
     color_message,
-    raw16_message,
+    depth_message,
     transforms_message,
 )
 
@@ -89,7 +89,7 @@ class Capturer:
     def encode(self, cap: Capture) -> Encoded:
         stamp = now_ns()
         color = color_message(cap.rgb, stamp, quality=self.s.jpeg_quality, jpeg=cap.jpeg)  # type: ignore[arg-type]
-        depth = raw16_message(cap.depth_mm, stamp) if cap.depth_mm is not None else None
+        depth = depth_message(cap.depth_mm, stamp) if cap.depth_mm is not None else None
         tf = transforms_message(self.mounts, stamp) if self.s.publish_tf else None
         return Encoded(stamp, color, depth, tf)
 

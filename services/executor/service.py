@@ -42,7 +42,7 @@ from shared.messages import (
     new_id,
     now_ns,
 )
-from shared.sensors import parse_calibration, parse_raw16
+from shared.sensors import parse_calibration, parse_depth
 
 UNKNOWN_HELD = "unidentified object"
 SLIP_S = 0.3
@@ -430,7 +430,7 @@ class Executor:
         while True:
             data = await sub.recv()
             try:
-                stamp, img = parse_raw16(data)
+                stamp, img = parse_depth(data)
             except DecodeError as exc:
                 log.debug("bad depth frame: %s", exc)
                 continue

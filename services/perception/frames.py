@@ -12,7 +12,7 @@ from typing import cast
 import numpy as np
 
 from shared.frames import DEFAULT_INTRINSICS
-from shared.sensors import Intrinsics, parse_color, parse_raw16, parse_transforms
+from shared.sensors import Intrinsics, parse_color, parse_depth, parse_raw16, parse_transforms
 
 WORLD, BASE, CAMERA = "world", "base_link", "camera"
 TF_EXACT_NS = 5_000_000  # a world->base_link sample this close to a frame's stamp is that frame's pose
@@ -99,7 +99,7 @@ class FrameStore:
         self._add("color", stamp, payload, receive_ns)
 
     def add_depth(self, payload: bytes, receive_ns: int | None = None) -> None:
-        stamp, img = parse_raw16(payload)
+        stamp, img = parse_depth(payload)
         self._add("depth", stamp, img, receive_ns)
 
     def add_segmentation(self, payload: bytes, receive_ns: int | None = None) -> None:

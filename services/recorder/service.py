@@ -8,11 +8,15 @@ import logging
 import re
 import socket
 import time
+from collections.abc import Callable
 from importlib.metadata import PackageNotFoundError, version
+from typing import Any
 
 from services.recorder.settings import RecorderSettings
+from services.recorder.throttle import FrameThrottle
 from services.recorder.writer import RecordWriter
-from shared.bus import Bus
+from shared.bus import Bus, Subscription
+from shared.keys import CAMERA_SEGMENTATION
 from shared.messages import Health
 from shared.service import announce
 
@@ -44,16 +48,34 @@ def static_metadata(settings: RecorderSettings) -> dict[str, str]:
             "started_ns": str(time.time_ns()), **public_settings(settings)}
 
 
+async def _drain(sub: Subscription[Any], submit: Callable[[str, bytes, str, int], None]) -> None:
+    """Whatever the bus already delivered belongs in the file too; then the subscription closes."""
+    while sub.qsize():
+        try:
+            rec = await sub.recv_sample(timeout=1.0)
+        except (TimeoutError, asyncio.CancelledError):
+            break
+        submit(rec.key, rec.payload, rec.encoding, rec.receive_ns)
+    sub.close()
+
+
 async def run(bus: Bus, settings: RecorderSettings, stop: asyncio.Event) -> None:
     writer = RecordWriter(settings, static_metadata(settings))
     writer.start()
     sub = bus.subscribe(settings.key_expr, maxsize=settings.queue_size, overflow="drop_newest")
+    subs = [sub]
+    if settings.segmentation:
+        subs.append(bus.subscribe(CAMERA_SEGMENTATION.fleet().key, maxsize=settings.queue_size,
+                                  overflow="drop_newest"))
     announce(bus, settings, "recorder")
     health_key = settings.keys.health("recorder")
 
+    throttle = FrameThrottle(settings.frame_max_hz)
+
     def health() -> Health:
-        details = {**writer.stats(), "bus_dropped": sub.dropped}
-        details["dropped"] = writer.dropped_backlog + sub.dropped
+        bus_dropped = sum(s.dropped for s in subs)
+        details = {**writer.stats(), "bus_dropped": bus_dropped, "frames_skipped": throttle.skipped}
+        details["dropped"] = writer.dropped_backlog + bus_dropped
         ok = writer.ok
         message = writer.error if not ok else ""
         if ok and details["dropped"]:
@@ -66,21 +88,31 @@ async def run(bus: Bus, settings: RecorderSettings, stop: asyncio.Event) -> None
                 bus.publish(health_key, health())
             await asyncio.sleep(settings.health_period_s)
 
+    def submit(key: str, payload: bytes, encoding: str, receive_ns: int) -> None:
+        for sample in throttle.admit(key, payload, encoding, receive_ns):
+            writer.submit(*sample)
+
+    async def take(one: Subscription[Any]) -> None:
+        while True:
+            rec = await one.recv_sample()
+            submit(rec.key, rec.payload, rec.encoding, rec.receive_ns)
+
     reporter = asyncio.create_task(report(), name="recorder.health")
+    takers = [asyncio.create_task(take(one), name=f"recorder.take{i}") for i, one in enumerate(subs)]
+    stopper = asyncio.create_task(stop.wait(), name="recorder.stop")
     try:
-        while not stop.is_set():
-            rec = await sub.recv_sample()
-            writer.submit(rec.key, rec.payload, rec.encoding, rec.receive_ns)
+        await asyncio.wait([stopper, *takers], return_when=asyncio.FIRST_COMPLETED)
+        for t in takers:
+            if t.done():
+                t.result()  # a taker only ends by an error: raise it, as the one loop before it did
     finally:
         reporter.cancel()
-        # Whatever the bus already delivered belongs in the file too.
-        while sub.qsize():
-            try:
-                rec = await sub.recv_sample(timeout=1.0)
-            except (TimeoutError, asyncio.CancelledError):
-                break
-            writer.submit(rec.key, rec.payload, rec.encoding, rec.receive_ns)
-        sub.close()
+        stopper.cancel()
+        for t in takers:
+            t.cancel()
+        await asyncio.gather(*takers, return_exceptions=True)
+        for one in subs:
+            await _drain(one, submit)
         # The writer thread finishes the file; never cancelled, so a SIGTERM always leaves a valid MCAP.
         await asyncio.shield(asyncio.to_thread(writer.stop, settings.stop_drain_s, settings.stop_drain_s + 15.0))
         log.info("recording finished: %s", writer.stats())

@@ -19,6 +19,15 @@ class RecorderSettings(ServiceSettings):
 
     key_expr: str = "aermani/**"
     """Key expression to record. The recorder is a ground-station service: the default takes every vehicle."""
+    segmentation: bool = False
+    """Also record the simulator's segmentation images (`camera/@segmentation` of every vehicle: the ground
+    truth the oracle segmenter reads). Its verbatim chunk keeps it out of `key_expr`'s `**`, so without this
+    they are neither recorded nor rendered for the recorder; the launchers turn it on with the `sim` segmenter,
+    whose masks a replay needs."""
+    frame_max_hz: float = Field(1.0, ge=0)
+    """Colour+depth pairs recorded per vehicle and second, at most (0: every frame). Frames are most of a log
+    (a realistic depth PNG is ~240 kB): at 1 Hz an hour of task loop stays under 2 GB (docs/performance.md).
+    The frame each reasoning step was decided on is kept whatever the rate (services/recorder/throttle.py)."""
     out_dir: str = "runs/recordings"
     """Directory the MCAP files go to (created when missing)."""
     file_prefix: str = "aermani"

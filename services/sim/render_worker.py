@@ -19,7 +19,7 @@ import cv2
 
 from services.sim.core import Snapshot
 from shared.frames import DEFAULT_INTRINSICS
-from shared.sensors import Intrinsics, color_message, encode_jpeg, raw16_message
+from shared.sensors import Intrinsics, color_message, depth_message, encode_jpeg, raw16_message
 
 log = logging.getLogger("aermani.sim.render")
 
@@ -29,7 +29,7 @@ class Encoded:
     """A rendered frame encoded as foxglove messages, with the time spent rendering and encoding."""
 
     color: bytes  # serialized foxglove.CompressedImage
-    depth: bytes  # serialized foxglove.RawImage 16UC1 (mm)
+    depth: bytes  # serialized foxglove.CompressedImage, 16-bit PNG (mm)
     segmentation: bytes | None  # serialized foxglove.RawImage 16UC1 (instance ids); None when not asked for
     render_s: float  # time spent in the renderer and encoders
 
@@ -64,7 +64,7 @@ class FrameEncoder:
             depth = cv2.resize(depth, full, interpolation=cv2.INTER_NEAREST)
             inst = cv2.resize(inst, full, interpolation=cv2.INTER_NEAREST)
         color = color_message(rgb, stamp_ns, jpeg=encode_jpeg(rgb, self.quality))
-        return Encoded(color, raw16_message(depth, stamp_ns), raw16_message(inst, stamp_ns) if segmentation else None,
+        return Encoded(color, depth_message(depth, stamp_ns), raw16_message(inst, stamp_ns) if segmentation else None,
                        time.perf_counter() - t0)
 
 

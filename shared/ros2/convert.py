@@ -32,7 +32,15 @@ from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 
-from shared.sensors import BODY_FRAME, WORLD_FRAME, body_quat, decode_proto, quat_to_matrix, stamp_to_ns
+from shared.sensors import (
+    BODY_FRAME,
+    WORLD_FRAME,
+    body_quat,
+    decode_proto,
+    parse_depth,
+    quat_to_matrix,
+    stamp_to_ns,
+)
 
 UNKNOWN_VARIANCE = 1e6  # a covariance entry for a quantity not measured (ROS's convention: very large)
 
@@ -113,10 +121,15 @@ class Converter:
             data=np.frombuffer(pb.data, dtype=np.uint8))
 
     def depth(self, data: bytes) -> Any:
-        pb = decode_proto(RawImage, data)
+        """The bus's 16-bit PNG (or an older log's RawImage) -> sensor_msgs/Image 16UC1, what ROS depth consumers
+        (depth_image_proc, RViz) read without an image_transport plugin."""
+        stamp, img = parse_depth(data)
+        pb = decode_proto(CompressedImage, data)
+        frame_id = pb.frame_id if pb.format else decode_proto(RawImage, data).frame_id
+        h, w = img.shape
         return self.ts.types["sensor_msgs/msg/Image"](
-            header=self.header(stamp_to_ns(pb.timestamp), pb.frame_id), height=pb.height, width=pb.width,
-            encoding=pb.encoding, is_bigendian=0, step=pb.step, data=np.frombuffer(pb.data, dtype=np.uint8))
+            header=self.header(stamp, frame_id), height=h, width=w, encoding="16UC1", is_bigendian=0,
+            step=w * 2, data=np.frombuffer(np.ascontiguousarray(img, dtype="<u2").tobytes(), dtype=np.uint8))
 
     def calibration(self, data: bytes) -> Any:
         pb = decode_proto(CameraCalibration, data)

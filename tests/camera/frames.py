@@ -11,7 +11,7 @@ from mcap.writer import CompressionType, Writer
 
 from shared.keys import Keys
 from shared.mcaplog import ChannelTable
-from shared.sensors import Intrinsics, calibration_message, color_message, raw16_message
+from shared.sensors import Intrinsics, calibration_message, color_message, depth_message
 
 CAL = Intrinsics(width=320, height=240, fx=175.0, fy=175.0, cx=159.5, cy=119.5)
 
@@ -61,7 +61,7 @@ def write_log(path: Path, n: int = 5, vehicle: str = "am7", depth: bool = True) 
         for i, t in enumerate(stamps):
             rgb, d = frame_pixels(i)
             color = (keys.camera_color, "foxglove.CompressedImage", color_message(rgb, t, quality=95), t)
-            dep = (keys.camera_depth, "foxglove.RawImage", raw16_message(d, t), t + 1000)
+            dep = (keys.camera_depth, "foxglove.CompressedImage", depth_message(d, t), t + 1000)
             order = [dep, color] if i % 2 else [color, dep]
             for item in order:
                 if item is dep and not depth:

@@ -24,7 +24,7 @@ from shared.sensors import (
     decode_proto,
     parse_calibration,
     parse_color,
-    parse_raw16,
+    parse_depth,
     parse_transforms,
     stamp_to_ns,
 )
@@ -55,7 +55,7 @@ async def pairs(bus, n: int, timeout: float = 30.0) -> tuple[list[tuple[int, byt
             c = await color.recv(timeout=0.2)
             colors[stamp_to_ns(decode_proto(CompressedImage, c).timestamp)] = c
         while (d := depth.recv_nowait()) is not None:
-            stamp, img = parse_raw16(d)
+            stamp, img = parse_depth(d)
             depths[stamp] = img
         for stamp in sorted(set(colors) & set(depths)):
             out.append((stamp, colors.pop(stamp), depths.pop(stamp)))

@@ -30,7 +30,7 @@ from shared.messages import (
     VehicleState,
     now_ns,
 )
-from shared.sensors import calibration_message, color_message, encode_jpeg, raw16_message
+from shared.sensors import calibration_message, color_message, depth_message, encode_jpeg
 
 _GREY_JPEG = encode_jpeg(np.full((480, 640, 3), 128, np.uint8))
 
@@ -248,7 +248,7 @@ class FakeDepth:
             if self.publishing:
                 stamp = time.time_ns()
                 img = np.full((480, 640), int(self.distance_m * 1000), dtype=np.uint16)
-                self.bus.publish(self.keys.camera_depth, raw16_message(img, stamp))
+                self.bus.publish(self.keys.camera_depth, depth_message(img, stamp))
                 self.bus.publish(self.keys.camera_color, color_message(None, stamp, jpeg=_GREY_JPEG))  # type: ignore[arg-type]
                 self.bus.publish(self.keys.camera_calibration, calibration_message(DEFAULT_INTRINSICS, stamp))
             await asyncio.sleep(0.1)

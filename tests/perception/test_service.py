@@ -35,7 +35,7 @@ from shared.messages import (
     TakeoffCommand,
     Vec3,
 )
-from shared.sensors import color_message, raw16_message, transforms_message
+from shared.sensors import color_message, depth_message, raw16_message, transforms_message
 from tests.helpers import arun, bus_for, run_stack, wait_until
 from tests.perception.scenes import aim_at, projected_corners_in_view, render_view, unoccluded_pixels
 
@@ -204,7 +204,7 @@ async def _bad_and_stale(stack) -> None:
         bus.publish(KEYS.tf, transforms_message([("world", "base_link", pose_matrix(0, 0, 1.5, 0)),
                                                  ("base_link", "camera", base_to_camera())], stamp))
         bus.publish(KEYS.camera_segmentation, raw16_message(seg, stamp))
-        bus.publish(KEYS.camera_depth, raw16_message(depth, stamp))
+        bus.publish(KEYS.camera_depth, depth_message(depth, stamp))
         bus.publish(KEYS.camera_color, color_message(rgb, stamp))
 
         async def fresh() -> ObjectEstimate:

@@ -12,6 +12,9 @@ import pytest
 
 from aermani.demo import run_demo, scenario_for
 from aermani.launcher import available_services
+from shared import mcaplog
+from shared.keys import Keys
+from shared.sensors import CompressedImage, decode_proto, stamp_to_ns
 from tests.reasoner.fake_vlm import FakeVLMServer
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
@@ -45,6 +48,10 @@ def test_demo_rules(tmp_path) -> None:
     # running services report it.
     assert result["segmenter"] == "color" and result["realism"] == "realistic", result
     (log,) = sorted((tmp_path / "rec").glob("*.mcap"))
+    # The recorder keeps 1 frame pair a second, and every frame a step was decided on.
+    colour = list(mcaplog.iter_samples(log, Keys("am1").camera_color.key))
+    logged = {stamp_to_ns(decode_proto(CompressedImage, s.payload).timestamp) for s in colour}
+    assert {s.image_stamp_ns for s in result["steps"]} <= logged
     bag = tmp_path / "bag"
     out = subprocess.run([sys.executable, "-m", "aermani.cli", "log", "export", str(log), "--out", str(bag), "--ros2"],
                          capture_output=True, text=True, timeout=600)

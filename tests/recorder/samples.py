@@ -6,7 +6,7 @@ import numpy as np
 
 from shared import messages as m
 from shared.keys import Keys
-from shared.sensors import Intrinsics, calibration_message, color_message, raw16_message
+from shared.sensors import Intrinsics, calibration_message, color_message, depth_message, raw16_message
 
 K = Keys("am1")
 
@@ -78,7 +78,8 @@ def step_message(task_id: str, step: int, skill: str, argument: str | None = Non
 
 
 def frames(stamp_ns: int, seed: int = 0) -> dict[str, bytes]:
-    """Colour (JPEG CompressedImage), depth and segmentation (RawImage 16UC1) at 160x120 for speed."""
+    """Colour (JPEG CompressedImage), depth (16-bit PNG CompressedImage) and segmentation (RawImage 16UC1) at
+    160x120 for speed."""
     rng = np.random.default_rng(seed)
     rgb = rng.integers(0, 255, (120, 160, 3), dtype=np.uint8)
     depth = np.full((120, 160), 1500 + seed, dtype=np.uint16)
@@ -86,7 +87,7 @@ def frames(stamp_ns: int, seed: int = 0) -> dict[str, bytes]:
     seg[40:80, 60:100] = 1
     return {
         K.camera_color: color_message(rgb, stamp_ns),
-        K.camera_depth: raw16_message(depth, stamp_ns),
+        K.camera_depth: depth_message(depth, stamp_ns),
         K.camera_segmentation: raw16_message(seg, stamp_ns),
     }
 

@@ -21,6 +21,7 @@ from mcap.reader import make_reader
 
 from shared import mcaplog
 from shared.messages import MESSAGE_TYPES, Health, ReasoningStep, VehicleState
+from shared.sensors import parse_depth
 from tests.helpers import Stack, bus_for
 from tests.recorder.samples import K, calibration, example, frames, step_message
 
@@ -90,7 +91,8 @@ async def publish_demo(bus) -> Counter:
 
 
 async def test_records_every_key_with_schemas_then_replays_the_steps(tmp_path: Path) -> None:
-    stack = recorder_stack(tmp_path)
+    # Every frame (no rate limit: the counts are compared) and the oracle's masks too, as `sim` runs do.
+    stack = recorder_stack(tmp_path, AERMANI_RECORDER_SEGMENTATION="1", AERMANI_RECORDER_FRAME_MAX_HZ="0")
     with stack:
         async def record() -> Counter:
             async with bus_for(stack) as bus:
@@ -119,7 +121,12 @@ async def test_records_every_key_with_schemas_then_replays_the_steps(tmp_path: P
                 stamp = img.timestamp.seconds * 10**9 + img.timestamp.nanos
                 assert message.publish_time == stamp
                 publish_times.setdefault(channel.topic, []).append(stamp)
-            elif channel.topic in (K.camera_depth, K.camera_segmentation):
+            elif channel.topic == K.camera_depth:
+                assert schema.name == "foxglove.CompressedImage"
+                img = CompressedImage()
+                img.ParseFromString(message.data)
+                assert img.format == "png" and parse_depth(message.data)[1].shape == (120, 160)
+            elif channel.topic == K.camera_segmentation:
                 assert schema.name == "foxglove.RawImage"
                 raw = RawImage()
                 raw.ParseFromString(message.data)

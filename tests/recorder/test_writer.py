@@ -240,7 +240,10 @@ def test_publish_time_is_the_message_stamp() -> None:
     f = frames(123_456_789_000, 0)
     assert mcaplog.publish_time_ns("application/protobuf;foxglove.CompressedImage", f[K.camera_color], 1) \
         == 123_456_789_000
-    assert mcaplog.publish_time_ns("application/protobuf;foxglove.RawImage", f[K.camera_depth], 1) == 123_456_789_000
+    assert mcaplog.publish_time_ns("application/protobuf;foxglove.CompressedImage", f[K.camera_depth], 1) \
+        == 123_456_789_000
+    assert mcaplog.publish_time_ns("application/protobuf;foxglove.RawImage", f[K.camera_segmentation], 1) \
+        == 123_456_789_000
     data, enc = encode(VehicleState(stamp_ns=42))
     assert mcaplog.publish_time_ns(str(enc), data, 1) == 42
     assert mcaplog.publish_time_ns("zenoh/bytes", b"\x00", 7) == 7

@@ -228,6 +228,42 @@ async def test_abort_works_from_every_identity_and_state_only_from_the_drone(rou
     await main()
 
 
+async def test_depth_crosses_to_the_ground_once_a_second_and_segmentation_passes_the_acl(routers):
+    """The drone router thins depth on its TLS link to the ground (1 Hz) while the vehicle's own subscribers get
+    every frame; the oracle's segmentation key (a verbatim chunk, which `**` rules do not match) is allowed."""
+    async def main():
+        async with Deployment(routers) as dep:
+            camera = await Bus.open(connect=[dep.r["drone"]], connect_timeout_s=5)
+            try:
+                depth_ground = dep.reasoner.subscribe(K.camera_depth.key, maxsize=1000)
+                seg_ground = dep.reasoner.subscribe(K.camera_segmentation.key, maxsize=1000)
+                depth_drone = dep.bridge.subscribe(K.camera_depth.key, maxsize=1000)
+                got = None
+                for _ in range(100):  # until the ground's subscriptions have reached the drone router
+                    camera.publish(K.camera_segmentation.key, b"seg", reliable=True)
+                    with contextlib.suppress(TimeoutError):
+                        got = await seg_ground.recv_sample(timeout=0.1)
+                        break
+                assert got is not None and got.payload == b"seg"
+                loop = asyncio.get_running_loop()
+                t0, sent = loop.time(), 45
+                for i in range(sent):  # 3 s at 15 fps
+                    camera.publish(K.camera_depth.key, b"d%d" % i, reliable=True)
+                    await asyncio.sleep(max(0.0, t0 + (i + 1) / 15 - loop.time()))
+                elapsed = loop.time() - t0
+                at_drone = [await depth_drone.recv_sample(timeout=10) for _ in range(sent)]
+                await asyncio.sleep(0.5)
+                at_ground = []
+                while (rec := depth_ground.recv_nowait()) is not None:
+                    at_ground.append(rec)
+                assert len(at_drone) == sent
+                assert 1 <= len(at_ground) <= elapsed + 2, (len(at_ground), elapsed)
+            finally:
+                await camera.close()
+
+    await main()
+
+
 @pytest.mark.integration
 async def test_secure_stack_real_bridge_obeys_the_ground_only(tmp_path):
     """`aermani up --secure` in miniature: the launcher's two routers, the real simulator and bridge as

@@ -11,7 +11,7 @@ from pymavlink.dialects.v20 import common as mav
 
 from shared.frames import DEFAULT_INTRINSICS
 from shared.messages import JudgeRequest, Pose, Scenario, Vec3
-from shared.sensors import backproject, parse_calibration, parse_color, parse_raw16, parse_transforms
+from shared.sensors import backproject, parse_calibration, parse_color, parse_depth, parse_raw16, parse_transforms
 from tests.helpers import bus_for, run_stack
 from tests.sim.test_mavlink import Client
 
@@ -41,6 +41,9 @@ async def _frame_set(bus, keys, timeout: float = 30.0):
                     elif name == "tf":
                         tfs = parse_transforms(data)
                         seen[name][next(iter(tfs.values()))[0]] = tfs
+                    elif name == "depth":
+                        stamp, img = parse_depth(data)
+                        seen[name][stamp] = img
                     else:
                         stamp, img = parse_raw16(data)
                         seen[name][stamp] = img

@@ -13,7 +13,7 @@ from pathlib import Path
 from services.camera.sources.base import Capture, PlayedSource, register
 from shared.errors import CameraError, DecodeError
 from shared.keys import CAMERA_CALIBRATION, CAMERA_COLOR, CAMERA_DEPTH
-from shared.sensors import CompressedImage, decode_proto, parse_calibration, parse_raw16, stamp_to_ns
+from shared.sensors import CompressedImage, decode_proto, parse_calibration, parse_depth, stamp_to_ns
 
 
 def _vehicles_with_color(path: Path) -> list[str]:
@@ -79,7 +79,7 @@ class McapSource(PlayedSource):
                     else:
                         pending_color[stamp] = jpeg
                 elif s.key == self.depth_key:
-                    stamp, depth = parse_raw16(s.payload)
+                    stamp, depth = parse_depth(s.payload)  # PNG, or RawImage in older logs
                     if stamp in pending_color:
                         yield Capture(jpeg=pending_color.pop(stamp), depth_mm=depth)
                     else:

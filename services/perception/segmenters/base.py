@@ -59,7 +59,7 @@ class Segmenter(ABC):
     a text-prompted model (sam3) overrides."""
 
     type: ClassVar[str] = ""
-    needs_segmentation: ClassVar[bool] = False  # wants camera/segmentation + sim/labels (simulator only)
+    needs_segmentation: ClassVar[bool] = False  # wants camera/@segmentation + sim/labels (simulator only)
 
     def __init__(self, settings: PerceptionSettings) -> None:
         self.settings = settings

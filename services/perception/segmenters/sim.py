@@ -18,7 +18,7 @@ def _instance_pixels(flat: np.ndarray, inst: int) -> np.ndarray:
 
 @register
 class SimSegmenter(Segmenter):
-    """Masks come from `camera/segmentation` (same stamp as colour/depth), names from `sim/labels`. Only the
+    """Masks come from `camera/@segmentation` (same stamp as colour/depth), names from `sim/labels`. Only the
     matching is exercised here, so it measures the geometry and the query logic without vision errors."""
 
     type = "sim"
