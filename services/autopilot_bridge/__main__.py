@@ -6,7 +6,7 @@ from shared.service import main_for
 
 
 def main() -> None:
-    main_for("autopilot_bridge", run, BridgeSettings)
+    main_for("autopilot_bridge", run, BridgeSettings, announce_at_start=False)
 
 
 if __name__ == "__main__":

@@ -44,6 +44,7 @@ from shared.messages import (
     now_ns,
 )
 from shared.sensors import BODY_FRAME, WORLD_FRAME, pose_matrix, transforms_message
+from shared.service import announce
 
 log = logging.getLogger("aermani.autopilot_bridge")
 
@@ -830,6 +831,7 @@ class Bridge:
         self.loop = asyncio.get_running_loop()
         self.link.start(self.loop, self.on_message)
         self.bus.serve(self.keys.autopilot_command, self.serve_command, with_caller=True)
+        announce(self.bus, self.s, "autopilot_bridge")  # alive once it answers commands
         log.info("bridge on %s; serving %s", self.s.connection, self.keys.autopilot_command)
         loops = [asyncio.create_task(c) for c in (self.publish_state_loop(stop), self.heartbeat_loop(stop),
                                                   self.health_loop(stop), self.abort_loop(stop, self.keys.abort),

@@ -6,7 +6,7 @@ from shared.service import main_for
 
 
 def main() -> None:
-    main_for("executor", run, ExecutorSettings)
+    main_for("executor", run, ExecutorSettings, announce_at_start=False)
 
 
 if __name__ == "__main__":

@@ -43,6 +43,7 @@ from shared.messages import (
     now_ns,
 )
 from shared.sensors import parse_calibration, parse_depth
+from shared.service import announce
 
 UNKNOWN_HELD = "unidentified object"
 SLIP_S = 0.3
@@ -461,6 +462,7 @@ class Executor:
 
         self.bus.serve(self.keys.skills, skills)
         self.bus.serve(self.keys.check_skill, self.handle_check_skill)
+        announce(self.bus, self.settings, "executor")  # alive once it answers: a restart's new token means ready
         log.info("executor serving %d skills: %s", len(self.skills), ", ".join(self.skills))
         try:
             async with asyncio.TaskGroup() as tg:

@@ -6,7 +6,7 @@ from shared.service import main_for
 
 
 def main() -> None:
-    main_for("perception", run, PerceptionSettings)
+    main_for("perception", run, PerceptionSettings, announce_at_start=False)
 
 
 if __name__ == "__main__":

@@ -22,6 +22,7 @@ from shared.bus import Bus
 from shared.errors import AermaniError, DecodeError
 from shared.messages import Health, LocalizeRequest, ObjectEstimate, PlacementEstimate, SimLabels
 from shared.sensors import parse_calibration
+from shared.service import announce
 
 log = logging.getLogger("aermani.perception")
 
@@ -194,6 +195,7 @@ async def run(bus: Bus, settings: PerceptionSettings, stop: asyncio.Event) -> No
         tasks.append(asyncio.create_task(svc._ingest(k.sim_labels, st.add_labels, SimLabels)))
     bus.serve(k.localize_object, svc.localize_object, raw=True)
     bus.serve(k.localize_placement, svc.localize_placement, raw=True)
+    announce(bus, settings, "perception")  # alive once it answers
     tasks += [asyncio.create_task(svc._detections(stop)), asyncio.create_task(svc._health(stop))]
     log.info("perception ready: segmenter %s, serving %s and %s", segmenter.type, k.localize_object,
              k.localize_placement)

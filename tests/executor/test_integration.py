@@ -29,7 +29,7 @@ from shared.messages import (
     SkillStatus,
 )
 from shared.tasks import ask_judge
-from tests.helpers import bus_for, run_stack, skill_outcome
+from tests.helpers import bus_for, run_stack, skill_outcome, wait_until
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
@@ -301,6 +301,10 @@ async def test_bridge_and_executor_killed_while_holding_then_another_grasp_keeps
             p = stack.find(name)
             stack.kill(name, signal.SIGKILL)
             p.proc.wait(timeout=10)
+        # The router drops a killed session's liveliness token only once it sees the connection gone: until then
+        # wait_alive would take the dead executor's token for the new one's, and ask a queryable not yet declared.
+        killed = {("am1", "autopilot_bridge"), ("am1", "executor")}
+        await wait_until(lambda: not killed & stack.alive(), 30, what="the killed services' tokens gone")
         for name in ("autopilot_bridge", "executor"):
             stack.find(name).start()
         stack.wait_alive(timeout=120)
