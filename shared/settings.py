@@ -33,6 +33,12 @@ class ServiceSettings(BaseSettings):
     """Zenoh session mode: client (to a router), peer or router."""
     log_level: str = Field("INFO", validation_alias=AliasChoices("log_level", "AERMANI_LOG_LEVEL"))
     """Python log level."""
+    crash_backoff_s: float = Field(0.0, ge=0.0, le=600.0,
+                                   validation_alias=AliasChoices("crash_backoff_s", "AERMANI_CRASH_BACKOFF_S"))
+    """After a crash (a bad setting included), wait before exiting: 0.5 s, doubling with each crash in a row up
+    to this many seconds (a run of a minute or more starts over). 0 (default) exits at once, as `aermani up`
+    wants (its supervisor backs off itself); compose sets 30, because podman restarts a container at once
+    (Docker backs off itself, from 0.1 s). The count lives in the container's /tmp."""
     mount: Mount = Field(default_factory=Mount, validation_alias=AliasChoices("mount"))
     """Camera and gripper mounts on the body: ONE definition for every service (env AERMANI_MOUNT_*)."""
 
