@@ -57,7 +57,8 @@ async def serve_forever(name: str, run: RunFn[S], settings: S, stop: asyncio.Eve
     for sig in (signal.SIGINT, signal.SIGTERM):
         with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
             loop.add_signal_handler(sig, stop.set)
-    opening = asyncio.create_task(Bus.open(connect=settings.zenoh_connect, mode=settings.zenoh_mode))
+    opening = asyncio.create_task(Bus.open(connect=settings.zenoh_connect, mode=settings.zenoh_mode,
+                                           certs=settings.zenoh_certs or None, identity=settings.zenoh_identity))
     stopper = asyncio.create_task(stop.wait())
     await asyncio.wait({opening, stopper}, return_when=asyncio.FIRST_COMPLETED)
     if not opening.done():
