@@ -7,9 +7,11 @@ variable that compose or docs/*.md names is a real setting (or one of compose's 
 from __future__ import annotations
 
 import importlib.util
+import os
 import re
 from pathlib import Path
 
+import pytest
 import yaml
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -249,7 +251,7 @@ def service_env(name: str, host: dict[str, str]) -> dict[str, str]:
 def service_settings(name: str, host: dict[str, str], monkeypatch: pytest.MonkeyPatch):
     """The service's real settings class, built from exactly the environment compose gives it."""
     cls = settings_classes()[f"AERMANI_{name.upper()}_"]
-    for var in [v for v in __import__("os").environ if v.startswith("AERMANI_")]:
+    for var in [v for v in os.environ if v.startswith("AERMANI_")]:
         monkeypatch.delenv(var)
     for var, value in service_env(name, host).items():
         monkeypatch.setenv(var, value)
