@@ -1,8 +1,10 @@
 # One image for every aermani service; the compose file picks the module with `command`.
 # BASE: any Debian bookworm image with python3 (3.11) and its venv module. Without a container registry, build
 # one with debootstrap (scripts/compose_test.sh does; docs/deploy.md explains).
+# Targets: the default (the last stage) is the image of every service; `camera` adds the RealSense SDK for the
+# camera service (compose builds it for `camera`).
 ARG BASE=python:3.11-slim-bookworm
-FROM ${BASE}
+FROM ${BASE} AS aermani
 
 # Open3D links libusb, libGL/EGL and X11 even when headless; OpenCV/Open3D need libgomp. MuJoCo (the
 # simulator) renders headless through EGL on Mesa's software rasterizer, or OSMesa with MUJOCO_GL=osmesa.
@@ -41,3 +43,23 @@ RUN useradd --create-home --uid 1000 aermani && mkdir -p /data/logs && chown -R 
 USER aermani
 ENTRYPOINT ["python", "-m"]
 CMD ["services.gateway"]
+
+# The camera service's image: the above plus pyrealsense2 (librealsense; it reaches the camera through libusb,
+# installed above, on the host's /dev that compose shares with the USB device rule). PyPI has wheels for x86_64;
+# for a Jetson (aarch64) pass a pyrealsense2 you built or found as REALSENSE_PACKAGE (a wheel URL or an index's
+# name, with PIP_EXTRA_INDEX_URL), or REALSENSE_PACKAGE= (empty) for an image without it (the realsense source
+# then says what to install). The ZED SDK needs NVIDIA's runtime and is not here (docs/hardware.md).
+FROM aermani AS camera
+ARG REALSENSE_PACKAGE=pyrealsense2
+ARG PIP_INDEX_URL= PIP_EXTRA_INDEX_URL= PIP_TRUSTED_HOST= PIP_FIND_LINKS= PIP_CERT= PIP_CONSTRAINT=
+USER root
+RUN if [ -n "$REALSENSE_PACKAGE" ]; then \
+      pip install --no-cache-dir "$REALSENSE_PACKAGE" || { echo "no $REALSENSE_PACKAGE for $(uname -m) here: pass \
+--build-arg REALSENSE_PACKAGE=<a pyrealsense2 wheel for this platform>, or REALSENSE_PACKAGE= to build without it \
+(compose: AERMANI_REALSENSE_PACKAGE)" >&2; exit 1; }; \
+      python -c "import pyrealsense2"; \
+    fi
+USER aermani
+
+# The default target: every service's image.
+FROM aermani

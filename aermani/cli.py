@@ -25,6 +25,27 @@ app = typer.Typer(help="aermani: language-driven aerial manipulation (AERMANI-VL
 console = Console()
 
 
+@app.callback()
+def _global_options(
+    client_certs: Annotated[str | None, typer.Option(
+        "--client-certs", help="Certificate directory (`aermani certs init`) for a `tls/...` --connect endpoint: "
+        "reach a secure deployment's router (compose's ground router on :7448) from this host. Also "
+        "AERMANI_ZENOH_CERTS.")] = None,
+    identity: Annotated[str | None, typer.Option(
+        help="Whose certificate to present with --client-certs: client (observe and abort), ground (command) "
+             "or drone. Also AERMANI_ZENOH_IDENTITY; default client.")] = None,
+) -> None:
+    """Options for every command that connects to a router."""
+    import os
+
+    if identity is not None and identity not in ("client", "ground", "drone"):
+        raise typer.BadParameter(f"{identity!r}: use client, ground or drone", param_hint="--identity")
+    if client_certs is not None:
+        os.environ["AERMANI_ZENOH_CERTS"] = client_certs
+    if identity is not None:
+        os.environ["AERMANI_ZENOH_IDENTITY"] = identity
+
+
 @app.command()
 def up(
     services: Annotated[str | None, typer.Option(help="Comma-separated services to start (default: all that exist; "

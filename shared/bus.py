@@ -23,6 +23,7 @@ import functools
 import json
 import logging
 import math
+import os
 import threading
 import time
 from collections import deque
@@ -84,6 +85,25 @@ def zenoh_config(mode: str = "client", connect: list[str] | tuple[str, ...] = ()
         timeout_ms = -1 if connect_timeout_s is None else int(connect_timeout_s * 1000)
         cfg.insert_json5("connect/timeout_ms", json.dumps(timeout_ms))
     return cfg
+
+
+def tls_client_config(connect: list[str], certs: str | None = None, identity: str | None = None,
+                      connect_timeout_s: float | None = None) -> zenoh.Config:
+    """A client config for `tls/` endpoints with the certificate of `identity` in `certs` (defaults from
+    AERMANI_ZENOH_CERTS / AERMANI_ZENOH_IDENTITY), or a BusError saying how to give one."""
+    from shared.errors import ConfigError
+    from shared.security import client_config
+
+    certs = certs or os.environ.get("AERMANI_ZENOH_CERTS", "")
+    identity = identity or os.environ.get("AERMANI_ZENOH_IDENTITY", "") or "client"
+    if not certs:
+        raise BusError(f"{connect} is a mutual-TLS router: it needs a client certificate. Pass "
+                       "`aermani --client-certs DIR [--identity client|ground] ...` or set AERMANI_ZENOH_CERTS "
+                       "(a directory from `aermani certs init`)")
+    try:
+        return client_config(certs, identity, connect, connect_timeout_s=connect_timeout_s)
+    except ConfigError as exc:
+        raise BusError(str(exc)) from exc
 
 
 def _fail(fut: asyncio.Future[zenoh.Session], exc: BaseException) -> None:
@@ -518,8 +538,14 @@ class Bus:
     @classmethod
     async def open(cls, connect: list[str] | tuple[str, ...] = ("tcp/127.0.0.1:7447",), mode: str = "client",
                    listen: list[str] | tuple[str, ...] = (), config: zenoh.Config | None = None,
-                   connect_timeout_s: float | None = None) -> Bus:
+                   connect_timeout_s: float | None = None, certs: str | None = None,
+                   identity: str | None = None) -> Bus:
+        """A session on `connect`. A `tls/` endpoint (a secure deployment's router) needs a client certificate:
+        `certs` (a directory from `aermani certs init`) and `identity` (ground, drone or client), by default
+        AERMANI_ZENOH_CERTS and AERMANI_ZENOH_IDENTITY (client), which `aermani --client-certs` sets."""
         _init_zenoh_log()
+        if config is None and any(e.startswith("tls/") for e in connect):
+            config = tls_client_config(list(connect), certs, identity, connect_timeout_s)
         cfg = config or zenoh_config(mode=mode, connect=connect, listen=listen, connect_timeout_s=connect_timeout_s)
         try:
             session = await _open_in_daemon_thread(cfg)

@@ -8,7 +8,10 @@ import contextlib
 import logging
 import os
 import signal
+import tempfile
+import time
 from collections.abc import Callable, Coroutine
+from pathlib import Path
 from typing import TypeVar
 
 from shared.bus import Bus
@@ -54,7 +57,8 @@ async def serve_forever(name: str, run: RunFn[S], settings: S, stop: asyncio.Eve
     for sig in (signal.SIGINT, signal.SIGTERM):
         with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
             loop.add_signal_handler(sig, stop.set)
-    opening = asyncio.create_task(Bus.open(connect=settings.zenoh_connect, mode=settings.zenoh_mode))
+    opening = asyncio.create_task(Bus.open(connect=settings.zenoh_connect, mode=settings.zenoh_mode,
+                                           certs=settings.zenoh_certs or None, identity=settings.zenoh_identity))
     stopper = asyncio.create_task(stop.wait())
     await asyncio.wait({opening, stopper}, return_when=asyncio.FIRST_COMPLETED)
     if not opening.done():
@@ -102,11 +106,54 @@ def die_with_parent() -> None:
         raise SystemExit(f"the launcher (pid {parent}) is gone; not starting")
 
 
+CRASH_RESET_S = 60.0
+"""A run at least this long was healthy: the next crash waits the shortest delay again."""
+
+
+def crash_delay(name: str, max_s: float, ran_s: float, state_dir: str | Path | None = None) -> tuple[float, int]:
+    """How long a crashed service waits before it exits, and the how-many-th crash in a row this is: 0.5 s
+    doubling per crash up to `max_s`, the count kept in `state_dir` (the temporary directory: a restarted
+    container keeps its own /tmp) and reset by a run of CRASH_RESET_S or longer."""
+    path = Path(state_dir or tempfile.gettempdir()) / f"aermani-crashes-{name}"
+    crashes = 0
+    with contextlib.suppress(OSError, ValueError):
+        crashes = int(path.read_text().strip() or 0)
+    if ran_s >= CRASH_RESET_S:
+        crashes = 0
+    with contextlib.suppress(OSError):
+        path.write_text(str(crashes + 1))
+    return min(max_s, 0.5 * 2.0 ** min(crashes, 20)), crashes + 1
+
+
+def _crash_backoff_setting() -> float:
+    """AERMANI_CRASH_BACKOFF_S read without the settings class (a bad setting is one of the crashes)."""
+    try:
+        return min(600.0, max(0.0, float(os.environ.get("AERMANI_CRASH_BACKOFF_S", "0") or 0)))
+    except ValueError:
+        return 0.0
+
+
 def main_for(name: str, run: RunFn[S], settings_cls: type[S], *, settings: S | None = None,
              announce_at_start: bool = True) -> None:
-    """Body of every `services/<name>/__main__.py`."""
+    """Body of every `services/<name>/__main__.py`. With AERMANI_CRASH_BACKOFF_S, a crash waits before the
+    process exits (`crash_delay`), so a container engine that restarts at once does not spin."""
     die_with_parent()
-    settings = settings or settings_cls()
-    setup_logging(settings.log_level, name)
-    with contextlib.suppress(KeyboardInterrupt):
-        asyncio.run(serve_forever(name, run, settings, announce_at_start=announce_at_start))
+    started = time.monotonic()
+    try:
+        settings = settings or settings_cls()
+        setup_logging(settings.log_level, name)
+        with contextlib.suppress(KeyboardInterrupt):
+            asyncio.run(serve_forever(name, run, settings, announce_at_start=announce_at_start))
+    except BaseException as exc:
+        if isinstance(exc, SystemExit) and exc.code in (0, None):
+            raise
+        max_s = _crash_backoff_setting()
+        if max_s > 0:
+            delay, nth = crash_delay(name, max_s, time.monotonic() - started)
+            if not logging.getLogger().handlers:
+                setup_logging("INFO", name)
+            log.error("%s failed (%s: %s); exiting in %.1f s (crash %d in a row, AERMANI_CRASH_BACKOFF_S=%g)",
+                      name, type(exc).__name__, str(exc).splitlines()[0] if str(exc) else "", delay, nth, max_s)
+            with contextlib.suppress(KeyboardInterrupt):
+                time.sleep(delay)
+        raise

@@ -5,7 +5,7 @@ from __future__ import annotations
 import logging
 import os
 import re
-from typing import Annotated
+from typing import Annotated, Literal
 
 from pydantic import AliasChoices, Field, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
@@ -31,8 +31,20 @@ class ServiceSettings(BaseSettings):
     """Zenoh endpoints to connect to (JSON list or comma-separated), e.g. tcp/127.0.0.1:7447."""
     zenoh_mode: str = Field("client", validation_alias=AliasChoices("zenoh_mode", "AERMANI_ZENOH_MODE"))
     """Zenoh session mode: client (to a router), peer or router."""
+    zenoh_certs: str = Field("", validation_alias=AliasChoices("zenoh_certs", "AERMANI_ZENOH_CERTS"))
+    """Certificate directory (`aermani certs init`) for `tls/` endpoints in zenoh_connect: a secure router
+    accepts only a session with a certificate of its deployment's CA."""
+    zenoh_identity: Literal["client", "ground", "drone"] = Field(
+        "client", validation_alias=AliasChoices("zenoh_identity", "AERMANI_ZENOH_IDENTITY"))
+    """Whose certificate a `tls/` session presents: client (observes, may abort), ground (commands) or drone."""
     log_level: str = Field("INFO", validation_alias=AliasChoices("log_level", "AERMANI_LOG_LEVEL"))
     """Python log level."""
+    crash_backoff_s: float = Field(0.0, ge=0.0, le=600.0,
+                                   validation_alias=AliasChoices("crash_backoff_s", "AERMANI_CRASH_BACKOFF_S"))
+    """After a crash (a bad setting included), wait before exiting: 0.5 s, doubling with each crash in a row up
+    to this many seconds (a run of a minute or more starts over). 0 (default) exits at once, as `aermani up`
+    wants (its supervisor backs off itself); compose sets 30, because podman restarts a container at once
+    (Docker backs off itself, from 0.1 s). The count lives in the container's /tmp."""
     mount: Mount = Field(default_factory=Mount, validation_alias=AliasChoices("mount"))
     """Camera and gripper mounts on the body: ONE definition for every service (env AERMANI_MOUNT_*)."""
 

@@ -49,6 +49,10 @@ from shared.service import announce
 log = logging.getLogger("aermani.autopilot_bridge")
 
 SERVICE = "autopilot_bridge"
+AUTO_TF_GRACE_S = 2.5
+"""publish_tf `auto`: how long after start the bridge waits for the simulator's health before publishing tf."""
+AUTO_TF_SIM_FRESH_S = 3.0
+"""publish_tf `auto`: a simulator health that says it publishes tf counts for this long."""
 UINT16_MAX = 65535
 
 
@@ -81,6 +85,8 @@ class Bridge:
         self.keys = settings.keys
         self.loop: asyncio.AbstractEventLoop | None = None
         self.t0 = time.monotonic()
+        self.sim_tf_mono: float | None = None
+        """When the vehicle's simulator last said it publishes tf (publish_tf `auto`)."""
         self.stream = SetpointStream(self._send_setpoint, settings.stream_rate_hz,
                                      realtime_priority=settings.stream_realtime_priority)
         # autopilot identity, learned from the first PX4 HEARTBEAT
@@ -780,7 +786,7 @@ class Bridge:
                                    "target_system": self.target_system, "mode": self.mode,
                                    "override": self.override,
                                    "peer": f"{self.link.peer[0]}:{self.link.peer[1]}" if self.link.peer else None,
-                                   "connection": self.s.connection}
+                                   "connection": self.s.connection, "publishes_tf": self.publishes_tf()}
         ok = self.link_ok
         return Health(service=SERVICE, ok=ok, message="" if ok else (self.message or "no autopilot link"),
                       details=details)
@@ -792,7 +798,7 @@ class Bridge:
             st = self.state()
             assert self.bus is not None
             self.bus.publish(self.keys.autopilot_state, st, reliable=False)
-            if self.s.publish_tf and self.have_position:
+            if self.have_position and self.publishes_tf():
                 # The message's pitch is nose-up positive; FLU's rotation about +y (left) is nose-down.
                 T = pose_matrix(*self.position, self.yaw, self.roll, -self.pitch)  # noqa: N806
                 self.bus.publish(self.keys.tf, transforms_message([(WORLD_FRAME, BODY_FRAME, T)], st.stamp_ns),
@@ -802,6 +808,27 @@ class Bridge:
             if delay < -period:
                 next_t = time.monotonic()
             await asyncio.sleep(max(0.0, delay))
+
+    def publishes_tf(self, now: float | None = None) -> bool:
+        """Whether world->base_link is ours to publish now (settings.publish_tf; `auto`: unless the vehicle's
+        simulator reported within AUTO_TF_SIM_FRESH_S that it publishes tf, decided after AUTO_TF_GRACE_S)."""
+        if self.s.publish_tf != "auto":
+            return bool(self.s.publish_tf)
+        now = time.monotonic() if now is None else now
+        if now - self.t0 < AUTO_TF_GRACE_S:
+            return False
+        return self.sim_tf_mono is None or now - self.sim_tf_mono > AUTO_TF_SIM_FRESH_S
+
+    async def sim_health_loop(self, stop: asyncio.Event) -> None:
+        """publish_tf `auto`: note when the vehicle's simulator says it publishes the camera and tf."""
+        assert self.bus is not None
+        sub = self.bus.subscribe(self.keys.health("sim"), maxsize=4, overflow="drop_oldest")
+        while not stop.is_set():
+            health = await sub.recv()
+            if health.details.get("camera") is True:
+                if self.sim_tf_mono is None:
+                    log.info("publish_tf auto: the simulator publishes tf; the bridge does not")
+                self.sim_tf_mono = time.monotonic()
 
     async def heartbeat_loop(self, stop: asyncio.Event) -> None:
         while not stop.is_set():
@@ -836,6 +863,8 @@ class Bridge:
         loops = [asyncio.create_task(c) for c in (self.publish_state_loop(stop), self.heartbeat_loop(stop),
                                                   self.health_loop(stop), self.abort_loop(stop, self.keys.abort),
                                                   self.abort_loop(stop, FLEET_ABORT))]
+        if self.s.publish_tf == "auto":
+            loops.append(asyncio.create_task(self.sim_health_loop(stop)))
         stopper = asyncio.create_task(stop.wait())
         try:
             done, _ = await asyncio.wait([*loops, stopper], return_when=asyncio.FIRST_COMPLETED)

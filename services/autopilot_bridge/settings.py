@@ -96,9 +96,12 @@ class BridgeSettings(ServiceSettings):
     """Why the override is on (recorded with every overridden verdict on autopilot/preflight)."""
     preflight_min_battery: float = Field(30.0, ge=0.0, le=100.0)
     """Preflight refuses to arm below this battery charge (percent, when PX4 reports one)."""
-    publish_tf: bool = False
+    publish_tf: bool | Literal["auto"] = False
     """Publish tf world->base_link from LOCAL_POSITION_NED/ATTITUDE. Off by default because the simulator
-    publishes tf itself; turn it on for real hardware and PX4 SITL."""
+    publishes tf itself; on for real hardware and PX4 SITL. `auto` (compose's drone profile): on, except while
+    the vehicle's simulator says in its health that it publishes the camera and tf (the `sim` profile), so one
+    drone profile serves a real vehicle and the simulator without two world->base_link publishers. It decides
+    after AUTO_TF_GRACE_S from start (the simulator's health comes at 1 Hz)."""
     health_period_s: float = Field(1.0, gt=0.0)
     """Period of health/autopilot_bridge."""
     gil_switch_interval_s: float = Field(0.0005, gt=0.0, le=0.01)

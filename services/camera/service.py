@@ -81,7 +81,8 @@ class Capturer:
             if not self.source.retry_open:
                 self.fatal = f"cannot open {self.source.describe()}: {self.open_error}"
                 return False
-            log.warning("cannot open %s: %s; retrying in %.0f s", self.source.describe(), self.open_error, delay)
+            # The same words as health's message, so the log says it too.
+            log.warning("camera absent: %s; retrying in %.0f s", self.open_error, delay)
             self.stop.wait(delay)
             delay = min(MAX_REOPEN_S, delay * 2)
         return False

@@ -240,3 +240,32 @@ async def test_bridge_death_makes_sim_hold_then_land_and_sim_death_is_link_loss(
     env = {**ENV, "AERMANI_SIM_FAILSAFE_LAND_DELAY": "8"}
     with run_stack(["sim", "autopilot_bridge"], tmp_path, env=env) as stack:
         await body(stack)
+
+
+@pytest.mark.parametrize("sim_camera", [True, False], ids=["sim publishes tf", "sim camera off"])
+async def test_publish_tf_auto_leaves_tf_to_a_simulator_that_publishes_it(sim_camera: bool, tmp_path) -> None:
+    """publish_tf `auto` (compose's drone profile): with the simulator's camera on, world->base_link comes
+    from the simulator alone (its tf messages also carry the camera mount; the bridge's would carry only
+    world->base_link); with it off (a real vehicle, or a camera service), the bridge publishes it."""
+    from shared.sensors import parse_transforms
+
+    env = {**ENV, "AERMANI_AUTOPILOT_BRIDGE_PUBLISH_TF": "auto", "AERMANI_SIM_CAMERA": str(sim_camera).lower()}
+    with run_stack(["sim", "autopilot_bridge"], tmp_path, env=env) as stack:
+        async with bus_for(stack) as bus:
+            health = bus.subscribe(KEYS.health("autopilot_bridge"))
+            h = await health.recv(timeout=20)
+            while not h.ok:  # the link to the simulator is up
+                h = await health.recv(timeout=20)
+            await asyncio.sleep(3.0)  # past the bridge's auto grace (2.5 s from its start)
+            tf = bus.subscribe(KEYS.tf)
+            await asyncio.sleep(3.0)
+            messages = []
+            while (m := tf.recv_nowait()) is not None:
+                messages.append(set(parse_transforms(m)))
+            h = await bus.subscribe(KEYS.health("autopilot_bridge")).recv(timeout=20)  # a report from now
+    bridge_only = [m for m in messages if m == {("world", "base_link")}]
+    assert messages, "no tf at all"
+    if sim_camera:
+        assert not bridge_only and h.details["publishes_tf"] is False, (len(bridge_only), h.details)
+    else:
+        assert len(bridge_only) == len(messages) >= 30 and h.details["publishes_tf"] is True, len(messages)

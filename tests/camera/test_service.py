@@ -194,6 +194,33 @@ async def test_an_absent_camera_shows_in_health(tmp_path):
     assert h.details["opened"] is False and h.details["frames"] == 0
 
 
+async def test_an_absent_realsense_is_absent_not_hung(tmp_path):
+    """Under the supervisor, with the real SDK and no device: health says "camera absent: no RealSense
+    connected" within seconds, the log says it at every try, and the service is never killed as hung (an open
+    that went straight to the SDK's pipeline blocked the process for 15 s per try)."""
+    pytest.importorskip("pyrealsense2", reason="pyrealsense2 (pip install -e .[realsense]) is not installed")
+    import pyrealsense2 as rs
+
+    if len(rs.context().query_devices()):
+        pytest.skip("a RealSense is connected to this machine")
+    with run_stack(["camera"], tmp_path, env=camera_env(source="realsense", reopen_s=0.5), supervise=True) as stack:
+        async with bus_for(stack) as bus:
+            sub = bus.subscribe(K.health("camera"))
+            h = await sub.recv(timeout=10)
+            for _ in range(5):
+                if h.message.startswith("camera absent"):
+                    break
+                h = await sub.recv(timeout=10)
+            await asyncio.sleep(6.0)  # past the supervisor's 4 s hung limit and several retries
+            last = await sub.recv(timeout=5)
+        log = stack.find("camera").log_path.read_text()
+        events = list(stack.events)
+    assert not h.ok and h.message.startswith("camera absent: no RealSense connected"), h
+    assert last.message.startswith("camera absent: no RealSense connected"), last
+    assert log.count("camera absent: no RealSense connected") >= 3, log[-2000:]
+    assert not [e for e in events if "hung" in e or "exited" in e or "restart" in e], events
+
+
 async def test_colour_only_camera_makes_perception_say_3d_needs_depth(tmp_path):
     folder = write_folder(tmp_path / "video", n=3, depth=False)
     env = {**camera_env(source="file", path=folder, width=320, height=240, fps=10),

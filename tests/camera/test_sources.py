@@ -35,6 +35,24 @@ def test_missing_sdks_say_what_to_install():
             make_source(settings(source="zed"))
 
 
+def test_realsense_without_a_device_says_so_at_once():
+    """With the real SDK and no device: the open asks the SDK's device list first and fails in milliseconds,
+    saying "no RealSense connected" (the SDK's own pipeline.start waits 15 s with the GIL held)."""
+    import time
+
+    pytest.importorskip("pyrealsense2", reason="pyrealsense2 (pip install -e .[realsense]) is not installed")
+    import pyrealsense2 as rs
+
+    if len(rs.context().query_devices()):
+        pytest.skip("a RealSense is connected to this machine")
+    for kw, says in (({}, "no RealSense connected"), ({"device": "123456789"}, "no RealSense connected")):
+        source = make_source(settings(source="realsense", **kw))
+        t0 = time.monotonic()
+        with pytest.raises(CameraError, match=says):
+            source.open()
+        assert time.monotonic() - t0 < 1.0
+
+
 def test_file_source_refuses_bad_input(tmp_path):
     with pytest.raises(CameraError, match="needs AERMANI_CAMERA_PATH"):
         make_source(settings(source="file"))

@@ -178,9 +178,15 @@ def _used_options(args: list[str]) -> set[str]:
     return {a.split("=", 1)[0] for a in args if a.startswith("--") and len(a) > 2}
 
 
+GLOBAL_OPTIONS = {"--client-certs", "--identity"}  # `aermani --client-certs DIR [--identity X] <command> ...`
+
+
 def check_aermani(args: list[str]) -> None:
     _, cmd = _cli()
     path: list[str] = []
+    while args and args[0].split("=", 1)[0] in GLOBAL_OPTIONS:
+        assert args[0].split("=", 1)[0] in _options(_cli_help(())), f"aermani has no global option {args[0]}"
+        args = args[1:] if "=" in args[0] else args[2:]
     for tok in args:
         if tok.startswith("-"):
             break
@@ -333,6 +339,7 @@ def test_the_command_parser_splits_and_joins() -> None:
                    (4, ["aermani", "certs", "init", "--out", "c"]), (4, ["chown", "-R", "1000", "c"]),
                    (5, ["curl", "-s", "http://x/#a"])]
     assert run_cheap(["aermani", "eval", "--split", "dev"])
+    assert run_cheap(["aermani", "--client-certs", "certs", "--identity", "ground", "health", "--connect", "tls/x"])
     assert not run_cheap(["curl", "http://127.0.0.1:8080/api/v1/live"])
     with pytest.raises(AssertionError, match="no option"):
         run_cheap(["aermani", "eval", "--no-such-option"])

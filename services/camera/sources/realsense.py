@@ -1,7 +1,11 @@
 """`realsense` source: an Intel RealSense D4xx through pyrealsense2, depth aligned to colour on the device's
-pipeline, intrinsics read from the device (untested here: no device on the build machine)."""
+pipeline, intrinsics read from the device. Opened only when the SDK lists a connected device ("no RealSense
+connected" otherwise); streaming is untested here (no device on the build machine), the absent path runs
+against the real SDK in tests/camera."""
 
 from __future__ import annotations
+
+from typing import Any
 
 import numpy as np
 
@@ -23,9 +27,25 @@ class RealSenseSource(CameraSource):
     sdk = "pyrealsense2"
     install = INSTALL
 
+    def connected(self, rs: Any) -> list[str]:
+        """Serial numbers of the RealSense devices connected now. The SDK's device list answers in a few
+        milliseconds; `pipeline.start` with no device waits 15 s and holds the GIL all the while (measured with
+        pyrealsense2 2.59), which stops the service's event loop, its heartbeat and health, and gets it killed
+        as hung. So the service asks this first and opens only a device that is there."""
+        devices = rs.context().query_devices()
+        camera_info = rs.camera_info.serial_number
+        return [d.get_info(camera_info) for d in devices]
+
     def open(self) -> None:
         rs = self.sdk_module()
         s = self.settings
+        serials = self.connected(rs)
+        if not serials:
+            raise CameraError("no RealSense connected (the SDK lists no device: plugged into a USB 3 port? "
+                              "inside a container, /dev shared with the USB device rule, see docs/hardware.md)")
+        if s.device and s.device not in serials:
+            raise CameraError(f"no RealSense with serial {s.device} connected (connected: {', '.join(serials)}; "
+                              "AERMANI_CAMERA_DEVICE names one of them, or leave it empty for the first)")
         self.pipeline = rs.pipeline()
         cfg = rs.config()
         if s.device:
