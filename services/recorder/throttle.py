@@ -79,7 +79,8 @@ class FrameThrottle:
             return []
         out = [sample]
         self._written(v, suffix, stamp)
-        partner = v.skipped.get(other, {}).pop(stamp, None)
+        ring = v.skipped.get(other)
+        partner = ring.pop(stamp, None) if ring is not None else None
         if partner is not None:
             v.held[other] -= len(partner[1])
             self.skipped -= 1
