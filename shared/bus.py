@@ -1,10 +1,12 @@
 """The asyncio wrapper over zenoh-python 1.x that every service uses; services never touch zenoh directly.
 
-zenoh-python is synchronous and calls back on its own threads. Every callback here only hands the raw
-sample to the event loop with `loop.call_soon_threadsafe` (tiny, GIL-friendly); decoding happens on the
-consumer side, so a malformed payload is logged, counted and dropped without touching the subscriber.
+zenoh-python is synchronous and calls back on its own threads. A subscription's callback only copies the
+sample's bytes into the subscription's bounded queue and, when a consumer is waiting and no wake-up is
+already on its way, wakes the event loop with one `loop.call_soon_threadsafe`: a burst of samples costs
+one hand-off, not one per sample. Decoding happens on the consumer side, so a malformed payload is logged,
+counted and dropped without touching the subscriber.
 
-Queue policy: each subscription has a bounded asyncio queue. When it is full, `overflow="drop_oldest"`
+Queue policy: each subscription has one bounded queue. When it is full, `overflow="drop_oldest"`
 (the default, right for sensor streams and state: the newest sample wins) discards the oldest queued
 sample; `overflow="drop_newest"` discards the arriving one. Either way the discarded sample is counted
 in `Subscription.dropped`, never silently lost. `overflow="latest"` is for latest-value consumers (the
@@ -359,6 +361,11 @@ class RateLimitedWarning:
         log.warning(msg, *args)
 
 
+def _expire(fut: asyncio.Future[bool]) -> None:
+    if not fut.done():
+        fut.set_result(False)
+
+
 class Subscription(Generic[T]):
     """A bounded async queue of decoded samples from one key expression."""
 
@@ -367,7 +374,6 @@ class Subscription(Generic[T]):
         self.bus = bus
         self.key = key
         self._decode = decoder(model)
-        self._queue: asyncio.Queue[tuple[str, bytes, str, int]] = asyncio.Queue(maxsize=maxsize)
         self._maxsize = maxsize
         self._overflow = overflow
         self.max_bytes = max_bytes_of(model, max_bytes)
@@ -382,35 +388,35 @@ class Subscription(Generic[T]):
         self._warn = RateLimitedWarning()
         self._sub: Any = None
         self._closed = False
-        # Hand-over from zenoh's thread: samples gather here and one loop callback drains them, so a burst
-        # costs one loop wake-up instead of one per sample.
-        self._pending: deque[tuple[str, bytes, str, int]] = deque()
-        self._pending_lock = threading.Lock()
-        self._drain_scheduled = False
+        # The one bounded buffer between zenoh's threads and the consumer: the callback appends (applying the
+        # overflow policy at once), the consumer pops on the loop. The loop is woken only when a consumer waits,
+        # once per burst (no call_soon_threadsafe while one is already scheduled), never once per sample.
+        self._items: deque[tuple[str, bytes, str, int]] = deque()
+        self._lock = threading.Lock()
+        self._waiters: list[asyncio.Future[bool]] = []
+        self._wake_scheduled = False
 
     def _on_sample(self, sample: zenoh.Sample) -> None:  # runs on a zenoh thread
-        size = len(sample.payload)
+        payload = sample.payload
+        size = len(payload)
         if size > self.max_bytes:
             self.oversize += 1
             self._warn("dropped a %d-byte sample on %s: larger than its %d-byte cap", size, sample.key_expr,
                        self.max_bytes)
             return
-        self._from_zenoh((str(sample.key_expr), sample.payload.to_bytes(), str(sample.encoding), time.time_ns()))
-
-    def _from_zenoh(self, item: tuple[str, bytes, str, int]) -> None:  # runs on a zenoh thread
-        with self._pending_lock:
+        item = (str(sample.key_expr), payload.to_bytes(), str(sample.encoding), time.time_ns())
+        with self._lock:
             self.received += 1
-            # Bounded like the queue: while the loop is busy the hand-off keeps at most `maxsize` samples.
-            if len(self._pending) >= self._maxsize:
+            if len(self._items) >= self._maxsize:
                 self._discard()
                 if self._overflow == "drop_newest":
                     return
-                self._pending.popleft()
-            self._pending.append(item)
-            if self._drain_scheduled:
+                self._items.popleft()
+            self._items.append(item)
+            if not self._waiters or self._wake_scheduled:
                 return
-            self._drain_scheduled = True
-        self.bus._to_loop(self._drain)
+            self._wake_scheduled = True
+        self.bus._to_loop(self._wake)
 
     def _discard(self) -> None:
         if self._overflow == "latest":
@@ -418,32 +424,47 @@ class Subscription(Generic[T]):
         else:
             self.dropped += 1
 
-    def _drain(self) -> None:  # runs on the loop
-        with self._pending_lock:
-            items = list(self._pending)
-            self._pending.clear()
-            self._drain_scheduled = False
-        for item in items:
-            self._push(item)
+    def _wake(self) -> None:  # runs on the loop
+        with self._lock:
+            self._wake_scheduled = False
+            waiters, self._waiters = self._waiters, []
+        for fut in waiters:
+            if not fut.done():
+                fut.set_result(True)
 
-    def _push(self, item: tuple[str, bytes, str, int]) -> None:  # runs on the loop
-        if self._queue.full():
-            self._discard()
-            if self._overflow == "drop_newest":
+    def _pop(self) -> tuple[str, bytes, str, int] | None:  # runs on the loop
+        with self._lock:
+            return self._items.popleft() if self._items else None
+
+    async def _wait(self, deadline: float | None) -> None:
+        """Until a sample is queued (returns at once if one is). Raises TimeoutError after `deadline`."""
+        loop = self.bus.loop
+        fut: asyncio.Future[bool] = loop.create_future()
+        with self._lock:
+            if self._items:
                 return
-            with contextlib.suppress(asyncio.QueueEmpty):
-                self._queue.get_nowait()
-        self._queue.put_nowait(item)
+            self._waiters.append(fut)
+        timer = None
+        if deadline is not None:
+            timer = loop.call_later(max(0.0, deadline - time.monotonic()), _expire, fut)
+        try:
+            if not await fut:
+                raise TimeoutError(f"no sample on {self.key} in time")
+        finally:
+            if timer is not None:
+                timer.cancel()
+            with self._lock, contextlib.suppress(ValueError):
+                self._waiters.remove(fut)
 
     async def recv_sample(self, timeout: float | None = None) -> Received[T]:
         """Next valid sample (malformed ones are logged and skipped). Raises TimeoutError."""
         deadline = None if timeout is None else time.monotonic() + timeout
         while True:
-            try:  # fast path: a queued sample needs no timer (wait_for costs more than the decode)
-                key, data, enc, rns = self._queue.get_nowait()
-            except asyncio.QueueEmpty:
-                remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
-                key, data, enc, rns = await asyncio.wait_for(self._queue.get(), remaining)
+            item = self._pop()
+            if item is None:
+                await self._wait(deadline)
+                continue
+            key, data, enc, rns = item
             try:
                 value = self._decode(data)
             except DecodeError as exc:
@@ -457,16 +478,13 @@ class Subscription(Generic[T]):
 
     def recv_nowait(self) -> T | None:
         """The next valid queued sample, or None when the queue is empty (never waits)."""
-        while True:
+        while (item := self._pop()) is not None:
             try:
-                key, data, _enc, _rns = self._queue.get_nowait()
-            except asyncio.QueueEmpty:
-                return None
-            try:
-                return self._decode(data)  # type: ignore[no-any-return]
+                return self._decode(item[1])  # type: ignore[no-any-return]
             except DecodeError as exc:
                 self.malformed += 1
-                self._warn("dropped malformed sample on %s: %s", key, exc)
+                self._warn("dropped malformed sample on %s: %s", item[0], exc)
+        return None
 
     def latest_nowait(self) -> T | None:
         """Drain the queue and return the newest valid sample, or None."""
@@ -483,7 +501,7 @@ class Subscription(Generic[T]):
             yield await self.recv()
 
     def qsize(self) -> int:
-        return self._queue.qsize()
+        return len(self._items)
 
     def close(self) -> None:
         if not self._closed:
