@@ -157,8 +157,8 @@ def encode(obj: Any, schema: str | None = None) -> tuple[bytes, zenoh.Encoding]:
     `application/protobuf;<full name>`; bytes pass through (not copied) with the given schema (protobuf if
     it names a foxglove type)."""
     if isinstance(obj, BaseModel):
-        try:
-            data = obj.model_dump_json().encode()
+        try:  # the serializer's bytes as they are (model_dump_json would decode them to str for us to re-encode)
+            data = obj.__pydantic_serializer__.to_json(obj)
         except PydanticSerializationError:
             data = _well_formed_json(obj)
         return data, _encoding("json", schema or schema_of(obj))
@@ -264,6 +264,21 @@ def _drop_path(doc: Any, loc: tuple[Any, ...]) -> None:
 
 def decoder(model: Any) -> Callable[[bytes], Any]:
     return _Decoder(model)
+
+
+def _accepted_types(decl_type: Any) -> tuple[type, ...]:
+    """The classes `_check_type` accepts by isinstance alone, so a publish checks a value with one isinstance
+    (a protobuf message object, checked by its descriptor, still goes through `_check_type`)."""
+    if isinstance(decl_type, Protobuf):
+        return (bytes, bytearray, memoryview)
+    if isinstance(decl_type, Json):
+        return (dict, list)
+    if isinstance(decl_type, type):
+        return (decl_type,)
+    args: tuple[Any, ...] = getattr(decl_type, "__args__", ())
+    inner = args[0] if args and getattr(decl_type, "__metadata__", None) else decl_type
+    members = getattr(inner, "__args__", (inner,))
+    return tuple(m for m in members if isinstance(m, type))
 
 
 def _check_type(decl_type: Any, obj: Any, key: str) -> None:
@@ -514,6 +529,17 @@ class Subscription(Generic[T]):
 # --------------------------------------------------------------------------- the bus
 
 
+@dataclass(frozen=True)
+class _Route:
+    """A declared topic as this bus publishes it: its key, schema, accepted types and default publisher."""
+
+    decl: Any
+    key: str
+    schema: str | None
+    types: tuple[type, ...]
+    publisher: Any
+
+
 class Bus:
     """One Zenoh session bound to one asyncio loop. Create with `await Bus.open(...)`."""
 
@@ -528,6 +554,7 @@ class Bus:
         self._subscriptions: list[Subscription[Any]] = []
         self._watches: dict[int, Any] = {}  # id(queue) -> its liveliness subscriber, for unwatch_liveliness
         self._refused_queries = 0
+        self._routes: dict[tuple[str, int], _Route] = {}
         self.name = ""
         """This service's name, sent with every query so queryables can log who asked (see Caller)."""
 
@@ -606,23 +633,39 @@ class Bus:
         if self._closed:
             raise BusError(f"publish on {target} after the bus was closed")
         if isinstance(target, BoundTopic):
-            _check_type(target.decl.type, obj, target.key)
-            key, schema = target.key, schema_name(target.decl.type)
-            reliable = target.decl.reliable if reliable is None else reliable
+            route = self._routes.get((target, id(target.decl)))
+            if route is None or route.decl is not target.decl:
+                route = self._route(target)
+            if not isinstance(obj, route.types):
+                _check_type(target.decl.type, obj, target.key)
+            schema = route.schema
+            pub = route.publisher if reliable is None or reliable == target.decl.reliable else \
+                self._publisher(route.key, reliable)
         else:
-            key = target
+            pub = self._publisher(target, True if reliable is None else reliable)
         if isinstance(obj, Health) and "bus" not in obj.details:
             obj = self._with_bus_counters(obj)
         data, enc = encode(obj, schema)
-        self._publisher(key, True if reliable is None else reliable).put(data, encoding=enc, attachment=attachment)
+        pub.put(data, encoding=enc, attachment=attachment)
+
+    def _route(self, target: BoundTopic[Any]) -> _Route:
+        """What a publish on a declared topic needs, resolved once per key and declaration."""
+        if len(self._routes) > 4096:  # topics bound with ever new declarations: keep the cache bounded
+            self._routes.clear()
+        decl = target.decl
+        route = _Route(decl, target.key, schema_name(decl.type), _accepted_types(decl.type),
+                       self._publisher(target.key, decl.reliable))
+        self._routes[(target.key, id(decl))] = route
+        return route
 
     def _with_bus_counters(self, health: Any) -> Any:
         """A service's health carries its bus counters once anything was dropped, malformed, oversize or
         refused: those show without each service having to report them (superseded latest values alone do
         not count)."""
-        stats = self.stats()
-        if not any(v for k, v in stats.items() if k != "superseded"):
+        if not self._refused_queries and not any(s.dropped or s.malformed or s.oversize
+                                                 for s in self._subscriptions):
             return health
+        stats = self.stats()
         return health.model_copy(update={"details": {**health.details, "bus": stats}})
 
     def has_subscribers(self, target: BoundTopic[Any]) -> bool:
