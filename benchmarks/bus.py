@@ -16,6 +16,9 @@ Modes (what each side does per sample):
 - raw, Zenoh's thread (information only): the same publisher; the callback copies the payload to bytes and
   counts it on Zenoh's own thread, no event loop at all.
 
+Every session has Zenoh shared memory on, as deployed (`shared.bus.zenoh_config`): messages above 3 KiB, the
+frames, travel between the processes as references into a shared pool; `--no-shm` turns it off everywhere.
+
 Latency: the publisher stamps CLOCK_MONOTONIC (shared by the processes of one host) before it publishes a
 set (one message, or colour then depth); the subscriber stamps it when its consumer holds the whole set;
 the publisher waits for the subscriber's acknowledgement (a pipe, outside the measured interval) before
@@ -168,9 +171,9 @@ async def _sub_raw_thread(session: zenoh.Session, cmd: Connection, ack: Connecti
     return stamps, 0
 
 
-async def _subscriber_main(cmd: Connection, ack: Connection, endpoint: str) -> None:
-    raw_s = zenoh.open(zenoh_config(mode="client", connect=[endpoint]))
-    bus = await Bus.open(connect=[endpoint])
+async def _subscriber_main(cmd: Connection, ack: Connection, endpoint: str, shm: bool) -> None:
+    raw_s = zenoh.open(zenoh_config(mode="client", connect=[endpoint], shared_memory=shm))
+    bus = await Bus.open(config=zenoh_config(mode="client", connect=[endpoint], shared_memory=shm))
     while (msg := await asyncio.to_thread(cmd.recv)) is not None:
         mode, tag, case, n, burst = msg
         topics = topics_for(tag, case)
@@ -185,8 +188,8 @@ async def _subscriber_main(cmd: Connection, ack: Connection, endpoint: str) -> N
     raw_s.close()  # type: ignore[no-untyped-call]
 
 
-def subscriber_process(cmd: Connection, ack: Connection, endpoint: str) -> None:
-    asyncio.run(_subscriber_main(cmd, ack, endpoint))
+def subscriber_process(cmd: Connection, ack: Connection, endpoint: str, shm: bool) -> None:
+    asyncio.run(_subscriber_main(cmd, ack, endpoint, shm))
 
 
 # ------------------------------------------------------------------ publisher process
@@ -230,9 +233,9 @@ async def _raw_putter(session: zenoh.Session, topics: list[tuple[Any, Any]]
     return put_set, undeclare
 
 
-async def _publisher_main(cmd: Connection, ack: Connection, endpoint: str) -> None:
-    raw_s = zenoh.open(zenoh_config(mode="client", connect=[endpoint]))
-    bus = await Bus.open(connect=[endpoint])
+async def _publisher_main(cmd: Connection, ack: Connection, endpoint: str, shm: bool) -> None:
+    raw_s = zenoh.open(zenoh_config(mode="client", connect=[endpoint], shared_memory=shm))
+    bus = await Bus.open(config=zenoh_config(mode="client", connect=[endpoint], shared_memory=shm))
     while (msg := await asyncio.to_thread(cmd.recv)) is not None:
         mode, tag, case, n, burst = msg
         topics = topics_for(tag, case)
@@ -251,8 +254,8 @@ async def _publisher_main(cmd: Connection, ack: Connection, endpoint: str) -> No
     raw_s.close()  # type: ignore[no-untyped-call]
 
 
-def publisher_process(cmd: Connection, ack: Connection, endpoint: str) -> None:
-    asyncio.run(_publisher_main(cmd, ack, endpoint))
+def publisher_process(cmd: Connection, ack: Connection, endpoint: str, shm: bool) -> None:
+    asyncio.run(_publisher_main(cmd, ack, endpoint, shm))
 
 
 # ------------------------------------------------------------------ driver
@@ -296,17 +299,22 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--n", type=int, default=300, help="messages (or frame pairs) per measurement")
     ap.add_argument("--rounds", type=int, default=3, help="rounds; each measures every mode on both payloads")
+    ap.add_argument("--no-shm", action="store_true",
+                    help="every session (router, publisher, subscriber) without Zenoh shared memory, to see what "
+                         "it gives; the default is as deployed (shared memory on, see shared.bus.zenoh_config)")
     add_json_option(ap)
     args = ap.parse_args()
+    shm = not args.no_shm
     port = free_port()
-    router = open_router(port)
     endpoint = f"tcp/127.0.0.1:{port}"
+    router = open_router(port) if shm else zenoh.open(zenoh_config(mode="router", listen=[endpoint],
+                                                                   shared_memory=False))
     ctx = mp.get_context("spawn")
     sub_cmd, sub_cmd_child = ctx.Pipe()
     pub_cmd, pub_cmd_child = ctx.Pipe()
     ack_r, ack_w = ctx.Pipe(duplex=False)
-    procs = [ctx.Process(target=subscriber_process, args=(sub_cmd_child, ack_w, endpoint), daemon=True),
-             ctx.Process(target=publisher_process, args=(pub_cmd_child, ack_r, endpoint), daemon=True)]
+    procs = [ctx.Process(target=subscriber_process, args=(sub_cmd_child, ack_w, endpoint, shm), daemon=True),
+             ctx.Process(target=publisher_process, args=(pub_cmd_child, ack_r, endpoint, shm), daemon=True)]
     for p in procs:
         p.start()
     try:
@@ -314,7 +322,8 @@ def main() -> None:
         color, depth = make_frames()
         print(f"JSON message: {len(data)} B; frame pair: colour JPEG {len(color) / 1024:.0f} KiB + depth "
               f"{len(depth) / 1024:.0f} KiB; per measurement {args.n} pings and a burst of {10 * args.n} messages "
-              f"or {args.n} pairs; {args.rounds} rounds; publisher and subscriber in two processes, router in a third")
+              f"or {args.n} pairs; {args.rounds} rounds; publisher and subscriber in two processes, router in a third; "
+              f"Zenoh shared memory {'on' if shm else 'off'}")
         results: dict[str, dict[str, tuple[list[float], list[float]]]] = {
             case: {m: ([], []) for m in MODES} for case in ("json", "frame")}
         for r in range(args.rounds):
@@ -331,7 +340,7 @@ def main() -> None:
         print(f"targets (issue 12, 27): aermani/raw latency p50 <= 1.2 and throughput <= 1.5 for both payloads; "
               f"issue 2: p99 frame latency <= 5 ms (got {f['p99_ms']:.2f} ms)")
         write_json(args.json, "bus", figures, args, json_bytes=len(data), color_bytes=len(color),
-                   depth_bytes=len(depth), anchor=LABELS["raw"])
+                   depth_bytes=len(depth), anchor=LABELS["raw"], shared_memory=shm)
     finally:
         sub_cmd.send(None)
         pub_cmd.send(None)

@@ -70,14 +70,18 @@ def _init_zenoh_log() -> None:
 
 def zenoh_config(mode: str = "client", connect: list[str] | tuple[str, ...] = (),
                  listen: list[str] | tuple[str, ...] = (), multicast: bool = False,
-                 connect_timeout_s: float | None = None) -> zenoh.Config:
+                 connect_timeout_s: float | None = None, shared_memory: bool = True) -> zenoh.Config:
     """A Zenoh config with explicit endpoints and multicast scouting off by default.
 
     Clients wait for their router forever by default (services may start before it); a command-line tool
-    passes `connect_timeout_s` to fail with a clear message instead."""
+    passes `connect_timeout_s` to fail with a clear message instead. `shared_memory` (on; stated here rather
+    than left to zenoh's default): between sessions on one host, zenoh's transport puts every message above
+    3 KiB (frames, not the small messages) into a shared-memory pool and sends only a reference, through the
+    router too; a link to another host, or a peer without it, gets the bytes as usual."""
     cfg = zenoh.Config()
     cfg.insert_json5("mode", json.dumps(mode))
     cfg.insert_json5("scouting/multicast/enabled", json.dumps(multicast))
+    cfg.insert_json5("transport/shared_memory/enabled", json.dumps(shared_memory))
     if connect:
         cfg.insert_json5("connect/endpoints", json.dumps(list(connect)))
     if listen:
