@@ -1,10 +1,12 @@
 """The asyncio wrapper over zenoh-python 1.x that every service uses; services never touch zenoh directly.
 
-zenoh-python is synchronous and calls back on its own threads. Every callback here only hands the raw
-sample to the event loop with `loop.call_soon_threadsafe` (tiny, GIL-friendly); decoding happens on the
-consumer side, so a malformed payload is logged, counted and dropped without touching the subscriber.
+zenoh-python is synchronous and calls back on its own threads. A subscription's callback only copies the
+sample's bytes into the subscription's bounded queue and, when a consumer is waiting and no wake-up is
+already on its way, wakes the event loop with one `loop.call_soon_threadsafe`: a burst of samples costs
+one hand-off, not one per sample. Decoding happens on the consumer side, so a malformed payload is logged,
+counted and dropped without touching the subscriber.
 
-Queue policy: each subscription has a bounded asyncio queue. When it is full, `overflow="drop_oldest"`
+Queue policy: each subscription has one bounded queue. When it is full, `overflow="drop_oldest"`
 (the default, right for sensor streams and state: the newest sample wins) discards the oldest queued
 sample; `overflow="drop_newest"` discards the arriving one. Either way the discarded sample is counted
 in `Subscription.dropped`, never silently lost. `overflow="latest"` is for latest-value consumers (the
@@ -69,14 +71,18 @@ def _init_zenoh_log() -> None:
 
 def zenoh_config(mode: str = "client", connect: list[str] | tuple[str, ...] = (),
                  listen: list[str] | tuple[str, ...] = (), multicast: bool = False,
-                 connect_timeout_s: float | None = None) -> zenoh.Config:
+                 connect_timeout_s: float | None = None, shared_memory: bool = True) -> zenoh.Config:
     """A Zenoh config with explicit endpoints and multicast scouting off by default.
 
     Clients wait for their router forever by default (services may start before it); a command-line tool
-    passes `connect_timeout_s` to fail with a clear message instead."""
+    passes `connect_timeout_s` to fail with a clear message instead. `shared_memory` (on; stated here rather
+    than left to zenoh's default): between sessions on one host, zenoh's transport puts every message above
+    3 KiB (frames, not the small messages) into a shared-memory pool and sends only a reference, through the
+    router too; a link to another host, or a peer without it, gets the bytes as usual."""
     cfg = zenoh.Config()
     cfg.insert_json5("mode", json.dumps(mode))
     cfg.insert_json5("scouting/multicast/enabled", json.dumps(multicast))
+    cfg.insert_json5("transport/shared_memory/enabled", json.dumps(shared_memory))
     if connect:
         cfg.insert_json5("connect/endpoints", json.dumps(list(connect)))
     if listen:
@@ -175,8 +181,8 @@ def encode(obj: Any, schema: str | None = None) -> tuple[bytes, zenoh.Encoding]:
     `application/protobuf;<full name>`; bytes pass through (not copied) with the given schema (protobuf if
     it names a foxglove type)."""
     if isinstance(obj, BaseModel):
-        try:
-            data = obj.model_dump_json().encode()
+        try:  # the serializer's bytes as they are (model_dump_json would decode them to str for us to re-encode)
+            data = obj.__pydantic_serializer__.to_json(obj)
         except PydanticSerializationError:
             data = _well_formed_json(obj)
         return data, _encoding("json", schema or schema_of(obj))
@@ -284,6 +290,21 @@ def decoder(model: Any) -> Callable[[bytes], Any]:
     return _Decoder(model)
 
 
+def _accepted_types(decl_type: Any) -> tuple[type, ...]:
+    """The classes `_check_type` accepts by isinstance alone, so a publish checks a value with one isinstance
+    (a protobuf message object, checked by its descriptor, still goes through `_check_type`)."""
+    if isinstance(decl_type, Protobuf):
+        return (bytes, bytearray, memoryview)
+    if isinstance(decl_type, Json):
+        return (dict, list)
+    if isinstance(decl_type, type):
+        return (decl_type,)
+    args: tuple[Any, ...] = getattr(decl_type, "__args__", ())
+    inner = args[0] if args and getattr(decl_type, "__metadata__", None) else decl_type
+    members = getattr(inner, "__args__", (inner,))
+    return tuple(m for m in members if isinstance(m, type))
+
+
 def _check_type(decl_type: Any, obj: Any, key: str) -> None:
     """Refuse to publish a value of another type than the key declares (a programming error)."""
     if isinstance(decl_type, Protobuf):
@@ -379,6 +400,11 @@ class RateLimitedWarning:
         log.warning(msg, *args)
 
 
+def _expire(fut: asyncio.Future[bool]) -> None:
+    if not fut.done():
+        fut.set_result(False)
+
+
 class Subscription(Generic[T]):
     """A bounded async queue of decoded samples from one key expression."""
 
@@ -387,7 +413,6 @@ class Subscription(Generic[T]):
         self.bus = bus
         self.key = key
         self._decode = decoder(model)
-        self._queue: asyncio.Queue[tuple[str, bytes, str, int]] = asyncio.Queue(maxsize=maxsize)
         self._maxsize = maxsize
         self._overflow = overflow
         self.max_bytes = max_bytes_of(model, max_bytes)
@@ -402,35 +427,35 @@ class Subscription(Generic[T]):
         self._warn = RateLimitedWarning()
         self._sub: Any = None
         self._closed = False
-        # Hand-over from zenoh's thread: samples gather here and one loop callback drains them, so a burst
-        # costs one loop wake-up instead of one per sample.
-        self._pending: deque[tuple[str, bytes, str, int]] = deque()
-        self._pending_lock = threading.Lock()
-        self._drain_scheduled = False
+        # The one bounded buffer between zenoh's threads and the consumer: the callback appends (applying the
+        # overflow policy at once), the consumer pops on the loop. The loop is woken only when a consumer waits,
+        # once per burst (no call_soon_threadsafe while one is already scheduled), never once per sample.
+        self._items: deque[tuple[str, bytes, str, int]] = deque()
+        self._lock = threading.Lock()
+        self._waiters: list[asyncio.Future[bool]] = []
+        self._wake_scheduled = False
 
     def _on_sample(self, sample: zenoh.Sample) -> None:  # runs on a zenoh thread
-        size = len(sample.payload)
+        payload = sample.payload
+        size = len(payload)
         if size > self.max_bytes:
             self.oversize += 1
             self._warn("dropped a %d-byte sample on %s: larger than its %d-byte cap", size, sample.key_expr,
                        self.max_bytes)
             return
-        self._from_zenoh((str(sample.key_expr), sample.payload.to_bytes(), str(sample.encoding), time.time_ns()))
-
-    def _from_zenoh(self, item: tuple[str, bytes, str, int]) -> None:  # runs on a zenoh thread
-        with self._pending_lock:
+        item = (str(sample.key_expr), payload.to_bytes(), str(sample.encoding), time.time_ns())
+        with self._lock:
             self.received += 1
-            # Bounded like the queue: while the loop is busy the hand-off keeps at most `maxsize` samples.
-            if len(self._pending) >= self._maxsize:
+            if len(self._items) >= self._maxsize:
                 self._discard()
                 if self._overflow == "drop_newest":
                     return
-                self._pending.popleft()
-            self._pending.append(item)
-            if self._drain_scheduled:
+                self._items.popleft()
+            self._items.append(item)
+            if not self._waiters or self._wake_scheduled:
                 return
-            self._drain_scheduled = True
-        self.bus._to_loop(self._drain)
+            self._wake_scheduled = True
+        self.bus._to_loop(self._wake)
 
     def _discard(self) -> None:
         if self._overflow == "latest":
@@ -438,32 +463,47 @@ class Subscription(Generic[T]):
         else:
             self.dropped += 1
 
-    def _drain(self) -> None:  # runs on the loop
-        with self._pending_lock:
-            items = list(self._pending)
-            self._pending.clear()
-            self._drain_scheduled = False
-        for item in items:
-            self._push(item)
+    def _wake(self) -> None:  # runs on the loop
+        with self._lock:
+            self._wake_scheduled = False
+            waiters, self._waiters = self._waiters, []
+        for fut in waiters:
+            if not fut.done():
+                fut.set_result(True)
 
-    def _push(self, item: tuple[str, bytes, str, int]) -> None:  # runs on the loop
-        if self._queue.full():
-            self._discard()
-            if self._overflow == "drop_newest":
+    def _pop(self) -> tuple[str, bytes, str, int] | None:  # runs on the loop
+        with self._lock:
+            return self._items.popleft() if self._items else None
+
+    async def _wait(self, deadline: float | None) -> None:
+        """Until a sample is queued (returns at once if one is). Raises TimeoutError after `deadline`."""
+        loop = self.bus.loop
+        fut: asyncio.Future[bool] = loop.create_future()
+        with self._lock:
+            if self._items:
                 return
-            with contextlib.suppress(asyncio.QueueEmpty):
-                self._queue.get_nowait()
-        self._queue.put_nowait(item)
+            self._waiters.append(fut)
+        timer = None
+        if deadline is not None:
+            timer = loop.call_later(max(0.0, deadline - time.monotonic()), _expire, fut)
+        try:
+            if not await fut:
+                raise TimeoutError(f"no sample on {self.key} in time")
+        finally:
+            if timer is not None:
+                timer.cancel()
+            with self._lock, contextlib.suppress(ValueError):
+                self._waiters.remove(fut)
 
     async def recv_sample(self, timeout: float | None = None) -> Received[T]:
         """Next valid sample (malformed ones are logged and skipped). Raises TimeoutError."""
         deadline = None if timeout is None else time.monotonic() + timeout
         while True:
-            try:  # fast path: a queued sample needs no timer (wait_for costs more than the decode)
-                key, data, enc, rns = self._queue.get_nowait()
-            except asyncio.QueueEmpty:
-                remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
-                key, data, enc, rns = await asyncio.wait_for(self._queue.get(), remaining)
+            item = self._pop()
+            if item is None:
+                await self._wait(deadline)
+                continue
+            key, data, enc, rns = item
             try:
                 value = self._decode(data)
             except DecodeError as exc:
@@ -477,16 +517,13 @@ class Subscription(Generic[T]):
 
     def recv_nowait(self) -> T | None:
         """The next valid queued sample, or None when the queue is empty (never waits)."""
-        while True:
+        while (item := self._pop()) is not None:
             try:
-                key, data, _enc, _rns = self._queue.get_nowait()
-            except asyncio.QueueEmpty:
-                return None
-            try:
-                return self._decode(data)  # type: ignore[no-any-return]
+                return self._decode(item[1])  # type: ignore[no-any-return]
             except DecodeError as exc:
                 self.malformed += 1
-                self._warn("dropped malformed sample on %s: %s", key, exc)
+                self._warn("dropped malformed sample on %s: %s", item[0], exc)
+        return None
 
     def latest_nowait(self) -> T | None:
         """Drain the queue and return the newest valid sample, or None."""
@@ -503,7 +540,7 @@ class Subscription(Generic[T]):
             yield await self.recv()
 
     def qsize(self) -> int:
-        return self._queue.qsize()
+        return len(self._items)
 
     def close(self) -> None:
         if not self._closed:
@@ -514,6 +551,17 @@ class Subscription(Generic[T]):
 
 
 # --------------------------------------------------------------------------- the bus
+
+
+@dataclass(frozen=True)
+class _Route:
+    """A declared topic as this bus publishes it: its key, schema, accepted types and default publisher."""
+
+    decl: Any
+    key: str
+    schema: str | None
+    types: tuple[type, ...]
+    publisher: Any
 
 
 class Bus:
@@ -530,6 +578,7 @@ class Bus:
         self._subscriptions: list[Subscription[Any]] = []
         self._watches: dict[int, Any] = {}  # id(queue) -> its liveliness subscriber, for unwatch_liveliness
         self._refused_queries = 0
+        self._routes: dict[tuple[str, int], _Route] = {}
         self.name = ""
         """This service's name, sent with every query so queryables can log who asked (see Caller)."""
 
@@ -614,23 +663,39 @@ class Bus:
         if self._closed:
             raise BusError(f"publish on {target} after the bus was closed")
         if isinstance(target, BoundTopic):
-            _check_type(target.decl.type, obj, target.key)
-            key, schema = target.key, schema_name(target.decl.type)
-            reliable = target.decl.reliable if reliable is None else reliable
+            route = self._routes.get((target, id(target.decl)))
+            if route is None or route.decl is not target.decl:
+                route = self._route(target)
+            if not isinstance(obj, route.types):
+                _check_type(target.decl.type, obj, target.key)
+            schema = route.schema
+            pub = route.publisher if reliable is None or reliable == target.decl.reliable else \
+                self._publisher(route.key, reliable)
         else:
-            key = target
+            pub = self._publisher(target, True if reliable is None else reliable)
         if isinstance(obj, Health) and "bus" not in obj.details:
             obj = self._with_bus_counters(obj)
         data, enc = encode(obj, schema)
-        self._publisher(key, True if reliable is None else reliable).put(data, encoding=enc, attachment=attachment)
+        pub.put(data, encoding=enc, attachment=attachment)
+
+    def _route(self, target: BoundTopic[Any]) -> _Route:
+        """What a publish on a declared topic needs, resolved once per key and declaration."""
+        if len(self._routes) > 4096:  # topics bound with ever new declarations: keep the cache bounded
+            self._routes.clear()
+        decl = target.decl
+        route = _Route(decl, target.key, schema_name(decl.type), _accepted_types(decl.type),
+                       self._publisher(target.key, decl.reliable))
+        self._routes[(target.key, id(decl))] = route
+        return route
 
     def _with_bus_counters(self, health: Any) -> Any:
         """A service's health carries its bus counters once anything was dropped, malformed, oversize or
         refused: those show without each service having to report them (superseded latest values alone do
         not count)."""
-        stats = self.stats()
-        if not any(v for k, v in stats.items() if k != "superseded"):
+        if not self._refused_queries and not any(s.dropped or s.malformed or s.oversize
+                                                 for s in self._subscriptions):
             return health
+        stats = self.stats()
         return health.model_copy(update={"details": {**health.details, "bus": stats}})
 
     def has_subscribers(self, target: BoundTopic[Any]) -> bool:
