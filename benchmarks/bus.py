@@ -2,7 +2,7 @@
 
 As deployed: the publisher and the subscriber are two processes, each with its own Zenoh client session,
 through a router on loopback (in this, the parent, process). Payloads: a 1 KiB JSON message, and a 640x480
-colour (JPEG) + depth (16UC1) frame pair in Foxglove protobuf. Each round measures every mode on the same
+colour (JPEG) + depth (16-bit PNG, as camera/depth carries it) frame pair in Foxglove protobuf. Each round measures every mode on the same
 payloads, alternating which goes first; latencies are pooled over rounds, throughput is the median round.
 
 Modes (what each side does per sample):
@@ -52,7 +52,7 @@ from benchmarks._figures import add_json_option, write_json  # noqa: E402
 from shared.bus import Bus, zenoh_config  # noqa: E402
 from shared.keys import Protobuf, Topic  # noqa: E402
 from shared.messages import Health  # noqa: E402
-from shared.sensors import color_message, raw16_message  # noqa: E402
+from shared.sensors import color_message, depth_message  # noqa: E402
 
 MODES = ("raw", "aermani", "raw_thread")
 LABELS = {
@@ -74,7 +74,7 @@ def make_frames() -> tuple[bytes, bytes]:
     rgb = np.stack([(xx / 640 * 255), (yy / 480 * 255), ((xx + yy) / 1120 * 255)], -1)
     rgb = (rgb + rng.normal(0, 6, rgb.shape)).clip(0, 255).astype(np.uint8)
     depth = (1500 + 400 * np.sin(xx / 50) + rng.normal(0, 5, xx.shape)).astype(np.uint16)
-    return color_message(rgb, 1_000_000_000), raw16_message(depth, 1_000_000_000)
+    return color_message(rgb, 1_000_000_000), depth_message(depth, 1_000_000_000)
 
 
 def json_payload() -> Health:
@@ -86,7 +86,7 @@ def case_payloads(case: str) -> list[tuple[str, Any, Any]]:
     if case == "json":
         return [("json", json_payload(), Health)]
     color, depth = make_frames()
-    return [("color", color, Protobuf("foxglove.CompressedImage")), ("depth", depth, Protobuf("foxglove.RawImage"))]
+    return [("color", color, Protobuf("foxglove.CompressedImage")), ("depth", depth, Protobuf("foxglove.CompressedImage"))]
 
 
 def raw_bytes(obj: Any) -> bytes:
