@@ -2,8 +2,9 @@
 
 As deployed: the publisher and the subscriber are two processes, each with its own Zenoh client session,
 through a router on loopback (in this, the parent, process). Payloads: a 1 KiB JSON message, and a 640x480
-colour (JPEG) + depth (16-bit PNG, as camera/depth carries it) frame pair in Foxglove protobuf. Each round measures every mode on the same
-payloads, alternating which goes first; latencies are pooled over rounds, throughput is the median round.
+colour (JPEG) + depth (16-bit PNG, as camera/depth carries it) frame pair in Foxglove protobuf. Each round
+measures every mode on the same payloads, alternating which goes first; latencies are pooled over rounds,
+throughput is the median round.
 
 Modes (what each side does per sample):
 - aermani: `Bus.publish` on a declared topic (type check, encode: JSON from the model or protobuf bytes as
@@ -86,7 +87,8 @@ def case_payloads(case: str) -> list[tuple[str, Any, Any]]:
     if case == "json":
         return [("json", json_payload(), Health)]
     color, depth = make_frames()
-    return [("color", color, Protobuf("foxglove.CompressedImage")), ("depth", depth, Protobuf("foxglove.CompressedImage"))]
+    frame = Protobuf("foxglove.CompressedImage")
+    return [("color", color, frame), ("depth", depth, frame)]
 
 
 def raw_bytes(obj: Any) -> bytes:
