@@ -134,32 +134,42 @@ def depth_message(img: np.ndarray | None, stamp_ns: int, frame_id: str = CAMERA_
 
 
 def parse_depth(payload: bytes) -> tuple[int, np.ndarray]:
-    """Serialized depth -> (stamp_ns, HxW uint16 mm). The bus carries a CompressedImage with a 16-bit PNG; a log
-    recorded before depth was compressed holds RawImage 16UC1, which is read too (a RawImage parses as a
-    CompressedImage without a format, since protobuf keeps unknown fields, so the format tells them apart)."""
+    """Serialized depth -> (stamp_ns, HxW uint16 mm); see `decode_depth`."""
+    stamp, _frame_id, img = decode_depth(payload)
+    return stamp, img
+
+
+def decode_depth(payload: bytes) -> tuple[int, str, np.ndarray]:
+    """Serialized depth -> (stamp_ns, frame_id, HxW uint16 mm). The bus carries a CompressedImage with a 16-bit
+    PNG; a log recorded before depth was compressed holds RawImage 16UC1, which is read too (a RawImage parses as
+    a CompressedImage without a format, since protobuf keeps unknown fields, so the format tells them apart)."""
     import cv2
 
     msg = decode_proto(CompressedImage, payload)
     if not msg.format:
-        return parse_raw16(payload)
+        raw = decode_proto(RawImage, payload)
+        return stamp_to_ns(raw.timestamp), raw.frame_id, _raw16_pixels(raw)
     if msg.format != DEPTH_FORMAT:
         raise DecodeError(f"expected a {DEPTH_FORMAT} depth image, got format {msg.format!r}")
     img = cv2.imdecode(np.frombuffer(msg.data, np.uint8), cv2.IMREAD_UNCHANGED)
     if img is None or img.dtype != np.uint16 or img.ndim != 2:
         got = "undecodable bytes" if img is None else f"{img.dtype} {img.shape}"
         raise DecodeError(f"depth PNG is not a 16-bit greyscale image: {got}")
-    return stamp_to_ns(msg.timestamp), img
+    return stamp_to_ns(msg.timestamp), msg.frame_id, img
 
 
 def parse_raw16(payload: bytes) -> tuple[int, np.ndarray]:
     """Serialized RawImage 16UC1 -> (stamp_ns, HxW uint16)."""
     msg = decode_proto(RawImage, payload)
+    return stamp_to_ns(msg.timestamp), _raw16_pixels(msg)
+
+
+def _raw16_pixels(msg: RawImage) -> np.ndarray:
     if msg.encoding != "16UC1":
         raise DecodeError(f"expected 16UC1 image, got encoding {msg.encoding!r}")
     if msg.step != msg.width * 2 or len(msg.data) != msg.height * msg.step:
         raise DecodeError(f"RawImage size mismatch: {msg.width}x{msg.height} step {msg.step}, {len(msg.data)} bytes")
-    img = np.frombuffer(msg.data, dtype="<u2").reshape(msg.height, msg.width)
-    return stamp_to_ns(msg.timestamp), img
+    return np.frombuffer(msg.data, dtype="<u2").reshape(msg.height, msg.width)
 
 
 # --------------------------------------------------------------------------- calibration

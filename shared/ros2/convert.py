@@ -30,14 +30,13 @@ import numpy as np
 from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
-from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 
 from shared.sensors import (
     BODY_FRAME,
     WORLD_FRAME,
     body_quat,
+    decode_depth,
     decode_proto,
-    parse_depth,
     quat_to_matrix,
     stamp_to_ns,
 )
@@ -123,9 +122,7 @@ class Converter:
     def depth(self, data: bytes) -> Any:
         """The bus's 16-bit PNG (or an older log's RawImage) -> sensor_msgs/Image 16UC1, what ROS depth consumers
         (depth_image_proc, RViz) read without an image_transport plugin."""
-        stamp, img = parse_depth(data)
-        pb = decode_proto(CompressedImage, data)
-        frame_id = pb.frame_id if pb.format else decode_proto(RawImage, data).frame_id
+        stamp, frame_id, img = decode_depth(data)
         h, w = img.shape
         return self.ts.types["sensor_msgs/msg/Image"](
             header=self.header(stamp, frame_id), height=h, width=w, encoding="16UC1", is_bigendian=0,

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from shared.errors import DecodeError
-from shared.sensors import CompressedImage, depth_message, parse_depth, raw16_message
+from shared.sensors import CompressedImage, decode_depth, depth_message, parse_depth, raw16_message
 
 
 def noisy_depth(seed: int = 0) -> np.ndarray:
@@ -34,6 +34,8 @@ def test_a_raw16_depth_from_an_older_log_still_reads() -> None:
     img = noisy_depth(1)
     stamp, back = parse_depth(raw16_message(img, 42))
     assert stamp == 42 and np.array_equal(back, img)
+    assert decode_depth(raw16_message(img, 42, frame_id="cam"))[1] == "cam"
+    assert decode_depth(depth_message(img, 42, frame_id="cam"))[1] == "cam"
 
 
 @pytest.mark.parametrize("fmt, data, why", [
