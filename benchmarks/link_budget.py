@@ -29,8 +29,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from aermani.launcher import Stack, free_udp_port  # noqa: E402
+from aermani.launcher import Stack, loopback_mavlink_env  # noqa: E402
 from benchmarks._figures import add_json_option, write_json  # noqa: E402
+from benchmarks.soak import COMMANDS, SERVICES  # noqa: E402
 from shared.bus import Bus  # noqa: E402
 from shared.errors import DecodeError  # noqa: E402
 from shared.keys import Keys  # noqa: E402
@@ -39,8 +40,6 @@ from shared.security import init_certs  # noqa: E402
 from shared.sensors import parse_depth  # noqa: E402
 from shared.tasks import follow_task  # noqa: E402
 
-SERVICES = ["sim", "autopilot_bridge", "perception", "executor", "reasoner", "recorder"]
-COMMANDS = [("red cup", "table"), ("coke can", "shelf"), ("tissue box", "counter"), ("apple", "table")]
 MB = 1e6
 
 
@@ -170,12 +169,9 @@ def main() -> None:
     add_json_option(ap)
     args = ap.parse_args()
     out = Path(args.out)
-    api = free_udp_port()
     # Only what the processes need to find each other on this machine; everything else at its default.
-    env = {"AERMANI_SIM_API_PORT": str(api), "AERMANI_SIM_API_LOCAL_PORT": str(free_udp_port()),
-           "AERMANI_SIM_GCS_PORT": str(free_udp_port()), "AERMANI_SIM_GCS_LOCAL_PORT": str(free_udp_port()),
-           "AERMANI_AUTOPILOT_BRIDGE_CONNECTION": f"udpin:127.0.0.1:{api}", "AERMANI_REASONER_BACKEND": "rules",
-           "AERMANI_RECORDER_OUT_DIR": str(out / "recordings")}
+    env = loopback_mavlink_env({"AERMANI_REASONER_BACKEND": "rules",
+                                "AERMANI_RECORDER_OUT_DIR": str(out / "recordings")})
     print(f"link and log budget: {', '.join(SERVICES)} at default settings (backend rules: a non-VLM baseline)")
     certs = out / "certs"
     if not (certs / "ca.pem").exists():
