@@ -126,6 +126,10 @@ class GripperState(StrEnum):
     CLOSED = "closed"
 
 
+ABORT_OVERRIDE = "aborted by "
+"""How `VehicleState.override` starts when an abort took control ("aborted by <source>: <reason>")."""
+
+
 class VehicleState(Message):
     """The vehicle as the autopilot bridge sees it, at >= 20 Hz: pose, motion, PX4 mode, health."""
 
@@ -178,6 +182,12 @@ class VehicleState(Message):
     # What the bridge always sends: a state on the wire without these does not say where the vehicle is.
     WIRE_FIELDS: ClassVar[tuple[str, ...]] = ("kind", "stamp_ns", "vehicle_id", "position", "velocity", "armed",
                                               "landed_state", "link_ok")
+
+    def taken_by_abort(self, since_ns: int = 0) -> bool:
+        """Whether an abort (not PX4 or the pilot) latched `override`, after `since_ns` (bridge time): the
+        subscribers of an abort see it in any order, so a skill or a task that finds the bridge already holding
+        for an abort ends ABORTED, not FAILED."""
+        return self.override.startswith(ABORT_OVERRIDE) and self.override_ns > since_ns
 
     @model_validator(mode="before")
     @classmethod
@@ -323,6 +333,9 @@ class AutopilotResult(Message):
     """MAV_RESULT name of ack_code."""
     message: str = ""
     """Human-readable explanation."""
+    aborted: bool = False
+    """The command was stopped or refused because of an abort the bridge obeyed (it may have got the abort
+    before the executor did): the skill that sent it ends ABORTED, not FAILED."""
     checks: tuple[PreflightCheck, ...] = ()
     """Every preflight check with its verdict: the answer to a preflight command, and to an arm or takeoff
     that the preflight refused."""

@@ -23,6 +23,7 @@ from shared.envelope import altitude_problem, geofence_problem, speed_problem
 from shared.errors import BusError
 from shared.keys import FLEET_ABORT, BoundTopic
 from shared.messages import (
+    ABORT_OVERRIDE,
     Abort,
     AbortAck,
     ArmCommand,
@@ -352,10 +353,11 @@ class Bridge:
         (task_id None) is the new operator command that ends a takeover."""
         if task_id is not None and task_id in self.aborted_tasks:
             return self._result(command, False, f"{command} refused: task {task_id} was aborted; a new operator "
-                                "command is needed")
+                                "command is needed", aborted=True)
         if self.override and task_id is not None and task_id == self.override_task:
             return self._result(command, False, f"{command} refused: the autopilot has control ({self.override}); "
-                                "the stack does not take it back within this task, a new operator command is needed")
+                                "the stack does not take it back within this task, a new operator command is needed",
+                                aborted=self.override.startswith(ABORT_OVERRIDE))
         if self.override:
             log.info("new operator command (%s, task %s): the stack may fly again after: %s", command,
                      task_id or "operator", self.override)
@@ -377,7 +379,7 @@ class Bridge:
         else:
             mid_takeoff = self.armed and (self.climbing or self.landed_state is LandedState.TAKEOFF)
             self.epoch += 1  # ends a takeoff that is waiting for its altitude
-            self.take_over(f"aborted by {abort.source}: {abort.reason}", abort.task_id)
+            self.take_over(f"{ABORT_OVERRIDE}{abort.source}: {abort.reason}", abort.task_id)
             # Mid-takeoff a hold would leave the vehicle armed a few centimetres up, in ground effect, below
             # every skill's minimum altitude: it lands (the executor does the same).
             what = await (self.land_on_abort() if mid_takeoff else self.hold_through_px4())
@@ -464,10 +466,16 @@ class Bridge:
 
     # ------------------------------------------------------------------ commands
 
-    def _result(self, command: str, ok: bool, message: str, code: int | None = None) -> AutopilotResult:
+    def _result(self, command: str, ok: bool, message: str, code: int | None = None, *,
+                aborted: bool = False) -> AutopilotResult:
         (log.info if ok else log.warning)("%s -> %s: %s", command, "ok" if ok else "failed", message)
         return AutopilotResult(ok=ok, command=command, ack_code=code, ack_name=px4.result_name(code),
-                               message=message)
+                               message=message, aborted=aborted)
+
+    def _stopped(self, command: str, code: int | None = None) -> AutopilotResult:
+        """`command` stopped by the latched takeover (or superseded); `aborted` when an abort latched it."""
+        return self._result(command, False, f"{command} stopped: {self.override or 'superseded'}", code,
+                            aborted=self.override.startswith(ABORT_OVERRIDE))
 
     def _ack_result(self, command: str, code: int | None, what: str, done: str) -> AutopilotResult:
         if code is None:
@@ -652,7 +660,7 @@ class Bridge:
                     return failed.model_copy(update={"command": "takeoff"})
                 code = px4.MAV_RESULT_ACCEPTED
             if epoch != self.epoch or self.override:
-                return self._result("takeoff", False, f"takeoff stopped: {self.override or 'superseded'}", code)
+                return self._stopped("takeoff", code)
             alt = cmd.altitude
             self.stream.set_target(Target(x, y, alt, yaw))
             tol = self.s.arrival_tolerance_m
@@ -668,7 +676,7 @@ class Bridge:
             finally:
                 self.climbing = False
             if self.override:
-                return self._result("takeoff", False, f"takeoff stopped: {self.override}", code)
+                return self._stopped("takeoff", code)
             if epoch != self.epoch:
                 return self._result("takeoff", False, "takeoff superseded by a newer command", code)
             if not self.armed:
@@ -701,7 +709,7 @@ class Bridge:
             if failed is not None:
                 return failed.model_copy(update={"command": "goto"})
             if self.override:
-                return self._result("goto", False, f"goto stopped: {self.override}")
+                return self._stopped("goto")
         # The envelope check already refused a faster max_speed; none given means the envelope's limit, so a
         # goto never jumps the setpoint and flies at the autopilot's own (higher) speed.
         speed = self.s.max_speed if cmd.max_speed is None else min(cmd.max_speed, self.s.max_speed)

@@ -57,6 +57,13 @@ class AuthorityLost(SkillFailed):
         super().__init__(message, OutcomeCode.ABORTED)
 
 
+class AbortSeen(SkillFailed):
+    """The bridge stopped or refused a command because of an abort it obeyed first: the skill ends ABORTED."""
+
+    def __init__(self, message: str) -> None:
+        super().__init__(message, OutcomeCode.ABORTED)
+
+
 class StateTracker:
     """Newest VehicleState with its receive time, and a way to wait for the next one."""
 
@@ -132,7 +139,7 @@ class SkillContext:
 
     def _monitor(self, st: VehicleState) -> None:
         """Envelope rules checked on every state sample while a skill waits on the vehicle."""
-        if st.override and st.override_ns != self.override_ns_at_start and not st.override.startswith("aborted by "):
+        if st.override and st.override_ns != self.override_ns_at_start and not st.taken_by_abort():
             # (an abort's takeover is this executor's own abort too: it cancels the skill itself)
             raise AuthorityLost(f"the autopilot took control: {st.override}")
         s = self.settings
@@ -175,7 +182,8 @@ class SkillContext:
         except BusError as exc:
             raise SkillFailed(f"autopilot did not take the {cmd.kind} command: {exc}") from exc
         if not res.ok:
-            raise SkillFailed(f"autopilot refused {cmd.kind}: {res.message or res.ack_name or 'no reason given'}")
+            text = f"autopilot refused {cmd.kind}: {res.message or res.ack_name or 'no reason given'}"
+            raise AbortSeen(text) if res.aborted else SkillFailed(text)
         return res
 
     async def goto(self, target: Vec3, yaw: float, speed: float, *, low: float | None = None,

@@ -8,7 +8,7 @@ import logging
 import time
 from dataclasses import dataclass, field
 
-from services.executor.context import AuthorityLost, SkillContext, SkillFailed, StateTracker, pose_of
+from services.executor.context import AbortSeen, AuthorityLost, SkillContext, SkillFailed, StateTracker, pose_of
 from services.executor.envelope import DepthClearance, airborne, offboard_problem, state_problem
 from services.executor.memory import Memory
 from services.executor.registry import Skill, build_library
@@ -281,10 +281,12 @@ class Executor:
                     state, message, code = SkillState.TIMEOUT, f"{skill.name}: {exc}; holding", OutcomeCode.TIMED_OUT
                     if skill.moves:
                         await self._hold()
-                elif isinstance(exc, AuthorityLost) and goal.aborted_by:
-                    # The bridge saw the abort first (it holds on its own): still this executor's abort.
+                elif isinstance(exc, SkillFailed) and (goal.aborted_by or isinstance(exc, AbortSeen)
+                                                       or self._bridge_aborted()):
+                    # The bridge saw the abort first and holds on its own (a takeoff it stopped, a command it
+                    # refused, a takeover it latched): still an abort, whichever of the two got the message first.
                     state, code = SkillState.ABORTED, OutcomeCode.ABORTED
-                    message = f"{skill.name} aborted ({goal.aborted_by}); holding position"
+                    message = f"{skill.name} aborted ({goal.aborted_by or exc}); holding position"
                 elif isinstance(exc, AuthorityLost):
                     # no hold: PX4 or the pilot is in charge
                     state, message, code = SkillState.FAILED, str(exc), OutcomeCode.ABORTED
@@ -311,6 +313,11 @@ class Executor:
             with contextlib.suppress(BusError):
                 self._status(goal.goal_id, goal.request, state, message, outcome, goal.started_ns, goal.handle)
             log.info("%s goal %s %s: %s", skill.name, goal.goal_id, state.value, message)
+
+    def _bridge_aborted(self) -> bool:
+        """Whether the bridge latched an abort's takeover while the running skill flew."""
+        st = self.state.value
+        return st is not None and st.taken_by_abort(self.ctx.override_ns_at_start)
 
     # ---- abort
 

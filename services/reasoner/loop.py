@@ -306,6 +306,8 @@ class TaskRunner:
                                          self.settings.takeoff_timeout_s)
             except ExecutorUnreachable as exc:
                 return self.status(TaskState.FAILED, f"takeoff failed: {exc}")
+            if st.state is SkillState.ABORTED:  # the executor (or the bridge) got the abort before this loop
+                return self.status(TaskState.ABORTED, f"takeoff aborted: {st.message}")
             if st.state is not SkillState.SUCCEEDED:
                 return self.status(TaskState.FAILED, f"takeoff {st.state.value}: {st.message}")
         return None
@@ -317,6 +319,9 @@ class TaskRunner:
         st = obs.state
         if st is None or (self._abort is not None and self._abort.is_set()):
             return None
+        if st.override and st.override_ns != self._override_ns and st.taken_by_abort(self._override_ns):
+            # The bridge got the abort before this loop did (its subscribers see it in any order).
+            return self.status(TaskState.ABORTED, f"aborted: the bridge holds ({st.override})")
         if st.override and st.override_ns != self._override_ns:
             return self.status(TaskState.FAILED, f"the autopilot took control: {st.override}; the task ends "
                                                  "here, a new command is needed to fly again")

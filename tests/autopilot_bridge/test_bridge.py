@@ -290,7 +290,20 @@ async def test_abort_without_executor_holds_through_px4_hold_mode() -> None:
         # for by the bridge itself) is not mistaken for a takeover.
         res = await bridge.handle(GotoCommand(position=Vec3(x=0, y=0, z=1), yaw=0.0, task_id="task-a"))
         assert not res.ok and "a new operator command is needed" in res.message
+        assert res.aborted  # the executor ends the skill ABORTED even if it has not seen the abort itself
         res = await bridge.handle(GotoCommand(position=Vec3(x=0, y=0, z=1), yaw=0.0, task_id="task-b"))
         assert res.ok, res.message
         await asyncio.sleep(0.5)
         assert bridge.state().override == "" and bridge.state().mode == "OFFBOARD"
+
+
+async def test_a_takeoff_stopped_by_an_abort_answers_aborted() -> None:
+    """The executor may get the abort after the bridge: the takeoff the bridge stopped says why (`aborted`)."""
+    from shared.messages import Abort
+
+    async with bridge_and_fake() as (bridge, _fake):
+        takeoff = asyncio.create_task(bridge.handle(TakeoffCommand(altitude=1.5, task_id="task-a")))
+        await wait_until(lambda: bridge.climbing, 10, what="the climb")
+        await bridge.on_abort(Abort(reason="stop", source="test", task_id="task-a"))
+        res = await asyncio.wait_for(takeoff, 10)
+        assert not res.ok and res.aborted and "aborted by test: stop" in res.message, res

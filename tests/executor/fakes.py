@@ -176,7 +176,7 @@ class FakeAutopilot:
             self.world.carry(self.gripper_point())
 
     async def run(self) -> None:
-        self.bus.serve(self.keys.autopilot_command, self.handle)
+        self.bus.serve(self.keys.autopilot_command, lambda cmd: self.handle(cmd))  # a test may swap handle
         while True:
             self.step()
             if self.publishing:

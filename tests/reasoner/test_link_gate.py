@@ -139,3 +139,44 @@ def test_an_absent_executor_ends_the_task_after_one_step() -> None:
     assert "executor unreachable for 5 s" in final.message, final.message
     assert len(steps) == 1 and steps[0].skill_state is SkillState.FAILED  # the one step, logged with the reason
     assert "executor unreachable" in steps[0].skill_message
+
+
+class AbortSeenElsewhereFirst(MiniWorldPort):
+    """An abort reaches the executor or the bridge before this loop (the bus delivers one message to its three
+    subscribers in any order), during the skill `at`; the loop's own abort signal is never set.
+    `where="executor"`: the executor cancels the running skill (ABORTED). `"bridge"`: the bridge stops the
+    command and latches its takeover ("aborted by ...") in the state; the executor reports the skill ABORTED
+    (AbortSeen). `"between"`: the skill ends first, then only the bridge's latched takeover shows the abort."""
+
+    def __init__(self, world: MiniWorld, where: str, at: str) -> None:
+        super().__init__(world)
+        self.where, self.at, self.override_ns = where, at, 0
+
+    async def observe(self, newer_than_ns: int) -> Observation:
+        obs = await super().observe(newer_than_ns)
+        if self.override_ns and obs.state is not None:
+            obs = dataclasses.replace(obs, state=obs.state.model_copy(update={
+                "override": "aborted by gateway: operator", "override_ns": self.override_ns}))
+        return obs
+
+    async def run_skill(self, request: SkillRequest, timeout: float,
+                        ready_timeout: float = 0.0) -> tuple[SkillAccept, SkillStatus | None]:
+        accept, status = await super().run_skill(request, timeout, ready_timeout)
+        if request.skill == self.at and status is not None and not self.override_ns:
+            if self.where != "executor":
+                self.override_ns = 1
+            if self.where != "between":
+                status = status.model_copy(update={"state": SkillState.ABORTED,
+                                                   "message": f"{request.skill} aborted (gateway: operator)"})
+        return accept, status
+
+
+def test_an_abort_that_reaches_the_executor_or_the_bridge_first_still_ends_the_task_aborted() -> None:
+    """The race CI met (tests/ros2/test_live.py): an abort during the take-off ended the task `failed`
+    ("takeoff aborted") when the executor's answer overtook the loop's own abort signal."""
+    for where in ("executor", "bridge", "between"):
+        for at in ("takeoff", "obj_localization"):
+            w = MiniWorld([Thing("red cup"), TABLE])
+            final, _ = _run(AbortSeenElsewhereFirst(w, where, at))
+            assert final.state is TaskState.ABORTED, (where, at, final.message)
+            assert "grasp" not in w.executed, (where, at, w.executed)
