@@ -18,7 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validat
 SCHEMA_VERSION = 1
 """Major version of the message schemas. A receiver rejects a message of a newer major version with an
 error naming both versions."""
-SCHEMA_MINOR = 6
+SCHEMA_MINOR = 7
 """Minor version: bumped when fields are added (or deprecated and ignored, never removed). A receiver accepts a
 message of a newer minor version, ignoring the fields it does not know (logged once per field)."""
 MAX_COMMAND_CHARS = 500
@@ -765,6 +765,34 @@ class ModelCall(Part):
     """Prompt tokens the server read from its prompt cache, when it reports them."""
 
 
+class StepTiming(Part):
+    """Where one step's wall time went, as the reasoner saw it (seconds, this host's clock). What a user waits
+    for besides the model and the skill is `to_model_s + accept_s + report_s`."""
+
+    to_model_s: float = Field(0.0, ge=0)
+    """From the previous skill's end (its status received; the take-off's for step 1) to this step's first model
+    call: the observation's waits, the link gate and the prompt's compilation."""
+    frame_wait_s: float = Field(0.0, ge=0)
+    """Part of `to_model_s`: waiting for a colour frame newer than the previous skill's end."""
+    detections_wait_s: float = Field(0.0, ge=0)
+    """Part of `to_model_s`: waiting for detections newer than the previous skill's end."""
+    state_wait_s: float = Field(0.0, ge=0)
+    """Part of `to_model_s`: waiting for a vehicle state newer than the previous skill's end."""
+    link_wait_s: float = Field(0.0, ge=0)
+    """Part of `to_model_s`: the link gate holding the step while the vehicle's link or offboard was bad."""
+    prompt_s: float = Field(0.0, ge=0)
+    """Part of `to_model_s`: compiling the prompt."""
+    model_s: float = Field(0.0, ge=0)
+    """The model calls of the step, re-prompts and parsing between them included."""
+    accept_s: float = Field(0.0, ge=0)
+    """From sending the skill to the executor's acceptance (approvals included)."""
+    skill_s: float = Field(0.0, ge=0)
+    """The skill as the executor timed it (its start to its end)."""
+    report_s: float = Field(0.0, ge=0)
+    """From the executor's end of the skill to the reasoner holding its status (a clock offset between two
+    hosts shows here; 0 when negative)."""
+
+
 class ReasoningStep(Message):
     """One step of Algorithm 1: prompt parts, model calls, DRT and STE, and the skill's outcome."""
 
@@ -808,6 +836,8 @@ class ReasoningStep(Message):
     """Framework time of the step excluding model calls and skill execution."""
     skill_duration_s: float = 0.0
     """Wall time of the skill."""
+    timing: StepTiming | None = None
+    """Where the step's time went (None in records older than schema minor 7 and for a step without a skill)."""
 
 
 class CancelGoal(Message):

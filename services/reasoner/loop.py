@@ -40,6 +40,7 @@ from shared.messages import (
     SkillRequest,
     SkillState,
     SkillStatus,
+    StepTiming,
     TaskRequest,
     TaskState,
     TaskStatus,
@@ -120,6 +121,15 @@ def policy_context(command: str, variant: str, library: SkillLibrary, history: H
                    for o in (*mem.seen, *mem.objects, *mem.placements)} if mem else {})
 
 
+def skill_times(st: SkillStatus, sent_ns: int, received_ns: int) -> dict[str, float]:
+    """accept_s, skill_s and report_s of StepTiming from a terminal status: the executor stamps its goal's start
+    and end; a refusal made here (approval, feasibility) has this host's stamps."""
+    started = st.started_ns or sent_ns
+    ended = st.ended_ns or received_ns
+    return {"accept_s": max(0.0, (started - sent_ns) / 1e9), "skill_s": max(0.0, (ended - started) / 1e9),
+            "report_s": max(0.0, (received_ns - ended) / 1e9)}
+
+
 @dataclass
 class StepResult:
     """One finished reasoning step: the published record and the parsed answer (None when invalid)."""
@@ -128,6 +138,10 @@ class StepResult:
     parsed: ParsedAnswer | None
     failure: str | None = None
     """The backend's reason when its (valid) answer ends the task as failed (ModelReply.failure)."""
+    prompt_s: float = 0.0
+    """Compiling the prompt (before the first model call)."""
+    first_call: float = 0.0
+    """time.perf_counter() at the first model call."""
 
 
 class TaskRunner:
@@ -214,6 +228,7 @@ class TaskRunner:
         failed_in_row = 0
         last_skill = S.TAKEOFF
         last_end_ns = now_ns()  # the first observation must come after the take-off (not a stale grounded state)
+        last_end = time.perf_counter()  # the same moment on the step-timing clock
         while True:
             if self.steps >= self.settings.max_steps:
                 await self.world.hold(self.req.task_id, "max steps")
@@ -224,9 +239,11 @@ class TaskRunner:
             ended = self._authority_end(obs, last_skill)
             if ended is not None:
                 return ended
+            t_link = time.perf_counter()
             obs, ended = await self._await_link(obs, last_end_ns, last_skill)
             if ended is not None:
                 return ended
+            link_s = time.perf_counter() - t_link
             self.steps += 1
             try:
                 result, model_time = await self._decide(compiler, library, obs)
@@ -238,14 +255,19 @@ class TaskRunner:
                 self._publish(rec)
                 return self.status(TaskState.FAILED, f"model unavailable, vehicle held: {exc}")
             rec, parsed = result.record, result.parsed
+            timing = StepTiming(to_model_s=max(0.0, result.first_call - last_end), frame_wait_s=obs.frame_wait_s,
+                                detections_wait_s=obs.detections_wait_s, state_wait_s=obs.state_wait_s,
+                                link_wait_s=link_s, prompt_s=result.prompt_s, model_s=model_time)
             if parsed is None:
                 failed_in_row += 1
                 await self.world.hold(self.req.task_id, "invalid answer")
                 err = rec.calls[-1].error if rec.calls else "no answer"
                 self.history.append(HistoryEntry(self.steps, "(invalid answer)", None, "failed",
                                                  f"no valid skill after {rec.retries} re-prompts: {err}; held"))
-                rec = rec.model_copy(update={"overhead_s": time.perf_counter() - t_step - model_time})
+                rec = rec.model_copy(update={"overhead_s": time.perf_counter() - t_step - model_time,
+                                             "timing": timing})
                 self._publish(rec)
+                last_end = time.perf_counter()  # the hold ended this step: the next one waits from here
                 if failed_in_row >= self.settings.max_failed_steps:
                     return self.status(TaskState.FAILED, f"{failed_in_row} steps without a valid answer "
                                                          f"(last error: {err}); vehicle held")
@@ -253,7 +275,7 @@ class TaskRunner:
             failed_in_row = 0
             overhead = time.perf_counter() - t_step - model_time
             ste = parsed.ste
-            t_skill = time.perf_counter()
+            t_skill, sent_ns = time.perf_counter(), now_ns()
             try:
                 st = await self._execute(SkillRequest(skill=ste.skill, argument=ste.argument,
                                                       task_id=self.req.task_id, step=self.steps),
@@ -263,15 +285,16 @@ class TaskRunner:
                                                      "overhead_s": overhead}))
                 return self.status(TaskState.FAILED, str(exc))
             skill_s = time.perf_counter() - t_skill
-            t_upd = time.perf_counter()
+            t_upd = last_end = time.perf_counter()
             last_end_ns = now_ns()  # local clock: the next frame must arrive after this
+            timing = timing.model_copy(update=skill_times(st, sent_ns, last_end_ns))
             last_skill = ste.skill
             self.history.append(HistoryEntry(
                 self.steps, ste.skill, ste.argument, st.state.value, st.message, st.outcome.perceived,
                 parsed.drt.summary or "", parsed.drt.reasoning or "", st.outcome))
             overhead += time.perf_counter() - t_upd
             rec = rec.model_copy(update={"skill_state": st.state, "skill_message": st.message, "outcome": st.outcome,
-                                         "overhead_s": overhead, "skill_duration_s": skill_s})
+                                         "overhead_s": overhead, "skill_duration_s": skill_s, "timing": timing})
             self._publish(rec)
             if ste.skill == S.DONE:
                 if result.failure:  # the policy ends the task as failed ("not found: ..."), not as complete
@@ -377,8 +400,10 @@ class TaskRunner:
     async def _decide(self, compiler: PromptCompiler, library: SkillLibrary,
                       obs: Observation) -> tuple[StepResult, float]:
         """Query the policy, re-prompting with the error up to N times. Returns (result, model seconds)."""
+        t_prompt = time.perf_counter()
         prompt: CompiledPrompt = compiler.compile(self.req.command, self.history, obs)
         ctx = policy_context(self.req.command, self.variant, library, self.history, obs)
+        first_call = time.perf_counter()
         feedback: list[tuple[str, str]] = []
         calls: list[ModelCall] = []
         parsed: ParsedAnswer | None = None
@@ -414,7 +439,7 @@ class TaskRunner:
             variant=self.variant, prompt=prompt.parts, image_stamp_ns=obs.image_stamp_ns if prompt.has_image else 0,
             calls=tuple(calls), drt=parsed.drt if parsed else None, ste=parsed.ste if parsed else None,
             valid=parsed is not None, retries=len(calls) - 1)
-        return StepResult(rec, parsed, failure), model_time
+        return StepResult(rec, parsed, failure, first_call - t_prompt, first_call), model_time
 
     def _needs_approval(self, skill: str) -> bool:
         wanted = set(self.settings.approval)

@@ -126,6 +126,12 @@ class Observation:
     """How long ago (this host's clock) `state` arrived: a silent bridge leaves an old state behind."""
     detections: tuple[Detection, ...] = ()
     memory: WorkingMemory | None = None
+    frame_wait_s: float = 0.0
+    """How long the observation waited for a colour frame newer than the previous skill's end (StepTiming)."""
+    detections_wait_s: float = 0.0
+    """... for detections newer than it."""
+    state_wait_s: float = 0.0
+    """... for a vehicle state newer than it."""
 
 
 @dataclass

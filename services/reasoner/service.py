@@ -6,6 +6,7 @@ import asyncio
 import contextlib
 import functools
 import logging
+import time
 
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 
@@ -84,18 +85,23 @@ class BusWorld(World):
         return await self.bus.query(self.keys.skills, None, timeout=self.settings.library_timeout_s)
 
     async def observe(self, newer_than_ns: int) -> Observation:
+        t0 = t1 = t2 = time.perf_counter()
         if newer_than_ns and self.settings.frame_wait_s > 0:
             await self.frame.newer_than(newer_than_ns, self.settings.frame_wait_s)
+            t1 = time.perf_counter()
             await self.detections.newer_than(newer_than_ns, min(0.3, self.settings.frame_wait_s))
+            t2 = time.perf_counter()
         if newer_than_ns:
             # Zenoh does not order samples across keys: the state that shows the skill's effect (e.g. airborne
             # after the take-off) may arrive after its status. The autopilot state comes at >= 20 Hz.
             await self.state.newer_than(newer_than_ns, 1.0)
+        t3 = time.perf_counter()
         frame = self.frame.value
         det = self.detections.value
         return Observation(image_jpeg=frame[0] if frame else None, image_stamp_ns=frame[1] if frame else 0,
                            state=self.state.value, state_age_s=self.state.age_s if self.state.value else 0.0,
-                           detections=det.items if det else (), memory=self.memory.value)
+                           detections=det.items if det else (), memory=self.memory.value,
+                           frame_wait_s=t1 - t0, detections_wait_s=t2 - t1, state_wait_s=t3 - t2)
 
     async def check_skill(self, request: SkillRequest) -> SkillAccept:
         reply: SkillAccept = await self.bus.query(self.keys.check_skill, request, timeout=10.0)

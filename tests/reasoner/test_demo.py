@@ -52,6 +52,12 @@ def test_demo_rules(tmp_path) -> None:
     colour = list(mcaplog.iter_samples(log, Keys("am1").camera_color.key))
     logged = {stamp_to_ns(decode_proto(CompressedImage, s.payload).timestamp) for s in colour}
     assert {s.image_stamp_ns for s in result["steps"]} <= logged
+    # Every recorded step says where its time went (issue 27), and the parts fit inside the whole.
+    for st in mcaplog.reasoning_steps(log):
+        t = st.timing
+        assert t is not None and t.model_s > 0 and t.skill_s > 0, st
+        assert t.frame_wait_s + t.detections_wait_s + t.state_wait_s + t.link_wait_s + t.prompt_s <= t.to_model_s, t
+        assert t.skill_s <= st.skill_duration_s + 0.05, (t, st.skill_duration_s)  # the executor's part of it
     bag = tmp_path / "bag"
     out = subprocess.run([sys.executable, "-m", "aermani.cli", "log", "export", str(log), "--out", str(bag), "--ros2"],
                          capture_output=True, text=True, timeout=600)
