@@ -311,7 +311,8 @@ async def test_bridge_and_executor_killed_while_holding_then_another_grasp_keeps
         stack.wait_alive(timeout=120)
         deadline = time.monotonic() + 60
         while not ((st := await c.states.recv(timeout=10)).link_ok and st.gripper_holding
-                   and st.gripper.value == "closed" and st.stamp_ns > restarted_ns):
+                   and st.gripper.value == "closed" and st.stamp_ns > restarted_ns
+                   and st.landed_state.value != "unknown"):  # unknown until the first EXTENDED_SYS_STATE
             assert time.monotonic() < deadline, f"the new bridge does not report the held cup: {st.gripper}"
         skills = await bus.query(KEYS.skills, None, timeout=10)  # the new executor answers
         assert skills.skills
@@ -355,7 +356,8 @@ async def test_bridge_killed_while_holding_over_the_table_holds_then_an_operator
         stack.wait_alive(timeout=120)
         deadline = time.monotonic() + 60
         while not ((st := await c.states.recv(timeout=10)).link_ok and st.stamp_ns > restarted_ns
-                   and st.gripper_holding is not None):  # the gripper's telemetry follows the first HEARTBEAT
+                   and st.gripper_holding is not None  # the gripper's telemetry follows the first HEARTBEAT
+                   and st.landed_state.value != "unknown"):  # unknown until the first EXTENDED_SYS_STATE
             assert time.monotonic() < deadline, f"the new bridge has no link or no gripper telemetry: {st}"
         assert st.armed and st.landed_state.value == "in_air" and st.mode == "AUTO.LOITER", st
         assert "found PX4 flying in AUTO.LOITER" in st.override and st.gripper_holding, st
