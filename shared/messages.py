@@ -294,7 +294,8 @@ class PreflightCheck(Part):
     expected: str = ""
     """What is required to fly."""
     reason: str = ""
-    """Why it matters, for a failed check."""
+    """Why it matters, for a failed check; for a passed one, a caveat or empty (COM_OBL_RC_ACT Land lands
+    wherever the vehicle is)."""
 
 
 class PreflightReport(Message):

@@ -124,6 +124,7 @@ class Bridge:
         self.override = ""
         self.override_ns = 0
         self.override_task: str | None = None  # the task that was flying when control was taken
+        self.seen_mode = False  # a HEARTBEAT with PX4's mode arrived (the first one may find it flying without us)
         self.last_task: str | None = None  # task id of the newest motion command
         self.aborted_tasks: set[str] = set()  # tasks named by an abort (or flying at one): never command again
         self.link_was_ok = False
@@ -255,6 +256,14 @@ class Bridge:
         if mode != self.mode:
             log.info("mode %s -> %s", self.mode, mode)
         previous, self.mode = self.mode, mode
+        first, self.seen_mode = not self.seen_mode and mode != "UNKNOWN", self.seen_mode or mode != "UNKNOWN"
+        if first and self.armed and self.mode_requested is None and self.mode_pending is None:
+            # Armed before this bridge ever commanded it (this bridge restarted in flight): PX4 flies its own
+            # choice, e.g. the offboard-loss Hold. Latch it, as if it had been seen taking over, so the task that
+            # was flying ends and nothing re-enters OFFBOARD until a new operator command (a new task, or a
+            # direct command) takes the vehicle back, e.g. to land clear of the furniture.
+            self.take_over(f"found PX4 flying in {mode} at the bridge's start (its failsafe or the pilot has "
+                           f"control){self._status_hint()}")
         if not self.armed:
             self.mode_requested = None
         if self.offboard_expected and mode != "OFFBOARD":

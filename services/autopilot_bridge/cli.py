@@ -244,7 +244,8 @@ def preflight_cmd(connect: Connect = "tcp/127.0.0.1:7447", vehicle: Vehicle = "a
     for col in ("check", "value", "required", "verdict"):
         table.add_column(col)
     for c in checks:
-        verdict = "[green]ok[/green]" if c.ok else f"[red]FAIL[/red] {terminal_text(c.reason)}"
+        verdict = (f"[green]ok[/green]{' [yellow]note[/yellow] ' + terminal_text(c.reason) if c.reason else ''}"
+                   if c.ok else f"[red]FAIL[/red] {terminal_text(c.reason)}")
         table.add_row(terminal_text(c.name), terminal_text(c.value or "not reported"), terminal_text(c.expected),
                       verdict)
     console.print(table)

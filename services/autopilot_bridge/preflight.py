@@ -31,6 +31,8 @@ class ParamRule:
     expected: str
     reason: str
     show: Callable[[float], str] = lambda v: f"{v:g}"
+    note: Callable[[float], str] = lambda v: ""
+    """A caveat for an accepted value the operator should know (the check's `reason` when it passes)."""
 
 
 # PX4 >= 1.14 enum values (COM_OBL_RC_ACT: 0 Position, 1 Altitude, 2 Manual, 3 Return, 4 Land, 5 Hold,
@@ -44,11 +46,15 @@ def _named(names: dict[int, str]) -> Callable[[float], str]:
     return lambda v: f"{v:g} ({names.get(int(v), 'unknown')})"
 
 
+LAND_NOTE = ("Land lands wherever the vehicle is when the stack dies, possibly on furniture and on a held object; "
+             "5 Hold (or 0 Position) is recommended: it holds until the restarted stack or the pilot lands clear")
+
 RULES: tuple[ParamRule, ...] = (
-    ParamRule("COM_OBL_RC_ACT", lambda v: int(v) in (0, 4, 5), "0 Position, 4 Land or 5 Hold",
+    ParamRule("COM_OBL_RC_ACT", lambda v: int(v) in (0, 4, 5), "5 Hold or 0 Position (recommended), or 4 Land",
               "what PX4 does when the offboard setpoints stop (bridge, link or companion computer gone): Return "
               "climbs to the return altitude under a ceiling, Terminate and Disarm drop the vehicle, Altitude and "
-              "Manual need a pilot on the sticks", _named(OBL_NAMES)),
+              "Manual need a pilot on the sticks", _named(OBL_NAMES),
+              lambda v: LAND_NOTE if int(v) == 4 else ""),
     ParamRule("COM_OF_LOSS_T", lambda v: 0.0 < v <= 1.0, "> 0 and <= 1 s",
               "how long PX4 flies on the last setpoint after the stream stops before the offboard-loss action"),
     ParamRule("GF_ACTION", lambda v: int(v) in (2, 5), "2 Hold or 5 Land",
@@ -73,7 +79,7 @@ def check_params(params: dict[str, float | None]) -> list[PreflightCheck]:
             continue
         good = r.ok(v)
         out.append(PreflightCheck(name=r.name, ok=good, value=r.show(v), expected=r.expected,
-                                  reason="" if good else r.reason))
+                                  reason=r.note(v) if good else r.reason))
     return out
 
 
@@ -156,7 +162,8 @@ def check_operator(fps: float | None, frame_age_s: float | None, link_hz: float 
 def summary(checks: list[PreflightCheck]) -> str:
     failed = [c for c in checks if not c.ok]
     if not failed:
-        return f"preflight passed: {len(checks)} checks"
+        notes = "".join(f"; note: {c.name} = {c.value}: {c.reason}" for c in checks if c.reason)
+        return f"preflight passed: {len(checks)} checks{notes}"
     return "preflight failed: " + "; ".join(
         f"{c.name} = {c.value or 'not reported'} (needs {c.expected}): {c.reason}" for c in failed)
 

@@ -42,6 +42,12 @@ def state_problem(state: VehicleState | None, age_s: float, s: ExecutorSettings)
 
 
 def offboard_problem(state: VehicleState) -> str | None:
+    """None when a skill may send setpoints: OFFBOARD is healthy, or PX4 holds the vehicle in the air in
+    AUTO.LOITER (its offboard-loss Hold found by a restarted bridge, an abort's hold), which the bridge takes back
+    into OFFBOARD for an operator's new command; it refuses the task PX4 took control from. Any other mode is
+    PX4's or the pilot's to fly (RTL, a landing, POSCTL)."""
+    if state.mode == "AUTO.LOITER" and state.link_ok and state.landed_state is LandedState.IN_AIR:
+        return None
     if not state.offboard_ok:
         return (f"autopilot is not in healthy OFFBOARD control (mode {state.mode}): cannot send setpoints; "
                 "nothing was moved")

@@ -362,7 +362,11 @@ class TaskRunner:
             return f"no vehicle state from the autopilot bridge for {obs.state_age_s:.1f} s"
         if not st.link_ok:
             return "no link to the autopilot"
-        if st.landed_state in AIRBORNE and not st.offboard_ok:
+        if st.landed_state in AIRBORNE and not st.offboard_ok and not (
+                st.mode == "AUTO.LOITER" and st.landed_state is LandedState.IN_AIR):
+            # PX4 holding in the air (AUTO.LOITER) is no reason to wait: a takeover during this task ended it
+            # already (_authority_end); one from before it (a restarted bridge found PX4's offboard-loss Hold)
+            # is what this task's first skill takes back from, into OFFBOARD.
             # Taking off or landing counts too: a vehicle that PX4 is bringing down after a bridge kill is
             # not one to send a skill to (7 were issued in 4.7 s when only "in_air" was checked).
             return f"offboard control is not healthy (mode {st.mode}, {st.landed_state.value})"

@@ -77,16 +77,17 @@ PARAMS: dict[str, float] = {
     "RTL_RETURN_ALT": 2.0,
     "SYS_FAILURE_EN": 0.0,  # PX4 answers MAV_CMD_INJECT_FAILURE only when this is 1
     "SIM_GRIP_ACT_SET": 1.0,  # the gripper is on "Peripheral via Actuator Set N" for MAV_CMD_DO_SET_ACTUATOR
-    # Failsafe configuration as reported to the bridge's preflight. The simulated vehicle flies its own failsafe
-    # whatever these say (hold, then land after failsafe_land_delay), like COM_OBL_RC_ACT=4 with a hold delay.
-    "COM_OBL_RC_ACT": 4.0,  # offboard loss: Land
-    "COM_FAIL_ACT_T": 3.0,
+    # Failsafe configuration, checked by the bridge's preflight. The vehicle flies COM_OBL_RC_ACT and
+    # COM_FAIL_ACT_T (services.sim.vehicle.OFFBOARD_LOSS_ACTIONS); the geofence ones are reported only.
+    "COM_OBL_RC_ACT": 5.0,  # offboard loss: Hold (Land would put a held object down on the furniture below)
+    "COM_FAIL_ACT_T": 3.0,  # s of hold before a failsafe action beyond Hold
     "GF_ACTION": 2.0,  # geofence breach: Hold
     "GF_MAX_HOR_DIST": 6.0,
     "GF_MAX_VER_DIST": 3.0,
 }
 FAILSAFE_PARAMS = ("COM_OBL_RC_ACT", "COM_FAIL_ACT_T", "GF_ACTION", "GF_MAX_HOR_DIST", "GF_MAX_VER_DIST")
-"""Reported only (AERMANI_SIM_PX4_PARAMS may set them at start): the vehicle's dynamics come from its settings."""
+"""The failsafe names AERMANI_SIM_PX4_PARAMS may set at start (PARAM_SET may too): COM_OBL_RC_ACT and
+COM_FAIL_ACT_T are flown, the geofence ones only reported (the simulator has no geofence)."""
 
 # MAV_CMD_INJECT_FAILURE units that take the local position estimate away (GPS outdoors, VIO indoors).
 POSITION_SENSORS = {mav.FAILURE_UNIT_SENSOR_GPS, mav.FAILURE_UNIT_SENSOR_VIO}
@@ -173,7 +174,9 @@ class MavlinkServer:
             m.robust_parsing = True
             self.links.append(Link(cfg, sock, m, (cfg.remote_host, cfg.remote_port),
                                    {k: 1.0 / v for k, v in DEFAULT_RATES.items()}))
-        self.params = {**PARAMS, **(params or {})}
+        # What the vehicle flies is what is reported: its own settings first, then the given PX4 parameters.
+        self.params = {**PARAMS, **self.flown_params(core.vehicle.params), **(params or {})}
+        self._apply_params()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._boot = time.monotonic()
@@ -487,6 +490,16 @@ class MavlinkServer:
             self._apply_params()
             link.send(value(names.index(pid)))
 
+    @staticmethod
+    def flown_params(p: Any) -> dict[str, float]:
+        """The PX4 parameters a VehicleParams flies, by PX4 name."""
+        return {"MIS_TAKEOFF_ALT": p.takeoff_alt, "COM_OF_LOSS_T": p.offboard_loss_timeout,
+                "COM_DISARM_LAND": p.disarm_after_land, "MPC_XY_VEL_MAX": p.max_speed_h,
+                "MPC_Z_VEL_MAX_UP": p.max_speed_up, "MPC_Z_VEL_MAX_DN": p.max_speed_down,
+                "MPC_LAND_SPEED": p.land_speed, "MPC_YAWRAUTO_MAX": math.degrees(p.yaw_rate),
+                "RTL_RETURN_ALT": p.rtl_alt, "COM_OBL_RC_ACT": float(p.offboard_loss_action),
+                "COM_FAIL_ACT_T": p.failsafe_land_delay}
+
     def _apply_params(self) -> None:
         with self.core.lock:
             p = self.core.vehicle.params
@@ -499,6 +512,8 @@ class MavlinkServer:
             p.land_speed = self.params["MPC_LAND_SPEED"]
             p.yaw_rate = math.radians(self.params["MPC_YAWRAUTO_MAX"])
             p.rtl_alt = self.params["RTL_RETURN_ALT"]
+            p.offboard_loss_action = int(self.params["COM_OBL_RC_ACT"])
+            p.failsafe_land_delay = max(0.0, self.params["COM_FAIL_ACT_T"])
 
     # ------------------------------------------------------------------ send
 

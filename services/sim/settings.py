@@ -71,7 +71,7 @@ class SimSettings(ServiceSettings):
     offboard_loss_timeout: float = Field(0.5, gt=0)
     """COM_OF_LOSS_T: seconds without setpoints in OFFBOARD before the failsafe holds."""
     failsafe_land_delay: float = Field(3.0, ge=0)
-    """Seconds of failsafe hold before landing."""
+    """COM_FAIL_ACT_T: seconds of failsafe hold before an action beyond Hold (COM_OBL_RC_ACT=4 lands after it)."""
     takeoff_alt: float = Field(1.5, gt=0)
     """MIS_TAKEOFF_ALT: default take-off altitude above home, metres."""
     hover_offset: Annotated[tuple[float, float], NoDecode] = (0.0, 0.0)
@@ -79,9 +79,11 @@ class SimSettings(ServiceSettings):
     a steady error the vehicle's own estimate shows (wind, a mistrimmed controller). For tests of closed-loop
     skills; 0,0 flies to the setpoint."""
     px4_params: Annotated[dict[str, float], NoDecode] = Field(default_factory=dict)
-    """PX4 parameters the simulated autopilot reports instead of its defaults, `NAME=value,...` (e.g.
-    `COM_OBL_RC_ACT=7,GF_ACTION=0` for an airframe configured unsafely, which the bridge's preflight must
-    refuse). Only the failsafe names of services.sim.mavlink_server.FAILSAFE_PARAMS: they are reported, not flown."""
+    """PX4 parameters the simulated autopilot starts with instead of its defaults, `NAME=value,...`: e.g.
+    `COM_OBL_RC_ACT=4` lands in place on offboard loss (the default 5 holds), `COM_OBL_RC_ACT=7,GF_ACTION=0` is an
+    airframe configured unsafely, which the bridge's preflight must refuse. Only the failsafe names of
+    services.sim.mavlink_server.FAILSAFE_PARAMS: COM_OBL_RC_ACT and COM_FAIL_ACT_T are flown (over
+    failsafe_land_delay), the geofence ones only reported."""
 
     @field_validator("distractors", "extra_objects", mode="before")
     @classmethod

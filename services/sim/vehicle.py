@@ -26,6 +26,11 @@ SUB_LOITER = mavutil.PX4_CUSTOM_SUB_MODE_AUTO_LOITER
 SUB_LAND = mavutil.PX4_CUSTOM_SUB_MODE_AUTO_LAND
 SUB_RTL = mavutil.PX4_CUSTOM_SUB_MODE_AUTO_RTL
 
+# COM_OBL_RC_ACT -> what PX4 flies. Position, Altitude and Manual need RC sticks; without RC (none in this
+# simulator) PX4's failsafe falls back to Hold.
+OFFBOARD_LOSS_ACTIONS = {0: "Hold", 1: "Hold", 2: "Hold", 3: "Return", 4: "Land", 5: "Hold", 6: "Terminate",
+                         7: "Disarm"}
+
 MODE_NAMES = {
     (MAIN_POSCTL, 0): "POSCTL",
     (MAIN_OFFBOARD, 0): "OFFBOARD",
@@ -75,7 +80,11 @@ class VehicleParams:
     yaw_rate: float = math.radians(90.0)  # rad/s (MPC_YAWRAUTO_MAX)
     takeoff_alt: float = 1.5  # m (MIS_TAKEOFF_ALT)
     offboard_loss_timeout: float = 0.5  # s (COM_OF_LOSS_T)
-    failsafe_land_delay: float = 3.0  # s in hold after offboard loss before landing
+    # What PX4 flies when offboard is lost (COM_OBL_RC_ACT): 0 Position, 1 Altitude, 2 Manual (no RC here, so
+    # PX4 falls back to Hold), 3 Return, 4 Land, 5 Hold, 6 Terminate, 7 Disarm. Hold by default: landing in
+    # place puts a held object down on whatever furniture is below (issue 31).
+    offboard_loss_action: int = 5
+    failsafe_land_delay: float = 3.0  # s (COM_FAIL_ACT_T): hold after a failsafe before an action beyond Hold
     disarm_after_land: float = 2.0  # s (COM_DISARM_LAND)
     offboard_stream_min: float = 0.0  # s of setpoints before OFFBOARD is allowed (PX4: one within COM_OF_LOSS_T)
     battery_drain_per_s: float = 0.05  # % per second while armed (~33 min flight)
@@ -333,6 +342,7 @@ class Vehicle:
             return ACCEPTED
         if main == MAIN_AUTO and sub == SUB_LOITER:
             self._set_mode(MAIN_AUTO, SUB_LOITER)
+            self.failsafe_since = None  # commanded Hold during a failsafe's hold delay: the action is called off
             return ACCEPTED
         if main == MAIN_AUTO and sub == SUB_TAKEOFF:
             return self.takeoff(None)
@@ -390,19 +400,21 @@ class Vehicle:
     # ------------------------------------------------------------------ failsafes and dynamics
 
     def update_modes(self, now: float) -> None:
-        """Mode transitions driven by time (wall clock): offboard loss, failsafe land, auto-disarm."""
+        """Mode transitions driven by time (wall clock): offboard loss, its failsafe action, auto-disarm."""
         p = self.params
         if self.main_mode == MAIN_OFFBOARD and (self.last_sp_wall is None
                                                 or now - self.last_sp_wall > p.offboard_loss_timeout):
+            # PX4 holds first; an action beyond Hold follows after COM_FAIL_ACT_T unless someone commands the
+            # vehicle meanwhile (any mode switch clears failsafe_since). Hold itself lasts until then.
             self._set_mode(MAIN_AUTO, SUB_LOITER)
-            self.failsafe_since = now
-            self._event(mav.MAV_SEVERITY_WARNING, "Failsafe: offboard control lost, holding position")
+            action = OFFBOARD_LOSS_ACTIONS.get(int(p.offboard_loss_action), "Hold")
+            self.failsafe_since = None if action == "Hold" else now
+            then = "" if action == "Hold" else f", {action.lower()} in {p.failsafe_land_delay:g} s"
+            self._event(mav.MAV_SEVERITY_WARNING, f"Failsafe: offboard lost, holding{then}")
         if self.failsafe_since is not None and now - self.failsafe_since > p.failsafe_land_delay:
             self.failsafe_since = None
-            if self.armed:
-                self._set_mode(MAIN_AUTO, SUB_LAND)
-                self.hold_pos = self.p.copy()
-                self._event(mav.MAV_SEVERITY_WARNING, "Failsafe: offboard still lost, landing")
+            if self.armed and not self.on_ground:
+                self._offboard_loss_action()
         if self.armed and self.on_ground and self.main_mode == MAIN_AUTO and self.sub_mode == SUB_LAND:
             if self.landing_touch_wall is None:
                 self.landing_touch_wall = now
@@ -410,6 +422,20 @@ class Vehicle:
                 self._disarmed()
                 self.landing_touch_wall = None
                 self._event(mav.MAV_SEVERITY_INFO, "Landing detected, disarmed")
+
+    def _offboard_loss_action(self) -> None:
+        """The action of COM_OBL_RC_ACT beyond Hold, once the failsafe's hold delay ran out."""
+        action = OFFBOARD_LOSS_ACTIONS.get(int(self.params.offboard_loss_action), "Hold")
+        if action == "Land":
+            self.hold_pos = self.p.copy()
+            self._set_mode(MAIN_AUTO, SUB_LAND)
+            self._event(mav.MAV_SEVERITY_WARNING, "Failsafe: offboard still lost, landing")
+        elif action == "Return":
+            self._set_mode(MAIN_AUTO, SUB_RTL)
+            self._event(mav.MAV_SEVERITY_WARNING, "Failsafe: offboard still lost, returning to launch")
+        elif action in ("Terminate", "Disarm"):
+            self.armed = False  # motors off in the air: the vehicle falls
+            self._event(mav.MAV_SEVERITY_EMERGENCY, f"Failsafe: offboard still lost, {action.lower()}")
 
     def step(self, dt: float) -> None:
         """Run the controller once and advance the physics `dt` seconds of simulated time."""

@@ -19,7 +19,7 @@ mavlink = mavutil.mavlink
 
 
 # Failsafe parameters as a safely configured airframe reports them (the bridge's preflight reads them).
-SAFE_FAILSAFE_PARAMS = {"COM_OBL_RC_ACT": 4.0, "COM_OF_LOSS_T": 0.5, "GF_ACTION": 2.0, "GF_MAX_HOR_DIST": 6.0,
+SAFE_FAILSAFE_PARAMS = {"COM_OBL_RC_ACT": 5.0, "COM_OF_LOSS_T": 0.5, "GF_ACTION": 2.0, "GF_MAX_HOR_DIST": 6.0,
                         "GF_MAX_VER_DIST": 3.0}
 
 

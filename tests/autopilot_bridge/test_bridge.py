@@ -28,7 +28,8 @@ from tests.helpers import free_udp_port, wait_until
 
 
 @contextlib.asynccontextmanager
-async def bridge_and_fake(**overrides):
+async def bridge_and_fake(fake_init=None, **overrides):
+    """`fake_init(fake)` sets the fake PX4's state before its first message (e.g. already flying)."""
     port = free_udp_port()
     s = BridgeSettings(connection=f"udpin:127.0.0.1:{port}", command_timeout_s=0.5, offboard_warmup_s=0.3,
                        heartbeat_timeout_s=1.0, takeoff_timeout_s=20.0, **overrides)
@@ -37,7 +38,10 @@ async def bridge_and_fake(**overrides):
     stop = asyncio.Event()
     link.start(asyncio.get_running_loop(), bridge.on_message)
     hb = asyncio.create_task(bridge.heartbeat_loop(stop))
-    fake = FakePX4(port).start()
+    fake = FakePX4(port)
+    if fake_init is not None:
+        fake_init(fake)
+    fake.start()
     try:
         await wait_until(lambda: bridge.link_ok and bridge.have_position, 20, what="bridge sees the fake PX4")
         yield bridge, fake
@@ -231,6 +235,36 @@ async def test_link_loss_and_offboard_loss_are_reported() -> None:
         assert not res.ok and "no link" in res.message
         fake.heartbeats = True
         await wait_until(lambda: bridge.state().link_ok, 10, what="link restored")
+
+
+def _holding_in_failsafe(fake) -> None:
+    fake.armed, fake.mode, fake.ned = True, "AUTO.LOITER", [0.5, 0.2, -1.4]  # PX4's offboard-loss Hold
+
+
+async def test_a_restarted_bridge_finds_px4_holding_and_leaves_it_until_an_operator_command() -> None:
+    """The bridge died in flight and PX4's offboard-loss failsafe holds (COM_OBL_RC_ACT=5): the new bridge
+    latches that as PX4's takeover (the task that was flying ends on it), sends PX4 no mode and no setpoint
+    by itself; a land is obeyed (a new task's goto takes it back too, next test)."""
+    async with bridge_and_fake(fake_init=_holding_in_failsafe) as (bridge, fake):
+        st = bridge.state()
+        assert st.armed and st.mode == "AUTO.LOITER" and st.override_ns > 0
+        assert "found PX4 flying in AUTO.LOITER" in st.override, st.override
+        res = await bridge.handle(HoldCommand())
+        assert res.ok and "AUTO.LOITER" in res.message, res.message
+        await asyncio.sleep(0.5)
+        assert not any(c.command == px4.MAV_CMD_DO_SET_MODE for c in fake.commands) and not fake.setpoints
+        assert fake.mode == "AUTO.LOITER"
+        res = await bridge.handle(LandCommand())  # landing is always allowed, latched takeover or not
+        assert res.ok, res.message
+        assert fake.mode == "AUTO.LAND"
+
+
+async def test_after_a_restart_a_new_task_flies_the_held_vehicle_again() -> None:
+    async with bridge_and_fake(fake_init=_holding_in_failsafe) as (bridge, fake):
+        assert bridge.state().override
+        res = await bridge.handle(GotoCommand(position=Vec3(x=0.5, y=0.0, z=1.4), yaw=0.0, task_id="task-new"))
+        assert res.ok, res.message
+        assert fake.mode == "OFFBOARD" and bridge.state().override == ""
 
 
 async def test_pilot_takeover_is_respected_until_a_new_operator_command() -> None:

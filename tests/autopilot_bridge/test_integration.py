@@ -195,7 +195,8 @@ async def test_pick_and_place_flight_over_real_udp(tmp_path) -> None:
         await body(stack)
 
 
-async def test_bridge_death_makes_sim_hold_then_land_and_sim_death_is_link_loss(tmp_path) -> None:
+async def test_bridge_death_with_land_configured_makes_sim_hold_then_land_and_sim_death_is_link_loss(tmp_path) -> None:
+    """COM_OBL_RC_ACT=4 (Land; the simulator's default is Hold, see tests/executor/test_integration.py)."""
     async def body(stack):
         async with bus_for(stack) as bus:
             await sim_ready(bus)
@@ -211,6 +212,7 @@ async def test_bridge_death_makes_sim_hold_then_land_and_sim_death_is_link_loss(
 
             # ... and a fresh bridge sees the failsafe: hold (AUTO.LOITER), then AUTO.LAND, then on the ground.
             stack.find("autopilot_bridge").start()
+            overrides: list[str] = []
             modes: list[str] = []
             state2 = bus.subscribe(KEYS.autopilot_state, maxsize=1000)
 
@@ -219,6 +221,7 @@ async def test_bridge_death_makes_sim_hold_then_land_and_sim_death_is_link_loss(
                     st = await state2.recv(60)
                     if st.link_ok and (not modes or modes[-1] != st.mode):
                         modes.append(st.mode)
+                        overrides.append(st.override)
                     if st.link_ok and st.landed_state == "on_ground" and not st.armed:
                         return st
 
@@ -228,6 +231,8 @@ async def test_bridge_death_makes_sim_hold_then_land_and_sim_death_is_link_loss(
             if "AUTO.LOITER" in modes:
                 assert modes.index("AUTO.LOITER") < modes.index("AUTO.LAND"), modes
             assert landed.position.z < 0.1
+            # The new bridge found PX4 flying its failsafe: latched as PX4's control, nothing re-entered OFFBOARD.
+            assert "found PX4 flying in" in overrides[0], overrides
 
             stack.kill("sim")
             while True:
@@ -237,7 +242,7 @@ async def test_bridge_death_makes_sim_hold_then_land_and_sim_death_is_link_loss(
             assert "link lost" in st.message and not st.offboard_ok
 
     # A long failsafe hold so the restarted bridge surely sees AUTO.LOITER before AUTO.LAND.
-    env = {**ENV, "AERMANI_SIM_FAILSAFE_LAND_DELAY": "8"}
+    env = {**ENV, "AERMANI_SIM_FAILSAFE_LAND_DELAY": "8", "AERMANI_SIM_PX4_PARAMS": "COM_OBL_RC_ACT=4"}
     with run_stack(["sim", "autopilot_bridge"], tmp_path, env=env) as stack:
         await body(stack)
 

@@ -11,13 +11,13 @@ import time
 
 import pytest
 
-from services.autopilot_bridge.preflight import PARAM_NAMES, check_params
+from services.autopilot_bridge.preflight import PARAM_NAMES, check_params, summary
 from shared.keys import Keys
 from shared.messages import ArmCommand, PreflightCommand, TakeoffCommand
 from tests.autopilot_bridge.test_bridge import bridge_and_fake
 from tests.helpers import BusCollector, bus_for, run_stack
 
-SAFE = {"COM_OBL_RC_ACT": 4.0, "COM_OF_LOSS_T": 0.5, "GF_ACTION": 2.0, "GF_MAX_HOR_DIST": 6.0,
+SAFE = {"COM_OBL_RC_ACT": 5.0, "COM_OF_LOSS_T": 0.5, "GF_ACTION": 2.0, "GF_MAX_HOR_DIST": 6.0,
         "GF_MAX_VER_DIST": 3.0}
 
 
@@ -32,6 +32,23 @@ def test_rules_pass_a_safe_airframe_and_name_each_unsafe_value():
     assert "did not report" in bad["COM_OF_LOSS_T"].reason
     missing = check_params({})
     assert len(missing) == len(PARAM_NAMES) and not any(c.ok for c in missing)
+
+
+@pytest.mark.parametrize("action", [0.0, 4.0, 5.0])
+def test_offboard_loss_land_is_accepted_with_a_note_hold_and_position_are_recommended(action):
+    """Land (4) flies, but it lands wherever the vehicle is when the stack dies (on the table, on its cup):
+    the passed check says so, and the summary carries it; Hold and Position pass without a note."""
+    checks = check_params({**SAFE, "COM_OBL_RC_ACT": action})
+    obl = next(c for c in checks if c.name == "COM_OBL_RC_ACT")
+    assert obl.ok and all(c.ok for c in checks)
+    assert "5 Hold" in obl.expected and "recommended" in obl.expected
+    text = summary(checks)
+    assert text.startswith("preflight passed")
+    if action == 4.0:
+        assert "wherever the vehicle is" in obl.reason and "furniture" in obl.reason and "Hold" in obl.reason
+        assert "note: COM_OBL_RC_ACT = 4 (Land)" in text and "furniture" in text
+    else:
+        assert obl.reason == "" and "note" not in text
 
 
 async def test_preflight_command_reads_the_parameters_from_px4():
@@ -110,7 +127,7 @@ def test_aermani_preflight_against_the_simulator(tmp_path, unsafe):
         text = out.stdout + out.stderr
         if not unsafe:
             assert out.returncode == 0, text
-            assert "preflight passed" in text and "COM_OBL_RC_ACT" in text and "4 (Land)" in text
+            assert "preflight passed" in text and "COM_OBL_RC_ACT" in text and "5 (Hold)" in text
             assert "camera" in text and "mavlink_rate" in text and "bus_round_trip" in text
             listener.wait_for(lambda rs: any(r.trigger == "operator" for r in rs), 30, "the operator's report")
             operator = [r for r in reports if r.trigger == "operator"]

@@ -104,6 +104,7 @@ class FakeAutopilot:
         self.gripper = GripperState.OPEN
         self.link_ok = True
         self.offboard_ok = False
+        self.px4_mode = "POSCTL"  # the mode reported when not in OFFBOARD (the pilot's, or PX4's AUTO.LOITER)
         self.publishing = True
         self.commands: list[str] = []
         self.dt = 1.0 / rate_hz
@@ -118,7 +119,7 @@ class FakeAutopilot:
     def state(self) -> VehicleState:
         return VehicleState(vehicle_id=self.keys.vehicle_id, position=Vec3(x=self.pos[0], y=self.pos[1], z=self.pos[2]),
                             velocity=Vec3(x=self.vel[0], y=self.vel[1], z=self.vel[2]), yaw=self.yaw, armed=self.armed,
-                            mode="OFFBOARD" if self.offboard_ok else "POSCTL", landed_state=self.landed,
+                            mode="OFFBOARD" if self.offboard_ok else self.px4_mode, landed_state=self.landed,
                             gripper=self.gripper, link_ok=self.link_ok, offboard_ok=self.offboard_ok)
 
     def gripper_point(self) -> np.ndarray:
@@ -137,6 +138,7 @@ class FakeAutopilot:
                 await asyncio.sleep(self.dt)
             self.landed, self.offboard_ok = LandedState.IN_AIR, True
         elif cmd.kind == "goto":
+            self.offboard_ok = True  # like the bridge: a goto from PX4's Hold enters OFFBOARD first
             p = cmd.position
             self.target, self.target_yaw = np.array([p.x, p.y, p.z]), cmd.yaw
             self.speed = cmd.max_speed or 1.0

@@ -75,6 +75,20 @@ async def test_unhealthy_link_or_offboard_rejects_motion(flag, text):
             assert text in await _rejected(r, skill)
 
 
+async def test_px4_holding_in_the_air_is_taken_back_by_a_skill_but_not_a_pilot_mode():
+    """PX4's AUTO.LOITER in the air (its offboard-loss Hold, found by a restarted bridge) accepts a skill: the
+    bridge takes the vehicle back into OFFBOARD (and refuses the task PX4 took it from). The pilot's POSCTL
+    does not."""
+    async with rig() as r:
+        r.vehicle.offboard_ok = False
+        await wait_until(lambda: not r.executor.state.value.offboard_ok, 10, what="offboard lost")
+        assert "OFFBOARD" in await _rejected(r, "up")  # POSCTL: the pilot flies
+        r.vehicle.px4_mode = "AUTO.LOITER"
+        await wait_until(lambda: r.executor.state.value.mode == "AUTO.LOITER", 10, what="PX4 holding")
+        assert (await r.run_skill("up")).state == SkillState.SUCCEEDED
+        assert r.vehicle.offboard_ok
+
+
 async def test_stale_vehicle_state_rejects_motion():
     async with rig() as r:
         r.vehicle.publishing = False

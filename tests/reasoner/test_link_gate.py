@@ -180,3 +180,23 @@ def test_an_abort_that_reaches_the_executor_or_the_bridge_first_still_ends_the_t
             final, _ = _run(AbortSeenElsewhereFirst(w, where, at))
             assert final.state is TaskState.ABORTED, (where, at, final.message)
             assert "grasp" not in w.executed, (where, at, w.executed)
+
+
+def test_px4_holding_in_the_air_is_no_reason_to_wait_but_a_landing_or_a_pilot_is() -> None:
+    """A new task that finds PX4 holding in the air (AUTO.LOITER: its offboard-loss Hold after a bridge restart)
+    issues its skills, which take the vehicle back into OFFBOARD; PX4 landing or returning, or a pilot's
+    POSCTL, still gate. (A takeover during the task ends it before the gate: _authority_end.)"""
+    port = MiniWorldPort(MiniWorld([Thing("red cup"), TABLE]))
+    runner = TaskRunner(TaskRequest(command=COMMAND), ReasonerSettings(), RulesBackend(), port,
+                        publish_step=lambda _s: None, publish_status=lambda _s: None)
+    obs = asyncio.run(port.observe(0))
+    assert obs.state is not None
+
+    def problem(mode: str, landed: LandedState) -> str | None:
+        st = obs.state.model_copy(update={"armed": True, "offboard_ok": False, "mode": mode, "landed_state": landed})
+        return runner._link_problem(dataclasses.replace(obs, state=st))
+
+    assert problem("AUTO.LOITER", LandedState.IN_AIR) is None
+    for mode, landed in (("AUTO.LAND", LandedState.LANDING), ("AUTO.RTL", LandedState.IN_AIR),
+                         ("POSCTL", LandedState.IN_AIR), ("AUTO.LOITER", LandedState.LANDING)):
+        assert "offboard control is not healthy" in (problem(mode, landed) or ""), (mode, landed)

@@ -210,8 +210,48 @@ def test_arm_offboard_takeoff_goto_gripper_and_land(sim):
         assert time.monotonic() < deadline
 
 
-def test_offboard_loss_holds_then_lands(sim):
+def _param(client: Client, name: str) -> float:
+    client.conn.mav.param_request_read_send(1, 1, name.encode(), -1)
+    return client.recv("PARAM_VALUE", lambda m: m.param_id == name).param_value
+
+
+def _fly_offboard_then_stop(core, client: Client) -> None:
+    """Arm, stream setpoints, OFFBOARD to 1 m, then stop streaming (a dead bridge)."""
+    assert client.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 1) == 0
+    for _ in range(10):
+        client.setpoint(0, 0, -1.0, 0.0)
+        time.sleep(0.05)
+    assert client.command(mav.MAV_CMD_DO_SET_MODE, 1, *OFFBOARD) == 0
+    with core.lock:
+        n, e = float(core.vehicle.p[0]), float(core.vehicle.p[1])
+    client.stream_until(n, e, -1.0, 0.0, lambda p, a: abs(p.z + 1.0) < 0.05)
+
+
+def test_offboard_loss_holds_by_default_well_past_the_failsafe_delay(sim):
+    """COM_OBL_RC_ACT=5 (Hold), the simulator's default, reported as flown: offboard loss holds in the air
+    long past COM_FAIL_ACT_T, and a new OFFBOARD (a restarted bridge) takes the vehicle back."""
     core, server, client, _ = sim
+    assert _param(client, "COM_OBL_RC_ACT") == 5.0 and core.vehicle.params.offboard_loss_action == 5
+    assert _param(client, "COM_FAIL_ACT_T") == pytest.approx(1.0)  # the vehicle's failsafe_land_delay
+    _fly_offboard_then_stop(core, client)
+    client.wait_mode(LOITER, 10)
+    time.sleep(3 * core.vehicle.params.failsafe_land_delay)
+    assert client.mode() == LOITER and client.armed()
+    assert client.recv("EXTENDED_SYS_STATE").landed_state == mav.MAV_LANDED_STATE_IN_AIR
+    assert client.recv("LOCAL_POSITION_NED").z < -0.9
+    for _ in range(10):
+        client.setpoint(0, 0, -1.2, 0.0)
+        time.sleep(0.05)
+    assert client.command(mav.MAV_CMD_DO_SET_MODE, 1, *OFFBOARD) == 0
+    client.wait_mode(OFFBOARD, 5)
+
+
+def test_offboard_loss_holds_then_lands(sim):
+    """COM_OBL_RC_ACT=4 (Land), set over MAVLink: hold for COM_FAIL_ACT_T, land in place, disarm."""
+    core, server, client, _ = sim
+    client.conn.mav.param_set_send(1, 1, b"COM_OBL_RC_ACT", 4.0, mav.MAV_PARAM_TYPE_REAL32)
+    client.recv("PARAM_VALUE", lambda m: m.param_id == "COM_OBL_RC_ACT" and m.param_value == 4.0)
+    assert core.vehicle.params.offboard_loss_action == 4
     assert client.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 1) == 0
     deadline = time.monotonic() + 1.3
     while time.monotonic() < deadline:
@@ -391,3 +431,28 @@ def test_gripper_on_an_actuator_output(sim):
     assert client.command(mav.MAV_CMD_DO_SET_ACTUATOR, -1.0, nan, nan, nan, nan, nan, 0) == 0
     with core.lock:
         assert not core.vehicle.gripper_closed
+
+
+def test_failsafe_params_from_the_settings_are_flown_and_reported(monkeypatch):
+    """AERMANI_SIM_PX4_PARAMS sets what the vehicle flies on offboard loss; the reported value is the flown
+    one, and without it the settings' failsafe_land_delay is COM_FAIL_ACT_T."""
+    from services.sim.app import build
+    from services.sim.settings import SimSettings
+
+    ports = {f"AERMANI_SIM_{k}": str(free_udp_port()) for k in ("API_LOCAL_PORT", "API_PORT", "GCS_LOCAL_PORT",
+                                                               "GCS_PORT")}
+    for k, val in {**ports, "AERMANI_SIM_PX4_PARAMS": "COM_OBL_RC_ACT=0", "AERMANI_SIM_FAILSAFE_LAND_DELAY": "2",
+                   "AERMANI_SIM_CAMERA": "false"}.items():
+        monkeypatch.setenv(k, val)
+    core, server = build(SimSettings())
+    try:
+        assert server.params["COM_OBL_RC_ACT"] == 0.0 and core.vehicle.params.offboard_loss_action == 0
+        assert server.params["COM_FAIL_ACT_T"] == 2.0 and core.vehicle.params.failsafe_land_delay == 2.0
+    finally:
+        server.stop()
+    monkeypatch.setenv("AERMANI_SIM_PX4_PARAMS", "COM_OBL_RC_ACT=4,COM_FAIL_ACT_T=1.5")
+    core, server = build(SimSettings())
+    try:
+        assert core.vehicle.params.offboard_loss_action == 4 and core.vehicle.params.failsafe_land_delay == 1.5
+    finally:
+        server.stop()

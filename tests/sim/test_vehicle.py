@@ -16,6 +16,7 @@ from services.sim.vehicle import (
     SUB_LAND,
     SUB_LOITER,
     TEMPORARILY_REJECTED,
+    VehicleParams,
     enu_to_ned,
 )
 from shared.messages import JudgeRequest, Pose, Scenario, Vec3
@@ -51,7 +52,9 @@ def test_limits_and_convergence(core):
 
 
 def test_arming_rules_and_offboard_failsafe(core):
+    """COM_OBL_RC_ACT=4 (Land): hold for COM_FAIL_ACT_T, then land in place and disarm."""
     clock, v = Clock(core), core.vehicle
+    v.params.offboard_loss_action = 4
     assert v.arm(False) == ACCEPTED  # already disarmed
     to_offboard(core, clock)
     assert v.arm(True) == ACCEPTED
@@ -71,6 +74,42 @@ def test_arming_rules_and_offboard_failsafe(core):
     assert abs(v.p[2]) < 0.01  # landed on the gear: body origin at the autopilot's ground
     assert v.arm(True) == ACCEPTED
     assert v.arm(False, force=True) == ACCEPTED
+
+
+@pytest.mark.parametrize("action", [0, 5])
+def test_offboard_loss_with_hold_or_position_holds_until_commanded(core, action):
+    """COM_OBL_RC_ACT 5 (Hold) and 0 (Position; no RC, so PX4 holds): the vehicle stays where offboard was
+    lost, well past COM_FAIL_ACT_T, until someone commands it again; a new OFFBOARD then flies."""
+    clock, v = Clock(core), core.vehicle
+    assert VehicleParams().offboard_loss_action == 5  # the simulator's default: Hold
+    v.params.offboard_loss_action = action
+    to_offboard(core, clock)
+    hold = v.p.copy()
+    clock.run(0.7)  # the stream stops: offboard lost
+    assert v.mode_name == "AUTO.LOITER" and "holding" in v.events[-1][1], v.events[-1]
+    clock.run(4 * v.params.failsafe_land_delay)
+    assert v.mode_name == "AUTO.LOITER" and v.armed and not v.on_ground
+    assert np.linalg.norm(v.p - hold) < 0.1 and abs(v.p[2] + 1.5) < 0.05
+    assert not any("landing" in t for _, t in v.events)
+    # A restarted stack takes over: a new setpoint stream and OFFBOARD fly again.
+    goal = [hold[0] + 0.5, hold[1], -1.2]
+    clock.run(0.3, (goal, v.yaw))
+    assert v.set_mode(MAIN_OFFBOARD, 0, clock.now) == ACCEPTED
+    clock.run(4.0, (goal, v.yaw))
+    assert np.linalg.norm(v.p - np.array(goal)) < 0.05
+
+
+def test_offboard_loss_land_is_called_off_by_a_commanded_hold(core):
+    """COM_OBL_RC_ACT=4: a Hold commanded during the failsafe's hold delay is a mode switch by the operator,
+    as in PX4: the landing does not follow."""
+    clock, v = Clock(core), core.vehicle
+    v.params.offboard_loss_action = 4
+    to_offboard(core, clock)
+    clock.run(0.7)
+    assert v.mode_name == "AUTO.LOITER" and "land in" in v.events[-1][1], v.events[-1]
+    assert v.set_mode(MAIN_AUTO, SUB_LOITER, clock.now) == ACCEPTED
+    clock.run(2 * v.params.failsafe_land_delay)
+    assert v.mode_name == "AUTO.LOITER" and not v.on_ground
 
 
 def test_fast_contact_with_furniture_is_a_crash(core):
