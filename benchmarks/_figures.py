@@ -63,3 +63,19 @@ def write_json(path: Path | None, benchmark: str, figures: dict[str, Any], args:
            "load_average": os.getloadavg(), "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z"), **extra}
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(_clean(doc), indent=2) + "\n")
+
+
+def pin_all_threads(cpu: int) -> int:
+    """Pin every thread of this process to `cpu` (os.sched_setaffinity(0, ...) pins only the calling thread:
+    BLAS, OpenCV and Zenoh threads started earlier would still run on every core, and a "one core" figure would
+    use more). Threads started later inherit the affinity. Returns how many threads were pinned."""
+    import os
+
+    pinned = 0
+    for tid in os.listdir("/proc/self/task"):
+        try:
+            os.sched_setaffinity(int(tid), {cpu})
+            pinned += 1
+        except (ProcessLookupError, PermissionError):
+            continue  # a thread that just ended
+    return pinned

@@ -26,7 +26,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from aermani.launcher import free_port  # noqa: E402
-from benchmarks._figures import add_json_option, write_json  # noqa: E402
+from benchmarks._figures import add_json_option, pin_all_threads, write_json  # noqa: E402
 from services.perception import query as q  # noqa: E402
 from services.perception.pipeline import Perception  # noqa: E402
 from services.perception.segmenters import make_segmenter  # noqa: E402
@@ -193,9 +193,10 @@ def main() -> None:
     cpu = None if args.cpu < 0 else args.cpu
     print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores; targets: object p95 <= 60 ms, "
           "placement p95 <= 120 ms on one core")
-    if cpu is not None:
-        os.sched_setaffinity(0, {cpu})
     figures: dict[str, float] = {}
+    if cpu is not None:
+        figures["pinned_threads"] = pin_all_threads(cpu)
+        print(f"pinned {figures['pinned_threads']:.0f} threads of this process to cpu {cpu}")
     if not args.no_process:
         figures |= in_process(args.requests)
     if not args.no_bus:

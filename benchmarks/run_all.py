@@ -177,9 +177,10 @@ FIGURES: list[Figure] = [
            fig("bus", "frame", "p50_ms"), RAW_THREAD, fig("bus", "frame", "raw_thread_p50_ms")),
     Figure("bus.frame_throughput_thread", "bus: colour+depth pair throughput (information)", "pairs/s",
            fig("bus", "frame", "rate"), RAW_THREAD, fig("bus", "frame", "raw_thread_rate"), invert=True),
-    Figure("reasoner.overhead_p95", "reasoner: framework overhead per step p95", "ms",
+    Figure("reasoner.overhead_p95", "reasoner: prompt compile + answer parse + History update per step, in one "
+           "process, p95 (not the loop's waits: see the step rows)", "ms",
            fig("reasoner", "total_p95_ms"), PAPER, const(PAPER_MEDIAN_RT_MS), ("<=", 10.0), "value", "#6"),
-    Figure("reasoner.overhead_p50", "reasoner: framework overhead per step p50", "ms",
+    Figure("reasoner.overhead_p50", "reasoner: the same, p50", "ms",
            fig("reasoner", "total_p50_ms"), PAPER, const(PAPER_MEDIAN_RT_MS)),
     Figure("reasoner.hostile_parse", "reasoner: worst CPU time to read or reject a hostile answer up to the size cap "
            "(16 shapes x 3 variants)", "ms", fig("reasoner", "hostile_parse_max_ms"), target=("<=", 100.0),
@@ -202,10 +203,17 @@ FIGURES: list[Figure] = [
                          ("report", "of it, the skill's status reaching the reasoner"),
                          ("model", "the model (rules baseline: a Python call)"),
                          ("skill", "the skill, as the executor timed it"))),
-    Figure("sim.physics_rtf", "sim: physics real-time factor, vehicle + 14 objects, one core", "x",
-           fig("sim", "physics_rtf"), "real time (1x)", const(1.0), (">=", 20.0), "value", "#13"),
-    Figure("sim.physics_cpu_rtf", "sim: physics real-time factor by CPU time (what one free core would give)", "x",
+    Figure("sim.physics_rtf", "sim: physics real-time factor, vehicle + 14 objects, objects at rest asleep as "
+           "simulated (one thread)", "x", fig("sim", "physics_rtf"), "real time (1x)", const(1.0), (">=", 20.0),
+           "value", "#13"),
+    Figure("sim.physics_cpu_rtf", "sim: the same by CPU time (what one free core would give)", "x",
            fig("sim", "physics_cpu_rtf"), "real time (1x)", const(1.0)),
+    Figure("sim.physics_share", "sim: of it, object-steps awake (measured)", "%",
+           fig("sim", "physics_awake_share_pct")),
+    Figure("sim.physics_awake_rtf", "sim: physics real-time factor, every object awake (MuJoCo sleeping off; the "
+           "share awake is measured in the JSON)", "x", fig("sim", "physics_awake_rtf"), "real time (1x)", const(1.0)),
+    Figure("sim.physics_awake_cpu_rtf", "sim: the same by CPU time", "x", fig("sim", "physics_awake_cpu_rtf"),
+           "real time (1x)", const(1.0)),
     Figure("sim.render_fps", "sim: render 640x480 colour+depth, one core", "fps", fig("sim", "render_fps"), CAM,
            lambda r: 1000.0 / camera_period_ms(r), (">=", 15.0), "value", "#13"),
     Figure("sim.render_ms", "sim: render 640x480 colour+depth, one core, per frame", "ms", fig("sim", "render_ms"),
