@@ -62,8 +62,10 @@ class PerceptionService:
         self.perception = perception
         self.store = FrameStore(need_segmentation=perception.segmenter.needs_segmentation)
         self.new_frame = asyncio.Event()
+        self.skill_end_ns = 0  # when the newest skill ended (its status received): the next observation's start
+        self.skill_ended = asyncio.Event()
         self.pool = ThreadPoolExecutor(max_workers=settings.workers, thread_name_prefix="perception")
-        self.served = {"object": 0, "placement": 0, "errors": 0, "detections": 0}
+        self.served = {"object": 0, "placement": 0, "errors": 0, "detections": 0, "after_skill_end": 0}
         self.latency_ms: list[float] = []
 
     # ---- ingest
@@ -138,15 +140,44 @@ class PerceptionService:
 
     # ---- publications
 
+    async def _skill_ends(self) -> None:
+        """Follow the executor's skill statuses: a skill's end is when the reasoner's next observation starts."""
+        sub = self.bus.subscribe(self.settings.keys.skill_status, maxsize=50)
+        while True:
+            try:
+                st = await sub.recv()
+            except DecodeError as exc:
+                log.warning("dropped a bad skill status: %s", exc)
+                continue
+            if st.state.terminal:
+                self.skill_end_ns = time.time_ns()
+                self.skill_ended.set()
+
+    async def _frame_received_after(self, ns: int, timeout: float) -> Frame | None:
+        """The newest complete frame received after `ns` (this host's clock), waiting up to `timeout` for it."""
+        deadline = time.monotonic() + timeout
+        while True:
+            frame = self.store.latest()
+            if frame is not None and frame.receive_ns > ns:
+                return frame
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                return None
+            self.new_frame.clear()
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self.new_frame.wait(), remaining)
+
     async def _detections(self, stop: asyncio.Event) -> None:
+        """Detections at `detections_hz`, and at once for the first frame received after a skill's end: that is
+        the observation the reasoner waits for before its next step, so it never waits for the next tick."""
         if self.settings.detections_hz <= 0:
             return
         period = 1.0 / self.settings.detections_hz
         last = 0
         loop = asyncio.get_running_loop()
+        frame = self.store.latest()
         while not stop.is_set():
             t0 = time.monotonic()
-            frame = self.store.latest()
             if frame is not None and frame.stamp_ns != last:
                 last = frame.stamp_ns
                 try:
@@ -155,7 +186,14 @@ class PerceptionService:
                     self.served["detections"] += 1
                 except Exception:
                     log.exception("detections failed")
-            await asyncio.sleep(max(0.0, period - (time.monotonic() - t0)))
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self.skill_ended.wait(), max(0.0, period - (time.monotonic() - t0)))
+            if self.skill_ended.is_set():
+                self.skill_ended.clear()
+                frame = await self._frame_received_after(self.skill_end_ns, timeout=max(period, 1.0))
+                self.served["after_skill_end"] += frame is not None
+            else:
+                frame = self.store.latest()
 
     def _no_frame_reason(self) -> str:
         if self.store.counts["color"] and not self.store.counts["depth"]:
@@ -196,7 +234,8 @@ async def run(bus: Bus, settings: PerceptionSettings, stop: asyncio.Event) -> No
     bus.serve(k.localize_object, svc.localize_object, raw=True)
     bus.serve(k.localize_placement, svc.localize_placement, raw=True)
     announce(bus, settings, "perception")  # alive once it answers
-    tasks += [asyncio.create_task(svc._detections(stop)), asyncio.create_task(svc._health(stop))]
+    tasks += [asyncio.create_task(svc._detections(stop)), asyncio.create_task(svc._health(stop)),
+              asyncio.create_task(svc._skill_ends())]
     log.info("perception ready: segmenter %s, serving %s and %s", segmenter.type, k.localize_object,
              k.localize_placement)
     try:

@@ -7,6 +7,7 @@ layout locally from the vehicle pose the judge reports (tests only)."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import math
 import os
@@ -224,6 +225,62 @@ async def _bad_and_stale(stack) -> None:
         assert est.found
         est = await ask(bus, KEYS.localize_object, LocalizeRequest(query="flux capacitor", max_frame_age_s=30))
         assert est.reason == "bad_query" and "no known object" in est.message
+
+
+# --------------------------------------------------------------------------- the observation after a skill
+
+
+def test_detections_for_the_first_frame_after_a_skill_ends_without_waiting_for_the_rate(tmp_path) -> None:
+    """Issue 27: the reasoner's next step waits for detections of a frame received after the skill ended. With
+    detections at 0.01 Hz (one pass per 100 s), the only way a detection of the frame sent after the skill's
+    terminal status arrives within the test's 30 s is the skill-end trigger."""
+    env = {"AERMANI_PERCEPTION_SEGMENTER": "sim", "AERMANI_PERCEPTION_DETECTIONS_HZ": "0.01"}
+    with run_stack(["perception"], tmp_path, env=env) as stack:
+        arun(_after_skill_end(stack), timeout=200)
+
+
+async def _after_skill_end(stack) -> None:
+    from shared.frames import base_to_camera
+    from shared.messages import SkillState, SkillStatus
+    from shared.sensors import pose_matrix
+
+    async with bus_for(stack) as bus:
+        dets = bus.subscribe(KEYS.detections, maxsize=20)
+        depth = np.full((480, 640), 1500, np.uint16)
+        seg = np.zeros((480, 640), np.uint16)
+        seg[200:260, 300:340] = 100
+        depth[200:260, 300:340] = 1400
+        rgb = np.full((480, 640, 3), 120, np.uint8)
+        bus.publish(KEYS.sim_labels, SimLabels(labels=(SimLabel(id=100, name="red cup", category="object",
+                                                                color="red", size=Vec3(x=0.08, y=0.08, z=0.11)),)))
+
+        def frame_set() -> int:
+            stamp = time.time_ns()
+            bus.publish(KEYS.tf, transforms_message([("world", "base_link", pose_matrix(0, 0, 1.5, 0)),
+                                                     ("base_link", "camera", base_to_camera())], stamp))
+            bus.publish(KEYS.camera_segmentation, raw16_message(seg, stamp))
+            bus.publish(KEYS.camera_depth, depth_message(depth, stamp))
+            bus.publish(KEYS.camera_color, color_message(rgb, stamp))
+            return stamp
+
+        before = frame_set()
+        # the service has the frame (a query answers from it)
+        deadline = time.monotonic() + 30
+        while not (await ask(bus, KEYS.localize_object, LocalizeRequest(query="red cup", max_frame_age_s=60))).found:
+            assert time.monotonic() < deadline, "perception never took the first frame"
+            await asyncio.sleep(0.2)
+            before = frame_set()
+        # A skill ends; then the next frame arrives: its detections come at once, not at the next 100 s tick.
+        bus.publish(KEYS.skill_status, SkillStatus(goal_id="g1", skill="left", state=SkillState.SUCCEEDED,
+                                                   task_id="t1", step=1, ended_ns=time.time_ns()))
+        await asyncio.sleep(0.3)
+        after = frame_set()
+        got = None
+        with contextlib.suppress(TimeoutError):
+            while got is None or got.frame_stamp_ns < after:
+                got = await dets.recv(timeout=30)
+        assert got is not None and got.frame_stamp_ns == after, (got, before, after)
+        assert [d.label for d in got.items] == ["red cup"], got
 
 
 # --------------------------------------------------------------------------- a segmenter that cannot start
