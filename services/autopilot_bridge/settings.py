@@ -30,8 +30,13 @@ class BridgeSettings(ServiceSettings):
     interface (udpin:0.0.0.0:...) only inside a network namespace that nothing else reaches (compose)."""
     baud: int = Field(921600, gt=0)
     """Serial baud rate when the connection names none (ignored for UDP)."""
-    target_system: int = Field(0, ge=0, le=255)
-    """PX4 system id to talk to; 0 = learn it from the first PX4 HEARTBEAT (others are then ignored)."""
+    target_system: int = Field(1, ge=1, le=255)
+    """The autopilot's MAVLink system id (PX4's MAV_SYS_ID, 1 by default). Only a PX4 HEARTBEAT from this system
+    and `target_component` is taken for the autopilot; every other system on the link (another vehicle, a fake
+    autopilot) is ignored, and one that claims to be an autopilot is logged once with its address."""
+    target_component: int = Field(1, ge=1, le=255)
+    """The autopilot's MAVLink component id (1 = MAV_COMP_ID_AUTOPILOT1, PX4's own). Messages from other
+    components of the same system (a camera, a gimbal) never become the vehicle's state."""
     source_system: int = Field(1, ge=1, le=255)
     """Our MAVLink system id. MAVLink's routing guide puts a companion computer in its autopilot's system (PX4's
     MAV_SYS_ID, 1 by default) under its own component id; 255 belongs to ground stations, so is not the default."""
