@@ -195,6 +195,11 @@ class Bridge:
     def on_message(self, msg: Any, addr: tuple[str, int] | None, _t: float) -> None:
         mtype = msg.get_type()
         self.counters["mavlink_received"] += 1
+        if mtype == "BAD_DATA" and "signature" in str(getattr(msg, "reason", "")):
+            self.counters["bad_signature"] += 1
+            self.warn("signature", "ignored an unsigned or wrongly signed MAVLink frame from %s (signing is on)",
+                      addr or self.s.connection)
+            return
         if mtype == "BAD_DATA":
             self.counters["bad_data"] += 1
             self.warn("bad", "ignored undecodable MAVLink bytes from %s", addr)
@@ -820,7 +825,8 @@ class Bridge:
                                                                 for sy, co, wh in self.refused_autopilots)[:8],
                                    "override": self.override,
                                    "peer": f"{self.link.peer[0]}:{self.link.peer[1]}" if self.link.peer else None,
-                                   "connection": self.s.connection, "publishes_tf": self.publishes_tf()}
+                                   "connection": self.s.connection, "publishes_tf": self.publishes_tf(),
+                                   "signing": self.link.signing}
         ok = self.link_ok
         return Health(service=SERVICE, ok=ok, message="" if ok else (self.message or "no autopilot link"),
                       details=details)
@@ -918,5 +924,5 @@ async def run(bus: Bus, settings: BridgeSettings, stop: asyncio.Event) -> None:
     # interval would show up directly as stream jitter.
     sys.setswitchinterval(settings.gil_switch_interval_s)
     link = MavlinkLink(settings.connection, baud=settings.baud, source_system=settings.source_system,
-                       source_component=settings.source_component)
+                       source_component=settings.source_component, signing_key=settings.signing_key_bytes)
     await Bridge(bus, settings, link).run(stop)
