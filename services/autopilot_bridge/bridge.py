@@ -55,6 +55,8 @@ AUTO_TF_GRACE_S = 2.5
 AUTO_TF_SIM_FRESH_S = 3.0
 """publish_tf `auto`: a simulator health that says it publishes tf counts for this long."""
 UINT16_MAX = 65535
+REFUSED_LOGGED = 32
+"""Refused autopilots (system, component, address) remembered and logged; more are only counted."""
 
 
 class RateLimitedLog:
@@ -90,9 +92,11 @@ class Bridge:
         """When the vehicle's simulator last said it publishes tf (publish_tf `auto`)."""
         self.stream = SetpointStream(self._send_setpoint, settings.stream_rate_hz,
                                      realtime_priority=settings.stream_realtime_priority)
-        # autopilot identity, learned from the first PX4 HEARTBEAT
+        # autopilot identity: the configured system/component, set once its first PX4 HEARTBEAT is heard
         self.target_system: int | None = None
-        self.target_component = px4.MAV_COMP_ID_AUTOPILOT1
+        self.target_component = settings.target_component
+        self.refused_autopilots: set[tuple[int, int, str]] = set()
+        """Other autopilots heard on the link (system, component, address), each logged once."""
         # telemetry
         self.last_hb_mono = 0.0
         self.last_hb_ns = 0
@@ -192,21 +196,33 @@ class Bridge:
     def on_message(self, msg: Any, addr: tuple[str, int] | None, _t: float) -> None:
         mtype = msg.get_type()
         self.counters["mavlink_received"] += 1
+        if mtype == "BAD_DATA" and "signature" in str(getattr(msg, "reason", "")):
+            self.counters["bad_signature"] += 1
+            self.warn("signature", "ignored an unsigned or wrongly signed MAVLink frame from %s (signing is on)",
+                      addr or self.s.connection)
+            return
         if mtype == "BAD_DATA":
             self.counters["bad_data"] += 1
             self.warn("bad", "ignored undecodable MAVLink bytes from %s", addr)
             return
-        src = msg.get_srcSystem()
+        src, comp = msg.get_srcSystem(), msg.get_srcComponent()
+        if (src, comp) != (self.s.target_system, self.s.target_component):
+            # Another vehicle, a camera or gimbal of ours, or something pretending to be an autopilot: never the
+            # vehicle's state, and never the one we lock onto.
+            self.counters["wrong_system" if src != self.s.target_system else "other_component"] += 1
+            if mtype == "HEARTBEAT" and self._is_px4(msg):
+                self._refuse_autopilot(src, comp, addr, f"not the configured autopilot {self.s.target_system}/"
+                                                        f"{self.s.target_component}")
+            elif src != self.s.target_system:
+                self.warn("sysid", "ignored %s from system %d (we talk to system %d)", mtype, src,
+                          self.s.target_system)
+            return
         if self.target_system is None:
-            if mtype == "HEARTBEAT" and self._is_px4(msg) and self.s.target_system in (0, src):
+            if mtype == "HEARTBEAT" and self._is_px4(msg):
                 self._learn(msg, addr)
             else:
                 self.counters["ignored_before_heartbeat"] += 1
                 return
-        if src != self.target_system:
-            self.counters["wrong_system"] += 1
-            self.warn("sysid", "ignored %s from system %d (we talk to system %d)", mtype, src, self.target_system)
-            return
         peer = self.link.peer
         if addr is not None and peer is not None and tuple(addr) != peer:
             if mtype == "HEARTBEAT" and not self.link_ok and self._is_px4(msg):
@@ -214,7 +230,10 @@ class Bridge:
                 self.link.lock_peer(addr)
             else:
                 self.counters["wrong_address"] += 1
-                self.warn("addr", "ignored %s from %s: the autopilot is at %s", mtype, addr, peer)
+                if mtype == "HEARTBEAT" and self._is_px4(msg):
+                    self._refuse_autopilot(src, comp, addr, f"the autopilot holds the link from {peer[0]}:{peer[1]}")
+                else:
+                    self.warn("addr", "ignored %s from %s: the autopilot is at %s", mtype, addr, peer)
                 return
         handler = getattr(self, f"_on_{mtype.lower()}", None)
         if handler is None:
@@ -228,6 +247,18 @@ class Bridge:
         return msg.autopilot == px4.MAV_AUTOPILOT_PX4 and msg.type not in (px4.MAV_TYPE_GCS,
                                                                            px4.MAV_TYPE_ONBOARD_CONTROLLER)
 
+    def _refuse_autopilot(self, system: int, component: int, addr: tuple[str, int] | None, why: str) -> None:
+        """A HEARTBEAT that claims to be an autopilot but is not ours: counted, and logged once per system,
+        component and address (a flood of spoofed addresses is counted, not logged, past REFUSED_LOGGED)."""
+        self.counters["refused_autopilot"] += 1
+        where = f"{addr[0]}:{addr[1]}" if addr is not None else self.s.connection
+        key = (system, component, where)
+        if key in self.refused_autopilots or len(self.refused_autopilots) >= REFUSED_LOGGED:
+            return
+        self.refused_autopilots.add(key)
+        log.warning("refused a second autopilot: system %d component %d at %s (%s); its messages are ignored",
+                    system, component, where, why)
+
     def _learn(self, msg: Any, addr: tuple[str, int] | None) -> None:
         self.target_system = msg.get_srcSystem()
         self.target_component = msg.get_srcComponent()
@@ -237,8 +268,6 @@ class Bridge:
                  addr or self.s.connection)
 
     def _on_heartbeat(self, msg: Any) -> None:
-        if msg.get_srcComponent() != self.target_component:
-            return  # a camera or gimbal of the same vehicle: not the autopilot's state
         if not self.link_ok:
             was_lost = self.link_was_ok
             self.last_hb_mono = time.monotonic()
@@ -553,7 +582,7 @@ class Bridge:
     async def run_preflight(self, trigger: Literal["request", "arm", "takeoff"]) -> list[PreflightCheck]:
         """Every preflight check (services.autopilot_bridge.preflight): PX4's failsafe parameters, read now,
         and the vehicle's state. The verdict is published on autopilot/preflight (the flight's log keeps it)."""
-        target = (self.target_system or 1, self.target_component)
+        target = (self.target_system or self.s.target_system, self.target_component)
         params = await self.params.read(target, PARAM_NAMES, self.s.command_timeout_s, self.s.command_attempts)
         facts = VehicleFacts(self.link_ok, self.have_position, self.armed, self.landed_state,
                              self.battery_remaining, self.override)
@@ -801,9 +830,12 @@ class Bridge:
     def health(self) -> Health:
         details: dict[str, Any] = {**self.stream.stats(), **self.counters, "mavlink_sent": self.link.sent,
                                    "target_system": self.target_system, "mode": self.mode,
+                                   "refused_autopilots": sorted(f"{sy}/{co} at {wh}"
+                                                                for sy, co, wh in self.refused_autopilots)[:8],
                                    "override": self.override,
                                    "peer": f"{self.link.peer[0]}:{self.link.peer[1]}" if self.link.peer else None,
-                                   "connection": self.s.connection, "publishes_tf": self.publishes_tf()}
+                                   "connection": self.s.connection, "publishes_tf": self.publishes_tf(),
+                                   "signing": self.link.signing}
         ok = self.link_ok
         return Health(service=SERVICE, ok=ok, message="" if ok else (self.message or "no autopilot link"),
                       details=details)
@@ -901,5 +933,5 @@ async def run(bus: Bus, settings: BridgeSettings, stop: asyncio.Event) -> None:
     # interval would show up directly as stream jitter.
     sys.setswitchinterval(settings.gil_switch_interval_s)
     link = MavlinkLink(settings.connection, baud=settings.baud, source_system=settings.source_system,
-                       source_component=settings.source_component)
+                       source_component=settings.source_component, signing_key=settings.signing_key_bytes)
     await Bridge(bus, settings, link).run(stop)

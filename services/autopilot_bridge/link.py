@@ -4,11 +4,15 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import hashlib
+import hmac
 import logging
 import os
 import select
+import struct
 import threading
 import time
+import types
 from collections.abc import Callable
 from typing import Any
 
@@ -68,6 +72,52 @@ def _parse_datagram(parser: Any, data: bytes) -> list[Any]:
         msgs.append(mavlink.MAVLink_bad_data(bytearray(parser.buf[parser.buf_index:]), "truncated"))
     return list(msgs)
 
+SIGNING_EPOCH_S = 1420070400
+"""MAVLink 2 signing timestamps count 10 us units from 2015-01-01 00:00 UTC."""
+SIGNING_NEW_STREAM_S = 60.0
+"""A stream not seen before is accepted when its timestamp is at most this far behind ours (MAVLink's rule)."""
+
+
+def signing_timestamp(now: float | None = None) -> int:
+    """Now in MAVLink 2 signing units (10 us since 2015), so a restarted bridge never goes back in time."""
+    return int((max(time.time() if now is None else now, SIGNING_EPOCH_S) - SIGNING_EPOCH_S) * 100_000)
+
+
+def _check_signature(self: Any, msgbuf: bytearray, src_system: int, src_component: int) -> bool:
+    """pymavlink's MAVLink.check_signature in the right order: the signature first, then the timestamp rules.
+
+    pymavlink (2.4.50) stores a stream's timestamp before it compares signatures, so one forged frame with a
+    far-future timestamp would make every real frame of that stream "old" and lock the autopilot out."""
+    signing = self.signing
+    h = hashlib.sha256()
+    h.update(signing.secret_key)
+    h.update(msgbuf[:-6])
+    if not hmac.compare_digest(h.digest()[:6], bytes(msgbuf[-6:])):
+        return False
+    tlow, thigh = struct.unpack("<IH", bytes(msgbuf[-12:-6]))
+    timestamp = tlow + (thigh << 32)
+    stream = (msgbuf[-13], src_system, src_component)
+    last = signing.stream_timestamps.get(stream)
+    if last is not None and timestamp <= last:
+        return False  # a replay, or frames out of order
+    if last is None and timestamp + int(SIGNING_NEW_STREAM_S * 100_000) < signing.timestamp:
+        return False  # a new stream from the past: a recording replayed later
+    signing.stream_timestamps[stream] = timestamp
+    signing.timestamp = max(signing.timestamp, timestamp)
+    return True
+
+
+def enable_signing(mav: Any, key: bytes, *, link_id: int = 0, sign_outgoing: bool = True) -> None:
+    """MAVLink 2 signing on one pymavlink MAVLink object: sign what it packs, accept only frames signed with
+    `key` (unsigned and MAVLink 1 frames come out as BAD_DATA 'Invalid signature' under robust parsing)."""
+    mav.signing.secret_key = key
+    mav.signing.link_id = link_id
+    mav.signing.timestamp = signing_timestamp()
+    mav.signing.sign_outgoing = sign_outgoing
+    mav.signing.allow_unsigned_callback = None
+    mav.check_signature = types.MethodType(_check_signature, mav)
+
+
 class _PeerWriter:
     """Stands in for `mav.file`: on UDP server links, send only to the peer we locked onto.
 
@@ -91,8 +141,9 @@ class MavlinkLink:
     from any thread."""
 
     def __init__(self, connection: str, *, baud: int = 921600, source_system: int = 1,
-                 source_component: int = px4.MAV_COMP_ID_ONBOARD_COMPUTER) -> None:
+                 source_component: int = px4.MAV_COMP_ID_ONBOARD_COMPUTER, signing_key: bytes | None = None) -> None:
         self.connection = connection
+        self.signing_key = signing_key
         device, baud = parse_connection(connection, baud)
         try:
             if device.startswith(UDP_TCP_SCHEMES):
@@ -109,6 +160,8 @@ class MavlinkLink:
         self._writer = _PeerWriter(self.conn)
         self.conn.mav.file = self._writer
         self.conn.mav.robust_parsing = True  # garbage becomes BAD_DATA instead of an exception
+        if signing_key is not None:
+            enable_signing(self.conn.mav, signing_key)
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -128,8 +181,26 @@ class MavlinkLink:
         self._writer.peer = addr
 
     @property
+    def signing(self) -> bool:
+        return self.signing_key is not None
+
+    @property
     def is_udp(self) -> bool:
         return isinstance(self.conn, mavutil.mavudp)
+
+    def _receive_parser(self) -> Any:
+        """The UDP reader's own parser (datagram by datagram), checking signatures when signing is on."""
+        parser = mavlink.MAVLink(None)
+        parser.robust_parsing = True
+        if self.signing_key is not None:
+            enable_signing(parser, self.signing_key, sign_outgoing=False)
+        return parser
+
+    def _follow_timestamp(self, parser: Any) -> None:
+        """With signing, what we send next is never older than what we accepted (MAVLink's timestamp rule)."""
+        if self.signing_key is not None:
+            with self._lock:
+                self.conn.mav.signing.timestamp = max(self.conn.mav.signing.timestamp, parser.signing.timestamp)
 
     def start(self, loop: asyncio.AbstractEventLoop,
               on_message: Callable[[Any, tuple[str, int] | None, float], None]) -> None:
@@ -145,8 +216,7 @@ class MavlinkLink:
         def read_udp() -> None:
             # Datagram by datagram so every message carries the address it really came from (pymavlink's
             # own reader forgets it), with a fresh parser state so garbage cannot bleed into the next one.
-            parser = mavlink.MAVLink(None)
-            parser.robust_parsing = True
+            parser = self._receive_parser()
             sock = self.conn.port
             while not self._stop.is_set():
                 try:
@@ -162,7 +232,9 @@ class MavlinkLink:
                     log.warning("UDP read error on %s: %s", self.connection, exc)
                     time.sleep(0.1)
                     continue
-                for m in _parse_datagram(parser, data):
+                msgs = _parse_datagram(parser, data)
+                self._follow_timestamp(parser)
+                for m in msgs:
                     if not deliver(m, addr):
                         return
 

@@ -4,10 +4,11 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import AliasChoices, Field, field_validator, model_validator
+from pydantic import AliasChoices, Field, SecretStr, field_validator, model_validator
 from pydantic_settings import SettingsConfigDict
 
 from shared import envelope
+from shared.errors import ConfigError
 from shared.settings import ServiceSettings
 
 
@@ -30,8 +31,18 @@ class BridgeSettings(ServiceSettings):
     interface (udpin:0.0.0.0:...) only inside a network namespace that nothing else reaches (compose)."""
     baud: int = Field(921600, gt=0)
     """Serial baud rate when the connection names none (ignored for UDP)."""
-    target_system: int = Field(0, ge=0, le=255)
-    """PX4 system id to talk to; 0 = learn it from the first PX4 HEARTBEAT (others are then ignored)."""
+    target_system: int = Field(1, ge=1, le=255)
+    """The autopilot's MAVLink system id (PX4's MAV_SYS_ID, 1 by default). Only a PX4 HEARTBEAT from this system
+    and `target_component` is taken for the autopilot; every other system on the link (another vehicle, a fake
+    autopilot) is ignored, and one that claims to be an autopilot is logged once with its address."""
+    target_component: int = Field(1, ge=1, le=255)
+    """The autopilot's MAVLink component id (1 = MAV_COMP_ID_AUTOPILOT1, PX4's own). Messages from other
+    components of the same system (a camera, a gimbal) never become the vehicle's state."""
+    signing_key: SecretStr | None = None
+    """MAVLink 2 signing key shared with the autopilot: 64 hex digits (32 bytes), from the environment only,
+    never logged. Set: every frame the bridge sends is signed, and only frames signed with this key are heard
+    (unsigned, MAVLink 1 and wrongly signed ones are counted and dropped). Unset (the default): no signing, as
+    PX4 without a key on its SD card. docs/px4-sitl.md, "MAVLink 2 signing"."""
     source_system: int = Field(1, ge=1, le=255)
     """Our MAVLink system id. MAVLink's routing guide puts a companion computer in its autopilot's system (PX4's
     MAV_SYS_ID, 1 by default) under its own component id; 255 belongs to ground stations, so is not the default."""
@@ -113,6 +124,24 @@ class BridgeSettings(ServiceSettings):
     def _check_envelope(self) -> BridgeSettings:
         envelope.check_settings(self)
         return self
+
+    @field_validator("signing_key")
+    @classmethod
+    def _signing_key(cls, v: SecretStr | None) -> SecretStr | None:
+        if v is None or not v.get_secret_value().strip():
+            return None  # unset, or empty as compose passes an unset variable
+        try:
+            ok = len(bytes.fromhex(v.get_secret_value().strip())) == 32
+        except ValueError:
+            ok = False
+        if not ok:  # ConfigError, not ValueError: pydantic would repeat the key in its error's input_value
+            raise ConfigError("AERMANI_AUTOPILOT_BRIDGE_SIGNING_KEY must be 64 hex digits (32 bytes), e.g. from "
+                              "`openssl rand -hex 32`")
+        return SecretStr(v.get_secret_value().strip().lower())
+
+    @property
+    def signing_key_bytes(self) -> bytes | None:
+        return bytes.fromhex(self.signing_key.get_secret_value()) if self.signing_key is not None else None
 
     @field_validator("connection")
     @classmethod

@@ -8,6 +8,7 @@ from typing import Annotated, Any
 import typer
 
 from services.mcp.settings import McpSettings
+from shared.errors import ConfigError
 
 
 def register(app: typer.Typer) -> None:
@@ -20,13 +21,17 @@ def register(app: typer.Typer) -> None:
         = None,
     ) -> None:
         """Model Context Protocol server: agents start, follow and abort tasks, see the camera (tasks, not raw
-        flight). Gateway token from AERMANI_GATEWAY_TOKEN; HTTP clients need AERMANI_MCP_TOKEN."""
+        flight). Gateway token from AERMANI_GATEWAY_TOKEN; HTTP needs AERMANI_MCP_TOKEN (no start without)."""
         from services.mcp.server import build_server, http_app
 
         options = (("transport", transport), ("port", port), ("gateway_url", gateway))
         overrides: dict[str, Any] = {k: v for k, v in options if v is not None}
         settings = McpSettings(**overrides)
-        settings.check_safe()
+        try:
+            settings.check_safe()
+        except ConfigError as exc:  # a clear refusal, not a traceback
+            print(f"aermani mcp: {exc}", file=sys.stderr)
+            raise typer.Exit(2) from None
         if settings.transport == "stdio":
             build_server(settings).run("stdio")
             return
@@ -34,8 +39,4 @@ def register(app: typer.Typer) -> None:
 
         print(f"aermani MCP server on http://{settings.host}:{settings.port}/mcp -> {settings.gateway_url}",
               file=sys.stderr)
-        if settings.token is None:
-            print("no AERMANI_MCP_TOKEN: clients are not authenticated, so the gateway is called without its token "
-                  "(a gateway that has one refuses them); set AERMANI_MCP_TOKEN",
-                  file=sys.stderr)
         uvicorn.run(http_app(settings), host=settings.host, port=settings.port, log_level="warning")

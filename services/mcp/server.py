@@ -16,6 +16,7 @@ from mcp.server.transport_security import TransportSecuritySettings
 from mcp.types import ToolAnnotations
 
 from services.mcp.settings import McpSettings
+from shared.errors import ConfigError
 
 INSTRUCTIONS = """\
 aermani flies a PX4 multirotor with a gripper (real or simulated). You give it a task in plain language, e.g.
@@ -237,8 +238,12 @@ class BearerAuth:
 
 
 def http_app(settings: McpSettings) -> Any:
-    """The streamable-HTTP app at /mcp: Origin checked exactly, then the bearer token when one is set. On
-    loopback the SDK's Host check (DNS rebinding) also runs, with this server's own host and port exactly."""
+    """The streamable-HTTP app at /mcp: Origin checked exactly, then the bearer token (required: without
+    AERMANI_MCP_TOKEN this raises ConfigError). On loopback the SDK's Host check (DNS rebinding) also runs,
+    with this server's own host and port exactly."""
+    settings.check_safe()
+    if settings.token is None:  # check_safe refuses this for transport=http; an app is HTTP whatever it says
+        raise ConfigError("the MCP server over HTTP needs AERMANI_MCP_TOKEN")
     if settings.loopback:
         hosts = [f"{h}:{settings.port}" for h in ("127.0.0.1", "localhost", "[::1]")]
         security = TransportSecuritySettings(enable_dns_rebinding_protection=True, allowed_hosts=hosts,
@@ -246,6 +251,5 @@ def http_app(settings: McpSettings) -> Any:
     else:  # reached by names this server cannot know; the token (required here) is the protection
         security = TransportSecuritySettings(enable_dns_rebinding_protection=False)
     app: Any = build_server(settings).streamable_http_app(host=settings.host, transport_security=security)
-    if settings.token is not None:
-        app = BearerAuth(app, settings.token.get_secret_value())
+    app = BearerAuth(app, settings.token.get_secret_value())
     return OriginCheck(app, settings.allowed_origins)

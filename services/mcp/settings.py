@@ -26,14 +26,13 @@ class McpSettings(BaseSettings):
     transport: Literal["stdio", "http"] = "stdio"
     """stdio (an MCP client starts `aermani mcp`) or http (streamable HTTP on host:port/mcp)."""
     host: str = "127.0.0.1"
-    """Bind address for the HTTP transport; anything but loopback requires `token`."""
+    """Bind address for the HTTP transport (loopback by default; `token` is required on every address)."""
     port: int = Field(8765, ge=0, le=65535)
     """Port for the HTTP transport."""
     token: SecretStr | None = Field(None, validation_alias=AliasChoices("token", "AERMANI_MCP_TOKEN"))
-    """Bearer token MCP clients must send over HTTP (environment only). Without one (loopback only) the HTTP
-    server calls the gateway without the gateway token too: a client that proves nothing gets what an
-    unauthenticated client gets from the gateway directly (a 401 from a gateway that has a token), never the
-    gateway token's rights."""
+    """Bearer token MCP clients must send over HTTP (environment only, never logged). Required for the HTTP
+    transport, on loopback too: the server holds the gateway token, and any local process (or a page the
+    operator opens, were the Origin check wrong) could otherwise start tasks with its rights. Not used by stdio."""
     allowed_origins: list[str] = []
     """Browser origins allowed to call the HTTP transport, each exactly `scheme://host[:port]` (no wildcard, no
     path): a request with an `Origin` header not in this list gets 403. Empty (the default): every request that
@@ -60,9 +59,10 @@ class McpSettings(BaseSettings):
         return self.transport == "stdio" or self.token is not None
 
     def check_safe(self) -> None:
-        """Refuse an HTTP bind beyond loopback without a token."""
+        """Refuse the HTTP transport without a token, on any address (loopback too)."""
         if self.transport != "http" or self.token is not None:
             return
-        if not self.loopback:
-            raise ConfigError(f"AERMANI_MCP_HOST={self.host} is not loopback: set AERMANI_MCP_TOKEN so only clients "
-                              "holding it can start tasks")
+        where = "is not loopback" if not self.loopback else "is loopback, but every local process reaches it"
+        raise ConfigError(f"the MCP server over HTTP needs AERMANI_MCP_TOKEN (AERMANI_MCP_HOST={self.host} {where}): "
+                          "set it in the environment, e.g. AERMANI_MCP_TOKEN=$(openssl rand -hex 24), and give it "
+                          "to the MCP client as `Authorization: Bearer <token>`; or use the stdio transport")

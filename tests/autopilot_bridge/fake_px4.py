@@ -37,13 +37,19 @@ def param_reply(mav, params: dict[str, float], request):
 class FakePX4:
     """Sends to the bridge's UDP port like PX4 SITL's offboard link; records everything it receives."""
 
-    def __init__(self, bridge_port: int, system: int = 1) -> None:
+    def __init__(self, bridge_port: int, system: int = 1, component: int = 1, signing_key: bytes | None = None,
+                 link_id: int = 0) -> None:
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.bind(("127.0.0.1", 0))
         self.sock.settimeout(0.02)
         self.addr = ("127.0.0.1", bridge_port)
-        self.mav = mavlink.MAVLink(None, srcSystem=system, srcComponent=1)
+        self.mav = mavlink.MAVLink(None, srcSystem=system, srcComponent=component)
         self.mav.robust_parsing = True
+        if signing_key is not None:  # as PX4 with a key on its SD card: signs all, accepts only signed frames
+            self.mav.signing.secret_key = signing_key
+            self.mav.signing.link_id = link_id
+            self.mav.signing.timestamp = int((time.time() - 1420070400) * 100_000)
+            self.mav.signing.sign_outgoing = True
         self.system = system
         self.lock = threading.Lock()
         self.received: list = []

@@ -310,6 +310,9 @@ def test_a_by_path_serial_name_passes_through_compose(monkeypatch):
 def test_the_simulated_profiles_keep_their_defaults(monkeypatch):
     bridge = service_settings("autopilot_bridge", HOST, monkeypatch)
     assert bridge.connection == "udpin:0.0.0.0:14540" and bridge.publish_tf == "auto"
+    # Only PX4's own ids are taken for the autopilot (issue 32; compose passed 0, "whoever comes first").
+    assert (bridge.target_system, bridge.target_component) == (1, 1)
+    assert bridge.signing_key is None  # no key in the host's environment: signing off, as PX4 without one
     assert service_settings("camera", HOST, monkeypatch).source == "none"
     assert service_settings("sim", HOST, monkeypatch).camera is True
 

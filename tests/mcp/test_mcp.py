@@ -8,6 +8,8 @@ import base64
 import contextlib
 import json
 import os
+import socket
+import subprocess
 import sys
 import threading
 import time
@@ -245,26 +247,31 @@ def test_http_checks_origin_exactly(gw):
         asyncio.run(asyncio.wait_for(main(), 60))
 
 
-def test_http_without_its_token_does_not_lend_the_gateways(gw):
-    """On loopback with no AERMANI_MCP_TOKEN the server cannot tell who calls it, so it calls the gateway as
-    an unauthenticated client would: this gateway (it has a token) refuses every call, and nothing flies."""
-    with _http_server(gw) as url:
-        tasks = (gw.base_url + "/api/v1/tasks", {"Authorization": f"Bearer {GW_TOKEN}"})
-        before = httpx.get(tasks[0], headers=tasks[1]).json()["total"]
-        r = httpx.post(url, json=INIT, headers={**MCP_HEADERS, "Origin": "http://localhost:8765"})
-        assert r.status_code == 403  # no origin is allowed by default, a local one included
+def test_http_refuses_to_start_without_its_token_on_loopback_too():
+    """No HTTP server without AERMANI_MCP_TOKEN, on loopback as beyond it: the CLI exits 2 with an error that
+    names the variable, before it listens (its port stays free), and the app cannot be built either."""
+    from services.mcp.server import http_app
+    from services.mcp.settings import McpSettings
+    from shared.errors import ConfigError
 
-        async def main():
-            http, client = _client(url)
-            async with http, client:
-                for tool, args in (("start_task", {"command": "pick up the red cup", "vehicle": "am1"}),
-                                   ("abort", {"reason": "t", "fleet": True}), ("list_vehicles", {})):
-                    refused = await client.call_tool(tool, args)
-                    assert refused.is_error and "401" in refused.content[0].text, (tool, refused.content)
-
-        asyncio.run(asyncio.wait_for(main(), 60))
-        after = httpx.get(tasks[0], headers=tasks[1]).json()["total"]
-        assert after == before
+    port = free_port()
+    env = {k: v for k, v in os.environ.items() if k not in ("AERMANI_MCP_TOKEN", "AERMANI_MCP_HOST")}
+    for host in ("127.0.0.1", "0.0.0.0"):
+        r = subprocess.run([sys.executable, "-m", "aermani.cli", "mcp", "--transport", "http", "--port", str(port)],
+                           env={**env, "AERMANI_MCP_HOST": host, "AERMANI_GATEWAY_TOKEN": GW_TOKEN},
+                           capture_output=True, text=True, timeout=60)
+        assert r.returncode == 2, (host, r.returncode, r.stdout, r.stderr)
+        assert "AERMANI_MCP_TOKEN" in r.stderr and "Traceback" not in r.stderr, r.stderr
+        assert GW_TOKEN not in r.stderr + r.stdout  # the gateway token never reaches a log
+        with socket.socket() as probe:
+            probe.bind(("127.0.0.1", port))  # nothing listened on it
+    for host in ("127.0.0.1", "::1", "0.0.0.0"):
+        with pytest.raises(ConfigError, match="AERMANI_MCP_TOKEN"):
+            McpSettings(transport="http", host=host).check_safe()
+        with pytest.raises(ConfigError, match="AERMANI_MCP_TOKEN"):
+            http_app(McpSettings(transport="http", host=host, gateway_token=GW_TOKEN))
+    McpSettings(transport="http", token=MCP_TOKEN).check_safe()
+    McpSettings(transport="stdio").check_safe()  # stdio: the client started the process, no token needed
 
 
 def test_allowed_origins_must_be_exact():
@@ -276,14 +283,6 @@ def test_allowed_origins_must_be_exact():
         with pytest.raises(ValidationError, match="not an exact origin"):
             McpSettings(allowed_origins=[bad])
     assert McpSettings(allowed_origins=["http://[::1]:3000", "https://ops.example"]).allowed_origins
-
-
-def test_refuses_an_open_http_bind_without_a_token():
-    from services.mcp.settings import McpSettings
-    from shared.errors import ConfigError
-
-    with pytest.raises(ConfigError, match="AERMANI_MCP_TOKEN"):
-        McpSettings(transport="http", host="0.0.0.0").check_safe()
 
 
 def test_stdio_client_decides_approvals(tmp_path):
