@@ -18,7 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validat
 SCHEMA_VERSION = 1
 """Major version of the message schemas. A receiver rejects a message of a newer major version with an
 error naming both versions."""
-SCHEMA_MINOR = 6
+SCHEMA_MINOR = 7
 """Minor version: bumped when fields are added (or deprecated and ignored, never removed). A receiver accepts a
 message of a newer minor version, ignoring the fields it does not know (logged once per field)."""
 MAX_COMMAND_CHARS = 500
@@ -735,13 +735,19 @@ class SkillToExecute(Part):
     """Object or surface query for localization skills; None otherwise."""
 
 
-Variant = Literal["unstructured", "no_drt", "drt_v1", "drt_v2", "drt_v3", "full", "react"]
+Variant = Literal["unstructured", "no_drt", "drt_v1", "drt_v2", "drt_v3", "full", "react", "saycan", "direct",
+                  "waypoint", "plan_once"]
 BackendName = Annotated[str, Field(pattern=r"^([a-z][a-z0-9_.-]{0,63})?$")]
 """A registered reasoner backend (`rules`, `openai`, `anthropic`, `replay`, or a plug-in's name); the
 reasoner's registry decides which exist, so the type fixes only the spelling."""
 BackendLabel = Annotated[str, Field(pattern=r"^([a-z][a-z0-9_.-]{0,63}(:\S{1,200})?)?$")]
 """A backend with its model, as recorded: `rules`, `openai:gpt-4o`, `openai:Qwen/Qwen2-VL-7B-Instruct`."""
 VARIANTS: tuple[str, ...] = ("unstructured", "no_drt", "drt_v1", "drt_v2", "drt_v3", "full", "react")
+"""The prompt variants of the paper's Table IV ablation, plus its ReAct baseline."""
+BASELINES: tuple[str, ...] = ("saycan", "direct", "waypoint", "plan_once")
+"""The paper's Table III baseline frameworks over the same skill interface: SayCan-style scoring of every skill
+(weighted by the executor's feasibility check), RT-2-style direct action, UAV-VLN-style waypoints (motion
+primitives only), UAV-VLA-style one plan at the start (services/reasoner/baselines.py)."""
 
 
 class ModelCall(Part):
@@ -763,6 +769,23 @@ class ModelCall(Part):
     """The answer was decoded under the answer's JSON schema (schema-constrained output), not free text."""
     tokens_cached: int | None = None
     """Prompt tokens the server read from its prompt cache, when it reports them."""
+
+
+class SkillScore(Part):
+    """SayCan-style: the model's usefulness score of one candidate skill, times the executor's feasibility."""
+
+    skill: str
+    """Candidate skill."""
+    argument: str | None = None
+    """Its argument."""
+    score: float
+    """The model's usefulness score, 0..1."""
+    feasible: bool = False
+    """Whether the executor would accept it now (its check_skill answer)."""
+    reason: str = ""
+    """The executor's reason when it would not."""
+    weighted: float = 0.0
+    """score x feasibility (1 or 0): the highest one runs."""
 
 
 class ReasoningStep(Message):
@@ -808,6 +831,10 @@ class ReasoningStep(Message):
     """Framework time of the step excluding model calls and skill execution."""
     skill_duration_s: float = 0.0
     """Wall time of the skill."""
+    scores: tuple[SkillScore, ...] = ()
+    """SayCan-style variant: every candidate's score and feasibility (empty for other variants; minor 7)."""
+    plan: tuple[SkillToExecute, ...] = ()
+    """Plan-once variant: the whole plan, in the step that asked for it (empty otherwise; minor 7)."""
 
 
 class CancelGoal(Message):
