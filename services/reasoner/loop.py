@@ -470,7 +470,7 @@ class TaskRunner:
         scored: list[SkillScore] = []
         for skill, argument, score in parsed.scores:
             req = SkillRequest(skill=skill, argument=argument, task_id=self.req.task_id, step=self.steps)
-            refused = await self._feasible(req)
+            refused = await self._feasible(req, "SayCan weight 0")
             scored.append(SkillScore(skill=skill, argument=argument, score=score, feasible=refused is None,
                                      reason=refused.message if refused is not None else "",
                                      weighted=score if refused is None else 0.0))
@@ -483,7 +483,7 @@ class TaskRunner:
         wanted = set(self.settings.approval)
         return bool(wanted) and (skill in wanted or self.categories.get(skill, "") in wanted)
 
-    async def _feasible(self, req: SkillRequest) -> SkillStatus | None:
+    async def _feasible(self, req: SkillRequest, purpose: str = "no approval asked") -> SkillStatus | None:
         """None when the executor would accept the skill now; else the rejection that ends the step, with the
         executor's reason and outcome code, as if run_skill had refused it. An operator is never asked to approve
         a skill the executor would then refuse (a grasp out of reach)."""
@@ -494,8 +494,8 @@ class TaskRunner:
             check = SkillAccept(accepted=False, goal_id="", reason=f"executor unreachable: {exc}")
         if check.accepted:
             return None
-        log.info("no approval asked for %s(%s): the executor refuses it: %s", req.skill, req.argument or "",
-                 check.reason)
+        log.info("%s(%s) not feasible now (%s): the executor refuses it: %s", req.skill, req.argument or "",
+                 purpose, check.reason)
         return SkillStatus(goal_id="", skill=req.skill, argument=req.argument, state=SkillState.REJECTED,
                            message=check.reason, task_id=req.task_id, step=req.step, started_ns=started,
                            ended_ns=now_ns(), outcome=check.outcome or SkillOutcome())
