@@ -736,13 +736,19 @@ class SkillToExecute(Part):
     """Object or surface query for localization skills; None otherwise."""
 
 
-Variant = Literal["unstructured", "no_drt", "drt_v1", "drt_v2", "drt_v3", "full", "react"]
+Variant = Literal["unstructured", "no_drt", "drt_v1", "drt_v2", "drt_v3", "full", "react", "saycan", "direct",
+                  "waypoint", "plan_once"]
 BackendName = Annotated[str, Field(pattern=r"^([a-z][a-z0-9_.-]{0,63})?$")]
 """A registered reasoner backend (`rules`, `openai`, `anthropic`, `replay`, or a plug-in's name); the
 reasoner's registry decides which exist, so the type fixes only the spelling."""
 BackendLabel = Annotated[str, Field(pattern=r"^([a-z][a-z0-9_.-]{0,63}(:\S{1,200})?)?$")]
 """A backend with its model, as recorded: `rules`, `openai:gpt-4o`, `openai:Qwen/Qwen2-VL-7B-Instruct`."""
 VARIANTS: tuple[str, ...] = ("unstructured", "no_drt", "drt_v1", "drt_v2", "drt_v3", "full", "react")
+"""The prompt variants of the paper's Table IV ablation, plus its ReAct baseline."""
+BASELINES: tuple[str, ...] = ("saycan", "direct", "waypoint", "plan_once")
+"""The paper's Table III baseline frameworks over the same skill interface: SayCan-style scoring of every skill
+(weighted by the executor's feasibility check), RT-2-style direct action, UAV-VLN-style waypoints (motion
+primitives only), UAV-VLA-style one plan at the start (services/reasoner/baselines.py)."""
 
 
 class ModelCall(Part):
@@ -794,6 +800,23 @@ class StepTiming(Part):
     hosts shows here; 0 when negative)."""
 
 
+class SkillScore(Part):
+    """SayCan-style: the model's usefulness score of one candidate skill, times the executor's feasibility."""
+
+    skill: str
+    """Candidate skill."""
+    argument: str | None = None
+    """Its argument."""
+    score: float
+    """The model's usefulness score, 0..1."""
+    feasible: bool = False
+    """Whether the executor would accept it now (its check_skill answer)."""
+    reason: str = ""
+    """The executor's reason when it would not."""
+    weighted: float = 0.0
+    """score x feasibility (1 or 0): the highest one runs."""
+
+
 class ReasoningStep(Message):
     """One step of Algorithm 1: prompt parts, model calls, DRT and STE, and the skill's outcome."""
 
@@ -839,6 +862,10 @@ class ReasoningStep(Message):
     """Wall time of the skill."""
     timing: StepTiming | None = None
     """Where the step's time went (None in records older than schema minor 7 and for a step without a skill)."""
+    scores: tuple[SkillScore, ...] = ()
+    """SayCan-style variant: every candidate's score and feasibility (empty for other variants; minor 7)."""
+    plan: tuple[SkillToExecute, ...] = ()
+    """Plan-once variant: the whole plan, in the step that asked for it (empty otherwise; minor 7)."""
 
 
 class CancelGoal(Message):

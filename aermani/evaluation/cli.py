@@ -11,7 +11,7 @@ import typer
 from rich.console import Console
 
 from shared.errors import ConfigError
-from shared.messages import VARIANTS
+from shared.messages import BASELINES, VARIANTS
 from shared.text import terminal_text
 
 console = Console()
@@ -30,7 +30,9 @@ def _interrupt(_signum: int, _frame: object) -> None:
 def eval_command(
     backend: Annotated[str, typer.Option(help="Reasoner backend (`aermani vlm backends` lists them).")] = "rules",
     variant: Annotated[str, typer.Option(help="Prompt variant, or a comma list for a sweep, or 'all' "
-                                              f"({', '.join(VARIANTS)}).")] = "full",
+                                              f"({', '.join(VARIANTS)}), or 'baselines' or one of the paper's "
+                                              f"baseline frameworks ({', '.join(BASELINES)}; plan-once is "
+                                              "plan_once), which need a model backend.")] = "full",
     episodes: Annotated[int | None, typer.Option(help="Episodes per suite (cycling through its tasks); "
                                                       "default 10, or each task of --tasks once.")] = None,
     split: Annotated[str, typer.Option(help="Split of the built-in suites: dev (work against it) or test (held "
@@ -51,6 +53,11 @@ def eval_command(
     output_mode: Annotated[str, typer.Option(help="Answer decoding: auto, schema, text, or both (the same episodes "
                                                   "once per mode into OUT/schema and OUT/text, compared in "
                                                   "OUT/modes.md).")] = "auto",
+    paper_history: Annotated[bool, typer.Option(help="The paper's History only: each step's DRT and action, no "
+                                                     "live detections or world map (AERMANI_REASONER_PAPER_HISTORY)."
+                                                )] = False,
+    free_text_baselines: Annotated[bool, typer.Option(help="Decode the unstructured and ReAct baselines as free "
+                                                           "text, as the paper did (no answer schema).")] = False,
     base_url: Annotated[str | None, typer.Option(help="Base URL of an OpenAI-compatible endpoint.")] = None,
     connect: Annotated[str | None, typer.Option(help="Use vehicles already running behind this Zenoh router "
                                                      "instead of launching a stack (with --vehicles).")] = None,
@@ -77,10 +84,16 @@ def eval_command(
         paths = write_report(out)
         console.print(f"report: {paths['markdown']}")
         return
-    variants = list(VARIANTS) if variant.strip() == "all" else (_split(variant) or ["full"])
-    bad = [v for v in variants if v not in VARIANTS]
+    sweeps = {"all": list(VARIANTS), "baselines": list(BASELINES)}
+    variants = sweeps.get(variant.strip()) or [v.replace("-", "_") for v in _split(variant) or ["full"]]
+    bad = [v for v in variants if v not in (*VARIANTS, *BASELINES)]
     if bad:
-        console.print(f"[red]unknown variants {bad}; known: {', '.join(VARIANTS)}[/red]")
+        console.print(f"[red]unknown variants {bad}; known: {', '.join((*VARIANTS, *BASELINES))}[/red]")
+        raise typer.Exit(2)
+    if backend == "rules" and any(v in BASELINES for v in variants):
+        console.print(f"[red]the rules backend does not emulate the baseline frameworks "
+                      f"({', '.join(v for v in variants if v in BASELINES)}); run them with a model backend "
+                      "(--backend openai or anthropic)[/red]")
         raise typer.Exit(2)
     if split not in SPLITS:
         console.print(f"[red]unknown split {split!r}; use one of {', '.join(SPLITS)}[/red]")
@@ -94,6 +107,7 @@ def eval_command(
     api_key = os.environ.get("AERMANI_REASONER_API_KEY")
     modes = ["schema", "text"] if output_mode == "both" else [output_mode]
     cfg = RunConfig(out=out, backend=backend, output_mode=modes[0], variants=variants, model=model, base_url=base_url,
+                    paper_history=paper_history, free_text_baselines=free_text_baselines,
                     api_key=api_key,
                     episodes=episodes if episodes is not None else (None if tasks else 10),
                     split=split, suites=_split(suites), tasks_file=tasks, seed=seed, parallel=parallel,

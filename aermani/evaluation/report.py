@@ -18,6 +18,8 @@ from shared.messages import VARIANTS
 VARIANT_TITLES = {
     "unstructured": "Unstructured", "no_drt": "No-DRT", "drt_v1": "DRT-V1", "drt_v2": "DRT-V2",
     "drt_v3": "DRT-V3", "full": "AERMANI-VLM", "react": "ReAct Prompting",
+    "saycan": "SayCan-style", "direct": "RT-2-style direct action", "waypoint": "UAV-VLN-style waypoints",
+    "plan_once": "UAV-VLA-style plan once",
 }
 
 
@@ -51,6 +53,15 @@ PAPER_BACKBONES: dict[str, tuple[float, float, float, float, float]] = {
 _BACKBONE_KEYS = {"gemini": "AERMANI-VLM (Gemini-3-Pro)", "gpt-4o": "AERMANI-VLM (GPT-4o)",
                   "claude": "AERMANI-VLM (Claude-3.5)", "qwen2-vl": "AERMANI-VLM (Qwen2-VL)",
                   "llava": "AERMANI-VLM (LLaVA-Next)"}
+# The paper's Table III baseline rows and the variant that maps each onto this skill interface
+# (services/reasoner/baselines.py; ReAct is the `react` variant).
+PAPER_FRAMEWORKS: dict[str, tuple[str, tuple[float, float, float, float, float]]] = {
+    "direct": ("RT-2", (10.0, 19.0, 42.0, 35.0, 0.85)),
+    "saycan": ("SayCan", (20.0, 16.0, 33.0, 28.0, 0.91)),
+    "react": ("ReAct Prompting (VLM)", (35.0, 12.5, 28.0, 15.0, 0.90)),
+    "waypoint": ("UAV-VLN", (30.0, 16.5, 38.0, 31.0, 0.72)),
+    "plan_once": ("UAV-VLA", (45.0, 10.5, 26.0, 18.0, 0.88)),
+}
 NOT_RUN = "not run here: needs a GPU/API key"
 RULES_NAME = "rules (non-VLM baseline)"
 
@@ -187,10 +198,12 @@ def paper_comparison_lines(records: list[EpisodeRecord], config: dict[str, Any])
     lines = ["## Beside the paper (comparison with VLM backbones, averaged over the suites)", "",
              "| Method | paper SR | paper ARR | paper RS | paper IAR | paper RT (s) | real-model run here |",
              "|---|---|---|---|---|---|---|"]
-    m = compute(records)
+    m = compute(r for r in records if r.variant == "full")  # a backbone row is AERMANI-VLM: the full variant
     for row, (sr, arr, rs, iar, rt) in PAPER_BACKBONES.items():
+        if row == PAPER_FRAMEWORKS["react"][0]:
+            continue  # in the frameworks table below
         here = NOT_RUN
-        if row == mine:
+        if row == mine and m.episodes:
             here = (f"SR {_fmt(m.sr)}, ARR {_fmt(m.arr)}, RS {_fmt(m.rs)}, IAR {_fmt(m.iar)}, "
                     f"RT {_fmt(m.rt_median, 2)} ({model}, N={m.episodes})")
         lines.append(f"| {row} | {sr:.1f} | {arr:.1f} | {rs:.1f} | {iar:.1f} | {rt:.2f} | {here} |")
@@ -198,6 +211,26 @@ def paper_comparison_lines(records: list[EpisodeRecord], config: dict[str, Any])
         b = sorted({r.backend for r in records}) or [config.get("backend", "?")]
         lines += ["", f"This run ({', '.join(method_name(x, 'full') for x in b)}) is not one of the paper's methods; "
                   "its figures are in the tables above. docs/evaluation.md shows how to run the paper's backbones."]
+    return lines + [""] + framework_lines(records, model, config.get("base_url") or "")
+
+
+def framework_lines(records: list[EpisodeRecord], model: str, base_url: str = "") -> list[str]:
+    """The paper's Table III baseline frameworks beside this run's variants that map them: a model backend's run
+    only (the rules backend refuses them), and never a loopback server's (it may be the local test server, whose
+    answers are the rules policy's: no result to put beside the paper's)."""
+    lines = ["## Beside the paper (baseline frameworks on the same skill interface)", "",
+             "| Method | variant here | paper SR | paper ARR | paper RS | paper IAR | paper RT (s) | run here |",
+             "|---|---|---|---|---|---|---|---|"]
+    for variant, (row, (sr, arr, rs, iar, rt)) in PAPER_FRAMEWORKS.items():
+        recs = [r for r in records if r.variant == variant and r.backend not in ("rules", "replay")]
+        here = NOT_RUN
+        if recs and base_url and _loopback(base_url):
+            here = f"ran on a loopback server (N={len(recs)}): not put beside the paper (see Backend)"
+        elif recs and model:
+            m = compute(recs)
+            here = (f"SR {_fmt(m.sr)}, ARR {_fmt(m.arr)}, RS {_fmt(m.rs)}, IAR {_fmt(m.iar)}, "
+                    f"RT {_fmt(m.rt_median, 2)} ({model}, N={m.episodes})")
+        lines.append(f"| {row} | `{variant}` | {sr:.1f} | {arr:.1f} | {rs:.1f} | {iar:.1f} | {rt:.2f} | {here} |")
     return lines + [""]
 
 
@@ -268,6 +301,7 @@ def markdown(records: list[EpisodeRecord], config: dict[str, Any], plots: list[s
     lines += configuration_lines(records, config)
     settings = {k: config.get(k) for k in ("output_mode", "base_url", "suites", "seed", "parallel", "connect")
                 if config.get(k) not in (None, "", [])}
+    settings |= {k: True for k in ("paper_history", "free_text_baselines") if config.get(k) is True}
     if settings:
         lines += ["Other settings: " + ", ".join(f"{k}={v}" for k, v in settings.items()) + ".", ""]
 

@@ -69,6 +69,11 @@ class RunConfig(BaseModel):
     output_mode: str = "auto"
     """Answer decoding of the reasoner (AERMANI_REASONER_OUTPUT_MODE): auto, schema or text."""
     variants: list[str] = ["full"]
+    paper_history: bool = False
+    """The paper's History only (AERMANI_REASONER_PAPER_HISTORY): each step's DRT and action, no live detections
+    or world map."""
+    free_text_baselines: bool = False
+    """The unstructured and ReAct baselines decoded as free text (AERMANI_REASONER_FREE_TEXT_BASELINES)."""
     model: str = ""
     base_url: str | None = None
     api_key: str | None = None
@@ -115,6 +120,8 @@ class RunConfig(BaseModel):
         args += ["--seed", str(self.seed), "--segmenter", self.segmenter, "--realism", self.realism,
                  "--speed-factor", f"{self.speed_factor:g}", "--t-max", f"{self.t_max_s:g}",
                  "--output-mode", self.output_mode]
+        args += ["--paper-history"] if self.paper_history else []
+        args += ["--free-text-baselines"] if self.free_text_baselines else []
         if self.connect:
             args += ["--connect", self.connect, "--vehicles", ",".join(self.vehicle_ids())]
         else:
@@ -170,6 +177,8 @@ def vehicle_env(cfg: RunConfig) -> dict[str, str]:
         "AERMANI_SIM_SPEED_FACTOR": str(cfg.speed_factor),
         "AERMANI_REASONER_BACKEND": cfg.backend,
         "AERMANI_REASONER_OUTPUT_MODE": cfg.output_mode,
+        "AERMANI_REASONER_PAPER_HISTORY": str(cfg.paper_history).lower(),
+        "AERMANI_REASONER_FREE_TEXT_BASELINES": str(cfg.free_text_baselines).lower(),
         "AERMANI_REASONER_T_MAX_S": str(cfg.t_max_s),
         "AERMANI_PERCEPTION_SEGMENTER": cfg.segmenter,
         "AERMANI_RECORDER_SEGMENTATION": "1" if cfg.segmenter == "sim" else "0",

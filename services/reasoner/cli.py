@@ -13,7 +13,7 @@ import typer
 from rich.console import Console
 
 from shared.cli_helpers import command_group
-from shared.messages import VARIANTS
+from shared.messages import BASELINES, VARIANTS
 from shared.text import plain_text, terminal_text
 
 console = Console()
@@ -40,20 +40,22 @@ async def _live_library(connect: str, timeout: float):
 
 def check_command(
     file: Annotated[Path, typer.Argument(help="One JSON-encoded string (a model answer) per line.")],
-    variant: Annotated[str, typer.Option(help=f"Prompt variant the answers were given for ({', '.join(VARIANTS)}).")]
-    = "full",
+    variant: Annotated[str, typer.Option(help="Prompt variant the answers were given for "
+                                              f"({', '.join((*VARIANTS, *BASELINES))}).")] = "full",
     connect: Annotated[str, typer.Option(help="Zenoh router to ask for the executor's live skill library.")]
     = "tcp/127.0.0.1:7447",
     offline: Annotated[bool, typer.Option(help="Use the built-in default skill library without asking.")] = False,
     coverage: Annotated[float, typer.Option(help="Fraction of skills the action predictions must cover.")] = 1.0,
 ) -> None:
     """Print, per line, whether the answer is accepted (and the skill) or the reason it is rejected."""
+    from services.reasoner.baselines import restrict_library
     from services.reasoner.library import default_library
     from services.reasoner.parse import parse_answer
     from shared.errors import InvalidAnswer
 
-    if variant not in VARIANTS:
-        console.print(f"[red]unknown variant {variant!r}; use one of {', '.join(VARIANTS)}[/red]")
+    variant = variant.replace("-", "_")
+    if variant not in (*VARIANTS, *BASELINES):
+        console.print(f"[red]unknown variant {variant!r}; use one of {', '.join((*VARIANTS, *BASELINES))}[/red]")
         raise typer.Exit(2)
     try:
         lines = file.read_text(encoding="utf-8").splitlines()
@@ -62,7 +64,7 @@ def check_command(
         raise typer.Exit(2)
     library = None if offline else asyncio.run(_live_library(connect, 2.0))
     source = "executor's live registry" if library is not None else "built-in default library"
-    library = library or default_library()
+    library = restrict_library(variant, library or default_library())  # waypoint: the motion primitives only
     console.print(f"checking {file} against the {source} (variant {variant})")
     rejected = total = 0
     for n, line in enumerate(lines, 1):

@@ -12,6 +12,11 @@ DRT_FIELDS: dict[str, tuple[str, ...]] = {
     "drt_v3": ("image_description", "summary", "action_predictions"),
     "full": ("image_description", "summary", "action_predictions", "reasoning"),
     "react": (),
+    # The Table III baselines (baselines.py) have no reasoning trace.
+    "saycan": (),
+    "direct": (),
+    "waypoint": (),
+    "plan_once": (),
 }
 
 FIELD_HELP = {

@@ -16,6 +16,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from services.reasoner.backends.base import Backend, ModelRequest, PastStep, PolicyContext, Seen
+from services.reasoner.baselines import restrict_library
 from services.reasoner.library import policy_skills
 from services.reasoner.parse import ParsedAnswer, parse_answer, recorded_answer
 from services.reasoner.prompt import (
@@ -31,6 +32,7 @@ from shared.errors import AermaniError, InvalidAnswer, ModelError, ServerLost
 from shared.messages import (
     ApprovalState,
     ApprovalStatus,
+    DescriptiveReasoningTrace,
     LandedState,
     ModelCall,
     ReasoningStep,
@@ -38,8 +40,10 @@ from shared.messages import (
     SkillLibrary,
     SkillOutcome,
     SkillRequest,
+    SkillScore,
     SkillState,
     SkillStatus,
+    SkillToExecute,
     StepTiming,
     TaskRequest,
     TaskState,
@@ -157,7 +161,9 @@ class TaskRunner:
         self.t_max = request.t_max_s or settings.t_max_s
         self.publish_step = publish_step
         self.publish_status = publish_status
-        self.history = History(settings.history_full_steps, settings.history_max_chars)
+        self.history = History(settings.history_full_steps, settings.history_max_chars, paper=settings.paper_history)
+        self.plan: list[SkillToExecute] | None = None
+        """Plan-once variant: the plan's steps not yet run (None until the model gave one)."""
         self.categories: dict[str, str] = {}
         self.steps = 0
         self.calls = 0
@@ -220,8 +226,9 @@ class TaskRunner:
             library = await self.world.skill_library()
         except AermaniError as exc:
             return self.status(TaskState.FAILED, f"no skill library from the executor: {exc}")
-        compiler = PromptCompiler(self.variant, library)
         self.categories = {spec.name: spec.category for spec in library.skills}
+        library = restrict_library(self.variant, library)  # waypoint: the motion primitives only
+        compiler = PromptCompiler(self.variant, library, free_text_baselines=self.settings.free_text_baselines)
         ended = await self._preflight(library)
         if ended is not None:
             return ended
@@ -246,7 +253,7 @@ class TaskRunner:
             link_s = time.perf_counter() - t_link
             self.steps += 1
             try:
-                result, model_time = await self._decide(compiler, library, obs)
+                result, model_time = await self._next(compiler, library, obs)
             except ModelError as exc:
                 await self.world.hold(self.req.task_id, "model outage")
                 rec = ReasoningStep(vehicle_id=self.settings.vehicle_id, task_id=self.req.task_id, step=self.steps,
@@ -291,25 +298,42 @@ class TaskRunner:
             last_skill = ste.skill
             self.history.append(HistoryEntry(
                 self.steps, ste.skill, ste.argument, st.state.value, st.message, st.outcome.perceived,
-                parsed.drt.summary or "", parsed.drt.reasoning or "", st.outcome))
+                parsed.drt.summary or "", parsed.drt.reasoning or "", st.outcome,
+                image_description=parsed.drt.image_description or "",
+                prediction=(parsed.drt.action_predictions or {}).get(ste.skill, "")))
             overhead += time.perf_counter() - t_upd
             rec = rec.model_copy(update={"skill_state": st.state, "skill_message": st.message, "outcome": st.outcome,
                                          "overhead_s": overhead, "skill_duration_s": skill_s, "timing": timing})
             self._publish(rec)
-            if ste.skill == S.DONE:
-                if result.failure:  # the policy ends the task as failed ("not found: ..."), not as complete
-                    await self.world.hold(self.req.task_id, "policy gave up")
-                    return self.status(TaskState.FAILED, result.failure)
-                if st.state is SkillState.SUCCEEDED:
-                    return self.status(TaskState.SUCCEEDED, "the policy declared the task complete")
-                log.warning("done was %s: %s", st.state.value, st.message)
+            ended = await self._step_end(ste, st, result.failure)
+            if ended is not None:
+                return ended
+
+    async def _step_end(self, ste: SkillToExecute, st: SkillStatus, failure: str | None) -> TaskStatus | None:
+        """The task's end after a step's skill ended, or None to go on."""
+        if self.variant == "plan_once" and st.state is not SkillState.SUCCEEDED:
             if st.state is SkillState.ABORTED:
                 return self.status(TaskState.ABORTED, f"skill {ste.skill} aborted: {st.message}")
+            await self.world.hold(self.req.task_id, "plan failed")
+            return self.status(TaskState.FAILED, f"plan step {self.steps} {ste.skill} {st.state.value}: "
+                                                 f"{st.message}; the plan-once baseline does not re-plan; "
+                                                 "vehicle held")
+        if ste.skill == S.DONE:
+            if failure:  # the policy ends the task as failed ("not found: ..."), not as complete
+                await self.world.hold(self.req.task_id, "policy gave up")
+                return self.status(TaskState.FAILED, failure)
+            if st.state is SkillState.SUCCEEDED:
+                return self.status(TaskState.SUCCEEDED, "the policy declared the task complete")
+            log.warning("done was %s: %s", st.state.value, st.message)
+        if st.state is SkillState.ABORTED:
+            return self.status(TaskState.ABORTED, f"skill {ste.skill} aborted: {st.message}")
+        return None
 
     async def _preflight(self, library: SkillLibrary) -> TaskStatus | None:
         """Before the first step: the backend's refusal (nothing flies for a command the policy cannot carry
         out), then the takeoff when the vehicle is on the ground. The failed status, or None to go on."""
-        refused = self.backend.refusal(self.req.command, [s.name for s in policy_skills(library)])
+        refused = (self.backend.unsupported(self.variant)
+                   or self.backend.refusal(self.req.command, [s.name for s in policy_skills(library)]))
         if refused:
             return self.status(TaskState.FAILED, f"{REFUSED_BEFORE_TAKEOFF}: {refused}")
         obs = await self.world.observe(0)
@@ -438,18 +462,57 @@ class TaskRunner:
                                        structured=reply.structured, tokens_cached=reply.cached_tokens))
                 feedback.append((reply.text, str(exc)))
                 log.info("invalid answer (step %d): %s", self.steps, plain_text(exc))  # it may quote the answer
+        scores: tuple[SkillScore, ...] = ()
+        if parsed is not None and parsed.scores:
+            parsed, scores = await self._weigh(parsed)
         rec = ReasoningStep(
             vehicle_id=self.settings.vehicle_id, task_id=self.req.task_id, step=self.steps, backend=self.backend.name,
             variant=self.variant, prompt=prompt.parts, image_stamp_ns=obs.image_stamp_ns if prompt.has_image else 0,
             calls=tuple(calls), drt=parsed.drt if parsed else None, ste=parsed.ste if parsed else None,
-            valid=parsed is not None, retries=len(calls) - 1)
+            valid=parsed is not None, retries=len(calls) - 1, scores=scores, plan=parsed.plan if parsed else ())
         return StepResult(rec, parsed, failure, first_call - t_prompt, first_call), model_time
+
+    async def _next(self, compiler: PromptCompiler, library: SkillLibrary,
+                    obs: Observation) -> tuple[StepResult, float]:
+        """This step's decision and model seconds: the model's answer, or for plan-once after its one plan the
+        plan's next step (no model call)."""
+        if self.plan is not None:
+            return self._planned(obs), 0.0
+        result, model_time = await self._decide(compiler, library, obs)
+        if self.variant == "plan_once" and result.parsed is not None:
+            self.plan = list(result.parsed.plan[1:])  # the first step runs now
+        return result, model_time
+
+    def _planned(self, obs: Observation) -> StepResult:
+        """Plan-once: the plan's next step as this step's record (no model call, no prompt)."""
+        if not self.plan:  # a plan ends with done, which ends the task: only a bug gets here
+            raise AermaniError("the plan has no step left")
+        ste = self.plan.pop(0)
+        rec = ReasoningStep(vehicle_id=self.settings.vehicle_id, task_id=self.req.task_id, step=self.steps,
+                            backend=self.backend.name, variant=self.variant, ste=ste, valid=True)
+        return StepResult(rec, ParsedAnswer(DescriptiveReasoningTrace(), ste), first_call=time.perf_counter())
+
+    async def _weigh(self, parsed: ParsedAnswer) -> tuple[ParsedAnswer, tuple[SkillScore, ...]]:
+        """SayCan: each candidate's score times the executor's feasibility (check_skill: 1 or 0); the highest
+        weighted candidate is the step's skill. When the executor would accept none, the top-rated one runs
+        (the executor then refuses it with its reason, which the History shows)."""
+        scored: list[SkillScore] = []
+        for skill, argument, score in parsed.scores:
+            req = SkillRequest(skill=skill, argument=argument, task_id=self.req.task_id, step=self.steps)
+            refused = await self._feasible(req, "SayCan weight 0")
+            scored.append(SkillScore(skill=skill, argument=argument, score=score, feasible=refused is None,
+                                     reason=refused.message if refused is not None else "",
+                                     weighted=score if refused is None else 0.0))
+        feasible = [c for c in scored if c.feasible]
+        best = max(feasible or scored, key=lambda c: c.weighted if feasible else c.score)
+        ste = SkillToExecute(skill=best.skill, argument=best.argument)
+        return ParsedAnswer(parsed.drt, ste, parsed.recovered, parsed.scores, parsed.plan), tuple(scored)
 
     def _needs_approval(self, skill: str) -> bool:
         wanted = set(self.settings.approval)
         return bool(wanted) and (skill in wanted or self.categories.get(skill, "") in wanted)
 
-    async def _feasible(self, req: SkillRequest) -> SkillStatus | None:
+    async def _feasible(self, req: SkillRequest, purpose: str = "no approval asked") -> SkillStatus | None:
         """None when the executor would accept the skill now; else the rejection that ends the step, with the
         executor's reason and outcome code, as if run_skill had refused it. An operator is never asked to approve
         a skill the executor would then refuse (a grasp out of reach)."""
@@ -460,8 +523,8 @@ class TaskRunner:
             check = SkillAccept(accepted=False, goal_id="", reason=f"executor unreachable: {exc}")
         if check.accepted:
             return None
-        log.info("no approval asked for %s(%s): the executor refuses it: %s", req.skill, req.argument or "",
-                 check.reason)
+        log.info("%s(%s) not feasible now (%s): the executor refuses it: %s", req.skill, req.argument or "",
+                 purpose, check.reason)
         return SkillStatus(goal_id="", skill=req.skill, argument=req.argument, state=SkillState.REJECTED,
                            message=check.reason, task_id=req.task_id, step=req.step, started_ns=started,
                            ended_ns=now_ns(), outcome=check.outcome or SkillOutcome())

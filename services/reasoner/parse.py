@@ -88,6 +88,10 @@ class ParsedAnswer:
     ste: SkillToExecute
     recovered: bool = False
     """True when the lenient reader was needed (the answer was not strict JSON)."""
+    scores: tuple[tuple[str, str | None, float], ...] = ()
+    """SayCan-style variant: every (skill, argument, score) the model rated; `ste` is the top-rated one."""
+    plan: tuple[SkillToExecute, ...] = ()
+    """Plan-once variant: the whole plan; `ste` is its first step."""
 
 
 def norm_key(key: str) -> str:
@@ -416,6 +420,11 @@ def _parse(raw: str, variant: str, library: SkillLibrary, coverage: float, work:
         obj, thought, recovered = _react_action(raw, work)
     else:
         obj, recovered, _start = extract_json(raw, work)
+    if variant in ("saycan", "plan_once"):
+        if obj is None:
+            raise InvalidAnswer("No JSON object found in the answer; reply with exactly one JSON object in the "
+                                "format given in the Rules.")
+        return _parse_baseline(well_formed_tree(obj), variant, specs, recovered)
     if obj is None:
         if variant == "unstructured":
             bare_skill, arg = _bare_skill(raw, names, work)
@@ -438,7 +447,33 @@ def _parse(raw: str, variant: str, library: SkillLibrary, coverage: float, work:
         arg = inner.rstrip()[:-1].strip().strip("'\"") or None
     if thought and "reasoning" not in drt:
         drt = {**drt, "reasoning": thought}
+    if variant == "direct":
+        drt = {}  # RT-2-style: the skill only; any reasoning the model wrote anyway is not a trace
     return _validate(skill, arg, drt, variant, specs, coverage, recovered, thought)
+
+
+def _parse_baseline(obj: dict, variant: str, specs: dict, recovered: bool) -> ParsedAnswer:
+    """A SayCan answer (scores of every skill) or a plan-once answer (the plan), each skill checked like an STE."""
+    from services.reasoner import baselines
+
+    obj = {norm_key(k): v for k, v in obj.items()}
+
+    def check(skill: object, arg: object) -> tuple[str, str | None]:
+        if not isinstance(skill, str):
+            raise InvalidAnswer(f"Each skill must be a string naming one skill, got {json.dumps(skill)[:60]}.")
+        ste = _validate(skill, arg, {}, "no_drt", specs, 1.0, recovered, None).ste
+        return ste.skill, ste.argument
+
+    empty = DescriptiveReasoningTrace()
+    if variant == "saycan":
+        scores = baselines.read_scores(obj, check)
+        lacking = [n for n in specs if n not in {s for s, _, _ in scores}]
+        if lacking:
+            raise InvalidAnswer(f"scores must rate every available skill; missing: {', '.join(lacking)}.")
+        best = max(scores, key=lambda c: c[2])
+        return ParsedAnswer(empty, SkillToExecute(skill=best[0], argument=best[1]), recovered, scores=tuple(scores))
+    plan = tuple(SkillToExecute(skill=s, argument=a) for s, a in baselines.read_plan(obj, check))
+    return ParsedAnswer(empty, plan[0], recovered, plan=plan)
 
 
 def _clean_thought(text: str) -> str | None:

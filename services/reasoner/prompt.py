@@ -28,9 +28,16 @@ PROMPT_PARTS: dict[str, tuple[str, ...]] = {
     "drt_v3": ("command", "preamble", "history", "skill_library", "rules"),
     "full": ("command", "preamble", "history", "skill_library", "rules"),
     "react": ("command", "preamble", "history", "skill_library", "rules"),
+    # The Table III baselines (baselines.py): RT-2-style direct action has no preamble.
+    "saycan": ("command", "preamble", "history", "skill_library", "rules"),
+    "direct": ("command", "history", "skill_library", "rules"),
+    "waypoint": ("command", "preamble", "history", "skill_library", "rules"),
+    "plan_once": ("command", "preamble", "history", "skill_library", "rules"),
 }
 CONSTANT_PARTS = ("preamble", "skill_library", "rules")
 """Parts that depend only on the variant and the skill library: the cacheable prefix, in this order."""
+FREE_TEXT_BASELINES = ("unstructured", "react")
+"""The variants `free_text_baselines` decodes as free text (no answer schema), as the paper did."""
 SECTION_TITLES = {
     "command": "Task command",
     "preamble": "Preamble",
@@ -66,6 +73,10 @@ class HistoryEntry:
     reasoning: str = ""
     outcome: SkillOutcome | None = None
     """The executor's outcome (its code and facts); None for a step the loop recorded itself."""
+    image_description: str = ""
+    """The step's DRT image description (shown only in the paper's History, `paper_history`)."""
+    prediction: str = ""
+    """The DRT's predicted outcome of the chosen skill (shown only in the paper's History)."""
 
     def call(self) -> str:
         return f"{self.skill}({self.argument})" if self.argument else self.skill
@@ -89,6 +100,16 @@ class HistoryEntry:
             lines.append(f"   your summary: {_clip(self.summary, 160)}")
         if self.reasoning:
             lines.append(f"   your reasoning: {_clip(self.reasoning, 160)}")
+        return "\n".join(lines)
+
+    def paper(self) -> str:
+        """The step as the paper's History holds it (Algorithm 1: H <- H u {DRT_t, a_t}): the action with its
+        termination status, then the step's own reasoning trace; no executor message or perception."""
+        lines = [f"#{self.step} {self.call()} -> {self.state}"]
+        for name, text in (("image description", self.image_description), ("summary", self.summary),
+                           ("predicted outcome", self.prediction), ("reasoning", self.reasoning)):
+            if text:
+                lines.append(f"   your {name}: {_clip(text, 200)}")
         return "\n".join(lines)
 
 
@@ -187,9 +208,12 @@ def describe_detections(obs: Observation) -> str:
 class History:
     """The bounded History buffer H: last K steps in full, older ones condensed, character budget enforced."""
 
-    def __init__(self, full_steps: int = 6, max_chars: int = 6000) -> None:
+    def __init__(self, full_steps: int = 6, max_chars: int = 6000, *, paper: bool = False) -> None:
         self.full_steps = full_steps
         self.max_chars = max_chars
+        self.paper = paper
+        """The paper's History (`paper_history`): the DRT and action of each step only; no vehicle state, live
+        detections or working memory."""
         self.entries: list[HistoryEntry] = []
 
     def append(self, entry: HistoryEntry) -> None:
@@ -201,6 +225,8 @@ class History:
     def render(self, obs: Observation) -> str:
         """Executed steps first (oldest first), the current observation last: between two steps the text up to
         the newest entries repeats, so a prefix cache reuses it (vLLM, OpenAI automatic caching)."""
+        if self.paper:
+            return self._render_paper()
         head = [describe_state(obs), describe_detections(obs)]
         if obs.memory is not None:
             head.append("Working memory: " + memory_summary(obs.memory))
@@ -238,6 +264,23 @@ class History:
         return _fit_tail("\n".join(body), head_text, self.max_chars)
 
 
+    def _render_paper(self) -> str:
+        """Every step in the paper's form, the oldest cut first to stay within the budget."""
+        if not self.entries:
+            return "No skill executed yet."
+        blocks = [e.paper() for e in self.entries]
+        kept: list[str] = []
+        room = self.max_chars - 40  # "(N earlier steps omitted)"
+        for b in reversed(blocks):
+            if len(b) + 1 > room and kept:
+                break
+            kept.append(_fit(b, room))
+            room -= len(kept[-1]) + 1
+        kept.reverse()
+        omitted = len(blocks) - len(kept)
+        return "\n".join(([f"({omitted} earlier steps omitted)"] if omitted else []) + kept)
+
+
 def _fit_tail(body: str, tail: str, n: int) -> str:
     """body + tail within n characters, cutting the start of the body (the oldest steps), never the tail."""
     text = f"{body}\n{tail}"
@@ -254,6 +297,10 @@ def _fit(text: str, n: int) -> str:
 
 
 def rules_text(variant: str, library: SkillLibrary) -> str:
+    from services.reasoner import baselines
+
+    if baselines.is_baseline(variant):
+        return baselines.rules_text(variant, library)
     names = [s.name for s in policy_skills(library)]
     if variant == "react":
         return (
@@ -307,17 +354,21 @@ def layout(variant: str, parts: dict[str, str]) -> tuple[str, str]:
 class PromptCompiler:
     """Builds P_t for one variant from the command, the History, the observation and the skill registry."""
 
-    def __init__(self, variant: str, library: SkillLibrary) -> None:
+    def __init__(self, variant: str, library: SkillLibrary, *, free_text_baselines: bool = False) -> None:
         if variant not in PROMPT_PARTS:
             raise ValueError(f"unknown prompt variant {variant!r}; use one of {', '.join(PROMPT_PARTS)}")
         self.variant = variant
         self.library = library
         # The fixed parts depend only on the variant and the registry: compile them once, as the prefix.
+        from services.reasoner.baselines import PREAMBLES
         from services.reasoner.schema import answer_schema
 
         self._library_text = library_text(library)
         self._rules = rules_text(variant, library)
-        self.schema = answer_schema(variant, library)
+        self._preamble = PREAMBLES.get(variant, PREAMBLE)
+        # The paper decoded its unstructured and ReAct baselines as free text (`free_text_baselines`).
+        free = free_text_baselines and variant in FREE_TEXT_BASELINES
+        self.schema = None if free else answer_schema(variant, library)
 
     def compile(self, command: str, history: History, obs: Observation) -> CompiledPrompt:
         wanted = PROMPT_PARTS[self.variant]
@@ -326,7 +377,7 @@ class PromptCompiler:
             if name == "command":
                 parts[name] = command
             elif name == "preamble":
-                parts[name] = PREAMBLE
+                parts[name] = self._preamble
             elif name == "history":
                 parts[name] = history.render(obs)
             elif name == "skill_library":
@@ -340,9 +391,12 @@ class PromptCompiler:
 REPROMPT = ("Your previous answer was invalid: {error} Answer again with one valid skill, following the Rules "
             "exactly.")
 REPROMPT_UNSTRUCTURED = "Your previous answer was invalid: {error} Answer again with one skill from the list."
+REPROMPT_BASELINE = "Your previous answer was invalid: {error} Answer again, following the Rules exactly."
 
 
 def reprompt_text(variant: str, error: str) -> str:
+    if variant in ("saycan", "plan_once"):
+        return REPROMPT_BASELINE.format(error=error)
     return (REPROMPT_UNSTRUCTURED if variant == "unstructured" else REPROMPT).format(error=error)
 
 

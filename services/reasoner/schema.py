@@ -54,6 +54,10 @@ def ste_schema(library: SkillLibrary) -> dict[str, Any]:
 def answer_schema(variant: str, library: SkillLibrary) -> dict[str, Any]:
     """The schema of one answer in `variant`'s format. ReAct's constrained form is {"thought", "action"}
     (its free-text form is `Thought:` lines then `Action: {...}`); unstructured is a flat {"skill", "argument"}."""
+    from services.reasoner import baselines
+
+    if baselines.is_baseline(variant):
+        return baselines.answer_schema(variant, library)
     ste = ste_schema(library)
     if variant == "unstructured":
         return ste if "anyOf" not in ste else _closed({"ste": ste})

@@ -24,7 +24,9 @@ class ReasonerSettings(ServiceSettings):
     """Comma-separated Python modules imported before the backend is looked up; each registers backends with
     `@register` (a backend kept outside this repository)."""
     variant: Variant = "full"
-    """Prompt variant (paper Table IV + ReAct): unstructured, no_drt, drt_v1, drt_v2, drt_v3, full, react."""
+    """Prompt variant (paper Table IV + ReAct): unstructured, no_drt, drt_v1, drt_v2, drt_v3, full, react; or a
+    Table III baseline framework over the same skills (services/reasoner/baselines.py): saycan, direct, waypoint,
+    plan_once."""
     model: str = ""
     """Model name; empty picks the backend's default model."""
     base_url: str | None = None
@@ -63,6 +65,14 @@ class ReasonerSettings(ServiceSettings):
     """K: the last K steps appear in full in the History; older ones are condensed to one line each."""
     history_max_chars: int = Field(6000, ge=500)
     """Character budget of the History part; the oldest entries are condensed, then dropped, to stay under."""
+    paper_history: bool = False
+    """The History exactly as the paper's (Algorithm 1: the DRT and the action, with its termination status, of
+    each step): no vehicle state, live detections, working memory or executor messages. Off (the default) adds
+    them, which the paper's prompt did not have."""
+    free_text_baselines: bool = False
+    """Decode the unstructured and ReAct baselines as free text (no answer schema sent, whatever `output_mode`
+    says), as the paper did; off, they get their schema like every variant (in `auto`, when the profile
+    supports it)."""
     prediction_coverage: float = Field(1.0, ge=0.0, le=1.0)
     """Fraction of the available skills the DRT's action predictions must cover (paper: every skill)."""
     approval: list[str] = []

@@ -248,4 +248,6 @@ def test_report_puts_a_real_model_run_in_its_paper_row(tmp_path):
                                         "base_url": "http://gpu-box:8000/v1"})["markdown"].read_text()
     row = next(x for x in md.splitlines() if x.startswith("| AERMANI-VLM (Qwen2-VL) |"))
     assert "SR 100.0" in row and "Qwen/Qwen2-VL-7B-Instruct, N=1" in row
-    assert "| AERMANI-VLM (GPT-4o) | 85.0 |" in md and md.count("not run here: needs a GPU/API key") == 5
+    # 4 other backbones, then the 5 baseline frameworks (ReAct's row among them, once), none run
+    assert "| AERMANI-VLM (GPT-4o) | 85.0 |" in md and md.count("not run here: needs a GPU/API key") == 4 + 5
+    assert md.count("| ReAct Prompting (VLM) |") == 1

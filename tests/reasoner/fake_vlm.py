@@ -28,7 +28,8 @@ faults, one per HTTP request, in the order queued:
 Schema-constrained output: a request with an answer schema (OpenAI `response_format` of type
 `json_schema`; Anthropic a forced tool's `input_schema`, or `output_config.format`) is checked (a valid JSON
 schema, strict: every object closed and all its properties required, `strict: true` on OpenAI) and answered
-with JSON in the schema's shape (ReAct as {"thought", "action"}; on Anthropic as the tool call's input); every
+with JSON in the schema's shape (ReAct as {"thought", "action"}; the Table III baselines, saycan, direct,
+waypoint and plan_once, in their formats: prompt_reader.baseline_answer; on Anthropic as the tool call's input); every
 problem found, and every answer that does not validate against the schema it came with, is appended to
 `schema_errors` (tests assert it stays empty).
 `reject_schema=True` answers such requests HTTP 400, like a server without structured outputs.
@@ -182,6 +183,8 @@ def shaped_answer(answer: str, schema: dict) -> str:
         skill, _, arg = answer.partition("(")
         ste = {"skill": skill, "argument": arg[:-1] if arg else None}
         return json.dumps({"ste": ste} if "ste" in props else ste)
+    if list(props) == ["ste"] and "ste" not in json.loads(answer):  # direct: the flat skill object in "ste"
+        return json.dumps({"ste": json.loads(answer)})
     return answer
 
 

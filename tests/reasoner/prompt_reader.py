@@ -6,14 +6,22 @@ A test fake playing a VLM reads the prompt as a model would, so it may read text
 
 from __future__ import annotations
 
+import json
 import math
 import re
 
 from services.reasoner.backends.base import PastStep, PolicyContext, Seen
 from services.reasoner.backends.rules import RulesPolicy, render_answer
+from services.reasoner.backends.rules_parse import APPROACH, parse_command
 from services.reasoner.drt import DRT_FIELDS
-from shared.messages import OutcomeCode, SkillFacts
+from shared import skills as S  # noqa: N812
+from shared.messages import BASELINES, OutcomeCode, SkillFacts
 
+BASELINE_MARKERS = {
+    "saycan": '{"scores": [', "plan_once": '{"plan": [', "direct": "Answer with the skill only",
+    "waypoint": "the next waypoint as one motion primitive",
+}
+"""A phrase of each baseline's Rules (services/reasoner/baselines.py) that tells the reader which one it is."""
 _VEC = r"\((-?[\d.]+), (-?[\d.]+), (-?[\d.]+)\)"
 _STEP_LINE = re.compile(r"^\s*#(\d+) ([a-z_]+)(?:\((.*?)\))? -> ([a-z]+)(?:; outcome: (.*)|: (.*))?$", re.M)
 _OUTCOME = re.compile(r"^([a-z_]+) \((.*)\)$")
@@ -66,7 +74,10 @@ def context_from_prompt(text: str) -> PolicyContext:
         lib = sections.get("Skill Library", "")
         rules = sections.get("Rules", "")
         history = sections.get("History", "")
-        if "Thought:" in rules:
+        baseline = next((v for v, marker in BASELINE_MARKERS.items() if marker in rules), None)
+        if baseline is not None:
+            variant = baseline
+        elif "Thought:" in rules:
             variant = "react"
         else:
             present = tuple(f for f in DRT_FIELDS["full"] if f'"{f}"' in rules)
@@ -108,5 +119,47 @@ def context_from_prompt(text: str) -> PolicyContext:
 def answer_for_prompt(text: str) -> str:
     """The rules policy's answer to a compiled prompt, as a VLM would send it."""
     ctx = context_from_prompt(text)
+    if ctx.variant in BASELINES:
+        return baseline_answer(ctx, set(re.findall(r"^- ([a-z_]+)\(<", text, re.M)))
     skill, arg, why = RulesPolicy().decide(ctx)
     return render_answer(ctx, skill, arg, why)
+
+
+def baseline_answer(ctx: PolicyContext, needs_argument: set[str]) -> str:
+    """A Table III baseline's answer from the rules policy's decision on the prompt's context (a stand-in for a
+    model in that framework's format, not the framework's behaviour):
+
+    - direct: the decided skill only;
+    - waypoint: the decided skill when it is a motion primitive offered, else done (no manipulation offered);
+    - saycan: the decided skill and argument rated 0.9, every other offered skill 0.05 (a skill that needs an
+      argument gets the command's target or destination);
+    - plan_once: the command's motions (an approach as one forward step), then localize and grasp the target,
+      localize the destination and place, then done: planned from the command, never re-planned."""
+    decided = RulesPolicy().decide_full(ctx)
+    if ctx.variant == "direct":
+        return json.dumps({"skill": decided.skill, "argument": decided.argument})
+    if ctx.variant == "waypoint":
+        skill = decided.skill if decided.skill in ctx.skills else S.DONE
+        return json.dumps({"ste": {"skill": skill, "argument": None}})
+    plan = parse_command(ctx.command, ctx.skills)
+    if ctx.variant == "saycan":
+        scores = []
+        for name in ctx.skills:
+            if name == decided.skill:
+                scores.append({"skill": name, "argument": decided.argument, "score": 0.9})
+                continue
+            arg = None
+            if name in needs_argument:
+                arg = (plan.destination if name == S.PLACEMENT_LOCALIZATION else plan.target) or "object"
+            scores.append({"skill": name, "argument": arg, "score": 0.05})
+        return json.dumps({"scores": scores})
+    steps: list[dict] = [{"skill": S.FORWARD if m.startswith(APPROACH) else m, "argument": None}
+                         for m in plan.motions if m.startswith(APPROACH) or m in ctx.skills]
+    target = plan.target or (decided.argument if decided.skill == S.OBJ_LOCALIZATION else None)
+    if target:
+        steps += [{"skill": S.OBJ_LOCALIZATION, "argument": target}, {"skill": S.GRASP, "argument": target}]
+        if plan.destination:
+            steps += [{"skill": S.PLACEMENT_LOCALIZATION, "argument": plan.destination},
+                      {"skill": S.PLACE, "argument": None}]
+    steps.append({"skill": S.DONE, "argument": None})
+    return json.dumps({"plan": steps})

@@ -250,6 +250,24 @@ def test_vlm_check_reads_the_whole_file_past_pathological_lines(tmp_path) -> Non
     assert "2/5 accepted, 3 rejected" in out
 
 
+def test_vlm_check_reads_baseline_answers_against_the_library_the_variant_offers(tmp_path) -> None:
+    """`aermani vlm check --variant waypoint` checks against the motion primitives only; plan-once plans too."""
+    import subprocess
+    import sys
+
+    f = tmp_path / "answers.jsonl"
+    f.write_text("".join(json.dumps(x) + "\n" for x in ['{"ste": {"skill": "forward", "argument": null}}',
+                                                         '{"ste": {"skill": "grasp", "argument": null}}']))
+    res = subprocess.run([sys.executable, "-m", "aermani.cli", "vlm", "check", str(f), "--offline", "--variant",
+                          "waypoint"], capture_output=True, text=True, timeout=120)
+    assert "1: accepted: forward" in res.stdout and "2: rejected: Unknown skill 'grasp'" in res.stdout, res.stderr
+    plan = json.dumps({"plan": [{"skill": "yaw_left", "argument": None}, {"skill": "done", "argument": None}]})
+    f.write_text(json.dumps(plan) + "\n")
+    res = subprocess.run([sys.executable, "-m", "aermani.cli", "vlm", "check", str(f), "--offline", "--variant",
+                          "plan-once"], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0 and "1: accepted: yaw_left" in res.stdout, res.stdout + res.stderr
+
+
 def test_braces_and_escaped_quotes_inside_strings_do_not_split_the_object() -> None:
     raw = 'Sure: {"ste": {"skill": "obj_localization", "argument": "the \\"red\\" cup {left} \\\\"}} ok'
     p = parse_answer(raw, "no_drt", LIB)

@@ -181,6 +181,11 @@ class Backend(ABC):
         `skills` are the live library's policy skills. Model backends accept every command."""
         return None
 
+    def unsupported(self, variant: str) -> str | None:
+        """Why this backend cannot answer in `variant`'s format (the task then fails before takeoff), or None.
+        Model backends answer every variant."""
+        return None
+
     async def aclose(self) -> None:
         return None
 

@@ -47,7 +47,7 @@ from services.reasoner.backends.rules_parse import (
 )
 from services.reasoner.drt import DRT_FIELDS
 from shared import skills as S  # noqa: N812 - reads like the paper tables
-from shared.messages import OutcomeCode
+from shared.messages import BASELINES, OutcomeCode
 
 __all__ = ["CATEGORY_WORDS", "SNACKS", "Plan", "RulesBackend", "RulesPolicy", "parse_command", "render_answer"]
 
@@ -682,6 +682,14 @@ class RulesBackend(Backend):
         """Why the command cannot be carried out (it names no object, no motion and no task verb), else None."""
         plan = parse_command(command, skills)
         return None if plan.understood else plan.reason
+
+    def unsupported(self, variant: str) -> str | None:
+        """The Table III baselines (saycan, direct, waypoint, plan_once) are frameworks for a model: the rules
+        policy does not emulate them, so they are refused rather than answered in a form that is not theirs."""
+        if variant in BASELINES:
+            return (f"the rules backend does not emulate the {variant} baseline framework; run it with a model "
+                    "backend (openai, anthropic)")
+        return None
 
     async def complete(self, request: ModelRequest) -> ModelReply:
         t0 = time.perf_counter()
