@@ -245,6 +245,10 @@ class Metrics(BaseModel):
     successes: int
     not_run: int = 0
     sr: float | None = None
+    sr_low: float | None = None
+    """Lower end of SR's 95 % Wilson score interval (%)."""
+    sr_high: float | None = None
+    """Upper end of SR's 95 % Wilson score interval (%)."""
     arr: float | None = None
     rs: float | None = None
     iar: float | None = None
@@ -293,6 +297,19 @@ def judged_ok(rec: EpisodeRecord) -> bool:
     return rec.judge_success if rec.judge_success is not None else rec.success
 
 
+def wilson(successes: int, n: int, z: float = 1.959964) -> tuple[float, float]:
+    """The 95 % Wilson score interval of a success rate, in % (well behaved at 0 and n successes, unlike the
+    normal approximation)."""
+    if n <= 0:
+        raise ValueError("no episodes")
+    p = successes / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z / (1 + z * z / n) * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n))
+    lo = 0.0 if successes == 0 else max(0.0, centre - half)
+    hi = 1.0 if successes == n else min(1.0, centre + half)
+    return 100.0 * lo, 100.0 * hi
+
+
 def compute(records: Iterable[EpisodeRecord]) -> Metrics:
     records = list(records)
     ran = [r for r in records if not r.harness_error]
@@ -307,6 +324,8 @@ def compute(records: Iterable[EpisodeRecord]) -> Metrics:
         successes=len(ok),
         not_run=len(records) - n,
         sr=100.0 * len(ok) / n if n else None,
+        sr_low=wilson(len(ok), n)[0] if n else None,
+        sr_high=wilson(len(ok), n)[1] if n else None,
         arr=100.0 * sum(redundancy_ratio(actions_of(r.steps)) for r in ok) / len(ok) if ok else None,
         rs=sum(reasoning_steps(r) for r in ran) / n if n else None,
         iar=100.0 * invalid / queries if queries else None,

@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import urlparse
 
-from aermani.evaluation.metrics import compute, iar_by_mode, judged_ok, reasoning_steps
+from aermani.evaluation.metrics import Metrics, compute, iar_by_mode, judged_ok, reasoning_steps
 from aermani.evaluation.records import RESULTS_FILE, EpisodeRecord, ResultsFile
 from aermani.evaluation.tasks import PAPER_RS, PAPER_SUITES, SUITE_TITLES
 from shared.messages import VARIANTS
@@ -25,6 +25,15 @@ VARIANT_TITLES = {
 
 def _fmt(v: float | None, digits: int = 1) -> str:
     return "--" if v is None else f"{v:.{digits}f}"
+
+
+def _sr(m: Metrics) -> str:
+    """SR with its 95 % Wilson score interval: `65.0 [43.3, 81.9]`."""
+    if m.sr is None:
+        return "--"
+    if m.sr_low is None or m.sr_high is None:
+        return _sr(m)
+    return f"{m.sr:.1f} [{m.sr_low:.1f}, {m.sr_high:.1f}]"
 
 
 def _suite_order(suites: Iterable[str]) -> list[str]:
@@ -204,7 +213,7 @@ def paper_comparison_lines(records: list[EpisodeRecord], config: dict[str, Any])
             continue  # in the frameworks table below
         here = NOT_RUN
         if row == mine and m.episodes:
-            here = (f"SR {_fmt(m.sr)}, ARR {_fmt(m.arr)}, RS {_fmt(m.rs)}, IAR {_fmt(m.iar)}, "
+            here = (f"SR {_sr(m)}, ARR {_fmt(m.arr)}, RS {_fmt(m.rs)}, IAR {_fmt(m.iar)}, "
                     f"RT {_fmt(m.rt_median, 2)} ({model}, N={m.episodes})")
         lines.append(f"| {row} | {sr:.1f} | {arr:.1f} | {rs:.1f} | {iar:.1f} | {rt:.2f} | {here} |")
     if mine is None:
@@ -228,7 +237,7 @@ def framework_lines(records: list[EpisodeRecord], model: str, base_url: str = ""
             here = f"ran on a loopback server (N={len(recs)}): not put beside the paper (see Backend)"
         elif recs and model:
             m = compute(recs)
-            here = (f"SR {_fmt(m.sr)}, ARR {_fmt(m.arr)}, RS {_fmt(m.rs)}, IAR {_fmt(m.iar)}, "
+            here = (f"SR {_sr(m)}, ARR {_fmt(m.arr)}, RS {_fmt(m.rs)}, IAR {_fmt(m.iar)}, "
                     f"RT {_fmt(m.rt_median, 2)} ({model}, N={m.episodes})")
         lines.append(f"| {row} | `{variant}` | {sr:.1f} | {arr:.1f} | {rs:.1f} | {iar:.1f} | {rt:.2f} | {here} |")
     return lines + [""]
@@ -276,13 +285,13 @@ def _paper_section(records: list[EpisodeRecord], suites: list[str], configs: lis
     if not paper_suites:
         return []
     lines = ["## Beside the paper's AERMANI-VLM (by task suite)", "",
-             "| Task Suite | Method | SR | paper SR | RS | paper RS |", "|---|---|---|---|---|---|"]
+             "| Task Suite | Method | SR [95 % CI] | paper SR | RS | paper RS |", "|---|---|---|---|---|---|"]
     for s in paper_suites:
         for b, v in configs:
             recs = [r for r in records if r.suite == s and r.backend == b and r.variant == v]
             if recs and v == "full":
                 m = compute(recs)
-                lines.append(f"| {SUITE_TITLES.get(s, s)} | {method_name(b, v, multi)} | {_fmt(m.sr)} | "
+                lines.append(f"| {SUITE_TITLES.get(s, s)} | {method_name(b, v, multi)} | {_sr(m)} | "
                              f"{PAPER_SR[s]:.1f} | {_fmt(m.rs)} | {PAPER_RS[s]:.1f} |")
     lines.append("")
     return lines
@@ -306,7 +315,7 @@ def markdown(records: list[EpisodeRecord], config: dict[str, Any], plots: list[s
         lines += ["Other settings: " + ", ".join(f"{k}={v}" for k, v in settings.items()) + ".", ""]
 
     lines += ["## Results by task suite (paper Table II layout)", "",
-              "| Task Suite | Method | N | SR ↑ | ARR ↓ | RS ↓ | IAR ↓ |", "|---|---|---|---|---|---|---|"]
+              "| Task Suite | Method | N | SR ↑ [95 % CI] | ARR ↓ | RS ↓ | IAR ↓ |", "|---|---|---|---|---|---|---|"]
     for s in suites:
         for i, (b, v) in enumerate(configs):
             recs = [r for r in records if r.suite == s and r.backend == b and r.variant == v]
@@ -314,14 +323,14 @@ def markdown(records: list[EpisodeRecord], config: dict[str, Any], plots: list[s
                 continue
             m = compute(recs)
             suite_cell = SUITE_TITLES.get(s, s) if i == 0 else ""
-            lines.append(f"| {suite_cell} | {method_name(b, v, multi)} | {m.episodes} | {_fmt(m.sr)} | "
+            lines.append(f"| {suite_cell} | {method_name(b, v, multi)} | {m.episodes} | {_sr(m)} | "
                          f"{_fmt(m.arr)} | {_fmt(m.rs)} | {_fmt(m.iar)} |")
     lines += ["", "## Summary per method (paper Table V layout)", "",
-              "| Method | N | SR ↑ | ARR ↓ | RS ↓ | IAR ↓ | RT median (s) ↓ | RT p95 (s) ↓ | TT (s) ↓ |",
+              "| Method | N | SR ↑ [95 % CI] | ARR ↓ | RS ↓ | IAR ↓ | RT median (s) ↓ | RT p95 (s) ↓ | TT (s) ↓ |",
               "|---|---|---|---|---|---|---|---|---|"]
     for b, v in configs:
         m = compute(r for r in records if r.backend == b and r.variant == v)
-        lines.append(f"| {method_name(b, v, multi)} | {m.episodes} | {_fmt(m.sr)} | {_fmt(m.arr)} | {_fmt(m.rs)} | "
+        lines.append(f"| {method_name(b, v, multi)} | {m.episodes} | {_sr(m)} | {_fmt(m.arr)} | {_fmt(m.rs)} | "
                      f"{_fmt(m.iar)} | {_fmt(m.rt_median, 3)} | {_fmt(m.rt_p95, 3)} | {_fmt(m.tt)} |")
     lines += ["", "IAR by answer decoding (schema-constrained: the request carried the answer's JSON schema; free "
               "text: read by the lenient parser):", ""]
@@ -336,7 +345,8 @@ def markdown(records: list[EpisodeRecord], config: dict[str, Any], plots: list[s
     lines += paper_comparison_lines(records, config)
     lines += ["", "Metrics (definitions in docs/evaluation.md): SR = % of episodes where the simulator's ground "
               "truth has the right object placed on the destination (or picked, when the command has no "
-              "destination) by the task's criteria before T_max; ARR = mean % of redundant actions over successful "
+              "destination) by the task's criteria before T_max, with its 95 % Wilson score interval in brackets "
+              "(N episodes); ARR = mean % of redundant actions over successful "
               "episodes; RS = mean reasoning steps per episode; IAR = % of model answers that were invalid; "
               "RT = model latency per query; TT = mean end-to-end time of successful episodes (wall clock, "
               "simulator speed factor "
@@ -478,13 +488,14 @@ def write_mode_comparison(out: Path, modes: list[str]) -> Path:
     lines = ["# Answer decoding modes compared", "",
              "The same episodes, once with the answer's JSON schema sent with every request (schema) and once as "
              "free text read by the lenient parser (text). Each mode's full report is in its folder.", "",
-             "| Mode | Method | N | SR ↑ | IAR ↓ | model calls | RT median (s) ↓ |", "|---|---|---|---|---|---|---|"]
+             "| Mode | Method | N | SR ↑ [95 % CI] | IAR ↓ | model calls | RT median (s) ↓ |",
+             "|---|---|---|---|---|---|---|"]
     for mode in modes:
         records = ResultsFile(Path(out) / mode / RESULTS_FILE).load()
         configs = _config_order(records)
         for b, v in configs:
             m = compute(r for r in records if r.backend == b and r.variant == v)
-            lines.append(f"| [{mode}]({mode}/report.md) | {method_name(b, v)} | {m.episodes} | {_fmt(m.sr)} | "
+            lines.append(f"| [{mode}]({mode}/report.md) | {method_name(b, v)} | {m.episodes} | {_sr(m)} | "
                          f"{_fmt(m.iar)} | {m.queries} | {_fmt(m.rt_median, 3)} |")
     path = Path(out) / "modes.md"
     path.write_text("\n".join(lines) + "\n")

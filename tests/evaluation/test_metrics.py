@@ -366,3 +366,14 @@ def test_a_refused_command_is_a_failed_episode_not_an_excluded_one() -> None:
                                         "failed before the first reasoning step 3 times: command refused before "
                                         "takeoff: I cannot understand it"})
     assert old.harness_error == "" and old.attempts == 3
+
+
+def test_wilson_interval_at_the_edges_and_in_the_middle() -> None:
+    from aermani.evaluation.metrics import wilson
+
+    lo, hi = wilson(7, 10)
+    assert round(lo, 1) == 39.7 and round(hi, 1) == 89.2  # the textbook value for 7/10
+    assert wilson(10, 10)[1] == 100.0 and round(wilson(10, 10)[0], 1) == 72.2
+    assert wilson(0, 10)[0] == 0.0 and round(wilson(0, 10)[1], 1) == 27.8
+    lo, hi = wilson(80, 100)
+    assert lo < 80.0 < hi and hi - lo < wilson(8, 10)[1] - wilson(8, 10)[0]  # more episodes, narrower

@@ -34,6 +34,6 @@ def test_both_modes_are_compared_and_reach_the_reasoner(tmp_path) -> None:
     for mode, calls in (("schema", [(True, True)]), ("text", [(False, False), (False, True)])):
         ResultsFile(tmp_path / mode / "episodes.jsonl").append(rec("openai/full/localization/000", calls))
     md = write_mode_comparison(tmp_path, ["schema", "text"]).read_text()
-    assert "| [schema](schema/report.md) | AERMANI-VLM (openai) | 1 | 100.0 | 0.0 | 1 |" in md
-    assert "| [text](text/report.md) | AERMANI-VLM (openai) | 1 | 100.0 | 50.0 | 2 |" in md
+    assert "| [schema](schema/report.md) | AERMANI-VLM (openai) | 1 | 100.0 [20.7, 100.0] | 0.0 | 1 |" in md
+    assert "| [text](text/report.md) | AERMANI-VLM (openai) | 1 | 100.0 [20.7, 100.0] | 50.0 | 2 |" in md
     assert vehicle_env(RunConfig(backend="openai", output_mode="text"))["AERMANI_REASONER_OUTPUT_MODE"] == "text"

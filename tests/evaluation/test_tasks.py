@@ -191,8 +191,8 @@ def test_report_states_the_backend_and_has_both_tables(tmp_path):
     paths = write_report(tmp_path, config=cfg)
     md = paths["markdown"].read_text()
     assert "reflect the test server, not a real VLM" in md
-    assert "| Localization | No-DRT (openai) | 1 | 0.0 |" in md
-    assert "| AERMANI-VLM (openai) | 2 | 100.0 | 0.0 | 1.0 | 0.0 | 0.200 | 0.200 |" in md
+    assert "| Localization | No-DRT (openai) | 1 | 0.0 [0.0, 79.3] |" in md
+    assert "| AERMANI-VLM (openai) | 2 | 100.0 [34.2, 100.0] | 0.0 | 1.0 | 0.0 | 0.200 | 0.200 |" in md
     doc = json.loads(paths["json"].read_text())
     assert len(doc["episodes"]) == 3 and doc["metrics"]["openai/full"]["overall"]["sr"] == 100.0
     for png in ("success_by_suite", "rt_histogram", "steps_per_episode"):
@@ -217,7 +217,7 @@ def test_report_states_the_configuration_names_the_rules_baseline_and_lists_ever
     doc_cfg = run_config_of(cfg)
     paths = write_report(tmp_path, config=doc_cfg)
     md = paths["markdown"].read_text()
-    assert "AERMANI-VLM (rules)" not in md and "| rules (non-VLM baseline) | 2 | 50.0 |" in md
+    assert "AERMANI-VLM (rules)" not in md and "| rules (non-VLM baseline) | 2 | 50.0 [9.5, 90.5] |" in md
     for needle in (f"`{cfg.command_line()}`", f"`{doc_cfg['commit']}`", "segmenter -- real: the colour segmenter",
                    "| simulator realism | `realistic` |", "| speed factor | 4.0 |", "| split | `dev` |",
                    "| seeds | 11, 12, 13 |", "| N (episodes in the metrics / recorded) | 2 / 3 |",
