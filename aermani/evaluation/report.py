@@ -174,8 +174,19 @@ def configuration_lines(records: list[EpisodeRecord], config: dict[str, Any]) ->
             f"a caller's placement tolerance of {config['tolerance']} m (a run before the task criteria)"
             if "tolerance" in config else "each task's (`criteria` in its scenario; docs/evaluation.md)")),
         ("vehicles", ", ".join(sorted({r.vehicle_id for r in records if r.vehicle_id})) or "--"),
+        ("AERMANI_* settings from the shell", _environment_text(config)),
     ]
     return ["## Configuration", "", "| | |", "|---|---|"] + [f"| {k} | {v} |" for k, v in rows] + [""]
+
+
+def _environment_text(config: dict) -> str:
+    """The services' settings inherited from the shell (run_config.json `environment`), or why there are none."""
+    env = config.get("environment")
+    if env is None:
+        return "unrecorded (a run before they were recorded)"
+    if not env:
+        return "none (every setting at its default or set by the run)"
+    return "<br>".join(f"`{k}={v}`" for k, v in env.items())
 
 
 def incident_lines(records: list[EpisodeRecord]) -> list[str]:

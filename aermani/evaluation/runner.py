@@ -12,10 +12,11 @@ import asyncio
 import contextlib
 import json
 import logging
+import os
 import shlex
 import subprocess
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -462,10 +463,26 @@ def run(cfg: RunConfig) -> RunSummary:
     return summary
 
 
+SECRET_WORDS = ("KEY", "TOKEN", "SECRET", "PASSWORD")
+
+
+def shell_settings(environ: Mapping[str, str], extra: Mapping[str, str] | None = None) -> dict[str, str]:
+    """Every AERMANI_* setting the services inherit from the shell (and the run's extra environment) besides
+    what the run sets itself: they change what the services do, so the run's record names them. A secret's
+    value is never recorded (only that it was set)."""
+    own = set(vehicle_env(RunConfig(out=Path("."))))
+    out = {}
+    for k, v in sorted({**environ, **(extra or {})}.items()):
+        if k.startswith("AERMANI_") and k not in own:
+            out[k] = "(set, not recorded)" if any(w in k for w in SECRET_WORDS) else v
+    return out
+
+
 def run_config_of(cfg: RunConfig) -> dict:
     """run_config.json: the settings (no API key), the source revision, and the command that reproduces it."""
     doc = cfg.model_dump(mode="json", exclude={"api_key", "extra_env", "stop_after", "progress"})
     doc.update(source_revision())
+    doc["environment"] = shell_settings(os.environ, cfg.extra_env)
     doc["command"] = cfg.command_line()
     doc["report_only_command"] = shlex.join(["aermani", "eval", "--out", str(cfg.out), "--report-only"])
     return doc

@@ -251,3 +251,25 @@ def test_report_puts_a_real_model_run_in_its_paper_row(tmp_path):
     # 4 other backbones, then the 5 baseline frameworks (ReAct's row among them, once), none run
     assert "| AERMANI-VLM (GPT-4o) | 85.0 |" in md and md.count("not run here: needs a GPU/API key") == 4 + 5
     assert md.count("| ReAct Prompting (VLM) |") == 1
+
+
+def test_shell_settings_reach_the_run_config_and_the_report_without_secrets(tmp_path) -> None:
+    """Issue 26: an AERMANI_* variable in the shell changes what the services do, so the run's record names it;
+    the run's own settings are not repeated and a secret's value never reaches a file."""
+    from aermani.evaluation.report import _environment_text
+    from aermani.evaluation.runner import RunConfig, run_config_of, shell_settings
+
+    env = {"AERMANI_EXECUTOR_MAX_SPEED": "0.8", "AERMANI_REASONER_API_KEY": "sk-secret-value",
+           "AERMANI_GATEWAY_TOKEN": "t0k3n", "AERMANI_SIM_SPEED_FACTOR": "9", "HOME": "/root"}
+    got = shell_settings(env)
+    assert got == {"AERMANI_EXECUTOR_MAX_SPEED": "0.8", "AERMANI_GATEWAY_TOKEN": "(set, not recorded)",
+                   "AERMANI_REASONER_API_KEY": "(set, not recorded)"}, got  # the speed factor is the run's own
+    import os
+    from unittest import mock
+
+    with mock.patch.dict(os.environ, env):
+        doc = run_config_of(RunConfig(out=tmp_path))
+    assert doc["environment"]["AERMANI_EXECUTOR_MAX_SPEED"] == "0.8"
+    assert "sk-secret-value" not in str(doc) and "t0k3n" not in str(doc)
+    assert "`AERMANI_EXECUTOR_MAX_SPEED=0.8`" in _environment_text(doc)
+    assert _environment_text({}).startswith("unrecorded") and _environment_text({"environment": {}}).startswith("none")
