@@ -27,6 +27,17 @@ def _fmt(v: float | None, digits: int = 1) -> str:
     return "--" if v is None else f"{v:.{digits}f}"
 
 
+NO_MODEL_BACKENDS = ("rules", "replay")
+"""Policies that call no model: their "RT" would be a Python call or a file read, not a model's response time."""
+
+
+def _rt(m: Metrics, backend: str, digits: int = 3, p95: bool = False) -> str:
+    """RT median (or p95), or n/a for a policy that calls no model."""
+    if backend.split(":", 1)[0] in NO_MODEL_BACKENDS:
+        return "n/a (no model)"
+    return _fmt(m.rt_p95 if p95 else m.rt_median, digits)
+
+
 def _sr(m: Metrics) -> str:
     """SR with its 95 % Wilson score interval: `65.0 [43.3, 81.9]`."""
     if m.sr is None:
@@ -213,7 +224,7 @@ def incident_lines(records: list[EpisodeRecord]) -> list[str]:
 def paper_comparison_lines(records: list[EpisodeRecord], config: dict[str, Any]) -> list[str]:
     """The paper's backbone table beside this run: a real model's row gets this run's figures, the others say
     they were not run here."""
-    model = (config.get("model") or "") if config.get("backend") not in ("rules", "replay") else ""
+    model = (config.get("model") or "") if config.get("backend") not in NO_MODEL_BACKENDS else ""
     mine = paper_row_for(model) if model else None
     lines = ["## Beside the paper (comparison with VLM backbones, averaged over the suites)", "",
              "| Method | paper SR | paper ARR | paper RS | paper IAR | paper RT (s) | real-model run here |",
@@ -242,7 +253,7 @@ def framework_lines(records: list[EpisodeRecord], model: str, base_url: str = ""
              "| Method | variant here | paper SR | paper ARR | paper RS | paper IAR | paper RT (s) | run here |",
              "|---|---|---|---|---|---|---|---|"]
     for variant, (row, (sr, arr, rs, iar, rt)) in PAPER_FRAMEWORKS.items():
-        recs = [r for r in records if r.variant == variant and r.backend not in ("rules", "replay")]
+        recs = [r for r in records if r.variant == variant and r.backend not in NO_MODEL_BACKENDS]
         here = NOT_RUN
         if recs and base_url and _loopback(base_url):
             here = f"ran on a loopback server (N={len(recs)}): not put beside the paper (see Backend)"
@@ -342,7 +353,7 @@ def markdown(records: list[EpisodeRecord], config: dict[str, Any], plots: list[s
     for b, v in configs:
         m = compute(r for r in records if r.backend == b and r.variant == v)
         lines.append(f"| {method_name(b, v, multi)} | {m.episodes} | {_sr(m)} | {_fmt(m.arr)} | {_fmt(m.rs)} | "
-                     f"{_fmt(m.iar)} | {_fmt(m.rt_median, 3)} | {_fmt(m.rt_p95, 3)} | {_fmt(m.tt)} |")
+                     f"{_fmt(m.iar)} | {_rt(m, b)} | {_rt(m, b, p95=True)} | {_fmt(m.tt)} |")
     lines += ["", "IAR by answer decoding (schema-constrained: the request carried the answer's JSON schema; free "
               "text: read by the lenient parser):", ""]
     for b, v in configs:
@@ -507,7 +518,7 @@ def write_mode_comparison(out: Path, modes: list[str]) -> Path:
         for b, v in configs:
             m = compute(r for r in records if r.backend == b and r.variant == v)
             lines.append(f"| [{mode}]({mode}/report.md) | {method_name(b, v)} | {m.episodes} | {_sr(m)} | "
-                         f"{_fmt(m.iar)} | {m.queries} | {_fmt(m.rt_median, 3)} |")
+                         f"{_fmt(m.iar)} | {m.queries} | {_rt(m, b)} |")
     path = Path(out) / "modes.md"
     path.write_text("\n".join(lines) + "\n")
     return path

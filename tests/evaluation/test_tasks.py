@@ -218,6 +218,8 @@ def test_report_states_the_configuration_names_the_rules_baseline_and_lists_ever
     paths = write_report(tmp_path, config=doc_cfg)
     md = paths["markdown"].read_text()
     assert "AERMANI-VLM (rules)" not in md and "| rules (non-VLM baseline) | 2 | 50.0 [9.5, 90.5] |" in md
+    # the rules policy calls no model: its RT is not a response time (issue 26)
+    assert "| n/a (no model) | n/a (no model) |" in md
     for needle in (f"`{cfg.command_line()}`", f"`{doc_cfg['commit']}`", "segmenter -- real: the colour segmenter",
                    "| simulator realism | `realistic` |", "| speed factor | 4.0 |", "| split | `dev` |",
                    "| seeds | 11, 12, 13 |", "| N (episodes in the metrics / recorded) | 2 / 3 |",
