@@ -376,7 +376,7 @@ class Executor:
         while True:
             notice = await sub.recv()
             log.info("world reset (seed %d): working memory cleared", notice.seed)
-            self.memory.world_reset()
+            self.memory.world_reset(notice.stamp_ns)
 
     async def _pump_state(self) -> None:
         sub = self.bus.subscribe(self.keys.autopilot_state, maxsize=4, overflow="latest")
