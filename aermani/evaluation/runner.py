@@ -348,6 +348,11 @@ class VehicleWorker:
         state = status.state.value if status else "timeout"
         # Success needs both: the task's own end state (the policy finished it before T_max) and the judge.
         success, verdict = success_verdict(state, judged_ok, v.message, t_max)
+        if task.expect == "not_found":
+            # The world lacks the object: the right answer is to say so, in bounded steps, holding nothing.
+            success, verdict = not_found_verdict(state, status.message if status else "", len(steps),
+                                                 task.not_found_max_steps, judge.held)
+            judged_ok = judge.held is None
         return rec.model_copy(update={
             "task_id": task_id, "state": state,
             "message": status.message if status else f"no terminal status within {t_max + STATUS_MARGIN_S:.0f} s",
@@ -367,6 +372,22 @@ def success_verdict(state: str, judged_ok: bool, judge_message: str, t_max: floa
     if judged_ok:
         return False, f"{judge_message}, but the task ended {state}, not succeeded"
     return False, judge_message
+
+
+NOT_FOUND_REASON = "not found"
+"""How a task's end message starts when the policy ends it because the object is not there."""
+
+
+def not_found_verdict(state: str, message: str, steps: int, max_steps: int, held: str | None) -> tuple[bool, str]:
+    """(success, verdict) of a task whose object the world lacks (EvalTask.expect == "not_found")."""
+    if state != "failed" or not message.lower().startswith(NOT_FOUND_REASON):
+        return False, (f"the world lacks the object, but the task ended {state} ({message or 'no message'}) instead "
+                       "of failing with a not-found reason")
+    if steps > max_steps:
+        return False, f"said not found, but only after {steps} reasoning steps (bound {max_steps})"
+    if held:
+        return False, f"said not found while holding the {held}"
+    return True, f"said not found after {steps} reasoning steps (bound {max_steps}): {message}"
 
 
 def _failed_before_first_step(rec: EpisodeRecord) -> bool:

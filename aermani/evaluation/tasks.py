@@ -5,8 +5,9 @@ from __future__ import annotations
 import hashlib
 import json
 from pathlib import Path
+from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from shared.errors import ConfigError
 from shared.messages import MAX_COMMAND_CHARS, JudgeCriteria, Scenario, command_text
@@ -64,18 +65,36 @@ class EvalTask(BaseModel):
     criteria: JudgeCriteria = JudgeCriteria()
     """What the judge requires (a pick's lift and hold; a placement's rest time, upright and height tolerances).
     Part of the task, laid out with its scenario, so no caller of the judge can loosen it."""
+    expect: Literal["success", "not_found"] = "success"
+    """`not_found`: the world lacks `target_object` (the scenario lays out only `distractors` and
+    `extra_objects`, which must not name it), and the episode succeeds when the task ends failed with a
+    not-found reason within `not_found_max_steps` reasoning steps: a policy that claims success, gives up for
+    another reason, or searches without end fails it."""
+    not_found_max_steps: int = Field(40, ge=1, le=200)
+    """A not-found task's bound on reasoning steps."""
 
     @field_validator("command")
     @classmethod
     def _strip(cls, v: str) -> str:
         return command_text(v)
 
+    @model_validator(mode="after")
+    def _absent_target_is_absent(self) -> EvalTask:
+        if self.expect == "not_found":
+            if self.distractors is None:
+                raise ValueError("a not_found task lists its distractors: the seed must not choose the absent "
+                                 f"{self.target_object!r}")
+            if self.target_object in (*self.distractors, *self.extra_objects, *(self.placements or {})):
+                raise ValueError(f"a not_found task's world must lack {self.target_object!r}")
+        return self
+
     @property
     def accepted(self) -> tuple[str, ...]:
         return (self.target_object, *self.accept_objects)
 
     def scenario(self, seed: int) -> Scenario:
-        return Scenario(seed=seed, target_object=self.target_object, destination=self.destination,
+        target = None if self.expect == "not_found" else self.target_object
+        return Scenario(seed=seed, target_object=target, destination=self.destination,
                         distractors=self.distractors, target_out_of_view=self.target_out_of_view,
                         extra_objects=self.extra_objects, placements=self.placements, criteria=self.criteria)
 

@@ -28,7 +28,7 @@ def test_builtin_suites_parse_and_name_only_things_the_simulator_has():
             for obj, surface in (t.placements or {}).items():
                 assert obj in OBJECTS and surface in SURFACES, (name, t.command, obj, surface)
                 assert t.scenario(1).placements == t.placements
-    assert all(t.target_out_of_view for t in suites["search"])
+    assert all(t.target_out_of_view for t in suites["search"] if t.expect == "success")  # not_found: no target
     # The conditional's outcome is decided by the layout: the orange (or, otherwise, the banana) is on the counter.
     counter = [t for t in suites["sequential"] if "If you see an orange" in t.command]
     assert {t.target_object for t in counter} == {"orange", "banana"}
@@ -275,3 +275,35 @@ def test_shell_settings_reach_the_run_config_and_the_report_without_secrets(tmp_
     assert "sk-secret-value" not in str(doc) and "t0k3n" not in str(doc)
     assert "`AERMANI_EXECUTOR_MAX_SPEED=0.8`" in _environment_text(doc)
     assert _environment_text({}).startswith("unrecorded") and _environment_text({"environment": {}}).startswith("none")
+
+
+def test_a_not_found_task_lays_out_a_world_without_its_object_and_is_scored_for_saying_so() -> None:
+    """Issue 26: `"expect": "not_found"` names an object the world lacks; the episode succeeds when the task ends
+    failed with a not-found reason within a bounded number of steps, holding nothing."""
+    from pydantic import ValidationError
+
+    from aermani.evaluation.runner import not_found_verdict
+    from aermani.evaluation.tasks import EvalTask
+
+    task = EvalTask(command="Find the green bottle and place it on the table.", target_object="green bottle",
+                    destination="table", distractors=("red cup", "apple"), expect="not_found")
+    sc = task.scenario(7)
+    assert sc.target_object is None and sc.distractors == ("red cup", "apple")
+    with pytest.raises(ValidationError, match="lists its distractors"):
+        EvalTask(command="Pick up the hammer.", target_object="hammer", expect="not_found")
+    with pytest.raises(ValidationError, match="must lack"):
+        EvalTask(command="Pick up the hammer.", target_object="hammer", distractors=("hammer",), expect="not_found")
+    ok, why = not_found_verdict("failed", "not found: the green bottle was not detected", 12, 40, None)
+    assert ok and "12 reasoning steps" in why
+    assert not not_found_verdict("succeeded", "the policy declared the task complete", 12, 40, None)[0]
+    assert not not_found_verdict("failed", "model unavailable, vehicle held", 3, 40, None)[0]
+    assert not not_found_verdict("failed", "not found: the green bottle", 41, 40, None)[0]
+    assert not not_found_verdict("failed", "not found: the green bottle", 10, 40, "red cup")[0]
+    assert not not_found_verdict("timeout", "", 80, 40, None)[0]
+
+
+def test_the_built_in_suites_have_not_found_tasks_on_the_dev_split() -> None:
+    tasks = [t for suite in load_suites().values() for t in suite]
+    absent = [t for t in tasks if t.expect == "not_found"]
+    assert absent and all(t.split == "dev" for t in absent)
+    assert {t.suite for t in absent} >= {"localization", "search"}
