@@ -365,7 +365,9 @@ async def test_bridge_killed_while_holding_over_the_table_holds_then_an_operator
         await asyncio.sleep(1.0)
         st = await c.states.recv(timeout=10)
         assert st.mode == "AUTO.LOITER" and abs(st.position.z - before.vehicle.position.z) < 0.2, st
-        # The operator's commands take the vehicle back: localize the table and place the cup on it.
+        # The operator's commands take the vehicle back: localize the table and place the cup on it. The vehicle
+        # holds right above the table, below the camera's view: back off first, as an operator would.
+        await c.ok("backward")
         await c.search("placement_localization", "round table")
         st = await c.run("place")
         # It flew and released (its own look afterwards may miss the cup right below the camera: the judge rules)
