@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import json
 import math
 import os
@@ -55,6 +56,29 @@ async def ask(bus: Bus, key, payload, timeout: float = 20.0):
             if time.monotonic() > deadline:
                 raise
             await asyncio.sleep(0.2)
+
+
+CUP_LABELS = SimLabels(labels=(SimLabel(id=100, name="red cup", category="object", color="red",
+                                        size=Vec3(x=0.08, y=0.08, z=0.11)),))
+
+
+def publish_cup_frame(bus: Bus) -> int:
+    """One synthetic frame set for the `sim` segmenter: a grey plane 1.5 m ahead with the red cup's instance id
+    (label 100, CUP_LABELS) 1.4 m away, tf and all, under one stamp; the stamp."""
+    from shared.frames import base_to_camera
+    from shared.sensors import pose_matrix
+
+    stamp = time.time_ns()
+    depth = np.full((480, 640), 1500, np.uint16)
+    seg = np.zeros((480, 640), np.uint16)
+    seg[200:260, 300:340] = 100
+    depth[200:260, 300:340] = 1400
+    bus.publish(KEYS.tf, transforms_message([("world", "base_link", pose_matrix(0, 0, 1.5, 0)),
+                                             ("base_link", "camera", base_to_camera())], stamp))
+    bus.publish(KEYS.camera_segmentation, raw16_message(seg, stamp))
+    bus.publish(KEYS.camera_depth, depth_message(depth, stamp))
+    bus.publish(KEYS.camera_color, color_message(np.full((480, 640, 3), 120, np.uint8), stamp))
+    return stamp
 
 
 # --------------------------------------------------------------------------- against the real simulator
@@ -190,23 +214,9 @@ async def _bad_and_stale(stack) -> None:
                 assert est.message and len(est.query) <= 200
 
         # One frame set: a grey plane 1.5 m ahead with a red cup's instance id... published once, then silence.
-        stamp = time.time_ns()
-        depth = np.full((480, 640), 1500, np.uint16)
-        seg = np.zeros((480, 640), np.uint16)
-        seg[200:260, 300:340] = 100
-        depth[200:260, 300:340] = 1400
-        rgb = np.full((480, 640, 3), 120, np.uint8)
-        from shared.frames import base_to_camera
-        from shared.sensors import pose_matrix
-
-        bus.publish(KEYS.sim_labels, SimLabels(labels=(SimLabel(id=100, name="red cup", category="object",
-                                                                color="red", size=Vec3(x=0.08, y=0.08, z=0.11)),)))
+        bus.publish(KEYS.sim_labels, CUP_LABELS)
         await asyncio.sleep(0.5)
-        bus.publish(KEYS.tf, transforms_message([("world", "base_link", pose_matrix(0, 0, 1.5, 0)),
-                                                 ("base_link", "camera", base_to_camera())], stamp))
-        bus.publish(KEYS.camera_segmentation, raw16_message(seg, stamp))
-        bus.publish(KEYS.camera_depth, depth_message(depth, stamp))
-        bus.publish(KEYS.camera_color, color_message(rgb, stamp))
+        stamp = publish_cup_frame(bus)
 
         async def fresh() -> ObjectEstimate:
             return await ask(bus, KEYS.localize_object, LocalizeRequest(query="red cup", max_frame_age_s=30))
@@ -240,28 +250,12 @@ def test_detections_for_the_first_frame_after_a_skill_ends_without_waiting_for_t
 
 
 async def _after_skill_end(stack) -> None:
-    from shared.frames import base_to_camera
     from shared.messages import SkillState, SkillStatus
-    from shared.sensors import pose_matrix
 
     async with bus_for(stack) as bus:
         dets = bus.subscribe(KEYS.detections, maxsize=20)
-        depth = np.full((480, 640), 1500, np.uint16)
-        seg = np.zeros((480, 640), np.uint16)
-        seg[200:260, 300:340] = 100
-        depth[200:260, 300:340] = 1400
-        rgb = np.full((480, 640, 3), 120, np.uint8)
-        bus.publish(KEYS.sim_labels, SimLabels(labels=(SimLabel(id=100, name="red cup", category="object",
-                                                                color="red", size=Vec3(x=0.08, y=0.08, z=0.11)),)))
-
-        def frame_set() -> int:
-            stamp = time.time_ns()
-            bus.publish(KEYS.tf, transforms_message([("world", "base_link", pose_matrix(0, 0, 1.5, 0)),
-                                                     ("base_link", "camera", base_to_camera())], stamp))
-            bus.publish(KEYS.camera_segmentation, raw16_message(seg, stamp))
-            bus.publish(KEYS.camera_depth, depth_message(depth, stamp))
-            bus.publish(KEYS.camera_color, color_message(rgb, stamp))
-            return stamp
+        bus.publish(KEYS.sim_labels, CUP_LABELS)
+        frame_set = functools.partial(publish_cup_frame, bus)
 
         before = frame_set()
         # the service has the frame (a query answers from it)
