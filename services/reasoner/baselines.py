@@ -14,8 +14,9 @@ Each is a prompt variant (`AERMANI_REASONER_VARIANT` or a task's `variant`) that
   skills ending with `done`); the loop runs it step by step without asking again, and the first step that
   does not succeed ends the task failed with its reason.
 
-This module holds what differs from the DRT/STE variants: preambles, Rules, answer schemas, the answer
-reading (scores and plans) and the library restriction. The loop (loop.py) does the weighting and the plan.
+This module holds what differs from the DRT/STE variants: preambles, Rules, the answer reading (scores and
+plans) and the library restriction; their answer schemas are in schema.py (`baseline_schema`). The loop
+(loop.py) does the weighting and the plan.
 """
 
 from __future__ import annotations
@@ -104,28 +105,6 @@ def rules_text(variant: str, library: SkillLibrary) -> str:
             f"- each skill must be one of: {', '.join(names)}; {arg}.",
             f"- The plan runs in order without re-planning; at most {MAX_PLAN_STEPS} steps; its last step is done.",
         ])
-    raise ValueError(f"not a baseline variant: {variant!r}")
-
-
-def _candidate(ste: dict[str, Any], extra: dict[str, Any]) -> dict[str, Any]:
-    props = {**ste["properties"], **extra}
-    return {"type": "object", "properties": props, "required": list(props), "additionalProperties": False}
-
-
-def answer_schema(variant: str, library: SkillLibrary) -> dict[str, Any]:
-    """The answer schema of a baseline variant (the strict subset schema.py keeps to)."""
-    from services.reasoner.schema import _closed, ste_schema
-
-    ste = ste_schema(library)
-    branches = ste.get("anyOf", [ste])
-    if variant in ("direct", "waypoint"):
-        return _closed({"ste": ste})
-    if variant == "saycan":
-        score = {"type": "number", "description": "usefulness of this skill now, 0 to 1"}
-        items = [_candidate(b, {"score": score}) for b in branches]
-        return _closed({"scores": {"type": "array", "items": items[0] if len(items) == 1 else {"anyOf": items}}})
-    if variant == "plan_once":
-        return _closed({"plan": {"type": "array", "items": ste}})
     raise ValueError(f"not a baseline variant: {variant!r}")
 
 

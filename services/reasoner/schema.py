@@ -16,7 +16,7 @@ from typing import Any
 
 from services.reasoner.drt import DRT_FIELDS, FIELD_HELP
 from services.reasoner.library import policy_skills
-from shared.messages import SkillLibrary
+from shared.messages import BASELINES, SkillLibrary
 
 SCHEMA_NAME = "aermani_answer"
 
@@ -54,10 +54,8 @@ def ste_schema(library: SkillLibrary) -> dict[str, Any]:
 def answer_schema(variant: str, library: SkillLibrary) -> dict[str, Any]:
     """The schema of one answer in `variant`'s format. ReAct's constrained form is {"thought", "action"}
     (its free-text form is `Thought:` lines then `Action: {...}`); unstructured is a flat {"skill", "argument"}."""
-    from services.reasoner import baselines
-
-    if baselines.is_baseline(variant):
-        return baselines.answer_schema(variant, library)
+    if variant in BASELINES:
+        return baseline_schema(variant, library)
     ste = ste_schema(library)
     if variant == "unstructured":
         return ste if "anyOf" not in ste else _closed({"ste": ste})
@@ -76,3 +74,23 @@ def answer_schema(variant: str, library: SkillLibrary) -> dict[str, Any]:
         props["drt"] = _closed(drt, "Descriptive Reasoning Trace")
     props["ste"] = ste
     return _closed(props)
+
+
+def _candidate(ste: dict[str, Any], extra: dict[str, Any]) -> dict[str, Any]:
+    props = {**ste["properties"], **extra}
+    return {"type": "object", "properties": props, "required": list(props), "additionalProperties": False}
+
+
+def baseline_schema(variant: str, library: SkillLibrary) -> dict[str, Any]:
+    """The answer schema of a baseline framework (services/reasoner/baselines.py), in the same strict subset."""
+    ste = ste_schema(library)
+    branches = ste.get("anyOf", [ste])
+    if variant in ("direct", "waypoint"):
+        return _closed({"ste": ste})
+    if variant == "saycan":
+        score = {"type": "number", "description": "usefulness of this skill now, 0 to 1"}
+        items = [_candidate(b, {"score": score}) for b in branches]
+        return _closed({"scores": {"type": "array", "items": items[0] if len(items) == 1 else {"anyOf": items}}})
+    if variant == "plan_once":
+        return _closed({"plan": {"type": "array", "items": ste}})
+    raise ValueError(f"not a baseline variant: {variant!r}")
