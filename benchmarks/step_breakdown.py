@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import statistics
 import subprocess
 import sys
@@ -116,6 +117,9 @@ def main() -> None:
     ap.add_argument("--timeout", type=float, default=1500.0)
     add_json_option(ap)
     args = ap.parse_args()
+    # A fresh directory each run: an evaluation resumes from an earlier episodes.jsonl and a demo adds its log
+    # beside earlier ones, so stale steps would be measured again.
+    shutil.rmtree(args.out, ignore_errors=True)
     args.out.mkdir(parents=True, exist_ok=True)
     figures: dict[str, Any] = {"demo": summary(demo_steps(args.out, args.timeout))}
     show("demo (speed factor 1)", figures["demo"])
