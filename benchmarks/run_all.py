@@ -289,11 +289,12 @@ FIGURES: list[Figure] = [
 GAPS: dict[str, tuple[str, str]] = {
     **{f"steps.{run}_non_model_p95": (
         "The observation for step k+1 waits for a colour frame captured after skill k ended (up to one frame period, "
-        "67 ms at 15 fps, plus the render and the bus), then for detections computed on a frame after it (one "
-        "perception pass behind the frame), then a newer vehicle state; the frame-wait and detections-wait rows "
-        "say which one dominates.",
-        "Issue 27's observation on the skill's end: a capture triggered by the skill's end event and detections "
-        "for that frame, instead of waiting for the free-running camera and perception loops.")
+        "67 ms at 15 fps, plus the render and the bus), then for detections of a frame received after the end "
+        "(perception computes them at once on the skill's end, not at its 5 Hz tick: one colour-segmenter pass, "
+        "on cores the software renderer shares), then a newer vehicle state; the frame-wait and detections-wait "
+        "rows say which one dominates.",
+        "A capture triggered by the skill's end event (the simulator's camera still free-runs), and a cheaper "
+        "detection pass (one segmentation shared by detections and the next localization).")
        for run in ("demo", "eval")},
     "link.rate": (
         "Colour at the camera's full rate is what remains (the ground's reasoner and gateway use it); depth is "
