@@ -83,19 +83,25 @@ class PerceptionService:
                 self.store.counts["bad"] += 1
                 log.warning("dropped bad sample on %s: %s", key, exc)
 
-    async def frame(self, max_age_s: float) -> tuple[Frame | None, str, str]:
-        """Newest frame no older than `max_age_s` (waiting up to frame_wait_s for one) or why not."""
-        deadline = time.monotonic() + self.settings.frame_wait_s
+    async def _wait_for_frame(self, good: Callable[[Frame], bool], timeout: float) -> tuple[Frame | None, bool]:
+        """The newest complete frame, and whether `good` holds for it, waiting up to `timeout` for one that does."""
+        deadline = time.monotonic() + timeout
         while True:
             frame = self.store.latest()
-            if frame is not None and frame.age_s() <= max_age_s:
-                return frame, "ok", ""
+            if frame is not None and good(frame):
+                return frame, True
             remaining = deadline - time.monotonic()
             if remaining <= 0:
-                break
+                return frame, False
             self.new_frame.clear()
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(self.new_frame.wait(), remaining)
+
+    async def frame(self, max_age_s: float) -> tuple[Frame | None, str, str]:
+        """Newest frame no older than `max_age_s` (waiting up to frame_wait_s for one) or why not."""
+        frame, fresh = await self._wait_for_frame(lambda f: f.age_s() <= max_age_s, self.settings.frame_wait_s)
+        if fresh:
+            return frame, "ok", ""
         if frame is None:
             if self.store.counts["color"] and not self.store.counts["depth"]:
                 return None, "no_frame", ("colour frames arrive but no depth: 3D localization needs a depth image "
@@ -155,17 +161,8 @@ class PerceptionService:
 
     async def _frame_received_after(self, ns: int, timeout: float) -> Frame | None:
         """The newest complete frame received after `ns` (this host's clock), waiting up to `timeout` for it."""
-        deadline = time.monotonic() + timeout
-        while True:
-            frame = self.store.latest()
-            if frame is not None and frame.receive_ns > ns:
-                return frame
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                return None
-            self.new_frame.clear()
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self.new_frame.wait(), remaining)
+        frame, after = await self._wait_for_frame(lambda f: f.receive_ns > ns, timeout)
+        return frame if after else None
 
     async def _detections(self, stop: asyncio.Event) -> None:
         """Detections at `detections_hz`, and at once for the first frame received after a skill's end: that is
