@@ -166,15 +166,14 @@ def episode_specs(cfg: RunConfig) -> list[EpisodeSpec]:
                   backends=[cfg.backend], variants=cfg.variants, base_seed=cfg.seed)
 
 
-def vehicle_env(cfg: RunConfig) -> dict[str, str]:
-    """Environment of one simulated vehicle's services: its own MAVLink UDP ports and the reasoner backend."""
-    api = free_udp_port()
+# The MAVLink UDP ports every simulated vehicle gets for itself (free ports, bound when its environment is made).
+PORT_KEYS = ("AERMANI_SIM_API_PORT", "AERMANI_SIM_API_LOCAL_PORT", "AERMANI_SIM_GCS_PORT", "AERMANI_SIM_GCS_LOCAL_PORT",
+             "AERMANI_AUTOPILOT_BRIDGE_CONNECTION")
+
+
+def run_env(cfg: RunConfig) -> dict[str, str]:
+    """The settings a run gives every vehicle's services (the backend, the world, the segmenter), ports aside."""
     env = {
-        "AERMANI_SIM_API_PORT": str(api),
-        "AERMANI_SIM_API_LOCAL_PORT": str(free_udp_port()),
-        "AERMANI_SIM_GCS_PORT": str(free_udp_port()),
-        "AERMANI_SIM_GCS_LOCAL_PORT": str(free_udp_port()),
-        "AERMANI_AUTOPILOT_BRIDGE_CONNECTION": f"udpin:127.0.0.1:{api}",
         "AERMANI_SIM_SPEED_FACTOR": str(cfg.speed_factor),
         "AERMANI_REASONER_BACKEND": cfg.backend,
         "AERMANI_REASONER_OUTPUT_MODE": cfg.output_mode,
@@ -192,6 +191,13 @@ def vehicle_env(cfg: RunConfig) -> dict[str, str]:
     if cfg.api_key:
         env["AERMANI_REASONER_API_KEY"] = cfg.api_key
     return {**env, **cfg.extra_env}
+
+
+def vehicle_env(cfg: RunConfig) -> dict[str, str]:
+    """Environment of one simulated vehicle's services: its own MAVLink UDP ports and the run's settings."""
+    api, api_local, gcs, gcs_local = (str(free_udp_port()) for _ in range(4))
+    ports = dict(zip(PORT_KEYS, (api, api_local, gcs, gcs_local, f"udpin:127.0.0.1:{api}"), strict=True))
+    return {**ports, **run_env(cfg)}
 
 
 # The services of one evaluated vehicle. Episodes are judged in the simulator's world: its camera, never a
@@ -491,7 +497,7 @@ def shell_settings(environ: Mapping[str, str], extra: Mapping[str, str] | None =
     """Every AERMANI_* setting the services inherit from the shell (and the run's extra environment) besides
     what the run sets itself: they change what the services do, so the run's record names them. A secret's
     value is never recorded (only that it was set)."""
-    own = set(vehicle_env(RunConfig(out=Path("."))))
+    own = set(PORT_KEYS) | set(run_env(RunConfig(out=Path("."))))
     out = {}
     for k, v in sorted({**environ, **(extra or {})}.items()):
         if k.startswith("AERMANI_") and k not in own:
