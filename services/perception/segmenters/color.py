@@ -99,6 +99,15 @@ def robust_footprint(xy: np.ndarray) -> tuple[float, float]:
     return float(ext.max()), float(ext.min())
 
 
+# A blob whose 95th-percentile brightness (V) is below this share of its class's albedo is a shadow or a dark
+# patch with a tint, not the object. Brightness cannot tell classes of one hue apart here: the realistic room
+# light (key light 0.45-0.65) and the camera's auto-exposure (0.75-1.25) put a lit object anywhere from about
+# 0.35 to 1.3 of its albedo, so an olive hammer (V 120) and a yellow banana (V 245) overlap; their sizes tell
+# them apart. At 0.45 this check rejected the red cup on the shelf's shaded side for seconds on end while the
+# vehicle hovered 2 m away (V 90-94 against a limit of 97), and a whole search then missed it.
+DARK_SHARE = 0.25
+
+
 def _hs_lut(classes: tuple[ColorClass, ...]) -> np.ndarray:
     """(H, S) -> 1 + index of the nearest class within its tolerance ellipse, 0 for none."""
     h = np.arange(180, dtype=np.float32)[:, None]
@@ -219,8 +228,8 @@ class ColorSegmenter(Segmenter):
     def _check_blob(self, frame: Frame, hsv: np.ndarray, c: ColorClass, idx: np.ndarray,
                     key: int) -> tuple[Segment, np.ndarray] | None:
         v = hsv[..., 2].ravel()[idx]
-        if idx.size == 0 or np.percentile(v, 95) < 0.45 * c.hsv[2]:
-            return None  # too dark for this albedo: another object of the same hue (olive vs yellow)
+        if idx.size == 0 or np.percentile(v, 95) < DARK_SHARE * c.hsv[2]:
+            return None  # too dark for any light this object could be in
         cloud = geo.lift(frame, idx, max_points=600)
         if len(cloud.points) < 10:
             return None
