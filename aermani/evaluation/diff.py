@@ -43,7 +43,7 @@ def step_view(rs: RunStep | None) -> dict[str, Any] | None:
             "held_object": obs.held_object if obs.memory_known else None,
             "gripper_holding": obs.gripper_holding,
             "position": None if p is None else [round(p.x, 2), round(p.y, 2), round(p.z, 2)],
-            "source": obs.source},
+            "source": obs.source, "verified": rs.verified},
         "drt": None if drt is None else drt.model_dump(mode="json", exclude_none=True),
         "skill": s.ste.skill if s.ste else None,
         "argument": s.ste.argument if s.ste else None,

@@ -35,6 +35,9 @@ class RunStep:
     step: ReasoningStep
     observation: StepObservation | None
     grounding: StepGrounding | None = None
+    verified: bool | None = None
+    """Whether the rebuilt observation reproduces the History text the model was shown (an MCAP log's steps;
+    None where there is nothing to compare, and for an evaluation's, read from that text itself)."""
 
 
 @dataclass
@@ -102,8 +105,8 @@ def _load_mcap(p: Path) -> Run:
         first = task.steps[0] if task.steps else None
         rt = RunTask(task.task_id, task.task_id, task.command, (st.backend if st else "") or
                      (first.backend if first else ""), task.variant, str(st.state) if st else "unknown")
-        for rec, obs, _exact in observed_steps(index, task):
-            rt.steps.append(RunStep(rec, None if obs is None else _from_observation(obs)))
+        for rec, obs, exact in observed_steps(index, task):
+            rt.steps.append(RunStep(rec, None if obs is None else _from_observation(obs), verified=exact))
         tasks.append(rt)
     return Run(str(p), "mcap", tasks)
 

@@ -124,6 +124,8 @@ async def test_diff_and_grounding_on_two_recorded_runs(tmp_path: Path, monkeypat
     assert task["first_divergence"] == 3 and task["b"]["grounding_flagged_steps"] == [1, 2]
     assert [s["step"] for s in task["steps"] if s["divergence"]] == [3]
     assert task["steps"][0]["a"]["observation"]["detections"] == ["red cup", "table"]
+    # every observation rebuilt from the log reproduces the History text the policy was shown
+    assert all(s[side]["observation"]["verified"] for s in task["steps"] for side in "ab" if s[side])
     assert task["steps"][2]["b"]["skill"] == "yaw_left" and task["steps"][2]["a"]["outcome"] == "succeeded"
     monkeypatch.setenv("COLUMNS", "200")  # the table's cells wide enough to find a reason on one line
     text = aermani("diff", str(rules_log), str(wrong_log))
