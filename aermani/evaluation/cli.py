@@ -135,5 +135,33 @@ def eval_command(
         console.print(f"modes compared: {write_mode_comparison(out, modes)}")
 
 
+def diff_command(
+    a: Annotated[Path, typer.Argument(help="Run A: an MCAP log, an evaluation directory or its episodes.jsonl.")],
+    b: Annotated[Path, typer.Argument(help="Run B, compared with A step by step.")],
+    task_a: Annotated[str | None, typer.Option(help="Only this task (task id, or an evaluation's episode id) of A.")]
+    = None,
+    task_b: Annotated[str | None, typer.Option(help="Only this task of B.")] = None,
+    json_out: Annotated[bool, typer.Option("--json", help="Print the comparison as JSON.")] = False,
+) -> None:
+    """Two recorded runs side by side, step by step: what was measured (detections, held object, position), the
+    DRT, the skill and argument, the outcome code, the grounding check's flags; marks the first step where they
+    diverge (skill, argument or outcome) and every differing step after it."""
+    import json
+
+    from aermani.evaluation.diff import diff_runs, render
+    from aermani.evaluation.runs import RunError
+
+    try:
+        result = diff_runs(str(a), str(b), task_a, task_b)
+    except RunError as exc:
+        Console(stderr=True, soft_wrap=True).print(f"[red]{terminal_text(exc)}[/red]")
+        raise typer.Exit(2)
+    if json_out:
+        typer.echo(json.dumps(result.as_dict(), indent=1))
+        return
+    console.print(render(result))
+
+
 def register(app: typer.Typer) -> None:
     app.command("eval")(eval_command)
+    app.command("diff")(diff_command)

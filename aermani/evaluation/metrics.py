@@ -47,7 +47,9 @@ from dataclasses import dataclass
 
 from pydantic import BaseModel, ConfigDict
 
+from aermani.evaluation.grounding import violation_rate
 from aermani.evaluation.records import EpisodeRecord
+from aermani.evaluation.runs import episode_grounding
 from shared.messages import Pose, ReasoningStep
 from shared.skills import (
     DONE,
@@ -266,6 +268,12 @@ class Metrics(BaseModel):
     collision_episodes: int = 0
     """Episodes with at least one collision."""
     collisions_per_episode: float | None = None
+    gvr: float | None = None
+    """Grounding-violation rate: % of checked steps whose DRT contradicts what was measured (grounding.py)."""
+    grounding_checked: int = 0
+    """Steps the grounding check could check (a DRT and a live observation in the prompt)."""
+    grounding_flagged: int = 0
+    """Checked steps with at least one grounding violation."""
 
 
 def iar_by_mode(records: Iterable[EpisodeRecord]) -> dict[str, tuple[int, int]]:
@@ -318,6 +326,7 @@ def compute(records: Iterable[EpisodeRecord]) -> Metrics:
     counts = [query_counts(r) for r in ran]
     invalid, queries = sum(c[0] for c in counts), sum(c[1] for c in counts)
     collisions = [len(r.collisions) for r in ran]
+    grounded = [g for r in ran for g in episode_grounding(r) if g.checked]
     n = len(ran)
     return Metrics(
         episodes=n,
@@ -339,4 +348,7 @@ def compute(records: Iterable[EpisodeRecord]) -> Metrics:
         collisions=sum(collisions),
         collision_episodes=sum(1 for c in collisions if c),
         collisions_per_episode=sum(collisions) / n if n else None,
+        gvr=violation_rate(grounded),
+        grounding_checked=len(grounded),
+        grounding_flagged=sum(g.violated for g in grounded),
     )

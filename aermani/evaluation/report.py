@@ -10,10 +10,13 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import urlparse
 
+from aermani.evaluation.grounding import violation_rate
 from aermani.evaluation.metrics import Metrics, compute, iar_by_mode, judged_ok, reasoning_steps
 from aermani.evaluation.records import RESULTS_FILE, EpisodeRecord, ResultsFile
+from aermani.evaluation.runs import episode_grounding
 from aermani.evaluation.tasks import PAPER_RS, PAPER_SUITES, SUITE_TITLES
 from shared.messages import VARIANTS
+from shared.text import plain_text
 
 VARIANT_TITLES = {
     "unstructured": "Unstructured", "no_drt": "No-DRT", "drt_v1": "DRT-V1", "drt_v2": "DRT-V2",
@@ -45,6 +48,42 @@ def _sr(m: Metrics) -> str:
     if m.sr_low is None or m.sr_high is None:
         return _sr(m)
     return f"{m.sr:.1f} [{m.sr_low:.1f}, {m.sr_high:.1f}]"
+
+
+MAX_GROUNDING_LINES = 20
+
+
+def grounding_doc(r: EpisodeRecord) -> dict[str, Any]:
+    """One episode's grounding check for report.json: the rate, and each flagged step with its reasons."""
+    checks = [g for g in episode_grounding(r) if g.checked]
+    return {"checked_steps": len(checks), "gvr": violation_rate(checks),
+            "flagged": [g.as_dict() for g in checks if g.violated]}
+
+
+def grounding_lines(records: list[EpisodeRecord]) -> list[str]:
+    """The flagged steps of the report (the first MAX_GROUNDING_LINES), each with its first reason."""
+    flagged = [(r, g) for r in records if not r.harness_error for g in episode_grounding(r) if g.violated]
+    if not flagged:
+        return []
+    lines = ["## Grounding flags", "", f"{len(flagged)} step(s) whose DRT contradicts what the stack measured "
+             "(docs/evaluation.md, Grounding); every one is in report.json.", "",
+             "| Episode | Step | Statement | Why |", "|---|---|---|---|"]
+    for r, g in flagged[:MAX_GROUNDING_LINES]:
+        v = g.violations[0]
+        more = f" (+{len(g.violations) - 1} more)" if len(g.violations) > 1 else ""
+        lines.append(f"| {r.episode_id} | {g.step} | {_cell(v.claim)} | {_cell(v.reason)}{more} |")
+    return [*lines, ""]
+
+
+def _cell(text: str, n: int = 120) -> str:
+    """Model text in a markdown table cell: one line, no pipes, clipped."""
+    text = " ".join(plain_text(text).split()).replace("|", "/")
+    return text if len(text) <= n else text[: n - 1] + "…"
+
+
+def _gvr(m: Metrics) -> str:
+    """GVR with the steps it rests on: `12.5 (3/24)`; -- when no step could be checked."""
+    return "--" if m.gvr is None else f"{m.gvr:.1f} ({m.grounding_flagged}/{m.grounding_checked})"
 
 
 def _suite_order(suites: Iterable[str]) -> list[str]:
@@ -337,7 +376,8 @@ def markdown(records: list[EpisodeRecord], config: dict[str, Any], plots: list[s
         lines += ["Other settings: " + ", ".join(f"{k}={v}" for k, v in settings.items()) + ".", ""]
 
     lines += ["## Results by task suite (paper Table II layout)", "",
-              "| Task Suite | Method | N | SR ↑ [95 % CI] | ARR ↓ | RS ↓ | IAR ↓ |", "|---|---|---|---|---|---|---|"]
+              "| Task Suite | Method | N | SR ↑ [95 % CI] | ARR ↓ | RS ↓ | IAR ↓ | GVR ↓ |",
+              "|---|---|---|---|---|---|---|---|"]
     for s in suites:
         for i, (b, v) in enumerate(configs):
             recs = [r for r in records if r.suite == s and r.backend == b and r.variant == v]
@@ -346,14 +386,14 @@ def markdown(records: list[EpisodeRecord], config: dict[str, Any], plots: list[s
             m = compute(recs)
             suite_cell = SUITE_TITLES.get(s, s) if i == 0 else ""
             lines.append(f"| {suite_cell} | {method_name(b, v, multi)} | {m.episodes} | {_sr(m)} | "
-                         f"{_fmt(m.arr)} | {_fmt(m.rs)} | {_fmt(m.iar)} |")
+                         f"{_fmt(m.arr)} | {_fmt(m.rs)} | {_fmt(m.iar)} | {_gvr(m)} |")
     lines += ["", "## Summary per method (paper Table V layout)", "",
-              "| Method | N | SR ↑ [95 % CI] | ARR ↓ | RS ↓ | IAR ↓ | RT median (s) ↓ | RT p95 (s) ↓ | TT (s) ↓ |",
-              "|---|---|---|---|---|---|---|---|---|"]
+              "| Method | N | SR ↑ [95 % CI] | ARR ↓ | RS ↓ | IAR ↓ | GVR ↓ | RT median (s) ↓ | RT p95 (s) ↓ "
+              "| TT (s) ↓ |", "|---|---|---|---|---|---|---|---|---|---|"]
     for b, v in configs:
         m = compute(r for r in records if r.backend == b and r.variant == v)
         lines.append(f"| {method_name(b, v, multi)} | {m.episodes} | {_sr(m)} | {_fmt(m.arr)} | {_fmt(m.rs)} | "
-                     f"{_fmt(m.iar)} | {_rt(m, b)} | {_rt(m, b, p95=True)} | {_fmt(m.tt)} |")
+                     f"{_fmt(m.iar)} | {_gvr(m)} | {_rt(m, b)} | {_rt(m, b, p95=True)} | {_fmt(m.tt)} |")
     lines += ["", "IAR by answer decoding (schema-constrained: the request carried the answer's JSON schema; free "
               "text: read by the lenient parser):", ""]
     for b, v in configs:
@@ -363,6 +403,7 @@ def markdown(records: list[EpisodeRecord], config: dict[str, Any], plots: list[s
             for m, (bad, n) in sorted(modes.items())) or "no model calls"))
     lines += _endings_section(records, configs, multi)
     lines += incident_lines(records)
+    lines += grounding_lines(records)
     lines += _paper_section(records, suites, configs, multi)
     lines += paper_comparison_lines(records, config)
     lines += ["", "Metrics (definitions in docs/evaluation.md): SR = % of episodes where the simulator's ground "
@@ -370,6 +411,9 @@ def markdown(records: list[EpisodeRecord], config: dict[str, Any], plots: list[s
               "destination) by the task's criteria before T_max, with its 95 % Wilson score interval in brackets "
               "(N episodes); ARR = mean % of redundant actions over successful "
               "episodes; RS = mean reasoning steps per episode; IAR = % of model answers that were invalid; "
+              "GVR = % of checked steps whose DRT contradicts what the stack measured (objects said seen but "
+              "not detected, a held object the gripper does not hold, positions off; flagged/checked steps in "
+              "brackets; for the rules policy the DRT is its own template); "
               "RT = model latency per query; TT = mean end-to-end time of successful episodes (wall clock, "
               "simulator speed factor "
               f"{config.get('speed_factor', '?')}).", ""]
@@ -498,7 +542,8 @@ def write_report(out: Path, config: dict[str, Any] | None = None) -> dict[str, P
         "config": config,
         "metrics": summarize(records),
         # Every episode with every step; the prompt texts (the bulk) stay in episodes.jsonl only.
-        "episodes": [r.model_dump(mode="json", exclude={"steps": {"__all__": {"prompt"}}}) for r in records],
+        "episodes": [{**r.model_dump(mode="json", exclude={"steps": {"__all__": {"prompt"}}}),
+                      "grounding": grounding_doc(r)} for r in records],
     }
     (out / "report.json").write_text(json.dumps(doc, indent=1))
     (out / "report.md").write_text(markdown(records, config, plots))

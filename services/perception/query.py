@@ -157,6 +157,12 @@ def _label_words(name: str) -> tuple[str, ...]:
     return tuple(_fold(w) for w in re.findall(r"[a-z]+", name.lower()))
 
 
+def words(text: str) -> tuple[str, ...]:
+    """Every word of `text` as matching reads it (lower case, synonyms and plurals folded, stopwords kept), for
+    callers that find object names in free text (the evaluation's grounding check)."""
+    return _label_words(text)
+
+
 def vocabulary(names: Sequence[str]) -> frozenset[str]:
     """Every word a query may use to refer to one of `names`."""
     words: set[str] = set(COLOR_WORDS) | set(SIZE_WORDS) | set(FAMILIES)

@@ -326,6 +326,25 @@ def _observation(index: LogIndex, prompt_mod, vid: str, rec: ReasoningStep, hist
     return first, False
 
 
+def observed_steps(index: LogIndex, task: RecordedTask,
+                   settings: Any = None) -> list[tuple[ReasoningStep, Any, bool | None]]:
+    """(step, the Observation its decision saw, whether that observation reproduces the recorded History text)
+    for every recorded step of `task`: the observation rebuilt as `rereason_log` rebuilds it (None for a model
+    outage record, which observed nothing). For tools that set a step's words beside what was measured."""
+    mods = _reasoner()
+    prompt_mod, reasoner_settings = mods[4], mods[5]
+    settings = settings or reasoner_settings()
+    out: list[tuple[ReasoningStep, Any, bool | None]] = []
+    for k, rec in enumerate(task.steps):
+        if not rec.prompt and not rec.calls:
+            out.append((rec, None, None))
+            continue
+        history = _history_before(prompt_mod, task.steps, k, settings)
+        obs, exact = _observation(index, prompt_mod, task.vehicle_id, rec, history, rec.prompt.get("history"))
+        out.append((rec, obs, exact))
+    return out
+
+
 async def _decide(mods, backend, settings, variant: str, library, command: str, history, obs):
     """One decision with the reasoner's own prompt compiler, parser and re-prompt budget."""
     _backends, _library, loop, parse, prompt_mod, _ = mods

@@ -192,7 +192,7 @@ def test_report_states_the_backend_and_has_both_tables(tmp_path):
     md = paths["markdown"].read_text()
     assert "reflect the test server, not a real VLM" in md
     assert "| Localization | No-DRT (openai) | 1 | 0.0 [0.0, 79.3] |" in md
-    assert "| AERMANI-VLM (openai) | 2 | 100.0 [34.2, 100.0] | 0.0 | 1.0 | 0.0 | 0.200 | 0.200 |" in md
+    assert "| AERMANI-VLM (openai) | 2 | 100.0 [34.2, 100.0] | 0.0 | 1.0 | 0.0 | -- | 0.200 | 0.200 |" in md
     doc = json.loads(paths["json"].read_text())
     assert len(doc["episodes"]) == 3 and doc["metrics"]["openai/full"]["overall"]["sr"] == 100.0
     for png in ("success_by_suite", "rt_histogram", "steps_per_episode"):

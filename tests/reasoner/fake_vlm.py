@@ -22,6 +22,11 @@ faults, one per HTTP request, in the order queued:
     surrogate_text  the answer cut in half with a lone surrogate (a real one: the HTTP body escapes it)
                                                                      -> invalid answer, re-prompt that echoes it
     python_literal  an 18 kB Python literal that fails at its end     -> invalid answer, re-prompt
+    phantom_object  a valid answer whose image description also claims a green bottle (deliberately wrong
+                    when none is detected: the grounding check's test)  -> valid, its step published
+    phantom_hold    a valid answer whose summary and reasoning claim the gripper holds the red cup
+                    (deliberately wrong while it is empty)              -> valid, its step published
+    detour          a valid answer naming yaw_left instead of the policy's skill (a run that diverges)
 
 `outage=True` answers HTTP 503 to everything.
 
@@ -68,7 +73,7 @@ from tests.reasoner.prompt_reader import answer_for_prompt
 
 FAULTS = ("invalid_json", "unknown_skill", "missing_fields", "missing_arg", "fences", "timeout", "500", "none", "ok",
           "hostile_text", "fragments", "int_argument", "bool_argument", "two_objects", "surrogate_text",
-          "python_literal")
+          "python_literal", "phantom_object", "phantom_hold", "detour")
 # A valid answer whose reasoning holds what a model may send and a terminal or an encoder chokes on: half an
 # emoji (a lone surrogate, escaped in the JSON), Rich markup, a right-to-left override, a zero-width space and an
 # ANSI escape (JSON escapes: the parser decodes them).
@@ -101,17 +106,7 @@ def apply_fault(answer: str, fault: str | None) -> str:
     except ValueError:
         return "I am not sure what to do."
     ste = obj.get("ste", obj)
-    if fault == "unknown_skill":
-        ste["skill"] = "fly_to_target"
-    elif fault == "missing_arg":
-        ste["skill"], ste["argument"] = "obj_localization", None
-    elif fault in ("int_argument", "bool_argument"):
-        ste["skill"], ste["argument"] = "obj_localization", 5 if fault == "int_argument" else True
-    elif fault == "missing_fields":
-        if "drt" in obj:
-            obj.pop("drt")
-        else:
-            ste.pop("skill", None)
+    _edit(obj, ste, fault)
     prefix = answer[: answer.index("{")]
     if fault == "two_objects":
         other = json.loads(json.dumps(obj))
@@ -124,6 +119,31 @@ def apply_fault(answer: str, fault: str | None) -> str:
         drt["reasoning"] = f"{drt.get('reasoning') or ''}@@HOSTILE@@"
         return prefix + json.dumps(obj).replace("@@HOSTILE@@", HOSTILE_TEXT)
     return prefix + json.dumps(obj)
+
+
+def _edit(obj: dict, ste: dict, fault: str | None) -> None:
+    """The faults that edit the decoded answer in place: invalid skills and arguments, a missing field, or a
+    deliberately wrong answer that stays valid: another skill (detour), a DRT that claims a green bottle in view
+    (phantom_object) or the red cup in the gripper (phantom_hold) whatever was measured."""
+    drt = obj.get("drt")
+    if fault == "unknown_skill":
+        ste["skill"] = "fly_to_target"
+    elif fault == "missing_arg":
+        ste["skill"], ste["argument"] = "obj_localization", None
+    elif fault in ("int_argument", "bool_argument"):
+        ste["skill"], ste["argument"] = "obj_localization", 5 if fault == "int_argument" else True
+    elif fault == "missing_fields":
+        if "drt" in obj:
+            obj.pop("drt")
+        else:
+            ste.pop("skill", None)
+    elif fault == "detour":
+        ste["skill"], ste["argument"] = "yaw_left", None
+    elif drt is not None and fault == "phantom_object":
+        drt["image_description"] = f"{drt.get('image_description') or ''} I also see a green bottle."
+    elif drt is not None and fault == "phantom_hold":
+        drt["summary"] = "Holding: red cup."
+        drt["reasoning"] = f"I am holding the red cup. {drt.get('reasoning') or ''}"
 
 
 def _anthropic_content(body: dict, answer: str) -> list[dict]:
