@@ -16,7 +16,7 @@ def register(app: typer.Typer) -> None:
     def mcp_cmd(
         transport: Annotated[str | None, typer.Option(help="stdio or http (default AERMANI_MCP_TRANSPORT, stdio)")]
         = None,
-        port: Annotated[int | None, typer.Option(help="HTTP port (default AERMANI_MCP_PORT, 8765)")] = None,
+        port: Annotated[int | None, typer.Option(help="HTTP port (default AERMANI_MCP_PORT, 8766)")] = None,
         gateway: Annotated[str | None, typer.Option(help="Gateway API root (default AERMANI_MCP_GATEWAY_URL)")]
         = None,
     ) -> None:

@@ -27,8 +27,8 @@ class McpSettings(BaseSettings):
     """stdio (an MCP client starts `aermani mcp`) or http (streamable HTTP on host:port/mcp)."""
     host: str = "127.0.0.1"
     """Bind address for the HTTP transport (loopback by default; `token` is required on every address)."""
-    port: int = Field(8765, ge=0, le=65535)
-    """Port for the HTTP transport."""
+    port: int = Field(8766, ge=0, le=65535)
+    """Port for the HTTP transport (8766: the recorder's live Foxglove server has the Foxglove default, 8765)."""
     token: SecretStr | None = Field(None, validation_alias=AliasChoices("token", "AERMANI_MCP_TOKEN"))
     """Bearer token MCP clients must send over HTTP (environment only, never logged). Required for the HTTP
     transport, on loopback too: the server holds the gateway token, and any local process (or a page the
