@@ -130,7 +130,9 @@ class Slots:
             return f"{verb} {d}{amount}", [skill] * n
         d, skill = self.pick((("forward", "forward"), ("ahead", "forward"), ("back", "backward"),
                               ("backward", "backward"), ("left", "left"), ("right", "right")))
-        verb = self.pick(("move", "fly", "go", "head") if d not in ("left", "right") else ("move", "fly", "strafe",
+        # "go ahead and ..." is a polite idiom, not a motion: "go ahead" is said with an amount only
+        verb = self.pick(("move", "fly", "head") if d == "ahead" else ("move", "fly", "go", "head")
+                         if d not in ("left", "right") else ("move", "fly", "strafe",
                                                                                           "slide"))
         amount, count, metres = self.pick((("", 1, None), (" a bit", 1, None), (" a little", 1, None),
                                            (" slightly", 1, None), (" twice", 2, None), (" three times", 3, None),
@@ -159,7 +161,7 @@ def _plain(s: Slots) -> Row:
     o, on = s.obj()
     d, dn, prep = s.surface()
     pick, place, carry = s.pick(PICK), s.pick(PLACE), s.pick(CARRY)
-    to = "in" if dn == "sink" and s.rng.random() < 0.5 else s.pick(("to", "over to", "onto"))
+    to = "into" if dn == "sink" and s.rng.random() < 0.5 else s.pick(("to", "over to", "onto"))
     forms = [
         (f"{pick} the {o} and {place} it {prep} the {d}", on, dn),
         (f"{pick} the {o}, then {place} it {prep} the {d}", on, dn),

@@ -16,6 +16,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass, field
 
+from services.reasoner.backends.rules_lexicon import object_noun
 from shared import skills as S  # noqa: N812
 
 YAW_STEP_DEG = 45.0
@@ -64,8 +65,9 @@ _CARRY_VERBS = {"bring", "carry", "take", "deliver", "get", "fetch", "grab", "pi
                 "lift", "retrieve", "hand", "pass", "give", "obtain", "return", "gather"}
 _DOUBLED = {"grab": "grabbing", "drop": "dropping", "get": "getting", "put": "putting", "set": "setting",
             "snag": "snagging", "nab": "nabbing", "plop": "plopping", "pop": "popping", "stop": "stopping",
-            "step": "stepping", "shift": "shifting"}
-_IRREGULAR = {"brought": "bring", "took": "take", "got": "get", "gotten": "get", "picked": "pick", "placed": "place",
+            "step": "stepping", "shift": "shifting", "transfer": "transferring"}
+_IRREGULAR = {"transferred": "transfer",
+              "brought": "bring", "took": "take", "got": "get", "gotten": "get", "picked": "pick", "placed": "place",
               "grabbed": "grab", "fetched": "fetch", "moved": "move", "dropped": "drop"}
 
 # Determiners and fillers before a noun phrase; words that end one.
@@ -80,7 +82,9 @@ _NP_STOP = {"on", "onto", "in", "into", "inside", "to", "from", "at", "by", "nea
             "out", "back", "away", "atop", "upon", "against", "between", "among", "please", "right", "left",
             "immediately", "first", "afterwards", "otherwise", "else", "unless", "than", "nearby", "close", "along",
             "to-", "asap", "thanks", "thank", "real", "very", "anywhere", "everywhere", "within", "above",
-            "all", "only", "just", "currently", "you", "i", "we", "he", "she", "they"}
+            "all", "only", "just", "currently", "you", "i", "we", "he", "she", "they", "forward", "forwards",
+            "backward", "backwards", "ahead", "upward", "upwards", "downward", "downwards", "sideways", "clockwise",
+            "slightly", "a bit"}
 _VERB_STOP = {"bring", "grab", "pick", "take", "get", "fetch", "put", "place", "find", "locate", "carry", "move",
               "deliver", "collect", "retrieve", "lift", "drop", "snag", "seize", "grasp", "hand", "give", "deposit",
               "set", "leave", "turn", "fly", "go", "rotate", "approach", "is", "are", "be"}
@@ -196,6 +200,18 @@ def normalize(command: str) -> str:
     for a, b in _CONTRACTIONS:
         c = c.replace(a, b)
     c = re.sub(r"\bwhich ever\b", "whichever", c)
+    # before the politeness words go ("mind", "if you can"): phrases that carry meaning with them
+    c = re.sub(r"\bnever mind\b", " ignore ", c)
+    c = re.sub(r"\bsee if you can (?=find|spot|locate|see)\b", " ", c)
+    c = re.sub(r"^\s*(?:so\s*,?\s*)?where (?:is|are)\b|\bcan you tell me where (?:is|are)\b", " find ", c)
+    c = re.sub(r"\bhave a look (?:around )?for\b", " find ", c)
+    # amounts written out, so one pattern reads them ("ninety degrees", "half a metre")
+    c = re.sub(r"\b(?:a|one) hundred (?:and )?eighty\b", "180", c)
+    c = re.sub(r"\bthree hundred (?:and )?sixty\b", "360", c)
+    c = re.sub(r"\bninety\b", "90", c)
+    c = re.sub(r"\bforty[- ]five\b", "45", c)
+    c = re.sub(r"\bhalf (?:a |of a )?(met(?:re|er)|m)\b", r"0.5 \1", c)
+    c = re.sub(r"\bquarter (?:of )?(?:a )?(met(?:re|er))\b", r"0.25 \1", c)
     c = re.sub(r"\s(?:--+|—|–)\s", " ; ", c)
     c = re.sub(r"\bi(?: would)? (?:like|want|love) (?P<x>(?:the |a |an |my )?[a-z][a-z \-]*?) (?P<p>on top of|"
                r"onto|into|on|in|"
@@ -217,8 +233,11 @@ def normalize(command: str) -> str:
     c = re.sub(r"\bgo (?:and )?(get|grab|fetch|pick up|collect|retrieve|find|bring)\b", r" \1 ", c)
     c = re.sub(r"\b(?:set|put|lay|place|drop|plop) (it|them|that|this)? ?down\b", r" put \1 ", c)
     c = re.sub(r"\bdrop (it|them|that|this)? ?off\b", r" put \1 ", c)
-    c = re.sub(r"^\s*(?:the |a |an |my )?(?P<x>[a-z][a-z \-]*?) (?:needs|has|should|must|ought|is|are|has got) (?:to )?"
-               r"(?:go|be (?:put|placed|moved|set|brought|taken|returned)|end up|get put)\b", r"put the \g<x>", c)
+    c = re.sub(r"^\s*(?:the |a |an |my )?(?P<x>[a-z][a-z \-]*?) (?:(?:needs|has|should|must|ought|is|are|has got|"
+               r"will|would|could|can|may|might)(?: really)? (?:to )?(?:go|be (?:put|place|placed|move|moved|set|"
+               r"bring|brought|take|taken|return|returned|carry|carried|lay|laid|leave|left|drop|dropped|transfer|"
+               r"transferred|stick|stuck|deposit|deposited|rest|rested|shift|shifted)|end up|get put|live|sit|stay)|"
+               r"belongs?|goes)\b", r"put the \g<x>", c)
     for pat, rep in _COMPOUNDS:
         c = re.sub(pat, rep, c)
     for pat, rep in _CATEGORY_PHRASES:
@@ -299,7 +318,8 @@ def _conditional(c: str, plan: Plan) -> str:
     if cond and not m:
         first = noun_phrase(cond.group(1))
         if first and first not in _PRONOUNS:
-            rest = re.sub(r"\b(it|them|that|one)\b", first, c[cond.end(1) - len(cond.group(1)) + len(first):], count=1)
+            end = cond.start(1) + cond.group(1).find(first) + len(first)  # past the object's words
+            rest = re.sub(r"\b(it|them|that|one)\b", first, c[end:], count=1)
             return c[: cond.start()] + " " + re.sub(r"^[\s,]*(?:then\s+)?", "", rest)
     return c
 
@@ -427,8 +447,8 @@ _TURN_AROUND = re.compile(r"\b(?:turn|spin|rotate|swing)\s+(?:yourself\s+)?(?:al
                           + r")?|"
                           r"\bturn back\b|\babout[- ]face\b|\b(?:do|make) a u-?turn\b")
 _TURN_BY = re.compile(r"\b(?:turn|rotate|yaw|spin|pivot|swivel)(?:\s+(?:yourself|around|round))?(?P<post>"
-                      r"(?:\s+(?:by\s+|about\s+)?(?:\d+|ninety|forty-five|a hundred and eighty)\s+(?:degrees?|deg)|"
-                      r"\s+(?:a\s+)?(?:quarter|half)(?:\s+(?:a\s+)?(?:turn|circle|rotation))?))"
+                      r"(?:\s+(?:by\s+|about\s+)?(?:\d+|ninety|forty-five|a hundred and eighty)\s+(?:degrees?|deg)\b|"
+                      r"\s+(?:a\s+)?(?:quarter|half)(?:\s+(?:a\s+)?(?:turn|circle|rotation))?\b))"
                       r"(?!\s+(?:to (?:the |your )?)?(?:left|right|clockwise|counter|anti))")
 _FULL_TURN = re.compile(r"\b(?:do|make|perform|spin|rotate|turn)\s+(?:a\s+)?(?:full|complete|whole)\s+"
                         r"(?:turn|circle|rotation|360|spin)\b|\b(?:spin|rotate|turn)\s+(?:a\s+)?(?:full\s+)?360\b")
@@ -450,7 +470,8 @@ _GOTO = re.compile(r"\b(?:approach|go|fly|head|move|travel|navigate|proceed|get|
                    r"go over|fly over|head over|move over)\s*(?:over\s+|on\s+|straight\s+|right\s+)?"
                    r"(?:to|toward|towards|up to|near|close to|next to|over to|in front of|beside)?\s*"
                    r"(?:the|a|an|that|this)\s+(?P<what>[a-z][a-z \-]*)")
-_STEP_COUNT = re.compile(r"\b(?P<n>\d+|a|an|one|two|three|four|five|six|couple(?: of)?|few)\s+(?P<unit>steps?|meters?|"
+_STEP_COUNT = re.compile(r"(?<![\d.])\b(?P<n>\d+(?:\.\d+)?|a|an|"
+                         r"one|two|three|four|five|six|couple(?: of)?|few)\s+(?P<unit>steps?|meters?|"
                          r"metres?|m)\s+(?:to (?:the |your )?)?(?P<dir>forwards?|ahead|backwards?|back|left|"
                          r"right|up|down)\b")
 
@@ -542,7 +563,7 @@ def motions(clause: str) -> list[str]:
         add(lone, [skill] * _amount(lone, skill, ("post",)))
     for m in _GOTO.finditer(clause):
         what = noun_phrase(m.group("what"))
-        if what and what not in _DIRS and what.split()[0] not in _DIRS:
+        if what and what not in _DIRS and what.split()[0] not in _DIRS and not not_an_object(what):
             add(m, [APPROACH + singular(what)])
     return [s for _pos, skills in sorted(found, key=lambda f: f[0]) for s in skills]
 
@@ -627,16 +648,22 @@ def _object_np(rest: str) -> str | None:
     np_ = noun_phrase(rest)
     if not np_ or np_ in _PRONOUNS or np_ in _DIRS or np_.split()[0] in _DIRS or np_.split()[0] in _NUM_WORDS:
         return None
-    if singular(np_).split()[-1] in _NOT_OBJECTS or np_.split()[0] in TASK_VERBS:
+    if not_an_object(np_) or np_.split()[0] in TASK_VERBS:
         return None
     return np_
+
+
+def not_an_object(np_: str) -> bool:
+    """A phrase whose head noun no room holds as a thing ("your time", "a bit", "the answer"): never a target."""
+    head = singular(np_).split()[-1] if np_.split() else ""
+    return head in _NOT_OBJECTS or object_noun(head) is False
 
 
 def _is_action(clause: str) -> bool:
     """A clause with a task verb acting on an object (or a pronoun standing for one)."""
     for m in _VERB_RE.finditer(clause + " "):
         rest = clause[m.end():]
-        if _object_np(rest) or re.match(r"(?:it|them|that|this|one)\b", rest.strip()):
+        if _object_np(rest) or re.match(r"(?:it|them|that|this)\b", rest.strip()) or noun_phrase(rest) == "one":
             return True
     return False
 
@@ -685,7 +712,7 @@ def _antecedent(c: str) -> str | None:
     for m in re.finditer(r"\b(?:my|the|a|an|our|your)\s+([a-z][a-z \-]*)", c):
         np_ = noun_phrase(m.group(1))
         if np_ and np_ not in ("room", "area", "house", "kitchen", "place", "floor", "way", "moment", "time") \
-                and np_ not in _PRONOUNS and np_.split()[0] not in _DIRS:
+                and not not_an_object(np_) and np_ not in _PRONOUNS and np_.split()[0] not in _DIRS:
             return singular(np_)
     return None
 
