@@ -124,6 +124,9 @@ class Plan:
     understood: bool = True
     reason: str = ""
     """Why the command is refused (when not understood)."""
+    note: str = ""
+    """What the reader made of a command it was unsure of ("no task verb: read as ..."), for the task's first
+    step to say instead of refusing."""
 
     def as_record(self) -> dict:
         """The fields of a phrasing-set line (tests/reasoner/data/phrasings_dev.jsonl)."""
@@ -358,35 +361,49 @@ def _after_verb(text: str) -> str | None:
     return text[m.end():] if m else None
 
 
+_LIST_END = r"(?=\s*(?:\band\b|\bor\b|\bnor\b|\bthen\b|[,.;:!?]|$))"
 _EXCLUDE = (
-    r"\b(?:ignore|ignoring|disregard|skip|avoid|avoiding|forget about|never mind)\s+(?:the |all |any |those |these |"
-    r"every )?(?:other )?" + _OBJ + r"(?=\s*(?:\band\b|\bthen\b|[,.;:!?]|$))",
+    r"\b(?:ignore|ignoring|disregard|disregarding|skip|avoid|avoiding|forget about|never mind)\s+(?:the |all |any |"
+    r"those |these |every )?(?:other )?" + _OBJ + _LIST_END,
     r"\b(?:do not|never|without) (?:touch|touching|take|taking|grab|grabbing|pick up|picking up|pick|get|move|"
-    r"moving|disturb|disturbing|bother with|knock over) (?:the |a |an |any |those |these )?" + _OBJ +
-    r"(?=\s*(?:\band\b|\bthen\b|[,.;:!?]|$))",
+    r"moving|disturb|disturbing|bother with|knock over) (?:the |a |an |any |those |these )?" + _OBJ + _LIST_END,
     r"(?:^\s*|,\s*|\s+)(?:and |but |though |just )?not (?:the |a |an |that |this |any |those )?" + _OBJ +
-    r"(?=\s*(?:\band\b|\bthen\b|[,.;:!?]|$))",
+    r"(?=\s*(?:\band\b|\bor\b|\bnor\b|\bthen\b|[,.;:!?]|$))",
     r"\b(?:rather than|instead of|except(?: for)?|other than|apart from|but not|as opposed to|anything but|"
     r"everything but|anything except|not including|excluding) (?:the |a |an |any )?"
-    + _OBJ + r"(?=\s*(?:\band\b|\bthen\b|[,.;:!?]|$))",
-    r"\bleave (?:the |a |an |any |those |these )?" + _OBJ + r"\s+(?:alone|be|where (?:it is|they are)|untouched|"
-    r"in place)",
+    + _OBJ + _LIST_END,
+    r"\bleave (?:the |a |an |any |those |these )?" + _OBJ + r"(?P<more>(?:(?:\s*,\s*(?:and\s+|or\s+)?|\s+(?:and|or)\s+)"
+    r"(?:the |a |an |any )?" + _OBJ + r")*)\s+(?:alone|be|where (?:it is|they are)|untouched|in place)",
 )
 _LEAVE = re.compile(r"\b(?:and |but |then )?leave (?:the |a |an |any |those |these )?(?P<np>[a-z0-9\- ]+?)"
                     r"(?=\s*(?:\band\b|\bthen\b|[,.;:!?]|$))")
+# One more item of a list of distractors: "ignore the hammer, the wrench and the drill", "don't touch the cup or
+# the can". An item starts with a determiner, so "ignore the tools and pick up the bottle" ends at "tools".
+_MORE = r"(?:\s*,\s*(?:and\s+|or\s+)?|\s+(?:and|or|nor)\s+)(?:the|a|an|any|those|these)\s+" + _OBJ + _LIST_END
+_MORE_OR = r"\s+(?:or|nor)\s+(?:the|a|an|any)\s+" + _OBJ + _LIST_END  # after "not the X": "or"/"nor" only
 
 
 def _exclusions(c: str, plan: Plan) -> str:
-    """Distractors named in a negation ("not the coke can", "ignore the tools") -> plan.excluded."""
-    for pat in _EXCLUDE:
+    """Distractors named in a negation ("not the coke can", "ignore the tools", a list of them) -> plan.excluded."""
+    for k, pat in enumerate(_EXCLUDE):
         while True:
             m = re.search(pat, c)
             if not m:
                 break
-            np_ = noun_phrase(m.group(1))
-            if np_ and np_ not in _PRONOUNS:
-                plan.excluded.append(singular(np_))
-            c = c[: m.start()] + " " + c[m.end():]
+            names = [m.group(1)]
+            end = m.end()
+            if "more" in m.re.groupindex:  # "leave the X and the Y where they are"
+                names += [x for x in re.split(r"\s*,\s*(?:and\s+|or\s+)?|\s+(?:and|or)\s+", m.group("more")) if x]
+            else:
+                more = _MORE_OR if k == 2 else _MORE
+                while (x := re.match(more, c[end:])) is not None:
+                    names.append(x.group(1))
+                    end += x.end()
+            for name in names:
+                np_ = noun_phrase(name)
+                if np_ and np_ not in _PRONOUNS:
+                    plan.excluded.append(singular(np_))
+            c = c[: m.start()] + " " + c[end:]
     for m in list(_LEAVE.finditer(c))[::-1]:  # "... and leave the purple cup": a distractor, when nothing follows
         if noun_phrase(m.group("np")) == m.group("np").strip() and m.group("np").strip() not in _PRONOUNS:
             plan.excluded.append(singular(m.group("np").strip()))
@@ -755,7 +772,39 @@ def parse_command(command: str, skills: list[str] | tuple[str, ...] = ()) -> Pla
         plan.target = None
     if plan.category and plan.target is None and plan.excluded and plan.category in plan.excluded:
         plan.category = None
+    if verb is None and not (plan.target or plan.choices or plan.category or plan.selector or plan.motions):
+        _telegraphic(c, plan)
     return _judge(plan, verb, command)
+
+
+_TELEGRAPHIC = re.compile(r"^\s*(?:the |a |an |my |that |this )?(?P<x>[a-z][a-z0-9 \-]*?)\s*(?:(?:,\s*)?\b(?P<prep>"
+                          + _STRONG_PREP + "|" + _WEAK_PREP + r"|over)\s+(?P<y>[a-z][a-z0-9 \-]*?))?[\s,.!?;:]*$")
+
+
+def _telegraphic(c: str, plan: Plan) -> None:
+    """A command without a verb: "red cup to the table", "the banana on the shelf please", "the apple, please".
+    Read as pick up (and place), when the object named is something a room holds (a known physical noun; an
+    unknown one only with a known destination), and said so in `plan.note`."""
+    m = _TELEGRAPHIC.match(c)
+    if not m:
+        return
+    x = noun_phrase(m.group("x"))
+    if not x or x != " ".join(m.group("x").split()) or x in _PRONOUNS or not_an_object(x):
+        return
+    dest = _dest_np(m.group("y")) if m.group("y") else None
+    if m.group("y") and (dest is None or noun_phrase(m.group("y")) != " ".join(m.group("y").split()[
+            1 if m.group("y").split()[0] in _DET else 0:])):
+        return
+    known = object_noun(singular(x).split()[-1]) is True
+    if not known and not (dest and object_noun(dest.split()[-1]) is True):
+        return
+    if x in CATEGORY_WORDS or singular(x) in CATEGORY_WORDS:
+        plan.category = singular(x)
+    else:
+        plan.target = singular(x)
+    plan.destination = dest
+    plan.note = (f"The command has no task verb; I read it as: pick up the {plan.target or plan.category}"
+                 + (f" and place it on the {dest}." if dest else "."))
 
 
 def _judge(plan: Plan, verb: str | None, command: str) -> Plan:
