@@ -109,6 +109,12 @@ class Slots:
     def motion(self) -> tuple[str, list[str]]:
         """(a motion phrase, the skills it asks for): directions, turns, with and without counts or distances."""
         kind = self.rng.random()
+        if kind < 0.08:
+            return self.pick((("turn around", ["yaw_left"] * 4), ("take two steps forward", ["forward"] * 2),
+                              ("take a step back", ["backward"]), ("back up", ["backward"]),
+                              ("go higher", ["up"]), ("move to the left a bit", ["left"]),
+                              ("move to the right", ["right"]), ("rise a little", ["up"]),
+                              ("turn to the left", ["yaw_left"]), ("take three steps to the right", ["right"] * 3)))
         if kind < 0.3:
             d, skill = self.pick((("left", "yaw_left"), ("right", "yaw_right")))
             amount, n = self.pick((("", 1), (" a bit", 1), (" once", 1), (" twice", 2), (" two times", 2),
@@ -146,6 +152,12 @@ class Slots:
         return f"{verb} {d}{amount}", [skill] * n
 
 
+def _it(verb: str) -> str:
+    """"put down" + it -> "put it down" (the pronoun goes before the particle)."""
+    head, _, particle = verb.partition(" ")
+    return f"{head} it {particle}" if particle else f"{verb} it"
+
+
 def _cap(text: str, rng: random.Random) -> str:
     """Mostly sentence case, sometimes all lower case, sometimes with a full stop."""
     out = text[0].upper() + text[1:] if rng.random() < 0.7 else text
@@ -160,15 +172,24 @@ Template = Callable[[Slots], Row]
 def _plain(s: Slots) -> Row:
     o, on = s.obj()
     d, dn, prep = s.surface()
+    src = s.surface()[0]  # where the object stands now: never the destination
     pick, place, carry = s.pick(PICK), s.pick(PLACE), s.pick(CARRY)
     to = "into" if dn == "sink" and s.rng.random() < 0.5 else s.pick(("to", "over to", "onto"))
     forms = [
-        (f"{pick} the {o} and {place} it {prep} the {d}", on, dn),
-        (f"{pick} the {o}, then {place} it {prep} the {d}", on, dn),
+        (f"{pick} the {o} and {_it(place)} {prep} the {d}", on, dn),
+        (f"{pick} the {o}, then {_it(place)} {prep} the {d}", on, dn),
         (f"{carry} the {o} {to} the {d}", on, dn),
         (f"{place.split()[0]} the {o} {prep} the {d}", on, dn),
         (f"{pick} the {o}", on, None),
-        (f"{pick} the {o} and {place} it {prep} the {d}", on, dn),
+        (f"{pick} the {o} and then {_it(place)} {prep} the {d}", on, dn),
+        (f"{pick} the {o} off the {src} and {_it(place)} {prep} the {d}", on, dn),
+        (f"take the {o} from the {src} to the {d}", on, dn),
+        (f"{place.split()[0]} the {o} that is on the {src} {prep} the {d}", on, dn),
+        (f"pick the {o} up and {_it(place)} {prep} the {d}", on, dn),
+        (f"pick the {o} up", on, None),
+        (f"the {o}: {pick} it and {_it(place)} {prep} the {d}", on, dn),
+        (f"{place.split()[0]} the {o} down {prep} the {d}", on, dn),
+        (f"get the {o} onto the {d}", on, dn),
     ]
     cmd, t, dest = forms[s.rng.randrange(len(forms))]
     return _row("plain", cmd, t, dest)
@@ -187,6 +208,10 @@ def _telegraphic(s: Slots) -> Row:
         (f"{the}{o} over to the {d}", dn),
         (f"{the}{o}, please", None),
         (f"just the {o}", None),
+        (f"{the}{o} to the {d} asap", dn),
+        (f"{the}{o} into the {d}" if dn == "sink" else f"{the}{o} onto the {d} now", dn),
+        (f"{o} -> {d}", dn),
+        (f"{the}{o} back to the {d}", dn),
     ]
     cmd, dest = forms[s.rng.randrange(len(forms))]
     return _row("telegraphic", cmd, on, dest)
@@ -208,6 +233,13 @@ def _passive(s: Slots) -> Row:
         f"the {o} should end up {prep} the {d}",
         f"the {o} belongs {prep} the {d}",
         f"the {o} should be taken to the {d}",
+        f"the {o} is to go {prep} the {d}",
+        f"I need the {o} {prep} the {d}",
+        f"I want the {o} {prep} the {d}",
+        f"the {o} would be better {prep} the {d}",
+        f"the {o} can be put {prep} the {d}",
+        f"the {o} needs to be carried to the {d}",
+        f"the {o} is supposed to be {prep} the {d}",
     ]
     return _row("passive", forms[s.rng.randrange(len(forms))], on, dn)
 
@@ -217,7 +249,7 @@ def _polite(s: Slots) -> Row:
     d, dn, prep = s.surface()
     pick, place, carry = s.pick(PICK), s.pick(PLACE), s.pick(CARRY)
     forms = [
-        (f"could you {pick} the {o} and {place} it {prep} the {d}?", dn),
+        (f"could you {pick} the {o} and {_it(place)} {prep} the {d}?", dn),
         (f"please {pick} the {o}", None),
         (f"{pick} the {o}, please", None),
         (f"would you mind {GERUND[pick]} the {o}?", None),
@@ -231,6 +263,13 @@ def _polite(s: Slots) -> Row:
         (f"hey drone, could you {pick} the {o} please?", None),
         (f"please {carry} the {o} to the {d}, thank you", dn),
         (f"I would appreciate it if you could {place.split()[0]} the {o} {prep} the {d}", dn),
+        (f"would you be so kind as to {pick} the {o}?", None),
+        (f"I'd be grateful if you could {carry} the {o} to the {d}", dn),
+        (f"when you get a chance, {pick} the {o}", None),
+        (f"could you possibly {pick} the {o} for me?", None),
+        (f"hey robot, please {carry} the {o} to the {d}, thanks", dn),
+        (f"{pick} the {o} for me, would you?", None),
+        (f"mind {GERUND[pick]} the {o}?", None),
     ]
     cmd, dest = forms[s.rng.randrange(len(forms))]
     return _row("polite", cmd, on, dest)
@@ -240,6 +279,7 @@ def _ignore_list(s: Slots) -> Row:
     o, on = s.obj()
     x, xn = s.obj()
     z, zn = s.obj()
+    w, wn = s.obj()
     pick = s.pick(PICK)
     forms = [
         (f"ignore the {x} and {pick} the {o}", [xn]),
@@ -254,6 +294,13 @@ def _ignore_list(s: Slots) -> Row:
         (f"leave the {x} alone and {pick} the {o}", [xn]),
         (f"{pick} the {o} and don't touch the {x}", [xn]),
         (f"never mind the {x}, {pick} the {o}", [xn]),
+        (f"{pick} the {o}, but ignore the {x}", [xn]),
+        (f"avoid the {x} and {pick} the {o}", [xn]),
+        (f"don't grab the {x}, {pick} the {o}", [xn]),
+        (f"skip the {x} and the {z} and {pick} the {o}", [xn, zn]),
+        (f"ignore the {x}, the {z} and the {w}, then {pick} the {o}", [xn, zn, wn]),
+        (f"{pick} the {o} and leave the {x} and the {z} alone", [xn, zn]),
+        (f"{pick} the {o} rather than the {x}", [xn]),
     ]
     cmd, excl = forms[s.rng.randrange(len(forms))]
     return _row("ignore_list", cmd, on, excluded=excl)
@@ -274,18 +321,25 @@ def _conditional(s: Slots) -> Row:
     d, dn, prep = s.surface()
     pick = s.pick(PICK)
     pick2 = s.pick(PICK)
+    a_ = "an" if a[0] in "aeiou" else "a"
     forms = [
         (f"if you see the {a}, {pick} it; otherwise {pick2} the {b}", [an, bn], None, None),
         (f"{pick} the {a} if you see one, otherwise {pick2} the {b}", [an, bn], None, None),
-        (f"if there is a {a}, {pick} it, else {pick2} the {b}", [an, bn], None, None),
+        (f"if there is {a_} {a}, {pick} it, else {pick2} the {b}", [an, bn], None,
+         None),
         (f"if you can find the {a}, {pick} it; if not, {pick2} the {b}", [an, bn], None, None),
         (f"if you spot the {a}, {pick} it, or else {pick2} the {b}", [an, bn], None, None),
         (f"{pick} the {a} if you see it, else {pick2} the {b}", [an, bn], None, None),
         (f"if you see the {a}, {pick} it and put it {prep} the {d}; otherwise {pick2} the {b}", [an, bn], dn,
          None),
         (f"if you see the {a}, put it {prep} the {d}", [], dn, an),
-        (f"if there is a {a}, {pick} it", [], None, an),
+        (f"if there is {a_} {a}, {pick} it", [], None, an),
         (f"if you find the {a}, bring it to the {d}", [], dn, an),
+        (f"should you see the {a}, {pick} it; otherwise {pick2} the {b}", [an, bn], None, None),
+        (f"if the {a} is visible, {pick} it, otherwise {pick2} the {b}", [an, bn], None, None),
+        (f"{pick} the {a}, or if there isn't one, the {b}", [an, bn], None, None),
+        (f"in case there is {a_} {a}, {pick} it; if there is none, {pick2} the {b}", [an, bn], None, None),
+        (f"if you cannot find the {a}, {pick2} the {b}; otherwise {pick} the {a}", [an, bn], None, None),
     ]
     cmd, choices, dest, target = forms[s.rng.randrange(len(forms))]
     return _row("conditional", cmd, target, dest, choices=choices)
@@ -296,13 +350,14 @@ def _sequence(s: Slots) -> Row:
     d, dn, prep = s.surface()
     m1, k1 = s.motion()
     pick, place, find = s.pick(PICK), s.pick(PLACE), s.pick(FIND)
-    then = s.pick((", then ", " and then ", " then ", ", and ", ", after that ", " and after that ", ". Then "))
+    then = s.pick((", then ", " and then ", " then ", ", and ", ", after that ", " and after that ", ". Then ",
+                   ". After that, ", ", next ", " and next "))
     then2 = s.pick((", then ", " and then ", ", after that ", " and "))
     forms = [
         (f"{m1}{then}{pick} the {o}", k1, None),
-        (f"{m1}{then}{pick} the {o}{then2}{place} it {prep} the {d}", k1, dn),
+        (f"{m1}{then}{pick} the {o}{then2}{_it(place)} {prep} the {d}", k1, dn),
         (f"first {m1}{then}{find} the {o}", k1, None),
-        (f"{m1}{then}{pick} the {o} and {place} it {prep} the {d}", k1, dn),
+        (f"{m1}{then}{pick} the {o} and {_it(place)} {prep} the {d}", k1, dn),
     ]
     if s.rng.random() < 0.3:
         m2, k2 = s.motion()
@@ -329,6 +384,12 @@ def _search(s: Slots) -> Row:
         f"I'm looking for the {o}",
         f"have a look for the {o}",
         f"find me the {o}",
+        f"do you see the {o}?",
+        f"can you spot the {o}?",
+        f"is there {'an' if o[0] in 'aeiou' else 'a'} {o} anywhere?",
+        f"scan the room for the {o}",
+        f"go and find the {o}",
+        f"try to locate the {o}",
     ]
     return _row("search", forms[s.rng.randrange(len(forms))], on)
 
@@ -354,6 +415,11 @@ def _non_object(s: Slots) -> Row:
         (f"in a moment, {pick} the {o}", None),
         (f"as a favour, {pick} the {o}", None),
         (f"{pick} the {o} in a hurry", None),
+        (f"{pick} the {o} when you have a chance", None),
+        (f"on my signal, {pick} the {o}", None),
+        (f"without any fuss, {carry} the {o} to the {d}", dn),
+        (f"for safety, {pick} the {o} slowly", None),
+        (f"just to be sure, {pick} the {o}", None),
     ]
     cmd, dest = forms[s.rng.randrange(len(forms))]
     return _row("non_object_noun", cmd, on, dest)

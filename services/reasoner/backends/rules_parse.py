@@ -208,6 +208,9 @@ def normalize(command: str) -> str:
     c = re.sub(r"\bsee if you can (?=find|spot|locate|see)\b", " ", c)
     c = re.sub(r"^\s*(?:so\s*,?\s*)?where (?:is|are)\b|\bcan you tell me where (?:is|are)\b", " find ", c)
     c = re.sub(r"\bhave a look (?:around )?for\b", " find ", c)
+    c = re.sub(r"(?:^|(?<=[.;!?]))\s*(?:do|can|could) you (?:see|spot)\b|(?:^|(?<=[.;!?]))\s*(?:is|are) there\b",
+               " find ", c)
+    c = re.sub(r"\s*(?:->|=>|→)\s*", " to ", c)  # "red cup -> table"
     # amounts written out, so one pattern reads them ("ninety degrees", "half a metre")
     c = re.sub(r"\b(?:a|one) hundred (?:and )?eighty\b", "180", c)
     c = re.sub(r"\bthree hundred (?:and )?sixty\b", "360", c)
@@ -216,7 +219,7 @@ def normalize(command: str) -> str:
     c = re.sub(r"\bhalf (?:a |of a )?(met(?:re|er)|m)\b", r"0.5 \1", c)
     c = re.sub(r"\bquarter (?:of )?(?:a )?(met(?:re|er))\b", r"0.25 \1", c)
     c = re.sub(r"\s(?:--+|—|–)\s", " ; ", c)
-    c = re.sub(r"\bi(?: would)? (?:like|want|love) (?P<x>(?:the |a |an |my )?[a-z][a-z \-]*?) (?P<p>on top of|"
+    c = re.sub(r"\bi(?: would)? (?:like|want|love|need) (?P<x>(?:the |a |an |my )?[a-z][a-z \-]*?) (?P<p>on top of|"
                r"onto|into|on|in|"
                r"inside) (?=the |a |my )", r"put \g<x> \g<p> ", c)
     words = [_FORMS.get(w, w) for w in re.findall(r"\d+\.\d+|[a-z0-9'\-]+|[^\sa-z0-9'\-]", c)
@@ -240,7 +243,8 @@ def normalize(command: str) -> str:
                r"will|would|could|can|may|might)(?: really)? (?:to )?(?:go|be (?:put|place|placed|move|moved|set|"
                r"bring|brought|take|taken|return|returned|carry|carried|lay|laid|leave|left|drop|dropped|transfer|"
                r"transferred|stick|stuck|deposit|deposited|rest|rested|shift|shifted)|end up|get put|live|sit|stay)|"
-               r"belongs?|goes)\b", r"put the \g<x>", c)
+               r"belongs?|goes|(?:is|are) supposed to (?:be|go)|(?:would|will) (?:be|look) better|should (?:be|stay|"
+               r"sit)|must be|needs to be)\b", r"put the \g<x>", c)
     for pat, rep in _COMPOUNDS:
         c = re.sub(pat, rep, c)
     for pat, rep in _CATEGORY_PHRASES:
@@ -261,6 +265,8 @@ def noun_phrase(text: str) -> str:
             return "one"
         i += 1
     for w in words[i:]:
+        if out and _adverb(w):
+            break
         if not re.fullmatch(r"[a-z0-9][a-z0-9\-]*", w) or w in _NP_STOP or (out and w in _DET and w != "one") \
                 or (out and w in _VERB_STOP):
             break
@@ -268,6 +274,11 @@ def noun_phrase(text: str) -> str:
         if len(out) >= 4:
             break
     return " ".join(out)
+
+
+def _adverb(word: str) -> bool:
+    """"slowly", "safely": a manner adverb ends a noun phrase ("grab the cup slowly")."""
+    return len(word) >= 6 and word.endswith("ly") and object_noun(word) is not True
 
 
 def _clean(np_: str) -> str | None:
@@ -290,9 +301,22 @@ _IF_SEE = (r"\b(?:if|in case|should|when|whenever|provided)\s+(?:you\s+)?(?:can\
            r"there (?:is|are)|there happens to be|you come across)\s+")
 
 
+_NEG_FIRST = re.compile(r"^\s*(?:if|in case|should)\s+(?:you\s+)?(?:cannot|can not|do not|did not|could not|"
+                        r"fail to)\s+(?:see|find|spot|locate)\s+(?P<a>[a-z][a-z \-]*?)\s*,\s*"
+                        r"(?:then\s+)?(?P<b>[^;.]*?)\s*[;.,]?\s*"
+                        r"(?:otherwise|or else|else|if you do|if you can)\b,?(?P<rest>.*)$")
+
+
 def _conditional(c: str, plan: Plan) -> str:
     """"If you see an orange, pick it up; otherwise grab the banana" -> choices [orange, banana]; the rest of the
     command is returned. A conditional without an else branch names the target."""
+    neg = _NEG_FIRST.match(c)
+    if neg:  # "if you cannot find the apple, take the banana; otherwise take the apple": [apple, banana]
+        first, second = noun_phrase(neg.group("a")), noun_phrase(_after_verb(neg.group("b")) or neg.group("b"))
+        if first and second and first not in _PRONOUNS and second not in _PRONOUNS:
+            plan.choices = [singular(first), singular(second)]
+            plan.destination = _branch_destination(neg.group("b")) or _branch_destination(neg.group("rest"))
+            return ""
     m = re.search(_ELSE, c)
     head = c[: m.start()] if m else c
     cond = re.search(_IF_SEE + r"(.*)", head) or re.search(_IF_IS + r"(.*)", head)
@@ -650,7 +674,7 @@ _PLACE_CLAUSE = re.compile(r"\b(?:put|place|set|drop|deposit|leave|lay|rest|posi
                            r"transfer|relocate|move|carry|take|bring|deliver|return|unload|shift)\b"
                            r"(?:\s+(?:it|them|that|this|the object|the item|the thing|one))?"
                            r"(?:\s+(?:down|back|over|off|up|right|away))?\s+(?P<prep>" + _STRONG_PREP + "|" + _WEAK_PREP
-                           + r")\s+(?P<np>[a-z][a-z \-]*)")
+                           + r")\s+(?=(?P<np>[a-z][a-z \-]*))")  # a lookahead: the next clause is searched too
 
 
 _NOT_OBJECTS = {"room", "area", "house", "kitchen", "picture", "photo", "look", "break", "nap", "seat", "off",
