@@ -240,6 +240,10 @@ def _passive(s: Slots) -> Row:
         f"the {o} can be put {prep} the {d}",
         f"the {o} needs to be carried to the {d}",
         f"the {o} is supposed to be {prep} the {d}",
+        f"have the {o} put {prep} the {d}",
+        f"make the {o} go to the {d}",
+        f"get the {o} moved {prep} the {d}",
+        f"have the {o} brought to the {d}",
     ]
     return _row("passive", forms[s.rng.randrange(len(forms))], on, dn)
 

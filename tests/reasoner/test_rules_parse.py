@@ -183,8 +183,13 @@ def test_passive_and_polite_forms() -> None:
                 "the red cup has to be moved to the table", "The red cup belongs on the table",
                 "I want the red cup placed on the table", "the red cup is supposed to be on the table",
                 "Would you mind transferring the red cup to the table?", "could you possibly take the red cup to "
-                "the table for me?", "I'd be grateful if you could carry the red cup to the table"):
+                "the table for me?", "I'd be grateful if you could carry the red cup to the table",
+                "have the red cup put on the table", "make the red cup go to the table",
+                "have the red cup taken to the table"):
         assert _p(cmd)[:3] == ("red cup", "table", []), cmd
+    assert _p("the coke can be put on the shelf")[:2] == ("coke can", "shelf")  # "can" the noun and the modal
+    assert _p("the can of coke can be put on the shelf")[:2] == ("coke can", "shelf")
+    assert _p("get the orange in one go")[:2] == ("orange", None)
 
 
 def test_lists_of_distractors() -> None:

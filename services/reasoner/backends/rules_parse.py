@@ -66,7 +66,7 @@ _CARRY_VERBS = {"bring", "carry", "take", "deliver", "get", "fetch", "grab", "pi
 _DOUBLED = {"grab": "grabbing", "drop": "dropping", "get": "getting", "put": "putting", "set": "setting",
             "snag": "snagging", "nab": "nabbing", "plop": "plopping", "pop": "popping", "stop": "stopping",
             "step": "stepping", "shift": "shifting", "transfer": "transferring"}
-_IRREGULAR = {"transferred": "transfer",
+_IRREGULAR = {"transferred": "transfer", "taken": "take", "carried": "carry", "laid": "lay", "delivered": "deliver",
               "brought": "bring", "took": "take", "got": "get", "gotten": "get", "picked": "pick", "placed": "place",
               "grabbed": "grab", "fetched": "fetch", "moved": "move", "dropped": "drop"}
 
@@ -239,14 +239,23 @@ def normalize(command: str) -> str:
     c = re.sub(r"\bgo (?:and )?(get|grab|fetch|pick up|collect|retrieve|find|bring)\b", r" \1 ", c)
     c = re.sub(r"\b(?:set|put|lay|place|drop|plop) (it|them|that|this)? ?down\b", r" put \1 ", c)
     c = re.sub(r"\bdrop (it|them|that|this)? ?off\b", r" put \1 ", c)
+    for pat, rep in _COMPOUNDS:  # before the passive forms read a name ("the can of coke can be put ...")
+        c = re.sub(pat, rep, c)
+    # causatives: "have the cup put on the table", "make the cup go to the table", "get the cup moved to ..."
+    c = re.sub(r"^\s*(?:make|have|get) (?:the |a |an |my )?(?P<x>[a-z](?:(?!\b(?:and|then|or|but|in|on|at|to|into|"
+               r"onto|from|with|for|by)\b)[a-z \-])*?) "
+               r"(?:go|end up|put|place|move|set|bring|take|carry|transfer|drop|lay|deposit)\b", r"put the \g<x>", c)
+    # "can" is a modal here unless it ends a can's name ("the coke can should go ..."); "the coke can be put on
+    # the shelf" names the can and the modal at once
+    c = re.sub(r"^(\s*(?:the |a |an |my )?[a-z \-]*?\b(?:coke|soda|cola|beer|paint|trash)) can (be|go)\b",
+               r"\1 can can \2", c)
     c = re.sub(r"^\s*(?:the |a |an |my )?(?P<x>[a-z][a-z \-]*?) (?:(?:needs|has|should|must|ought|is|are|has got|"
-               r"will|would|could|can|may|might)(?: really)? (?:to )?(?:go|be (?:put|place|placed|move|moved|set|"
+               r"will|would|could|(?<!\bcoke )(?<!\bsoda )(?<!\bcola )(?<!\bbeer )(?<!\bpaint )(?<!\btrash )can|"
+               r"may|might)(?: really)? (?:to )?(?:go|be (?:put|place|placed|move|moved|set|"
                r"bring|brought|take|taken|return|returned|carry|carried|lay|laid|leave|left|drop|dropped|transfer|"
                r"transferred|stick|stuck|deposit|deposited|rest|rested|shift|shifted)|end up|get put|live|sit|stay)|"
                r"belongs?|goes|(?:is|are) supposed to (?:be|go)|(?:would|will) (?:be|look) better|should (?:be|stay|"
                r"sit)|must be|needs to be)\b", r"put the \g<x>", c)
-    for pat, rep in _COMPOUNDS:
-        c = re.sub(pat, rep, c)
     for pat, rep in _CATEGORY_PHRASES:
         c = re.sub(pat, f" {rep} ", c)
     return " ".join(c.split())
