@@ -1,9 +1,11 @@
 """The rules baseline's command reader: a natural-language command in, a `Plan` out (or a refusal with its reason).
 
-Works from words only (never from the simulator's catalogue): it knows task verbs and their synonyms, the
+Works from words only (it never reads the simulator or perception at run time): it knows task verbs, the
 prepositions that name a destination, polite and indirect wrappers, relative clauses that locate an object,
 counts and amounts of motion, conditionals, distractors named in a negation, size comparisons, categories,
-and a few compound nouns. Objects it does not know are kept as written ("pick up the unicorn" targets a
+and a few compound nouns; passive, causative and verb-less forms ("red cup to the table": read as pick and
+place, `Plan.note` says so). A noun no room holds ("your time", "a bit", "the answer") is never the target
+(rules_lexicon.py). Objects it does not know are kept as written ("pick up the unicorn" targets a
 unicorn); the policy matches them against perception's detections. A command with no object, no motion and
 no task verb ("sing me a song") is not understood: `Plan.understood` is False and `Plan.reason` says why.
 
