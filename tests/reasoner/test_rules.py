@@ -498,3 +498,13 @@ def test_place_codes_decide_release() -> None:
                                              ("aborted", OutcomeCode.ABORTED)])
 def test_a_status_without_code_maps_from_its_state(state: str, code: OutcomeCode) -> None:
     assert PastStep("forward", None, state, "older log").code == code
+
+
+def test_a_verbless_command_is_flown_and_its_first_step_says_how_it_was_read() -> None:
+    """Issue 33: "red cup to the table" is not refused; the first decision says it was read as pick and place."""
+    policy = RulesPolicy()
+    d = policy.decide_full(_ctx("red cup to the table", []))
+    assert d.failure is None and d.skill != "done"
+    assert "no task verb" in d.reasoning and "red cup" in d.reasoning and "table" in d.reasoning
+    later = policy.decide_full(_ctx("red cup to the table", [_motion("yaw_left", 0.0, 0.0, 45.0)]))
+    assert "no task verb" not in later.reasoning

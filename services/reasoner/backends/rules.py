@@ -117,6 +117,8 @@ class RulesPolicy:
             return Decision(S.DONE, None, f"I cannot carry out this command: {plan.reason}.",
                             failure=f"refused: {plan.reason}")
         skill, arg, why = self._decide(ctx, plan)
+        if plan.note and all(s.skill in S.OPERATOR_SKILLS for s in ctx.steps):
+            why = f"{plan.note} {why}"  # the first step says how an unsure reading was made (issue 33)
         failure = why if skill == S.DONE and why.startswith(NOT_FOUND) else None
         return Decision(skill, arg, why, failure)
 

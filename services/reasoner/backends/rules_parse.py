@@ -1,9 +1,11 @@
 """The rules baseline's command reader: a natural-language command in, a `Plan` out (or a refusal with its reason).
 
-Works from words only (never from the simulator's catalogue): it knows task verbs and their synonyms, the
+Works from words only (it never reads the simulator or perception at run time): it knows task verbs, the
 prepositions that name a destination, polite and indirect wrappers, relative clauses that locate an object,
 counts and amounts of motion, conditionals, distractors named in a negation, size comparisons, categories,
-and a few compound nouns. Objects it does not know are kept as written ("pick up the unicorn" targets a
+and a few compound nouns; passive, causative and verb-less forms ("red cup to the table": read as pick and
+place, `Plan.note` says so). A noun no room holds ("your time", "a bit", "the answer") is never the target
+(rules_lexicon.py). Objects it does not know are kept as written ("pick up the unicorn" targets a
 unicorn); the policy matches them against perception's detections. A command with no object, no motion and
 no task verb ("sing me a song") is not understood: `Plan.understood` is False and `Plan.reason` says why.
 
@@ -16,6 +18,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass, field
 
+from services.reasoner.backends.rules_lexicon import object_noun
 from shared import skills as S  # noqa: N812
 
 YAW_STEP_DEG = 45.0
@@ -64,8 +67,9 @@ _CARRY_VERBS = {"bring", "carry", "take", "deliver", "get", "fetch", "grab", "pi
                 "lift", "retrieve", "hand", "pass", "give", "obtain", "return", "gather"}
 _DOUBLED = {"grab": "grabbing", "drop": "dropping", "get": "getting", "put": "putting", "set": "setting",
             "snag": "snagging", "nab": "nabbing", "plop": "plopping", "pop": "popping", "stop": "stopping",
-            "step": "stepping", "shift": "shifting"}
-_IRREGULAR = {"brought": "bring", "took": "take", "got": "get", "gotten": "get", "picked": "pick", "placed": "place",
+            "step": "stepping", "shift": "shifting", "transfer": "transferring"}
+_IRREGULAR = {"transferred": "transfer", "taken": "take", "carried": "carry", "laid": "lay", "delivered": "deliver",
+              "brought": "bring", "took": "take", "got": "get", "gotten": "get", "picked": "pick", "placed": "place",
               "grabbed": "grab", "fetched": "fetch", "moved": "move", "dropped": "drop"}
 
 # Determiners and fillers before a noun phrase; words that end one.
@@ -80,7 +84,9 @@ _NP_STOP = {"on", "onto", "in", "into", "inside", "to", "from", "at", "by", "nea
             "out", "back", "away", "atop", "upon", "against", "between", "among", "please", "right", "left",
             "immediately", "first", "afterwards", "otherwise", "else", "unless", "than", "nearby", "close", "along",
             "to-", "asap", "thanks", "thank", "real", "very", "anywhere", "everywhere", "within", "above",
-            "all", "only", "just", "currently", "you", "i", "we", "he", "she", "they"}
+            "all", "only", "just", "currently", "you", "i", "we", "he", "she", "they", "forward", "forwards",
+            "backward", "backwards", "ahead", "upward", "upwards", "downward", "downwards", "sideways", "clockwise",
+            "slightly", "a bit"}
 _VERB_STOP = {"bring", "grab", "pick", "take", "get", "fetch", "put", "place", "find", "locate", "carry", "move",
               "deliver", "collect", "retrieve", "lift", "drop", "snag", "seize", "grasp", "hand", "give", "deposit",
               "set", "leave", "turn", "fly", "go", "rotate", "approach", "is", "are", "be"}
@@ -120,6 +126,9 @@ class Plan:
     understood: bool = True
     reason: str = ""
     """Why the command is refused (when not understood)."""
+    note: str = ""
+    """What the reader made of a command it was unsure of ("no task verb: read as ..."), for the task's first
+    step to say instead of refusing."""
 
     def as_record(self) -> dict:
         """The fields of a phrasing-set line (tests/reasoner/data/phrasings_dev.jsonl)."""
@@ -196,8 +205,23 @@ def normalize(command: str) -> str:
     for a, b in _CONTRACTIONS:
         c = c.replace(a, b)
     c = re.sub(r"\bwhich ever\b", "whichever", c)
+    # before the politeness words go ("mind", "if you can"): phrases that carry meaning with them
+    c = re.sub(r"\bnever mind\b", " ignore ", c)
+    c = re.sub(r"\bsee if you can (?=find|spot|locate|see)\b", " ", c)
+    c = re.sub(r"^\s*(?:so\s*,?\s*)?where (?:is|are)\b|\bcan you tell me where (?:is|are)\b", " find ", c)
+    c = re.sub(r"\bhave a look (?:around )?for\b", " find ", c)
+    c = re.sub(r"(?:^|(?<=[.;!?]))\s*(?:do|can|could) you (?:see|spot)\b|(?:^|(?<=[.;!?]))\s*(?:is|are) there\b",
+               " find ", c)
+    c = re.sub(r"\s*(?:->|=>|→)\s*", " to ", c)  # "red cup -> table"
+    # amounts written out, so one pattern reads them ("ninety degrees", "half a metre")
+    c = re.sub(r"\b(?:a|one) hundred (?:and )?eighty\b", "180", c)
+    c = re.sub(r"\bthree hundred (?:and )?sixty\b", "360", c)
+    c = re.sub(r"\bninety\b", "90", c)
+    c = re.sub(r"\bforty[- ]five\b", "45", c)
+    c = re.sub(r"\bhalf (?:a |of a )?(met(?:re|er)|m)\b", r"0.5 \1", c)
+    c = re.sub(r"\bquarter (?:of )?(?:a )?(met(?:re|er))\b", r"0.25 \1", c)
     c = re.sub(r"\s(?:--+|—|–)\s", " ; ", c)
-    c = re.sub(r"\bi(?: would)? (?:like|want|love) (?P<x>(?:the |a |an |my )?[a-z][a-z \-]*?) (?P<p>on top of|"
+    c = re.sub(r"\bi(?: would)? (?:like|want|love|need) (?P<x>(?:the |a |an |my )?[a-z][a-z \-]*?) (?P<p>on top of|"
                r"onto|into|on|in|"
                r"inside) (?=the |a |my )", r"put \g<x> \g<p> ", c)
     words = [_FORMS.get(w, w) for w in re.findall(r"\d+\.\d+|[a-z0-9'\-]+|[^\sa-z0-9'\-]", c)
@@ -217,10 +241,23 @@ def normalize(command: str) -> str:
     c = re.sub(r"\bgo (?:and )?(get|grab|fetch|pick up|collect|retrieve|find|bring)\b", r" \1 ", c)
     c = re.sub(r"\b(?:set|put|lay|place|drop|plop) (it|them|that|this)? ?down\b", r" put \1 ", c)
     c = re.sub(r"\bdrop (it|them|that|this)? ?off\b", r" put \1 ", c)
-    c = re.sub(r"^\s*(?:the |a |an |my )?(?P<x>[a-z][a-z \-]*?) (?:needs|has|should|must|ought|is|are|has got) (?:to )?"
-               r"(?:go|be (?:put|placed|moved|set|brought|taken|returned)|end up|get put)\b", r"put the \g<x>", c)
-    for pat, rep in _COMPOUNDS:
+    for pat, rep in _COMPOUNDS:  # before the passive forms read a name ("the can of coke can be put ...")
         c = re.sub(pat, rep, c)
+    # causatives: "have the cup put on the table", "make the cup go to the table", "get the cup moved to ..."
+    c = re.sub(r"^\s*(?:make|have|get) (?:the |a |an |my )?(?P<x>[a-z](?:(?!\b(?:and|then|or|but|in|on|at|to|into|"
+               r"onto|from|with|for|by)\b)[a-z \-])*?) "
+               r"(?:go|end up|put|place|move|set|bring|take|carry|transfer|drop|lay|deposit)\b", r"put the \g<x>", c)
+    # "can" is a modal here unless it ends a can's name ("the coke can should go ..."); "the coke can be put on
+    # the shelf" names the can and the modal at once
+    c = re.sub(r"^(\s*(?:the |a |an |my )?[a-z \-]*?\b(?:coke|soda|cola|beer|paint|trash)) can (be|go)\b",
+               r"\1 can can \2", c)
+    c = re.sub(r"^\s*(?:the |a |an |my )?(?P<x>[a-z][a-z \-]*?) (?:(?:needs|has|should|must|ought|is|are|has got|"
+               r"will|would|could|(?<!\bcoke )(?<!\bsoda )(?<!\bcola )(?<!\bbeer )(?<!\bpaint )(?<!\btrash )can|"
+               r"may|might)(?: really)? (?:to )?(?:go|be (?:put|place|placed|move|moved|set|"
+               r"bring|brought|take|taken|return|returned|carry|carried|lay|laid|leave|left|drop|dropped|transfer|"
+               r"transferred|stick|stuck|deposit|deposited|rest|rested|shift|shifted)|end up|get put|live|sit|stay)|"
+               r"belongs?|goes|(?:is|are) supposed to (?:be|go)|(?:would|will) (?:be|look) better|should (?:be|stay|"
+               r"sit)|must be|needs to be)\b", r"put the \g<x>", c)
     for pat, rep in _CATEGORY_PHRASES:
         c = re.sub(pat, f" {rep} ", c)
     return " ".join(c.split())
@@ -239,6 +276,8 @@ def noun_phrase(text: str) -> str:
             return "one"
         i += 1
     for w in words[i:]:
+        if out and _adverb(w):
+            break
         if not re.fullmatch(r"[a-z0-9][a-z0-9\-]*", w) or w in _NP_STOP or (out and w in _DET and w != "one") \
                 or (out and w in _VERB_STOP):
             break
@@ -246,6 +285,11 @@ def noun_phrase(text: str) -> str:
         if len(out) >= 4:
             break
     return " ".join(out)
+
+
+def _adverb(word: str) -> bool:
+    """"slowly", "safely": a manner adverb ends a noun phrase ("grab the cup slowly")."""
+    return len(word) >= 6 and word.endswith("ly") and object_noun(word) is not True
 
 
 def _clean(np_: str) -> str | None:
@@ -268,9 +312,22 @@ _IF_SEE = (r"\b(?:if|in case|should|when|whenever|provided)\s+(?:you\s+)?(?:can\
            r"there (?:is|are)|there happens to be|you come across)\s+")
 
 
+_NEG_FIRST = re.compile(r"^\s*(?:if|in case|should)\s+(?:you\s+)?(?:cannot|can not|do not|did not|could not|"
+                        r"fail to)\s+(?:see|find|spot|locate)\s+(?P<a>[a-z][a-z \-]*?)\s*,\s*"
+                        r"(?:then\s+)?(?P<b>[^;.]*?)\s*[;.,]?\s*"
+                        r"(?:otherwise|or else|else|if you do|if you can)\b,?(?P<rest>.*)$")
+
+
 def _conditional(c: str, plan: Plan) -> str:
     """"If you see an orange, pick it up; otherwise grab the banana" -> choices [orange, banana]; the rest of the
     command is returned. A conditional without an else branch names the target."""
+    neg = _NEG_FIRST.match(c)
+    if neg:  # "if you cannot find the apple, take the banana; otherwise take the apple": [apple, banana]
+        first, second = noun_phrase(neg.group("a")), noun_phrase(_after_verb(neg.group("b")) or neg.group("b"))
+        if first and second and first not in _PRONOUNS and second not in _PRONOUNS:
+            plan.choices = [singular(first), singular(second)]
+            plan.destination = _branch_destination(neg.group("b")) or _branch_destination(neg.group("rest"))
+            return ""
     m = re.search(_ELSE, c)
     head = c[: m.start()] if m else c
     cond = re.search(_IF_SEE + r"(.*)", head) or re.search(_IF_IS + r"(.*)", head)
@@ -299,7 +356,8 @@ def _conditional(c: str, plan: Plan) -> str:
     if cond and not m:
         first = noun_phrase(cond.group(1))
         if first and first not in _PRONOUNS:
-            rest = re.sub(r"\b(it|them|that|one)\b", first, c[cond.end(1) - len(cond.group(1)) + len(first):], count=1)
+            end = cond.start(1) + cond.group(1).find(first) + len(first)  # past the object's words
+            rest = re.sub(r"\b(it|them|that|one)\b", first, c[end:], count=1)
             return c[: cond.start()] + " " + re.sub(r"^[\s,]*(?:then\s+)?", "", rest)
     return c
 
@@ -338,35 +396,49 @@ def _after_verb(text: str) -> str | None:
     return text[m.end():] if m else None
 
 
+_LIST_END = r"(?=\s*(?:\band\b|\bor\b|\bnor\b|\bthen\b|[,.;:!?]|$))"
 _EXCLUDE = (
-    r"\b(?:ignore|ignoring|disregard|skip|avoid|avoiding|forget about|never mind)\s+(?:the |all |any |those |these |"
-    r"every )?(?:other )?" + _OBJ + r"(?=\s*(?:\band\b|\bthen\b|[,.;:!?]|$))",
+    r"\b(?:ignore|ignoring|disregard|disregarding|skip|avoid|avoiding|forget about|never mind)\s+(?:the |all |any |"
+    r"those |these |every )?(?:other )?" + _OBJ + _LIST_END,
     r"\b(?:do not|never|without) (?:touch|touching|take|taking|grab|grabbing|pick up|picking up|pick|get|move|"
-    r"moving|disturb|disturbing|bother with|knock over) (?:the |a |an |any |those |these )?" + _OBJ +
-    r"(?=\s*(?:\band\b|\bthen\b|[,.;:!?]|$))",
+    r"moving|disturb|disturbing|bother with|knock over) (?:the |a |an |any |those |these )?" + _OBJ + _LIST_END,
     r"(?:^\s*|,\s*|\s+)(?:and |but |though |just )?not (?:the |a |an |that |this |any |those )?" + _OBJ +
-    r"(?=\s*(?:\band\b|\bthen\b|[,.;:!?]|$))",
+    r"(?=\s*(?:\band\b|\bor\b|\bnor\b|\bthen\b|[,.;:!?]|$))",
     r"\b(?:rather than|instead of|except(?: for)?|other than|apart from|but not|as opposed to|anything but|"
     r"everything but|anything except|not including|excluding) (?:the |a |an |any )?"
-    + _OBJ + r"(?=\s*(?:\band\b|\bthen\b|[,.;:!?]|$))",
-    r"\bleave (?:the |a |an |any |those |these )?" + _OBJ + r"\s+(?:alone|be|where (?:it is|they are)|untouched|"
-    r"in place)",
+    + _OBJ + _LIST_END,
+    r"\bleave (?:the |a |an |any |those |these )?" + _OBJ + r"(?P<more>(?:(?:\s*,\s*(?:and\s+|or\s+)?|\s+(?:and|or)\s+)"
+    r"(?:the |a |an |any )?" + _OBJ + r")*)\s+(?:alone|be|where (?:it is|they are)|untouched|in place)",
 )
 _LEAVE = re.compile(r"\b(?:and |but |then )?leave (?:the |a |an |any |those |these )?(?P<np>[a-z0-9\- ]+?)"
                     r"(?=\s*(?:\band\b|\bthen\b|[,.;:!?]|$))")
+# One more item of a list of distractors: "ignore the hammer, the wrench and the drill", "don't touch the cup or
+# the can". An item starts with a determiner, so "ignore the tools and pick up the bottle" ends at "tools".
+_MORE = r"(?:\s*,\s*(?:and\s+|or\s+)?|\s+(?:and|or|nor)\s+)(?:the|a|an|any|those|these)\s+" + _OBJ + _LIST_END
+_MORE_OR = r"\s+(?:or|nor)\s+(?:the|a|an|any)\s+" + _OBJ + _LIST_END  # after "not the X": "or"/"nor" only
 
 
 def _exclusions(c: str, plan: Plan) -> str:
-    """Distractors named in a negation ("not the coke can", "ignore the tools") -> plan.excluded."""
-    for pat in _EXCLUDE:
+    """Distractors named in a negation ("not the coke can", "ignore the tools", a list of them) -> plan.excluded."""
+    for k, pat in enumerate(_EXCLUDE):
         while True:
             m = re.search(pat, c)
             if not m:
                 break
-            np_ = noun_phrase(m.group(1))
-            if np_ and np_ not in _PRONOUNS:
-                plan.excluded.append(singular(np_))
-            c = c[: m.start()] + " " + c[m.end():]
+            names = [m.group(1)]
+            end = m.end()
+            if "more" in m.re.groupindex:  # "leave the X and the Y where they are"
+                names += [x for x in re.split(r"\s*,\s*(?:and\s+|or\s+)?|\s+(?:and|or)\s+", m.group("more")) if x]
+            else:
+                more = _MORE_OR if k == 2 else _MORE
+                while (x := re.match(more, c[end:])) is not None:
+                    names.append(x.group(1))
+                    end += x.end()
+            for name in names:
+                np_ = noun_phrase(name)
+                if np_ and np_ not in _PRONOUNS:
+                    plan.excluded.append(singular(np_))
+            c = c[: m.start()] + " " + c[end:]
     for m in list(_LEAVE.finditer(c))[::-1]:  # "... and leave the purple cup": a distractor, when nothing follows
         if noun_phrase(m.group("np")) == m.group("np").strip() and m.group("np").strip() not in _PRONOUNS:
             plan.excluded.append(singular(m.group("np").strip()))
@@ -427,8 +499,8 @@ _TURN_AROUND = re.compile(r"\b(?:turn|spin|rotate|swing)\s+(?:yourself\s+)?(?:al
                           + r")?|"
                           r"\bturn back\b|\babout[- ]face\b|\b(?:do|make) a u-?turn\b")
 _TURN_BY = re.compile(r"\b(?:turn|rotate|yaw|spin|pivot|swivel)(?:\s+(?:yourself|around|round))?(?P<post>"
-                      r"(?:\s+(?:by\s+|about\s+)?(?:\d+|ninety|forty-five|a hundred and eighty)\s+(?:degrees?|deg)|"
-                      r"\s+(?:a\s+)?(?:quarter|half)(?:\s+(?:a\s+)?(?:turn|circle|rotation))?))"
+                      r"(?:\s+(?:by\s+|about\s+)?(?:\d+|ninety|forty-five|a hundred and eighty)\s+(?:degrees?|deg)\b|"
+                      r"\s+(?:a\s+)?(?:quarter|half)(?:\s+(?:a\s+)?(?:turn|circle|rotation))?\b))"
                       r"(?!\s+(?:to (?:the |your )?)?(?:left|right|clockwise|counter|anti))")
 _FULL_TURN = re.compile(r"\b(?:do|make|perform|spin|rotate|turn)\s+(?:a\s+)?(?:full|complete|whole)\s+"
                         r"(?:turn|circle|rotation|360|spin)\b|\b(?:spin|rotate|turn)\s+(?:a\s+)?(?:full\s+)?360\b")
@@ -450,7 +522,8 @@ _GOTO = re.compile(r"\b(?:approach|go|fly|head|move|travel|navigate|proceed|get|
                    r"go over|fly over|head over|move over)\s*(?:over\s+|on\s+|straight\s+|right\s+)?"
                    r"(?:to|toward|towards|up to|near|close to|next to|over to|in front of|beside)?\s*"
                    r"(?:the|a|an|that|this)\s+(?P<what>[a-z][a-z \-]*)")
-_STEP_COUNT = re.compile(r"\b(?P<n>\d+|a|an|one|two|three|four|five|six|couple(?: of)?|few)\s+(?P<unit>steps?|meters?|"
+_STEP_COUNT = re.compile(r"(?<![\d.])\b(?P<n>\d+(?:\.\d+)?|a|an|"
+                         r"one|two|three|four|five|six|couple(?: of)?|few)\s+(?P<unit>steps?|meters?|"
                          r"metres?|m)\s+(?:to (?:the |your )?)?(?P<dir>forwards?|ahead|backwards?|back|left|"
                          r"right|up|down)\b")
 
@@ -542,7 +615,7 @@ def motions(clause: str) -> list[str]:
         add(lone, [skill] * _amount(lone, skill, ("post",)))
     for m in _GOTO.finditer(clause):
         what = noun_phrase(m.group("what"))
-        if what and what not in _DIRS and what.split()[0] not in _DIRS:
+        if what and what not in _DIRS and what.split()[0] not in _DIRS and not not_an_object(what):
             add(m, [APPROACH + singular(what)])
     return [s for _pos, skills in sorted(found, key=lambda f: f[0]) for s in skills]
 
@@ -612,7 +685,7 @@ _PLACE_CLAUSE = re.compile(r"\b(?:put|place|set|drop|deposit|leave|lay|rest|posi
                            r"transfer|relocate|move|carry|take|bring|deliver|return|unload|shift)\b"
                            r"(?:\s+(?:it|them|that|this|the object|the item|the thing|one))?"
                            r"(?:\s+(?:down|back|over|off|up|right|away))?\s+(?P<prep>" + _STRONG_PREP + "|" + _WEAK_PREP
-                           + r")\s+(?P<np>[a-z][a-z \-]*)")
+                           + r")\s+(?=(?P<np>[a-z][a-z \-]*))")  # a lookahead: the next clause is searched too
 
 
 _NOT_OBJECTS = {"room", "area", "house", "kitchen", "picture", "photo", "look", "break", "nap", "seat", "off",
@@ -627,16 +700,22 @@ def _object_np(rest: str) -> str | None:
     np_ = noun_phrase(rest)
     if not np_ or np_ in _PRONOUNS or np_ in _DIRS or np_.split()[0] in _DIRS or np_.split()[0] in _NUM_WORDS:
         return None
-    if singular(np_).split()[-1] in _NOT_OBJECTS or np_.split()[0] in TASK_VERBS:
+    if not_an_object(np_) or np_.split()[0] in TASK_VERBS:
         return None
     return np_
+
+
+def not_an_object(np_: str) -> bool:
+    """A phrase whose head noun no room holds as a thing ("your time", "a bit", "the answer"): never a target."""
+    head = singular(np_).split()[-1] if np_.split() else ""
+    return head in _NOT_OBJECTS or object_noun(head) is False
 
 
 def _is_action(clause: str) -> bool:
     """A clause with a task verb acting on an object (or a pronoun standing for one)."""
     for m in _VERB_RE.finditer(clause + " "):
         rest = clause[m.end():]
-        if _object_np(rest) or re.match(r"(?:it|them|that|this|one)\b", rest.strip()):
+        if _object_np(rest) or re.match(r"(?:it|them|that|this)\b", rest.strip()) or noun_phrase(rest) == "one":
             return True
     return False
 
@@ -685,7 +764,7 @@ def _antecedent(c: str) -> str | None:
     for m in re.finditer(r"\b(?:my|the|a|an|our|your)\s+([a-z][a-z \-]*)", c):
         np_ = noun_phrase(m.group(1))
         if np_ and np_ not in ("room", "area", "house", "kitchen", "place", "floor", "way", "moment", "time") \
-                and np_ not in _PRONOUNS and np_.split()[0] not in _DIRS:
+                and not not_an_object(np_) and np_ not in _PRONOUNS and np_.split()[0] not in _DIRS:
             return singular(np_)
     return None
 
@@ -728,7 +807,39 @@ def parse_command(command: str, skills: list[str] | tuple[str, ...] = ()) -> Pla
         plan.target = None
     if plan.category and plan.target is None and plan.excluded and plan.category in plan.excluded:
         plan.category = None
+    if verb is None and not (plan.target or plan.choices or plan.category or plan.selector or plan.motions):
+        _telegraphic(c, plan)
     return _judge(plan, verb, command)
+
+
+_TELEGRAPHIC = re.compile(r"^\s*(?:the |a |an |my |that |this )?(?P<x>[a-z][a-z0-9 \-]*?)\s*(?:(?:,\s*)?\b(?P<prep>"
+                          + _STRONG_PREP + "|" + _WEAK_PREP + r"|over)\s+(?P<y>[a-z][a-z0-9 \-]*?))?[\s,.!?;:]*$")
+
+
+def _telegraphic(c: str, plan: Plan) -> None:
+    """A command without a verb: "red cup to the table", "the banana on the shelf please", "the apple, please".
+    Read as pick up (and place), when the object named is something a room holds (a known physical noun; an
+    unknown one only with a known destination), and said so in `plan.note`."""
+    m = _TELEGRAPHIC.match(c)
+    if not m:
+        return
+    x = noun_phrase(m.group("x"))
+    if not x or x != " ".join(m.group("x").split()) or x in _PRONOUNS or not_an_object(x):
+        return
+    dest = _dest_np(m.group("y")) if m.group("y") else None
+    if m.group("y") and (dest is None or noun_phrase(m.group("y")) != " ".join(m.group("y").split()[
+            1 if m.group("y").split()[0] in _DET else 0:])):
+        return
+    known = object_noun(singular(x).split()[-1]) is True
+    if not known and not (dest and object_noun(dest.split()[-1]) is True):
+        return
+    if x in CATEGORY_WORDS or singular(x) in CATEGORY_WORDS:
+        plan.category = singular(x)
+    else:
+        plan.target = singular(x)
+    plan.destination = dest
+    plan.note = (f"The command has no task verb; I read it as: pick up the {plan.target or plan.category}"
+                 + (f" and place it on the {dest}." if dest else "."))
 
 
 def _judge(plan: Plan, verb: str | None, command: str) -> Plan:
