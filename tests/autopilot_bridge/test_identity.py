@@ -16,6 +16,7 @@ from services.autopilot_bridge.settings import BridgeSettings
 from shared.bus import Bus
 from shared.keys import Keys
 from tests.autopilot_bridge.fake_px4 import FakePX4
+from tests.autopilot_bridge.rig import running_bridge
 from tests.helpers import free_port, free_udp_port, wait_until
 
 REFUSED = "refused a second autopilot"
@@ -101,24 +102,18 @@ async def test_a_fake_with_other_ids_is_not_taken_for_the_autopilot(system: int,
     s = BridgeSettings(connection=f"udpin:127.0.0.1:{port}")
     assert (s.target_system, s.target_component) == (1, 1)  # PX4's own ids by default
     link = MavlinkLink(s.connection)
-    bridge = Bridge(None, s, link)
-    stop = asyncio.Event()
-    link.start(asyncio.get_running_loop(), bridge.on_message)
-    hb = asyncio.create_task(bridge.heartbeat_loop(stop))
-    fake = _intruder(port, system, component)
-    try:
-        await wait_until(lambda: bridge.counters["refused_autopilot"] >= 10, 20, what="the fake's heartbeats")
-        st = bridge.state()
-        assert not st.link_ok and not st.armed and st.mode == "UNKNOWN"
-        assert (st.position.x, st.position.y, st.position.z) == (0.0, 0.0, 0.0)
-        assert bridge.target_system is None and link.peer is None and not bridge.have_position
-        assert fake.received == []
-        assert len(_refusals(caplog, fake.port)) == 1
-    finally:
-        stop.set()
-        hb.cancel()
-        link.close()
-        fake.stop()
+    async with running_bridge(s, link) as bridge:
+        fake = _intruder(port, system, component)
+        try:
+            await wait_until(lambda: bridge.counters["refused_autopilot"] >= 10, 20, what="the fake's heartbeats")
+            st = bridge.state()
+            assert not st.link_ok and not st.armed and st.mode == "UNKNOWN"
+            assert (st.position.x, st.position.y, st.position.z) == (0.0, 0.0, 0.0)
+            assert bridge.target_system is None and link.peer is None and not bridge.have_position
+            assert fake.received == []
+            assert len(_refusals(caplog, fake.port)) == 1
+        finally:
+            fake.stop()
 
 
 async def test_configured_ids_are_the_ones_taken() -> None:
@@ -127,29 +122,22 @@ async def test_configured_ids_are_the_ones_taken() -> None:
     port = free_udp_port()
     s = BridgeSettings(connection=f"udpin:127.0.0.1:{port}", target_system=2, target_component=2)
     link = MavlinkLink(s.connection)
-    bridge = Bridge(None, s, link)
-    stop = asyncio.Event()
-    link.start(asyncio.get_running_loop(), bridge.on_message)
-    hb = asyncio.create_task(bridge.heartbeat_loop(stop))
-    default_ids = _intruder(port, 1, 1)
-    fake = _intruder(port, 2, 2)
-    try:
-        await wait_until(lambda: bridge.link_ok and bridge.have_position, 20, what="the configured autopilot")
-        assert (bridge.target_system, bridge.target_component) == (2, 2) and link.peer == ("127.0.0.1", fake.port)
-        await wait_until(lambda: "HEARTBEAT" in fake.names(), 10, what="our heartbeat to it")
-        ours = next(m for m in fake.received if m.get_type() == "HEARTBEAT")
-        assert ours.get_srcSystem() == s.source_system
-        st = bridge.state()
-        assert st.armed and st.mode == "OFFBOARD" and abs(st.position.z - 3.0) < 0.01
-        assert default_ids.received == []
-    finally:
-        stop.set()
-        hb.cancel()
-        for t in list(bridge._tasks):
-            t.cancel()
-        link.close()
-        fake.stop()
-        default_ids.stop()
+    async with running_bridge(s, link) as bridge:
+        default_ids = _intruder(port, 1, 1)
+        fake = _intruder(port, 2, 2)
+        try:
+            await wait_until(lambda: bridge.link_ok and bridge.have_position, 20, what="the configured autopilot")
+            assert (bridge.target_system, bridge.target_component) == (2, 2)
+            assert link.peer == ("127.0.0.1", fake.port)
+            await wait_until(lambda: "HEARTBEAT" in fake.names(), 10, what="our heartbeat to it")
+            ours = next(m for m in fake.received if m.get_type() == "HEARTBEAT")
+            assert ours.get_srcSystem() == s.source_system
+            st = bridge.state()
+            assert st.armed and st.mode == "OFFBOARD" and abs(st.position.z - 3.0) < 0.01
+            assert default_ids.received == []
+        finally:
+            fake.stop()
+            default_ids.stop()
 
 
 def test_ids_are_settings_with_px4_defaults(monkeypatch: pytest.MonkeyPatch) -> None:

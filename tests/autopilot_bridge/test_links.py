@@ -15,12 +15,12 @@ import threading
 import pytest
 
 from services.autopilot_bridge import px4
-from services.autopilot_bridge.bridge import Bridge
 from services.autopilot_bridge.link import MavlinkLink, parse_connection
 from services.autopilot_bridge.settings import BridgeSettings
 from shared.errors import MavlinkError
 from shared.messages import ArmCommand, GripperCommand, GripperState
 from tests.autopilot_bridge.fake_px4 import SAFE_FAILSAFE_PARAMS, FakePX4, mavlink, param_reply
+from tests.autopilot_bridge.rig import running_bridge
 from tests.autopilot_bridge.test_bridge import bridge_and_fake
 from tests.helpers import free_udp_port, wait_until
 
@@ -117,26 +117,18 @@ async def test_bridge_over_a_serial_link(by_path: bool, tmp_path) -> None:
     link = MavlinkLink(s.connection, baud=s.baud, source_system=s.source_system,
                        source_component=s.source_component)
     assert not link.is_udp
-    bridge = Bridge(None, s, link)
-    stop = asyncio.Event()
     fc.start()
-    link.start(asyncio.get_running_loop(), bridge.on_message)
-    hb = asyncio.create_task(bridge.heartbeat_loop(stop))
     try:
-        await wait_until(lambda: bridge.link_ok and bridge.have_position, 20, what="PX4 over the serial link")
-        assert bridge.target_system == 1 and bridge.state().mode == "POSCTL"
-        res = await bridge.handle(ArmCommand())
-        assert res.ok and res.ack_name == "MAV_RESULT_ACCEPTED", res
-        await wait_until(lambda: any(m.get_type() == "HEARTBEAT" for m in fc.received), 5, what="our heartbeat")
-        ours = next(m for m in fc.received if m.get_type() == "HEARTBEAT")
-        assert (ours.get_srcSystem(), ours.get_srcComponent()) == (1, px4.MAV_COMP_ID_ONBOARD_COMPUTER)
-        await wait_until(lambda: bridge.armed, 5, what="armed over serial")
+        async with running_bridge(s, link) as bridge:
+            await wait_until(lambda: bridge.link_ok and bridge.have_position, 20, what="PX4 over the serial link")
+            assert bridge.target_system == 1 and bridge.state().mode == "POSCTL"
+            res = await bridge.handle(ArmCommand())
+            assert res.ok and res.ack_name == "MAV_RESULT_ACCEPTED", res
+            await wait_until(lambda: any(m.get_type() == "HEARTBEAT" for m in fc.received), 5, what="our heartbeat")
+            ours = next(m for m in fc.received if m.get_type() == "HEARTBEAT")
+            assert (ours.get_srcSystem(), ours.get_srcComponent()) == (1, px4.MAV_COMP_ID_ONBOARD_COMPUTER)
+            await wait_until(lambda: bridge.armed, 5, what="armed over serial")
     finally:
-        stop.set()
-        hb.cancel()
-        for t in list(bridge._tasks):
-            t.cancel()
-        link.close()
         fc.stop()
 
 

@@ -4,7 +4,6 @@ pymavlink's own code (as PX4 with a key on its SD card does)."""
 
 from __future__ import annotations
 
-import asyncio
 import contextlib
 import socket
 import time
@@ -12,12 +11,12 @@ import time
 import pytest
 
 from services.autopilot_bridge import px4
-from services.autopilot_bridge.bridge import Bridge
 from services.autopilot_bridge.link import MavlinkLink
 from services.autopilot_bridge.settings import BridgeSettings
 from shared.errors import ConfigError
 from shared.messages import ArmCommand
 from tests.autopilot_bridge.fake_px4 import FakePX4, mavlink
+from tests.autopilot_bridge.rig import running_bridge
 from tests.helpers import free_udp_port, wait_until
 
 KEY_HEX = "5f" * 16 + "a3" * 16
@@ -32,18 +31,8 @@ async def signing_bridge(monkeypatch: pytest.MonkeyPatch):
     s = BridgeSettings(connection=f"udpin:127.0.0.1:{port}", command_timeout_s=0.5)
     link = MavlinkLink(s.connection, signing_key=s.signing_key_bytes)
     assert link.signing
-    bridge = Bridge(None, s, link)
-    stop = asyncio.Event()
-    link.start(asyncio.get_running_loop(), bridge.on_message)
-    hb = asyncio.create_task(bridge.heartbeat_loop(stop))
-    try:
+    async with running_bridge(s, link) as bridge:
         yield bridge, port
-    finally:
-        stop.set()
-        hb.cancel()
-        for t in list(bridge._tasks):
-            t.cancel()
-        link.close()
 
 
 async def test_a_signing_autopilot_is_heard_and_gets_signed_frames(monkeypatch: pytest.MonkeyPatch) -> None:
