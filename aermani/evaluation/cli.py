@@ -35,6 +35,9 @@ def eval_command(
                                               "plan_once), which need a model backend.")] = "full",
     episodes: Annotated[int | None, typer.Option(help="Episodes per suite (cycling through its tasks); "
                                                       "default 10, or each task of --tasks once.")] = None,
+    seeds_per_line: Annotated[int | None, typer.Option(min=1, max=100, help="Run every line of each suite on this "
+                                                       "many layouts (episodes = lines x seeds); "
+                                                       "instead of --episodes.")] = None,
     split: Annotated[str, typer.Option(help="Split of the built-in suites: dev (work against it) or test (held "
                                             "out: headline figures only, never tuned on).")] = "dev",
     suites: Annotated[str | None, typer.Option(help="Comma list of suites (localization, clutter, sequential, "
@@ -105,11 +108,15 @@ def eval_command(
         console.print(f"[red]unknown output mode {output_mode!r}; use auto, schema, text or both[/red]")
         raise typer.Exit(2)
     api_key = os.environ.get("AERMANI_REASONER_API_KEY")
+    if seeds_per_line is not None and episodes is not None:
+        console.print("[red]--seeds-per-line and --episodes both set the number of episodes; give one[/red]")
+        raise typer.Exit(2)
     modes = ["schema", "text"] if output_mode == "both" else [output_mode]
     cfg = RunConfig(out=out, backend=backend, output_mode=modes[0], variants=variants, model=model, base_url=base_url,
                     paper_history=paper_history, free_text_baselines=free_text_baselines,
                     api_key=api_key,
-                    episodes=episodes if episodes is not None else (None if tasks else 10),
+                    episodes=episodes if episodes is not None else (None if tasks or seeds_per_line else 10),
+                    seeds_per_line=seeds_per_line,
                     split=split, suites=_split(suites), tasks_file=tasks, seed=seed, parallel=parallel,
                     speed_factor=speed_factor, t_max_s=t_max, connect=connect,
                     vehicles=_split(vehicles), progress=progress, note=note, segmenter=segmenter,

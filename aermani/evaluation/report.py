@@ -194,6 +194,21 @@ def _seeds_text(records: list[EpisodeRecord]) -> str:
     return ", ".join(str(x) for x in seeds) if seeds else "--"
 
 
+def _freeze_text(config: dict[str, Any]) -> str:
+    """The held-out rule's two commits: the last that changed a test line, the last that changed the policy."""
+    frozen, policy = config.get("split_frozen"), config.get("policy_changed")
+    if not frozen and not policy:
+        return "unrecorded (a run before the split's freeze was recorded)"
+    text = f"`{str(frozen)[:12]}` / `{str(policy)[:12]}`"
+    after = config.get("policy_changed_after_freeze")
+    if after is True:
+        text += (" (the policy changed after the split froze: a test figure is held out only if that change was "
+                 "not tuned on it)")
+    elif after is False:
+        text += " (no policy change since the split froze)"
+    return text
+
+
 def configuration_lines(records: list[EpisodeRecord], config: dict[str, Any]) -> list[str]:
     """The configuration table at the top of report.md: everything that produced the numbers."""
     commit = config.get("commit") or "unrecorded"
@@ -209,6 +224,7 @@ def configuration_lines(records: list[EpisodeRecord], config: dict[str, Any]) ->
         ("rebuild the report from episodes.jsonl",
          f"`{config.get('report_only_command', 'aermani eval --out DIR --report-only')}`"),
         ("commit", rev),
+        ("test split frozen at / last parser or policy change", _freeze_text(config)),
         ("backend", ", ".join(f"{b}" + (" (non-VLM baseline)" if b == "rules" else "") for b in backends)),
         ("model", ", ".join(models)),
         ("variant", ", ".join(variants)),
@@ -217,7 +233,8 @@ def configuration_lines(records: list[EpisodeRecord], config: dict[str, Any]) ->
         ("speed factor", str(config.get("speed_factor", "unrecorded"))),
         ("split", f"`{config.get('split') or 'unrecorded'}`" + (f" (task file {config['tasks_file']})"
                                                                 if config.get("tasks_file") else "")),
-        ("episodes per suite", str(config.get("episodes"))),
+        ("episodes per suite", f"every line x {config['seeds_per_line']} layout seeds" if config.get("seeds_per_line")
+         else str(config.get("episodes"))),
         ("N (episodes in the metrics / recorded)", f"{len(ran)} / {len(records)}"),
         ("seeds", _seeds_text(records)),
         ("T_max, judge criteria", f"{config.get('t_max_s', '?')} s, " + (
@@ -526,6 +543,9 @@ def write_report(out: Path, config: dict[str, Any] | None = None) -> dict[str, P
         "command": config.get("command"),
         "commit": config.get("commit"),
         "dirty": config.get("dirty"),
+        "split_frozen": config.get("split_frozen"),
+        "policy_changed": config.get("policy_changed"),
+        "policy_changed_after_freeze": config.get("policy_changed_after_freeze"),
         "backend": config.get("backend"),
         "model": config.get("model"),
         "variants": config.get("variants"),

@@ -79,6 +79,8 @@ class RunConfig(BaseModel):
     base_url: str | None = None
     api_key: str | None = None
     episodes: int | None = 10
+    seeds_per_line: int | None = None
+    """Every line of each suite on this many layouts (episodes = lines x seeds); overrides `episodes`."""
     split: str = DEFAULT_SPLIT
     """Built-in suites' split: dev (work against it) or test (held out; headline figures only)."""
     suites: list[str] | None = None
@@ -116,7 +118,9 @@ class RunConfig(BaseModel):
             args += ["--tasks", str(self.tasks_file)]
         if self.suites:
             args += ["--suites", ",".join(self.suites)]
-        if self.episodes is not None:
+        if self.seeds_per_line is not None:
+            args += ["--seeds-per-line", str(self.seeds_per_line)]
+        elif self.episodes is not None:
             args += ["--episodes", str(self.episodes)]
         args += ["--seed", str(self.seed), "--segmenter", self.segmenter, "--realism", self.realism,
                  "--speed-factor", f"{self.speed_factor:g}", "--t-max", f"{self.t_max_s:g}",
@@ -137,6 +141,16 @@ class RunConfig(BaseModel):
         return [f"ev{i + 1}" for i in range(max(1, self.parallel))]
 
 
+SUITE_PATHS = ("aermani/evaluation/suites",)
+"""Where the built-in suites live (the split's freezing commit is looked up there)."""
+POLICY_PATHS = ("services/reasoner/backends/rules.py", "services/reasoner/backends/rules_parse.py",
+                "services/reasoner/backends/rules_lexicon.py", "services/reasoner/prompt.py",
+                "services/reasoner/schema.py")
+"""The default policy (the rules baseline and its command reader) and what every model is shown (the prompt,
+the answer schema): a change to any of them after the test split froze is a change the split must not have
+seen."""
+
+
 def source_revision() -> dict[str, str | bool]:
     """The commit of the code that runs the evaluation and whether the work tree had uncommitted changes
     (a dirty run cannot be reproduced from the commit alone)."""
@@ -151,7 +165,21 @@ def source_revision() -> dict[str, str | bool]:
 
     commit = git("rev-parse", "HEAD")
     dirty = bool(git("status", "--porcelain", "--untracked-files=no")) if commit else False
-    return {"commit": commit or "unknown (not a git checkout)", "dirty": dirty}
+    out: dict[str, str | bool] = {"commit": commit or "unknown (not a git checkout)", "dirty": dirty}
+    if commit:
+        # The held-out rule (docs/evaluation.md, "Suites and splits"): the test split is frozen by the last commit
+        # that changed a test line, and a parser or policy change after it must not have been tuned on it.
+        frozen = git("log", "-1", "--format=%H", "-G", '"split": "test"', "--", *SUITE_PATHS)
+        policy = git("log", "-1", "--format=%H", "--", *POLICY_PATHS)
+        out["split_frozen"] = frozen or "unknown"
+        out["policy_changed"] = policy or "unknown"
+        if frozen and policy and frozen != policy:
+            after = subprocess.run(["git", "merge-base", "--is-ancestor", frozen, policy], cwd=root,
+                                   capture_output=True, timeout=20).returncode == 0
+            out["policy_changed_after_freeze"] = after
+        elif frozen and policy:
+            out["policy_changed_after_freeze"] = False
+    return out
 
 
 def episode_specs(cfg: RunConfig) -> list[EpisodeSpec]:
@@ -161,9 +189,10 @@ def episode_specs(cfg: RunConfig) -> list[EpisodeSpec]:
             tasks = {s: t for s, t in tasks.items() if s in cfg.suites}
         # A user's file lists its episodes; --episodes only repeats them when asked for more.
         return expand(tasks, episodes=cfg.episodes, backends=[cfg.backend], variants=cfg.variants,
-                      base_seed=cfg.seed)
+                      base_seed=cfg.seed, seeds_per_line=cfg.seeds_per_line)
     return expand(load_suites(cfg.suites, split=check_split(cfg.split)), episodes=cfg.episodes,
-                  backends=[cfg.backend], variants=cfg.variants, base_seed=cfg.seed)
+                  backends=[cfg.backend], variants=cfg.variants, base_seed=cfg.seed,
+                  seeds_per_line=cfg.seeds_per_line)
 
 
 # The MAVLink UDP ports every simulated vehicle gets for itself (free ports, bound when its environment is made).

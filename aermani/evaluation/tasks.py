@@ -174,15 +174,15 @@ def config_label(backend: str, variant: str) -> str:
 
 
 def expand(tasks_by_suite: dict[str, list[EvalTask]], *, episodes: int | None, backends: list[str],
-           variants: list[str], base_seed: int = 0) -> list[EpisodeSpec]:
+           variants: list[str], base_seed: int = 0, seeds_per_line: int | None = None) -> list[EpisodeSpec]:
     """Episodes for every (backend, variant) x suite: `episodes` per suite cycling through the suite's tasks
-    (None: each task once). Seeds are the task's own or derived, and identical across variants, so every
-    variant sees the same layouts."""
+    (None: each task once), or with `seeds_per_line` every task on that many layouts. Seeds are the task's own
+    or derived, and identical across variants, so every variant sees the same layouts."""
     specs: list[EpisodeSpec] = []
     for backend in backends:
         for variant in variants:
             for suite, tasks in tasks_by_suite.items():
-                n = len(tasks) if episodes is None else episodes
+                n = len(tasks) * seeds_per_line if seeds_per_line else len(tasks) if episodes is None else episodes
                 for i in range(n):
                     task = tasks[i % len(tasks)]
                     seed = task.seed if task.seed is not None else derive_seed(base_seed, suite, i, task.split)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 
@@ -307,3 +308,32 @@ def test_the_built_in_suites_have_not_found_tasks_on_the_dev_split() -> None:
     absent = [t for t in tasks if t.expect == "not_found"]
     assert absent and all(t.split == "dev" for t in absent)
     assert {t.suite for t in absent} >= {"localization", "search"}
+
+
+def test_seeds_per_line_runs_every_line_on_distinct_layouts():
+    from aermani.evaluation.runner import RunConfig, episode_specs
+
+    suites = load_suites(["search"], split="test")
+    specs = episode_specs(RunConfig(out=Path("."), split="test", suites=["search"], seeds_per_line=3, episodes=None))
+    lines = suites["search"]
+    assert len(specs) == 3 * len(lines)
+    for task in lines:
+        seeds = [s.seed for s in specs if s.task == task]
+        assert len(seeds) == 3 and len(set(seeds)) == 3, task.command  # each line on three different layouts
+    assert "--seeds-per-line 3" in RunConfig(out=Path("."), seeds_per_line=3).command_line()
+    assert "--episodes" not in RunConfig(out=Path("."), seeds_per_line=3).command_line()
+
+
+def test_the_report_names_the_split_freeze_and_the_last_policy_change():
+    from aermani.evaluation.report import configuration_lines
+    from aermani.evaluation.runner import source_revision
+
+    rev = source_revision()
+    if rev["commit"].startswith("unknown"):
+        pytest.skip("not a git checkout")
+    assert len(rev["split_frozen"]) == 40 and len(rev["policy_changed"]) == 40
+    text = "\n".join(configuration_lines([], {**rev, "policy_changed_after_freeze": True}))
+    assert f"`{rev['split_frozen'][:12]}` / `{rev['policy_changed'][:12]}`" in text
+    assert "the policy changed after the split froze" in text
+    text = "\n".join(configuration_lines([], {**rev, "policy_changed_after_freeze": False}))
+    assert "no policy change since the split froze" in text
