@@ -57,11 +57,11 @@ def check_airframe(settings: SimSettings) -> None:
 
 def build(settings: SimSettings) -> tuple[SimCore, MavlinkServer]:
     check_airframe(settings)
-    params = realism_params(settings.realism, takeoff_alt=settings.takeoff_alt,
+    params = realism_params(settings.realism, settings.dynamics, takeoff_alt=settings.takeoff_alt,
                             offboard_loss_timeout=settings.offboard_loss_timeout,
                             failsafe_land_delay=settings.failsafe_land_delay, seed=settings.seed,
                             hover_offset=settings.hover_offset)
-    core = SimCore(scenario_from(settings), params, realism=settings.realism)
+    core = SimCore(scenario_from(settings), params, realism=settings.realism, dynamics=settings.dynamics)
     links = [LinkSettings("api", settings.api_local_port, settings.api_host, settings.api_port, settings.bind_host)]
     if settings.gcs_enabled:
         links.append(LinkSettings("gcs", settings.gcs_local_port, settings.gcs_host, settings.gcs_port,
@@ -227,7 +227,8 @@ class CameraPublisher:
             details = {"fps_5s": fps, "frames": st["frames"], "idle_frames": st["idle_frames"],
                        "camera_fault": self.fault,
                        "camera": self.settings.camera, "mode": v.mode_name, "armed": v.armed,
-                       "realism": self.core.realism, "scenario_seed": self.core.scenario.seed,
+                       "realism": self.core.realism, "dynamics": self.core.dynamics,
+                       "scenario_seed": self.core.scenario.seed,
                        "setpoints_received": v.setpoints_received, **self.core.counters}
         ok = self.failures < 3
         return Health(service="sim", ok=ok, message="" if ok else f"rendering keeps failing: {self.last_error}",

@@ -43,10 +43,13 @@ class Snapshot:
 class SimCore:
     """The simulated world and vehicle behind one lock: physics steps, camera renders and scenario resets."""
 
-    def __init__(self, scenario: Scenario, params: VehicleParams | None = None, realism: str = "realistic") -> None:
+    def __init__(self, scenario: Scenario, params: VehicleParams | None = None, realism: str = "realistic",
+                 dynamics: str = "kinematic") -> None:
         self.lock = threading.RLock()
         self.realism = realism
-        world, filled, start = generate(scenario, light_variation=realism != "ideal", look=look_for(realism))
+        self.dynamics = dynamics  # physics.DYNAMICS: the vehicle's body (SimSettings.dynamics)
+        world, filled, start = generate(scenario, light_variation=realism != "ideal", look=look_for(realism),
+                                        dynamics=dynamics)
         self.world = world
         self.scenario = filled
         self.vehicle = Vehicle(world, params)
@@ -64,7 +67,7 @@ class SimCore:
     def reset(self, scenario: Scenario) -> SimResetResult:
         try:
             world, filled, start = generate(scenario, light_variation=self.realism != "ideal",
-                                            look=look_for(self.realism))
+                                            look=look_for(self.realism), dynamics=self.dynamics)
         except ScenarioError as exc:
             return SimResetResult(ok=False, message=str(exc))
         with self.lock:

@@ -1,0 +1,143 @@
+"""The inner loops of a PX4-style multirotor controller: thrust vector -> attitude setpoint, attitude (tilt) ->
+body rates, body rates -> torques, and the mixer that turns collective thrust and torques into rotor thrusts
+within the motors' limits. Plain floats, no numpy: the attitude, rate and mixer steps run at the physics rate
+(every 2 ms MuJoCo step), where numpy's per-call overhead on 3-vectors costs more than the arithmetic."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass
+class InnerGains:
+    """Attitude and rate loop gains in physical units (PX4 normalises its MC_*RATE_P by the airframe's torque
+    authority; here the rate loop's output is multiplied by the inertia instead, so the gains are bandwidths)."""
+
+    att_p: float = 7.0  # 1/s, tilt error -> roll/pitch rate setpoint (PX4 MC_ROLL_P/MC_PITCH_P 6.5)
+    rate_p: float = 28.0  # 1/s, roll/pitch rate error -> angular acceleration (crossover ~28 rad/s with 20 ms motors)
+    rate_i: float = 20.0  # 1/s^2, its integral (a held object's offset centre of mass)
+    rate_i_max: float = 6.0  # rad/s^2, integral limit
+    yaw_rate_p: float = 15.0  # 1/s, yaw rate error -> yaw angular acceleration
+    yaw_rate_i: float = 2.0
+    yaw_accel_ff: float = 0.5  # share of the yaw rate setpoint's ramp fed forward (all of it overshoots: motor lag)
+    rate_max: float = math.radians(220.0)  # rad/s (MC_ROLLRATE_MAX / MC_PITCHRATE_MAX)
+    max_tilt: float = math.radians(35.0)  # rad (MPC_TILTMAX_AIR)
+
+
+class Mixer:
+    """Collective thrust and body torques (FLU) -> rotor thrusts, saturating as PX4's mixer does: roll and pitch
+    first (scaled down only if their spread alone exceeds the motors' range), the collective shifted to keep
+    them, yaw last with whatever headroom is left."""
+
+    def __init__(self, rotor_xy: tuple[tuple[float, float], ...], spin: tuple[float, ...], yaw_moment: float,
+                 max_thrust: float) -> None:
+        # Rows: thrust, torque x, torque y, torque z produced by each rotor's unit thrust.
+        effect = np.array([[1.0] * len(rotor_xy), [y for _, y in rotor_xy], [-x for x, _ in rotor_xy],
+                           [-s * yaw_moment for s in spin]])
+        inv = np.linalg.pinv(effect)  # rotors x (thrust, tx, ty, tz)
+        self.n = len(rotor_xy)
+        self.col = [float(inv[i, 0]) for i in range(self.n)]
+        self.rx = [float(inv[i, 1]) for i in range(self.n)]
+        self.ry = [float(inv[i, 2]) for i in range(self.n)]
+        self.rz = [float(inv[i, 3]) for i in range(self.n)]
+        self.effect = effect
+        self.max_thrust = max_thrust
+        self.saturated = False  # the last mix could not give the torques asked for (the rate integrals hold)
+
+    def mix(self, thrust: float, tx: float, ty: float, tz: float) -> list[float]:
+        fmax = self.max_thrust
+        rp = [self.rx[i] * tx + self.ry[i] * ty for i in range(self.n)]
+        spread = max(rp) - min(rp)
+        self.saturated = spread > fmax
+        if self.saturated:  # even zero collective cannot give this roll/pitch torque: keep its direction
+            rp = [r * fmax / spread for r in rp]
+        base = [self.col[i] * thrust for i in range(self.n)]
+        f = [base[i] + rp[i] for i in range(self.n)]
+        lo, hi = min(f), max(f)
+        if lo < 0.0:
+            f = [x - lo for x in f]  # raise the collective: attitude before altitude
+        elif hi > fmax:
+            f = [x - (hi - fmax) for x in f]
+        yaw = [self.rz[i] * tz for i in range(self.n)]
+        scale = 1.0
+        for x, y in zip(f, yaw, strict=True):
+            if y > 0 and x + y > fmax:
+                scale = min(scale, max(0.0, (fmax - x) / y))
+            elif y < 0 and x + y < 0.0:
+                scale = min(scale, max(0.0, -x / y))
+        self.saturated = self.saturated or scale < 1.0
+        return [min(max(x + scale * y, 0.0), fmax) for x, y in zip(f, yaw, strict=True)]
+
+    def wrench(self, thrusts: list[float]) -> tuple[float, float, float, float]:
+        """Collective thrust and torques the rotor thrusts produce (the mixer's inverse)."""
+        out = self.effect @ np.asarray(thrusts, dtype=float)
+        return float(out[0]), float(out[1]), float(out[2]), float(out[3])
+
+
+def attitude_setpoint(force: tuple[float, float, float], max_tilt: float) -> tuple[float, float, float]:
+    """Body z axis (world ENU) the thrust vector asks for, its tilt limited to `max_tilt` from vertical."""
+    fx, fy, fz = force
+    fz = max(fz, 1e-6)
+    h = math.hypot(fx, fy)
+    limit = math.tan(max_tilt) * fz
+    if h > limit:
+        fx, fy = fx * limit / h, fy * limit / h
+    n = math.sqrt(fx * fx + fy * fy + fz * fz)
+    return fx / n, fy / n, fz / n
+
+
+class AttitudeRateController:
+    """Tilt -> body rates -> torques, once per physics step. Yaw is rate-controlled: the position loop turns
+    the heading error into a yaw rate (as PX4's yaw setpoint follows a rate-limited trajectory)."""
+
+    def __init__(self, inertia: tuple[float, float, float], gains: InnerGains | None = None) -> None:
+        self.inertia = inertia
+        self.g = gains or InnerGains()
+        self.reset()
+
+    def reset(self) -> None:
+        self.ix = self.iy = self.iz = 0.0
+
+    def torques(self, q: tuple[float, float, float, float], rates: tuple[float, float, float],
+                z_sp: tuple[float, float, float], yaw_rate_sp: float, dt: float,
+                saturated: bool = False, yaw_accel_ff: float = 0.0) -> tuple[float, float, float]:
+        """Torques (FLU, N m) for the attitude `q` (w, x, y, z), body `rates`, the body z axis wanted `z_sp`
+        (world) and a yaw rate. `saturated`: the mixer could not deliver the last torques, so the integrals hold
+        (anti-windup); `yaw_accel_ff`: the yaw rate setpoint's own rate of change, fed forward."""
+        g = self.g
+        w, x, y, z = q
+        # Body z axis in the world, then the tilt error z_b x z_sp expressed in the body frame.
+        bzx, bzy, bzz = 2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)
+        ex = bzy * z_sp[2] - bzz * z_sp[1]
+        ey = bzz * z_sp[0] - bzx * z_sp[2]
+        ez = bzx * z_sp[1] - bzy * z_sp[0]
+        # World -> body: the transpose of the body's rotation matrix (its columns' components).
+        r00, r10, r20 = 1 - 2 * (y * y + z * z), 2 * (x * y + w * z), 2 * (x * z - w * y)
+        r01, r11, r21 = 2 * (x * y - w * z), 1 - 2 * (x * x + z * z), 2 * (y * z + w * x)
+        ebx = r00 * ex + r10 * ey + r20 * ez
+        eby = r01 * ex + r11 * ey + r21 * ez
+        rmax = g.rate_max
+        psp = min(max(g.att_p * ebx, -rmax), rmax)
+        qsp = min(max(g.att_p * eby, -rmax), rmax)
+        p, qr, r = rates
+        # The heading's rate (z-y-x Euler yaw) is (q sin(roll) + r cos(roll)) / cos(pitch): the body rate r that
+        # turns the heading at yaw_rate_sp when tilted (R20..R22 = -sin pitch, sin roll cos pitch, cos roll cos pitch).
+        r_sp = (yaw_rate_sp * (r21 * r21 + bzz * bzz) - qr * r21) / max(bzz, 0.2)
+        ep, eq, er = psp - p, qsp - qr, r_sp - r
+        imax = g.rate_i_max
+        if saturated:
+            ep_i = eq_i = er_i = 0.0
+        else:
+            ep_i, eq_i, er_i = ep, eq, er
+        self.ix = min(max(self.ix + g.rate_i * ep_i * dt, -imax), imax)
+        self.iy = min(max(self.iy + g.rate_i * eq_i * dt, -imax), imax)
+        self.iz = min(max(self.iz + g.yaw_rate_i * er_i * dt, -imax), imax)
+        jx, jy, jz = self.inertia
+        # Gyroscopic term omega x J omega: small at these rates, but it is what a rate controller feeds forward.
+        gx = (jz - jy) * qr * r
+        gy = (jx - jz) * r * p
+        return (jx * (g.rate_p * ep + self.ix) + gx, jy * (g.rate_p * eq + self.iy) + gy,
+                jz * (g.yaw_rate_p * er + self.iz + yaw_accel_ff))
