@@ -132,7 +132,8 @@ class CameraPublisher:
         """world -> body from the estimated pose (as a real stack gets it from its EKF), not the truth; the
         camera and gripper frames of the simulated airframe (the default mount, see check_airframe; off by
         `mount_error` while a camera_mount fault is injected)."""
-        body = pose_matrix(float(snap.position[0]), float(snap.position[1]), float(snap.position[2]), snap.yaw)
+        body = pose_matrix(float(snap.position[0]), float(snap.position[1]), float(snap.position[2]), snap.yaw,
+                           snap.roll, snap.pitch)
         cam = AIRFRAME.base_to_camera()
         if mount_error is not None and mount_error.any():
             cam = cam.copy()

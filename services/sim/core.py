@@ -38,6 +38,8 @@ class Snapshot:
     geom_instance: np.ndarray  # geom id -> instance id (segmentation)
     position: np.ndarray  # ENU body origin as estimated (what tf publishes)
     yaw: float  # ENU, estimated
+    roll: float = 0.0  # FLU roll and pitch (pitch positive nose down, as shared.sensors.pose_matrix), the IMU's
+    pitch: float = 0.0
 
 
 class SimCore:
@@ -124,8 +126,9 @@ class SimCore:
     def snapshot(self) -> Snapshot:
         with self.lock:
             w = self.world
+            roll, pitch, _ = w.vehicle_rpy()
             return Snapshot(w.version, w.xml, w.state_vector(), w.geom_instance, self.vehicle.position_enu(),
-                            self.vehicle.yaw_enu())
+                            self.vehicle.yaw_enu(), roll, pitch)
 
     # ---- statistics
 

@@ -49,26 +49,28 @@ class Mixer:
 
     def mix(self, thrust: float, tx: float, ty: float, tz: float) -> list[float]:
         fmax = self.max_thrust
-        rp = [self.rx[i] * tx + self.ry[i] * ty for i in range(self.n)]
+        rx, ry, col = self.rx, self.ry, self.col
+        rp = [rx[i] * tx + ry[i] * ty for i in range(self.n)]
         spread = max(rp) - min(rp)
         self.saturated = spread > fmax
         if self.saturated:  # even zero collective cannot give this roll/pitch torque: keep its direction
-            rp = [r * fmax / spread for r in rp]
-        base = [self.col[i] * thrust for i in range(self.n)]
-        f = [base[i] + rp[i] for i in range(self.n)]
+            k = fmax / spread
+            rp = [r * k for r in rp]
+        f = [col[i] * thrust + rp[i] for i in range(self.n)]
         lo, hi = min(f), max(f)
         if lo < 0.0:
             f = [x - lo for x in f]  # raise the collective: attitude before altitude
         elif hi > fmax:
             f = [x - (hi - fmax) for x in f]
-        yaw = [self.rz[i] * tz for i in range(self.n)]
+        yaw = [c * tz for c in self.rz]
         scale = 1.0
         for x, y in zip(f, yaw, strict=True):
             if y > 0 and x + y > fmax:
                 scale = min(scale, max(0.0, (fmax - x) / y))
             elif y < 0 and x + y < 0.0:
                 scale = min(scale, max(0.0, -x / y))
-        self.saturated = self.saturated or scale < 1.0
+        if scale < 1.0:
+            self.saturated = True
         return [min(max(x + scale * y, 0.0), fmax) for x, y in zip(f, yaw, strict=True)]
 
     def wrench(self, thrusts: list[float]) -> tuple[float, float, float, float]:

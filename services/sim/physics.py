@@ -432,6 +432,10 @@ class World:
         self.rotor_actuators = [m.actuator(f"rotor{i}").id for i in range(n_rotors)]
         self.rotor_sites = [m.site(f"rotor{i}").id for i in range(n_rotors)]
         self._rotor_act = [int(m.actuator_actadr[a]) for a in self.rotor_actuators]
+        first = self.rotor_actuators[0] if self.rotor_actuators else 0
+        if self.rotor_actuators != list(range(first, first + n_rotors)):
+            raise RuntimeError(f"rotor actuators {self.rotor_actuators} are not contiguous in the model")
+        self._rotor_ctrl = slice(first, first + n_rotors)
         self.finger_geoms = (m.geom("finger_left").id, m.geom("finger_right").id)
         self.airframe_geoms = {m.geom("airframe").id} | {m.geom(f"gear{i}").id for i in range(4)}
         self.vehicle_mass = float(m.body_subtreemass[self.vehicle_body])
@@ -566,8 +570,8 @@ class World:
         return [float(self.data.act[adr]) for adr in self._rotor_act]
 
     def set_rotor_commands(self, thrusts: list[float]) -> None:
-        for a, t in zip(self.rotor_actuators, thrusts, strict=True):
-            self.data.ctrl[a] = t
+        """Commanded thrust of each rotor, newtons (one slice assignment: this runs every physics step)."""
+        self.data.ctrl[self._rotor_ctrl] = thrusts
 
     def set_rotor_gains(self, gains: list[float]) -> None:
         """Thrust produced per commanded newton, each rotor (ground effect times thrust noise)."""

@@ -17,6 +17,7 @@ from services.sim.disturbances import PoseEstimator, Wind, downwash_force, groun
 from services.sim.multirotor import AttitudeRateController, InnerGains, Mixer, attitude_setpoint
 from services.sim.physics import (
     FINGER_MAX_HALF,
+    ROTOR_ARM,
     ROTOR_MAX_THRUST,
     ROTOR_RADIUS,
     ROTOR_SPIN,
@@ -64,6 +65,7 @@ GRAVITY = 9.81
 REALISM = ("realistic", "ideal", "harsh")
 VEHICLE_YAW_INERTIA_TOTAL = VEHICLE_YAW_INERTIA + 0.01  # the kinematic body's, + finger armature/mass
 KINEMATIC_YAW_ACCEL = 6.0  # rad/s^2: the kinematic body's yaw braking profile (its torque is unlimited)
+ROTOR_SPACING = math.dist(ROTOR_XY[0], ROTOR_XY[2])  # adjacent rotors (front right, front left)
 
 
 def ned_to_enu(p: np.ndarray) -> np.ndarray:
@@ -107,8 +109,10 @@ class VehicleParams:
     battery_drain_per_s: float = 0.05  # % per second while armed (~33 min flight)
     kp: float = 1.5  # position gain, 1/s (MPC_XY_P 0.95, MPC_Z_P 1.0; a little stiffer indoors)
     rtl_alt: float = 2.0  # m above home (RTL_RETURN_ALT; PX4's 60 m default makes no sense indoors)
-    vel_tau: float = 0.3  # s, velocity loop time constant: acceleration = velocity error / tau (MPC_XY_VEL_P_ACC)
-    vel_ki: float = 2.0  # 1/s^2, velocity loop integral (a payload's weight, a steady draft)
+    vel_tau: float = 0.3  # s, horizontal velocity loop time constant: accel = velocity error / tau (MPC_XY_VEL_P_ACC)
+    vel_tau_z: float = 0.15  # s, the same vertically (no tilt to wait for: only the motors' lag)
+    vel_ki: float = 2.0  # 1/s^2, horizontal velocity loop integral (a steady draft)
+    vel_ki_z: float = 4.0  # 1/s^2, vertical (a payload's weight)
     # The kinematic body's velocity loop (a force straight on the body, no attitude to wait for: stiffer).
     kinematic_vel_tau: float = 0.12  # s (force = mass * velocity error / tau + integral)
     kinematic_vel_ki: float = 4.0  # 1/s^2 (carries a payload without sagging)
@@ -158,7 +162,7 @@ def realism_params(realism: str, dynamics: str = "kinematic", **kw) -> VehiclePa
     acts on the multirotor only).
 
     `multirotor`: `ideal`: no disturbances, the estimate is the truth. `realistic`: an indoor VIO-grade estimate (bias
-    sigma 2.5 cm horizontal, 2 cm vertical, wandering over ~10 s; 3 mm and 1 cm/s noise; yaw bias sigma
+    sigma 2.5 cm horizontal, 2.8 cm vertical, wandering over ~10 s; 3 mm and 1 cm/s noise; yaw bias sigma
     0.5 deg), indoor air (a 0.15 m/s draft, 0.25 m/s turbulence, a 0.5-1 m/s gust every ~30 s), rotor drag,
     2 % thrust noise, ground effect, downwash. `harsh`: a worse estimate and stronger air, for stress tests.
     Calibrated so a still hover's true position error is sigma 2-5 cm per axis in `realistic` (README)."""
@@ -173,7 +177,7 @@ def realism_params(realism: str, dynamics: str = "kinematic", **kw) -> VehiclePa
         raise ValueError(f"unknown dynamics {dynamics!r}: kinematic or multirotor")
     common: dict = {"rotor_drag": 0.4, "ground_effect": True, "downwash": True, "thrust_noise_tau": 0.05}
     if realism == "realistic":
-        return VehicleParams(**common, pose_bias_xy=0.025, pose_bias_z=0.02, pose_bias_tau=10.0, pose_noise=0.003,
+        return VehicleParams(**common, pose_bias_xy=0.025, pose_bias_z=0.028, pose_bias_tau=10.0, pose_noise=0.003,
                              vel_noise=0.01, yaw_bias=math.radians(0.5), yaw_bias_tau=30.0, wind_mean=0.15,
                              wind_sigma=0.25, wind_tau=1.5, gust_rate=1 / 30, gust_amp=(0.5, 1.0),
                              gust_s=(1.0, 3.0), thrust_noise=0.02, **kw)
@@ -627,7 +631,8 @@ class Vehicle:
             self.thrust_error = a * self.thrust_error + p.thrust_noise * math.sqrt(1 - a * a) * \
                 self._thrust_rng.standard_normal(len(self.thrust_error))
         if p.ground_effect or p.thrust_noise > 0:
-            ge = [ground_effect(h, ROTOR_RADIUS) for h in w.rotor_clearance()] if p.ground_effect else \
+            ge = [ground_effect(h, ROTOR_RADIUS, ROTOR_SPACING, ROTOR_ARM) for h in w.rotor_clearance()] \
+                if p.ground_effect else \
                 [1.0] * len(ROTOR_XY)
             w.set_rotor_gains([g * (1.0 + float(e)) for g, e in zip(ge, self.thrust_error, strict=True)])
         if p.downwash:
@@ -749,7 +754,7 @@ class Vehicle:
         vel_cmd[2] = min(max(vel_cmd[2], -vmax_up), vmax_down)
         # Acceleration limits on the velocity setpoint's change relative to the current velocity.
         dv = vel_cmd - self.v
-        a = dv / p.vel_tau
+        a = dv / np.array([p.vel_tau, p.vel_tau, p.vel_tau_z])
         ah = float(np.linalg.norm(a[:2]))
         if ah > p.accel_h:
             a[:2] *= p.accel_h / ah
@@ -762,7 +767,8 @@ class Vehicle:
         # The integral carries a payload's weight and leans into a steady draft. Horizontally it integrates only
         # near the setpoint (conditional integration): a manoeuvre's large errors would wind it up and break
         # the acceleration limit.
-        self.v_int[2] = min(max(self.v_int[2] + dv[2] * dt * p.vel_ki, -3.0), 3.0)
+        if abs(vel_cmd[2]) < 0.2 and abs(dv[2]) < p.accel_v * p.vel_tau_z:  # vertically: near a hover only
+            self.v_int[2] = min(max(self.v_int[2] + dv[2] * dt * p.vel_ki_z, -3.0), 3.0)
         if float(np.linalg.norm(dv[:2])) < 0.15:
             self.v_int[:2] = np.clip(self.v_int[:2] + dv[:2] * dt * p.vel_ki, -1.0, 1.0)
         a_ned = a + self.v_int
