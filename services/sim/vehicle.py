@@ -220,6 +220,9 @@ class Vehicle:
         self._a_sp = np.zeros(3)
         self._yaw_accel_ff = 0.0
         self._downwashed: set[int] = set()
+        self._objects = self.world.objects
+        self._object_bodies = np.array([self.world.obj_body[e.name] for e in self._objects], dtype=int)
+        self._largest_object_radius = max((max(e.size[0], e.size[1]) / 2 for e in self._objects), default=0.0)
         self.crashed = False
         self._read_state()
         self.home = self.p.copy()
@@ -646,8 +649,14 @@ class Vehicle:
         pushed: set[int] = set()
         if max(thrusts) > 0.1:
             rotors = [d.site_xpos[s].tolist() for s in w.rotor_sites]
-            for e in w.objects:
-                b = w.obj_body[e.name]
+            # Only objects under the rotor discs' footprint (one vectorised test; most steps none is).
+            bodies = self._object_bodies
+            reach = ROTOR_ARM + ROTOR_RADIUS + self._largest_object_radius
+            dxy = d.xpos[bodies, :2] - d.xpos[w.vehicle_body, :2]
+            near = np.flatnonzero((dxy * dxy).sum(axis=1) < reach * reach)
+            for k in near.tolist():
+                e = self._objects[k]
+                b = bodies[k]
                 cx, cy, cz = d.xpos[b].tolist()
                 top = cz + e.size[2] / 2
                 r_obj = max(e.size[0], e.size[1]) / 2
