@@ -48,7 +48,7 @@ def hover(realism: str, seeds: int, seconds: float) -> dict[str, float]:
 
     sig, rms = [], []
     for seed in range(seeds):
-        core = SimCore(Scenario(seed=seed, target_object="red cup"), realism_params(realism, "multirotor", seed=seed),
+        core = SimCore(Scenario(seed=seed, target_object="red cup"), realism_params(realism, seed=seed),
                        realism=realism, dynamics="multirotor")
         v = core.vehicle
         dt, now = 0.005, 100.0

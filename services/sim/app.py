@@ -57,7 +57,7 @@ def check_airframe(settings: SimSettings) -> None:
 
 def build(settings: SimSettings) -> tuple[SimCore, MavlinkServer]:
     check_airframe(settings)
-    params = realism_params(settings.realism, settings.dynamics, takeoff_alt=settings.takeoff_alt,
+    params = realism_params(settings.realism, takeoff_alt=settings.takeoff_alt,
                             offboard_loss_timeout=settings.offboard_loss_timeout,
                             failsafe_land_delay=settings.failsafe_land_delay, seed=settings.seed,
                             hover_offset=settings.hover_offset)

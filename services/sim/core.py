@@ -46,9 +46,13 @@ class SimCore:
     """The simulated world and vehicle behind one lock: physics steps, camera renders and scenario resets."""
 
     def __init__(self, scenario: Scenario, params: VehicleParams | None = None, realism: str = "realistic",
-                 dynamics: str = "kinematic") -> None:
+                 dynamics: str | None = None) -> None:
         self.lock = threading.RLock()
         self.realism = realism
+        if dynamics is None:  # the configured one (AERMANI_SIM_DYNAMICS, kinematic by default)
+            from services.sim.settings import SimSettings
+
+            dynamics = SimSettings().dynamics
         self.dynamics = dynamics  # physics.DYNAMICS: the vehicle's body (SimSettings.dynamics)
         world, filled, start = generate(scenario, light_variation=realism != "ideal", look=look_for(realism),
                                         dynamics=dynamics)

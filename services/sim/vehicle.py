@@ -124,7 +124,7 @@ class VehicleParams:
     pose_bias_xy: float = 0.0  # m, sigma of the estimate's wandering horizontal bias (per axis)
     pose_bias_z: float = 0.0  # m, the same vertically
     pose_bias_tau: float = 10.0  # s, its correlation time
-    pose_noise: float = 0.0  # m, white noise on the estimated position
+    pose_noise: float = 0.0  # m, white noise on the kinematic body's estimated position
     pose_drift: float = 0.0  # m/sqrt(s): random walk of the estimate's horizontal bias (visual odometry drift)
     pose_drift_max: float = 0.0  # m: the bias is bounded (loop closures / fused references)
     yaw_drift: float = 0.0  # rad/sqrt(s): random walk of the estimated yaw's bias
@@ -137,7 +137,8 @@ class VehicleParams:
     # m, ENU (x, y): a step in the estimate (estimate - truth) on top of the drift: a relocalization jump, which
     # nothing on board sees (the camera's tf carries the same estimate); tests use it to send a release astray
     estimate_offset: tuple[float, float] = (0.0, 0.0)
-    vel_noise: float = 0.0  # m/s, white noise on the estimated velocity
+    vio_noise: float = 0.0  # m, white noise on the multirotor's estimated position
+    vel_noise: float = 0.0  # m/s, white noise on the multirotor's estimated velocity
     yaw_bias: float = 0.0  # rad, sigma of the estimated yaw's wandering bias
     yaw_bias_tau: float = 30.0  # s
     wind_mean: float = 0.0  # m/s, a steady draft in a seeded direction
@@ -154,34 +155,32 @@ class VehicleParams:
     seed: int = 0
 
 
-def realism_params(realism: str, dynamics: str = "kinematic", **kw) -> VehicleParams:
-    """The estimator and disturbances of a realism level for the vehicle's dynamics (SimSettings.dynamics).
+def realism_params(realism: str, **kw) -> VehicleParams:
+    """The estimator and disturbances of a realism level, for either body (SimSettings.dynamics): each reads its
+    own fields (the kinematic body `pose_noise` and the `pose_drift`/`yaw_drift` random walks; the multirotor the
+    rest), so the same parameters serve a world of either dynamics.
 
-    `kinematic` (the body on sliding joints): `ideal` the estimate is the truth; `realistic` and `harsh` a
-    VIO-grade estimate (2 mm noise, bias drifting ~1 cm/min up to 3 cm, yaw up to 1 deg), nothing else (the air
-    acts on the multirotor only).
-
-    `multirotor`: `ideal`: no disturbances, the estimate is the truth. `realistic`: an indoor VIO-grade estimate (bias
-    sigma 2.5 cm horizontal, 2.8 cm vertical, wandering over ~10 s; 3 mm and 1 cm/s noise; yaw bias sigma
-    0.5 deg), indoor air (a 0.15 m/s draft, 0.25 m/s turbulence, a 0.5-1 m/s gust every ~30 s), rotor drag,
-    2 % thrust noise, ground effect, downwash. `harsh`: a worse estimate and stronger air, for stress tests.
-    Calibrated so a still hover's true position error is sigma 2-5 cm per axis in `realistic` (README)."""
+    `ideal`: no disturbances, the estimate is the truth. `realistic`, kinematic body: a VIO-grade estimate (2 mm
+    noise, bias drifting ~1 cm/min up to 3 cm, yaw up to 1 deg), nothing else. `realistic`, multirotor: an indoor
+    VIO-grade estimate (bias sigma 2.5 cm horizontal, 2.8 cm vertical, wandering over ~10 s; 3 mm and 1 cm/s
+    noise; yaw bias sigma 0.5 deg), indoor air (a 0.15 m/s draft, 0.25 m/s turbulence, a 0.5-1 m/s gust every
+    ~30 s), rotor drag, 2 % thrust noise, ground effect, downwash; calibrated so a still hover's true position
+    error is sigma 2-5 cm per axis (README "Dynamics"). `harsh`: the kinematic body as `realistic`; the
+    multirotor with a worse estimate and stronger air, for stress tests."""
     if realism not in REALISM:
         raise ValueError(f"unknown realism {realism!r}: {', '.join(REALISM)}")
     if realism == "ideal":
         return VehicleParams(**kw)
-    if dynamics == "kinematic":
-        return VehicleParams(pose_noise=0.002, pose_drift=0.0015, pose_drift_max=0.03, yaw_drift=0.0005,
-                             yaw_drift_max=math.radians(1.0), **kw)
-    if dynamics != "multirotor":
-        raise ValueError(f"unknown dynamics {dynamics!r}: kinematic or multirotor")
-    common: dict = {"rotor_drag": 0.4, "ground_effect": True, "downwash": True, "thrust_noise_tau": 0.05}
+    kinematic: dict = {"pose_noise": 0.002, "pose_drift": 0.0015, "pose_drift_max": 0.03, "yaw_drift": 0.0005,
+                       "yaw_drift_max": math.radians(1.0)}
+    common: dict = {**kinematic, "rotor_drag": 0.4, "ground_effect": True, "downwash": True,
+                    "thrust_noise_tau": 0.05}
     if realism == "realistic":
-        return VehicleParams(**common, pose_bias_xy=0.025, pose_bias_z=0.028, pose_bias_tau=10.0, pose_noise=0.003,
+        return VehicleParams(**common, pose_bias_xy=0.025, pose_bias_z=0.028, pose_bias_tau=10.0, vio_noise=0.003,
                              vel_noise=0.01, yaw_bias=math.radians(0.5), yaw_bias_tau=30.0, wind_mean=0.15,
                              wind_sigma=0.25, wind_tau=1.5, gust_rate=1 / 30, gust_amp=(0.5, 1.0),
                              gust_s=(1.0, 3.0), thrust_noise=0.02, **kw)
-    return VehicleParams(**common, pose_bias_xy=0.06, pose_bias_z=0.04, pose_bias_tau=20.0, pose_noise=0.008,
+    return VehicleParams(**common, pose_bias_xy=0.06, pose_bias_z=0.04, pose_bias_tau=20.0, vio_noise=0.008,
                          vel_noise=0.03, yaw_bias=math.radians(2.0), yaw_bias_tau=30.0, wind_mean=0.5,
                          wind_sigma=0.7, wind_tau=1.0, gust_rate=1 / 8, gust_amp=(1.5, 3.0), gust_s=(0.8, 2.5),
                          thrust_noise=0.05, **kw)
@@ -308,7 +307,7 @@ class Vehicle:
         seeds = np.random.SeedSequence(p.seed).spawn(4)
         est_rng = np.random.default_rng(seeds[0])
         self.rng = est_rng if self.world.multirotor else np.random.default_rng(p.seed)
-        self.estimator = PoseEstimator(est_rng, p.pose_bias_xy, p.pose_bias_z, p.pose_bias_tau, p.pose_noise,
+        self.estimator = PoseEstimator(est_rng, p.pose_bias_xy, p.pose_bias_z, p.pose_bias_tau, p.vio_noise,
                                        p.vel_noise, p.yaw_bias, p.yaw_bias_tau)
         self.wind = Wind(np.random.default_rng(seeds[1]), p.wind_mean, p.wind_sigma, p.wind_sigma / 2, p.wind_tau,
                          p.gust_rate, p.gust_amp, p.gust_s)

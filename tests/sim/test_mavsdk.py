@@ -47,10 +47,12 @@ async def first(gen: AsyncIterator[Any], pred: Callable[[Any], bool] = lambda _:
 
 
 @pytest.fixture
-def sim_gcs():
+def sim_gcs(request):
+    """The simulator on a GCS link; `dynamics` from the test's parametrisation, else the configured one."""
     gcs = free_udp_port()
     # A long auto-disarm delay so the explicit disarm below is what disarms the vehicle.
-    core = SimCore(Scenario(seed=5, target_object="red cup"), VehicleParams(disarm_after_land=60.0))
+    core = SimCore(Scenario(seed=5, target_object="red cup"), VehicleParams(disarm_after_land=60.0),
+                   dynamics=getattr(request, "param", None))
     server = MavlinkServer(core, [LinkSettings("api", free_udp_port(), "127.0.0.1", free_udp_port()),
                                   LinkSettings("gcs", free_udp_port(), "127.0.0.1", gcs)], speed_factor=3.0)
     server.start()
@@ -131,6 +133,7 @@ async def test_mavsdk_flies_the_simulator_over_the_gcs_link(sim_gcs):
             assert core.counters.get("handler_errors", 0) == 0
 
 
+@pytest.mark.parametrize("sim_gcs", ["multirotor"], indirect=True)
 async def test_mavsdk_attitude_tilts_while_accelerating_and_is_level_in_hover(sim_gcs):
     """The attitude is flown, not drawn: MAVSDK's attitude telemetry (ATTITUDE / ATTITUDE_QUATERNION) shows a
     level vehicle in hover and the nose pitched down by several degrees while it accelerates north."""

@@ -48,7 +48,7 @@ def test_mixer_saturation_keeps_attitude_before_collective_and_yaw(mixer):
 
 
 def test_hover_thrust_equals_weight_and_attitude_is_level_in_ideal():
-    core = make_core(SCENARIO)
+    core = make_core(SCENARIO, dynamics="multirotor")
     clock, v = Clock(core), core.vehicle
     to_offboard(core, clock)
     sp = v.p.copy()
@@ -70,7 +70,7 @@ def test_hover_thrust_equals_weight_and_attitude_is_level_in_ideal():
 def test_step_response_settles_and_tilts_the_body():
     """A 1 m step north with the nose east: the body rolls (several degrees) to accelerate, the position
     settles within 1 cm in 4 s with under 5 cm overshoot, and the vehicle is level again."""
-    core = make_core(SCENARIO)
+    core = make_core(SCENARIO, dynamics="multirotor")
     clock, v = Clock(core), core.vehicle
     to_offboard(core, clock)
     goal = v.p + np.array([1.0, 0.0, 0.0])
@@ -91,7 +91,7 @@ def test_a_held_payload_is_carried_without_sag():
     """Grasping adds mass the controller does not know: the velocity loop's integral carries it."""
     from tests.sim.flight import grasp
 
-    core = make_core(SCENARIO)
+    core = make_core(SCENARIO, dynamics="multirotor")
     clock = Clock(core)
     to_offboard(core, clock)
     assert grasp(core, clock, "red cup", 0.0)
@@ -151,7 +151,7 @@ def test_ground_effect_and_downwash_models():
 
 def test_ground_effect_lowers_the_thrust_needed_near_the_floor():
     def hover_thrust(alt: float) -> float:
-        core = make_core(SCENARIO)
+        core = make_core(SCENARIO, dynamics="multirotor")
         core.vehicle.params = VehicleParams(ground_effect=True)
         clock = Clock(core)
         to_offboard(core, clock, alt=alt)
@@ -161,7 +161,7 @@ def test_ground_effect_lowers_the_thrust_needed_near_the_floor():
 
 
 def test_downwash_pushes_an_object_under_a_rotor():
-    core = make_core(SCENARIO)
+    core = make_core(SCENARIO, dynamics="multirotor")
     v = core.vehicle
     v.params = VehicleParams(downwash=True)
     clock = Clock(core)
@@ -179,7 +179,7 @@ def test_realistic_hover_wanders_centimetres_and_is_reproducible():
     """`realistic`, seed 0: a still hover's true position error (truth - setpoint) has sigma of a few cm per
     axis (the estimator's wander plus the air), and the same seed flies the same trajectory."""
     def hover() -> np.ndarray:
-        core = make_core(SCENARIO, "realistic")  # realism_params("realistic"): seed 0
+        core = make_core(SCENARIO, "realistic", "multirotor")  # realism_params("realistic"): seed 0
         clock, v = Clock(core), core.vehicle
         to_offboard(core, clock)
         sp = v.p.copy()
