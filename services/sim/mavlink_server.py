@@ -225,7 +225,7 @@ class MavlinkServer:
                 with self.core.lock:
                     v = self.core.vehicle
                     v.update_modes(now)
-                    n = max(1, math.ceil(dt_sim / 0.01))  # substeps of <= 10 ms simulated time
+                    n = max(1, math.ceil(dt_sim / v.max_step_s))  # substeps the vehicle's controller needs
                     for _ in range(n):
                         v.step(dt_sim / n)
                     events, v.events = v.events, []

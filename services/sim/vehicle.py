@@ -65,6 +65,13 @@ GRAVITY = 9.81
 REALISM = ("realistic", "ideal", "harsh")
 VEHICLE_YAW_INERTIA_TOTAL = VEHICLE_YAW_INERTIA + 0.01  # the kinematic body's, + finger armature/mass
 KINEMATIC_YAW_ACCEL = 6.0  # rad/s^2: the kinematic body's yaw braking profile (its torque is unlimited)
+# The multirotor's loop rates in physics steps (TIMESTEP 2 ms), as PX4 runs its modules: the rate loop and the
+# mixer every step (500 Hz; PX4: at the gyro rate, 400 Hz-1 kHz), attitude every second (250 Hz, PX4's
+# mc_att_control), position and velocity with the estimator and the disturbances every tenth (50 Hz: PX4's
+# mc_pos_control follows the estimator's local position at about that rate).
+ATTITUDE_DIV = 2
+OUTER_DIV = 10
+OUTER_DT = OUTER_DIV * TIMESTEP
 ROTOR_SPACING = math.dist(ROTOR_XY[0], ROTOR_XY[2])  # adjacent rotors (front right, front left)
 
 
@@ -219,6 +226,9 @@ class Vehicle:
         self._a_sp = np.zeros(3)
         self._yaw_accel_ff = 0.0
         self._downwashed: set[int] = set()
+        self._running = self._flying = False  # the loops run (armed) / the rotors fly (not idling on the ground)
+        self._tick = 0  # physics steps since the loops started
+        self._qpos, self._qvel = self.world.data.qpos, self.world.data.qvel  # views (the hot loop reads them)
         self._objects = self.world.objects
         self._object_bodies = np.array([self.world.obj_body[e.name] for e in self._objects], dtype=int)
         self._largest_object_radius = max((max(e.size[0], e.size[1]) / 2 for e in self._objects), default=0.0)
@@ -246,6 +256,13 @@ class Vehicle:
         self.sim_time = 0.0
         self.setpoints_received = 0
         self.estimate_valid = True  # PX4's local position estimate (cleared by an injected sensor failure)
+
+    @property
+    def max_step_s(self) -> float:
+        """The longest `step` the controller flies well: the kinematic body's controller runs once per `step`
+        (10 ms at most); the multirotor's loops run inside the physics steps at their own rates, so a `step`
+        only bounds how often the land detector, the gripper's and the crash checks look (20 ms)."""
+        return 0.02 if self.world.multirotor else 0.01
 
     @property
     def mode_name(self) -> str:
@@ -567,12 +584,17 @@ class Vehicle:
         if self.armed:
             self.battery = max(0.0, self.battery - p.battery_drain_per_s * dt)
         if self.world.multirotor:
-            self._disturb(dt)
-            flying = self.armed and not self.crashed and self._control(dt)
-            if not flying:
-                self.world.set_rotor_commands([0.0] * len(ROTOR_XY))
-                self.attitude.reset()
-            contacts = self.world.step(dt, self._inner_loop if flying else None)
+            if self.armed and not self.crashed:
+                if not self._running:  # just armed: the outer loop runs in the first physics step
+                    self._running, self._tick = True, 0
+                contacts = self.world.step(dt, self._physics_tick)
+            else:
+                if self._running:
+                    self._running = self._flying = False
+                    self.world.set_rotor_commands([0.0] * len(ROTOR_XY))
+                    self.attitude.reset()
+                self._disturb(dt)  # the air and the estimator go on while the motors are off
+                contacts = self.world.step(dt)
         else:
             self._drift(dt)
             force, torque = np.zeros(3), 0.0
@@ -670,12 +692,29 @@ class Vehicle:
             d.xfrc_applied[b, 2] = 0.0
         self._downwashed = pushed
 
-    def _inner_loop(self) -> None:
-        """Attitude -> body rates -> torques -> mixer, once per physics step (PX4's rate loop runs at the IMU
-        rate). The collective is the thrust vector projected on the body's current z axis, as PX4's."""
+    def _physics_tick(self) -> None:
+        """Before every physics step while armed: the multirotor's loops at their rates (ATTITUDE_DIV,
+        OUTER_DIV). The outer loop reads the estimate as it is at that step."""
+        tick = self._tick
+        self._tick = tick + 1
+        if tick % OUTER_DIV == 0:
+            self._read_state()
+            self._disturb(OUTER_DT)
+            flying = self._control(OUTER_DT)
+            if not flying and self._flying:
+                self.world.set_rotor_commands([0.0] * len(ROTOR_XY))
+                self.attitude.reset()
+            self._flying = flying
+        if self._flying:
+            self._inner_loop(tick % ATTITUDE_DIV == 0)
+
+    def _inner_loop(self, attitude: bool) -> None:
+        """[`attitude`: the attitude loop, then] body rates -> torques -> mixer, once per physics step (PX4's
+        rate loop runs at the IMU rate). The collective is the thrust vector projected on the body's current z
+        axis, as PX4's."""
         w = self.world
-        q = w.vehicle_quat()
-        qw, qx, qy, qz = q
+        q0 = w._q0
+        qw, qx, qy, qz = q = tuple(self._qpos[q0 + 3:q0 + 7].tolist())
         fx, fy, fz = self._force
         bzx, bzy = 2 * (qx * qz + qw * qy), 2 * (qy * qz - qw * qx)
         thrust = fx * bzx + fy * bzy + fz * (1 - 2 * (qx * qx + qy * qy))
@@ -687,8 +726,12 @@ class Vehicle:
         if thrust * h > 0.9 * cap:
             excess = sum(w.rotor_thrusts()) * h - cap
             thrust = min(thrust, (cap - max(excess, 0.0)) / h)
-        tx, ty, tz = self.attitude.torques(q, w.vehicle_rates(), self._z_sp, self._yaw_rate_sp, TIMESTEP,
-                                            self.mixer.saturated, self._yaw_accel_ff * self.params.inner.yaw_accel_ff)
+        att = self.attitude
+        if attitude:
+            att.attitude(q, self._z_sp, self._yaw_rate_sp)  # type: ignore[arg-type]
+        v0 = w._v0
+        tx, ty, tz = att.rates(tuple(self._qvel[v0 + 3:v0 + 6].tolist()),  # type: ignore[arg-type]
+                               TIMESTEP, self.mixer.saturated, self._yaw_accel_ff * self.params.inner.yaw_accel_ff)
         w.set_rotor_commands(self.mixer.mix(max(thrust, 0.0), tx, ty, tz))
 
     def _setpoints(self) -> tuple[np.ndarray | None, np.ndarray | None, float | None, float | None, float, float]:
