@@ -818,7 +818,11 @@ class Vehicle:
         # The integral carries a payload's weight and leans into a steady draft. Horizontally it integrates only
         # near the setpoint (conditional integration): a manoeuvre's large errors would wind it up and break
         # the acceleration limit.
-        if abs(vel_cmd[2]) < 0.2 and abs(dv[2]) < p.accel_v * p.vel_tau_z:  # vertically: near a hover only
+        # Vertically near a hover, or while a climb or descent is stalled: asked to move at 0.3 m/s or more and
+        # slower than 0.1 m/s, a load the gravity feed-forward does not know holds it (a payload taken off a
+        # table weighs more than the acceleration limit's share of the thrust), so it integrates until it moves.
+        stalled = abs(dv[2]) >= 0.3 and abs(self.v[2]) < 0.1
+        if stalled or (abs(vel_cmd[2]) < 0.2 and abs(dv[2]) < p.accel_v * p.vel_tau_z):
             self.v_int[2] = min(max(self.v_int[2] + dv[2] * dt * p.vel_ki_z, -3.0), 3.0)
         if float(np.linalg.norm(dv[:2])) < 0.15:
             self.v_int[:2] = np.clip(self.v_int[:2] + dv[:2] * dt * p.vel_ki, -1.0, 1.0)
