@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.sim.physics import look_for
+from services.sim.physics import configured_dynamics, look_for
 from services.sim.scenarios import ScenarioError, generate
 from services.sim.vehicle import Vehicle, VehicleParams, enu_to_ned, wrap
 from shared.messages import (
@@ -50,9 +50,7 @@ class SimCore:
         self.lock = threading.RLock()
         self.realism = realism
         if dynamics is None:  # the configured one (AERMANI_SIM_DYNAMICS, kinematic by default)
-            from services.sim.settings import SimSettings
-
-            dynamics = SimSettings().dynamics
+            dynamics = configured_dynamics()
         self.dynamics = dynamics  # physics.DYNAMICS: the vehicle's body (SimSettings.dynamics)
         world, filled, start = generate(scenario, light_variation=realism != "ideal", look=look_for(realism),
                                         dynamics=dynamics)

@@ -15,6 +15,7 @@ touches furniture, walls, floor and objects.
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from xml.sax.saxutils import quoteattr
@@ -98,6 +99,15 @@ def entity_geom_name(e: Entity) -> str:
 
 
 LOOKS = ("primitive", "textured")
+
+
+def configured_dynamics() -> str:
+    """The dynamics `AERMANI_SIM_DYNAMICS` names, `kinematic` when unset: the variable `SimSettings.dynamics`
+    reads, for code that builds a world without the settings (`SimCore` in-process, tests)."""
+    value = os.environ.get("AERMANI_SIM_DYNAMICS", "").strip().lower() or "kinematic"
+    if value not in DYNAMICS:
+        raise ValueError(f"AERMANI_SIM_DYNAMICS={value!r}: {' or '.join(DYNAMICS)}")
+    return value
 
 
 def look_for(realism: str) -> str:
