@@ -678,8 +678,8 @@ class World:
         now = self._airframe_static_contacts()
         for gid in sorted(now.keys() - self._static_contact):
             # The speed towards the surface is what breaks propellers: a tilting multirotor that brushes a
-            # wall it climbs along is not a crash.
-            speed = max(0.0, -float(velocity @ now[gid]))
+            # wall it climbs along is not a crash. The kinematic body keeps its whole speed (it never tilts).
+            speed = max(0.0, -float(velocity @ now[gid])) if self.multirotor else float(np.linalg.norm(velocity))
             e = self.geom_entity[gid]
             name = "ceiling" if e.name == "ceiling" else ("wall" if e.name.startswith("wall") else e.name)
             c = Contact(name, speed, speed > self.crash_speed)
