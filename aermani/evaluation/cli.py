@@ -68,7 +68,7 @@ def eval_command(
     note: Annotated[str, typer.Option(help="Sentence put at the top of the report (what the backend is).")] = "",
     segmenter: Annotated[str, typer.Option(help="Perception segmenter: color (default, real computer vision), "
                                                 "sam3, or sim (ground-truth oracle).")] = "color",
-    realism: Annotated[str, typer.Option(help="Simulator realism: realistic (default) or ideal.")] = "realistic",
+    realism: Annotated[str, typer.Option(help="Simulator realism: realistic (default), harsh or ideal.")] = "realistic",
     report_only: Annotated[bool, typer.Option(help="Rebuild the report from OUT/episodes.jsonl, run nothing.")]
     = False,
     progress: Annotated[bool, typer.Option(help="Show the progress bar.")] = True,

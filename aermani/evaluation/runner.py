@@ -98,7 +98,7 @@ class RunConfig(BaseModel):
     # Perception segmenter of every vehicle: color (real computer vision on the rendered pixels, the default),
     # sam3, or sim (the simulator's ground-truth masks: an oracle, not perception). Named in the report.
     segmenter: str = "color"
-    # Simulator realism: realistic (depth noise, exposure, pose drift; the default) or ideal.
+    # Simulator realism: realistic (depth noise, exposure, pose drift, indoor air; the default), harsh or ideal.
     realism: str = "realistic"
     # What the backend is, stated at the top of the report (e.g. "numbers reflect the local test server").
     note: str = ""

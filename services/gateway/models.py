@@ -261,7 +261,7 @@ class VehicleHealth(ApiModel):
     segmenter: str | None = None
     """Perception's segmenter (color, sam3, or sim: the simulator's ground-truth oracle, not real perception)."""
     realism: str | None = None
-    """The simulator's realism (realistic or ideal), when the vehicle is simulated."""
+    """The simulator's realism (realistic, harsh or ideal), when the vehicle is simulated."""
     battery_voltage: float | None = None
     """Battery, volts."""
     state_age_s: float | None = None

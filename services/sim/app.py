@@ -61,7 +61,7 @@ def build(settings: SimSettings) -> tuple[SimCore, MavlinkServer]:
                             offboard_loss_timeout=settings.offboard_loss_timeout,
                             failsafe_land_delay=settings.failsafe_land_delay, seed=settings.seed,
                             hover_offset=settings.hover_offset)
-    core = SimCore(scenario_from(settings), params, realism=settings.realism)
+    core = SimCore(scenario_from(settings), params, realism=settings.realism, dynamics=settings.dynamics)
     links = [LinkSettings("api", settings.api_local_port, settings.api_host, settings.api_port, settings.bind_host)]
     if settings.gcs_enabled:
         links.append(LinkSettings("gcs", settings.gcs_local_port, settings.gcs_host, settings.gcs_port,
@@ -132,7 +132,8 @@ class CameraPublisher:
         """world -> body from the estimated pose (as a real stack gets it from its EKF), not the truth; the
         camera and gripper frames of the simulated airframe (the default mount, see check_airframe; off by
         `mount_error` while a camera_mount fault is injected)."""
-        body = pose_matrix(float(snap.position[0]), float(snap.position[1]), float(snap.position[2]), snap.yaw)
+        body = pose_matrix(float(snap.position[0]), float(snap.position[1]), float(snap.position[2]), snap.yaw,
+                           snap.roll, snap.pitch)
         cam = AIRFRAME.base_to_camera()
         if mount_error is not None and mount_error.any():
             cam = cam.copy()
@@ -227,7 +228,8 @@ class CameraPublisher:
             details = {"fps_5s": fps, "frames": st["frames"], "idle_frames": st["idle_frames"],
                        "camera_fault": self.fault,
                        "camera": self.settings.camera, "mode": v.mode_name, "armed": v.armed,
-                       "realism": self.core.realism, "scenario_seed": self.core.scenario.seed,
+                       "realism": self.core.realism, "dynamics": self.core.dynamics,
+                       "scenario_seed": self.core.scenario.seed,
                        "setpoints_received": v.setpoints_received, **self.core.counters}
         ok = self.failures < 3
         return Health(service="sim", ok=ok, message="" if ok else f"rendering keeps failing: {self.last_error}",

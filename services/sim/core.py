@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.sim.physics import look_for
+from services.sim.physics import configured_dynamics, look_for
 from services.sim.scenarios import ScenarioError, generate
 from services.sim.vehicle import Vehicle, VehicleParams, enu_to_ned, wrap
 from shared.messages import (
@@ -38,15 +38,22 @@ class Snapshot:
     geom_instance: np.ndarray  # geom id -> instance id (segmentation)
     position: np.ndarray  # ENU body origin as estimated (what tf publishes)
     yaw: float  # ENU, estimated
+    roll: float = 0.0  # FLU roll and pitch (pitch positive nose down, as shared.sensors.pose_matrix), the IMU's
+    pitch: float = 0.0
 
 
 class SimCore:
     """The simulated world and vehicle behind one lock: physics steps, camera renders and scenario resets."""
 
-    def __init__(self, scenario: Scenario, params: VehicleParams | None = None, realism: str = "realistic") -> None:
+    def __init__(self, scenario: Scenario, params: VehicleParams | None = None, realism: str = "realistic",
+                 dynamics: str | None = None) -> None:
         self.lock = threading.RLock()
         self.realism = realism
-        world, filled, start = generate(scenario, light_variation=realism != "ideal", look=look_for(realism))
+        if dynamics is None:  # the configured one (AERMANI_SIM_DYNAMICS, kinematic by default)
+            dynamics = configured_dynamics()
+        self.dynamics = dynamics  # physics.DYNAMICS: the vehicle's body (SimSettings.dynamics)
+        world, filled, start = generate(scenario, light_variation=realism != "ideal", look=look_for(realism),
+                                        dynamics=dynamics)
         self.world = world
         self.scenario = filled
         self.vehicle = Vehicle(world, params)
@@ -64,7 +71,7 @@ class SimCore:
     def reset(self, scenario: Scenario) -> SimResetResult:
         try:
             world, filled, start = generate(scenario, light_variation=self.realism != "ideal",
-                                            look=look_for(self.realism))
+                                            look=look_for(self.realism), dynamics=self.dynamics)
         except ScenarioError as exc:
             return SimResetResult(ok=False, message=str(exc))
         with self.lock:
@@ -121,8 +128,9 @@ class SimCore:
     def snapshot(self) -> Snapshot:
         with self.lock:
             w = self.world
+            roll, pitch, _ = w.vehicle_rpy()
             return Snapshot(w.version, w.xml, w.state_vector(), w.geom_instance, self.vehicle.position_enu(),
-                            self.vehicle.yaw_enu())
+                            self.vehicle.yaw_enu(), roll, pitch)
 
     # ---- statistics
 

@@ -42,6 +42,8 @@ DEFAULT_RATES: dict[int, float] = {
     mav.MAVLINK_MSG_ID_HEARTBEAT: 1.0,
     mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED: 50.0,
     mav.MAVLINK_MSG_ID_ATTITUDE: 50.0,
+    mav.MAVLINK_MSG_ID_ATTITUDE_QUATERNION: 20.0,
+    mav.MAVLINK_MSG_ID_ODOMETRY: 10.0,
     mav.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: 5.0,
     mav.MAVLINK_MSG_ID_SYS_STATUS: 2.0,
     mav.MAVLINK_MSG_ID_BATTERY_STATUS: 1.0,
@@ -223,7 +225,7 @@ class MavlinkServer:
                 with self.core.lock:
                     v = self.core.vehicle
                     v.update_modes(now)
-                    n = max(1, math.ceil(dt_sim / 0.01))  # substeps of <= 10 ms simulated time
+                    n = max(1, math.ceil(dt_sim / v.max_step_s))  # substeps the vehicle's controller needs
                     for _ in range(n):
                         v.step(dt_sim / n)
                     events, v.events = v.events, []
@@ -539,13 +541,17 @@ class MavlinkServer:
             boot_ms = int(v.sim_time * 1000)  # time since boot runs on simulated time
             if msg_id == mav.MAVLINK_MSG_ID_HEARTBEAT:
                 return self._heartbeat(m, v)
-            if msg_id in (mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED, mav.MAVLINK_MSG_ID_GLOBAL_POSITION_INT) \
-                    and not v.estimate_valid:
+            if msg_id in (mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED, mav.MAVLINK_MSG_ID_GLOBAL_POSITION_INT,
+                          mav.MAVLINK_MSG_ID_ODOMETRY) and not v.estimate_valid:
                 return None  # PX4 publishes no position it does not have
             if msg_id == mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED:
                 return m.local_position_ned_encode(boot_ms, *(float(x) for x in v.p), *(float(x) for x in v.v))
             if msg_id == mav.MAVLINK_MSG_ID_ATTITUDE:
-                return m.attitude_encode(boot_ms, 0.0, 0.0, float(v.yaw), 0.0, 0.0, 0.0)
+                return m.attitude_encode(boot_ms, float(v.roll), float(v.pitch), float(v.yaw), *v.rates)
+            if msg_id == mav.MAVLINK_MSG_ID_ATTITUDE_QUATERNION:
+                return m.attitude_quaternion_encode(boot_ms, *v.attitude_quaternion(), *v.rates)
+            if msg_id == mav.MAVLINK_MSG_ID_ODOMETRY:
+                return self._odometry(m, v)
             if msg_id == mav.MAVLINK_MSG_ID_DEBUG_VECT:
                 return m.debug_vect_encode(GRIPPER_DEBUG_NAME, boot_ms * 1000, float(v.finger_width),
                                            1.0 if v.holding else 0.0, 1.0 if v.gripper_closed else 0.0)
@@ -576,6 +582,20 @@ class MavlinkServer:
                 return m.autopilot_version_encode(caps, version, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0,
                                                   0x41455253494D)
         return None
+
+    @staticmethod
+    def _odometry(m: mav.MAVLink, v: Vehicle) -> mav.MAVLink_message:
+        """PX4's ODOMETRY: the estimate's pose in LOCAL_NED, velocity and rates in the body (FRD) frame."""
+        qw, qx, qy, qz = v.attitude_quaternion()
+        # NED velocity rotated into FRD: the transpose of the body-to-NED rotation.
+        r = np.array([[1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qw * qz), 2 * (qx * qz + qw * qy)],
+                      [2 * (qx * qy + qw * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qw * qx)],
+                      [2 * (qx * qz - qw * qy), 2 * (qy * qz + qw * qx), 1 - 2 * (qx * qx + qy * qy)]])
+        vb = r.T @ v.v
+        nan21 = [float("nan")] * 21  # covariances unknown (MAVLink: NaN in the first element)
+        return m.odometry_encode(int(v.sim_time * 1e6), mav.MAV_FRAME_LOCAL_NED, mav.MAV_FRAME_BODY_FRD,
+                                 *(float(x) for x in v.p), [qw, qx, qy, qz], *(float(x) for x in vb), *v.rates,
+                                 nan21, nan21, 0, mav.MAV_ESTIMATOR_TYPE_VIO, 100)
 
     @staticmethod
     def _heartbeat(m: mav.MAVLink, v: Vehicle) -> mav.MAVLink_message:

@@ -15,6 +15,8 @@ touches furniture, walls, floor and objects.
 from __future__ import annotations
 
 import math
+import os
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from xml.sax.saxutils import quoteattr
 
@@ -26,8 +28,27 @@ from shared.frames import CAMERA_OFFSET_BODY, CAMERA_PITCH_DOWN, DEFAULT_INTRINS
 from shared.messages import JudgeCheck, JudgeCriteria
 
 TIMESTEP = 0.002  # s; contacts of small objects in a gripper want a few ms at most
-VEHICLE_MASS = 1.5  # kg, airframe (fingers add FINGER_MASS each)
-VEHICLE_YAW_INERTIA = 0.03  # kg m^2 about z
+# The vehicle's dynamics (SimSettings.dynamics): `kinematic`, an ideal body on sliding joints pushed by a perfect
+# world-frame force (it never tilts); `multirotor`, a free rigid body with four lagged rotors (README "Dynamics").
+DYNAMICS = ("kinematic", "multirotor")
+KINEMATIC_MASS = 1.5  # kg, the kinematic body's airframe (fingers add FINGER_MASS each)
+VEHICLE_YAW_INERTIA = 0.03  # kg m^2 about z, the kinematic body's (its yaw torque's scale)
+VEHICLE_MASS = 1.0  # kg, the multirotor's airframe (battery, motors, gear and fingers add ~0.86 kg: ~1.86 kg in all)
+BATTERY_MASS = 0.5  # kg, a 4S pack low in the frame: with it the centre of mass is at the body origin
+BATTERY_Z = -0.04  # m
+# A quadrotor in X (PX4's "quadrotor x" numbering): rotors 0..3 front-right, back-left, front-left, back-right,
+# the first two spinning counter-clockwise seen from above. Figures of a 1.5-2.5 kg indoor aerial
+# manipulator with 6-inch propellers behind the airframe's guard cylinder (README: sources).
+ROTOR_ARM = 0.17  # m, body centre to rotor axis
+ROTOR_RADIUS = 0.075  # m, propeller radius (6 inch)
+ROTOR_Z = 0.08  # m, rotor plane above the body origin
+ROTOR_MASS = 0.06  # kg, motor + propeller at each arm tip
+ROTOR_MAX_THRUST = 10.0  # N per rotor: thrust-to-weight ~2.2
+ROTOR_TAU = 0.02  # s, first-order motor + propeller lag (PX4's gazebo x500: 12.5 ms up, 25 ms down)
+ROTOR_YAW_MOMENT = 0.016  # m: reaction torque per newton of thrust (x500's momentConstant)
+ROTOR_XY = tuple((ROTOR_ARM * math.cos(a), ROTOR_ARM * math.sin(a))
+                 for a in (-math.pi / 4, 3 * math.pi / 4, math.pi / 4, -3 * math.pi / 4))
+ROTOR_SPIN = (1.0, 1.0, -1.0, -1.0)  # +1 counter-clockwise from above: its reaction torque turns the body clockwise
 FINGER_MASS = 0.04
 FINGER_MAX_HALF = 0.09  # each finger travels 0..9 cm from the centre line: opening 0..18 cm
 FINGER_FORCE = 12.0  # N, grip force limit per finger
@@ -80,18 +101,82 @@ def entity_geom_name(e: Entity) -> str:
 LOOKS = ("primitive", "textured")
 
 
+def configured_dynamics() -> str:
+    """The dynamics `AERMANI_SIM_DYNAMICS` names, `kinematic` when unset: the variable `SimSettings.dynamics`
+    reads, for code that builds a world without the settings (`SimCore` in-process, tests)."""
+    value = os.environ.get("AERMANI_SIM_DYNAMICS", "").strip().lower() or "kinematic"
+    if value not in DYNAMICS:
+        raise ValueError(f"AERMANI_SIM_DYNAMICS={value!r}: {' or '.join(DYNAMICS)}")
+    return value
+
+
 def look_for(realism: str) -> str:
     """The look a camera realism level renders: `ideal` keeps the colour-coded primitives (debugging, geometry
     tests), every other level the textured meshes of `services.sim.assets`."""
     return "primitive" if realism == "ideal" else "textured"
 
 
+def _vehicle_xml(fovy: float, dynamics: str = "kinematic") -> str:
+    """The vehicle's body up to its fingers; the caller closes the body after the fingers. `kinematic`: sliding
+    x/y/z joints and a yaw hinge (the body never tilts), the airframe's guard cylinder, landing gear and the
+    camera. `multirotor`: a free joint, the same airframe and gear, a battery, four rotor sites (where the rotor
+    actuators push) with their motors' mass, and the camera."""
+    air = f'contype="{GROUP_AIRFRAME}" conaffinity="{GROUP_ENV | GROUP_OBJ | GROUP_FLOOR}"'
+    half_h = VEHICLE_HEIGHT / 2
+    gear_z = FLOOR_Z + GEAR_RADIUS  # gear bottom on the floor when the body origin is at z = 0
+    camera = (f'<camera name="camera" pos="{_vec(CAMERA_OFFSET_BODY)}" quat="{_vec(camera_quat())}" '
+              f'fovy="{_f(fovy)}"/>')
+    if dynamics == "kinematic":
+        out = ['<body name="vehicle" pos="0 0 0" sleep="never">'
+               '<joint name="vx" type="slide" axis="1 0 0"/><joint name="vy" type="slide" axis="0 1 0"/>'
+               '<joint name="vz" type="slide" axis="0 0 1"/><joint name="vyaw" type="hinge" axis="0 0 1"/>']
+        out.append(f'<geom name="airframe" type="cylinder" size="{_f(VEHICLE_RADIUS)} {_f(half_h)}" '
+                   f'pos="0 0 {_f(half_h - VEHICLE_BELOW)}" mass="{_f(KINEMATIC_MASS)}" rgba="0.15 0.15 0.17 1" '
+                   f'{air}/>')
+        for i, (gx, gy) in enumerate(GEAR_OFFSETS):
+            out.append(f'<geom name="gear{i}" type="sphere" size="{_f(GEAR_RADIUS)}" pos="{_vec([gx, gy, gear_z])}" '
+                       f'mass="0.01" rgba="0.1 0.1 0.1 1" {air} friction="1 0.01 0.001"/>')
+        out.append(camera)
+        return "".join(out)
+    out = ['<body name="vehicle" pos="0 0 0" sleep="never"><freejoint name="vehicle"/>']
+    out.append(f'<geom name="airframe" type="cylinder" size="{_f(VEHICLE_RADIUS)} {_f(half_h)}" '
+               f'pos="0 0 {_f(half_h - VEHICLE_BELOW)}" mass="{_f(VEHICLE_MASS)}" rgba="0.15 0.15 0.17 1" {air}/>')
+    # The battery puts the centre of mass at the body origin (the fingers hang below, the motors sit above):
+    # the origin, whose motion the autopilot reports, then moves as the centre of mass does when the body tilts.
+    out.append(f'<geom name="battery" type="box" size="0.07 0.035 0.012" pos="0 0 {_f(BATTERY_Z)}" '
+               f'mass="{_f(BATTERY_MASS)}" contype="0" conaffinity="0" group="3"/>')
+    for i, (gx, gy) in enumerate(GEAR_OFFSETS):
+        out.append(f'<geom name="gear{i}" type="sphere" size="{_f(GEAR_RADIUS)}" pos="{_vec([gx, gy, gear_z])}" '
+                   f'mass="0.01" rgba="0.1 0.1 0.1 1" {air} friction="1 0.01 0.001"/>')
+    for i, (rx, ry) in enumerate(ROTOR_XY):
+        # The motor's mass at the arm tip (it sets the roll and pitch inertia); never collides, never rendered.
+        out.append(f'<geom name="motor{i}" type="cylinder" size="0.014 0.012" pos="{_vec([rx, ry, ROTOR_Z - 0.012])}" '
+                   f'mass="{_f(ROTOR_MASS)}" contype="0" conaffinity="0" group="3" rgba="0.3 0.3 0.3 1"/>'
+                   f'<site name="rotor{i}" pos="{_vec([rx, ry, ROTOR_Z])}" size="0.01"/>')
+    out.append(camera)
+    return "".join(out)
+
+
+def _rotor_actuators_xml() -> str:
+    """Each rotor: thrust along its site's z axis and the propeller's reaction torque about it, through a first-order
+    filter (MuJoCo's `filter` dynamics: the actuator's activation is the thrust, lagging the command by
+    ROTOR_TAU). ctrl = commanded thrust in newtons; gainprm[0] scales it (ground effect, thrust noise)."""
+    return "".join(
+        f'<general name="rotor{i}" site="rotor{i}" gear="0 0 1 0 0 {_f(-spin * ROTOR_YAW_MOMENT)}" dyntype="filter" '
+        f'dynprm="{_f(ROTOR_TAU)}" gaintype="fixed" gainprm="1" biastype="none" '
+        f'ctrlrange="0 {_f(ROTOR_MAX_THRUST)}"/>'
+        for i, spin in enumerate(ROTOR_SPIN))
+
+
 def build_xml(entities: list[Entity], light_seed: int = 0, light_variation: bool = True,
-              look: str = "primitive") -> str:
+              look: str = "primitive", dynamics: str = "kinematic") -> str:
     """MJCF for a layout: structure and furniture static, objects free, the vehicle at the origin. `look`:
-    `primitive` (colour-coded boxes, cylinders and spheres) or `textured` (meshes and textures, `_textured_*`)."""
+    `primitive` (colour-coded boxes, cylinders and spheres) or `textured` (meshes and textures, `_textured_*`);
+    `dynamics`: the vehicle body (`DYNAMICS`, `_vehicle_xml`)."""
     if look not in LOOKS:
         raise ValueError(f"unknown look {look!r}: {' or '.join(LOOKS)}")
+    if dynamics not in DYNAMICS:
+        raise ValueError(f"unknown dynamics {dynamics!r}: {' or '.join(DYNAMICS)}")
     textured = look == "textured"
     rng = np.random.default_rng(light_seed)
     intr = DEFAULT_INTRINSICS
@@ -146,20 +231,8 @@ def build_xml(entities: list[Entity], light_seed: int = 0, light_variation: bool
             f'<freejoint/><geom name={name} {geom} mass="{_f(spec.mass)}" rgba="{_rgba(e.rgb)}" '
             f'friction="{_f(spec.friction)} 0.005 0.0005" contype="{GROUP_OBJ}" '
             f'conaffinity="{GROUP_ENV | GROUP_OBJ | GROUP_FINGER | GROUP_FLOOR}"/></body>')
-    # The vehicle: airframe cylinder, landing gear, camera, two fingers.
-    air = f'contype="{GROUP_AIRFRAME}" conaffinity="{GROUP_ENV | GROUP_OBJ | GROUP_FLOOR}"'
-    add('<body name="vehicle" pos="0 0 0" sleep="never">')
-    add('<joint name="vx" type="slide" axis="1 0 0"/><joint name="vy" type="slide" axis="0 1 0"/>'
-        '<joint name="vz" type="slide" axis="0 0 1"/><joint name="vyaw" type="hinge" axis="0 0 1"/>')
-    half_h = VEHICLE_HEIGHT / 2
-    add(f'<geom name="airframe" type="cylinder" size="{_f(VEHICLE_RADIUS)} {_f(half_h)}" '
-        f'pos="0 0 {_f(half_h - VEHICLE_BELOW)}" mass="{_f(VEHICLE_MASS)}" rgba="0.15 0.15 0.17 1" {air}/>')
-    gear_z = FLOOR_Z + GEAR_RADIUS  # gear bottom on the floor when the body origin is at z = 0
-    for i, (gx, gy) in enumerate(GEAR_OFFSETS):
-        add(f'<geom name="gear{i}" type="sphere" size="{_f(GEAR_RADIUS)}" pos="{_vec([gx, gy, gear_z])}" '
-            f'mass="0.01" rgba="0.1 0.1 0.1 1" {air} friction="1 0.01 0.001"/>')
-    add(f'<camera name="camera" pos="{_vec(CAMERA_OFFSET_BODY)}" quat="{_vec(camera_quat())}" '
-        f'fovy="{_f(fovy)}"/>')
+    # The vehicle: a free rigid body (airframe, landing gear, rotors, camera) carrying the two fingers.
+    add(_vehicle_xml(fovy, dynamics))
     gz = GRIPPER_OFFSET_BODY[2]
     pad = FINGER_PAD
     fingers = f'contype="{GROUP_FINGER}" conaffinity="{GROUP_ENV}" friction="{_f(FINGER_FRICTION)} 0.02 0.001"'
@@ -178,6 +251,8 @@ def build_xml(entities: list[Entity], light_seed: int = 0, light_variation: bool
     for side in ("left", "right"):
         add(f'<position name="finger_{side}" joint="finger_{side}" kp="{_f(FINGER_KP)}" '
             f'ctrlrange="0 {_f(FINGER_MAX_HALF)}" forcerange="{_f(-FINGER_FORCE)} {_f(FINGER_FORCE)}"/>')
+    if dynamics == "multirotor":
+        add(_rotor_actuators_xml())
     add('</actuator>')
     add('</mujoco>')
     return "\n".join(parts)
@@ -294,12 +369,21 @@ def entity_geoms(model: mujoco.MjModel, e: Entity) -> list[int]:
     return list(range(adr, adr + num))
 
 
+def quat_to_rpy(q: tuple[float, float, float, float]) -> tuple[float, float, float]:
+    """z-y-x Euler angles (roll, pitch, yaw) of a unit quaternion (w, x, y, z)."""
+    w, x, y, z = q
+    roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+    pitch = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
+    yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    return roll, pitch, yaw
+
+
 @dataclass
 class Contact:
     """A contact the airframe made with something static (furniture, walls, ceiling)."""
 
     name: str
-    speed: float  # vehicle speed when the contact began, m/s
+    speed: float  # vehicle speed towards the surface (along the contact normal) when the contact began, m/s
     crash: bool
 
 
@@ -335,6 +419,7 @@ class World:
     light_seed: int = 0
     light_variation: bool = True
     look: str = "primitive"  # `LOOKS`: what the camera sees (`look_for(realism)`); the physics is alike
+    dynamics: str = "kinematic"  # `DYNAMICS`: the vehicle's body (sliding joints, or a free body with rotors)
     version: int = 0
     collisions: list[str] = field(default_factory=list)
     crash_speed: float = CRASH_SPEED
@@ -342,16 +427,34 @@ class World:
     criteria: JudgeCriteria = field(default_factory=JudgeCriteria)  # the task's (`Scenario.criteria`)
 
     def __post_init__(self) -> None:
-        self.xml = build_xml(self.entities, self.light_seed, self.light_variation, self.look)
+        self.xml = build_xml(self.entities, self.light_seed, self.light_variation, self.look, self.dynamics)
         self.model = mujoco.MjModel.from_xml_string(self.xml)
         self.data = mujoco.MjData(self.model)
         m = self.model
-        self._jnt = {n: m.joint(n).qposadr[0] for n in ("vx", "vy", "vz", "vyaw", "finger_left", "finger_right")}
-        self._dof = {n: m.joint(n).dofadr[0] for n in ("vx", "vy", "vz", "vyaw", "finger_left", "finger_right")}
+        self.multirotor = self.dynamics == "multirotor"
+        joints = ("vehicle",) if self.multirotor else ("vx", "vy", "vz", "vyaw")
+        self._jnt = {n: m.joint(n).qposadr[0] for n in (*joints, "finger_left", "finger_right")}
+        self._dof = {n: m.joint(n).dofadr[0] for n in (*joints, "finger_left", "finger_right")}
+        # Free joint: pos, quat at _q0; velocity, body rates at _v0. Kinematic: x, y, z, yaw from _q0 and _v0 on.
+        self._q0, self._v0 = int(self._jnt[joints[0]]), int(self._dof[joints[0]])
         self.vehicle_body = m.body("vehicle").id
+        n_rotors = len(ROTOR_XY) if self.multirotor else 0
+        self.rotor_actuators = [m.actuator(f"rotor{i}").id for i in range(n_rotors)]
+        self.rotor_sites = [m.site(f"rotor{i}").id for i in range(n_rotors)]
+        self._rotor_act = [int(m.actuator_actadr[a]) for a in self.rotor_actuators]
+        first = self.rotor_actuators[0] if self.rotor_actuators else 0
+        if self.rotor_actuators != list(range(first, first + n_rotors)):
+            raise RuntimeError(f"rotor actuators {self.rotor_actuators} are not contiguous in the model")
+        self._rotor_ctrl = slice(first, first + n_rotors)
         self.finger_geoms = (m.geom("finger_left").id, m.geom("finger_right").id)
         self.airframe_geoms = {m.geom("airframe").id} | {m.geom(f"gear{i}").id for i in range(4)}
         self.vehicle_mass = float(m.body_subtreemass[self.vehicle_body])
+        # Inertia of the airframe body about its own axes (the fingers' small bodies left out: the gains need no more).
+        rot = np.zeros(9)
+        mujoco.mju_quat2Mat(rot, m.body_iquat[self.vehicle_body])
+        rot3 = rot.reshape(3, 3)
+        inertia = rot3 @ np.diag(m.body_inertia[self.vehicle_body]) @ rot3.T  # principal axes -> body axes
+        self.vehicle_inertia = (float(inertia[0, 0]), float(inertia[1, 1]), float(inertia[2, 2]))
         self.geom_entity: dict[int, Entity] = {}
         self.obj_body: dict[str, int] = {}
         self.obj_qadr: dict[str, int] = {}
@@ -371,6 +474,7 @@ class World:
             self.geom_instance[gid] = e.id
         self._static_contact: set[int] = set()
         self.tracks: dict[str, ObjectTrack] = {e.name: ObjectTrack() for e in self.objects}
+        self._ray_geom = np.zeros(1, dtype=np.int32)
         self.contacts: list[Contact] = []
         self.sim_time = 0.0
         self._pending = 0.0
@@ -409,26 +513,80 @@ class World:
     # ---- vehicle state
 
     def set_vehicle(self, pos: np.ndarray, yaw: float) -> None:
-        d = self.data
-        for i, n in enumerate(("vx", "vy", "vz")):
-            d.qpos[self._jnt[n]] = pos[i]
-            d.qvel[self._dof[n]] = 0.0
-        d.qpos[self._jnt["vyaw"]] = yaw
-        d.qvel[self._dof["vyaw"]] = 0.0
+        """Place the vehicle level at `pos` facing `yaw`, at rest, rotors stopped."""
+        d, q, v = self.data, self._q0, self._v0
+        d.qpos[q:q + 3] = pos
+        if self.multirotor:
+            d.qpos[q + 3:q + 7] = (math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2))
+            d.qvel[v:v + 6] = 0.0
+        else:
+            d.qpos[q + 3] = yaw
+            d.qvel[v:v + 4] = 0.0
+        for a, adr in zip(self.rotor_actuators, self._rotor_act, strict=True):
+            d.ctrl[a] = 0.0
+            d.act[adr] = 0.0
         mujoco.mj_forward(self.model, d)
-        self._static_contact = self._airframe_static_contacts()
+        self._static_contact = set(self._airframe_static_contacts())
 
     def vehicle_position(self) -> np.ndarray:
-        return np.array([self.data.qpos[self._jnt[n]] for n in ("vx", "vy", "vz")])
+        """Body origin in the world (ENU)."""
+        return self.data.qpos[self._q0:self._q0 + 3].copy()
 
     def vehicle_velocity(self) -> np.ndarray:
-        return np.array([self.data.qvel[self._dof[n]] for n in ("vx", "vy", "vz")])
+        """Velocity of the body origin in the world (ENU; a free joint's linear velocity is in the world frame)."""
+        return self.data.qvel[self._v0:self._v0 + 3].copy()
+
+    def vehicle_quat(self) -> tuple[float, float, float, float]:
+        """Attitude (w, x, y, z) of the body (FLU) in the world (ENU); the kinematic body only yaws."""
+        if not self.multirotor:
+            yaw = float(self.data.qpos[self._q0 + 3])
+            return math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)
+        q = self.data.qpos[self._q0 + 3:self._q0 + 7].tolist()
+        return q[0], q[1], q[2], q[3]
+
+    def vehicle_rates(self) -> tuple[float, float, float]:
+        """Body angular velocity (FLU, rad/s; a free joint's angular velocity is in the body frame)."""
+        if not self.multirotor:
+            return 0.0, 0.0, float(self.data.qvel[self._v0 + 3])
+        w = self.data.qvel[self._v0 + 3:self._v0 + 6].tolist()
+        return w[0], w[1], w[2]
+
+    def vehicle_rpy(self) -> tuple[float, float, float]:
+        """Roll, pitch, yaw (z-y-x Euler angles of FLU in ENU; pitch positive nose down, as `pose_matrix`)."""
+        return quat_to_rpy(self.vehicle_quat())
+
+    def vehicle_roll(self) -> float:
+        return self.vehicle_rpy()[0]
+
+    def vehicle_pitch(self) -> float:
+        return self.vehicle_rpy()[1]
 
     def vehicle_yaw(self) -> float:
-        return float(self.data.qpos[self._jnt["vyaw"]])
+        if not self.multirotor:
+            return float(self.data.qpos[self._q0 + 3])
+        return self.vehicle_rpy()[2]
 
     def vehicle_yaw_rate(self) -> float:
-        return float(self.data.qvel[self._dof["vyaw"]])
+        """Rate of the heading about the world's z axis (rad/s)."""
+        if not self.multirotor:
+            return float(self.data.qvel[self._v0 + 3])
+        w, x, y, z = self.vehicle_quat()
+        p, q, r = self.vehicle_rates()
+        # Third row of the body-to-world rotation applied to the body rates.
+        return 2 * (x * z - w * y) * p + 2 * (y * z + w * x) * q + (1 - 2 * (x * x + y * y)) * r
+
+    def rotor_thrusts(self) -> list[float]:
+        """Each rotor's thrust now (the motors' lagged state, before ground effect and noise), newtons."""
+        return [float(self.data.act[adr]) for adr in self._rotor_act]
+
+    def set_rotor_commands(self, thrusts: list[float]) -> None:
+        """Commanded thrust of each rotor, newtons (one slice assignment: this runs every physics step)."""
+        self.data.ctrl[self._rotor_ctrl] = thrusts
+
+    def set_rotor_gains(self, gains: list[float]) -> None:
+        """Thrust produced per commanded newton, each rotor (ground effect times thrust noise)."""
+        for a, g in zip(self.rotor_actuators, gains, strict=True):
+            self.model.actuator_gainprm[a, 0] = g
 
     def gripper_position(self) -> np.ndarray:
         """World position of the gripper point (between the finger pads)."""
@@ -445,11 +603,26 @@ class World:
     def fingers_closing(self) -> bool:
         return float(self.data.ctrl[0]) < FINGER_MAX_HALF / 2
 
-    def apply_vehicle_force(self, force: np.ndarray, torque_z: float) -> None:
+    def apply_vehicle_force(self, force: np.ndarray, torque_z: float = 0.0) -> None:
+        """Multirotor: an external force on the vehicle's centre of mass (wind, rotor drag), world frame, newtons.
+        Kinematic: the whole force and yaw torque that move the body along its sliding joints (its controller's)."""
+        if self.multirotor:
+            self.data.xfrc_applied[self.vehicle_body, :3] = force
+            return
+        d, v = self.data, self._v0
+        d.qfrc_applied[v:v + 3] = force
+        d.qfrc_applied[v + 3] = torque_z
+
+    def rotor_clearance(self, max_dist: float = 2.0) -> list[float]:
+        """Distance below each rotor to the first thing under it along the body's -z (floor, furniture, an
+        object), capped at `max_dist`: the ground effect's height."""
         d = self.data
-        for i, n in enumerate(("vx", "vy", "vz")):
-            d.qfrc_applied[self._dof[n]] = force[i]
-        d.qfrc_applied[self._dof["vyaw"]] = torque_z
+        down = -d.xmat[self.vehicle_body].reshape(3, 3)[:, 2]
+        out = []
+        for sid in self.rotor_sites:
+            dist = mujoco.mj_ray(self.model, d, d.site_xpos[sid], down, None, 1, self.vehicle_body, self._ray_geom)
+            out.append(max_dist if dist < 0 else min(float(dist), max_dist))
+        return out
 
     # ---- contacts
 
@@ -459,16 +632,16 @@ class World:
             return np.zeros((0, 2), dtype=int)
         return np.array(self.data.contact.geom[:n], dtype=int).reshape(-1, 2)
 
-    def _airframe_static_contacts(self) -> set[int]:
+    def _airframe_static_contacts(self) -> dict[int, np.ndarray]:
         """Furniture, wall and ceiling geoms the airframe or its landing gear touches (the floor is not a
-        collision: landing)."""
-        out = set()
-        for g1, g2 in self._contact_pairs():
-            for a, b in ((g1, g2), (g2, g1)):
+        collision: landing), each with a contact normal pointing from it towards the vehicle."""
+        out: dict[int, np.ndarray] = {}
+        for i, (g1, g2) in enumerate(self._contact_pairs()):
+            for a, b, sign in ((g1, g2, -1.0), (g2, g1, 1.0)):  # MuJoCo's normal points from geom1 to geom2
                 if a in self.airframe_geoms and self.model.geom_bodyid[b] == 0:
                     e = self.geom_entity.get(int(b))
                     if e is not None and e.name != "floor":
-                        out.add(int(b))
+                        out[int(b)] = sign * self.data.contact.frame[i, :3]
         return out
 
     def gear_on_something(self) -> bool:
@@ -483,21 +656,30 @@ class World:
                         return True
         return False
 
-    def step(self, dt: float) -> list[Contact]:
-        """Advance `dt` seconds with the forces and finger targets set now (the controller runs at the caller's
-        rate, as PX4's does). Returns the airframe's new contacts with furniture, walls or the ceiling (each
-        also recorded in `collisions`); one begun faster than `crash_speed` is a crash."""
+    def step(self, dt: float, before_step: Callable[[], None] | None = None) -> list[Contact]:
+        """Advance `dt` seconds with the forces and finger targets set now; `before_step` runs before every
+        MuJoCo step (the vehicle's attitude and rate loops and mixer, at the physics rate as PX4's rate loop).
+        Returns the airframe's new contacts with furniture, walls or the ceiling (each also recorded in
+        `collisions`); one begun faster than `crash_speed` is a crash."""
         new: list[Contact] = []
         self._pending += dt  # simulated time not yet stepped (callers' dt need not be a multiple of TIMESTEP)
         n = int(self._pending / TIMESTEP + 1e-9)
         if n == 0:
             return new
         self._pending -= n * TIMESTEP
-        speed = float(np.linalg.norm(self.vehicle_velocity()))
-        mujoco.mj_step(self.model, self.data, nstep=n)
+        velocity = self.vehicle_velocity()
+        if before_step is None:
+            mujoco.mj_step(self.model, self.data, nstep=n)
+        else:
+            for _ in range(n):
+                before_step()
+                mujoco.mj_step(self.model, self.data)
         self.sim_time += n * TIMESTEP
         now = self._airframe_static_contacts()
-        for gid in sorted(now - self._static_contact):
+        for gid in sorted(now.keys() - self._static_contact):
+            # The speed towards the surface is what breaks propellers: a tilting multirotor that brushes a
+            # wall it climbs along is not a crash. The kinematic body keeps its whole speed (it never tilts).
+            speed = max(0.0, -float(velocity @ now[gid])) if self.multirotor else float(np.linalg.norm(velocity))
             e = self.geom_entity[gid]
             name = "ceiling" if e.name == "ceiling" else ("wall" if e.name.startswith("wall") else e.name)
             c = Contact(name, speed, speed > self.crash_speed)
@@ -506,7 +688,7 @@ class World:
             tag = f"vehicle-{name}"
             if tag not in self.collisions:
                 self.collisions.append(tag)
-        self._static_contact = now
+        self._static_contact = set(now)
         self.sync()
         return new
 

@@ -23,7 +23,7 @@ MAX_DEPTH_M = 6.0  # stereo range: farther pixels carry no depth
 MIN_DEPTH_M = 0.2  # closer than this the stereo pair cannot match
 DEPTH_K = 0.004  # sigma of the depth error = DEPTH_K * z^2 (m; ~1.6 cm at 2 m, like a 5 cm-baseline camera)
 EDGE_JUMP = 0.06  # relative depth jump between neighbours that makes an occlusion edge
-REALISM = ("realistic", "ideal")
+REALISM = ("realistic", "ideal", "harsh")  # harsh: the realistic camera (its extra is in the flight)
 # MUJOCO_GL -> the module of the GLContext class MuJoCo picks for it (`mujoco.GLContext`).
 GL_MODULES = {"egl": "mujoco.egl", "osmesa": "mujoco.osmesa", "glfw": "mujoco.glfw", "": "mujoco.glfw"}
 
@@ -116,7 +116,7 @@ class Renderer:
         vehicle = m.body("vehicle").id
         x, y, z = (float(v) for v in d.xpos[vehicle])
         cam = pose_matrix(x, y, z, float(np.arctan2(d.xmat[vehicle][3], d.xmat[vehicle][0]))) @ base_to_camera()
-        if self.realism == "realistic":
+        if self.realism != "ideal":
             rgb, depth = self._camera_model(rgb, depth)
         valid = (depth > MIN_DEPTH_M) & (depth < MAX_DEPTH_M) & np.isfinite(depth)
         depth_mm = np.where(valid, depth * 1000.0 + 0.5, 0).astype(np.uint16)

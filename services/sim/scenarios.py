@@ -179,9 +179,10 @@ def _place_object(rng: random.Random, name: str, choices: list[Entity], placed: 
 
 
 def generate(scenario: Scenario, light_variation: bool = True,
-             look: str = "primitive") -> tuple[World, Scenario, Pose]:
+             look: str = "primitive", dynamics: str = "kinematic") -> tuple[World, Scenario, Pose]:
     """Build the world for `scenario` (a MuJoCo simulation, objects settled on their supports); returns it, the
-    scenario with every choice filled in, and the start. `look`: `physics.LOOKS` (the layout is the same)."""
+    scenario with every choice filled in, and the start. `look`: `physics.LOOKS` (the layout is the same);
+    `dynamics`: `physics.DYNAMICS`, the vehicle's body."""
     rng = random.Random(scenario.seed)
     target, dest, extras, fixed = _named(scenario)
 
@@ -240,7 +241,8 @@ def generate(scenario: Scenario, light_variation: bool = True,
     if dest is None:
         dest = rng.choice([s for s in surfaces if s != placed[0].support])
     world = World(entities=_structure() + furniture + placed, light_seed=scenario.seed,
-                  light_variation=light_variation, look=look, criteria=scenario.criteria)
+                  light_variation=light_variation, look=look, dynamics=dynamics,
+                  criteria=scenario.criteria)
     filled = Scenario(seed=scenario.seed, target_object=target, destination=dest, distractors=distractors,
                       target_out_of_view=scenario.target_out_of_view, extra_objects=extras, start=start,
                       placements=fixed or None, criteria=scenario.criteria)

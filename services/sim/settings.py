@@ -39,9 +39,17 @@ class SimSettings(ServiceSettings):
     """JPEG quality of the colour frames."""
     render_scale: int = Field(1, ge=1, le=4)
     """Render at 1/render_scale of the resolution and upsample (1 = full resolution)."""
-    realism: Literal["realistic", "ideal"] = "realistic"
-    """realistic: stereo depth noise and holes, exposure and lighting variation, a drifting pose estimate;
-    ideal: clean buffers and the true pose (debugging)."""
+    realism: Literal["realistic", "ideal", "harsh"] = "realistic"
+    """realistic: stereo depth noise and holes, exposure and lighting variation, textured objects and a drifting
+    VIO-like pose estimate; with dynamics=multirotor also indoor air (draft, turbulence, gusts), thrust noise,
+    ground effect and downwash (hover error sigma 2-5 cm). harsh: the same camera; with dynamics=multirotor
+    stronger wind and gusts and a worse estimate (stress tests). ideal: clean buffers, primitive shapes, still
+    air and the true pose (debugging)."""
+    dynamics: Literal["kinematic", "multirotor"] = "kinematic"
+    """The vehicle's body. kinematic: an ideal body on sliding joints pushed by a perfect world-frame force (it
+    never tilts; position error in hover a few mm). multirotor: a free rigid body with four lagged rotors flown by
+    a PX4-style cascade (position/velocity, attitude, rate, mixer), which tilts to accelerate and carries the
+    disturbances of the realism level (services/sim/README.md "Dynamics")."""
     render_always: bool = False
     """Render even when nobody subscribes to the camera keys (by default idle frames publish tf only)."""
     render_process: bool = True

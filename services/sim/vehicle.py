@@ -1,18 +1,32 @@
-"""A PX4-like multirotor: mode logic, offboard failsafe, a position/velocity controller with PX4's limits that
-drives the vehicle body of the MuJoCo world (services.sim.physics), the gripper, crashes, and the estimated pose
-(truth plus a drifting bias and noise, as an EKF's)."""
+"""A PX4-like multirotor: mode logic, offboard failsafe, the cascaded controller (position -> velocity ->
+thrust vector at the caller's rate; attitude -> body rate -> mixer at the physics rate, services.sim.multirotor)
+that flies the four-rotor body of the MuJoCo world (services.sim.physics), the gripper, crashes, the disturbances
+of the realism level (services.sim.disturbances) and the estimated pose (truth plus a VIO-like error)."""
 
 from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mav
 
-from services.sim.physics import FINGER_MAX_HALF, VEHICLE_YAW_INERTIA, World
+from services.sim.disturbances import PoseEstimator, Wind, downwash_force, ground_effect
+from services.sim.multirotor import AttitudeRateController, InnerGains, Mixer, attitude_setpoint
+from services.sim.physics import (
+    FINGER_MAX_HALF,
+    ROTOR_ARM,
+    ROTOR_MAX_THRUST,
+    ROTOR_RADIUS,
+    ROTOR_SPIN,
+    ROTOR_XY,
+    ROTOR_YAW_MOMENT,
+    TIMESTEP,
+    VEHICLE_YAW_INERTIA,
+    World,
+)
 from shared.frames import GRIPPER_OFFSET_BODY
 
 log = logging.getLogger("aermani.sim.vehicle")
@@ -48,7 +62,17 @@ FAILED = mav.MAV_RESULT_FAILED
 FORCE_MAGIC = 21196
 
 GRAVITY = 9.81
-VEHICLE_YAW_INERTIA_TOTAL = VEHICLE_YAW_INERTIA + 0.01  # + finger armature/mass
+REALISM = ("realistic", "ideal", "harsh")
+VEHICLE_YAW_INERTIA_TOTAL = VEHICLE_YAW_INERTIA + 0.01  # the kinematic body's, + finger armature/mass
+KINEMATIC_YAW_ACCEL = 6.0  # rad/s^2: the kinematic body's yaw braking profile (its torque is unlimited)
+# The multirotor's loop rates in physics steps (TIMESTEP 2 ms), as PX4 runs its modules: the rate loop and the
+# mixer every step (500 Hz; PX4: at the gyro rate, 400 Hz-1 kHz), attitude every second (250 Hz, PX4's
+# mc_att_control), position and velocity with the estimator and the disturbances every tenth (50 Hz: PX4's
+# mc_pos_control follows the estimator's local position at about that rate).
+ATTITUDE_DIV = 2
+OUTER_DIV = 10
+OUTER_DT = OUTER_DIV * TIMESTEP
+ROTOR_SPACING = math.dist(ROTOR_XY[0], ROTOR_XY[2])  # adjacent rotors (front right, front left)
 
 
 def ned_to_enu(p: np.ndarray) -> np.ndarray:
@@ -69,7 +93,8 @@ def wrap(a: float) -> float:
 
 @dataclass
 class VehicleParams:
-    """Flight limits of the simulated multicopter, named after the PX4 parameters they mirror."""
+    """Flight limits of the simulated multicopter, named after the PX4 parameters they mirror, and its
+    disturbances (all zero by default: `ideal`; `realism_params` sets them per realism level)."""
 
     max_speed_h: float = 2.0  # m/s (MPC_XY_VEL_MAX)
     max_speed_up: float = 1.0  # m/s (MPC_Z_VEL_MAX_UP)
@@ -78,6 +103,7 @@ class VehicleParams:
     accel_h: float = 3.0  # m/s^2
     accel_v: float = 2.0  # m/s^2
     yaw_rate: float = math.radians(90.0)  # rad/s (MPC_YAWRAUTO_MAX)
+    yaw_accel: float = 3.0  # rad/s^2: the yaw rate's braking profile (the rotors' yaw torque is small)
     takeoff_alt: float = 1.5  # m (MIS_TAKEOFF_ALT)
     offboard_loss_timeout: float = 0.5  # s (COM_OF_LOSS_T)
     # What PX4 flies when offboard is lost (COM_OBL_RC_ACT): 0 Position, 1 Altitude, 2 Manual (no RC here, so
@@ -88,13 +114,24 @@ class VehicleParams:
     disarm_after_land: float = 2.0  # s (COM_DISARM_LAND)
     offboard_stream_min: float = 0.0  # s of setpoints before OFFBOARD is allowed (PX4: one within COM_OF_LOSS_T)
     battery_drain_per_s: float = 0.05  # % per second while armed (~33 min flight)
-    kp: float = 1.5  # position gain, 1/s
+    kp: float = 1.5  # position gain, 1/s (MPC_XY_P 0.95, MPC_Z_P 1.0; a little stiffer indoors)
     rtl_alt: float = 2.0  # m above home (RTL_RETURN_ALT; PX4's 60 m default makes no sense indoors)
-    vel_tau: float = 0.12  # s, velocity loop time constant (force = mass * velocity error / tau + integral)
-    vel_ki: float = 4.0  # 1/s^2, integral gain of the velocity loop (carries a payload without sagging)
-    max_tilt_accel: float = 6.0  # m/s^2: horizontal acceleration the airframe can produce (thrust limit)
-    max_thrust_accel: float = 2.2 * GRAVITY  # m/s^2: thrust-to-weight
-    pose_noise: float = 0.0  # m, white noise on the estimated position
+    vel_tau: float = 0.3  # s, horizontal velocity loop time constant: accel = velocity error / tau (MPC_XY_VEL_P_ACC)
+    vel_tau_z: float = 0.15  # s, the same vertically (no tilt to wait for: only the motors' lag)
+    vel_ki: float = 2.0  # 1/s^2, horizontal velocity loop integral (a steady draft)
+    vel_ki_z: float = 4.0  # 1/s^2, vertical (a payload's weight)
+    # The kinematic body's velocity loop (a force straight on the body, no attitude to wait for: stiffer).
+    kinematic_vel_tau: float = 0.12  # s (force = mass * velocity error / tau + integral)
+    kinematic_vel_ki: float = 4.0  # 1/s^2 (carries a payload without sagging)
+    max_thrust_accel: float = 2.2 * GRAVITY  # m/s^2: the kinematic body's thrust-to-weight
+    jerk_max: float = 20.0  # m/s^3, horizontal (MPC_JERK_MAX)
+    max_tilt_accel: float = 6.0  # m/s^2: horizontal acceleration the tilt limit allows (MPC_TILTMAX_AIR ~35 deg)
+    inner: InnerGains = field(default_factory=InnerGains)
+    # Disturbances (README "Realism": figures and sources).
+    pose_bias_xy: float = 0.0  # m, sigma of the estimate's wandering horizontal bias (per axis)
+    pose_bias_z: float = 0.0  # m, the same vertically
+    pose_bias_tau: float = 10.0  # s, its correlation time
+    pose_noise: float = 0.0  # m, white noise on the kinematic body's estimated position
     pose_drift: float = 0.0  # m/sqrt(s): random walk of the estimate's horizontal bias (visual odometry drift)
     pose_drift_max: float = 0.0  # m: the bias is bounded (loop closures / fused references)
     yaw_drift: float = 0.0  # rad/sqrt(s): random walk of the estimated yaw's bias
@@ -107,18 +144,53 @@ class VehicleParams:
     # m, ENU (x, y): a step in the estimate (estimate - truth) on top of the drift: a relocalization jump, which
     # nothing on board sees (the camera's tf carries the same estimate); tests use it to send a release astray
     estimate_offset: tuple[float, float] = (0.0, 0.0)
+    vio_noise: float = 0.0  # m, white noise on the multirotor's estimated position
+    vel_noise: float = 0.0  # m/s, white noise on the multirotor's estimated velocity
+    yaw_bias: float = 0.0  # rad, sigma of the estimated yaw's wandering bias
+    yaw_bias_tau: float = 30.0  # s
+    wind_mean: float = 0.0  # m/s, a steady draft in a seeded direction
+    wind_sigma: float = 0.0  # m/s, horizontal turbulence (vertical: half)
+    wind_tau: float = 1.5  # s, turbulence correlation time (small rooms: short scales)
+    gust_rate: float = 0.0  # gusts per second
+    gust_amp: tuple[float, float] = (0.0, 0.0)  # m/s, peak air speed of a gust, uniform in this range
+    gust_s: tuple[float, float] = (1.0, 3.0)  # s, length of a gust
+    rotor_drag: float = 0.0  # 1/s: horizontal drag force / (mass * air-relative speed) (rotor drag, linear)
+    thrust_noise: float = 0.0  # relative sigma of each rotor's thrust (Gauss-Markov, thrust_noise_tau)
+    thrust_noise_tau: float = 0.05  # s
+    ground_effect: bool = False  # thrust gain near a surface under a rotor
+    downwash: bool = False  # the rotors' slipstream pushes objects below them
     seed: int = 0
 
 
 def realism_params(realism: str, **kw) -> VehicleParams:
-    """`realistic`: a VIO-grade estimate (2 mm noise, bias drifting ~1 cm/min up to 3 cm, yaw up to 1 deg);
-    `ideal`: the estimate is the truth."""
+    """The estimator and disturbances of a realism level, for either body (SimSettings.dynamics): each reads its
+    own fields (the kinematic body `pose_noise` and the `pose_drift`/`yaw_drift` random walks; the multirotor the
+    rest), so the same parameters serve a world of either dynamics.
+
+    `ideal`: no disturbances, the estimate is the truth. `realistic`, kinematic body: a VIO-grade estimate (2 mm
+    noise, bias drifting ~1 cm/min up to 3 cm, yaw up to 1 deg), nothing else. `realistic`, multirotor: an indoor
+    VIO-grade estimate (bias sigma 2.5 cm horizontal, 2.8 cm vertical, wandering over ~10 s; 3 mm and 1 cm/s
+    noise; yaw bias sigma 0.5 deg), indoor air (a 0.15 m/s draft, 0.25 m/s turbulence, a 0.5-1 m/s gust every
+    ~30 s), rotor drag, 2 % thrust noise, ground effect, downwash; calibrated so a still hover's true position
+    error is sigma 2-5 cm per axis (README "Dynamics"). `harsh`: the kinematic body as `realistic`; the
+    multirotor with a worse estimate and stronger air, for stress tests."""
+    if realism not in REALISM:
+        raise ValueError(f"unknown realism {realism!r}: {', '.join(REALISM)}")
     if realism == "ideal":
         return VehicleParams(**kw)
-    if realism != "realistic":
-        raise ValueError(f"unknown realism {realism!r}: realistic or ideal")
-    return VehicleParams(pose_noise=0.002, pose_drift=0.0015, pose_drift_max=0.03, yaw_drift=0.0005,
-                         yaw_drift_max=math.radians(1.0), **kw)
+    kinematic: dict = {"pose_noise": 0.002, "pose_drift": 0.0015, "pose_drift_max": 0.03, "yaw_drift": 0.0005,
+                       "yaw_drift_max": math.radians(1.0)}
+    common: dict = {**kinematic, "rotor_drag": 0.4, "ground_effect": True, "downwash": True,
+                    "thrust_noise_tau": 0.05}
+    if realism == "realistic":
+        return VehicleParams(**common, pose_bias_xy=0.025, pose_bias_z=0.028, pose_bias_tau=10.0, vio_noise=0.003,
+                             vel_noise=0.01, yaw_bias=math.radians(0.5), yaw_bias_tau=30.0, wind_mean=0.15,
+                             wind_sigma=0.25, wind_tau=1.5, gust_rate=1 / 30, gust_amp=(0.5, 1.0),
+                             gust_s=(1.0, 3.0), thrust_noise=0.02, **kw)
+    return VehicleParams(**common, pose_bias_xy=0.06, pose_bias_z=0.04, pose_bias_tau=20.0, vio_noise=0.008,
+                         vel_noise=0.03, yaw_bias=math.radians(2.0), yaw_bias_tau=30.0, wind_mean=0.5,
+                         wind_sigma=0.7, wind_tau=1.0, gust_rate=1 / 8, gust_amp=(1.5, 3.0), gust_s=(0.8, 2.5),
+                         thrust_noise=0.05, **kw)
 
 
 class Vehicle:
@@ -143,10 +215,23 @@ class Vehicle:
         p0 = np.array(p_ned, dtype=float)
         p0[2] = 0.0
         self.world.set_vehicle(ned_to_enu(p0), yaw_ned_to_enu(wrap(yaw_ned)))
-        self.rng = np.random.default_rng(self.params.seed)
-        self.bias = np.zeros(3)  # NED, estimate - truth
-        self.yaw_bias = 0.0
+        self._init_disturbances()
         self.v_int = np.zeros(3)
+        self.attitude = AttitudeRateController(self.world.vehicle_inertia, self.params.inner)
+        self.mixer = Mixer(ROTOR_XY, ROTOR_SPIN, ROTOR_YAW_MOMENT, ROTOR_MAX_THRUST)
+        self._force = (0.0, 0.0, 0.0)  # thrust vector the position loop asks for (world ENU, N)
+        self._z_sp = (0.0, 0.0, 1.0)
+        self._h_force_max = math.inf
+        self._yaw_rate_sp = 0.0  # ENU, rad/s
+        self._a_sp = np.zeros(3)
+        self._yaw_accel_ff = 0.0
+        self._downwashed: set[int] = set()
+        self._running = self._flying = False  # the loops run (armed) / the rotors fly (not idling on the ground)
+        self._tick = 0  # physics steps since the loops started
+        self._qpos, self._qvel = self.world.data.qpos, self.world.data.qvel  # views (the hot loop reads them)
+        self._objects = self.world.objects
+        self._object_bodies = np.array([self.world.obj_body[e.name] for e in self._objects], dtype=int)
+        self._largest_object_radius = max((max(e.size[0], e.size[1]) / 2 for e in self._objects), default=0.0)
         self.crashed = False
         self._read_state()
         self.home = self.p.copy()
@@ -171,6 +256,13 @@ class Vehicle:
         self.sim_time = 0.0
         self.setpoints_received = 0
         self.estimate_valid = True  # PX4's local position estimate (cleared by an injected sensor failure)
+
+    @property
+    def max_step_s(self) -> float:
+        """The longest `step` the controller flies well: the kinematic body's controller runs once per `step`
+        (10 ms at most); the multirotor's loops run inside the physics steps at their own rates, so a `step`
+        only bounds how often the land detector, the gripper's and the crash checks look (20 ms)."""
+        return 0.02 if self.world.multirotor else 0.01
 
     @property
     def mode_name(self) -> str:
@@ -222,18 +314,64 @@ class Vehicle:
         """Both finger pads touch the same object (the gripper's contact sensing)."""
         return self.world.holding() is not None
 
+    def _init_disturbances(self) -> None:
+        """One generator per disturbance, all from the seed: a change in one model leaves the others' draws
+        (and so the other figures) as they were."""
+        p = self.params
+        # The kinematic body keeps its own estimator (a bounded random walk, `_drift`) and draws.
+        self.drift_bias = np.zeros(3)  # NED, estimate - truth (kinematic)
+        self.yaw_drift_bias = 0.0
+        seeds = np.random.SeedSequence(p.seed).spawn(4)
+        est_rng = np.random.default_rng(seeds[0])
+        self.rng = est_rng if self.world.multirotor else np.random.default_rng(p.seed)
+        self.estimator = PoseEstimator(est_rng, p.pose_bias_xy, p.pose_bias_z, p.pose_bias_tau, p.vio_noise,
+                                       p.vel_noise, p.yaw_bias, p.yaw_bias_tau)
+        self.wind = Wind(np.random.default_rng(seeds[1]), p.wind_mean, p.wind_sigma, p.wind_sigma / 2, p.wind_tau,
+                         p.gust_rate, p.gust_amp, p.gust_s)
+        self.wind_now = np.zeros(3)
+        self._thrust_rng = np.random.default_rng(seeds[2])
+        self.thrust_error = np.zeros(len(ROTOR_XY))
+
+    @property
+    def bias(self) -> np.ndarray:
+        """Estimated minus true position (NED), the estimator's slowly wandering part."""
+        return self.estimator.bias.x if self.world.multirotor else self.drift_bias
+
     def _read_state(self) -> None:
-        """Estimated state = MuJoCo's truth + bias (+ noise on the position)."""
+        """Estimated state = MuJoCo's truth + the estimator's error; attitude and rates are the IMU's (truth)."""
         w = self.world
-        noise = self.rng.normal(0.0, self.params.pose_noise, 3) if self.params.pose_noise > 0 else 0.0
+        est = self.estimator
         self.p_true = enu_to_ned(w.vehicle_position())
-        self.p = self.p_true + self.bias + noise
+        if not w.multirotor:
+            # The kinematic body: MAIN's estimator (a bounded random-walk bias plus noise), level attitude.
+            noise = self.rng.normal(0.0, self.params.pose_noise, 3) if self.params.pose_noise > 0 else 0.0
+            self.p = self.p_true + self.drift_bias + noise
+            self.v = enu_to_ned(w.vehicle_velocity())
+            self.yaw = wrap(yaw_ned_to_enu(w.vehicle_yaw()) + self.yaw_drift_bias)
+            self.roll = self.pitch = 0.0
+            self.yaw_rate = -w.vehicle_yaw_rate()
+            self.rates = (0.0, 0.0, self.yaw_rate)
+        else:
+            self.p = self.p_true + est.position_error()
+            self.v = enu_to_ned(w.vehicle_velocity()) + est.velocity_error()
+            roll, pitch, yaw_enu = w.vehicle_rpy()
+            # MAVLink's FRD body in NED: roll keeps its sign, pitch (nose up positive) and yaw flip.
+            self.roll, self.pitch = roll, -pitch
+            self.yaw = wrap(yaw_ned_to_enu(yaw_enu) + est.yaw_error)  # ENU<->NED yaw map is its own inverse
+            p, q, r = w.vehicle_rates()
+            self.rates = (p, -q, -r)  # FRD
+            self.yaw_rate = -w.vehicle_yaw_rate()
         ox, oy = self.params.estimate_offset
         if ox or oy:
             self.p = self.p + enu_to_ned(np.array([ox, oy, 0.0]))
-        self.v = enu_to_ned(w.vehicle_velocity())
-        self.yaw = wrap(yaw_ned_to_enu(w.vehicle_yaw()) + self.yaw_bias)  # ENU<->NED yaw map is its own inverse
-        self.yaw_rate = -w.vehicle_yaw_rate()
+
+    def attitude_quaternion(self) -> tuple[float, float, float, float]:
+        """(w, x, y, z) of the FRD body in NED from the reported roll, pitch and (estimated) yaw."""
+        cr, sr = math.cos(self.roll / 2), math.sin(self.roll / 2)
+        cp, sp = math.cos(self.pitch / 2), math.sin(self.pitch / 2)
+        cy, sy = math.cos(self.yaw / 2), math.sin(self.yaw / 2)
+        return (cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy, cr * sp * cy + sr * cp * sy,
+                cr * cp * sy - sr * sp * cy)
 
     def _event(self, severity: int, text: str) -> None:
         log.info("STATUSTEXT: %s", text)
@@ -445,12 +583,26 @@ class Vehicle:
         p = self.params
         if self.armed:
             self.battery = max(0.0, self.battery - p.battery_drain_per_s * dt)
-        self._drift(dt)
-        force, torque = np.zeros(3), 0.0
-        if self.armed and not self.crashed:
-            force, torque = self._control(dt)
-        self.world.apply_vehicle_force(force, torque)
-        for c in self.world.step(dt):
+        if self.world.multirotor:
+            if self.armed and not self.crashed:
+                if not self._running:  # just armed: the outer loop runs in the first physics step
+                    self._running, self._tick = True, 0
+                contacts = self.world.step(dt, self._physics_tick)
+            else:
+                if self._running:
+                    self._running = self._flying = False
+                    self.world.set_rotor_commands([0.0] * len(ROTOR_XY))
+                    self.attitude.reset()
+                self._disturb(dt)  # the air and the estimator go on while the motors are off
+                contacts = self.world.step(dt)
+        else:
+            self._drift(dt)
+            force, torque = np.zeros(3), 0.0
+            if self.armed and not self.crashed:
+                force, torque = self._kinematic_control(dt)
+            self.world.apply_vehicle_force(force, torque)
+            contacts = self.world.step(dt)
+        for c in contacts:
             if c.crash and self.armed:
                 self.crashed = True
                 self.armed = False
@@ -487,20 +639,104 @@ class Vehicle:
             self._blocked_s = 0.0
         return self._blocked_s >= LAND_DETECT_S
 
-    def _drift(self, dt: float) -> None:
-        p = self.params
-        if p.pose_drift > 0:
-            self.bias[:2] += self.rng.normal(0.0, p.pose_drift * math.sqrt(dt), 2)
-            n = float(np.linalg.norm(self.bias[:2]))
-            if n > p.pose_drift_max:
-                self.bias[:2] *= p.pose_drift_max / n
-        if p.yaw_drift > 0:
-            self.yaw_bias = min(max(self.yaw_bias + float(self.rng.normal(0.0, p.yaw_drift * math.sqrt(dt))),
-                                    -p.yaw_drift_max), p.yaw_drift_max)
+    def _disturb(self, dt: float) -> None:
+        """Advance the disturbances `dt` and apply them: the estimator's error, wind and rotor drag on the body,
+        thrust noise and ground effect on each rotor's gain, the downwash on the objects below."""
+        p, w = self.params, self.world
+        self.estimator.step(dt)
+        if p.wind_sigma > 0 or p.wind_mean > 0 or p.gust_rate > 0:
+            self.wind_now = self.wind.step(dt)
+        if p.rotor_drag > 0:
+            rel = self.wind_now - w.vehicle_velocity()
+            k = p.rotor_drag * w.vehicle_mass
+            w.apply_vehicle_force(np.array([k * rel[0], k * rel[1], 0.5 * k * rel[2]]))
+        if p.thrust_noise > 0:
+            a = math.exp(-dt / p.thrust_noise_tau)
+            self.thrust_error = a * self.thrust_error + p.thrust_noise * math.sqrt(1 - a * a) * \
+                self._thrust_rng.standard_normal(len(self.thrust_error))
+        if p.ground_effect or p.thrust_noise > 0:
+            ge = [ground_effect(h, ROTOR_RADIUS, ROTOR_SPACING, ROTOR_ARM) for h in w.rotor_clearance()] \
+                if p.ground_effect else \
+                [1.0] * len(ROTOR_XY)
+            w.set_rotor_gains([g * (1.0 + float(e)) for g, e in zip(ge, self.thrust_error, strict=True)])
+        if p.downwash:
+            self._downwash()
 
-    def _control(self, dt: float) -> tuple[np.ndarray, float]:
-        """PX4-like cascade on the estimated state: position -> velocity setpoint (speed and acceleration
-        limits, sqrt braking profile) -> force (PI on velocity, gravity feed-forward, thrust limits)."""
+    def _downwash(self) -> None:
+        """Each rotor's slipstream on the objects under its disc (services.sim.disturbances.downwash_force)."""
+        w = self.world
+        d = w.data
+        thrusts = w.rotor_thrusts()
+        pushed: set[int] = set()
+        if max(thrusts) > 0.1:
+            rotors = [d.site_xpos[s].tolist() for s in w.rotor_sites]
+            # Only objects under the rotor discs' footprint (one vectorised test; most steps none is).
+            bodies = self._object_bodies
+            reach = ROTOR_ARM + ROTOR_RADIUS + self._largest_object_radius
+            dxy = d.xpos[bodies, :2] - d.xpos[w.vehicle_body, :2]
+            near = np.flatnonzero((dxy * dxy).sum(axis=1) < reach * reach)
+            for k in near.tolist():
+                e = self._objects[k]
+                b = bodies[k]
+                cx, cy, cz = d.xpos[b].tolist()
+                top = cz + e.size[2] / 2
+                r_obj = max(e.size[0], e.size[1]) / 2
+                area = e.size[0] * e.size[1] if e.shape == "box" else math.pi * r_obj * r_obj
+                f = 0.0
+                for (rx, ry, rz), t in zip(rotors, thrusts, strict=True):
+                    f += downwash_force(t, ROTOR_RADIUS, rz - top, math.hypot(cx - rx, cy - ry), r_obj, area)
+                if f > 0.02:  # below this it would only wake a sleeping object for nothing
+                    d.xfrc_applied[b, 2] = -f
+                    pushed.add(b)
+        for b in self._downwashed - pushed:
+            d.xfrc_applied[b, 2] = 0.0
+        self._downwashed = pushed
+
+    def _physics_tick(self) -> None:
+        """Before every physics step while armed: the multirotor's loops at their rates (ATTITUDE_DIV,
+        OUTER_DIV). The outer loop reads the estimate as it is at that step."""
+        tick = self._tick
+        self._tick = tick + 1
+        if tick % OUTER_DIV == 0:
+            self._read_state()
+            self._disturb(OUTER_DT)
+            flying = self._control(OUTER_DT)
+            if not flying and self._flying:
+                self.world.set_rotor_commands([0.0] * len(ROTOR_XY))
+                self.attitude.reset()
+            self._flying = flying
+        if self._flying:
+            self._inner_loop(tick % ATTITUDE_DIV == 0)
+
+    def _inner_loop(self, attitude: bool) -> None:
+        """[`attitude`: the attitude loop, then] body rates -> torques -> mixer, once per physics step (PX4's
+        rate loop runs at the IMU rate). The collective is the thrust vector projected on the body's current z
+        axis, as PX4's."""
+        w = self.world
+        q0 = w._q0
+        qw, qx, qy, qz = q = tuple(self._qpos[q0 + 3:q0 + 7].tolist())
+        fx, fy, fz = self._force
+        bzx, bzy = 2 * (qx * qz + qw * qy), 2 * (qy * qz - qw * qx)
+        thrust = fx * bzx + fy * bzy + fz * (1 - 2 * (qx * qx + qy * qy))
+        # While the tilt lags a setpoint that is coming back up, the collective would push sideways harder than
+        # the acceleration limit allows: cap the horizontal part (only ever active at that limit).
+        # The motors lag their commands, so an overshoot of the rotors' actual thrust is taken off the command too.
+        h = math.sqrt(bzx * bzx + bzy * bzy)
+        cap = self._h_force_max
+        if thrust * h > 0.9 * cap:
+            excess = sum(w.rotor_thrusts()) * h - cap
+            thrust = min(thrust, (cap - max(excess, 0.0)) / h)
+        att = self.attitude
+        if attitude:
+            att.attitude(q, self._z_sp, self._yaw_rate_sp)  # type: ignore[arg-type]
+        v0 = w._v0
+        tx, ty, tz = att.rates(tuple(self._qvel[v0 + 3:v0 + 6].tolist()),  # type: ignore[arg-type]
+                               TIMESTEP, self.mixer.saturated, self._yaw_accel_ff * self.params.inner.yaw_accel_ff)
+        w.set_rotor_commands(self.mixer.mix(max(thrust, 0.0), tx, ty, tz))
+
+    def _setpoints(self) -> tuple[np.ndarray | None, np.ndarray | None, float | None, float | None, float, float]:
+        """What the flight mode asks for on the estimated state: a position target or a velocity command
+        (exactly one), a yaw target or a yaw rate command, and the vertical speed limits."""
         p = self.params
         yaw_target: float | None
         target, yaw_target, vmax_up, vmax_down = self.hold_pos, self.hold_yaw, p.max_speed_up, p.max_speed_down
@@ -524,13 +760,109 @@ class Vehicle:
             vmax_down = p.land_speed
         elif self.main_mode == MAIN_AUTO and self.sub_mode == SUB_RTL:
             target = self._rtl_target()
+        return (None if vel_cmd is not None else target), vel_cmd, yaw_target, yaw_rate_cmd, vmax_up, vmax_down
 
-        if self.on_ground and vel_cmd is None and target[2] > self.p[2] - 0.05:
-            # A target at or below the ground keeps a landed vehicle on the ground (idle spin).
+    def _idle_on_ground(self, target: np.ndarray | None) -> bool:
+        """A target at or below the ground keeps a landed vehicle on the ground (motors at idle)."""
+        return self.on_ground and target is not None and target[2] > self.p[2] - 0.05
+
+    def _control(self, dt: float) -> bool:
+        """PX4-like outer cascade of the multirotor on the estimated state: position -> velocity setpoint (speed
+        and acceleration limits, sqrt braking profile) -> acceleration (P + I on velocity, gravity feed-forward)
+        -> thrust vector and attitude setpoint for the inner loop. False when the vehicle idles on the ground."""
+        p = self.params
+        target, vel_cmd, yaw_target, yaw_rate_cmd, vmax_up, vmax_down = self._setpoints()
+        if self._idle_on_ground(target):
             self.v_int[:] = 0.0
-            return np.zeros(3), 0.0
+            self._a_sp[:] = 0.0
+            self._yaw_rate_sp = self._yaw_accel_ff = 0.0
+            self._z_sp = (0.0, 0.0, 1.0)
+            return False
 
         if vel_cmd is None:
+            assert target is not None
+            vel_cmd = self._position_control(target, vmax_up, vmax_down)
+        self._velocity_control(np.array(vel_cmd, dtype=float), vmax_up, vmax_down, dt)
+        # Yaw: rate-limited towards the target; the rate loop tracks it (ENU rate = - NED rate).
+        if yaw_rate_cmd is None:
+            yaw_rate_cmd = self._yaw_rate_toward(yaw_target)
+        # The yaw rate ramps (PX4's yaw setpoint is acceleration-limited too): a step would saturate the
+        # rotors' small yaw torque and overshoot. Near the commanded rate the ramp eases in exponentially
+        # (0.1 s): an abrupt end, with the motors' lag behind it, would overshoot the rate limit.
+        step = p.yaw_accel * dt
+        ease = (-yaw_rate_cmd - self._yaw_rate_sp) * min(1.0, dt / 0.1)
+        ramped = self._yaw_rate_sp + min(max(ease, -step), step)
+        self._yaw_accel_ff = (ramped - self._yaw_rate_sp) / dt
+        self._yaw_rate_sp = ramped
+        return True
+
+    def _velocity_control(self, vel_cmd: np.ndarray, vmax_up: float, vmax_down: float, dt: float) -> None:
+        """Velocity setpoint (NED) -> acceleration (P + I, PX4's limits) -> thrust vector and tilt setpoint."""
+        p = self.params
+        h = np.linalg.norm(vel_cmd[:2])
+        if h > p.max_speed_h:
+            vel_cmd[:2] *= p.max_speed_h / h
+        vel_cmd[2] = min(max(vel_cmd[2], -vmax_up), vmax_down)
+        # Acceleration limits on the velocity setpoint's change relative to the current velocity.
+        dv = vel_cmd - self.v
+        a = dv / np.array([p.vel_tau, p.vel_tau, p.vel_tau_z])
+        ah = float(np.linalg.norm(a[:2]))
+        if ah > p.accel_h:
+            a[:2] *= p.accel_h / ah
+        a[2] = min(max(a[2], -p.accel_v), p.accel_v)
+        # Jerk limit on the horizontal acceleration (MPC_JERK_MAX): the tilt follows a ramp without overshooting
+        # the acceleration limit.
+        jump = p.jerk_max * dt
+        a[:2] = np.clip(a[:2], self._a_sp[:2] - jump, self._a_sp[:2] + jump)
+        self._a_sp = a.copy()
+        # The integral carries a payload's weight and leans into a steady draft. Horizontally it integrates only
+        # near the setpoint (conditional integration): a manoeuvre's large errors would wind it up and break
+        # the acceleration limit.
+        # Vertically near a hover, or while a climb or descent is stalled: asked to move at 0.3 m/s or more and
+        # slower than 0.1 m/s, a load the gravity feed-forward does not know holds it (a payload taken off a
+        # table weighs more than the acceleration limit's share of the thrust), so it integrates until it moves.
+        stalled = abs(dv[2]) >= 0.3 and abs(self.v[2]) < 0.1
+        if stalled or (abs(vel_cmd[2]) < 0.2 and abs(dv[2]) < p.accel_v * p.vel_tau_z):
+            self.v_int[2] = min(max(self.v_int[2] + dv[2] * dt * p.vel_ki_z, -3.0), 3.0)
+        if float(np.linalg.norm(dv[:2])) < 0.15:
+            self.v_int[:2] = np.clip(self.v_int[:2] + dv[:2] * dt * p.vel_ki, -1.0, 1.0)
+        a_ned = a + self.v_int
+        m = self.world.vehicle_mass
+        force_enu = ned_to_enu(a_ned) * m
+        force_enu[2] += m * GRAVITY
+        fh = float(np.linalg.norm(force_enu[:2]))
+        if fh > m * p.max_tilt_accel:
+            force_enu[:2] *= m * p.max_tilt_accel / fh
+        force_enu[2] = max(force_enu[2], 0.1 * m * GRAVITY)
+        self._h_force_max = m * min(p.accel_h + float(np.linalg.norm(self.v_int[:2])), p.max_tilt_accel)
+        self._z_sp = attitude_setpoint((float(force_enu[0]), float(force_enu[1]), float(force_enu[2])),
+                                       p.inner.max_tilt)
+        self._force = (float(force_enu[0]), float(force_enu[1]), float(force_enu[2]))
+
+    def _drift(self, dt: float) -> None:
+        """The kinematic body's estimator: a bounded random walk of the horizontal and yaw biases."""
+        p = self.params
+        if p.pose_drift > 0:
+            self.drift_bias[:2] += self.rng.normal(0.0, p.pose_drift * math.sqrt(dt), 2)
+            n = float(np.linalg.norm(self.drift_bias[:2]))
+            if n > p.pose_drift_max:
+                self.drift_bias[:2] *= p.pose_drift_max / n
+        if p.yaw_drift > 0:
+            self.yaw_drift_bias = min(max(self.yaw_drift_bias + float(self.rng.normal(0.0, p.yaw_drift
+                                                                                      * math.sqrt(dt))),
+                                          -p.yaw_drift_max), p.yaw_drift_max)
+
+    def _kinematic_control(self, dt: float) -> tuple[np.ndarray, float]:
+        """The kinematic body's controller on the estimated state: position -> velocity setpoint (speed and
+        acceleration limits, sqrt braking profile) -> a world-frame force (PI on velocity, gravity feed-forward,
+        thrust limits) and a yaw torque; the body never tilts."""
+        p = self.params
+        target, vel_cmd, yaw_target, yaw_rate_cmd, vmax_up, vmax_down = self._setpoints()
+        if self._idle_on_ground(target):
+            self.v_int[:] = 0.0
+            return np.zeros(3), 0.0
+        if vel_cmd is None:
+            assert target is not None
             vel_cmd = self._position_control(target, vmax_up, vmax_down)
         vel_cmd = np.array(vel_cmd, dtype=float)
         h = np.linalg.norm(vel_cmd[:2])
@@ -539,14 +871,14 @@ class Vehicle:
         vel_cmd[2] = min(max(vel_cmd[2], -vmax_up), vmax_down)
         # Acceleration limits on the velocity setpoint's change relative to the current velocity.
         dv = vel_cmd - self.v
-        a = dv / p.vel_tau
+        a = dv / p.kinematic_vel_tau
         ah = float(np.linalg.norm(a[:2]))
         if ah > p.accel_h:
             a[:2] *= p.accel_h / ah
         a[2] = min(max(a[2], -p.accel_v), p.accel_v)
         # Integral on the vertical axis only: it carries a payload's weight (the horizontal axes have no
         # steady disturbance here, and an integral there would break the acceleration limit).
-        self.v_int[2] = min(max(self.v_int[2] + dv[2] * dt * p.vel_ki, -3.0), 3.0)
+        self.v_int[2] = min(max(self.v_int[2] + dv[2] * dt * p.kinematic_vel_ki, -3.0), 3.0)
         a_ned = a + self.v_int
         m = self.world.vehicle_mass
         force_enu = ned_to_enu(a_ned) * m
@@ -557,7 +889,7 @@ class Vehicle:
         force_enu[2] = min(max(force_enu[2], 0.0), m * p.max_thrust_accel)
         # Yaw: rate-limited towards the target, then a torque tracking that rate.
         if yaw_rate_cmd is None:
-            yaw_rate_cmd = self._yaw_rate_toward(yaw_target)
+            yaw_rate_cmd = self._yaw_rate_toward(yaw_target, KINEMATIC_YAW_ACCEL)
         torque = VEHICLE_YAW_INERTIA_TOTAL * (-yaw_rate_cmd - self.world.vehicle_yaw_rate()) / 0.05
         return force_enu, torque
 
@@ -570,7 +902,7 @@ class Vehicle:
             ox, oy = ox + p.hover_wander * math.cos(phase), oy + p.hover_wander * math.sin(phase)
         return np.array([ox, oy, 0.0])
 
-    def _yaw_rate_toward(self, yaw_target: float | None) -> float:
+    def _yaw_rate_toward(self, yaw_target: float | None, yaw_accel: float | None = None) -> float:
         """Yaw rate command towards `yaw_target` (P gain, rate limit, sqrt braking); 0 without a target."""
         if yaw_target is None or not math.isfinite(yaw_target):
             return 0.0
@@ -578,7 +910,8 @@ class Vehicle:
         err = wrap(yaw_target - self.yaw)
         yaw_rate_cmd = min(max(3.0 * err, -p.yaw_rate), p.yaw_rate)
         if abs(err) > 1e-4:
-            yaw_rate_cmd = math.copysign(min(abs(yaw_rate_cmd), math.sqrt(2 * 6.0 * abs(err))), err)
+            accel = p.yaw_accel if yaw_accel is None else yaw_accel
+            yaw_rate_cmd = math.copysign(min(abs(yaw_rate_cmd), math.sqrt(2 * accel * abs(err))), err)
         return yaw_rate_cmd
 
     def _rtl_target(self) -> np.ndarray:

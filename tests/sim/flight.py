@@ -13,8 +13,9 @@ from shared.messages import Scenario
 DT = 0.01
 
 
-def make_core(scenario: Scenario, realism: str = "ideal") -> SimCore:
-    return SimCore(scenario, realism_params(realism), realism=realism)
+def make_core(scenario: Scenario, realism: str = "ideal", dynamics: str | None = None) -> SimCore:
+    """`dynamics` None: the configured one (AERMANI_SIM_DYNAMICS, kinematic by default)."""
+    return SimCore(scenario, realism_params(realism), realism=realism, dynamics=dynamics)
 
 
 class Clock:
