@@ -66,6 +66,7 @@ class FakePX4:
         self.last_setpoint_t = 0.0
         self.params = dict(SAFE_FAILSAFE_PARAMS)
         self._stop = threading.Event()
+        self._send_lock = threading.Lock()
         self._threads = [threading.Thread(target=self._rx, daemon=True), threading.Thread(target=self._tx, daemon=True)]
 
     @property
@@ -84,9 +85,14 @@ class FakePX4:
         self.sock.close()
 
     def send(self, msg, mav=None) -> None:
-        buf = msg.pack(mav or self.mav)
-        (mav or self.mav).seq = ((mav or self.mav).seq + 1) % 256
-        self.sock.sendto(buf, self.addr)
+        # One frame at a time, as PX4 serialises a link's output: the receive thread (acks, replies) and the send
+        # thread (streams) both send, and signing stamps each frame with an increasing timestamp in pack(), so two
+        # threads packing at once could put a later-stamped frame on the wire first; the bridge then rightly drops
+        # the other as a replay (a bad signature, 1 run in ~20 of the signing test).
+        with self._send_lock:
+            buf = msg.pack(mav or self.mav)
+            (mav or self.mav).seq = ((mav or self.mav).seq + 1) % 256
+            self.sock.sendto(buf, self.addr)
 
     def names(self) -> list[str]:
         with self.lock:

@@ -68,10 +68,12 @@ def test_the_simulator_refuses_a_mount_its_airframe_does_not_have(mount_env):
 
 def test_the_simulator_publishes_its_airframe_on_tf(monkeypatch):
     from services.sim.app import AIRFRAME, CameraPublisher
+    from services.sim.core import Snapshot
 
     for k in MOUNT_ENV:
         monkeypatch.setenv(k, "")  # compose's empty variables are the defaults
     tf = parse_transforms(CameraPublisher.transforms(
-        type("Snap", (), {"position": np.zeros(3), "yaw": 0.0})(), 1))
+        Snapshot(version=0, xml="", qpos=np.zeros(0), geom_instance=np.zeros(0, dtype=int),
+                 position=np.zeros(3), yaw=0.0), 1))  # the real snapshot type, so a new field cannot be missed
     assert np.allclose(tf[("base_link", "camera")][1], Mount().base_to_camera())
     assert np.allclose(tf[("base_link", "gripper")][1], AIRFRAME.base_to_gripper())
