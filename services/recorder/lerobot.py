@@ -107,8 +107,8 @@ class _Target:
     stamp_ns: int
     picked: dict[str, tuple[int, bytes]] = field(default_factory=dict)
     """kind (color, depth, state) -> (sample stamp, payload) of the closest sample so far."""
-    decoded: dict[str, tuple[bytes, np.ndarray]] = field(default_factory=dict)
-    """feature (CAMERA, DEPTH) -> (image bytes to write, pixels) of the picked frame."""
+    images: dict[str, bytes] = field(default_factory=dict)
+    """feature (CAMERA, DEPTH) -> the image bytes to write of the picked frame (once decoded and checked)."""
 
 
 def _sample_stamp(kind: str, payload: bytes, fallback_ns: int) -> int:
@@ -389,13 +389,15 @@ def export_lerobot(log: str | Path, out: str | Path, vehicle: str | None = None,
     targets = [_Target(e, tl, st, st.image_stamp_ns or st.stamp_ns)
                for e, tl in enumerate(episodes) for r in tl.steps if (st := raw.get((tl.task_id, r.step)))]
     _pick_closest(log, targets, on_progress)
-    shapes = _decode_picked(targets, result.missing)
+    image_stats = {CAMERA: _Stats(255.0), DEPTH: _Stats(1.0)}
+    shapes = _decode_picked(targets, result.missing, image_stats)
     skills = skill_vocabulary([t.step for t in targets])
     feats = features(shapes, skills)
     tasks = list(dict.fromkeys(tl.command for tl in episodes))
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent if out.parent.exists() else None))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))  # same file system: moved, not copied
     try:
-        ep_rows, columns, image_stats = _write_data(tmp, episodes, targets, feats, tasks, skills)
+        ep_rows, columns = _write_data(tmp, episodes, targets, feats, tasks, skills)
         _write_meta(tmp, feats, ep_rows, tasks, columns, image_stats, len(targets))
         if out.exists():
             shutil.rmtree(out)  # _check_out allowed it: empty, or an earlier export with --overwrite
@@ -407,26 +409,32 @@ def export_lerobot(log: str | Path, out: str | Path, vehicle: str | None = None,
     return result
 
 
-def _decode_picked(targets: list[_Target], missing: Counter[str]) -> dict[str, tuple[int, ...]]:
-    """Decode each target's colour frame and depth image into its `decoded`; return the features' shapes, from the
-    frames (one camera per log). A modality the log has for no step at all is left out of the features."""
+def _decode_picked(targets: list[_Target], missing: Counter[str],
+                   stats: dict[str, _Stats]) -> dict[str, tuple[int, ...]]:
+    """Decode each target's colour frame and depth image: its `images` get the bytes to write, `stats` the
+    pixels (which are not kept). Returns the features' shapes, from the frames (one camera per log); a modality
+    the log has for no step at all is left out of the features."""
     shapes: dict[str, tuple[int, ...]] = {}
     for t in targets:
         for kind, key, decode in (("color", CAMERA, _color), ("depth", DEPTH, _depth)):
             got = None
             if kind in t.picked:
+                stamp, payload = t.picked[kind]
+                t.picked[kind] = (stamp, b"")  # the payload is done with: memory holds the bytes to write only
                 try:
-                    got = decode(t.picked[kind][1])
+                    got = decode(payload)
                 except Exception:  # an undecodable frame counts as none
                     got = None
             if got is None:
                 missing[key] += 1
                 continue
-            t.decoded[key] = got
-            shape = got[1].shape if got[1].ndim == 3 else (*got[1].shape, 1)
+            data, pixels = got
+            shape = pixels.shape if pixels.ndim == 3 else (*pixels.shape, 1)
             if shapes.setdefault(key, shape) != shape:
                 raise LeRobotExportError(f"{key}: frames of {shapes[key]} and {shape} in one log (task "
                                          f"{t.tl.task_id}, step {t.step.step}); a dataset has one shape")
+            t.images[key] = data
+            stats[key].add(pixels)
     for key in (CAMERA, DEPTH):
         if key not in shapes:
             missing.pop(key, None)
@@ -436,7 +444,7 @@ def _decode_picked(targets: list[_Target], missing: Counter[str]) -> dict[str, t
 def frame_values(t: _Target, frame_index: int, index: int, task_index: int, skills: list[str]) -> dict[str, Any]:
     """One frame's columns (the images aside)."""
     st, state, drt, ste = t.step, t.picked.get("state"), t.step.drt, t.step.ste
-    color = t.picked.get("color") if CAMERA in t.decoded else None
+    color = t.picked.get("color") if CAMERA in t.images else None
     return {
         "timestamp": frame_index / FPS, "frame_index": frame_index, "episode_index": t.episode, "index": index,
         "task_index": task_index, STATE: state_vector(state[1] if state else None),
@@ -458,16 +466,14 @@ def frame_values(t: _Target, frame_index: int, index: int, task_index: int, skil
 
 
 def _write_data(root: Path, episodes: list[TaskTimeline], targets: list[_Target], feats: dict[str, dict[str, Any]],
-                tasks: list[str], skills: list[str]) -> tuple[list[dict[str, Any]], dict[str, list[Any]],
-                                                             dict[str, _Stats]]:
+                tasks: list[str], skills: list[str]) -> tuple[list[dict[str, Any]], dict[str, list[Any]]]:
     """data/chunk-*/file-*.parquet, one row group per episode, a new file past DATA_FILES_SIZE_IN_MB (an episode
-    never straddles two). Returns the episodes' rows, the numeric columns and the image stats for meta/."""
+    never straddles two). Returns the episodes' rows and the numeric columns, for meta/."""
     import pyarrow as pa
     import pyarrow.parquet as pq
 
     schema = pa.schema([(k, _arrow_type(ft)) for k, ft in feats.items()],
                        metadata={"huggingface": json.dumps({"info": {"features": _hf_features(feats)}})})
-    image_stats = {CAMERA: _Stats(255.0), DEPTH: _Stats(1.0)}
     columns: dict[str, list[Any]] = {k: [] for k, ft in feats.items() if ft["dtype"] not in ("image", "string", "bool")}
     ep_rows: list[dict[str, Any]] = []
     writer: Any = None
@@ -479,10 +485,8 @@ def _write_data(root: Path, episodes: list[TaskTimeline], targets: list[_Target]
             values = frame_values(t, frame_index, index + frame_index, tasks.index(tl.command), skills)
             for key in (CAMERA, DEPTH):
                 if key in feats:
-                    got = t.decoded.get(key)
-                    values[key] = {"bytes": got[0], "path": None} if got else None
-                    if got:
-                        image_stats[key].add(got[1])
+                    data_bytes = t.images.get(key)
+                    values[key] = {"bytes": data_bytes, "path": None} if data_bytes is not None else None
             for k in feats:
                 data[k].append(values[k])
             for k in columns:
@@ -510,7 +514,7 @@ def _write_data(root: Path, episodes: list[TaskTimeline], targets: list[_Target]
         index += len(rows)
     if writer is not None:
         writer.close()
-    return ep_rows, columns, image_stats
+    return ep_rows, columns
 
 
 def _write_meta(root: Path, feats: dict[str, dict[str, Any]], ep_rows: list[dict[str, Any]], tasks: list[str],
