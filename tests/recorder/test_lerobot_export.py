@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import os
 import time
 from pathlib import Path
 
@@ -32,6 +33,10 @@ from shared.keys import Keys
 from shared.sensors import color_message, depth_message, encode_jpeg
 from tests.recorder.samples import K, step_message
 from tests.recorder.test_recording import aermani
+
+# No test reaches the internet: `datasets` and the hub client read these when first imported.
+os.environ.setdefault("HF_HUB_OFFLINE", "1")
+os.environ.setdefault("HF_DATASETS_OFFLINE", "1")
 
 T0 = 1_700_000_000 * 10**9
 MS = 10**6
