@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+from enum import StrEnum
 from pathlib import Path
 from typing import Annotated
 
@@ -102,16 +103,35 @@ def show_cmd(
         typer.echo(plain_text(render_text(log, vehicle), lines=True))  # the models' reasoning, as data
 
 
+class ExportFormat(StrEnum):
+    """What `log export` writes."""
+
+    html = "html"
+    ros2 = "ros2"
+    lerobot = "lerobot"
+
+
 def export_cmd(
     log: LogArg,
-    out: Annotated[Path, typer.Option(help="Directory for index.html and the frames (with --ros2: the new rosbag2 "
-                                           "directory).")],
+    out: Annotated[Path, typer.Option(help="Directory for index.html and the frames (ros2: the new rosbag2 "
+                                           "directory; lerobot: the dataset directory).")],
     vehicle: Annotated[str | None, typer.Option(help="Only this vehicle id.")] = None,
-    ros2: Annotated[bool, typer.Option("--ros2", help="Write a ROS 2 bag instead (rosbag2, MCAP storage, CDR): "
-                                                      "camera, camera_info, /tf, pose and reasoning steps.")] = False,
+    fmt: Annotated[ExportFormat, typer.Option(
+        "--format", help="html: a report, each step's camera frame beside its DRT; ros2: a ROS 2 bag (rosbag2, "
+                         "MCAP storage, CDR): camera, camera_info, /tf, pose and reasoning steps; lerobot: a "
+                         "LeRobot v3.0 training dataset, one frame per reasoning step, one episode per task "
+                         "(docs/recording.md).")] = ExportFormat.html,
+    ros2: Annotated[bool, typer.Option("--ros2", help="Same as --format ros2.")] = False,
+    overwrite: Annotated[bool, typer.Option(help="lerobot: replace an earlier export in --out (a non-empty "
+                                                 "directory is refused otherwise).")] = False,
 ) -> None:
-    """An HTML report (the camera frame of each step beside its DRT), or with --ros2 a ROS 2 bag."""
+    """An HTML report (the camera frame of each step beside its DRT), a ROS 2 bag, or a LeRobot dataset."""
     if ros2:
+        if fmt not in (ExportFormat.html, ExportFormat.ros2):
+            err.print(f"[red]--ros2 and --format {fmt.value} contradict each other[/red]")
+            raise typer.Exit(2)
+        fmt = ExportFormat.ros2
+    if fmt is ExportFormat.ros2:
         from services.recorder.ros2 import Ros2ExportError, export_ros2
 
         try:
@@ -120,10 +140,34 @@ def export_cmd(
             err.print(f"[red]{terminal_text(exc)}[/red]")
             raise typer.Exit(2)
         return
+    if fmt is ExportFormat.lerobot:
+        _export_lerobot(log, out, vehicle, overwrite)
+        return
     from services.recorder.timeline import export_html
 
     index = export_html(log, out, vehicle)
     console.print(f"wrote {index}")
+
+
+def _export_lerobot(log: Path, out: Path, vehicle: str | None, overwrite: bool) -> None:
+    from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeElapsedColumn
+
+    from services.recorder.lerobot import LeRobotExportError, export_lerobot
+
+    with Progress(TextColumn("[bold]{task.description}"), BarColumn(), TaskProgressColumn(), TimeElapsedColumn(),
+                  console=err, transient=True) as progress:
+        bar = progress.add_task("reading the log", total=None)
+
+        def on_progress(done: int, total: int) -> None:
+            progress.update(bar, completed=done, total=total or None)
+
+        try:
+            res = export_lerobot(log, out, vehicle, overwrite=overwrite, on_progress=on_progress)
+        except LeRobotExportError as exc:
+            progress.stop()
+            err.print(f"[red]{terminal_text(exc)}[/red]")
+            raise typer.Exit(2)
+    typer.echo(plain_text(res.render(), lines=True))
 
 
 def recover_cmd(
