@@ -174,11 +174,12 @@ def _jpeg(payload: bytes) -> tuple[bytes, int]:
 class Reasoner:
     """Serves tasks over the bus: runs one task at a time through the policy loop and publishes steps and status."""
 
-    def __init__(self, bus: Bus, settings: ReasonerSettings, world: World | None = None) -> None:
+    def __init__(self, bus: Bus, settings: ReasonerSettings, world: World | None = None,
+                 backend: Backend | None = None) -> None:
         self.bus = bus
         self.settings = settings
         self.world = world or BusWorld(bus, settings)
-        self.default_backend: Backend = make_backend(settings)
+        self.default_backend: Backend = backend if backend is not None else make_backend(settings)
         self.current: tuple[TaskRequest, asyncio.Task, AbortSignal] | None = None
         self._lock = asyncio.Lock()
         self.action = ActionServer(bus, TASK_ACTION, settings.vehicle_id, goal_callback=self.start_task,
@@ -193,7 +194,7 @@ class Reasoner:
             backend = self.default_backend
             if req.backend and req.backend != self.settings.backend:
                 try:
-                    backend = make_backend(self.settings, req.backend)
+                    backend = await asyncio.to_thread(make_backend, self.settings, req.backend)  # as in run()
                 except (ConfigError, ValueError) as exc:
                     return TaskAccept(accepted=False, task_id=req.task_id, reason=str(exc))
             abort = AbortSignal()
@@ -265,7 +266,10 @@ class Reasoner:
 
 
 async def run(bus: Bus, settings: ReasonerSettings, stop: asyncio.Event) -> None:
-    reasoner = Reasoner(bus, settings)
+    # Built off the event loop: a model backend imports its SDK on first use (seconds of CPU, more on a loaded
+    # machine), and a loop blocked that long stops the heartbeat, so the launcher kills the reasoner as hung
+    # and it never comes up (seen under load: five restarts in 35 s, the demo never started its task).
+    reasoner = Reasoner(bus, settings, backend=await asyncio.to_thread(make_backend, settings))
     aborts = [bus.subscribe(settings.keys.abort, maxsize=50), bus.subscribe(FLEET_ABORT, maxsize=50)]
     reasoner.action.start()
     if isinstance(reasoner.world, BusWorld):

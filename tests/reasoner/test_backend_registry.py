@@ -47,6 +47,38 @@ class CountingBackend(Backend):
         return ModelReply(render_answer(ctx, *RulesPolicy().decide(ctx)), time.perf_counter() - t0)
 
 
+SLOW_BUILD_S = 6.0  # longer than the launcher's hung_after_s (4 s): an SDK import on a loaded 2-core machine
+
+
+@register
+class SlowToBuildBackend(CountingBackend):
+    """Takes seconds to build, as a model SDK's first import does on a loaded machine."""
+
+    kind = "slow_build_test"
+    summary = "a test backend that blocks for SLOW_BUILD_S while it is built"
+
+    def __init__(self, label: str) -> None:
+        super().__init__(label)
+        self.name = f"slow_build_test:{label}"
+
+    @classmethod
+    def from_settings(cls, settings: ReasonerSettings) -> SlowToBuildBackend:
+        time.sleep(SLOW_BUILD_S)
+        return cls(settings.model or "default")
+
+
+@register
+class SlowToBuildOverride(SlowToBuildBackend):
+    """The same, asked for by a task (the per-task override builds its backend when the task arrives)."""
+
+    kind = "slow_build_override_test"
+    summary = "a second slow-to-build test backend, for a task's override"
+
+    def __init__(self, label: str) -> None:
+        super().__init__(label)
+        self.name = f"slow_build_override_test:{label}"
+
+
 def test_registered_backend_is_selectable_by_settings_and_gateway_input() -> None:
     assert "counting_test" in backend_names()
     b = make_backend(ReasonerSettings(backend="counting_test", model="m1"))
@@ -96,3 +128,22 @@ def test_no_help_text_lists_the_backends() -> None:
                              timeout=120, env={**os.environ, "COLUMNS": "200"}).stdout
         assert "--backend" in out and "vlm backends" in out, cmd
         assert "anthropic" not in out and "openai, " not in out, cmd
+
+
+@pytest.mark.integration
+async def test_a_backend_slow_to_build_does_not_get_the_reasoner_killed_as_hung(tmp_path) -> None:
+    """Building the backend (default or a task's override) runs off the event loop, so the heartbeat goes on
+    and the supervising launcher never takes the reasoner for hung (it did: a loop blocked 4 s is killed)."""
+    env = {"AERMANI_REASONER_BACKEND_MODULES": THIS_MODULE, "AERMANI_REASONER_BACKEND": "slow_build_test"}
+    with run_stack(["reasoner"], tmp_path, env=env, supervise=True) as stack:
+        (proc,) = stack.procs
+        deadline = time.monotonic() + 90
+        while "reasoner ready" not in proc.log_path.read_text(errors="replace"):
+            assert time.monotonic() < deadline, proc.tail(40)
+            time.sleep(0.2)
+        final, _ = await run_task(stack, world(), TaskRequest(command=CMD))
+        override, _ = await run_task(stack, world(), TaskRequest(command=CMD, backend="slow_build_override_test"))
+        assert proc.restarts == 0 and not [e for e in stack.events if "hung" in e], stack.events
+    assert final.state is TaskState.SUCCEEDED and final.backend == "slow_build_test:default", final.message
+    assert override.state is TaskState.SUCCEEDED and override.backend == "slow_build_override_test:default", \
+        override.message
