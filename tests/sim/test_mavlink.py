@@ -38,8 +38,16 @@ class Client:
                 return m
         raise TimeoutError(f"no {kind} matching the condition within {timeout} s")
 
+    def drain(self, limit_s: float = 2.0) -> None:
+        """Read what queued up while the test did not read (a sleep, a burst of setpoints): a full UDP receive
+        buffer drops every new datagram, the COMMAND_ACK that answers the next command among them."""
+        deadline = time.monotonic() + limit_s
+        while time.monotonic() < deadline and self.conn.recv_match(blocking=False) is not None:
+            pass
+
     def command(self, cmd: int, *p: float, target: int = 1) -> int:
         params = list(p) + [0.0] * (7 - len(p))
+        self.drain()
         self.conn.mav.command_long_send(target, 1, cmd, 0, *params)
         return self.recv("COMMAND_ACK", lambda m: m.command == cmd, 10.0).result
 
