@@ -33,7 +33,7 @@ class CountingBackend(Backend):
     summary = "a test backend registered from tests/reasoner/test_backend_registry.py"
 
     def __init__(self, label: str) -> None:
-        self.name = f"counting_test:{label}"
+        self.name = f"{self.kind}:{label}"
         self.calls = 0
 
     @classmethod
@@ -57,10 +57,6 @@ class SlowToBuildBackend(CountingBackend):
     kind = "slow_build_test"
     summary = "a test backend that blocks for SLOW_BUILD_S while it is built"
 
-    def __init__(self, label: str) -> None:
-        super().__init__(label)
-        self.name = f"slow_build_test:{label}"
-
     @classmethod
     def from_settings(cls, settings: ReasonerSettings) -> SlowToBuildBackend:
         time.sleep(SLOW_BUILD_S)
@@ -73,10 +69,6 @@ class SlowToBuildOverride(SlowToBuildBackend):
 
     kind = "slow_build_override_test"
     summary = "a second slow-to-build test backend, for a task's override"
-
-    def __init__(self, label: str) -> None:
-        super().__init__(label)
-        self.name = f"slow_build_override_test:{label}"
 
 
 def test_registered_backend_is_selectable_by_settings_and_gateway_input() -> None:
