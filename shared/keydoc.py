@@ -117,7 +117,9 @@ def messages_doc() -> str:
         "a newer minor version, ignoring (and logging once) the fields it does not know. JSON on the wire; the "
         "JSON schema (`Model.model_json_schema()`) is the MCAP schema of its channel, named `aermani.<Model>`. "
         "Which key carries which message: [architecture.md](architecture.md#key-space). Below, per message, a "
-        "summary of its JSON schema: every field with its type, default and meaning.",
+        "summary of its JSON schema: every field with its type (with its bound: a maximum length or count, or "
+        "the pattern of an id), default and meaning. A payload beyond a bound is refused as malformed, and so is one "
+        "whose `vehicle_id` is not its key's vehicle.",
         "",
         "## Messages",
         "",
