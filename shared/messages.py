@@ -13,7 +13,16 @@ import uuid
 from enum import StrEnum
 from typing import Annotated, Any, ClassVar, Literal
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 
 SCHEMA_VERSION = 1
 """Major version of the message schemas. A receiver rejects a message of a newer major version with an
@@ -85,17 +94,28 @@ def _not_fleet(v: str) -> str:
     return v
 
 
+def _well_formed(v: Any) -> Any:
+    from shared.text import well_formed
+
+    return well_formed(v) if isinstance(v, str) else v
+
+
+# A bounded str is validated by pydantic-core as UTF-8, which a lone surrogate (half an emoji a model or an HTTP
+# client sent as `\ud83d`) cannot be: refused, it would lose the step or status that quotes it. Free text is made
+# well formed first (U+FFFD for the surrogate, as the bus writes it anyway); ids and vehicle ids are refused.
+_WELL_FORMED = BeforeValidator(_well_formed)
+
 Id = Annotated[str, Field(max_length=MAX_ID_CHARS, pattern=ID_PATTERN)]
 """A task, goal, request or approval id (ID_PATTERN)."""
 VehicleId = Annotated[str, Field(max_length=32, pattern=VEHICLE_ID_PATTERN), AfterValidator(_not_fleet)]
 """A vehicle id (VEHICLE_ID_PATTERN); a subscriber also refuses a payload whose vehicle id is not its key's."""
-Name = Annotated[str, Field(max_length=MAX_NAME_CHARS)]
+Name = Annotated[str, Field(max_length=MAX_NAME_CHARS), _WELL_FORMED]
 """A name of the stack's own (MAX_NAME_CHARS)."""
-Label = Annotated[str, Field(max_length=MAX_LABEL_CHARS)]
+Label = Annotated[str, Field(max_length=MAX_LABEL_CHARS), _WELL_FORMED]
 """A label of a thing in the world (MAX_LABEL_CHARS)."""
-Text = Annotated[str, Field(max_length=MAX_TEXT_CHARS)]
+Text = Annotated[str, Field(max_length=MAX_TEXT_CHARS), _WELL_FORMED]
 """Human-readable text (MAX_TEXT_CHARS)."""
-Trace = Annotated[str, Field(max_length=MAX_TRACE_CHARS)]
+Trace = Annotated[str, Field(max_length=MAX_TRACE_CHARS), _WELL_FORMED]
 """Model text (MAX_TRACE_CHARS)."""
 
 

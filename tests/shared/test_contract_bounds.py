@@ -163,3 +163,14 @@ def test_bounds_admit_what_the_services_send():
     assert decoder(m.ReasoningStep)(step.model_dump_json().encode()) == step
     memory = m.WorkingMemory(executed=tuple(f"obj_localization({'y' * 200}): succeeded" for _ in range(200)))
     assert decoder(m.WorkingMemory)(memory.model_dump_json().encode()) == memory
+
+
+def test_bounded_free_text_keeps_a_lone_surrogate_as_the_bus_writes_it():
+    """pydantic-core refuses a lone surrogate in a length-bounded str: free text (a model's half emoji) is made
+    well formed instead, so the step or status quoting it is not lost; an id holding one is refused."""
+    st = m.TaskStatus(task_id="t", command="c", state=m.TaskState.FAILED, message="half \ud83d emoji")
+    assert st.message == "half \ufffd emoji"
+    call = m.ModelCall(raw_answer="\ud83d" * 3, valid=False)
+    assert call.raw_answer == "\ufffd" * 3
+    with pytest.raises(ValueError, match="task_id"):
+        m.TaskStatus(task_id="t\ud83d", command="c", state=m.TaskState.FAILED)
