@@ -113,10 +113,26 @@ Name = Annotated[str, Field(max_length=MAX_NAME_CHARS), _WELL_FORMED]
 """A name of the stack's own (MAX_NAME_CHARS)."""
 Label = Annotated[str, Field(max_length=MAX_LABEL_CHARS), _WELL_FORMED]
 """A label of a thing in the world (MAX_LABEL_CHARS)."""
-Text = Annotated[str, Field(max_length=MAX_TEXT_CHARS), _WELL_FORMED]
-"""Human-readable text (MAX_TEXT_CHARS)."""
-Trace = Annotated[str, Field(max_length=MAX_TRACE_CHARS), _WELL_FORMED]
-"""Model text (MAX_TRACE_CHARS)."""
+
+
+def _clipped(limit: int) -> BeforeValidator:
+    """Free text built by the stack itself (python mode: a status quoting an exception, a model's answer or a
+    peer's reason) is cut to `limit` with a note saying so, so that the step or status carrying it is never
+    lost to its own bound; text received off the wire (JSON mode) is not cut: over the bound, it is refused."""
+
+    def clip(v: Any, info: ValidationInfo) -> Any:
+        if info.mode == "python" and isinstance(v, str) and len(v) > limit:
+            note = f" ... [{len(v)} characters, cut to {limit}]"
+            return v[:limit - len(note)] + note
+        return v
+
+    return BeforeValidator(clip)
+
+
+Text = Annotated[str, Field(max_length=MAX_TEXT_CHARS), _WELL_FORMED, _clipped(MAX_TEXT_CHARS)]
+"""Human-readable text (MAX_TEXT_CHARS; cut to it when the stack builds a message, refused over it when received)."""
+Trace = Annotated[str, Field(max_length=MAX_TRACE_CHARS), _WELL_FORMED, _clipped(MAX_TRACE_CHARS)]
+"""Model text (MAX_TRACE_CHARS; cut to it when the stack builds a message, refused over it when received)."""
 
 
 def now_ns() -> int:

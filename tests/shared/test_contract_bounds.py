@@ -174,3 +174,18 @@ def test_bounded_free_text_keeps_a_lone_surrogate_as_the_bus_writes_it():
     assert call.raw_answer == "\ufffd" * 3
     with pytest.raises(ValueError, match="task_id"):
         m.TaskStatus(task_id="t\ud83d", command="c", state=m.TaskState.FAILED)
+
+
+def test_free_text_the_stack_builds_is_cut_to_its_bound_and_received_text_over_it_is_refused():
+    """A status quoting a long exception or a model's whole answer must not be lost to its own bound: built in
+    code it is cut with a note; the same text arriving off the wire is refused (a peer's payload is not edited)."""
+    long = "y" * (3 * m.MAX_TEXT_CHARS)
+    st = m.TaskStatus(task_id="task-1", command="pick up the red cup", state=m.TaskState.FAILED, message=long)
+    assert len(st.message) == m.MAX_TEXT_CHARS and st.message.endswith(
+        f"[{len(long)} characters, cut to {m.MAX_TEXT_CHARS}]")
+    assert decoder(m.TaskStatus)(st.model_dump_json().encode()).message == st.message
+    raw = st.model_copy(update={"message": long}).model_dump_json().encode()
+    with pytest.raises(DecodeError, match="at message: String should have at most 10000 characters"):
+        decoder(m.TaskStatus)(raw)
+    drt = m.DescriptiveReasoningTrace(reasoning="r" * (m.MAX_TRACE_CHARS + 1))
+    assert drt.reasoning is not None and len(drt.reasoning) == m.MAX_TRACE_CHARS
