@@ -4,7 +4,9 @@ zenoh-python is synchronous and calls back on its own threads. A subscription's 
 sample's bytes into the subscription's bounded queue and, when a consumer is waiting and no wake-up is
 already on its way, wakes the event loop with one `loop.call_soon_threadsafe`: a burst of samples costs
 one hand-off, not one per sample. Decoding happens on the consumer side, so a malformed payload is logged,
-counted and dropped without touching the subscriber.
+counted and dropped without touching the subscriber. A payload that names a vehicle (`vehicle_id`) is also
+checked against its key's vehicle (`aermani/v1/<vehicle_id>/...`): a state, step or status of another vehicle is
+refused the same way (see `check_vehicle`), on subscriptions, requests and replies alike.
 
 Queue policy: each subscription has one bounded queue. When it is full, `overflow="drop_oldest"`
 (the default, right for sensor streams and state: the newest sample wins) discards the oldest queued
@@ -38,7 +40,17 @@ from pydantic import BaseModel, TypeAdapter, ValidationError
 from pydantic_core import PydanticSerializationError
 
 from shared.errors import BusError, DecodeError, NoResponder, QueryTimeout, RemoteError
-from shared.keys import BoundQuery, BoundToken, BoundTopic, Json, Protobuf, max_bytes_of, schema_name
+from shared.keys import (
+    FLEET_ID,
+    ROOT,
+    BoundQuery,
+    BoundToken,
+    BoundTopic,
+    Json,
+    Protobuf,
+    max_bytes_of,
+    schema_name,
+)
 from shared.messages import SCHEMA_MINOR, SCHEMA_VERSION, Health
 from shared.text import well_formed_tree
 
@@ -290,6 +302,32 @@ def decoder(model: Any) -> Callable[[bytes], Any]:
     return _Decoder(model)
 
 
+def key_vehicle(key: str) -> str | None:
+    """The vehicle segment of an aermani key (`aermani/v1/am2/autopilot/state` -> "am2"; FLEET_ID for a fleet
+    key), or None for a key outside `aermani/v1/`."""
+    parts = str(key).split("/", 3)
+    if len(parts) < 4 or f"{parts[0]}/{parts[1]}" != ROOT:
+        return None
+    return parts[2]
+
+
+def check_vehicle(key: str, value: Any) -> None:
+    """Raise DecodeError when `value` names a vehicle (`vehicle_id`) other than the one its key is under: a
+    vehicle's state, step or task status published on another vehicle's key would be taken for that vehicle's.
+    A fleet key (`aermani/v1/fleet/...`) carries what addresses every vehicle (the fleet abort, which names none):
+    a payload naming one vehicle does not belong there and is refused too. Keys outside `aermani/v1/` and
+    payloads without a vehicle id are not checked."""
+    claimed = getattr(value, "vehicle_id", None)
+    if not isinstance(claimed, str):
+        return
+    vehicle = key_vehicle(key)
+    if vehicle is None or claimed == vehicle:
+        return
+    where = "a fleet-wide key" if vehicle == FLEET_ID else f"a key of vehicle {vehicle!r}"
+    raise DecodeError(f"{type(value).__name__} of vehicle {claimed!r} on {where} ({key}): its vehicle_id must be "
+                      "its key's vehicle")
+
+
 def _accepted_types(decl_type: Any) -> tuple[type, ...]:
     """The classes `_check_type` accepts by isinstance alone, so a publish checks a value with one isinstance
     (a protobuf message object, checked by its descriptor, still goes through `_check_type`)."""
@@ -495,6 +533,12 @@ class Subscription(Generic[T]):
             with self._lock, contextlib.suppress(ValueError):
                 self._waiters.remove(fut)
 
+    def _value(self, key: str, data: bytes) -> T:
+        """The sample decoded to its declared type and checked against its key's vehicle (DecodeError if not)."""
+        value: T = self._decode(data)
+        check_vehicle(key, value)
+        return value
+
     async def recv_sample(self, timeout: float | None = None) -> Received[T]:
         """Next valid sample (malformed ones are logged and skipped). Raises TimeoutError."""
         deadline = None if timeout is None else time.monotonic() + timeout
@@ -505,7 +549,7 @@ class Subscription(Generic[T]):
                 continue
             key, data, enc, rns = item
             try:
-                value = self._decode(data)
+                value = self._value(key, data)
             except DecodeError as exc:
                 self.malformed += 1
                 self._warn("dropped malformed sample on %s: %s", key, exc)
@@ -519,7 +563,7 @@ class Subscription(Generic[T]):
         """The next valid queued sample, or None when the queue is empty (never waits)."""
         while (item := self._pop()) is not None:
             try:
-                return self._decode(item[1])  # type: ignore[no-any-return]
+                return self._value(item[0], item[1])
             except DecodeError as exc:
                 self.malformed += 1
                 self._warn("dropped malformed sample on %s: %s", item[0], exc)
@@ -768,7 +812,9 @@ class Bus:
             if data.strip() == ZENOH_TIMEOUT:  # Zenoh's own reply when the deadline passed; a service's error
                 raise QueryTimeout(f"query {key} timed out after {timeout:.1f} s")  # text never counts as one
             raise RemoteError(f"{key} answered with an error: {text}", text)
-        return decoder(target.decl.reply if isinstance(target, BoundQuery) else None)(data)  # type: ignore[no-any-return]
+        value = decoder(target.decl.reply if isinstance(target, BoundQuery) else None)(data)
+        check_vehicle(key, value)
+        return value  # type: ignore[no-any-return]
 
     async def query_all(self, key: str, request: Any = None, *, timeout: float = 5.0, schema: str | None = None,
                         first_only: bool = False) -> list[tuple[bool, bytes]]:
@@ -839,6 +885,7 @@ class Bus:
                                           f"{getattr(request_model, '__name__', 'request')}")
                     else:
                         req = decode(data)
+                    check_vehicle(key, req)
                 except DecodeError as exc:
                     log.warning("rejected malformed query on %s: %s", key, exc)
                     query.reply_err(json.dumps({"error": str(exc)}).encode())

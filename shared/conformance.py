@@ -19,7 +19,7 @@ import contextlib
 from dataclasses import dataclass, field
 from typing import Any
 
-from shared.bus import Bus, Subscription, decoder
+from shared.bus import Bus, Subscription, check_vehicle, decoder
 from shared.errors import AermaniError, NoResponder, QueryTimeout, RemoteError
 from shared.keys import ALIVE_TOKEN, DECLARATIONS, HEALTH_TOPIC, Keys, Protobuf, Query, Topic
 from shared.messages import CancelGoal, ReasoningStep, SkillLibrary, SkillRequest, SkillStatus
@@ -105,7 +105,9 @@ async def _check_topic(bus: Bus, keys: Keys, decl: Topic[Any], report: Report, t
             except TimeoutError:
                 break
             try:
-                got.append(_decode(decl, data))
+                value = _decode(decl, data)
+                check_vehicle(key, value)  # every subscriber refuses another vehicle's sample
+                got.append(value)
             except AermaniError as exc:
                 report.add(key, False, f"a sample does not decode as {getattr(decl.type, '__name__', decl.type)}: "
                                        f"{exc}")

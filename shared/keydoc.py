@@ -51,7 +51,21 @@ def render(text: str) -> str:
 
 
 def _type_of(prop: dict[str, Any]) -> str:
-    """A short human type of one JSON-schema property: `number`, `Vec3`, `array of Detection`, `a | b`."""
+    """A short human type of one JSON-schema property with its bound: `number`, `Vec3`, `string (<= 64)`,
+    `array (<= 1024) of Detection`, `a or b`."""
+    base = _base_type(prop)
+    if "pattern" in prop:
+        return f"{base} `{prop['pattern']}`".replace("|", "\\|")
+    bound = prop.get("maxLength", prop.get("maxProperties", None if "prefixItems" in prop else prop.get("maxItems")))
+    if bound is None:
+        return base
+    if prop.get("type") in ("array", "object"):  # the container's bound by its name, its items' after them
+        head, _, rest = base.partition(" ")
+        return f"{head} (<= {bound}) {rest}".rstrip()
+    return f"{base} (<= {bound})"
+
+
+def _base_type(prop: dict[str, Any]) -> str:
     if "$ref" in prop:
         return f"[{prop['$ref'].rsplit('/', 1)[-1]}](#{prop['$ref'].rsplit('/', 1)[-1].lower()})"
     if "const" in prop:
@@ -103,7 +117,9 @@ def messages_doc() -> str:
         "a newer minor version, ignoring (and logging once) the fields it does not know. JSON on the wire; the "
         "JSON schema (`Model.model_json_schema()`) is the MCAP schema of its channel, named `aermani.<Model>`. "
         "Which key carries which message: [architecture.md](architecture.md#key-space). Below, per message, a "
-        "summary of its JSON schema: every field with its type, default and meaning.",
+        "summary of its JSON schema: every field with its type (with its bound: a maximum length or count, or "
+        "the pattern of an id), default and meaning. A payload beyond a bound is refused as malformed, and so is one "
+        "whose `vehicle_id` is not its key's vehicle.",
         "",
         "## Messages",
         "",

@@ -13,7 +13,16 @@ import uuid
 from enum import StrEnum
 from typing import Annotated, Any, ClassVar, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 
 SCHEMA_VERSION = 1
 """Major version of the message schemas. A receiver rejects a message of a newer major version with an
@@ -22,7 +31,52 @@ SCHEMA_MINOR = 7
 """Minor version: bumped when fields are added (or deprecated and ignored, never removed). A receiver accepts a
 message of a newer minor version, ignoring the fields it does not know (logged once per field)."""
 MAX_COMMAND_CHARS = 500
+"""Longest natural-language command L (TaskRequest, TaskStatus; the gateway's and MCP's bodies take the same)."""
 MAX_QUERY_CHARS = 200
+"""Longest object or surface query, skill argument or label (perception truncates a query to it)."""
+
+# Bounds of every string and sequence in the contract: each field takes one of these (a test fails on a field
+# without one). They are far above what the services send and far below the 1 MiB sample cap
+# (shared.keys.MESSAGE_MAX_BYTES), so they refuse a forged or runaway payload, never a real one.
+MAX_ID_CHARS = 64
+"""Longest id: a task, goal, request or approval id (`task-`, `goal-`, `req-`, `appr-` + 12 hex digits)."""
+ID_PATTERN = rf"^[A-Za-z0-9_.:-]{{0,{MAX_ID_CHARS}}}$"
+"""An id: letters, digits and `_ . : -` (it goes into URLs, logs and file names); empty where none is set."""
+VEHICLE_ID_PATTERN = r"^[A-Za-z0-9_-]{1,32}$"
+"""A vehicle id, as the services' settings take it (AERMANI_VEHICLE_ID) and the gateway's body; never `fleet`."""
+MAX_NAME_CHARS = 64
+"""Longest name of a thing of the stack: a skill, service, PX4 mode, parameter, check, unit, segmenter."""
+MAX_LABEL_CHARS = MAX_QUERY_CHARS
+"""Longest label of a thing in the world (an object or surface name, open vocabulary) or a who (abort source)."""
+MAX_TEXT_CHARS = 10_000
+"""Longest human-readable text: a message, reason or explanation (a sentence or a paragraph in practice; the
+backends cut quoted error bodies to 200 characters)."""
+MAX_TRACE_CHARS = 100_000
+"""Longest model text: a raw answer (the parser records at most 32 000 characters and a note), a parse error that
+quotes it, a DRT field, a prompt part (the History is capped at history_max_chars, 6000 by default)."""
+MAX_DETECTIONS = 1024
+"""Most detections of one frame, and labels visible in it (the catalogue has 14 objects and a few surfaces)."""
+MAX_MEMORY_OBJECTS = 1024
+"""Most entries of each working-memory table (objects, placements, seen: one per label) and executed skills
+(the executor keeps the last 200)."""
+MAX_CHECKS = 64
+"""Most checks of one preflight report or judge verdict (about 10 of each today)."""
+MAX_SKILLS = 256
+"""Most skills of the library (about 20 today), parameters of one skill, action predictions' entries."""
+MAX_MODEL_CALLS = 64
+"""Most model calls of one reasoning step (the re-prompt budget is at most 10)."""
+MAX_CANDIDATES = 256
+"""Most SayCan candidates (the parser reads at most 200) and plan-once steps (at most 40) of one step."""
+MAX_PROMPT_PARTS = 64
+"""Most named prompt parts of one step (command, preamble, history, skill_library, rules...)."""
+MAX_PREDICTIONS = 8192
+"""Most action predictions of one DRT: one per skill is asked; what a 32 000-character answer can hold is less."""
+MAX_SCENARIO_OBJECTS = 64
+"""Most distractors, extra objects or start placements of one scenario."""
+MAX_WORLD_OBJECTS = 1024
+"""Most instances of a simulated layout (labels, ground-truth objects) and collisions since a reset."""
+MAX_HEALTH_DETAILS = 256
+"""Most entries of a health's details (a dozen figures today; their values are bounded by the byte cap only)."""
 # Physical bounds: a value beyond them is a broken estimate or a forged message, never a state to act on.
 MAX_COORDINATE_M = 10_000.0
 """Largest |x|, |y|, |z| of any position or extent, metres (a local frame of +-10 km)."""
@@ -32,6 +86,53 @@ MAX_ANGLE_RAD = 2 * math.pi + 1e-6
 """Largest |yaw|, |roll|, |pitch|, radians."""
 MAX_BATTERY_VOLTAGE_V = 100.0
 """Largest battery voltage, volts (a 12S pack is ~50 V)."""
+
+
+def _not_fleet(v: str) -> str:
+    if v == "fleet":  # shared.keys.FLEET_ID (not imported: keys imports this module)
+        raise ValueError("vehicle id 'fleet' is reserved for fleet-wide keys")
+    return v
+
+
+def _well_formed(v: Any) -> Any:
+    from shared.text import well_formed
+
+    return well_formed(v) if isinstance(v, str) else v
+
+
+# A bounded str is validated by pydantic-core as UTF-8, which a lone surrogate (half an emoji a model or an HTTP
+# client sent as `\ud83d`) cannot be: refused, it would lose the step or status that quotes it. Free text is made
+# well formed first (U+FFFD for the surrogate, as the bus writes it anyway); ids and vehicle ids are refused.
+_WELL_FORMED = BeforeValidator(_well_formed)
+
+Id = Annotated[str, Field(max_length=MAX_ID_CHARS, pattern=ID_PATTERN)]
+"""A task, goal, request or approval id (ID_PATTERN)."""
+VehicleId = Annotated[str, Field(max_length=32, pattern=VEHICLE_ID_PATTERN), AfterValidator(_not_fleet)]
+"""A vehicle id (VEHICLE_ID_PATTERN); a subscriber also refuses a payload whose vehicle id is not its key's."""
+Name = Annotated[str, Field(max_length=MAX_NAME_CHARS), _WELL_FORMED]
+"""A name of the stack's own (MAX_NAME_CHARS)."""
+Label = Annotated[str, Field(max_length=MAX_LABEL_CHARS), _WELL_FORMED]
+"""A label of a thing in the world (MAX_LABEL_CHARS)."""
+
+
+def _clipped(limit: int) -> BeforeValidator:
+    """Free text built by the stack itself (python mode: a status quoting an exception, a model's answer or a
+    peer's reason) is cut to `limit` with a note saying so, so that the step or status carrying it is never
+    lost to its own bound; text received off the wire (JSON mode) is not cut: over the bound, it is refused."""
+
+    def clip(v: Any, info: ValidationInfo) -> Any:
+        if info.mode == "python" and isinstance(v, str) and len(v) > limit:
+            note = f" ... [{len(v)} characters, cut to {limit}]"
+            return v[:limit - len(note)] + note
+        return v
+
+    return BeforeValidator(clip)
+
+
+Text = Annotated[str, Field(max_length=MAX_TEXT_CHARS), _WELL_FORMED, _clipped(MAX_TEXT_CHARS)]
+"""Human-readable text (MAX_TEXT_CHARS; cut to it when the stack builds a message, refused over it when received)."""
+Trace = Annotated[str, Field(max_length=MAX_TRACE_CHARS), _WELL_FORMED, _clipped(MAX_TRACE_CHARS)]
+"""Model text (MAX_TRACE_CHARS; cut to it when the stack builds a message, refused over it when received)."""
 
 
 def now_ns() -> int:
@@ -136,7 +237,7 @@ class VehicleState(Message):
     kind: Literal["vehicle_state"] = "vehicle_state"
     stamp_ns: int = Field(default_factory=now_ns, ge=0)
     """When the bridge produced this state (ns since epoch)."""
-    vehicle_id: str = "am1"
+    vehicle_id: VehicleId = "am1"
     """Vehicle this state belongs to."""
     position: Vec3 = Vec3()
     """Body origin in the world frame (ENU), metres."""
@@ -150,7 +251,7 @@ class VehicleState(Message):
     """Pitch, radians (FLU, positive nose up)."""
     armed: bool = False
     """Whether the motors are armed."""
-    mode: str = "UNKNOWN"
+    mode: Name = "UNKNOWN"
     """PX4 flight mode name, e.g. OFFBOARD, POSCTL, AUTO.TAKEOFF, AUTO.LOITER, AUTO.LAND."""
     landed_state: LandedState = LandedState.UNKNOWN
     """Landed state from EXTENDED_SYS_STATE."""
@@ -170,9 +271,9 @@ class VehicleState(Message):
     """True while in OFFBOARD with the setpoint stream running."""
     last_heartbeat_ns: int = Field(0, ge=0)
     """Receive time of the last autopilot HEARTBEAT."""
-    message: str = ""
+    message: Text = ""
     """Latest human-readable status (STATUSTEXT, link loss...)."""
-    override: str = ""
+    override: Text = ""
     """Why PX4, the pilot or an abort has taken control from the stack ("PX4 switched from OFFBOARD to AUTO.RTL",
     "aborted by <source>: <reason>"); while set, the bridge neither re-enters OFFBOARD nor takes off for the task
     that was flying. Empty: the stack may fly."""
@@ -211,7 +312,7 @@ class ArmCommand(Message):
     """Arm the motors (PX4 arming checks apply)."""
 
     kind: Literal["arm"] = "arm"
-    task_id: str | None = None
+    task_id: Id | None = None
     """Task on whose behalf (set by the executor); None for an operator's direct command."""
 
 
@@ -232,7 +333,7 @@ class TakeoffCommand(Message):
     kind: Literal["takeoff"] = "takeoff"
     altitude: float = Field(1.5, gt=0.0, le=50.0)
     """Target altitude above the home position, metres."""
-    task_id: str | None = None
+    task_id: Id | None = None
     """Task on whose behalf (set by the executor); None for an operator's direct command."""
 
 
@@ -246,7 +347,7 @@ class GotoCommand(Message):
     """Target heading, radians ENU."""
     max_speed: float | None = Field(None, gt=0.0, le=MAX_VEHICLE_SPEED_MS)
     """Optional speed limit for this motion, m/s (the bridge ramps the setpoint)."""
-    task_id: str | None = None
+    task_id: Id | None = None
     """Task on whose behalf (set by the executor); None for an operator's direct command."""
 
 
@@ -286,14 +387,14 @@ AutopilotCommand = Annotated[
 class PreflightCheck(Part):
     """One preflight check: what was read from the autopilot, what is required, and the verdict."""
 
-    name: str
+    name: Name
     """The parameter (COM_OBL_RC_ACT...) or state (link, position, landed, battery) checked."""
     ok: bool
-    value: str = ""
+    value: Text = ""
     """What the autopilot reported ("" when it reported nothing)."""
-    expected: str = ""
+    expected: Text = ""
     """What is required to fly."""
-    reason: str = ""
+    reason: Text = ""
     """Why it matters, for a failed check; for a passed one, a caveat or empty (COM_OBL_RC_ACT Land lands
     wherever the vehicle is)."""
 
@@ -305,13 +406,13 @@ class PreflightReport(Message):
     kind: Literal["preflight_report"] = "preflight_report"
     stamp_ns: int = Field(default_factory=now_ns, ge=0)
     """When the checks ran."""
-    vehicle_id: str = Field("am1", pattern=r"^[A-Za-z0-9_-]{1,32}$")
+    vehicle_id: VehicleId = "am1"
     """Vehicle checked."""
     trigger: Literal["request", "arm", "takeoff", "operator"]
     """What ran it: a preflight command, the gate before an arm or a take-off, or `aermani preflight`."""
     ok: bool
     """Every check passed."""
-    checks: tuple[PreflightCheck, ...] = Field((), max_length=64)
+    checks: tuple[PreflightCheck, ...] = Field((), max_length=MAX_CHECKS)
     """Each check with its value and verdict."""
     overridden: bool = False
     """The gate failed and the operator's override let the vehicle arm anyway."""
@@ -325,19 +426,19 @@ class AutopilotResult(Message):
     kind: Literal["autopilot_result"] = "autopilot_result"
     ok: bool
     """Whether the command was accepted and carried out."""
-    command: str
+    command: Name
     """Which command this answers (arm, takeoff, goto...)."""
     ack_code: int | None = None
     """PX4 COMMAND_ACK result code (0 accepted, 1 temporarily rejected, 2 denied, 3 unsupported, 4 failed,
     5 in progress), when a COMMAND_LONG was involved."""
-    ack_name: str = ""
+    ack_name: Name = ""
     """MAV_RESULT name of ack_code."""
-    message: str = ""
+    message: Text = ""
     """Human-readable explanation."""
     aborted: bool = False
     """The command was stopped or refused because of an abort the bridge obeyed (it may have got the abort
     before the executor did): the skill that sent it ends ABORTED, not FAILED."""
-    checks: tuple[PreflightCheck, ...] = ()
+    checks: tuple[PreflightCheck, ...] = Field((), max_length=MAX_CHECKS)
     """Every preflight check with its verdict: the answer to a preflight command, and to an arm or takeoff
     that the preflight refused."""
 
@@ -367,17 +468,17 @@ class LocalizeAnswer(Message):
     """What perception's two answers (ObjectEstimate, PlacementEstimate) share: the query, found or not with
     the reason, the matched label, how sure, the evidence and the frame it comes from."""
 
-    kind: str = ""
+    kind: Name = ""
     """The answer's kind (each subclass fixes it)."""
-    query: str
+    query: Label
     """The query this answers (truncated to 200 characters)."""
     found: bool
     """Whether the thing was localized (an object's pose; a surface with a free placement pose)."""
     reason: LocalizeReason = "ok"
     """Why not, when not found."""
-    message: str = ""
+    message: Text = ""
     """Human-readable explanation."""
-    label: str = ""
+    label: Label = ""
     """Label of the matched object or surface."""
     confidence: float = 0.0
     """0..1."""
@@ -422,7 +523,7 @@ class PlacementEstimate(LocalizeAnswer):
 class Detection(Part):
     """One thing perception sees in the current frame."""
 
-    label: str
+    label: Label
     """Label of the detected thing (object or surface name)."""
     category: Literal["object", "surface", "furniture", "other"] = "object"
     """What kind of thing it is."""
@@ -446,9 +547,9 @@ class Detections(Message):
     """Publish time."""
     frame_stamp_ns: int = 0
     """Timestamp of the frame these come from."""
-    segmenter: str = ""
+    segmenter: Name = ""
     """Segmenter that produced them (sim, color, sam3)."""
-    items: tuple[Detection, ...] = ()
+    items: tuple[Detection, ...] = Field((), max_length=MAX_DETECTIONS)
     """What is visible now."""
 
 
@@ -473,28 +574,28 @@ class SkillState(StrEnum):
 class SkillParameter(Part):
     """A fixed parameter of a skill (from the executor's settings), shown in the Skill Library."""
 
-    name: str
+    name: Name
     """Parameter name."""
-    value: float | str | bool
+    value: float | Label | bool
     """Fixed value (from settings)."""
-    unit: str = ""
+    unit: Name = ""
     """Unit, e.g. m or deg."""
 
 
 class SkillSpec(Part):
     """One skill as the policy sees it: name, family, Skill Library text, argument rule."""
 
-    name: str
+    name: Name
     """Skill name the policy uses, e.g. `forward`, `obj_localization`."""
     category: Literal["motion", "perception", "manipulation", "operator", "control"]
     """Family of the skill."""
-    description: str
+    description: Text
     """Text shown to the model in the Skill Library."""
-    argument: str | None = None
+    argument: Label | None = None
     """What the argument is (e.g. "object query"), or None when the skill takes no argument."""
     argument_required: bool = False
     """Whether the argument must be given."""
-    parameters: tuple[SkillParameter, ...] = ()
+    parameters: tuple[SkillParameter, ...] = Field((), max_length=MAX_SKILLS)
     """Fixed parameters of the routine."""
     policy_visible: bool = True
     """False for operator-only skills (takeoff, land, hold) that are not offered to the model."""
@@ -504,7 +605,7 @@ class SkillLibrary(Message):
     """The live skill library the executor serves: the policy's whole action space."""
 
     kind: Literal["skill_library"] = "skill_library"
-    skills: tuple[SkillSpec, ...]
+    skills: tuple[SkillSpec, ...] = Field(..., max_length=MAX_SKILLS)
     """Every registered skill."""
 
 
@@ -512,15 +613,15 @@ class SkillRequest(Message):
     """Action protocol, skill level: the goal (run this skill with this argument)."""
 
     kind: Literal["skill_request"] = "skill_request"
-    skill: str = Field(..., max_length=64)
+    skill: str = Field(..., max_length=MAX_NAME_CHARS)
     """Registered skill name."""
     argument: str | None = Field(None, max_length=MAX_QUERY_CHARS)
     """Argument (object or surface query) for skills that take one."""
-    task_id: str = ""
+    task_id: Id = ""
     """Task this belongs to (empty for operator commands)."""
     step: int = 0
     """Reasoning step index within the task."""
-    request_id: str = Field(default_factory=lambda: new_id("req-"))
+    request_id: Id = Field(default_factory=lambda: new_id("req-"))
     """Caller's id, echoed in the status."""
 
 
@@ -530,9 +631,9 @@ class SkillAccept(Message):
     kind: Literal["skill_accept"] = "skill_accept"
     accepted: bool
     """Whether the executor started the skill."""
-    goal_id: str = ""
+    goal_id: Id = ""
     """Id to follow the skill's status (when accepted)."""
-    reason: str = ""
+    reason: Text = ""
     """Why it was rejected, written for the model to read."""
     outcome: SkillOutcome | None = None
     """A rejection's outcome (its code, e.g. out_of_reach, and facts), the same as its rejected status carries;
@@ -542,9 +643,9 @@ class SkillAccept(Message):
 class MemoryObject(Part):
     """One entry of working memory: an object or a placement spot and where it was localized."""
 
-    label: str
+    label: Label
     """Object or surface label."""
-    query: str = ""
+    query: Label = ""
     """The query that found it."""
     position: Vec3
     """World position (object centroid or placement spot)."""
@@ -566,17 +667,17 @@ class WorkingMemory(Message):
     kind: Literal["working_memory"] = "working_memory"
     stamp_ns: int = Field(default_factory=now_ns)
     """Publish time."""
-    objects: tuple[MemoryObject, ...] = ()
+    objects: tuple[MemoryObject, ...] = Field((), max_length=MAX_MEMORY_OBJECTS)
     """Localized objects (latest estimate per label)."""
-    placements: tuple[MemoryObject, ...] = ()
+    placements: tuple[MemoryObject, ...] = Field((), max_length=MAX_MEMORY_OBJECTS)
     """Localized placement spots (latest per surface)."""
-    held_object: str | None = None
+    held_object: Label | None = None
     """Label of the object in the gripper, if any."""
-    visible: tuple[str, ...] = ()
+    visible: tuple[Label, ...] = Field((), max_length=MAX_DETECTIONS)
     """Labels visible in the latest detections."""
-    executed: tuple[str, ...] = ()
+    executed: tuple[Text, ...] = Field((), max_length=MAX_MEMORY_OBJECTS)
     """Skills executed so far in this task ("forward", "obj_localization(red cup)"...)."""
-    seen: tuple[MemoryObject, ...] = ()
+    seen: tuple[MemoryObject, ...] = Field((), max_length=MAX_MEMORY_OBJECTS)
     """Everything perception has detected so far, latest world position per label (coarse: detection
     centroids), so a search can turn toward what was seen before instead of scanning again."""
 
@@ -625,9 +726,9 @@ class SkillFacts(Part):
     """One short reason per failed attempt, in order."""
     gripper_width_m: float | None = None
     """Opening between the finger pads at the end, metres (from the gripper's own telemetry)."""
-    holding: str | None = None
+    holding: Label | None = None
     """What the gripper holds at the end according to its contact sensing and width; None if empty."""
-    target: str | None = None
+    target: Label | None = None
     """The object or surface the skill acted on."""
 
 
@@ -643,9 +744,9 @@ class SkillOutcome(Part):
     """Vehicle pose when the skill started."""
     end_pose: Pose | None = None
     """Vehicle pose when the skill ended."""
-    perceived: str = ""
+    perceived: Text = ""
     """What perception reported (e.g. "red cup at (1.20, 0.30, 0.80)")."""
-    held_object: str | None = None
+    held_object: Label | None = None
     """What the gripper holds after the skill."""
     estimate: ObjectEstimate | PlacementEstimate | None = None
     """The perception estimate produced, for localization skills."""
@@ -657,21 +758,21 @@ class SkillStatus(Message):
     kind: Literal["skill_status"] = "skill_status"
     stamp_ns: int = Field(default_factory=now_ns)
     """Publish time."""
-    goal_id: str
+    goal_id: Id
     """Goal id returned by run_skill."""
-    request_id: str = ""
+    request_id: Id = ""
     """Caller's request id."""
-    task_id: str = ""
+    task_id: Id = ""
     """Task id from the request."""
     step: int = 0
     """Step index from the request."""
-    skill: str
+    skill: Name
     """Skill name."""
-    argument: str | None = None
+    argument: Label | None = None
     """Skill argument."""
     state: SkillState
     """running, succeeded, failed, timeout, rejected, aborted."""
-    message: str = ""
+    message: Text = ""
     """Explanation, written for the model to read."""
     outcome: SkillOutcome = SkillOutcome()
     """What changed and what was perceived."""
@@ -687,11 +788,11 @@ class Abort(Message):
     kind: Literal["abort"] = "abort"
     stamp_ns: int = Field(default_factory=now_ns)
     """When the abort was requested."""
-    reason: str = "operator abort"
+    reason: Text = "operator abort"
     """Why."""
-    source: str = "operator"
+    source: Label = "operator"
     """Who asked (gateway, operator, reasoner...)."""
-    task_id: str | None = None
+    task_id: Id | None = None
     """Task to abort, or None for whatever runs."""
 
 
@@ -703,11 +804,11 @@ class AbortAck(Message):
     """When the executor had commanded hold."""
     abort_stamp_ns: int
     """stamp_ns of the Abort this acknowledges."""
-    goal_id: str | None = None
+    goal_id: Id | None = None
     """The skill that was stopped, if any."""
-    message: str = ""
+    message: Text = ""
     """What was done."""
-    service: str = "executor"
+    service: Name = "executor"
     """Which service acknowledges (executor, autopilot_bridge)."""
 
 
@@ -717,22 +818,22 @@ class AbortAck(Message):
 class DescriptiveReasoningTrace(Part):
     """The paper's DRT; fields are None when the prompt variant does not ask for them."""
 
-    image_description: str | None = None
+    image_description: Trace | None = None
     """Visible objects, their spatial arrangement and cues in the current image."""
-    summary: str | None = None
+    summary: Trace | None = None
     """Short recap of previous observations and executed skills."""
-    action_predictions: dict[str, str] | None = None
+    action_predictions: dict[Trace, Trace] | None = Field(None, max_length=MAX_PREDICTIONS)
     """For every available skill, the predicted outcome of executing it now."""
-    reasoning: str | None = None
+    reasoning: Trace | None = None
     """Justification of the chosen skill from observation, history and predictions."""
 
 
 class SkillToExecute(Part):
     """The paper's STE: one skill of the library plus its argument."""
 
-    skill: str
+    skill: Name
     """Skill name, exactly as in the Skill Library."""
-    argument: str | None = None
+    argument: Label | None = None
     """Object or surface query for localization skills; None otherwise."""
 
 
@@ -754,11 +855,11 @@ primitives only), UAV-VLA-style one plan at the start (services/reasoner/baselin
 class ModelCall(Part):
     """One call to the model within a reasoning step: raw answer, validity, latency, tokens."""
 
-    raw_answer: str
+    raw_answer: Trace
     """The model's answer, verbatim."""
     valid: bool
     """Whether it parsed into a valid DRT/STE."""
-    error: str = ""
+    error: Trace = ""
     """Why it was invalid (sent back to the model on re-prompt)."""
     latency_s: float = 0.0
     """Model response time, seconds."""
@@ -803,15 +904,15 @@ class StepTiming(Part):
 class SkillScore(Part):
     """SayCan-style: the model's usefulness score of one candidate skill, times the executor's feasibility."""
 
-    skill: str
+    skill: Name
     """Candidate skill."""
-    argument: str | None = None
+    argument: Label | None = None
     """Its argument."""
     score: float
     """The model's usefulness score, 0..1."""
     feasible: bool = False
     """Whether the executor would accept it now (its check_skill answer)."""
-    reason: str = ""
+    reason: Text = ""
     """The executor's reason when it would not."""
     weighted: float = 0.0
     """score x feasibility (1 or 0): the highest one runs."""
@@ -826,9 +927,9 @@ class ReasoningStep(Message):
     published_ns: int = 0
     """When the reasoner published this record: after the step's skill ended, seconds after `stamp_ns` for a
     long skill (0 in records older than schema minor 3). A consumer that was down between the two misses it."""
-    vehicle_id: str = "am1"
+    vehicle_id: VehicleId = "am1"
     """Vehicle the task runs on."""
-    task_id: str
+    task_id: Id
     """Task id."""
     step: int
     """Step index, from 1."""
@@ -836,11 +937,11 @@ class ReasoningStep(Message):
     """Backend (rules, openai:<model>, anthropic:<model>, replay)."""
     variant: Variant = "full"
     """Prompt variant."""
-    prompt: dict[str, str] = {}
+    prompt: dict[Name, Trace] = Field({}, max_length=MAX_PROMPT_PARTS)
     """Prompt parts by name (command, preamble, history, skill_library, rules)."""
     image_stamp_ns: int = 0
     """Timestamp of the colour frame sent with the prompt (0 if none)."""
-    calls: tuple[ModelCall, ...] = ()
+    calls: tuple[ModelCall, ...] = Field((), max_length=MAX_MODEL_CALLS)
     """Every model call of this step, invalid ones first, so IAR = invalid / calls."""
     drt: DescriptiveReasoningTrace | None = None
     """Parsed DRT of the accepted answer."""
@@ -852,7 +953,7 @@ class ReasoningStep(Message):
     """Re-prompts used."""
     skill_state: SkillState | None = None
     """Termination status of the executed skill."""
-    skill_message: str = ""
+    skill_message: Text = ""
     """Executor message."""
     outcome: SkillOutcome | None = None
     """Executor outcome."""
@@ -862,9 +963,9 @@ class ReasoningStep(Message):
     """Wall time of the skill."""
     timing: StepTiming | None = None
     """Where the step's time went (None in records older than schema minor 7 and for a step without a skill)."""
-    scores: tuple[SkillScore, ...] = ()
+    scores: tuple[SkillScore, ...] = Field((), max_length=MAX_CANDIDATES)
     """SayCan-style variant: every candidate's score and feasibility (empty for other variants; minor 7)."""
-    plan: tuple[SkillToExecute, ...] = ()
+    plan: tuple[SkillToExecute, ...] = Field((), max_length=MAX_CANDIDATES)
     """Plan-once variant: the whole plan, in the step that asked for it (empty otherwise; minor 7)."""
 
 
@@ -872,11 +973,11 @@ class CancelGoal(Message):
     """Action protocol: ask the server of a goal (a skill or a task) to cancel it."""
 
     kind: Literal["cancel_goal"] = "cancel_goal"
-    goal_id: str = Field(..., max_length=64)
+    goal_id: Id = Field(...)
     """The goal to cancel (skill goal id or task id)."""
     reason: str = Field("cancelled", max_length=200)
     """Why, for the record."""
-    source: str = Field("operator", max_length=64)
+    source: str = Field("operator", max_length=MAX_NAME_CHARS)
     """Who asks."""
 
 
@@ -886,7 +987,7 @@ class CancelReply(Message):
     kind: Literal["cancel_reply"] = "cancel_reply"
     accepted: bool
     """True when the goal was running and is being cancelled."""
-    reason: str = ""
+    reason: Text = ""
     """Why not (unknown goal, already ended)."""
 
 
@@ -905,25 +1006,25 @@ class ApprovalStatus(Message):
     kind: Literal["approval_status"] = "approval_status"
     stamp_ns: int = Field(default_factory=now_ns)
     """Publish time."""
-    approval_id: str = Field(default_factory=lambda: new_id("appr-"))
+    approval_id: Id = Field(default_factory=lambda: new_id("appr-"))
     """Id to decide it by."""
-    vehicle_id: str = "am1"
+    vehicle_id: VehicleId = "am1"
     """Vehicle that waits."""
-    task_id: str = ""
+    task_id: Id = ""
     """Task the skill belongs to."""
     step: int = 0
     """Reasoning step."""
-    skill: str
+    skill: Name
     """The skill the policy chose."""
-    argument: str | None = None
+    argument: Label | None = None
     """Its argument."""
-    reasoning: str = ""
+    reasoning: Trace = ""
     """Why the policy chose it (its DRT reasoning), for the operator."""
     state: ApprovalState = ApprovalState.PENDING
     """pending, approved, rejected or expired."""
-    reason: str = ""
+    reason: Text = ""
     """The operator's reason (rejections), or why it expired."""
-    operator: str = ""
+    operator: Name = ""
     """Who decided."""
     expires_ns: int = 0
     """When a pending request expires (the step then fails and the vehicle holds)."""
@@ -933,13 +1034,13 @@ class ApprovalDecision(Message):
     """The operator's answer to a pending approval."""
 
     kind: Literal["approval_decision"] = "approval_decision"
-    approval_id: str = Field(..., max_length=64)
+    approval_id: Id = Field(...)
     """The request decided."""
     approved: bool
     """True lets the skill run; False makes the policy choose again."""
     reason: str = Field("", max_length=300)
     """Why (shown to the policy in the History on a rejection)."""
-    operator: str = Field("operator", max_length=64)
+    operator: str = Field("operator", max_length=MAX_NAME_CHARS)
     """Who decides (gateway user, MCP client...)."""
 
 
@@ -991,7 +1092,7 @@ class TaskRequest(Message):
     kind: Literal["task_request"] = "task_request"
     command: str = Field(..., min_length=1, max_length=MAX_COMMAND_CHARS)
     """Natural-language command L."""
-    task_id: str = Field(default_factory=lambda: new_id("task-"))
+    task_id: Id = Field(default_factory=lambda: new_id("task-"))
     """Task id (generated when omitted)."""
     backend: BackendName | None = None
     """Override of the reasoner's backend (rules, openai, anthropic, replay)."""
@@ -1014,9 +1115,9 @@ class TaskAccept(Message):
     kind: Literal["task_accept"] = "task_accept"
     accepted: bool
     """Whether the task was started."""
-    task_id: str = ""
+    task_id: Id = ""
     """The task id."""
-    reason: str = ""
+    reason: Text = ""
     """Why not (e.g. a task already runs on this vehicle)."""
 
 
@@ -1026,15 +1127,15 @@ class TaskStatus(Message):
     kind: Literal["task_status"] = "task_status"
     stamp_ns: int = Field(default_factory=now_ns)
     """Publish time."""
-    vehicle_id: str = "am1"
+    vehicle_id: VehicleId = "am1"
     """Vehicle."""
-    task_id: str
+    task_id: Id
     """Task id."""
-    command: str
+    command: str = Field(..., max_length=MAX_COMMAND_CHARS)
     """The command L."""
     state: TaskState
     """pending, running, succeeded, failed, aborted, timeout."""
-    message: str = ""
+    message: Text = ""
     """Explanation (why it failed, who aborted)."""
     steps: int = 0
     """Reasoning steps so far."""
@@ -1061,13 +1162,13 @@ class Health(Message):
     kind: Literal["health"] = "health"
     stamp_ns: int = Field(default_factory=now_ns)
     """Publish time."""
-    service: str
+    service: Name
     """Service name."""
     ok: bool
     """Whether the service works as it should."""
-    message: str = ""
+    message: Text = ""
     """What is wrong, when not ok."""
-    details: dict[str, Any] = {}
+    details: dict[Label, Any] = Field({}, max_length=MAX_HEALTH_DETAILS)
     """Service-specific figures (fps, queue drops, file path...)."""
 
 
@@ -1078,7 +1179,7 @@ class Heartbeat(Message):
     kind: Literal["heartbeat"] = "heartbeat"
     stamp_ns: int = Field(default_factory=now_ns)
     """Publish time."""
-    service: str
+    service: Name
     """Service name."""
     pid: int = Field(ge=0)
     """Process id, so a supervisor tells a restarted process from the one it replaced."""
@@ -1116,19 +1217,19 @@ class Scenario(Message):
     kind: Literal["scenario"] = "scenario"
     seed: int = 0
     """Layout seed."""
-    target_object: str | None = None
+    target_object: Label | None = None
     """Canonical name of the object the task is about (e.g. "red cup")."""
-    destination: str | None = None
+    destination: Label | None = None
     """Canonical name of the destination surface (e.g. "table", "round table", "sink")."""
-    distractors: tuple[str, ...] | None = None
+    distractors: tuple[Label, ...] | None = Field(None, max_length=MAX_SCENARIO_OBJECTS)
     """Other objects to place; None lets the seed choose."""
     target_out_of_view: bool = False
     """Put the target outside the initial camera view (search tasks)."""
-    extra_objects: tuple[str, ...] = ()
+    extra_objects: tuple[Label, ...] = Field((), max_length=MAX_SCENARIO_OBJECTS)
     """Objects that must be present besides target and distractors (e.g. both "orange" and "banana")."""
     start: Pose | None = None
     """Vehicle start pose on the ground; None lets the seed choose."""
-    placements: dict[str, str] | None = None
+    placements: dict[Label, Label] | None = Field(None, max_length=MAX_SCENARIO_OBJECTS)
     """Object -> surface it must start on (e.g. {"orange": "counter"}); others go where the seed puts them."""
     criteria: JudgeCriteria = JudgeCriteria()
     """Success criteria the judge applies in this layout, from the task's definition (minor version 6)."""
@@ -1139,11 +1240,11 @@ class SimLabel(Part):
 
     id: int
     """Instance id in the segmentation image."""
-    name: str
+    name: Label
     """Canonical name (e.g. "red cup", "round table")."""
     category: Literal["object", "surface", "furniture", "structure"]
     """Graspable object, support surface, other furniture, or walls/floor."""
-    color: str = ""
+    color: Name = ""
     """Dominant colour name."""
     size: Vec3 | None = None
     """Extent, metres."""
@@ -1155,16 +1256,16 @@ class SimLabels(Message):
     kind: Literal["sim_labels"] = "sim_labels"
     stamp_ns: int = Field(default_factory=now_ns)
     """Publish time."""
-    labels: tuple[SimLabel, ...] = ()
+    labels: tuple[SimLabel, ...] = Field((), max_length=MAX_WORLD_OBJECTS)
     """Instance id table of the current layout."""
 
 
 class SimObjectTruth(Part):
     """Ground truth of one simulated object (judge only)."""
 
-    name: str
+    name: Label
     """Canonical name."""
-    category: str
+    category: Name
     """object, surface, furniture."""
     position: Vec3
     """Centre of the bounding box, world ENU."""
@@ -1176,7 +1277,7 @@ class SimObjectTruth(Part):
     """Top height."""
     attached: bool = False
     """In the gripper."""
-    support: str | None = None
+    support: Label | None = None
     """Surface it rests on, if any."""
 
 
@@ -1189,9 +1290,9 @@ class JudgeRequest(Message):
     contact, upright, inside its top's footprint, its bottom on the top, at rest for the scenario's
     `criteria.rest_s`); held: has the gripper picked an object (in both pads, lifted `criteria.lift_m` clear,
     touching nothing else, for `criteria.hold_s`)."""
-    object: str | None = None
+    object: Label | None = None
     """Object name for on_surface."""
-    surface: str | None = None
+    surface: Label | None = None
     """Surface name for on_surface."""
     tolerance: float = 0.05
     """Deprecated (minor version 6) and ignored: the criteria are the task's (`Scenario.criteria`, fixed at
@@ -1201,17 +1302,17 @@ class JudgeRequest(Message):
 class JudgeCheck(Part):
     """One check behind a judge's verdict, with what it measured (minor version 6)."""
 
-    name: str
+    name: Name
     """in_gripper, clear, lift, hold (a pick); released, support, upright, footprint, top, rest (a placement)."""
     ok: bool
     """Whether this check passed."""
-    detail: str = ""
+    detail: Text = ""
     """Why, in words."""
     measured: float | None = None
     """The measured number (lift m, hold s, tilt deg, distance inside the edge m, bottom - top m, rest s)."""
     limit: float | None = None
     """The criterion it is held to (from the scenario's `criteria`)."""
-    unit: str = ""
+    unit: Name = ""
     """Unit of `measured` and `limit`."""
 
 
@@ -1221,20 +1322,20 @@ class JudgeResult(Message):
     kind: Literal["judge_result"] = "judge_result"
     ok: bool = True
     """Answer to the question (on_surface: whether it is placed; held: whether an object is picked)."""
-    message: str = ""
+    message: Text = ""
     """Why: the first failed check, or what passed, with the measured numbers."""
-    checks: tuple[JudgeCheck, ...] = ()
+    checks: tuple[JudgeCheck, ...] = Field((), max_length=MAX_CHECKS)
     """Every check of the verdict with its measured number and limit (on_surface, held; minor version 6)."""
     pending_s: float | None = None
     """Simulated seconds after which the verdict would turn true if nothing moves (only a hold or rest time is
     short); None when waiting would not change it (minor version 6)."""
-    objects: tuple[SimObjectTruth, ...] = ()
+    objects: tuple[SimObjectTruth, ...] = Field((), max_length=MAX_WORLD_OBJECTS)
     """Ground truth of every object and surface (op=world)."""
-    held: str | None = None
+    held: Label | None = None
     """Object in both pads, picked or not (`ok` of op held says whether it is picked)."""
     vehicle: Pose | None = None
     """Vehicle pose (ground truth)."""
-    collisions: tuple[str, ...] = ()
+    collisions: tuple[Text, ...] = Field((), max_length=MAX_WORLD_OBJECTS)
     """Collisions since the last reset, e.g. "vehicle-shelf"."""
     scenario: Scenario | None = None
     """Scenario in force."""
@@ -1246,7 +1347,7 @@ class SimResetResult(Message):
     kind: Literal["sim_reset_result"] = "sim_reset_result"
     ok: bool
     """Whether the world was reset."""
-    message: str = ""
+    message: Text = ""
     """Explanation."""
     scenario: Scenario | None = None
     """Scenario now in force (with everything the seed chose)."""

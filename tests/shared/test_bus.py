@@ -20,9 +20,10 @@ from tests.helpers import bus_pair, first_answer, matched, wait_until
 from tests.shared.samples import sample_messages
 
 
-def topic(name: str, t: object, reliable: bool = True) -> object:
-    """A test topic declared like the real ones, bound to vehicle `t1`."""
-    return Topic(f"test/{name}", t, "test", "test", reliable=reliable).bind("t1")
+def topic(name: str, t: object, reliable: bool = True, vehicle: str = "t1") -> object:
+    """A test topic declared like the real ones, bound to vehicle `t1` (a payload that names its vehicle is
+    published on that vehicle's key: the bus refuses one on another's)."""
+    return Topic(f"test/{name}", t, "test", "test", reliable=reliable).bind(vehicle)
 
 
 
@@ -34,7 +35,7 @@ def test_config_turns_multicast_off():
 async def test_every_message_type_round_trips(router):
     async with bus_pair(router) as (a, b):
         samples = sample_messages()
-        topics = {i: topic(f"rt/{i}", type(s)) for i, s in enumerate(samples)}
+        topics = {i: topic(f"rt/{i}", type(s), vehicle=getattr(s, "vehicle_id", "t1")) for i, s in enumerate(samples)}
         subs = {i: b.subscribe(topics[i]) for i, s in enumerate(samples)}
         await matched(a, *topics.values())
         for i, s in enumerate(samples):
@@ -69,7 +70,7 @@ async def test_malformed_payload_is_dropped_and_subscriber_keeps_working(router)
         await matched(a, state)
         a.publish(state.key, b"\xff\xfenot json", schema="aermani.VehicleState")
         a.publish(state.key, {"kind": "vehicle_state", "armed": "maybe"})
-        a.publish(state, m.VehicleState(armed=True))
+        a.publish(state, m.VehicleState(vehicle_id="t1", armed=True))
         got = await sub.recv(timeout=5)
         assert got.armed is True
         assert sub.malformed == 2

@@ -49,6 +49,29 @@ async def test_a_silent_or_wrong_fake_fails_the_check(router):
             report.summary()
 
 
+async def test_a_state_naming_another_vehicle_fails_the_check(router):
+    """A bridge of vehicle `bad` whose states say the default `am1`: every subscriber refuses them, so does the
+    check."""
+    from shared.messages import Vec3, VehicleState
+
+    async with await Bus.open(connect=[router]) as bus:
+        keys = Keys("bad")
+
+        async def ticker():
+            while True:
+                bus.publish(keys.autopilot_state, VehicleState(position=Vec3(z=1.0)))
+                await asyncio.sleep(0.1)
+
+        task = asyncio.create_task(ticker())
+        try:
+            report = await check_service(bus, "autopilot_bridge", "bad", expect_alive=False, timeout=1.5,
+                                         require_periodic=False)
+        finally:
+            await cancel_all([task])
+        failed = {f.key.split("/", 3)[3]: f.detail for f in report.findings if not f.ok}
+        assert "of vehicle 'am1' on a key of vehicle 'bad'" in failed.get("autopilot/state", ""), report.summary()
+
+
 async def test_executor_test_fakes_conform(router):
     async with await Bus.open(connect=[router]) as bus:
         keys = Keys("fk")

@@ -111,7 +111,7 @@ async def test_empty_and_nan_vehicle_states_are_dropped_at_the_bus(router):
         state = Keys("t1").autopilot_state
         sub = b.subscribe(state)
         await matched(a, state)
-        good = m.VehicleState(position=m.Vec3(z=1.2), armed=True)
+        good = m.VehicleState(vehicle_id="t1", position=m.Vec3(z=1.2), armed=True)
         nan = good.model_dump_json().replace('"z":1.2', '"z":NaN')
         fast = good.model_dump_json().replace('"velocity":{"x":0.0', '"velocity":{"x":300.0')
         assert nan != good.model_dump_json() and fast != good.model_dump_json()
