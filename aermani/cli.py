@@ -9,6 +9,7 @@ import importlib
 import signal
 import sys
 import time
+from pathlib import Path
 from typing import Annotated
 
 import typer
@@ -52,7 +53,8 @@ def up(
                                                  "the camera only when AERMANI_CAMERA_SOURCE is set).")] = None,
     without: Annotated[str, typer.Option(
         help="Comma-separated services to leave out, e.g. sim for a real drone.")] = "",
-    port: Annotated[int, typer.Option(help="Port of the embedded Zenoh router on 127.0.0.1.")] = 7447,
+    port: Annotated[int, typer.Option(help="Port of the embedded Zenoh router on 127.0.0.1 (none with --secure: "
+                                           "every listener is mutual TLS).")] = 7447,
     vehicle: Annotated[str, typer.Option(help="Vehicle id.")] = "am1",
     log_dir: Annotated[str | None, typer.Option(help="Where service logs go (default runs/<time>/logs).")] = None,
     foxglove: Annotated[bool, typer.Option(help="Also serve Foxglove's live WebSocket (needs the recorder).")]
@@ -91,6 +93,9 @@ def up(
 
             check_cert_files(certs, "ground")
             check_cert_files(certs, "drone")
+            if not (Path(certs) / "ca.key").is_file():
+                raise ConfigError(f"{certs}/ca.key is missing: `aermani up --secure` signs a certificate for each "
+                                  "service it starts, so it runs where the deployment's CA key is")
     except ConfigError as exc:
         console.print(f"[red]{terminal_text(exc)}[/red]")
         raise typer.Exit(2)
@@ -103,9 +108,12 @@ def up(
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
     if secure:
-        console.print(f"secure: ground router tcp/127.0.0.1:{port} (this host) + {tls_listen} (mutual TLS), "
-                      f"drone router {stack.drone_endpoint}; certificates in {certs}")
-    console.print(f"router on tcp/127.0.0.1:{port}; starting {', '.join(names)}; logs in {stack.log_dir}")
+        console.print(f"secure: ground router {tls_listen}, drone router {stack.drone_endpoint}, mutual TLS only "
+                      f"(no plain listener); each service has its own certificate and rights; deployment "
+                      f"certificates in {certs}")
+    else:
+        console.print(f"router on tcp/127.0.0.1:{port}")
+    console.print(f"starting {', '.join(names)}; logs in {stack.log_dir}")
     if "gateway" in names:
         import os
 

@@ -13,10 +13,12 @@ import importlib.util
 import json
 import logging
 import os
+import shutil
 import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from dataclasses import dataclass, field
@@ -29,7 +31,7 @@ from pydantic import TypeAdapter, ValidationError
 from shared.bus import _init_zenoh_log, zenoh_config
 from shared.keys import DEFAULT_VEHICLE_ID, alive_pattern, heartbeat_pattern, parse_alive_key
 from shared.messages import Heartbeat
-from shared.security import require_loopback
+from shared.security import require_loopback, service_identity
 
 log = logging.getLogger("aermani.launcher")
 
@@ -83,6 +85,11 @@ def free_udp_port() -> int:
         return int(s.getsockname()[1])
 
 
+def _loopback(endpoint: str) -> str:
+    """The same listener reached from this host: `tls/0.0.0.0:7448` -> `tls/127.0.0.1:7448`."""
+    return endpoint.replace("0.0.0.0", "127.0.0.1").replace("[::]", "127.0.0.1")
+
+
 def available_services() -> list[str]:
     """Services that exist in this checkout (have a `services/<name>/__main__.py`), in start order."""
     found = []
@@ -121,6 +128,11 @@ class ServiceProcess:
     def label(self) -> str:
         return f"{self.vehicle_id}/{self.name}" if self.name in PER_VEHICLE else self.name
 
+    @property
+    def identity(self) -> str:
+        """Its own identity in a secure stack (`executor@am1`, `gateway@fleet`)."""
+        return service_identity(self.name, self.vehicle_id if self.name in PER_VEHICLE else None)
+
     def start(self) -> None:
         self.log_path.parent.mkdir(parents=True, exist_ok=True)
         logf = open(self.log_path, "ab")  # noqa: SIM115 - handed to the child
@@ -157,18 +169,24 @@ class Stack:
                  supervise: bool = True, host: str = "127.0.0.1", router: bool = True,
                  secure: str | Path | None = None, tls_listen: list[str] | None = None,
                  hung_after_s: float = 4.0, link: list[str] | None = None) -> None:
-        """`secure` is a certificate directory (`aermani certs init`): the stack then runs a ground and a drone
-        router from `shared/routers/` linked by mutual TLS, ground services on the ground router's loopback
-        listener, vehicle services on the drone router's, and outsiders reach the ground router only through
-        `tls_listen` (default tls/127.0.0.1:<free port>) with a certificate. `link`: routers the stack's own
-        (plain, loopback) router connects to, so its services are reachable through them."""
+        """`secure` is a certificate directory (`aermani certs init`, with the CA's key: this machine signs):
+        the stack then runs a ground and a drone router from `shared/routers/` linked by mutual TLS, and no
+        plain listener at all. Each service gets a certificate of its own for this run (`<service>@<vehicle>`,
+        in a private directory removed at stop) and reaches its side's router over mutual TLS on loopback:
+        ground services the ground router's `tls_listen` (default tls/127.0.0.1:<free port>, where outsiders
+        need a deployment certificate too), vehicle services the drone router's loopback TLS listener. The
+        routers' access control gives each service only its own job's rights (`shared.security`). `link`:
+        routers the stack's own (plain, loopback) router connects to, so its services are reachable through
+        them."""
         require_loopback([f"tcp/{host}:0"])
         self.port = port or free_port()
         self.host = host
-        self.endpoint = f"tcp/{host}:{self.port}"
         self.secure = Path(secure) if secure else None
         self.tls_listen = list(tls_listen) if tls_listen else [f"tls/127.0.0.1:{free_port()}"]
-        self.drone_endpoint = f"tcp/127.0.0.1:{free_port()}" if secure else self.endpoint
+        # A secure stack's services use TLS on loopback: the ground ones its first TLS listener.
+        self.endpoint = _loopback(self.tls_listen[0]) if secure else f"tcp/{host}:{self.port}"
+        self.drone_endpoint = f"tls/127.0.0.1:{free_port()}" if secure else self.endpoint
+        self.service_certs: Path | None = Path(tempfile.mkdtemp(prefix="aermani-services-")) if secure else None
         self.drone_router: zenoh.Session | None = None
         self.log_dir = Path(log_dir) if log_dir else Path("runs") / time.strftime("%Y%m%d-%H%M%S") / "logs"
         self.supervise = supervise
@@ -204,6 +222,13 @@ class Stack:
             endpoint = self.drone_endpoint if name in DRONE_SIDE else self.endpoint
             child_env = {**os.environ, "AERMANI_ZENOH_CONNECT": endpoint, "AERMANI_VEHICLE_ID": vehicle_id,
                          "PYTHONUNBUFFERED": "1", **env}
+            if self.service_certs is not None:
+                if self.router is not None:
+                    raise RuntimeError("a secure stack's services are added before it starts: the routers' "
+                                       "access control names each of them")
+                child_env["AERMANI_ZENOH_CERTS"] = str(self.service_certs)
+                child_env["AERMANI_ZENOH_IDENTITY"] = service_identity(
+                    name, vehicle_id if name in PER_VEHICLE else None)  # = ServiceProcess.identity
             suffix = f"-{vehicle_id}" if name in PER_VEHICLE else ""
             self.procs.append(ServiceProcess(name, vehicle_id, child_env, self.log_dir / f"{name}{suffix}.log"))
 
@@ -232,16 +257,26 @@ class Stack:
         return self
 
     def _open_secure_routers(self) -> None:
-        from shared.security import router_config
+        from shared.security import cert_files, issue_service_certs, router_config
 
         _init_zenoh_log()
-        assert self.secure is not None
-        self.router = zenoh.open(router_config("ground", self.secure, local=self.endpoint, tls_listen=self.tls_listen))
-        if any(p.name in DRONE_SIDE for p in self.procs):
-            link = [e.replace("0.0.0.0", "127.0.0.1").replace("[::]", "127.0.0.1") for e in self.tls_listen[:1]]
+        assert self.secure is not None and self.service_certs is not None
+        ground = sorted({p.identity for p in self.procs if p.name not in DRONE_SIDE})
+        drone = sorted({p.identity for p in self.procs if p.name in DRONE_SIDE})
+        # One vehicle behind the drone router: that router gets a certificate bound to its vehicle id, so it
+        # speaks for that vehicle only. Several simulated vehicles share one drone router here, which then
+        # keeps the deployment's drone certificate (every vehicle's rights), as compose's drone router does.
+        vehicles = sorted({p.vehicle_id for p in self.procs if p.name in DRONE_SIDE})
+        bound = [f"router@{vehicles[0]}"] if len(vehicles) == 1 else []
+        issue_service_certs(self.secure, self.service_certs, ground + drone + bound)
+        ros2 = {p.identity: int(p.env.get("AERMANI_ROS2_DOMAIN_ID", "0") or 0) for p in self.procs if p.name == "ros2"}
+        self.router = zenoh.open(router_config("ground", self.secure, tls_listen=self.tls_listen, services=ground,
+                                               ros2_domains=ros2, vehicles=vehicles if bound else None))
+        if drone:
             try:
-                self.drone_router = zenoh.open(router_config("drone", self.secure, local=self.drone_endpoint,
-                                                             connect=link))
+                self.drone_router = zenoh.open(router_config(
+                    "drone", self.secure, local=self.drone_endpoint, connect=[self.endpoint], services=drone,
+                    own=cert_files(self.service_certs, bound[0]) if bound else None))
             except BaseException:
                 self.router.close()  # type: ignore[no-untyped-call]
                 self.router = None
@@ -417,6 +452,8 @@ class Stack:
             with contextlib.suppress(Exception):
                 self.router.close()  # type: ignore[no-untyped-call]
             self.router = None
+        if self.service_certs is not None:
+            shutil.rmtree(self.service_certs, ignore_errors=True)
 
     def __enter__(self) -> Stack:
         return self.start()

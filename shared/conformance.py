@@ -74,7 +74,8 @@ class Report:
 
 
 def _serves(decl_owner: str, service: str) -> bool:
-    return service in [o.strip() for o in decl_owner.split(",")]
+    """`"reasoner (the gateway: ...)"` names the reasoner: a parenthesis is a note, not an owner."""
+    return service in [o.split("(", 1)[0].strip() for o in decl_owner.split(",")]
 
 
 def declared_by(service: str) -> tuple[list[Topic[Any]], list[Query[Any, Any]]]:

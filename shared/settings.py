@@ -5,7 +5,7 @@ from __future__ import annotations
 import logging
 import os
 import re
-from typing import Annotated, Literal
+from typing import Annotated
 
 from pydantic import AliasChoices, Field, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
@@ -34,9 +34,11 @@ class ServiceSettings(BaseSettings):
     zenoh_certs: str = Field("", validation_alias=AliasChoices("zenoh_certs", "AERMANI_ZENOH_CERTS"))
     """Certificate directory (`aermani certs init`) for `tls/` endpoints in zenoh_connect: a secure router
     accepts only a session with a certificate of its deployment's CA."""
-    zenoh_identity: Literal["client", "ground", "drone"] = Field(
-        "client", validation_alias=AliasChoices("zenoh_identity", "AERMANI_ZENOH_IDENTITY"))
-    """Whose certificate a `tls/` session presents: client (observes, may abort), ground (commands) or drone."""
+    zenoh_identity: str = Field(
+        "client", validation_alias=AliasChoices("zenoh_identity", "AERMANI_ZENOH_IDENTITY"),
+        pattern=r"^(client|ground|drone|[a-z][a-z0-9_]{0,31}@[A-Za-z0-9_-]{1,32})$")
+    """Whose certificate a `tls/` session presents: client (observes, may abort), ground (commands), drone, or
+    a service's own, `<service>@<vehicle>`, which `aermani up --secure` issues to each service it starts."""
     log_level: str = Field("INFO", validation_alias=AliasChoices("log_level", "AERMANI_LOG_LEVEL"))
     """Python log level."""
     crash_backoff_s: float = Field(0.0, ge=0.0, le=600.0,
