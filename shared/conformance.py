@@ -21,7 +21,7 @@ from typing import Any
 
 from shared.bus import Bus, Subscription, check_vehicle, decoder
 from shared.errors import AermaniError, NoResponder, QueryTimeout, RemoteError
-from shared.keys import ALIVE_TOKEN, DECLARATIONS, HEALTH_TOPIC, Keys, Protobuf, Query, Topic
+from shared.keys import ALIVE_TOKEN, HEALTH_TOPIC, Keys, Protobuf, Query, Topic, declared_by
 from shared.messages import CancelGoal, ReasoningStep, SkillLibrary, SkillRequest, SkillStatus
 from shared.sensors import PROTO_TYPES, decode_proto
 
@@ -71,19 +71,6 @@ class Report:
     def raise_for_failures(self) -> None:
         if not self.ok:
             raise AssertionError(self.summary())
-
-
-def _serves(decl_owner: str, service: str) -> bool:
-    """`"reasoner (the gateway: ...)"` names the reasoner: a parenthesis is a note, not an owner."""
-    return service in [o.split("(", 1)[0].strip() for o in decl_owner.split(",")]
-
-
-def declared_by(service: str) -> tuple[list[Topic[Any]], list[Query[Any, Any]]]:
-    """The topics a service publishes and the queryables it serves, by the declarations."""
-    topics = [d for d in DECLARATIONS
-              if isinstance(d, Topic) and d is not HEALTH_TOPIC and _serves(d.publisher, service)]
-    queries = [d for d in DECLARATIONS if isinstance(d, Query) and _serves(d.server, service)]
-    return topics, queries
 
 
 def _decode(decl: Topic[Any], data: bytes) -> Any:

@@ -349,6 +349,19 @@ DECLARATIONS: tuple[Topic[Any] | Query[Any, Any] | Token, ...] = (
 BY_NAME: dict[str, Topic[Any] | Query[Any, Any] | Token] = {d.name: d for d in DECLARATIONS}
 
 
+def _serves(decl_owner: str, service: str) -> bool:
+    """`"reasoner (the gateway: ...)"` names the reasoner: a parenthesis is a note, not an owner."""
+    return service in [o.split("(", 1)[0].strip() for o in decl_owner.split(",")]
+
+
+def declared_by(service: str) -> tuple[list[Topic[Any]], list[Query[Any, Any]]]:
+    """The topics a service publishes and the queryables it serves, by the declarations."""
+    topics = [d for d in DECLARATIONS
+              if isinstance(d, Topic) and d is not HEALTH_TOPIC and _serves(d.publisher, service)]
+    queries = [d for d in DECLARATIONS if isinstance(d, Query) and _serves(d.server, service)]
+    return topics, queries
+
+
 def vehicle_prefix(vehicle_id: str = DEFAULT_VEHICLE_ID) -> str:
     if not vehicle_id or "/" in vehicle_id or any(c in vehicle_id for c in "*$?#"):
         raise ValueError(f"invalid vehicle id {vehicle_id!r}: use letters, digits, '-' or '_'")

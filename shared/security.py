@@ -237,8 +237,7 @@ def service_access_control(identities: list[str], ros2_domains: dict[str, int] |
     `@fleet`). Observing (subscribe, read liveliness) and abort come from the template's policies for
     everyone, which `router_config` adds these subjects to. `ros2_domains`: the ROS 2 domain of each ros2
     identity (its graph and its service live outside aermani/v1)."""
-    from shared.conformance import declared_by
-    from shared.keys import ALIVE, HEALTH, HEARTBEAT, ROOT
+    from shared.keys import ALIVE, HEALTH, HEARTBEAT, ROOT, declared_by
 
     rules: list[dict[str, Any]] = []
     subjects: list[dict[str, Any]] = []
