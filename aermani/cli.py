@@ -9,7 +9,6 @@ import importlib
 import signal
 import sys
 import time
-from pathlib import Path
 from typing import Annotated
 
 import typer
@@ -89,13 +88,11 @@ def up(
         stack = Stack(names, port=port, vehicle_id=vehicle, log_dir=log_dir, env=env,
                       secure=certs if secure else None, tls_listen=[tls_listen] if secure else None)
         if secure:
-            from shared.security import check_cert_files
+            from shared.security import check_cert_files, load_ca
 
             check_cert_files(certs, "ground")
             check_cert_files(certs, "drone")
-            if not (Path(certs) / "ca.key").is_file():
-                raise ConfigError(f"{certs}/ca.key is missing: `aermani up --secure` signs a certificate for each "
-                                  "service it starts, so it runs where the deployment's CA key is")
+            load_ca(certs)  # it signs each service's own certificate: said now, not as a traceback at start
     except ConfigError as exc:
         console.print(f"[red]{terminal_text(exc)}[/red]")
         raise typer.Exit(2)

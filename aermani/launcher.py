@@ -31,7 +31,7 @@ from pydantic import TypeAdapter, ValidationError
 from shared.bus import _init_zenoh_log, zenoh_config
 from shared.keys import DEFAULT_VEHICLE_ID, alive_pattern, heartbeat_pattern, parse_alive_key
 from shared.messages import Heartbeat
-from shared.security import require_loopback, service_identity
+from shared.security import ROUTER, require_loopback, service_identity
 
 log = logging.getLogger("aermani.launcher")
 
@@ -222,15 +222,15 @@ class Stack:
             endpoint = self.drone_endpoint if name in DRONE_SIDE else self.endpoint
             child_env = {**os.environ, "AERMANI_ZENOH_CONNECT": endpoint, "AERMANI_VEHICLE_ID": vehicle_id,
                          "PYTHONUNBUFFERED": "1", **env}
+            suffix = f"-{vehicle_id}" if name in PER_VEHICLE else ""
+            proc = ServiceProcess(name, vehicle_id, child_env, self.log_dir / f"{name}{suffix}.log")
             if self.service_certs is not None:
                 if self.router is not None:
                     raise RuntimeError("a secure stack's services are added before it starts: the routers' "
                                        "access control names each of them")
                 child_env["AERMANI_ZENOH_CERTS"] = str(self.service_certs)
-                child_env["AERMANI_ZENOH_IDENTITY"] = service_identity(
-                    name, vehicle_id if name in PER_VEHICLE else None)  # = ServiceProcess.identity
-            suffix = f"-{vehicle_id}" if name in PER_VEHICLE else ""
-            self.procs.append(ServiceProcess(name, vehicle_id, child_env, self.log_dir / f"{name}{suffix}.log"))
+                child_env["AERMANI_ZENOH_IDENTITY"] = proc.identity
+            self.procs.append(proc)
 
     def find(self, name: str, vehicle_id: str | None = None) -> ServiceProcess:
         for p in self.procs:
@@ -267,7 +267,7 @@ class Stack:
         # speaks for that vehicle only. Several simulated vehicles share one drone router here, which then
         # keeps the deployment's drone certificate (every vehicle's rights), as compose's drone router does.
         vehicles = sorted({p.vehicle_id for p in self.procs if p.name in DRONE_SIDE})
-        bound = [f"router@{vehicles[0]}"] if len(vehicles) == 1 else []
+        bound = [service_identity(ROUTER, vehicles[0])] if len(vehicles) == 1 else []
         issue_service_certs(self.secure, self.service_certs, ground + drone + bound)
         ros2 = {p.identity: int(p.env.get("AERMANI_ROS2_DOMAIN_ID", "0") or 0) for p in self.procs if p.name == "ros2"}
         self.router = zenoh.open(router_config("ground", self.secure, tls_listen=self.tls_listen, services=ground,

@@ -38,6 +38,7 @@ CA_NAME = "aermani deployment CA"
 SERVICE_IDENTITY = re.compile(r"(?P<service>[a-z][a-z0-9_]{0,31})@(?P<vehicle>[A-Za-z0-9_-]{1,32})")
 SERVICE_CN_PREFIX = "aermani-service "
 FLEET_SCOPE = "fleet"
+ROUTER = "router"  # a vehicle router's own identity is ROUTER@<vehicle>
 DEFAULT_LOCAL_PORT = 7447
 DEFAULT_TLS_PORT = 7448
 
@@ -99,12 +100,7 @@ def init_certs(out_dir: str | Path, *, sans: list[str] | tuple[str, ...] = (), d
         _write_key(path, key.private_bytes(pem, serialization.PrivateFormat.PKCS8, serialization.NoEncryption()))
 
     if ca_from is not None:
-        ca_dir = Path(ca_from)
-        ca_cert = x509.load_pem_x509_certificate((ca_dir / "ca.pem").read_bytes())
-        loaded = serialization.load_pem_private_key((ca_dir / "ca.key").read_bytes(), None)
-        if not isinstance(loaded, ec.EllipticCurvePrivateKey):
-            raise ConfigError(f"{ca_dir / 'ca.key'} is not an EC private key made by `aermani certs init`")
-        ca_key = loaded
+        ca_cert, ca_key = load_ca(ca_from)
     else:
         ca_key = ec.generate_private_key(ec.SECP256R1())
         ca_subject = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, CA_NAME)])
@@ -175,6 +171,26 @@ def _write_key(path: Path, data: bytes) -> None:
     os.chmod(path, 0o600)
 
 
+def load_ca(certs_dir: str | Path) -> tuple[Any, Any]:
+    """The deployment CA's certificate and private key from `certs_dir`, or a ConfigError saying what is
+    missing: only the machine that holds ca.key can sign (`aermani certs init --ca-from`, and `aermani up
+    --secure`, which signs each service's own certificate)."""
+    from cryptography import x509
+    from cryptography.hazmat.primitives import serialization
+    from cryptography.hazmat.primitives.asymmetric import ec
+
+    d = Path(certs_dir)
+    key_path = d / "ca.key"
+    if not key_path.is_file():
+        raise ConfigError(f"{key_path} is missing: signing a certificate (a new identity, or each service's own "
+                          "in `aermani up --secure`) needs the deployment CA's key, on the machine that signs")
+    ca_cert = x509.load_pem_x509_certificate((d / "ca.pem").read_bytes())
+    ca_key = serialization.load_pem_private_key(key_path.read_bytes(), None)
+    if not isinstance(ca_key, ec.EllipticCurvePrivateKey):
+        raise ConfigError(f"{key_path} is not an EC private key made by `aermani certs init`")
+    return ca_cert, ca_key
+
+
 def service_identity(service: str, vehicle_id: str | None) -> str:
     """`executor@am1`; `gateway@fleet` for a ground service that serves every vehicle (vehicle_id None)."""
     identity = f"{service}@{vehicle_id or FLEET_SCOPE}"
@@ -188,24 +204,13 @@ def issue_service_certs(certs_dir: str | Path, out_dir: str | Path, identities: 
     """Sign a certificate for each service identity with the deployment's CA in `certs_dir` (this machine
     holds ca.key: it is the one that signs) into `out_dir`, beside a copy of ca.pem. `out_dir` is made
     private (0700); the leaves live `days` days: they are issued again at every start."""
-    from cryptography import x509
     from cryptography.hazmat.primitives import serialization
-    from cryptography.hazmat.primitives.asymmetric import ec
 
-    src = Path(certs_dir)
-    key_path = src / "ca.key"
-    if not key_path.is_file():
-        raise ConfigError(f"{key_path} is missing: the machine that runs `aermani up --secure` signs each "
-                          "service's own certificate, so it needs the CA's key (`aermani certs init`)")
-    ca_pem = (src / "ca.pem").read_bytes()
-    ca_cert = x509.load_pem_x509_certificate(ca_pem)
-    ca_key = serialization.load_pem_private_key(key_path.read_bytes(), None)
-    if not isinstance(ca_key, ec.EllipticCurvePrivateKey):
-        raise ConfigError(f"{key_path} is not an EC private key made by `aermani certs init`")
+    ca_cert, ca_key = load_ca(certs_dir)
     out = Path(out_dir)
     out.mkdir(mode=0o700, parents=True, exist_ok=True)
     os.chmod(out, 0o700)
-    (out / "ca.pem").write_bytes(ca_pem)
+    (out / "ca.pem").write_bytes(ca_cert.public_bytes(serialization.Encoding.PEM))
     for identity in identities:
         if not SERVICE_IDENTITY.fullmatch(identity):
             raise ConfigError(f"{identity!r} is not a service identity (<service>@<vehicle>)")
@@ -224,10 +229,8 @@ SERVICE_ASKS: dict[str, tuple[str, ...]] = {
                 "executor/run_skill", "executor/cancel_skill"),
 }
 # What a service publishes beyond the declarations' `publisher`: the gateway publishes the end of a task
-# whose reasoner died (REASONER_TASK_STATUS), the bridge the take-off gate's preflight verdicts.
+# whose reasoner died (REASONER_TASK_STATUS names it only in a note).
 SERVICE_ALSO_PUBLISHES: dict[str, tuple[str, ...]] = {"gateway": ("reasoner/task_status",)}
-ALL_MESSAGES = ["put", "delete", "declare_subscriber", "query", "declare_queryable", "reply", "liveliness_token",
-                "liveliness_query", "declare_liveliness_subscriber"]
 
 
 def service_access_control(identities: list[str], ros2_domains: dict[str, int] | None = None) -> dict[str, Any]:
@@ -402,6 +405,7 @@ def _bind_drones(acl: dict[str, Any], vehicles: list[str]) -> dict[str, Any]:
     drone_ids = {s["id"] for s in acl["subjects"] if drone_cn in (s.get("cert_common_names") or [])}
     vehicle_rules = [r for pol in acl["policies"] if pol.get("id") == VEHICLE_POLICY for r in pol["rules"]]
     by_id = {r["id"]: r for r in acl["rules"]}
+    routers = {vid: service_identity(ROUTER, vid) for vid in vehicles}
     policies = []
     for policy in acl["policies"]:
         if policy.get("id") == VEHICLE_POLICY:
@@ -409,11 +413,11 @@ def _bind_drones(acl: dict[str, Any], vehicles: list[str]) -> dict[str, Any]:
         if policy.get("id") not in EVERYONE_POLICIES:
             policy = {**policy, "subjects": [s for s in policy["subjects"] if s not in drone_ids]}
         else:
-            policy = {**policy, "subjects": [*policy["subjects"], *(f"router@{v}" for v in vehicles)]}
+            policy = {**policy, "subjects": [*policy["subjects"], *routers.values()]}
         if policy["subjects"]:
             policies.append(policy)
-    for vid in vehicles:
-        if not SERVICE_IDENTITY.fullmatch(f"router@{vid}") or vid == FLEET_SCOPE:
+    for vid, router in routers.items():
+        if vid == FLEET_SCOPE:
             raise ConfigError(f"invalid vehicle id {vid!r}")
         names = []
         for rule_id in vehicle_rules:
@@ -423,8 +427,8 @@ def _bind_drones(acl: dict[str, Any], vehicles: list[str]) -> dict[str, Any]:
                 raise ConfigError(f"rule {rule_id} of the vehicle policy names keys beyond one vehicle: {keys}")
             acl["rules"].append({**rule, "id": f"{rule_id}@{vid}", "key_exprs": keys})
             names.append(f"{rule_id}@{vid}")
-        acl["subjects"].append({"id": f"router@{vid}", "cert_common_names": [f"{SERVICE_CN_PREFIX}router@{vid}"]})
-        policies.append({"id": f"vehicle@{vid}", "rules": names, "subjects": [f"router@{vid}"]})
+        acl["subjects"].append({"id": router, "cert_common_names": [SERVICE_CN_PREFIX + router]})
+        policies.append({"id": f"vehicle@{vid}", "rules": names, "subjects": [router]})
     acl["policies"] = policies
     return acl
 

@@ -94,12 +94,12 @@ COMMANDS = {"autopilot/command": HOLD, "executor/run_skill": {"skill": "land"},
             "reasoner/start_task": {"command": "land"}, "sim/fault": {"unit": "camera", "type": "off"}}
 
 
-async def _commands(bus: Bus, names: list[str], keys: Keys = K) -> list[str]:
+async def _commands(bus: Bus, names: list[str]) -> list[str]:
     """The command keys among `names` this session got an answer on (none, for anyone the ACL refuses)."""
     answered = []
     for name in names:
         with contextlib.suppress(NoResponder, BusError):
-            await bus.query(keys.key(name), COMMANDS[name], timeout=1.5)
+            await bus.query(K.key(name), COMMANDS[name], timeout=1.5)
             answered.append(name)
     return answered
 
@@ -127,14 +127,15 @@ async def test_an_outsider_gets_no_reply_and_fakes_nothing_on_any_door_of_a_secu
             (str(s.key_expr), s.payload.to_bytes().decode(errors="replace"))))
 
         # 1. Nobody without a deployment identity gets a session on any TCP port of the stack.
-        doors = [f"{proto}/127.0.0.1:{port}" for port in sorted(tcp) for proto in ("tcp", "tls")]
-        attempts = [zenoh_config(connect=[d], connect_timeout_s=3) if d.startswith("tcp/") else
-                    _no_cert(d, certs / "ca.pem") for d in doors]
-        attempts += [client_config(tmp_path / "other-ca", ident, [d], connect_timeout_s=3)
-                     for d in doors if d.startswith("tls/") for ident in ("ground", "drone")]
-        opened = await asyncio.gather(*(_opens(c) for c in attempts))
-        leaked = [d for d, b in zip(doors + [d for d in doors if d.startswith("tls/") for _ in (1, 2)], opened,
-                                    strict=True) if b is not None]
+        attempts: list[tuple[str, zenoh.Config]] = []
+        for port in sorted(tcp):
+            plain, tls = f"tcp/127.0.0.1:{port}", f"tls/127.0.0.1:{port}"
+            attempts += [(plain, zenoh_config(connect=[plain], connect_timeout_s=3)),
+                         (tls, _no_cert(tls, certs / "ca.pem"))]
+            attempts += [(tls, client_config(tmp_path / "other-ca", ident, [tls], connect_timeout_s=3))
+                         for ident in ("ground", "drone")]
+        opened = await asyncio.gather(*(_opens(c) for _, c in attempts))
+        leaked = [door for (door, _), b in zip(attempts, opened, strict=True) if b is not None]
         for b in opened:
             if b is not None:
                 await b.close()
