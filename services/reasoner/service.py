@@ -69,6 +69,9 @@ class BusWorld(World):
         self.memory: Latest[WorkingMemory] = Latest(latest(self.keys.memory, maxsize=5))
         self.skills = skill_client(bus, settings.vehicle_id)
         self.running: GoalHandle[SkillAccept, SkillStatus] | None = None
+        self.sending: asyncio.Future[None] | None = None
+        """Resolved once the skill goal on its way has its accept reply (or failed to get one): the executor
+        starts a goal, and publishes it running, before its reply reaches here."""
         self.approvals: dict[str, tuple[ApprovalStatus, asyncio.Future[ApprovalDecision]]] = {}
 
     async def pump(self) -> None:
@@ -109,17 +112,30 @@ class BusWorld(World):
 
     async def run_skill(self, request: SkillRequest, timeout: float,
                         ready_timeout: float = 0.0) -> tuple[SkillAccept, SkillStatus | None]:
-        goal = await self.skills.send_goal(request, timeout=10.0, ready_timeout=ready_timeout)
-        if goal.accepted and timeout > 0:
-            self.running = goal
+        followed = timeout > 0  # a goal whose end this waits for (a hold is sent and not followed)
+        sending: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        if followed:
+            self.sending = sending
         try:
-            return goal.accept, await goal.result(timeout) if goal.accepted and timeout > 0 else None
+            goal = await self.skills.send_goal(request, timeout=10.0, ready_timeout=ready_timeout)
+            if goal.accepted and followed:
+                self.running = goal
+        finally:
+            sending.set_result(None)
+        try:
+            return goal.accept, await goal.result(timeout) if goal.accepted and followed else None
         finally:
             if self.running is goal:
                 self.running = None
             goal.close()
 
     async def cancel_skill(self, task_id: str, reason: str) -> SkillStatus | None:
+        sending = self.sending
+        if self.running is None and sending is not None and not sending.done():
+            # A cancel between the executor accepting a goal (its status already says running) and its reply
+            # reaching here: wait for the reply, then cancel that goal (holding alone would leave it unnamed).
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(asyncio.shield(sending), 12.0)
         goal = self.running
         if goal is None or goal.accept.goal_id == "":
             await self.hold(task_id, reason)
