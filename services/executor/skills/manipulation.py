@@ -36,6 +36,7 @@ MAX_CORRECTION_M = 0.15  # an alignment that needs more than this is not a wande
 TIP_LOWER_M = 0.02  # a top this much lower than it stood: tipped (a cup on its side is 3 cm lower)
 TIP_M = 0.015  # an object both this much lower and this much longer than it stood lies on its side
 REST_GAP_S = 0.5  # between the two detections that must agree for a placed object to be at rest
+REST_LOOKS = 4  # looks at most for two consecutive ones that agree (a hovering multirotor's view rocks)
 UNIDENTIFIED = "unidentified object"  # what the gripper holds when it is not the target (as the executor says)
 ROLLING_ASPECT = 1.2  # a round footprint no taller than this many diameters rolls (apple, orange)
 
@@ -44,6 +45,11 @@ def grip_depth(height: float, fraction: float) -> float:
     """How far below an object's top the gripper point goes: a fraction of its height, but the pads must stay
     above the surface it stands on (a flat wrench is gripped near its middle, pads just above the table)."""
     return max(0.0, min(fraction * height, height - PAD_BELOW_M))
+
+
+def round_footprint(size: Vec3 | None) -> bool:
+    """Footprint sides within ROUND_TOLERANCE_M of each other: round, or square enough that any yaw grasps it."""
+    return size is not None and abs(size.x - size.y) < ROUND_TOLERANCE_M
 
 
 def grasp_yaw(size: Vec3 | None, est_yaw: float, current_yaw: float) -> float:
@@ -260,14 +266,15 @@ def _on_surface(est: ObjectEstimate, before: Target, knock: float) -> str | None
 @register
 class Grasp(_Manipulation):
     """Skill grasp: a closed loop from a pre-grasp pose beside the object: re-localize at close range, track it
-    while descending, close only when aligned, verify the hold by the fingers and by looking, retry."""
+    down to grasp height beside it, close in horizontally, close only when aligned, verify the hold by the
+    fingers and by looking, retry."""
 
     name = names.GRASP
     description = ("Pick up the localized object: re-localize it from a standoff {s.standoff_distance:g} m away, "
-                   "then from a pre-grasp pose {s.pregrasp_backoff:g} m beside it, track it while descending, "
-                   "close the gripper only when aligned with it, verify the hold (finger contact and width, the "
-                   "spot empty afterwards), retry up to {s.grasp_attempts} attempts, and retreat to "
-                   "{s.flight_altitude:g} m. Needs a recent obj_localization of the object.")
+                   "then from a pre-grasp pose {s.pregrasp_backoff:g} m beside it, track it down to grasp height, "
+                   "close in around it and close the gripper only when aligned with it, verify the hold (finger "
+                   "contact and width, the spot empty afterwards), retry up to {s.grasp_attempts} attempts, and "
+                   "retreat to {s.flight_altitude:g} m. Needs a recent obj_localization of the object.")
     argument = "object label (optional; defaults to the last localized object)"
 
     def parameters(self) -> tuple[SkillParameter, ...]:
@@ -465,42 +472,36 @@ class Grasp(_Manipulation):
         yaw = grasp_yaw(target.size, target.yaw, st.yaw)
         ux, uy = math.cos(yaw), math.sin(yaw)
         pre_z = target.top + s.pregrasp_height
-        hover_z = target.top + s.hover_clearance + PAD_BELOW_M
         p = target.position
         pre = body_for(ctx, p.x - s.pregrasp_backoff * ux, p.y - s.pregrasp_backoff * uy, pre_z, yaw)
         await self.travel(ctx, pre, yaw, f"pre-grasp pose beside the {label}", low=s.manipulation_min_altitude)
 
-        # Close range: re-detect, then descend to the pads' height over the object while re-detecting, the
-        # pose following each detection (camera and vehicle share the estimate, so its drift cancels).
+        # Close range: re-detect from above and beside, then at the pads' height beside it; the pose follows each
+        # detection (camera and vehicle share the estimate, so its drift up to the last detection cancels).
         target = await self.track(ctx, query, label, target, yaw, pre_z, f"pre-grasp pose beside the {label}")
-        hover_z = target.top + s.hover_clearance + PAD_BELOW_M
-        target = await self.track(ctx, query, label, target, yaw, hover_z, f"beside the {label} (descent)")
         yaw = grasp_yaw(target.size, target.yaw, yaw)
+        ux, uy = math.cos(yaw), math.sin(yaw)
         size = target.size
         height = size.z if size is not None else 0.1
         grip_z = target.top - grip_depth(height, s.grasp_depth_fraction)
+        target = await self.track(ctx, query, label, target, yaw, grip_z, f"beside the {label} at grasp height")
         p = target.position
-        ctx.note(f"{label} tracked at {fmt(p)} from {s.pregrasp_backoff:.2f} m")
+        ctx.note(f"{label} tracked at {fmt(p)} from {s.pregrasp_backoff:.2f} m at grasp height")
 
-        # The last leg over the object is blind (the camera looks forward, the gripper hangs below the body):
-        # the offset is held from the vehicle's own estimate against the newest detection.
-        over = body_for(ctx, p.x, p.y, hover_z, yaw)
+        # The last leg is blind (the camera looks forward and down, the gripper hangs below the body): the
+        # fingers close in horizontally at grasp height, straddling the object, and the offset is held on the
+        # vehicle's own estimate against the newest detection. Only the estimate's drift between that detection
+        # and the close is not cancelled, so the leg is one straight move and one alignment (the drift grows
+        # with the square root of the time: 2.5 cm per axis over ~10 s of the realistic estimator).
+        over = body_for(ctx, p.x, p.y, grip_z, yaw)
         await ctx.goto(over, yaw, s.final_descent_speed * 2, low=s.manipulation_min_altitude,
-                       what=f"over the {label}")
+                       what=f"fingers around the {label}")
         window = (s.grasp_window_x, s.grasp_window_y)
-        ok, off, sp = await self.align(ctx, p.x, p.y, hover_z, yaw, window, f"aligned over the {label}")
-        rec.offset = off
-        if not ok:
-            await self.relook(ctx, query, label, target, yaw, hover_z)
-            raise AttemptFailed(OutcomeCode.MISALIGNED, f"the gripper stayed {100 * off:.1f} cm from the {label} "
-                                "above it, outside the window")
-        body_grip = body_for(ctx, p.x, p.y, grip_z, yaw).z
-        await ctx.goto(Vec3(x=sp.x, y=sp.y, z=body_grip), yaw, s.final_descent_speed,
-                       low=s.manipulation_min_altitude, what=f"grasp height over the {label}")
         ok, off, sp = await self.align(ctx, p.x, p.y, grip_z, yaw, window, f"aligned at the {label}")
         rec.offset = off
+        body_grip = sp.z
         if not ok:
-            new = await self.relook(ctx, query, label, target, yaw, hover_z)
+            new = await self.relook(ctx, query, label, target, yaw, grip_z)
             raise AttemptFailed(OutcomeCode.MISALIGNED, f"the gripper stayed {100 * off:.1f} cm from the {label} at "
                                 "grasp height, outside the window", target=new)
         await ctx.gripper("close")
@@ -516,14 +517,20 @@ class Grasp(_Manipulation):
             width = st.gripper_width or 0.0
             if not st.gripper_holding:
                 await ctx.gripper("open")
-                new = await self.relook(ctx, query, label, target, yaw, hover_z)
+                new = await self.relook(ctx, query, label, target, yaw, grip_z)
                 raise AttemptFailed(OutcomeCode.MISSED, f"the fingers closed to {100 * width:.1f} cm without "
                                     f"holding the {label}", target=new)
             if expected is not None and abs(width - expected) > s.hold_width_tolerance:
                 await ctx.gripper("open")
-                new = await self.relook(ctx, query, label, target, yaw, hover_z)
+                new = await self.relook(ctx, query, label, target, yaw, grip_z)
                 raise AttemptFailed(OutcomeCode.MISSED, f"the fingers hold something {100 * width:.1f} cm wide, "
                                     f"the {label} measures {100 * expected:.1f} cm", target=new)
+            if expected is not None and round_footprint(size) and width < expected - s.chord_tolerance:
+                # Pads past the middle of a round object (along their width) pinch a chord: it slips on the lift.
+                await ctx.gripper("open")
+                new = await self.relook(ctx, query, label, target, yaw, grip_z)
+                raise AttemptFailed(OutcomeCode.MISALIGNED, f"the fingers pinched the {label} off-centre "
+                                    f"({100 * width:.1f} cm of its {100 * expected:.1f} cm): reopened", target=new)
             ctx.note(f"fingers hold the {label} at {100 * width:.1f} cm")
         lift = Vec3(x=sp.x, y=sp.y, z=body_grip + LIFT_M)
         await ctx.goto(lift, yaw, s.descent_speed, what="lift")
@@ -666,19 +673,32 @@ class Place(_Manipulation):
         if not first.found or first.pose is None:
             raise SkillFailed(f"released the {held} over the {pl.label} but could not see it there afterwards: "
                               f"{not_found(held, first)}", OutcomeCode.UNSTABLE, rec.facts(ctx))
-        await asyncio.sleep(REST_GAP_S)
-        ctx.settled_ns = time.time_ns()
-        second = await ctx.localize_object(held)
-        est = second if second.found and second.pose is not None else first
-        assert est.pose is not None and first.pose is not None
+        # At rest: two consecutive looks REST_GAP_S apart agree. A hovering multirotor's view rocks, so a pair
+        # that disagrees gets another look (up to REST_LOOKS); an object still rolling never yields an agreeing
+        # pair, one that stopped does (and is then judged where it lies).
+        prev, second, moved = first, first, math.inf
+        for _ in range(REST_LOOKS - 1):
+            await asyncio.sleep(REST_GAP_S)
+            ctx.settled_ns = time.time_ns()
+            second = await ctx.localize_object(held)
+            if not second.found or second.pose is None:
+                break
+            assert prev.pose is not None
+            moved = math.dist(prev.pose.position.as_tuple(), second.pose.position.as_tuple())
+            if moved <= s.rest_tolerance:
+                break
+            prev = second
+        est = second if second.found and second.pose is not None else prev
+        assert est.pose is not None
         mo = mem.store_object(est, held)
         off = horizontal_distance(est.pose.position, pl.position)
         rec.offset = off
         bottom_seen = est.pose.position.z - (est.size.z / 2 if est.size is not None else height / 2)
         if not second.found or second.pose is None:
-            why = "it was seen once and then no more (still moving?)"
-        elif (moved := math.dist(first.pose.position.as_tuple(), second.pose.position.as_tuple())) > s.rest_tolerance:
-            why = f"it is still moving ({100 * moved:.1f} cm between two looks {REST_GAP_S:g} s apart)"
+            why = "it was seen and then no more (still moving?)"
+        elif moved > s.rest_tolerance:
+            why = (f"it is still moving ({100 * moved:.1f} cm between the last two of {REST_LOOKS} looks "
+                   f"{REST_GAP_S:g} s apart)")
         elif abs(bottom_seen - surface_z) > 0.05:
             why = f"its bottom is at {bottom_seen:.2f} m, not on the surface at {surface_z:.2f} m"
         elif off > s.place_tolerance:
