@@ -1,18 +1,23 @@
 """Closed-loop grasp and place success against the vehicle's position error, over the catalogue objects.
 
-Usage: .venv/bin/python benchmarks/grasp.py [--levels ideal,realistic,harsh,wander] [--calls 4] [--seed 0] [--json PATH]
+Usage: .venv/bin/python benchmarks/grasp.py [--levels ideal,realistic,harsh,wander,mr-realistic] [--calls 4]
+       [--seed 0] [--json PATH]
 
 For each realism level a real stack runs (sim, autopilot bridge, perception with the colour segmenter, executor,
 as processes over Zenoh and MAVLink/UDP); each call resets the sim to a seeded layout with the next catalogue
 object as the target, takes off, searches and approaches the object like a policy would, runs grasp once
 (its own retries inside), and when it holds something, flies toward the layout's destination (steered by the
 judge: search is not measured here), placement_localization and place on it. The simulator's ground truth
-judges: the target held after grasp, at rest on the destination after place. Levels (until the multirotor model
-lands, position error is emulated):
+judges: the target held after grasp, at rest on the destination after place. Levels, on the kinematic body
+(position error emulated):
   ideal      the estimate is the truth, the vehicle settles on its setpoints;
   realistic  the sim's realistic estimate (2 mm noise, bias drifting up to 3 cm) and camera;
   harsh      realistic plus a steady 4.6 cm hover offset off every setpoint (sim/fault hover offset);
-  wander     realistic plus a hover that circles its setpoint at 2 cm radius every 4 s (sim/fault hover wander).
+  wander     realistic plus a hover that circles its setpoint at 2 cm radius every 4 s (sim/fault hover wander);
+and on the multirotor (AERMANI_SIM_DYNAMICS=multirotor: the quadrotor and its cascade, the position error its
+own: the realistic estimator's Gauss-Markov drift, turbulence, gusts, thrust noise, ground effect, downwash;
+services/sim/README.md "Dynamics", "Disturbances"):
+  mr-ideal, mr-realistic, mr-harsh   the sim's realism levels of the same names.
 Calls whose object was never found or stayed beyond reach count separately (not a grasp question).
 """
 
@@ -43,6 +48,8 @@ LEVELS: dict[str, tuple[dict[str, str], list[dict]]] = {  # sim environment, sim
               [{"unit": "hover", "type": "offset", "x": 0.035, "y": -0.03}]),
     "wander": ({"AERMANI_SIM_REALISM": "realistic"},
                [{"unit": "hover", "type": "wander", "radius_m": 0.02, "period_s": 4.0}]),
+    **{f"mr-{realism}": ({"AERMANI_SIM_DYNAMICS": "multirotor", "AERMANI_SIM_REALISM": realism}, [])
+       for realism in ("ideal", "realistic", "harsh")},
 }
 GRIPPABLE = [n for n, o in OBJECTS.items() if min(o.size[0], o.size[1]) <= 0.17]
 
@@ -167,11 +174,11 @@ def main() -> None:
             all_rows[level] = rows
             figures[level] = summary(rows)
             print(f"[{level}] {figures[level]}", flush=True)
-    print("level       eligible  grasp/call  grasp/attempt  false_claims  place_at_rest/call")
+    print("level         eligible  grasp/call  grasp/attempt  false_claims  place_at_rest/call")
     for level, f in figures.items():
         def pct(v: float | None) -> str:
             return "   -  " if v is None else f"{100 * v:5.1f}%"
-        print(f"{level:10s}  {f['eligible_calls']:3d}/{f['calls']:<3d}  {pct(f['grasp_success_per_call']):>10s}  "
+        print(f"{level:12s}  {f['eligible_calls']:3d}/{f['calls']:<3d}  {pct(f['grasp_success_per_call']):>10s}  "
               f"{pct(f['grasp_success_per_attempt']):>13s}  {f['false_success_claims']:12d}  "
               f"{pct(f['place_at_rest_per_call']):>18s}")
     write_json(a.json, "grasp", figures, a, rows=all_rows)
