@@ -214,36 +214,6 @@ class SkillContext:
         finally:
             self.settled_ns = time.time_ns()
 
-    async def steady(self) -> bool:
-        """Until the vehicle hovers still: slower than `steady_speed` and within `steady_tilt_deg` of level for
-        `steady_samples` consecutive states, or `steady_timeout_s` (then it goes on). A multirotor that arrived
-        still brakes and rocks, and a frame taken then is placed with an attitude the pose lags behind (a
-        degree at 1 m is 1.7 cm). Returns whether it had to wait (the frames before are not to be used)."""
-        s = self.settings
-        tilt, turn = math.radians(s.steady_tilt_deg), math.radians(s.steady_yaw_rate_deg)
-        run = 0
-        last: VehicleState | None = None
-
-        def still(st: VehicleState) -> bool:
-            nonlocal run, last
-            if last is not None and st.stamp_ns == last.stamp_ns:
-                return run >= s.steady_samples  # the same sample again: it counts once
-            v = st.velocity
-            dt = (st.stamp_ns - last.stamp_ns) / 1e9 if last is not None else 0.0
-            turning = dt > 0 and abs(wrap(st.yaw - last.yaw)) / dt > turn  # type: ignore[union-attr]
-            ok = math.sqrt(v.x ** 2 + v.y ** 2 + v.z ** 2) <= s.steady_speed and abs(st.roll) <= tilt and \
-                abs(st.pitch) <= tilt and not turning
-            last = st
-            run = run + 1 if ok else 0
-            return run >= s.steady_samples
-
-        was_still = still(self.current())
-        try:
-            await self.wait_for(still, s.steady_timeout_s, "steady hover")
-        except TimeoutError:
-            pass
-        return not was_still
-
     async def gripper(self, action: str) -> None:
         await self.command(GripperCommand(action=action))  # type: ignore[arg-type]
         want = GripperState.CLOSED if action == "close" else GripperState.OPEN
@@ -259,8 +229,6 @@ class SkillContext:
         """Ask perception about a frame captured after the vehicle last settled: a frame from mid-motion
         (the camera pipeline lags) would show the scene from the wrong place, e.g. report a grasped object
         as gone when the camera just had not arrived yet."""
-        if await self.steady():
-            self.settled_ns = time.time_ns()
         after = self.settled_ns
         deadline = time.monotonic() + self.settings.fresh_frame_timeout_s
         while True:

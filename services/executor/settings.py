@@ -96,16 +96,6 @@ class ExecutorSettings(ServiceSettings):
     """Timeout of an autopilot command reply (takeoff excepted), seconds."""
     gripper_timeout_s: float = 3.0
     """Time for the gripper state to follow a command, seconds."""
-    steady_speed: float = 0.05
-    """A perception query waits for a still hover: speed below this, m/s, ..."""
-    steady_tilt_deg: float = 2.0
-    """... roll and pitch within this of level, degrees, ..."""
-    steady_yaw_rate_deg: float = 3.0
-    """... turning slower than this, degrees/s, ..."""
-    steady_samples: int = 8
-    """... for this many consecutive state samples (50 Hz), ..."""
-    steady_timeout_s: float = 3.0
-    """... or at most this long (then it asks all the same), seconds."""
 
     # ---- routines
     flight_altitude: float = 1.5
@@ -147,6 +137,8 @@ class ExecutorSettings(ServiceSettings):
     forward camera still sees the object (right above it, it cannot), metres."""
     pregrasp_height: float = 0.12
     """Pre-grasp pose: the gripper point this far above the object's top, metres."""
+    hover_clearance: float = 0.03
+    """The finger pads pass this far above the object's top on the last (blind) leg over it, metres."""
     grasp_window_x: float = 0.018
     """Closing is allowed only with the gripper point within this of the object along the pad width (body x;
     the pads are 5 cm wide: +-2.5 cm lifts), metres."""
@@ -164,8 +156,8 @@ class ExecutorSettings(ServiceSettings):
     knock_shift: float = 0.06
     """After a failed close, an object re-detected this far from where it stood was moved by the attempt:
     knocked_over, metres (lower or lying on its side: tipped, whatever the shift). Nearer, the next attempt
-    starts from the new detection: on a hovering multirotor two detections from beside the object at grasp
-    height scatter by up to ~5 cm, and 3 cm called a cup that never moved knocked over."""
+    starts from the new detection: on a hovering multirotor two detections from beside the object scatter by
+    up to ~5 cm, and 3 cm called a cup that never moved knocked over."""
     chord_tolerance: float = 0.008
     """A round object held this much narrower than it measures is gripped off-centre, on a chord (the pads
     reach past its middle along their width) and slips when lifted: the gripper reopens and retries, metres."""

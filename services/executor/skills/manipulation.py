@@ -266,15 +266,14 @@ def _on_surface(est: ObjectEstimate, before: Target, knock: float) -> str | None
 @register
 class Grasp(_Manipulation):
     """Skill grasp: a closed loop from a pre-grasp pose beside the object: re-localize at close range, track it
-    down to grasp height beside it, close in horizontally, close only when aligned, verify the hold by the
-    fingers and by looking, retry."""
+    while descending, close only when aligned, verify the hold by the fingers and by looking, retry."""
 
     name = names.GRASP
     description = ("Pick up the localized object: re-localize it from a standoff {s.standoff_distance:g} m away, "
-                   "then from a pre-grasp pose {s.pregrasp_backoff:g} m beside it, track it down to grasp height, "
-                   "close in around it and close the gripper only when aligned with it, verify the hold (finger "
-                   "contact and width, the spot empty afterwards), retry up to {s.grasp_attempts} attempts, and "
-                   "retreat to {s.flight_altitude:g} m. Needs a recent obj_localization of the object.")
+                   "then from a pre-grasp pose {s.pregrasp_backoff:g} m beside it, track it while descending, "
+                   "close the gripper only when aligned with it, verify the hold (finger contact and width, the "
+                   "spot empty afterwards), retry up to {s.grasp_attempts} attempts, and retreat to "
+                   "{s.flight_altitude:g} m. Needs a recent obj_localization of the object.")
     argument = "object label (optional; defaults to the last localized object)"
 
     def parameters(self) -> tuple[SkillParameter, ...]:
@@ -472,36 +471,42 @@ class Grasp(_Manipulation):
         yaw = grasp_yaw(target.size, target.yaw, st.yaw)
         ux, uy = math.cos(yaw), math.sin(yaw)
         pre_z = target.top + s.pregrasp_height
+        hover_z = target.top + s.hover_clearance + PAD_BELOW_M
         p = target.position
         pre = body_for(ctx, p.x - s.pregrasp_backoff * ux, p.y - s.pregrasp_backoff * uy, pre_z, yaw)
         await self.travel(ctx, pre, yaw, f"pre-grasp pose beside the {label}", low=s.manipulation_min_altitude)
 
-        # Close range: re-detect from above and beside, then at the pads' height beside it; the pose follows each
-        # detection (camera and vehicle share the estimate, so its drift up to the last detection cancels).
+        # Close range: re-detect, then descend to the pads' height over the object while re-detecting, the
+        # pose following each detection (camera and vehicle share the estimate, so its drift cancels).
         target = await self.track(ctx, query, label, target, yaw, pre_z, f"pre-grasp pose beside the {label}")
+        hover_z = target.top + s.hover_clearance + PAD_BELOW_M
+        target = await self.track(ctx, query, label, target, yaw, hover_z, f"beside the {label} (descent)")
         yaw = grasp_yaw(target.size, target.yaw, yaw)
-        ux, uy = math.cos(yaw), math.sin(yaw)
         size = target.size
         height = size.z if size is not None else 0.1
         grip_z = target.top - grip_depth(height, s.grasp_depth_fraction)
-        target = await self.track(ctx, query, label, target, yaw, grip_z, f"beside the {label} at grasp height")
         p = target.position
-        ctx.note(f"{label} tracked at {fmt(p)} from {s.pregrasp_backoff:.2f} m at grasp height")
+        ctx.note(f"{label} tracked at {fmt(p)} from {s.pregrasp_backoff:.2f} m")
 
-        # The last leg is blind (the camera looks forward and down, the gripper hangs below the body): the
-        # fingers close in horizontally at grasp height, straddling the object, and the offset is held on the
-        # vehicle's own estimate against the newest detection. Only the estimate's drift between that detection
-        # and the close is not cancelled, so the leg is one straight move and one alignment (the drift grows
-        # with the square root of the time: 2.5 cm per axis over ~10 s of the realistic estimator).
-        over = body_for(ctx, p.x, p.y, grip_z, yaw)
+        # The last leg over the object is blind (the camera looks forward, the gripper hangs below the body):
+        # the offset is held from the vehicle's own estimate against the newest detection.
+        over = body_for(ctx, p.x, p.y, hover_z, yaw)
         await ctx.goto(over, yaw, s.final_descent_speed * 2, low=s.manipulation_min_altitude,
-                       what=f"fingers around the {label}")
+                       what=f"over the {label}")
         window = (s.grasp_window_x, s.grasp_window_y)
+        ok, off, sp = await self.align(ctx, p.x, p.y, hover_z, yaw, window, f"aligned over the {label}")
+        rec.offset = off
+        if not ok:
+            await self.relook(ctx, query, label, target, yaw, hover_z)
+            raise AttemptFailed(OutcomeCode.MISALIGNED, f"the gripper stayed {100 * off:.1f} cm from the {label} "
+                                "above it, outside the window")
+        body_grip = body_for(ctx, p.x, p.y, grip_z, yaw).z
+        await ctx.goto(Vec3(x=sp.x, y=sp.y, z=body_grip), yaw, s.final_descent_speed,
+                       low=s.manipulation_min_altitude, what=f"grasp height over the {label}")
         ok, off, sp = await self.align(ctx, p.x, p.y, grip_z, yaw, window, f"aligned at the {label}")
         rec.offset = off
-        body_grip = sp.z
         if not ok:
-            new = await self.relook(ctx, query, label, target, yaw, grip_z)
+            new = await self.relook(ctx, query, label, target, yaw, hover_z)
             raise AttemptFailed(OutcomeCode.MISALIGNED, f"the gripper stayed {100 * off:.1f} cm from the {label} at "
                                 "grasp height, outside the window", target=new)
         await ctx.gripper("close")
@@ -517,18 +522,18 @@ class Grasp(_Manipulation):
             width = st.gripper_width or 0.0
             if not st.gripper_holding:
                 await ctx.gripper("open")
-                new = await self.relook(ctx, query, label, target, yaw, grip_z)
+                new = await self.relook(ctx, query, label, target, yaw, hover_z)
                 raise AttemptFailed(OutcomeCode.MISSED, f"the fingers closed to {100 * width:.1f} cm without "
                                     f"holding the {label}", target=new)
             if expected is not None and abs(width - expected) > s.hold_width_tolerance:
                 await ctx.gripper("open")
-                new = await self.relook(ctx, query, label, target, yaw, grip_z)
+                new = await self.relook(ctx, query, label, target, yaw, hover_z)
                 raise AttemptFailed(OutcomeCode.MISSED, f"the fingers hold something {100 * width:.1f} cm wide, "
                                     f"the {label} measures {100 * expected:.1f} cm", target=new)
             if expected is not None and round_footprint(size) and width < expected - s.chord_tolerance:
                 # Pads past the middle of a round object (along their width) pinch a chord: it slips on the lift.
                 await ctx.gripper("open")
-                new = await self.relook(ctx, query, label, target, yaw, grip_z)
+                new = await self.relook(ctx, query, label, target, yaw, hover_z)
                 raise AttemptFailed(OutcomeCode.MISALIGNED, f"the fingers pinched the {label} off-centre "
                                     f"({100 * width:.1f} cm of its {100 * expected:.1f} cm): reopened", target=new)
             ctx.note(f"fingers hold the {label} at {100 * width:.1f} cm")
