@@ -43,6 +43,7 @@ from shared.messages import (
 from shared.sensors import decode_proto, stamp_to_ns
 
 log = logging.getLogger("aermani.reasoner")
+GOAL_SEND_TIMEOUT_S = 10.0  # a skill goal's accept reply comes within this (a cancel in its window waits as long)
 
 
 class AbortSignal(asyncio.Event):
@@ -113,15 +114,16 @@ class BusWorld(World):
     async def run_skill(self, request: SkillRequest, timeout: float,
                         ready_timeout: float = 0.0) -> tuple[SkillAccept, SkillStatus | None]:
         followed = timeout > 0  # a goal whose end this waits for (a hold is sent and not followed)
-        sending: asyncio.Future[None] = asyncio.get_running_loop().create_future()
-        if followed:
-            self.sending = sending
+        sending: asyncio.Future[None] | None = None
+        if followed:  # a hold sent meanwhile leaves the goal on its way as it is
+            sending = self.sending = asyncio.get_running_loop().create_future()
         try:
-            goal = await self.skills.send_goal(request, timeout=10.0, ready_timeout=ready_timeout)
+            goal = await self.skills.send_goal(request, timeout=GOAL_SEND_TIMEOUT_S, ready_timeout=ready_timeout)
             if goal.accepted and followed:
                 self.running = goal
         finally:
-            sending.set_result(None)
+            if sending is not None:
+                sending.set_result(None)
         try:
             return goal.accept, await goal.result(timeout) if goal.accepted and followed else None
         finally:
@@ -135,7 +137,7 @@ class BusWorld(World):
             # A cancel between the executor accepting a goal (its status already says running) and its reply
             # reaching here: wait for the reply, then cancel that goal (holding alone would leave it unnamed).
             with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(asyncio.shield(sending), 12.0)
+                await asyncio.wait_for(asyncio.shield(sending), GOAL_SEND_TIMEOUT_S + 2.0)
         goal = self.running
         if goal is None or goal.accept.goal_id == "":
             await self.hold(task_id, reason)

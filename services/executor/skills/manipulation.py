@@ -55,7 +55,7 @@ def round_footprint(size: Vec3 | None) -> bool:
 def grasp_yaw(size: Vec3 | None, est_yaw: float, current_yaw: float) -> float:
     """Vehicle yaw that closes the fingers (along the body's y axis) across the object's short side: body x
     along the estimate's long axis (its yaw, modulo pi: the nearer of the two). Round objects: keep the yaw."""
-    if size is None or abs(size.x - size.y) < ROUND_TOLERANCE_M:
+    if size is None or round_footprint(size):
         return current_yaw
     a = wrap(est_yaw)
     b = wrap(est_yaw + math.pi)
@@ -72,8 +72,7 @@ def _top(o: MemoryObject | ObjectEstimate) -> float:
 def rolls(size: Vec3 | None) -> bool:
     """A round footprint about as tall as it is wide (a fruit, a can on its side): released near an edge or
     from height it rolls away, so it gets a spot away from edges and a lower release."""
-    return size is not None and abs(size.x - size.y) < ROUND_TOLERANCE_M and size.z <= ROLLING_ASPECT * max(
-        size.x, size.y)
+    return size is not None and round_footprint(size) and size.z <= ROLLING_ASPECT * max(size.x, size.y)
 
 
 @dataclass
@@ -395,6 +394,20 @@ class Grasp(_Manipulation):
                     "it again and retry")
         return f"grasp missed {n}: {fail.reason}; gripper reopened, localize it again and retry"
 
+    def hold_problem(self, label: str, width: float, size: Vec3 | None) -> tuple[OutcomeCode, str] | None:
+        """What is wrong with a hold at finger gap `width` on an object measuring `size`, or None."""
+        if size is None:
+            return None
+        s, expected = self.settings, min(size.x, size.y)
+        if abs(width - expected) > s.hold_width_tolerance:
+            return OutcomeCode.MISSED, (f"the fingers hold something {100 * width:.1f} cm wide, the {label} "
+                                        f"measures {100 * expected:.1f} cm")
+        if round_footprint(size) and width < expected - s.chord_tolerance:
+            # Pads past the middle of a round object (along their width) pinch a chord: it slips on the lift.
+            return OutcomeCode.MISALIGNED, (f"the fingers pinched the {label} off-centre ({100 * width:.1f} cm of "
+                                            f"its {100 * expected:.1f} cm): reopened")
+        return None
+
     async def look(self, ctx: SkillContext, query: str) -> ObjectEstimate | None:
         """One detection on a frame captured from here and now (not one from before the last move)."""
         ctx.settled_ns = time.time_ns()
@@ -512,7 +525,6 @@ class Grasp(_Manipulation):
         await ctx.gripper("close")
         st = ctx.current()
         sensed = st.gripper_width is not None
-        expected = min(size.x, size.y) if size is not None else None
         if sensed:
             # The gripper's own sensing: both pads in contact at an opening that fits the object.
             try:
@@ -525,17 +537,11 @@ class Grasp(_Manipulation):
                 new = await self.relook(ctx, query, label, target, yaw, hover_z)
                 raise AttemptFailed(OutcomeCode.MISSED, f"the fingers closed to {100 * width:.1f} cm without "
                                     f"holding the {label}", target=new)
-            if expected is not None and abs(width - expected) > s.hold_width_tolerance:
+            wrong = self.hold_problem(label, width, size)
+            if wrong is not None:
                 await ctx.gripper("open")
                 new = await self.relook(ctx, query, label, target, yaw, hover_z)
-                raise AttemptFailed(OutcomeCode.MISSED, f"the fingers hold something {100 * width:.1f} cm wide, "
-                                    f"the {label} measures {100 * expected:.1f} cm", target=new)
-            if expected is not None and round_footprint(size) and width < expected - s.chord_tolerance:
-                # Pads past the middle of a round object (along their width) pinch a chord: it slips on the lift.
-                await ctx.gripper("open")
-                new = await self.relook(ctx, query, label, target, yaw, hover_z)
-                raise AttemptFailed(OutcomeCode.MISALIGNED, f"the fingers pinched the {label} off-centre "
-                                    f"({100 * width:.1f} cm of its {100 * expected:.1f} cm): reopened", target=new)
+                raise AttemptFailed(*wrong, target=new)
             ctx.note(f"fingers hold the {label} at {100 * width:.1f} cm")
         lift = Vec3(x=sp.x, y=sp.y, z=body_grip + LIFT_M)
         await ctx.goto(lift, yaw, s.descent_speed, what="lift")
