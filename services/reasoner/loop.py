@@ -56,6 +56,8 @@ from shared.text import plain_text
 log = logging.getLogger("aermani.reasoner.loop")
 
 AIRBORNE = (LandedState.IN_AIR, LandedState.TAKEOFF, LandedState.LANDING)
+EFFECT_WAIT_S = 2.0
+"""How long a step waits for a vehicle state sampled after its skill ended, before judging a grounded one."""
 """Flight phases in which a skill needs healthy offboard control."""
 
 
@@ -172,6 +174,7 @@ class TaskRunner:
         self.records: list[ReasoningStep] = []
         self._abort: asyncio.Event | None = None
         self._override_ns = 0  # takeover seen when the task started (the bridge's; a new one ends the task)
+        self._effect_ns = 0  # when the last skill ended (the executor's stamp): states before it predate its effect
 
     def status(self, state: TaskState, message: str = "") -> TaskStatus:
         return TaskStatus(vehicle_id=self.settings.vehicle_id, task_id=self.req.task_id, command=self.req.command,
@@ -243,6 +246,7 @@ class TaskRunner:
                                                      "vehicle held")
             t_step = time.perf_counter()
             obs = await self.world.observe(last_end_ns)
+            obs = await self._after_effect(obs, last_skill)
             ended = self._authority_end(obs, last_skill)
             if ended is not None:
                 return ended
@@ -358,6 +362,21 @@ class TaskRunner:
             if st.state is not SkillState.SUCCEEDED:
                 return self.status(TaskState.FAILED, f"takeoff {st.state.value}: {st.message}")
         return None
+
+    async def _after_effect(self, obs: Observation, last_skill: str) -> Observation:
+        """A grounded vehicle after a skill that does not land ends the task (`_authority_end`), so that verdict
+        is made only on a state sampled after the skill ended: Zenoh orders nothing across keys, and a state
+        from before the take-off's effect can arrive after the take-off's status (received after the skill's
+        end, so `observe` took it as fresh). Both stamps are the vehicle's (bridge and executor). Waits at
+        most `EFFECT_WAIT_S` for such a state, then judges by the latest."""
+        deadline = time.monotonic() + EFFECT_WAIT_S
+        while (obs.state is not None and obs.state.landed_state is LandedState.ON_GROUND and last_skill != S.LAND
+               and obs.state.stamp_ns <= self._effect_ns and time.monotonic() < deadline):
+            log.info("task %s: a grounded state from before %s ended; waiting for a later one", self.req.task_id,
+                     last_skill)
+            await asyncio.sleep(0.05)
+            obs = await self.world.observe(0)
+        return obs
 
     def _authority_end(self, obs: Observation, last_skill: str) -> TaskStatus | None:
         """PX4's authority: when PX4, the pilot or an abort took control during this task, or the vehicle came
@@ -591,6 +610,8 @@ class TaskRunner:
             return SkillStatus(goal_id="", skill=req.skill, argument=req.argument, state=SkillState.REJECTED,
                                message=accept.reason, task_id=req.task_id, step=req.step, started_ns=started,
                                ended_ns=now_ns(), outcome=accept.outcome or SkillOutcome())
+        if st is not None:
+            self._effect_ns = st.ended_ns or st.stamp_ns  # the executor's clock, like the bridge's state stamps
         if st is None:
             await self.world.hold(req.task_id, "skill timeout")
             return SkillStatus(goal_id=accept.goal_id, skill=req.skill, argument=req.argument,

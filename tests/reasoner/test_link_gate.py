@@ -200,3 +200,45 @@ def test_px4_holding_in_the_air_is_no_reason_to_wait_but_a_landing_or_a_pilot_is
     for mode, landed in (("AUTO.LAND", LandedState.LANDING), ("AUTO.RTL", LandedState.IN_AIR),
                          ("POSCTL", LandedState.IN_AIR), ("AUTO.LOITER", LandedState.LANDING)):
         assert "offboard control is not healthy" in (problem(mode, landed) or ""), (mode, landed)
+
+
+class LaggingStateWorld(MiniWorldPort):
+    """The vehicle state lags the skill statuses, as Zenoh allows across keys: the first `lagging` observations
+    after the take-off carry the state sampled before the take-off took effect (grounded, its own old stamp).
+    With `lands_after` set, the vehicle really comes down (a fresh grounded state) once that skill has run."""
+
+    def __init__(self, world: MiniWorld, lagging: int, lands_after: str | None = None) -> None:
+        super().__init__(world)
+        self.before = world.state()  # sampled on the ground, before anything ran
+        self.lagging = lagging
+        self.lands_after = lands_after
+
+    async def observe(self, newer_than_ns: int) -> Observation:
+        obs = await super().observe(newer_than_ns)
+        if self.world.executed == ["takeoff"] and self.lagging > 0:
+            self.lagging -= 1
+            return dataclasses.replace(obs, state=self.before)
+        if self.lands_after is not None and self.lands_after in self.world.executed:
+            self.world.airborne = False  # PX4 landed it (a failsafe, a pilot): sampled now
+            return dataclasses.replace(obs, state=self.world.state())
+        return obs
+
+
+def test_a_grounded_state_from_before_the_takeoff_does_not_end_the_task() -> None:
+    """ci of stop 40: the take-off's status overtook the airborne state, and the task ended 'landed without being
+    asked' one second in. A grounded state sampled before the skill ended says nothing about its effect."""
+    w = MiniWorld([Thing("red cup"), TABLE])
+    port = LaggingStateWorld(w, lagging=3)
+    final, _steps = _run(port)
+    assert final.state is TaskState.SUCCEEDED, final.message
+    assert port.lagging == 0  # the stale state was seen, and waited out
+    assert w.placed_on == {"red cup": "table"}
+
+
+def test_a_vehicle_that_comes_down_mid_task_ends_it_with_the_reason() -> None:
+    w = MiniWorld([Thing("red cup"), TABLE])
+    port = LaggingStateWorld(w, lagging=0, lands_after="grasp(red cup)")
+    final, _steps = _run(port)
+    assert final.state is TaskState.FAILED
+    assert final.message.startswith("the vehicle landed without being asked (mode HOLD"), final.message
+    assert w.executed[-1] == "grasp(red cup)" and "place" not in w.executed
