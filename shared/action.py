@@ -5,8 +5,12 @@ A client sends a goal on the action's goal queryable and gets it accepted (with 
 (with a reason); the server then publishes feedback and, last, one terminal result on the action's status
 topic; a cancel request goes to the cancel queryable. `ActionClient.send_goal` returns a `GoalHandle`
 whose `result()` waits for the terminal status, `feedback` holds the statuses seen so far, and `cancel()`
-asks the server to stop. The client subscribes the status topic before it sends the goal, so no status
-is missed; it routes statuses to handles by goal id and keeps nothing once a goal has ended.
+asks the server to stop. The client subscribes the status topic before it sends the goal and routes
+statuses to handles by goal id, keeping nothing once a goal has ended. A subscription reaches the server
+through the router in the background, so a goal that ends at once (a task refused before takeoff) can publish
+all its statuses before the server hears of the subscriber: until the subscription has delivered a status of
+the goal, the client asks the result queryable for the goal's latest status (after ROS 2's get_result),
+first after `RECOVER_FIRST_S`, then every `RECOVER_EVERY_S`.
 
 `ActionServer` is the other half, after rclpy's: its goal callback accepts or rejects a goal (it builds the
 accept message, so the server decides the goal id), the execute callback runs an accepted goal with a
@@ -20,19 +24,22 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+from collections import OrderedDict
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from typing import Any, Generic, TypeVar
 
 from shared.bus import Bus, Subscription, query_ready
-from shared.errors import ServerLost
+from shared.errors import BusError, NotFound, ServerLost
 from shared.keys import (
     ALIVE_TOKEN,
     EXECUTOR_CANCEL_SKILL,
     EXECUTOR_RUN_SKILL,
+    EXECUTOR_SKILL_RESULT,
     EXECUTOR_SKILL_STATUS,
     REASONER_CANCEL_TASK,
     REASONER_START_TASK,
+    REASONER_TASK_RESULT,
     REASONER_TASK_STATUS,
     Query,
     Topic,
@@ -40,6 +47,7 @@ from shared.keys import (
 from shared.messages import (
     CancelGoal,
     CancelReply,
+    GoalRef,
     SkillAccept,
     SkillRequest,
     SkillStatus,
@@ -54,6 +62,14 @@ G = TypeVar("G")
 A = TypeVar("A")
 S = TypeVar("S")
 
+RECOVER_FIRST_S = 0.5
+"""After an accepted goal, how long the client waits for the first status through its subscription before it asks
+the result queryable."""
+RECOVER_EVERY_S = 1.0
+"""Then how often it asks, until the subscription delivers a status of the goal or the goal ends."""
+ENDED_KEPT = 256
+"""How many ended goals a server keeps the result of, for the result queryable."""
+
 
 @dataclass(frozen=True)
 class ActionSpec(Generic[G, A, S]):
@@ -63,6 +79,7 @@ class ActionSpec(Generic[G, A, S]):
     goal: Query[G, A]
     cancel: Query[CancelGoal, CancelReply]
     status: Topic[S]
+    result: Query[GoalRef, S]
     accept_id: Callable[[A], str]
     status_id: Callable[[S], str]
     request_id: Callable[[G], str]
@@ -70,11 +87,11 @@ class ActionSpec(Generic[G, A, S]):
 
 
 SKILL_ACTION: ActionSpec[SkillRequest, SkillAccept, SkillStatus] = ActionSpec(
-    "skill", EXECUTOR_RUN_SKILL, EXECUTOR_CANCEL_SKILL, EXECUTOR_SKILL_STATUS,
+    "skill", EXECUTOR_RUN_SKILL, EXECUTOR_CANCEL_SKILL, EXECUTOR_SKILL_STATUS, EXECUTOR_SKILL_RESULT,
     accept_id=lambda a: a.goal_id, status_id=lambda s: s.goal_id, request_id=lambda r: "",
     terminal=lambda s: s.state.terminal)
 TASK_ACTION: ActionSpec[TaskRequest, TaskAccept, TaskStatus] = ActionSpec(
-    "task", REASONER_START_TASK, REASONER_CANCEL_TASK, REASONER_TASK_STATUS,
+    "task", REASONER_START_TASK, REASONER_CANCEL_TASK, REASONER_TASK_STATUS, REASONER_TASK_RESULT,
     accept_id=lambda a: a.task_id, status_id=lambda s: s.task_id, request_id=lambda r: r.task_id,
     terminal=lambda s: s.state.terminal)
 
@@ -91,6 +108,10 @@ class GoalHandle(Generic[A, S]):
     feedback: list[S] = field(default_factory=list)
     _done: asyncio.Future[S] | None = None
     _updated: asyncio.Event = field(default_factory=asyncio.Event)
+    _heard: bool = False
+    """A status of this goal came through the subscription: it reaches the server, nothing more to recover."""
+    recovered: int = 0
+    """Statuses that came from the result queryable because the subscription missed them."""
 
     async def result(self, timeout: float | None = None) -> S | None:
         """The terminal status, or None when `timeout` passes first (or the goal was rejected). Raises
@@ -143,6 +164,7 @@ class ActionClient(Generic[G, A, S]):
         self._pump: asyncio.Task[None] | None = None
         self._watch: asyncio.Task[None] | None = None
         self._alive: asyncio.Queue[tuple[str, bool]] | None = None
+        self._recovering: set[asyncio.Task[None]] = set()
 
     async def __aenter__(self) -> ActionClient[G, A, S]:
         self.start()
@@ -161,7 +183,7 @@ class ActionClient(Generic[G, A, S]):
                                               name=f"action.{self.spec.name}.{self.vehicle_id}.alive")
 
     async def close(self) -> None:
-        for task in (self._pump, self._watch):
+        for task in (self._pump, self._watch, *self._recovering):
             if task is not None:
                 task.cancel()
                 with contextlib.suppress(asyncio.CancelledError):
@@ -196,9 +218,12 @@ class ActionClient(Generic[G, A, S]):
                 if gid in self._early or len(self._early) < 64:
                     self._early.setdefault(gid, []).append(st)
                 continue
+            handle._heard = True
             self._deliver(handle, st)
 
     def _deliver(self, handle: GoalHandle[A, S], st: S) -> None:
+        if handle.feedback and handle.feedback[-1] == st:
+            return  # the same status from the subscription and the result queryable
         handle.feedback.append(st)
         handle._updated.set()
         if self.spec.terminal(st) and handle._done is not None and not handle._done.done():
@@ -224,9 +249,41 @@ class ActionClient(Generic[G, A, S]):
             handle._done = asyncio.get_running_loop().create_future()
             self._handles[gid] = handle
             for st in self._early.pop(gid, []):
+                handle._heard = True
                 self._deliver(handle, st)
+            if not handle._heard:
+                task = asyncio.create_task(self._recover(handle), name=f"action.{self.spec.name}.{gid}.recover")
+                self._recovering.add(task)
+                task.add_done_callback(self._recovering.discard)
         self._early.clear()  # anything else that arrived early belongs to goals nobody here follows
         return handle
+
+    async def _recover(self, handle: GoalHandle[A, S]) -> None:
+        """Until the subscription delivers a status of `handle`'s goal, ask the server for its latest one."""
+        target = self.spec.result.bind(self.vehicle_id)
+        delay = RECOVER_FIRST_S
+
+        def following() -> bool:
+            return (not handle._heard and handle._done is not None and not handle._done.done()
+                    and self._handles.get(handle.goal_id) is handle)
+
+        while following():
+            await asyncio.sleep(delay)
+            delay = RECOVER_EVERY_S
+            if not following():
+                return
+            try:
+                st = await self.bus.query(target, GoalRef(goal_id=handle.goal_id), timeout=5.0)
+            except BusError as exc:  # no status yet, an older server without the queryable, a restart
+                log.debug("%s goal %s: no status from %s: %s", self.spec.name, handle.goal_id, target, exc)
+                continue
+            if following() and self.spec.status_id(st) == handle.goal_id:
+                if not handle.recovered:
+                    log.info("%s goal %s: its status came from %s (the subscription had not reached the server "
+                             "yet)", self.spec.name, handle.goal_id, target.key)
+                n = len(handle.feedback)
+                self._deliver(handle, st)
+                handle.recovered += len(handle.feedback) - n
 
     async def cancel(self, goal_id: str, *, reason: str = "cancelled", source: str = "client",
                      timeout: float = 5.0) -> CancelReply:
@@ -247,6 +304,8 @@ class ServerGoalHandle(Generic[G, S]):
         """The execute callback's task (None without an execute callback)."""
         self.active = True
         """Until its terminal status was published."""
+        self.last: S | None = None
+        """The latest status published (what the result queryable answers while the goal runs)."""
 
     @property
     def cancel_requested(self) -> bool:
@@ -254,10 +313,11 @@ class ServerGoalHandle(Generic[G, S]):
 
     def publish(self, status: S) -> None:
         """Publish a status of this goal: feedback, or its terminal result (which ends the goal here)."""
+        self.last = status
         self.server.publish(status)
         if self.server.spec.terminal(status):
             self.active = False
-            self.server._end(self.goal_id)
+            self.server._end(self.goal_id, status)
 
 
 GoalCallback = Callable[[G], Awaitable[A]]
@@ -279,6 +339,8 @@ class ActionServer(Generic[G, A, S]):
         self.cancel_callback = cancel_callback
         self.goals: dict[str, ServerGoalHandle[G, S]] = {}
         """The running goals by id (a goal leaves when its terminal status is published)."""
+        self.ended: OrderedDict[str, S] = OrderedDict()
+        """The results of the last `ENDED_KEPT` goals, by id."""
         self._started = False
 
     def start(self) -> ActionServer[G, A, S]:
@@ -286,6 +348,7 @@ class ActionServer(Generic[G, A, S]):
         if not self._started:
             self.bus.serve(self.spec.goal.bind(self.vehicle_id), self._on_goal)
             self.bus.serve(self.spec.cancel.bind(self.vehicle_id), self._on_cancel)
+            self.bus.serve(self.spec.result.bind(self.vehicle_id), self._on_result)
             self._started = True
         return self
 
@@ -293,8 +356,21 @@ class ActionServer(Generic[G, A, S]):
         """Publish a status on the action's status topic (a rejection's status has no handle)."""
         self.bus.publish(self.spec.status.bind(self.vehicle_id), status)
 
-    def _end(self, goal_id: str) -> None:
+    def _end(self, goal_id: str, result: S | None = None) -> None:
         self.goals.pop(goal_id, None)
+        if result is not None:
+            self.ended[goal_id] = result
+            while len(self.ended) > ENDED_KEPT:
+                self.ended.popitem(last=False)
+
+    async def _on_result(self, req: GoalRef) -> S:
+        handle = self.goals.get(req.goal_id)
+        if handle is not None and handle.last is not None:
+            return handle.last
+        if req.goal_id in self.ended:
+            return self.ended[req.goal_id]
+        what = "has published no status yet" if handle is not None else "is unknown (or ended long ago)"
+        raise NotFound(f"{self.spec.name} goal {req.goal_id} on vehicle {self.vehicle_id} {what}")
 
     async def _on_goal(self, request: G) -> A:
         accept = await self.goal_callback(request)

@@ -39,7 +39,7 @@ import zenoh
 from pydantic import BaseModel, TypeAdapter, ValidationError
 from pydantic_core import PydanticSerializationError
 
-from shared.errors import BusError, DecodeError, NoResponder, QueryTimeout, RemoteError
+from shared.errors import BusError, DecodeError, NoResponder, NotFound, QueryTimeout, RemoteError
 from shared.keys import (
     FLEET_ID,
     ROOT,
@@ -398,6 +398,16 @@ class Received(Generic[T]):
     payload: bytes
     encoding: str
     receive_ns: int
+
+
+def _handler_failed(query: zenoh.Query, key: str, exc: Exception) -> None:
+    """An exception in a queryable's handler becomes an error reply; NotFound is an answer (an unknown goal),
+    anything else a failure, logged with its traceback."""
+    if isinstance(exc, NotFound):
+        query.reply_err(json.dumps({"error": str(exc)}).encode())
+        return
+    log.error("handler for %s failed", key, exc_info=exc)
+    query.reply_err(json.dumps({"error": f"{type(exc).__name__}: {exc}"}).encode())
 
 
 @dataclass(frozen=True)
@@ -905,8 +915,7 @@ class Bus:
                     query.reply_err(b'{"error": "service is shutting down"}')
                     raise
                 except Exception as exc:
-                    log.exception("handler for %s failed", key)
-                    query.reply_err(json.dumps({"error": f"{type(exc).__name__}: {exc}"}).encode())
+                    _handler_failed(query, key, exc)
                     return
                 _reply(query, key, result)
             finally:

@@ -33,6 +33,10 @@ class RemoteError(BusError):
         self.payload = payload
 
 
+class NotFound(AermaniError):
+    """A query names something its server does not have (an unknown goal): an error reply, no traceback."""
+
+
 class ServerLost(BusError):
     """An action's server went away (its liveliness token disappeared) while a goal of it was running."""
 

@@ -24,6 +24,7 @@ from shared.messages import (
     CancelGoal,
     CancelReply,
     Detections,
+    GoalRef,
     Health,
     Heartbeat,
     JudgeRequest,
@@ -301,6 +302,10 @@ EXECUTOR_CHECK_SKILL: Query[SkillRequest, SkillAccept] = Query(
 EXECUTOR_CANCEL_SKILL: Query[CancelGoal, CancelReply] = Query(
     "executor/cancel_skill", CancelGoal, CancelReply, "cancel a running skill goal (action protocol)",
     "executor")
+EXECUTOR_SKILL_RESULT: Query[GoalRef, SkillStatus] = Query(
+    "executor/skill_result", GoalRef, SkillStatus,
+    "the latest status of a skill goal, its result once ended (action protocol: what a client whose subscription "
+    "was still on its way missed)", "executor")
 EXECUTOR_SKILL_STATUS: Topic[SkillStatus] = Topic(
     "executor/skill_status", SkillStatus, "feedback and result of each skill goal", "executor")
 EXECUTOR_SKILLS: Query[None, SkillLibrary] = Query(
@@ -313,6 +318,10 @@ REASONER_START_TASK: Query[TaskRequest, TaskAccept] = Query(
     "reasoner")
 REASONER_CANCEL_TASK: Query[CancelGoal, CancelReply] = Query(
     "reasoner/cancel_task", CancelGoal, CancelReply, "cancel a running task (action protocol)", "reasoner")
+REASONER_TASK_RESULT: Query[GoalRef, TaskStatus] = Query(
+    "reasoner/task_result", GoalRef, TaskStatus,
+    "the latest status of a task, its result once ended (action protocol: what a client whose subscription was "
+    "still on its way missed)", "reasoner")
 REASONER_STEP: Topic[ReasoningStep] = Topic(
     "reasoner/step", ReasoningStep, "every reasoning step: DRT, STE, raw answer, latency", "reasoner")
 REASONER_TASK_STATUS: Topic[TaskStatus] = Topic(
@@ -340,8 +349,8 @@ DECLARATIONS: tuple[Topic[Any] | Query[Any, Any] | Token, ...] = (
     SIM_STATS, SIM_FAULT, SIM_RESET_NOTICE, AUTOPILOT_STATE, AUTOPILOT_PREFLIGHT, AUTOPILOT_COMMAND,
     PERCEPTION_LOCALIZE_OBJECT,
     PERCEPTION_LOCALIZE_PLACEMENT, PERCEPTION_DETECTIONS, EXECUTOR_RUN_SKILL, EXECUTOR_CHECK_SKILL,
-    EXECUTOR_CANCEL_SKILL, EXECUTOR_SKILL_STATUS, EXECUTOR_SKILLS, EXECUTOR_MEMORY, REASONER_START_TASK,
-    REASONER_CANCEL_TASK, REASONER_STEP,
+    EXECUTOR_CANCEL_SKILL, EXECUTOR_SKILL_RESULT, EXECUTOR_SKILL_STATUS, EXECUTOR_SKILLS, EXECUTOR_MEMORY,
+    REASONER_START_TASK, REASONER_CANCEL_TASK, REASONER_TASK_RESULT, REASONER_STEP,
     REASONER_TASK_STATUS, REASONER_APPROVAL, REASONER_DECIDE_APPROVAL, SAFETY_ABORT, SAFETY_ABORT_ACK, HEALTH_TOPIC,
     HEARTBEAT_TOPIC,
     ALIVE_TOKEN,
@@ -425,11 +434,13 @@ class Keys:
     run_skill = _QueryOn(EXECUTOR_RUN_SKILL)
     check_skill = _QueryOn(EXECUTOR_CHECK_SKILL)
     cancel_skill = _QueryOn(EXECUTOR_CANCEL_SKILL)
+    skill_result = _QueryOn(EXECUTOR_SKILL_RESULT)
     skill_status = _TopicOn(EXECUTOR_SKILL_STATUS)
     skills = _QueryOn(EXECUTOR_SKILLS)
     memory = _TopicOn(EXECUTOR_MEMORY)
     start_task = _QueryOn(REASONER_START_TASK)
     cancel_task = _QueryOn(REASONER_CANCEL_TASK)
+    task_result = _QueryOn(REASONER_TASK_RESULT)
     reasoning_step = _TopicOn(REASONER_STEP)
     task_status = _TopicOn(REASONER_TASK_STATUS)
     approval = _TopicOn(REASONER_APPROVAL)

@@ -27,7 +27,7 @@ from pydantic import (
 SCHEMA_VERSION = 1
 """Major version of the message schemas. A receiver rejects a message of a newer major version with an
 error naming both versions."""
-SCHEMA_MINOR = 7
+SCHEMA_MINOR = 8
 """Minor version: bumped when fields are added (or deprecated and ignored, never removed). A receiver accepts a
 message of a newer minor version, ignoring the fields it does not know (logged once per field)."""
 MAX_COMMAND_CHARS = 500
@@ -981,6 +981,17 @@ class CancelGoal(Message):
     """Who asks."""
 
 
+class GoalRef(Message):
+    """Action protocol: ask the server of a goal (a skill goal id or a task id) for its latest status, its
+    result once it ended (minor 8). After ROS 2's get_result: a client whose status subscription had not yet
+    reached the server when the goal began (Zenoh propagates a subscription in the background) would otherwise
+    wait for statuses that were published before anyone could hear them."""
+
+    kind: Literal["goal_ref"] = "goal_ref"
+    goal_id: Id = Field(...)
+    """The goal (skill goal id or task id)."""
+
+
 class CancelReply(Message):
     """Action protocol: whether a cancel request was taken."""
 
@@ -1360,6 +1371,6 @@ MESSAGE_TYPES: tuple[type[Message], ...] = (
     PlacementEstimate, Detections,
     SkillLibrary, SkillRequest, SkillAccept, WorkingMemory, SkillStatus, Abort, AbortAck, ReasoningStep,
     TaskRequest, TaskAccept, TaskStatus, Health, Scenario, SimLabels, JudgeRequest, JudgeResult, SimResetResult,
-    CancelGoal, CancelReply, ResetNotice, ApprovalStatus, ApprovalDecision, Heartbeat,
+    CancelGoal, GoalRef, CancelReply, ResetNotice, ApprovalStatus, ApprovalDecision, Heartbeat,
 )
 MESSAGES_BY_SCHEMA: dict[str, type[Message]] = {m.full_schema_name(): m for m in MESSAGE_TYPES}

@@ -222,11 +222,12 @@ def issue_service_certs(certs_dir: str | Path, out_dir: str | Path, identities: 
 # The queries each service sends. The key declarations say who serves a query, not who asks it; a service
 # missing here may ask nothing (a query it sends anyway is refused by its router, as an outsider's is).
 SERVICE_ASKS: dict[str, tuple[str, ...]] = {
-    "reasoner": ("executor/skills", "executor/check_skill", "executor/run_skill", "executor/cancel_skill"),
+    "reasoner": ("executor/skills", "executor/check_skill", "executor/run_skill", "executor/cancel_skill",
+                 "executor/skill_result"),
     "executor": ("autopilot/command", "perception/localize_object", "perception/localize_placement"),
     # start a task, decide an approval, list and run one skill by hand (POST /vehicles/{id}/skills)
-    "gateway": ("reasoner/start_task", "reasoner/cancel_task", "reasoner/decide_approval", "executor/skills",
-                "executor/run_skill", "executor/cancel_skill"),
+    "gateway": ("reasoner/start_task", "reasoner/cancel_task", "reasoner/task_result", "reasoner/decide_approval",
+                "executor/skills", "executor/run_skill", "executor/cancel_skill", "executor/skill_result"),
 }
 # What a service publishes beyond the declarations' `publisher`: the gateway publishes the end of a task
 # whose reasoner died (REASONER_TASK_STATUS names it only in a note).

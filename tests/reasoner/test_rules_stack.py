@@ -76,7 +76,8 @@ def test_ununderstood_command_is_refused_before_takeoff(tmp_path) -> None:
         followed, armed = arun(_run(stack, "Sing me a song", 120), timeout=300)
     final = followed.final
     assert followed.accept.accepted
-    assert final is not None and final.state is TaskState.FAILED
+    assert final is not None, f"no terminal status ({followed.error or 'none came'})"
+    assert final.state is TaskState.FAILED, final
     assert final.message.startswith("command refused before takeoff") and "Sing me a song" in final.message
     assert final.steps == 0 and followed.steps == [] and final.model_calls == 0
     assert not armed  # the vehicle never armed: no takeoff, no skill

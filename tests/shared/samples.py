@@ -60,6 +60,7 @@ def sample_messages() -> list[m.Message]:
                               m.JudgeCheck(name="rest", ok=False, measured=1.2, limit=2.0, unit="s"))),
         m.SimResetResult(ok=True, scenario=m.Scenario(seed=1)),
         m.CancelGoal(goal_id="goal-1", reason="operator changed their mind"),
+        m.GoalRef(goal_id="goal-1"),
         m.CancelReply(accepted=False, reason="goal goal-1 is not running"),
         m.ResetNotice(seed=3),
         m.ApprovalStatus(skill="grasp", argument="red cup", reasoning="the cup is within reach", task_id="t1", step=4,

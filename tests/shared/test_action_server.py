@@ -7,10 +7,11 @@ import asyncio
 
 import pytest
 
-from shared.action import SKILL_ACTION, ActionServer, GoalHandle, ServerGoalHandle, skill_client
+from shared.action import SKILL_ACTION, ActionClient, ActionServer, GoalHandle, ServerGoalHandle, skill_client
 from shared.bus import Bus
+from shared.errors import RemoteError
 from shared.keys import Keys
-from shared.messages import CancelGoal, CancelReply, SkillAccept, SkillRequest, SkillState, SkillStatus
+from shared.messages import CancelGoal, CancelReply, GoalRef, SkillAccept, SkillRequest, SkillState, SkillStatus
 
 pytestmark = pytest.mark.integration
 VID = "am1"
@@ -166,6 +167,59 @@ async def test_a_crashed_execute_callback_leaves_no_running_goal(router: str) ->
             assert server.action.goals == {}
             reply = await client.cancel(goal.goal_id)
             assert not reply.accepted
+    finally:
+        await cbus.close()
+        await sbus.close()
+
+
+class DeafClient(ActionClient[SkillRequest, SkillAccept, SkillStatus]):
+    """A client whose status subscription hears nothing: what a client sees while its subscription has not yet
+    reached the server through the router (Zenoh propagates declarations in the background)."""
+
+    async def _route(self) -> None:
+        assert self._sub is not None
+        while True:
+            await self._sub.recv()
+
+
+async def test_statuses_the_subscription_missed_come_from_the_result_queryable(router: str) -> None:
+    """Stop 40's CI: a task refused at once published both its statuses before the client's subscription reached
+    the reasoner, and the client waited 180 s for an end that had come and gone. The client now asks the
+    result queryable until its subscription delivers a status of the goal."""
+    sbus, cbus = await _pair(router)
+    try:
+        server = Server(sbus)
+        server.go.set()  # goals end at once: started, halfway, done
+        async with DeafClient(cbus, SKILL_ACTION, VID) as client:
+            goal = await client.send_goal(SkillRequest(skill="forward", task_id="t-9"), ready_timeout=30)
+            assert goal.accepted
+            result = await goal.result(timeout=30)
+            assert result is not None and result.state == SkillState.SUCCEEDED and result.message == "done"
+            assert goal.recovered >= 1 and not goal._heard
+            assert not client._recovering  # nothing keeps asking once the goal ended
+    finally:
+        await cbus.close()
+        await sbus.close()
+
+
+async def test_the_result_queryable_answers_the_latest_status_and_refuses_an_unknown_goal(router: str) -> None:
+    sbus, cbus = await _pair(router)
+    try:
+        Server(sbus)
+        async with skill_client(cbus, VID) as client:
+            await _subscribed(sbus)
+            goal = await client.send_goal(SkillRequest(skill="forward", task_id="t-8"), ready_timeout=30)
+            assert (await _first(goal)) is not None
+            running = await cbus.query(Keys(VID).skill_result, GoalRef(goal_id=goal.goal_id), timeout=10)
+            assert running.state is SkillState.RUNNING and running.message == "started"
+            with pytest.raises(RemoteError, match="skill goal g-nope on vehicle am1 is unknown"):
+                await cbus.query(Keys(VID).skill_result, GoalRef(goal_id="g-nope"), timeout=10)
+            assert goal.recovered == 0  # the subscription heard the goal: nothing came from the queryable
+            reply = await goal.cancel(reason="done testing")
+            assert reply.accepted
+            ended = await goal.result(timeout=30)
+            assert ended is not None
+            assert await cbus.query(Keys(VID).skill_result, GoalRef(goal_id=goal.goal_id), timeout=10) == ended
     finally:
         await cbus.close()
         await sbus.close()

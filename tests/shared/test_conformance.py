@@ -21,9 +21,10 @@ def test_declarations_name_what_each_service_does():
     topics, queries = declared_by("executor")
     assert {t.name for t in topics} >= {"executor/skill_status", "executor/memory", "safety/abort_ack"}
     assert {q.name for q in queries} == {"executor/run_skill", "executor/check_skill", "executor/cancel_skill",
-                                         "executor/skills"}
+                                         "executor/skill_result", "executor/skills"}
     topics, queries = declared_by("reasoner")
-    assert {q.name for q in queries} == {"reasoner/start_task", "reasoner/cancel_task", "reasoner/decide_approval"}
+    assert {q.name for q in queries} == {"reasoner/start_task", "reasoner/cancel_task", "reasoner/task_result",
+                                         "reasoner/decide_approval"}
 
 
 async def test_a_silent_or_wrong_fake_fails_the_check(router):
@@ -122,7 +123,8 @@ async def test_gateway_fake_conforms_as_a_reasoner(router):
             # Its steps and skill statuses (it stands in for the executor too) name only real skills.
             skills = asyncio.create_task(check_service(
                 bus, "executor", "gw", expect_alive=False, timeout=2.0, require_periodic=False, library=lib,
-                skip=("executor/memory", "executor/run_skill", "executor/check_skill", "executor/cancel_skill")))
+                skip=("executor/memory", "executor/run_skill", "executor/check_skill", "executor/cancel_skill",
+                  "executor/skill_result")))
             await asyncio.sleep(0.3)
             accept = await bus.query(Keys("gw").start_task, TaskRequest(command="pick up the red cup"))
             assert accept.accepted
