@@ -10,7 +10,8 @@ statuses to handles by goal id, keeping nothing once a goal has ended. A subscri
 through the router in the background, so a goal that ends at once (a task refused before takeoff) can publish
 all its statuses before the server hears of the subscriber: until the subscription has delivered a status of
 the goal, the client asks the result queryable for the goal's latest status (after ROS 2's get_result),
-first after `RECOVER_FIRST_S`, then every `RECOVER_EVERY_S`.
+first after `RECOVER_FIRST_S`, then at intervals doubling up to `RECOVER_MAX_S`; a status older than the
+last one delivered (a reply and a sample cross in flight) is dropped.
 
 `ActionServer` is the other half, after rclpy's: its goal callback accepts or rejects a goal (it builds the
 accept message, so the server decides the goal id), the execute callback runs an accepted goal with a
@@ -30,7 +31,7 @@ from dataclasses import dataclass, field
 from typing import Any, Generic, TypeVar
 
 from shared.bus import Bus, Subscription, query_ready
-from shared.errors import BusError, NotFound, ServerLost
+from shared.errors import AermaniError, NotFound, ServerLost
 from shared.keys import (
     ALIVE_TOKEN,
     EXECUTOR_CANCEL_SKILL,
@@ -65,15 +66,16 @@ S = TypeVar("S")
 RECOVER_FIRST_S = 0.5
 """After an accepted goal, how long the client waits for the first status through its subscription before it asks
 the result queryable."""
-RECOVER_EVERY_S = 1.0
-"""Then how often it asks, until the subscription delivers a status of the goal or the goal ends."""
+RECOVER_MAX_S = 10.0
+"""Then it asks at doubling intervals up to this, until the subscription delivers a status of the goal or the
+goal ends (a recovered status that is not the end proves nothing about the subscription)."""
 ENDED_KEPT = 256
 """How many ended goals a server keeps the result of, for the result queryable."""
 
 
 @dataclass(frozen=True)
 class ActionSpec(Generic[G, A, S]):
-    """One action: its goal, cancel and status keys, and where each message keeps the goal id."""
+    """One action: its goal, cancel, status and result keys, and where each message keeps the goal id."""
 
     name: str
     goal: Query[G, A]
@@ -222,8 +224,10 @@ class ActionClient(Generic[G, A, S]):
             self._deliver(handle, st)
 
     def _deliver(self, handle: GoalHandle[A, S], st: S) -> None:
-        if handle.feedback and handle.feedback[-1] == st:
-            return  # the same status from the subscription and the result queryable
+        if handle.feedback:
+            last = handle.feedback[-1]
+            if st == last or getattr(st, "stamp_ns", 0) < getattr(last, "stamp_ns", 0):
+                return  # the same status both ways, or an older one overtaken by a reply of the result queryable
         handle.feedback.append(st)
         handle._updated.set()
         if self.spec.terminal(st) and handle._done is not None and not handle._done.done():
@@ -269,12 +273,12 @@ class ActionClient(Generic[G, A, S]):
 
         while following():
             await asyncio.sleep(delay)
-            delay = RECOVER_EVERY_S
+            delay = min(2 * delay, RECOVER_MAX_S)
             if not following():
                 return
             try:
                 st = await self.bus.query(target, GoalRef(goal_id=handle.goal_id), timeout=5.0)
-            except BusError as exc:  # no status yet, an older server without the queryable, a restart
+            except AermaniError as exc:  # no status yet, an older server without it, a refusal, a bad reply
                 log.debug("%s goal %s: no status from %s: %s", self.spec.name, handle.goal_id, target, exc)
                 continue
             if following() and self.spec.status_id(st) == handle.goal_id:
@@ -326,7 +330,7 @@ CancelCallback = Callable[[ServerGoalHandle[G, S], CancelGoal], Awaitable[Cancel
 
 
 class ActionServer(Generic[G, A, S]):
-    """Server side of one action on one vehicle: serves the goal and cancel queryables (`start()`)."""
+    """Server side of one action on one vehicle: serves the goal, cancel and result queryables (`start()`)."""
 
     def __init__(self, bus: Bus, spec: ActionSpec[G, A, S], vehicle_id: str, *, goal_callback: GoalCallback[G, A],
                  execute_callback: ExecuteCallback[G, S] | None = None,
@@ -344,7 +348,7 @@ class ActionServer(Generic[G, A, S]):
         self._started = False
 
     def start(self) -> ActionServer[G, A, S]:
-        """Serve the goal and cancel queryables (once)."""
+        """Serve the goal, cancel and result queryables (once)."""
         if not self._started:
             self.bus.serve(self.spec.goal.bind(self.vehicle_id), self._on_goal)
             self.bus.serve(self.spec.cancel.bind(self.vehicle_id), self._on_cancel)
@@ -365,12 +369,15 @@ class ActionServer(Generic[G, A, S]):
 
     async def _on_result(self, req: GoalRef) -> S:
         handle = self.goals.get(req.goal_id)
-        if handle is not None and handle.last is not None:
-            return handle.last
+        if handle is not None:  # running: never an earlier goal's result under the same id (a reused task id)
+            if handle.last is not None:
+                return handle.last
+            raise NotFound(f"{self.spec.name} goal {req.goal_id} on vehicle {self.vehicle_id} has published no "
+                           "status yet")
         if req.goal_id in self.ended:
             return self.ended[req.goal_id]
-        what = "has published no status yet" if handle is not None else "is unknown (or ended long ago)"
-        raise NotFound(f"{self.spec.name} goal {req.goal_id} on vehicle {self.vehicle_id} {what}")
+        raise NotFound(f"{self.spec.name} goal {req.goal_id} on vehicle {self.vehicle_id} is unknown (or ended "
+                       "long ago)")
 
     async def _on_goal(self, request: G) -> A:
         accept = await self.goal_callback(request)
@@ -379,6 +386,7 @@ class ActionServer(Generic[G, A, S]):
         goal_id = self.spec.accept_id(accept) or self.spec.request_id(request)
         handle: ServerGoalHandle[G, S] = ServerGoalHandle(self, goal_id, request)
         self.goals[goal_id] = handle
+        self.ended.pop(goal_id, None)  # a reused id (a task's) names this goal from now on
         if self.execute_callback is not None:
             # Runs once the accept reply is on its way; a status that overtakes it waits in the client.
             handle.task = asyncio.create_task(self._execute(handle), name=f"action.{self.spec.name}.{goal_id}")

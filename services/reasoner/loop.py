@@ -13,7 +13,7 @@ import math
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from services.reasoner.backends.base import Backend, ModelRequest, PastStep, PolicyContext, Seen
 from services.reasoner.baselines import restrict_library
@@ -56,9 +56,9 @@ from shared.text import plain_text
 log = logging.getLogger("aermani.reasoner.loop")
 
 AIRBORNE = (LandedState.IN_AIR, LandedState.TAKEOFF, LandedState.LANDING)
+"""Flight phases in which a skill needs healthy offboard control."""
 EFFECT_WAIT_S = 2.0
 """How long a step waits for a vehicle state sampled after its skill ended, before judging a grounded one."""
-"""Flight phases in which a skill needs healthy offboard control."""
 
 
 class ExecutorUnreachable(AermaniError):
@@ -368,15 +368,24 @@ class TaskRunner:
         is made only on a state sampled after the skill ended: Zenoh orders nothing across keys, and a state
         from before the take-off's effect can arrive after the take-off's status (received after the skill's
         end, so `observe` took it as fresh). Both stamps are the vehicle's (bridge and executor). Waits at
-        most `EFFECT_WAIT_S` for such a state, then judges by the latest."""
+        most `EFFECT_WAIT_S` for such a state; a state still older then is no landing (`_authority_end`), and a
+        silent bridge is what `_await_link` reports. The wait counts in the step's state wait."""
+        first, t0 = obs, time.perf_counter()
+
+        def stale_grounded(o: Observation) -> bool:
+            return (self.req.takeoff and o.state is not None and o.state.landed_state is LandedState.ON_GROUND
+                    and last_skill != S.LAND and o.state.stamp_ns <= self._effect_ns)
+
+        if not stale_grounded(obs):
+            return obs
+        log.info("task %s: a grounded state from before %s ended; waiting for a later one", self.req.task_id,
+                 last_skill)
         deadline = time.monotonic() + EFFECT_WAIT_S
-        while (obs.state is not None and obs.state.landed_state is LandedState.ON_GROUND and last_skill != S.LAND
-               and obs.state.stamp_ns <= self._effect_ns and time.monotonic() < deadline):
-            log.info("task %s: a grounded state from before %s ended; waiting for a later one", self.req.task_id,
-                     last_skill)
+        while stale_grounded(obs) and time.monotonic() < deadline:
             await asyncio.sleep(0.05)
             obs = await self.world.observe(0)
-        return obs
+        return replace(obs, frame_wait_s=first.frame_wait_s, detections_wait_s=first.detections_wait_s,
+                       state_wait_s=first.state_wait_s + time.perf_counter() - t0)
 
     def _authority_end(self, obs: Observation, last_skill: str) -> TaskStatus | None:
         """PX4's authority: when PX4, the pilot or an abort took control during this task, or the vehicle came
@@ -391,7 +400,8 @@ class TaskRunner:
         if st.override and st.override_ns != self._override_ns:
             return self.status(TaskState.FAILED, f"the autopilot took control: {st.override}; the task ends "
                                                  "here, a new command is needed to fly again")
-        if self.req.takeoff and st.landed_state is LandedState.ON_GROUND and last_skill != S.LAND:
+        if (self.req.takeoff and st.landed_state is LandedState.ON_GROUND and last_skill != S.LAND
+                and st.stamp_ns > self._effect_ns):  # an older state predates the last skill's effect
             return self.status(TaskState.FAILED, f"the vehicle landed without being asked (mode {st.mode}"
                                                  f"{': ' + st.message if st.message else ''}); the task ends "
                                                  "here, a new command is needed to fly again")

@@ -223,3 +223,16 @@ async def test_the_result_queryable_answers_the_latest_status_and_refuses_an_unk
     finally:
         await cbus.close()
         await sbus.close()
+
+
+def test_a_status_older_than_the_last_delivered_is_dropped() -> None:
+    """A reply of the result queryable and a sample of the subscription can cross in flight: the goal's feedback
+    never goes back in time, and the same status heard both ways is kept once."""
+    client = skill_client(None, VID)  # type: ignore[arg-type]  # _deliver touches no bus
+    handle: GoalHandle[SkillAccept, SkillStatus] = GoalHandle(client, SkillAccept(accepted=True, goal_id="g"), "g",
+                                                              True, "")
+    older = SkillStatus(goal_id="g", skill="forward", state=SkillState.RUNNING, message="started", stamp_ns=10)
+    newer = SkillStatus(goal_id="g", skill="forward", state=SkillState.RUNNING, message="halfway", stamp_ns=20)
+    for st in (newer, older, newer):
+        client._deliver(handle, st)
+    assert [s.message for s in handle.feedback] == ["halfway"]

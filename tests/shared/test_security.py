@@ -403,3 +403,23 @@ async def test_router_command_used_by_compose(tmp_path, certs):
         outs = [seen[i] + procs[i].communicate(timeout=20)[0] for i in range(2)]
     assert [p.returncode for p in procs] == [0, 0], outs
     assert "ground router up" in outs[0] and "drone router up" in outs[1]
+
+
+@pytest.mark.parametrize("role", ["ground", "drone"])
+def test_the_templates_let_each_side_serve_every_query_its_services_declare(certs, role):
+    """A queryable the other router does not let through is unreachable across the link (the reasoner on the
+    ground, the executor on the drone): cancel_skill and the action protocol's result queryables were left out
+    once. Every query a drone service declares must pass `drone-serve`, every query of a ground service
+    `ground-serve`."""
+    from shared.keys import declared_by
+
+    acl = json.loads(router_config(role, certs, local="tcp/127.0.0.1:1").get_json("access_control"))
+    rules = {r["id"]: r for r in acl["rules"]}
+    sides = {"drone-serve": ("executor", "perception", "autopilot_bridge", "sim"), "ground-serve": ("reasoner",)}
+    for rule, services in sides.items():
+        allowed = [zenoh.KeyExpr(k) for k in rules[rule]["key_exprs"]]
+        assert set(rules[rule]["messages"]) >= {"declare_queryable", "reply"}
+        for service in services:
+            for q in declared_by(service)[1]:
+                key = zenoh.KeyExpr(q.bind("am7").key)
+                assert any(a.includes(key) for a in allowed), f"{role}.json5 {rule} does not let {key} through"
