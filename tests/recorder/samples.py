@@ -51,6 +51,7 @@ def example(cls: type[m.Message], i: int = 0) -> m.Message:
         m.JudgeResult: lambda: m.JudgeResult(held="red cup", checks=(m.JudgeCheck(name="hold", ok=i % 2 == 0),)),
         m.SimResetResult: lambda: m.SimResetResult(ok=True),
         m.CancelGoal: lambda: m.CancelGoal(goal_id=f"g{i}"),
+        m.GoalRef: lambda: m.GoalRef(goal_id=f"g{i}"),
         m.CancelReply: lambda: m.CancelReply(accepted=True),
         m.ResetNotice: lambda: m.ResetNotice(seed=i),
         m.ApprovalStatus: lambda: m.ApprovalStatus(skill="grasp", step=i),
