@@ -48,6 +48,7 @@ from shared.messages import (
     TaskRequest,
     TaskState,
     TaskStatus,
+    VehicleState,
     now_ns,
 )
 from shared.tasks import REFUSED_BEFORE_TAKEOFF
@@ -373,8 +374,8 @@ class TaskRunner:
         first, t0 = obs, time.perf_counter()
 
         def stale_grounded(o: Observation) -> bool:
-            return (self.req.takeoff and o.state is not None and o.state.landed_state is LandedState.ON_GROUND
-                    and last_skill != S.LAND and o.state.stamp_ns <= self._effect_ns)
+            return (o.state is not None and self._grounded_unasked(o.state, last_skill)
+                    and o.state.stamp_ns <= self._effect_ns)
 
         if not stale_grounded(obs):
             return obs
@@ -386,6 +387,10 @@ class TaskRunner:
             obs = await self.world.observe(0)
         return replace(obs, frame_wait_s=first.frame_wait_s, detections_wait_s=first.detections_wait_s,
                        state_wait_s=first.state_wait_s + time.perf_counter() - t0)
+
+    def _grounded_unasked(self, st: VehicleState, last_skill: str) -> bool:
+        """On the ground in a task that took off, and the last skill was no landing."""
+        return self.req.takeoff and st.landed_state is LandedState.ON_GROUND and last_skill != S.LAND
 
     def _authority_end(self, obs: Observation, last_skill: str) -> TaskStatus | None:
         """PX4's authority: when PX4, the pilot or an abort took control during this task, or the vehicle came
@@ -400,8 +405,8 @@ class TaskRunner:
         if st.override and st.override_ns != self._override_ns:
             return self.status(TaskState.FAILED, f"the autopilot took control: {st.override}; the task ends "
                                                  "here, a new command is needed to fly again")
-        if (self.req.takeoff and st.landed_state is LandedState.ON_GROUND and last_skill != S.LAND
-                and st.stamp_ns > self._effect_ns):  # an older state predates the last skill's effect
+        if self._grounded_unasked(st, last_skill) and st.stamp_ns > self._effect_ns:
+            # (an older state predates the last skill's effect: _after_effect waited for a later one)
             return self.status(TaskState.FAILED, f"the vehicle landed without being asked (mode {st.mode}"
                                                  f"{': ' + st.message if st.message else ''}); the task ends "
                                                  "here, a new command is needed to fly again")

@@ -4,6 +4,8 @@ cancel of a running goal, cancel of an unknown goal, and a goal whose execute ca
 from __future__ import annotations
 
 import asyncio
+import contextlib
+from collections.abc import AsyncIterator
 
 import pytest
 
@@ -59,8 +61,11 @@ class Server:
         return CancelReply(accepted=True)
 
 
-async def _pair(router: str) -> tuple[Bus, Bus]:
-    return await Bus.open(connect=[router]), await Bus.open(connect=[router])
+@contextlib.asynccontextmanager
+async def _pair(router: str) -> AsyncIterator[tuple[Bus, Bus]]:
+    """A server's bus and a client's, on one router, closed at the end."""
+    async with await Bus.open(connect=[router]) as sbus, await Bus.open(connect=[router]) as cbus:
+        yield sbus, cbus
 
 
 async def _subscribed(sbus: Bus) -> None:
@@ -82,8 +87,7 @@ async def _first(goal: GoalHandle[SkillAccept, SkillStatus]) -> SkillStatus | No
 
 
 async def test_accept_feedback_result(router: str) -> None:
-    sbus, cbus = await _pair(router)
-    try:
+    async with _pair(router) as (sbus, cbus):
         server = Server(sbus)
         async with skill_client(cbus, VID) as client:
             await _subscribed(sbus)
@@ -97,28 +101,20 @@ async def test_accept_feedback_result(router: str) -> None:
             assert result is not None and result.state == SkillState.SUCCEEDED and result.message == "done"
             assert [s.message for s in goal.feedback] == ["started", "halfway", "done"]
             assert server.action.goals == {}  # a goal leaves the server with its terminal status
-    finally:
-        await cbus.close()
-        await sbus.close()
 
 
 async def test_reject_starts_nothing(router: str) -> None:
-    sbus, cbus = await _pair(router)
-    try:
+    async with _pair(router) as (sbus, cbus):
         server = Server(sbus)
         async with skill_client(cbus, VID) as client:
             goal = await client.send_goal(SkillRequest(skill="refused"), ready_timeout=30)
             assert not goal.accepted and goal.reason == "refused: no such skill here"
             assert await goal.result(timeout=0.1) is None
             assert server.action.goals == {}
-    finally:
-        await cbus.close()
-        await sbus.close()
 
 
 async def test_cancel_a_running_goal(router: str) -> None:
-    sbus, cbus = await _pair(router)
-    try:
+    async with _pair(router) as (sbus, cbus):
         server = Server(sbus)
         async with skill_client(cbus, VID) as client:
             await _subscribed(sbus)
@@ -133,14 +129,10 @@ async def test_cancel_a_running_goal(router: str) -> None:
             # Once ended, a second cancel is refused without reaching the callback.
             again = await client.cancel(goal.goal_id)
             assert not again.accepted and "not running" in again.reason and len(server.cancels) == 1
-    finally:
-        await cbus.close()
-        await sbus.close()
 
 
 async def test_cancel_of_an_unknown_goal_is_refused(router: str) -> None:
-    sbus, cbus = await _pair(router)
-    try:
+    async with _pair(router) as (sbus, cbus):
         server = Server(sbus)
         async with skill_client(cbus, VID) as client:
             await client.send_goal(SkillRequest(skill="refused"), ready_timeout=30)  # the server is up
@@ -148,14 +140,10 @@ async def test_cancel_of_an_unknown_goal_is_refused(router: str) -> None:
             assert not reply.accepted
             assert reply.reason.startswith("skill goal g-nope is not running on vehicle am1")
             assert server.cancels == []
-    finally:
-        await cbus.close()
-        await sbus.close()
 
 
 async def test_a_crashed_execute_callback_leaves_no_running_goal(router: str) -> None:
-    sbus, cbus = await _pair(router)
-    try:
+    async with _pair(router) as (sbus, cbus):
         server = Server(sbus)
         async with skill_client(cbus, VID) as client:
             goal = await client.send_goal(SkillRequest(skill="crash"), ready_timeout=30)
@@ -167,9 +155,6 @@ async def test_a_crashed_execute_callback_leaves_no_running_goal(router: str) ->
             assert server.action.goals == {}
             reply = await client.cancel(goal.goal_id)
             assert not reply.accepted
-    finally:
-        await cbus.close()
-        await sbus.close()
 
 
 class DeafClient(ActionClient[SkillRequest, SkillAccept, SkillStatus]):
@@ -186,8 +171,7 @@ async def test_statuses_the_subscription_missed_come_from_the_result_queryable(r
     """Stop 40's CI: a task refused at once published both its statuses before the client's subscription reached
     the reasoner, and the client waited 180 s for an end that had come and gone. The client now asks the
     result queryable until its subscription delivers a status of the goal."""
-    sbus, cbus = await _pair(router)
-    try:
+    async with _pair(router) as (sbus, cbus):
         server = Server(sbus)
         server.go.set()  # goals end at once: started, halfway, done
         async with DeafClient(cbus, SKILL_ACTION, VID) as client:
@@ -197,14 +181,10 @@ async def test_statuses_the_subscription_missed_come_from_the_result_queryable(r
             assert result is not None and result.state == SkillState.SUCCEEDED and result.message == "done"
             assert goal.recovered >= 1 and not goal._heard
             assert not client._recovering  # nothing keeps asking once the goal ended
-    finally:
-        await cbus.close()
-        await sbus.close()
 
 
 async def test_the_result_queryable_answers_the_latest_status_and_refuses_an_unknown_goal(router: str) -> None:
-    sbus, cbus = await _pair(router)
-    try:
+    async with _pair(router) as (sbus, cbus):
         Server(sbus)
         async with skill_client(cbus, VID) as client:
             await _subscribed(sbus)
@@ -220,9 +200,6 @@ async def test_the_result_queryable_answers_the_latest_status_and_refuses_an_unk
             ended = await goal.result(timeout=30)
             assert ended is not None
             assert await cbus.query(Keys(VID).skill_result, GoalRef(goal_id=goal.goal_id), timeout=10) == ended
-    finally:
-        await cbus.close()
-        await sbus.close()
 
 
 def test_a_status_older_than_the_last_delivered_is_dropped() -> None:
