@@ -343,15 +343,23 @@ class TaskRunner:
             return self.status(TaskState.FAILED, f"{REFUSED_BEFORE_TAKEOFF}: {refused}")
         obs = await self.world.observe(0)
         deadline = time.monotonic() + self.settings.link_wait_s
-        while (obs.state is not None and obs.state.landed_state is LandedState.LANDING
-               and time.monotonic() < deadline):
+        while obs.state is None and time.monotonic() < deadline:
+            # No vehicle state yet (the bridge's first sample is still on its way): whether to take off is
+            # decided on a state, never on its absence (ci of stop 41: the take-off was skipped, and the first
+            # grounded state to arrive then read as a landing nobody asked for).
+            await asyncio.sleep(0.1)
+            obs = await self.world.observe(0)
+        vs = obs.state
+        if vs is None:
+            return self.status(TaskState.FAILED, f"no vehicle state from the autopilot bridge within "
+                                                 f"{self.settings.link_wait_s:.0f} s; nothing took off")
+        while vs.landed_state is LandedState.LANDING and time.monotonic() < deadline:
             # A landing in progress (an abort mid-takeoff lands): take off again once it is down.
             await asyncio.sleep(0.5)
-            obs = await self.world.observe(0)
-        if obs.state is not None:
-            self._override_ns = obs.state.override_ns
-        grounded = obs.state is not None and (obs.state.landed_state is LandedState.ON_GROUND or (
-            obs.state.landed_state is LandedState.UNKNOWN and not obs.state.armed))
+            vs = (await self.world.observe(0)).state or vs
+        self._override_ns = vs.override_ns
+        grounded = vs.landed_state is LandedState.ON_GROUND or (
+            vs.landed_state is LandedState.UNKNOWN and not vs.armed)
         if self.req.takeoff and grounded:
             try:
                 st = await self._execute(SkillRequest(skill=S.TAKEOFF, task_id=self.req.task_id, step=0),

@@ -242,3 +242,42 @@ def test_a_vehicle_that_comes_down_mid_task_ends_it_with_the_reason() -> None:
     assert final.state is TaskState.FAILED
     assert final.message.startswith("the vehicle landed without being asked (mode HOLD"), final.message
     assert w.executed[-1] == "grasp(red cup)" and "place" not in w.executed
+
+
+class LateFirstStateWorld(MiniWorldPort):
+    """The bridge's first state reaches the reasoner only after `missing` observations (a new route under load),
+    or never (None)."""
+
+    def __init__(self, world: MiniWorld, missing: int | None) -> None:
+        super().__init__(world)
+        self.missing = missing
+        self.unanswered = 0
+
+    async def observe(self, newer_than_ns: int) -> Observation:
+        obs = await super().observe(newer_than_ns)
+        if self.missing is None or self.missing > 0:
+            self.unanswered += 1
+            if self.missing is not None:
+                self.missing -= 1
+            return dataclasses.replace(obs, state=None)
+        return obs
+
+
+def test_the_takeoff_waits_for_the_first_vehicle_state() -> None:
+    """ci of stop 41: no state had arrived when the task started, the take-off was skipped as if the vehicle
+    were airborne, and the first grounded state to arrive ended the task 'landed without being asked'."""
+    w = MiniWorld([Thing("red cup"), TABLE])
+    port = LateFirstStateWorld(w, missing=5)
+    final, _steps = _run(port)
+    assert final.state is TaskState.SUCCEEDED, final.message
+    assert port.unanswered == 5 and w.executed[0] == "takeoff"
+    assert w.placed_on == {"red cup": "table"}
+
+
+def test_no_vehicle_state_at_all_fails_the_task_before_anything_flies() -> None:
+    w = MiniWorld([Thing("red cup"), TABLE])
+    port = LateFirstStateWorld(w, missing=None)
+    final, steps = _run(port, link_wait_s=1.0)
+    assert final.state is TaskState.FAILED
+    assert final.message == "no vehicle state from the autopilot bridge within 1 s; nothing took off", final.message
+    assert w.executed == [] and steps == [] and port.unanswered >= 2
