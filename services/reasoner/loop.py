@@ -343,16 +343,18 @@ class TaskRunner:
             return self.status(TaskState.FAILED, f"{REFUSED_BEFORE_TAKEOFF}: {refused}")
         obs = await self.world.observe(0)
         deadline = time.monotonic() + self.settings.link_wait_s
-        while obs.state is None and time.monotonic() < deadline:
-            # No vehicle state yet (the bridge's first sample is still on its way): whether to take off is
-            # decided on a state, never on its absence (ci of stop 41: the take-off was skipped, and the first
-            # grounded state to arrive then read as a landing nobody asked for).
+        while (obs.state is None or not obs.state.link_ok) and time.monotonic() < deadline:
+            # No vehicle state yet (the bridge's first sample is still on its way), or one without the
+            # autopilot's facts (a bridge that just started: no heartbeat, armed and landed state unknown):
+            # whether to take off is decided on a state, never on its absence (ci of stop 41: the take-off was
+            # skipped, and the first grounded state to arrive then read as a landing nobody asked for).
             await asyncio.sleep(0.1)
             obs = await self.world.observe(0)
         vs = obs.state
-        if vs is None:
-            return self.status(TaskState.FAILED, f"no vehicle state from the autopilot bridge within "
-                                                 f"{self.settings.link_wait_s:.0f} s; nothing took off")
+        if vs is None or not vs.link_ok:
+            missing = "vehicle state from the autopilot bridge" if vs is None else "link to the autopilot"
+            return self.status(TaskState.FAILED, f"no {missing} within {self.settings.link_wait_s:.0f} s; "
+                                                 "nothing took off")
         while vs.landed_state is LandedState.LANDING and time.monotonic() < deadline:
             # A landing in progress (an abort mid-takeoff lands): take off again once it is down.
             await asyncio.sleep(0.5)

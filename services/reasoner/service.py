@@ -17,7 +17,7 @@ from services.reasoner.loop import TaskRunner, World
 from services.reasoner.prompt import Observation
 from services.reasoner.settings import ReasonerSettings
 from shared.action import TASK_ACTION, ActionServer, GoalHandle, ServerGoalHandle, skill_client
-from shared.bus import Bus, Latest, Subscription
+from shared.bus import Bus, Latest, Subscription, query_ready
 from shared.errors import AermaniError, ConfigError
 from shared.keys import FLEET_ABORT
 from shared.messages import (
@@ -86,7 +86,10 @@ class BusWorld(World):
             await self.skills.close()
 
     async def skill_library(self) -> SkillLibrary:
-        return await self.bus.query(self.keys.skills, None, timeout=self.settings.library_timeout_s)
+        # An executor not yet known behind the router (a new route, a supervised restart) is waited for like a
+        # skill's (`_send`): a NoResponder at once is no reason to fail the task.
+        return await query_ready(self.bus, self.keys.skills, None, timeout=self.settings.library_timeout_s,
+                                 ready_timeout=self.settings.link_wait_s)
 
     async def observe(self, newer_than_ns: int) -> Observation:
         t0 = t1 = t2 = time.perf_counter()

@@ -281,3 +281,34 @@ def test_no_vehicle_state_at_all_fails_the_task_before_anything_flies() -> None:
     assert final.state is TaskState.FAILED
     assert final.message == "no vehicle state from the autopilot bridge within 1 s; nothing took off", final.message
     assert w.executed == [] and steps == [] and port.unanswered >= 2
+
+
+class NoLinkYetWorld(MiniWorldPort):
+    """A bridge that has just started: its states come, without the autopilot's heartbeat (link down, armed and
+    landed state unknown), for the first `without_link` observations (for ever, if None)."""
+
+    def __init__(self, world: MiniWorld, without_link: int | None) -> None:
+        super().__init__(world)
+        self.without_link = without_link
+
+    async def observe(self, newer_than_ns: int) -> Observation:
+        obs = await super().observe(newer_than_ns)
+        if self.without_link is None or self.without_link > 0:
+            if self.without_link is not None:
+                self.without_link -= 1
+            assert obs.state is not None
+            return dataclasses.replace(obs, state=obs.state.model_copy(update={
+                "link_ok": False, "armed": False, "landed_state": LandedState.UNKNOWN}))
+        return obs
+
+
+def test_the_takeoff_waits_for_the_autopilots_link_and_fails_without_it() -> None:
+    w = MiniWorld([Thing("red cup"), TABLE])
+    final, _ = _run(NoLinkYetWorld(w, without_link=4))
+    assert final.state is TaskState.SUCCEEDED, final.message
+    assert w.executed[0] == "takeoff" and w.placed_on == {"red cup": "table"}
+    w = MiniWorld([Thing("red cup"), TABLE])
+    final, steps = _run(NoLinkYetWorld(w, without_link=None), link_wait_s=1.0)
+    assert final.state is TaskState.FAILED
+    assert final.message == "no link to the autopilot within 1 s; nothing took off", final.message
+    assert w.executed == [] and steps == []
