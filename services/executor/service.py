@@ -46,10 +46,12 @@ from shared.sensors import parse_calibration, parse_depth
 from shared.service import announce
 
 UNKNOWN_HELD = "unidentified object"
+"""What memory calls an object the gripper reports holding that this executor did not grasp itself."""
 SLIP_S = 0.3
 """How long a held object's pads may show no contact (closed fingers) before it counts as slipped: contact
 flickers for a sample or two as a held object swings or touches down."""
-"""What memory calls an object the gripper reports holding that this executor did not grasp itself."""
+FIRST_STATE_WAIT_S = 3.0
+"""How long a first request waits for the bridge's first state (it comes at 20-50 Hz)."""
 log = logging.getLogger("aermani.executor")
 
 
@@ -163,9 +165,17 @@ class Executor:
 
     # ---- run_skill
 
+    async def _first_state(self) -> None:
+        """A freshly started (or restarted) executor judges its first request on a vehicle state, not on the
+        absence of one: wait briefly for the bridge's first sample (at 20-50 Hz it is on its way); a bridge that
+        is really silent is then refused with that reason."""
+        if self.state.value is None:
+            await self.state.next(FIRST_STATE_WAIT_S)
+
     async def handle_run_skill(self, req: SkillRequest) -> SkillAccept:
         """Goal callback: accept a skill that may start now (it is reserved at once: one skill at a time) or
         reject it with its reason, code and facts; `_execute` runs an accepted one."""
+        await self._first_state()  # the only await: from here to the reservation below nothing yields
         goal_id = new_id("goal-")
         self.memory.begin_task(req.task_id)
         if self.goal is not None:
@@ -192,6 +202,7 @@ class Executor:
         run_skill, starting nothing and publishing nothing. The reasoner asks before it asks an operator, so an
         approval is only ever asked for a skill that could start (the answer holds only for now: run_skill
         checks again)."""
+        await self._first_state()
         self.memory.begin_task(req.task_id)  # judged with the task's memory, as run_skill would
         if self.goal is not None:
             reason = f"skill {self.goal.request.skill} is still running (goal {self.goal.goal_id})"
