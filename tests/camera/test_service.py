@@ -228,11 +228,10 @@ async def test_colour_only_camera_makes_perception_say_3d_needs_depth(tmp_path):
     with run_stack(["camera", "perception"], tmp_path, env=env) as stack:
         async with bus_for(stack) as bus:
             health = bus.subscribe(K.health("perception"))
-            await asyncio.sleep(1.0)
-            est = await bus.query(K.localize_object, LocalizeRequest(query="red cup"), timeout=20)
             h = await health.recv(timeout=10)
-            while h.details.get("color", 0) == 0:
+            while h.details.get("color", 0) == 0:  # a colour frame is in: the answer is about depth, not frames
                 h = await health.recv(timeout=10)
+            est = await bus.query(K.localize_object, LocalizeRequest(query="red cup"), timeout=20)
     assert not est.found and est.reason == "no_frame"
     assert "3D localization needs a depth image" in est.message and "uvc" in est.message, est.message
     assert not h.ok and "needs a depth camera" in h.message, h

@@ -49,6 +49,10 @@ async def rig(airborne_at: float | None = 1.5, depth_m: float | None = 8.0, **se
     port = free_port()
     router = open_router(port)
     endpoint = f"tcp/127.0.0.1:{port}"
+    # The fakes, the router's client sessions and the executor share this one event loop: a stall of half a
+    # second (the production limit) under a loaded machine would read as a stale state mid-skill. The tests of
+    # staleness itself ask for the production limit.
+    settings_kw.setdefault("state_max_age_s", 2.0)
     settings = ExecutorSettings(zenoh_connect=[endpoint], **settings_kw)
     keys = settings.keys
     ebus = await Bus.open(connect=[endpoint])

@@ -50,6 +50,12 @@ async def test_altitude_band_rejects_climbing_and_descending_out_of_it():
         assert "above the maximum" in await _rejected(r, "up")
 
 
+async def _gripper_seen(r: Rig, state: GripperState) -> None:
+    """Until the executor has a vehicle state with the gripper so (the fake autopilot publishes it at 50 Hz)."""
+    await wait_until(lambda: (st := r.executor.state.value) is not None and st.gripper is state, 30,
+                     what=f"the gripper {state.value} in the executor's state")
+
+
 async def test_forward_clearance_from_depth():
     async with rig(depth_m=0.6) as r:
         reason = await _rejected(r, "forward")
@@ -57,7 +63,8 @@ async def test_forward_clearance_from_depth():
         # The camera cannot see behind: backward relies on the geofence only and is allowed.
         assert (await r.run_skill("backward")).state == SkillState.SUCCEEDED
         r.depth.distance_m = 8.0
-        await asyncio.sleep(0.3)
+        clear = r.executor.clearance  # a fixed pause raced the next frame's way to the executor under load
+        await wait_until(lambda: clear.depth is not None and int(clear.depth.min()) == 8000, 30, what="a clear frame")
         assert (await r.run_skill("forward")).state == SkillState.SUCCEEDED
 
 
@@ -90,7 +97,7 @@ async def test_px4_holding_in_the_air_is_taken_back_by_a_skill_but_not_a_pilot_m
 
 
 async def test_stale_vehicle_state_rejects_motion():
-    async with rig() as r:
+    async with rig(state_max_age_s=0.5) as r:
         r.vehicle.publishing = False
         await asyncio.sleep(0.8)
         assert "stale" in await _rejected(r, "forward")
@@ -125,7 +132,7 @@ async def test_routine_preconditions():
                                                         "position": Vec3(x=3.5, y=3.5, z=0.8)})
         assert "reach" in await _rejected(r, "grasp")
         r.vehicle.gripper = GripperState.CLOSED  # holding is only believed while the gripper is closed
-        await asyncio.sleep(0.3)
+        await _gripper_seen(r, GripperState.CLOSED)
         mem.set_held("red cup", Vec3(x=0.08, y=0.08, z=0.11))
         assert "already holding" in await _rejected(r, "grasp")
         assert "run placement_localization first" in await _rejected(r, "place")
@@ -136,7 +143,7 @@ async def test_routine_preconditions():
 
 
 async def test_monitor_stops_a_skill_that_leaves_the_geofence_or_loses_state():
-    async with rig(translation_speed=0.2) as r:
+    async with rig(translation_speed=0.2, state_max_age_s=0.5) as r:
         acc = await r.request("forward")
         assert acc.accepted
         await asyncio.sleep(0.3)
@@ -158,7 +165,7 @@ async def test_memory_drops_a_held_object_when_the_gripper_reports_open_and_a_ne
     async with rig() as r:
         mem = r.executor.memory
         r.vehicle.gripper = GripperState.CLOSED
-        await asyncio.sleep(0.3)
+        await _gripper_seen(r, GripperState.CLOSED)
         mem.set_held("red cup", Vec3(x=0.08, y=0.08, z=0.11))
         mem.objects["apple"] = MemoryObject(label="apple", position=Vec3(x=1.0), last_seen_ns=time.time_ns())
         await asyncio.sleep(0.3)

@@ -7,12 +7,14 @@ import asyncio
 from shared.keys import FLEET_ABORT
 from shared.messages import Abort, SkillState
 from tests.executor.rig import rig
-from tests.helpers import wait_until
+from tests.helpers import matched, wait_until
 
 
 async def test_executor_obeys_the_fleet_abort():
     async with rig(translation_speed=0.3) as r:
         acks = r.bus.subscribe(r.keys.abort_ack, maxsize=10)
+        await matched(r.executor.bus, r.keys.abort_ack)
+        await matched(r.bus, FLEET_ABORT)
         acc = await r.request("left")
         assert acc.accepted
         await wait_until(lambda: abs(r.vehicle.vel[1]) > 0.1 or abs(r.vehicle.vel[0]) > 0.1, 10, what="moving")

@@ -9,7 +9,7 @@ import numpy as np
 from services.reasoner.prompt import memory_summary
 from shared.messages import Abort, OutcomeCode, SkillState
 from tests.executor.rig import rig
-from tests.helpers import wait_until
+from tests.helpers import matched, wait_until
 
 
 def _scene(r) -> None:
@@ -89,7 +89,8 @@ async def test_grasp_that_closes_on_nothing_reports_a_miss():
 
 async def _abort_and_check(r, goal_id: str) -> None:
     acks = r.bus.subscribe(r.keys.abort_ack)
-    await asyncio.sleep(0.2)
+    await matched(r.executor.bus, r.keys.abort_ack)  # a fixed pause raced the subscription on a loaded machine
+    await matched(r.bus, r.keys.abort)
     abort = Abort(reason="test", source="test")
     r.bus.publish(r.keys.abort, abort)
     ack = await acks.recv(timeout=5)
@@ -131,7 +132,8 @@ async def test_abort_during_grasp_holds_and_leaves_the_executor_ready():
 async def test_abort_with_nothing_running_is_acknowledged():
     async with rig() as r:
         acks = r.bus.subscribe(r.keys.abort_ack)
-        await asyncio.sleep(0.2)
+        await matched(r.executor.bus, r.keys.abort_ack)
+        await matched(r.bus, r.keys.abort)
         r.bus.publish(r.keys.abort, Abort())
         ack = await acks.recv(timeout=5)
         assert ack.goal_id is None and "no skill running" in ack.message

@@ -39,8 +39,10 @@ async def run_task(stack, w: MiniWorld, request: TaskRequest, *, skill_delay: fl
                 st = await statuses.recv(timeout=120)
                 if st.state.terminal:
                     break
-            await asyncio.sleep(0.3)
             got = []
+            while len(got) < st.steps:  # Zenoh orders nothing across keys: a step may come after the end
+                got.append(await steps.recv(timeout=30))
+            await asyncio.sleep(0.3)  # (anything beyond the count would be a defect the tests then see)
             while steps.qsize():
                 got.append(await steps.recv(timeout=1))
             return st, got

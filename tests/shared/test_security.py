@@ -29,7 +29,7 @@ from shared.security import (
     require_loopback,
     router_config,
 )
-from tests.helpers import first_answer
+from tests.helpers import first_answer, matched
 
 K = Keys("am1")
 
@@ -203,7 +203,7 @@ async def test_abort_works_from_every_identity_and_state_only_from_the_drone(rou
             for identity in ("ground", "drone", "client"):
                 outsider = await dep.outsider(identity)
                 try:
-                    await asyncio.sleep(0.3)  # the new session's publisher routes
+                    await matched(outsider, K.abort)  # a fixed pause raced the new session's routes under load
                     outsider.publish(K.abort.key, {"source": identity})
                     got_drone = await dep.abort_at_drone.recv(timeout=5.0)
                     got_ground = await dep.abort_at_ground.recv(timeout=5.0)
