@@ -128,13 +128,23 @@ def policy_context(command: str, variant: str, library: SkillLibrary, history: H
                    for o in (*mem.seen, *mem.objects, *mem.placements)} if mem else {})
 
 
-def skill_times(st: SkillStatus, sent_ns: int, received_ns: int) -> dict[str, float]:
+CLOCK_STEP_S = 1.0
+"""A wall-clock interval this much longer or shorter than the monotonic one over the same skill: the clock stepped."""
+
+
+def skill_times(st: SkillStatus, sent_ns: int, received_ns: int,
+                elapsed_s: float | None = None) -> dict[str, float]:
     """accept_s, skill_s and report_s of StepTiming from a terminal status: the executor stamps its goal's start
-    and end; a refusal made here (approval, feasibility) has this host's stamps."""
+    and end; a refusal made here (approval, feasibility) has this host's stamps. `elapsed_s` is the same interval
+    on this host's monotonic clock: when the wall clock stepped meanwhile (a full run saw 24.0 s of wall time
+    in 13.6 s), skill_s is what remains of it after the accept and the report, never more than was waited."""
     started = st.started_ns or sent_ns
     ended = st.ended_ns or received_ns
-    return {"accept_s": max(0.0, (started - sent_ns) / 1e9), "skill_s": max(0.0, (ended - started) / 1e9),
-            "report_s": max(0.0, (received_ns - ended) / 1e9)}
+    times = {"accept_s": max(0.0, (started - sent_ns) / 1e9), "skill_s": max(0.0, (ended - started) / 1e9),
+             "report_s": max(0.0, (received_ns - ended) / 1e9)}
+    if elapsed_s is not None and abs((received_ns - sent_ns) / 1e9 - elapsed_s) > CLOCK_STEP_S:
+        times["skill_s"] = max(0.0, elapsed_s - times["accept_s"] - times["report_s"])
+    return times
 
 
 @dataclass
@@ -299,7 +309,7 @@ class TaskRunner:
             skill_s = time.perf_counter() - t_skill
             t_upd = last_end = time.perf_counter()
             last_end_ns = now_ns()  # local clock: the next frame must arrive after this
-            timing = timing.model_copy(update=skill_times(st, sent_ns, last_end_ns))
+            timing = timing.model_copy(update=skill_times(st, sent_ns, last_end_ns, skill_s))
             last_skill = ste.skill
             self.history.append(HistoryEntry(
                 self.steps, ste.skill, ste.argument, st.state.value, st.message, st.outcome.perceived,

@@ -66,3 +66,15 @@ def test_skill_times_from_the_executors_stamps_and_a_local_refusal() -> None:
     assert skill_times(refused, 1_000 * MS, 1_001 * MS) == {"accept_s": 0.0, "skill_s": 0.001, "report_s": 0.0}
     ahead = st.model_copy(update={"started_ns": 990 * MS})
     assert skill_times(ahead, 1_000 * MS, 1_512 * MS)["accept_s"] == 0.0
+
+
+def test_a_wall_clock_step_during_a_skill_does_not_inflate_its_time() -> None:
+    """A full run: 24.0 s between the grasp's stamps while 13.6 s passed on the monotonic clock (the machine's
+    wall clock stepped); skill_s is what was really waited, less the accept and the report."""
+    st = SkillStatus(goal_id="g", skill="grasp", state=SkillState.SUCCEEDED, started_ns=1_002 * MS,
+                     ended_ns=25_002 * MS)
+    t = skill_times(st, sent_ns=1_000 * MS, received_ns=25_007 * MS, elapsed_s=13.6)
+    assert t["accept_s"] == 0.002 and t["report_s"] == 0.005
+    assert abs(t["skill_s"] - (13.6 - 0.007)) < 1e-9
+    # no step: the executor's stamps stand
+    assert skill_times(st, sent_ns=1_000 * MS, received_ns=25_007 * MS, elapsed_s=24.007)["skill_s"] == 24.0
