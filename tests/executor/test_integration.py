@@ -11,7 +11,6 @@ import signal
 import time
 
 import pytest
-from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 
 from services.executor.settings import ExecutorSettings
 from shared.bus import Bus
@@ -29,7 +28,7 @@ from shared.messages import (
     SkillState,
     SkillStatus,
 )
-from shared.sensors import decode_proto, stamp_to_ns
+from shared.sensors import parse_color
 from shared.tasks import ask_judge
 from tests.helpers import bus_for, run_stack, skill_outcome, wait_until
 
@@ -97,14 +96,21 @@ class Client:
             await asyncio.sleep(1.0)
         raise AssertionError(f"takeoff failed: {st.message}")
 
-    async def search(self, skill: str, argument: str, turns: int = 13) -> SkillStatus:
-        """Yaw left until the localization succeeds (the paper's active search)."""
+    async def look_around(self, skill: str, argument: str, turns: int) -> SkillStatus:
+        """Yaw left until the localization succeeds (the paper's active search), at most `turns` times; the
+        last localization's status."""
         for _ in range(turns):
             st = await self.run(skill, argument)
             if st.state == SkillState.SUCCEEDED:
                 return st
             await self.ok("yaw_left")
-        raise AssertionError(f"{argument} never found: {st.message}; {await self.where(argument)}")
+        return st
+
+    async def search(self, skill: str, argument: str, turns: int = 13) -> SkillStatus:
+        st = await self.look_around(skill, argument, turns)
+        if st.state != SkillState.SUCCEEDED:
+            raise AssertionError(f"{argument} never found: {st.message}; {await self.where(argument)}")
+        return st
 
     async def search_backing_off(self, skill: str, argument: str, steps: int) -> SkillStatus:
         """Back off one step and look around a full circle (yaw_left turns 40 deg), up to `steps` times; where a
@@ -113,11 +119,9 @@ class Client:
         back: SkillStatus | None = None
         for _ in range(steps):
             back = await self.run("backward")
-            for _turn in range(9):
-                st = await self.run(skill, argument)
-                if st.state == SkillState.SUCCEEDED:
-                    return st
-                await self.ok("yaw_left")
+            st = await self.look_around(skill, argument, turns=9)
+            if st.state == SkillState.SUCCEEDED:
+                return st
             if back.state != SkillState.SUCCEEDED:
                 break
         raise AssertionError(f"{argument} never found backing off {steps} steps: {st.message if st else '-'}; "
@@ -131,8 +135,7 @@ class Client:
         st = self.states.latest_nowait() or await self.states.recv(timeout=5)
         frames = self.bus.subscribe(KEYS.camera_color, maxsize=1)
         try:
-            frame = await frames.recv(timeout=5)
-            frame_age = f"{(time.time_ns() - stamp_to_ns(decode_proto(CompressedImage, frame).timestamp)) / 1e9:.2f} s"
+            frame_age = f"{(time.time_ns() - parse_color(await frames.recv(timeout=5))[0]) / 1e9:.2f} s"
         except TimeoutError:
             frame_age = "no frame in 5 s"
         finally:

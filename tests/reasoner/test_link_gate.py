@@ -6,13 +6,23 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+from collections.abc import Callable
 
 from services.reasoner.backends.rules import RulesBackend
 from services.reasoner.loop import TaskRunner
 from services.reasoner.prompt import Observation
 from services.reasoner.settings import ReasonerSettings
 from shared.errors import NoResponder
-from shared.messages import LandedState, SkillAccept, SkillRequest, SkillState, SkillStatus, TaskRequest, TaskState
+from shared.messages import (
+    LandedState,
+    SkillAccept,
+    SkillRequest,
+    SkillState,
+    SkillStatus,
+    TaskRequest,
+    TaskState,
+    VehicleState,
+)
 from tests.reasoner.fake_world import MiniWorld, MiniWorldPort, Thing
 
 TABLE = Thing("table", "surface", headings=(0, 1, 7), size=(1.2, 0.8, 0.75))
@@ -244,71 +254,64 @@ def test_a_vehicle_that_comes_down_mid_task_ends_it_with_the_reason() -> None:
     assert w.executed[-1] == "grasp(red cup)" and "place" not in w.executed
 
 
-class LateFirstStateWorld(MiniWorldPort):
-    """The bridge's first state reaches the reasoner only after `missing` observations (a new route under load),
-    or never (None)."""
+class EarlyStatesWorld(MiniWorldPort):
+    """The first `count` observations (all of them, if None) carry `early(state)` instead of the vehicle's state:
+    None for a first state still on its way (a new route under load), or a state without the autopilot's facts."""
 
-    def __init__(self, world: MiniWorld, missing: int | None) -> None:
+    def __init__(self, world: MiniWorld, count: int | None,
+                 early: Callable[[VehicleState], VehicleState | None]) -> None:
         super().__init__(world)
-        self.missing = missing
-        self.unanswered = 0
+        self.left = count
+        self.early = early
+        self.replaced = 0
 
     async def observe(self, newer_than_ns: int) -> Observation:
         obs = await super().observe(newer_than_ns)
-        if self.missing is None or self.missing > 0:
-            self.unanswered += 1
-            if self.missing is not None:
-                self.missing -= 1
-            return dataclasses.replace(obs, state=None)
+        if self.left is None or self.left > 0:
+            self.replaced += 1
+            if self.left is not None:
+                self.left -= 1
+            assert obs.state is not None
+            return dataclasses.replace(obs, state=self.early(obs.state))
         return obs
+
+
+def no_state(_st: VehicleState) -> None:
+    return None
+
+
+def no_link_yet(st: VehicleState) -> VehicleState:
+    """A bridge that has just started: no heartbeat yet, so link down, armed and landed state unknown."""
+    return st.model_copy(update={"link_ok": False, "armed": False, "landed_state": LandedState.UNKNOWN})
 
 
 def test_the_takeoff_waits_for_the_first_vehicle_state() -> None:
     """ci of stop 41: no state had arrived when the task started, the take-off was skipped as if the vehicle
     were airborne, and the first grounded state to arrive ended the task 'landed without being asked'."""
     w = MiniWorld([Thing("red cup"), TABLE])
-    port = LateFirstStateWorld(w, missing=5)
+    port = EarlyStatesWorld(w, 5, no_state)
     final, _steps = _run(port)
     assert final.state is TaskState.SUCCEEDED, final.message
-    assert port.unanswered == 5 and w.executed[0] == "takeoff"
+    assert port.replaced == 5 and w.executed[0] == "takeoff"
     assert w.placed_on == {"red cup": "table"}
 
 
 def test_no_vehicle_state_at_all_fails_the_task_before_anything_flies() -> None:
     w = MiniWorld([Thing("red cup"), TABLE])
-    port = LateFirstStateWorld(w, missing=None)
+    port = EarlyStatesWorld(w, None, no_state)
     final, steps = _run(port, link_wait_s=1.0)
     assert final.state is TaskState.FAILED
     assert final.message == "no vehicle state from the autopilot bridge within 1 s; nothing took off", final.message
-    assert w.executed == [] and steps == [] and port.unanswered >= 2
-
-
-class NoLinkYetWorld(MiniWorldPort):
-    """A bridge that has just started: its states come, without the autopilot's heartbeat (link down, armed and
-    landed state unknown), for the first `without_link` observations (for ever, if None)."""
-
-    def __init__(self, world: MiniWorld, without_link: int | None) -> None:
-        super().__init__(world)
-        self.without_link = without_link
-
-    async def observe(self, newer_than_ns: int) -> Observation:
-        obs = await super().observe(newer_than_ns)
-        if self.without_link is None or self.without_link > 0:
-            if self.without_link is not None:
-                self.without_link -= 1
-            assert obs.state is not None
-            return dataclasses.replace(obs, state=obs.state.model_copy(update={
-                "link_ok": False, "armed": False, "landed_state": LandedState.UNKNOWN}))
-        return obs
+    assert w.executed == [] and steps == [] and port.replaced >= 2
 
 
 def test_the_takeoff_waits_for_the_autopilots_link_and_fails_without_it() -> None:
     w = MiniWorld([Thing("red cup"), TABLE])
-    final, _ = _run(NoLinkYetWorld(w, without_link=4))
+    final, _ = _run(EarlyStatesWorld(w, 4, no_link_yet))
     assert final.state is TaskState.SUCCEEDED, final.message
     assert w.executed[0] == "takeoff" and w.placed_on == {"red cup": "table"}
     w = MiniWorld([Thing("red cup"), TABLE])
-    final, steps = _run(NoLinkYetWorld(w, without_link=None), link_wait_s=1.0)
+    final, steps = _run(EarlyStatesWorld(w, None, no_link_yet), link_wait_s=1.0)
     assert final.state is TaskState.FAILED
     assert final.message == "no link to the autopilot within 1 s; nothing took off", final.message
     assert w.executed == [] and steps == []
