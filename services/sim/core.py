@@ -12,6 +12,7 @@ import numpy as np
 
 from services.sim.physics import configured_dynamics, look_for
 from services.sim.scenarios import ScenarioError, generate
+from services.sim.snapshot import capture_core, restore_core
 from services.sim.vehicle import Vehicle, VehicleParams, enu_to_ned, wrap
 from shared.messages import (
     JudgeRequest,
@@ -56,11 +57,33 @@ class SimCore:
                                         dynamics=dynamics)
         self.world = world
         self.scenario = filled
+        self.requested = scenario  # what the layout was generated from (the filled one lays out another room)
         self.vehicle = Vehicle(world, params)
         self._place_vehicle(start)
         self.setpoint_arrivals_ns: deque[int] = deque(maxlen=20_000)
         self.counters: dict[str, int] = {}
         self.resets = 0
+
+    @classmethod
+    def from_capture(cls, doc: dict, params: VehicleParams | None = None, *, hold: bool = True) -> SimCore:
+        """The world and vehicle of a capture (`capture`, services.sim.snapshot): the layout rebuilt from its
+        scenario, then every state restored; raises SnapshotError when it cannot be."""
+        from services.sim.snapshot import SnapshotError
+
+        try:
+            scenario = Scenario.model_validate(doc["requested"])
+            realism, dynamics = str(doc["realism"]), str(doc["dynamics"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise SnapshotError(f"malformed simulator state: {exc}") from exc
+        core = cls(scenario, params, realism=realism, dynamics=dynamics)
+        with core.lock:
+            restore_core(core, doc, hold=hold)
+        return core
+
+    def capture(self) -> dict:
+        """Everything the next physics step depends on, as JSON (services.sim.snapshot)."""
+        with self.lock:
+            return capture_core(self)
 
     def _place_vehicle(self, start: Pose) -> None:
         p = enu_to_ned(np.array([start.position.x, start.position.y, 0.0]))
@@ -78,6 +101,7 @@ class SimCore:
             world.version = self.world.version + 1
             self.world = world
             self.scenario = filled
+            self.requested = scenario
             self._place_vehicle(start)
             self.resets += 1
         log.info("reset to scenario %s", filled.model_dump_json())
