@@ -30,6 +30,7 @@ from shared.messages import (
     JudgeRequest,
     JudgeResult,
     LocalizeRequest,
+    MemoryRestore,
     ObjectEstimate,
     PlacementEstimate,
     PreflightReport,
@@ -38,6 +39,7 @@ from shared.messages import (
     Scenario,
     SimLabels,
     SimResetResult,
+    SimState,
     SkillAccept,
     SkillLibrary,
     SkillRequest,
@@ -277,6 +279,8 @@ SIM_FAULT: Query[Any, dict[str, Any]] = Query(
     "failure injection, like PX4 SITL's `failure` command (fault-injection tests only)", "sim")
 SIM_RESET_NOTICE: Topic[ResetNotice] = Topic(
     "sim/reset_notice", ResetNotice, "the world was reset: forget what was held and seen", "sim")
+SIM_STATE: Topic[SimState] = Topic(
+    "sim/state", SimState, "the simulator's whole state when a skill ended (where `aermani fork` starts)", "sim")
 AUTOPILOT_STATE: Topic[VehicleState] = Topic(
     "autopilot/state", VehicleState, "pose, velocity, armed, mode, landed state, battery, gripper, link health",
     "autopilot_bridge", reliable=False, periodic=True)
@@ -313,6 +317,9 @@ EXECUTOR_SKILLS: Query[None, SkillLibrary] = Query(
 EXECUTOR_MEMORY: Topic[WorkingMemory] = Topic(
     "executor/memory", WorkingMemory, "working memory: localized objects, placements, held object", "executor",
     periodic=True)
+EXECUTOR_RESTORE_MEMORY: Query[MemoryRestore, CancelReply] = Query(
+    "executor/restore_memory", MemoryRestore, CancelReply,
+    "put a recorded working memory back for a task (`aermani fork`); refused while a skill runs", "executor")
 REASONER_START_TASK: Query[TaskRequest, TaskAccept] = Query(
     "reasoner/start_task", TaskRequest, TaskAccept, "task goal -> accepted/rejected (action protocol)",
     "reasoner")
@@ -346,10 +353,11 @@ FLEET_ABORT: BoundTopic[Abort] = BoundTopic(f"{ROOT}/{FLEET_ID}/{SAFETY_ABORT.na
 
 DECLARATIONS: tuple[Topic[Any] | Query[Any, Any] | Token, ...] = (
     CAMERA_COLOR, CAMERA_DEPTH, CAMERA_CALIBRATION, CAMERA_SEGMENTATION, TF, SIM_LABELS, SIM_JUDGE, SIM_RESET,
-    SIM_STATS, SIM_FAULT, SIM_RESET_NOTICE, AUTOPILOT_STATE, AUTOPILOT_PREFLIGHT, AUTOPILOT_COMMAND,
+    SIM_STATS, SIM_FAULT, SIM_RESET_NOTICE, SIM_STATE, AUTOPILOT_STATE, AUTOPILOT_PREFLIGHT, AUTOPILOT_COMMAND,
     PERCEPTION_LOCALIZE_OBJECT,
     PERCEPTION_LOCALIZE_PLACEMENT, PERCEPTION_DETECTIONS, EXECUTOR_RUN_SKILL, EXECUTOR_CHECK_SKILL,
     EXECUTOR_CANCEL_SKILL, EXECUTOR_SKILL_RESULT, EXECUTOR_SKILL_STATUS, EXECUTOR_SKILLS, EXECUTOR_MEMORY,
+    EXECUTOR_RESTORE_MEMORY,
     REASONER_START_TASK, REASONER_CANCEL_TASK, REASONER_TASK_RESULT, REASONER_STEP,
     REASONER_TASK_STATUS, REASONER_APPROVAL, REASONER_DECIDE_APPROVAL, SAFETY_ABORT, SAFETY_ABORT_ACK, HEALTH_TOPIC,
     HEARTBEAT_TOPIC,
@@ -425,6 +433,7 @@ class Keys:
     sim_stats = _QueryOn(SIM_STATS)
     sim_fault = _QueryOn(SIM_FAULT)
     sim_reset_notice = _TopicOn(SIM_RESET_NOTICE)
+    sim_state = _TopicOn(SIM_STATE)
     autopilot_state = _TopicOn(AUTOPILOT_STATE)
     autopilot_preflight = _TopicOn(AUTOPILOT_PREFLIGHT)
     autopilot_command = _QueryOn(AUTOPILOT_COMMAND)
@@ -438,6 +447,7 @@ class Keys:
     skill_status = _TopicOn(EXECUTOR_SKILL_STATUS)
     skills = _QueryOn(EXECUTOR_SKILLS)
     memory = _TopicOn(EXECUTOR_MEMORY)
+    restore_memory = _QueryOn(EXECUTOR_RESTORE_MEMORY)
     start_task = _QueryOn(REASONER_START_TASK)
     cancel_task = _QueryOn(REASONER_CANCEL_TASK)
     task_result = _QueryOn(REASONER_TASK_RESULT)

@@ -27,7 +27,7 @@ from pydantic import (
 SCHEMA_VERSION = 1
 """Major version of the message schemas. A receiver rejects a message of a newer major version with an
 error naming both versions."""
-SCHEMA_MINOR = 8
+SCHEMA_MINOR = 9
 """Minor version: bumped when fields are added (or deprecated and ignored, never removed). A receiver accepts a
 message of a newer minor version, ignoring the fields it does not know (logged once per field)."""
 MAX_COMMAND_CHARS = 500
@@ -75,6 +75,10 @@ MAX_SCENARIO_OBJECTS = 64
 """Most distractors, extra objects or start placements of one scenario."""
 MAX_WORLD_OBJECTS = 1024
 """Most instances of a simulated layout (labels, ground-truth objects) and collisions since a reset."""
+MAX_SIM_STATE_CHARS = 1_000_000
+"""Longest simulator state document (SimState.state: about 12 kB for a room of 14 objects)."""
+MAX_HISTORY_STEPS = 1024
+"""Most History entries a resumed task carries (a task's step cap is at most a few hundred)."""
 MAX_HEALTH_DETAILS = 256
 """Most entries of a health's details (a dozen figures today; their values are bounded by the byte cap only)."""
 # Physical bounds: a value beyond them is a broken estimate or a forged message, never a state to act on.
@@ -682,6 +686,19 @@ class WorkingMemory(Message):
     centroids), so a search can turn toward what was seen before instead of scanning again."""
 
 
+class MemoryRestore(Message):
+    """Put a recorded working memory back (a flight fork, minor version 9): the executor takes it as the named
+    task's, its sightings as old as they were when it was recorded (`taken_ns`)."""
+
+    kind: Literal["memory_restore"] = "memory_restore"
+    task_id: Id
+    """The task that goes on with this memory (its first skill does not clear it)."""
+    memory: WorkingMemory
+    """The memory as recorded."""
+    taken_ns: int = Field(..., gt=0)
+    """When it was current (the recording's clock): every sighting keeps its age at that moment."""
+
+
 class OutcomeCode(StrEnum):
     """Why a skill ended as it did: the fact a policy decides from (never the message's prose)."""
 
@@ -1097,6 +1114,43 @@ def command_text(v: str) -> str:
     return v
 
 
+class ForkOrigin(Part):
+    """Where a forked task comes from: a recorded task and the step it continues before (minor version 9)."""
+
+    log: Label = ""
+    """The parent log's file name."""
+    task_id: Id = ""
+    """The parent task."""
+    step: int = Field(1, ge=1)
+    """The first step of the fork: the world is the parent's as it was before this step."""
+
+
+class ResumeStep(Part):
+    """One executed step of a resumed task, as the History remembers it (minor version 9)."""
+
+    step: int = Field(0, ge=0)
+    skill: Name
+    """The skill run, or "(invalid answer)" for a step without a valid one."""
+    argument: Label | None = None
+    state: Name = "failed"
+    """The skill's terminal state."""
+    message: Text = ""
+    perceived: Text = ""
+    summary: str = Field("", max_length=MAX_TRACE_CHARS)
+    reasoning: str = Field("", max_length=MAX_TRACE_CHARS)
+    outcome: SkillOutcome | None = None
+    image_description: str = Field("", max_length=MAX_TRACE_CHARS)
+    prediction: str = Field("", max_length=MAX_TRACE_CHARS)
+
+
+class Resume(Part):
+    """A task continued from a recorded one (a flight fork, minor version 9): the steps before, and where from."""
+
+    origin: ForkOrigin
+    history: tuple[ResumeStep, ...] = Field((), max_length=MAX_HISTORY_STEPS)
+    """The parent's steps before `origin.step`, oldest first."""
+
+
 class TaskRequest(Message):
     """Action protocol, task level: the goal (a natural-language command L, with overrides)."""
 
@@ -1113,6 +1167,9 @@ class TaskRequest(Message):
     """Override of T_max, seconds."""
     takeoff: bool = True
     """Take off first when the vehicle is on the ground."""
+    resume: Resume | None = None
+    """Continue a recorded task from one of its steps (a flight fork, minor version 9): the History of the steps
+    before it; the new task's steps are numbered from there."""
 
     @field_validator("command")
     @classmethod
@@ -1162,6 +1219,8 @@ class TaskStatus(Message):
     """Start time."""
     ended_ns: int = 0
     """End time (0 while running)."""
+    forked_from: ForkOrigin | None = None
+    """The recorded task this one continues (a flight fork, minor version 9)."""
 
 
 # --------------------------------------------------------------------------- health
@@ -1352,6 +1411,25 @@ class JudgeResult(Message):
     """Scenario in force."""
 
 
+class SimState(Message):
+    """The simulator's whole state when a skill ended (minor version 9): a flight fork starts from it
+    (`aermani fork`). Published by the simulator only; a real vehicle has none."""
+
+    kind: Literal["sim_state"] = "sim_state"
+    stamp_ns: int = Field(default_factory=now_ns)
+    """When it was captured."""
+    task_id: Id = ""
+    """The task whose skill ended."""
+    step: int = Field(0, ge=0)
+    """The step whose skill ended (0: the take-off): the world before step `step + 1`."""
+    skill: Name = ""
+    """That skill."""
+    sim_time_s: float = 0.0
+    """Simulated time."""
+    state: str = Field(..., max_length=MAX_SIM_STATE_CHARS)
+    """The state as a JSON document (services/sim/snapshot.py: its `format` says how to read it)."""
+
+
 class SimResetResult(Message):
     """Whether the simulator laid out the requested scenario."""
 
@@ -1371,6 +1449,7 @@ MESSAGE_TYPES: tuple[type[Message], ...] = (
     PlacementEstimate, Detections,
     SkillLibrary, SkillRequest, SkillAccept, WorkingMemory, SkillStatus, Abort, AbortAck, ReasoningStep,
     TaskRequest, TaskAccept, TaskStatus, Health, Scenario, SimLabels, JudgeRequest, JudgeResult, SimResetResult,
-    CancelGoal, GoalRef, CancelReply, ResetNotice, ApprovalStatus, ApprovalDecision, Heartbeat,
+    SimState, CancelGoal, GoalRef, CancelReply, ResetNotice, ApprovalStatus, ApprovalDecision, Heartbeat,
+    MemoryRestore,
 )
 MESSAGES_BY_SCHEMA: dict[str, type[Message]] = {m.full_schema_name(): m for m in MESSAGE_TYPES}

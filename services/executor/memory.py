@@ -80,6 +80,29 @@ class Memory:
         self.last_object = self.last_placement = None
         self._changed()
 
+    def restore(self, wm: WorkingMemory, task_id: str, shift_ns: int, now_ns: int) -> None:
+        """A recorded memory put back as `task_id`'s (a flight fork): every sighting is moved by `shift_ns`, so
+        it is as old now as it was when recorded, and detections of frames from before `now_ns` (the world before
+        the restore) are not let in. The last object and placement are the newest of each table."""
+        def moved(o: MemoryObject) -> MemoryObject:
+            return o.model_copy(update={"last_seen_ns": o.last_seen_ns + shift_ns}) if o.last_seen_ns else o
+
+        self.task_id = task_id
+        self.reset_ns = max(self.reset_ns, now_ns)
+        self.objects = {_norm(o.label): moved(o) for o in wm.objects}
+        self.placements = {_norm(o.label): moved(o) for o in wm.placements}
+        self.seen = {_norm(o.label): moved(o) for o in wm.seen}
+        self.visible = tuple(wm.visible)
+        self.executed = list(wm.executed)[-self._max_executed:]
+        held = self.objects.get(_norm(wm.held_object)) if wm.held_object else None
+        self.held, self.held_size = wm.held_object, held.size if held is not None else None
+
+        def newest(table: dict[str, MemoryObject]) -> str | None:
+            return max(table, key=lambda k: table[k].last_seen_ns) if table else None
+
+        self.last_object, self.last_placement = newest(self.objects), newest(self.placements)
+        self._changed()
+
     def record_executed(self, entry: str) -> None:
         self.executed.append(entry)
         del self.executed[:-self._max_executed]

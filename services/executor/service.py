@@ -30,6 +30,7 @@ from shared.messages import (
     HoldCommand,
     LandCommand,
     LandedState,
+    MemoryRestore,
     OutcomeCode,
     SkillAccept,
     SkillFacts,
@@ -380,6 +381,19 @@ class Executor:
         await self.handle_abort(Abort(reason=req.reason, source=req.source, task_id=goal.request.task_id or None))
         return CancelReply(accepted=True)
 
+    async def handle_restore_memory(self, req: MemoryRestore) -> CancelReply:
+        """A recorded working memory put back for a task that continues a recorded one (`aermani fork`): never
+        mid-skill, where a skill reads and writes it."""
+        goal = self.goal
+        if goal is not None:
+            return CancelReply(accepted=False, reason=f"skill {goal.request.skill} is running: working memory is not "
+                                                      "replaced mid-skill")
+        now = now_ns()
+        self.memory.restore(req.memory, req.task_id, now - req.taken_ns, now)
+        log.info("working memory restored for task %s: %d objects, %d placements, holding %s", req.task_id,
+                 len(req.memory.objects), len(req.memory.placements), req.memory.held_object or "nothing")
+        return CancelReply(accepted=True)
+
     # ---- inputs
 
     async def _pump_resets(self) -> None:
@@ -480,6 +494,7 @@ class Executor:
 
         self.bus.serve(self.keys.skills, skills)
         self.bus.serve(self.keys.check_skill, self.handle_check_skill)
+        self.bus.serve(self.keys.restore_memory, self.handle_restore_memory, concurrent=False)
         announce(self.bus, self.settings, "executor")  # alive once it answers: a restart's new token means ready
         log.info("executor serving %d skills: %s", len(self.skills), ", ".join(self.skills))
         try:

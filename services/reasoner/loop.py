@@ -36,6 +36,7 @@ from shared.messages import (
     LandedState,
     ModelCall,
     ReasoningStep,
+    ResumeStep,
     SkillAccept,
     SkillLibrary,
     SkillOutcome,
@@ -128,6 +129,12 @@ def policy_context(command: str, variant: str, library: SkillLibrary, history: H
                    for o in (*mem.seen, *mem.objects, *mem.placements)} if mem else {})
 
 
+def history_entry(r: ResumeStep) -> HistoryEntry:
+    """A recorded step as the History keeps it (a resumed task's, rereason's)."""
+    return HistoryEntry(r.step, r.skill, r.argument, r.state, r.message, r.perceived, r.summary, r.reasoning,
+                        r.outcome, r.image_description, r.prediction)
+
+
 CLOCK_STEP_S = 1.0
 """A wall-clock interval this much longer or shorter than the monotonic one over the same skill: the clock stepped."""
 
@@ -184,6 +191,11 @@ class TaskRunner:
         self.started_ns = now_ns()
         self.records: list[ReasoningStep] = []
         self._abort: asyncio.Event | None = None
+        self.resume = request.resume
+        if self.resume is not None:  # a flight fork: the recorded steps before its first one, as the loop kept them
+            for r in self.resume.history:
+                self.history.append(history_entry(r))
+            self.steps = self.resume.origin.step - 1
         self._override_ns = 0  # takeover seen when the task started (the bridge's; a new one ends the task)
         self._effect_ns = 0  # when the last skill ended (the executor's stamp): states before it predate its effect
 
@@ -191,7 +203,8 @@ class TaskRunner:
         return TaskStatus(vehicle_id=self.settings.vehicle_id, task_id=self.req.task_id, command=self.req.command,
                           state=state, message=message, steps=self.steps, model_calls=self.calls,
                           invalid_answers=self.invalid, backend=self.backend.name, variant=self.variant,
-                          started_ns=self.started_ns, ended_ns=0 if not state.terminal else now_ns())
+                          started_ns=self.started_ns, ended_ns=0 if not state.terminal else now_ns(),
+                          forked_from=self.resume.origin if self.resume is not None else None)
 
     async def run(self, abort: asyncio.Event) -> TaskStatus:
         """Run until done/failure/abort/T_max; always returns (and publishes) the terminal status."""
@@ -243,11 +256,14 @@ class TaskRunner:
         self.categories = {spec.name: spec.category for spec in library.skills}
         library = restrict_library(self.variant, library)  # waypoint: the motion primitives only
         compiler = PromptCompiler(self.variant, library, free_text_baselines=self.settings.free_text_baselines)
+        if self.variant == "plan_once" and self.resume is not None and self.resume.origin.step > 1:
+            return self.status(TaskState.FAILED, "a plan-once task cannot be forked after its first step: its plan "
+                                                 "is its first step's one answer; fork it at step 1")
         ended = await self._preflight(library)
         if ended is not None:
             return ended
         failed_in_row = 0
-        last_skill = S.TAKEOFF
+        last_skill = self.history.entries[-1].skill if self.history.entries else S.TAKEOFF
         last_end_ns = now_ns()  # the first observation must come after the take-off (not a stale grounded state)
         last_end = time.perf_counter()  # the same moment on the step-timing clock
         while True:

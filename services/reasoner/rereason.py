@@ -33,6 +33,7 @@ from shared.messages import (
     Detections,
     ModelCall,
     ReasoningStep,
+    ResumeStep,
     SkillLibrary,
     TaskStatus,
     VehicleState,
@@ -270,22 +271,33 @@ def _norm(arg: str | None) -> str:
     return " ".join((arg or "").lower().split())
 
 
-def _history_before(prompt_mod, steps: list[ReasoningStep], k: int, settings) -> Any:
-    """The reasoner's History after the recorded steps before index k, built as its loop builds it."""
-    history = prompt_mod.History(settings.history_full_steps, settings.history_max_chars)
-    for rec in steps[:k]:
+def resume_steps(steps: list[ReasoningStep]) -> list[ResumeStep]:
+    """The History's entries of recorded steps, as the loop appended them (a flight fork's `Resume.history`)."""
+    out: list[ResumeStep] = []
+    for rec in steps:
         if rec.ste is None:
             if not rec.calls and not rec.prompt:
                 continue  # a model outage record: the loop ended the task there
             err = rec.calls[-1].error if rec.calls else "no answer"
-            history.append(prompt_mod.HistoryEntry(rec.step, "(invalid answer)", None, "failed",
-                                                   f"no valid skill after {rec.retries} re-prompts: {err}; held"))
-        else:
-            state = rec.skill_state.value if rec.skill_state is not None else "failed"
-            history.append(prompt_mod.HistoryEntry(
-                rec.step, rec.ste.skill, rec.ste.argument, state, rec.skill_message,
-                rec.outcome.perceived if rec.outcome else "", (rec.drt.summary if rec.drt else None) or "",
-                (rec.drt.reasoning if rec.drt else None) or "", rec.outcome))
+            out.append(ResumeStep(step=rec.step, skill="(invalid answer)", state="failed",
+                                  message=f"no valid skill after {rec.retries} re-prompts: {err}; held"))
+            continue
+        drt = rec.drt
+        out.append(ResumeStep(
+            step=rec.step, skill=rec.ste.skill, argument=rec.ste.argument,
+            state=rec.skill_state.value if rec.skill_state is not None else "failed", message=rec.skill_message,
+            perceived=rec.outcome.perceived if rec.outcome else "", summary=(drt.summary if drt else None) or "",
+            reasoning=(drt.reasoning if drt else None) or "", outcome=rec.outcome,
+            image_description=(drt.image_description if drt else None) or "",
+            prediction=((drt.action_predictions or {}).get(rec.ste.skill, "") if drt else "")))
+    return out
+
+
+def _history_before(loop_mod, prompt_mod, steps: list[ReasoningStep], k: int, settings) -> Any:
+    """The reasoner's History after the recorded steps before index k, built as its loop builds it."""
+    history = prompt_mod.History(settings.history_full_steps, settings.history_max_chars)
+    for r in resume_steps(steps[:k]):
+        history.append(loop_mod.history_entry(r))
     return history
 
 
@@ -332,14 +344,14 @@ def observed_steps(index: LogIndex, task: RecordedTask,
     for every recorded step of `task`: the observation rebuilt as `rereason_log` rebuilds it (None for a model
     outage record, which observed nothing). For tools that set a step's words beside what was measured."""
     mods = _reasoner()
-    prompt_mod, reasoner_settings = mods[4], mods[5]
+    loop_mod, prompt_mod, reasoner_settings = mods[2], mods[4], mods[5]
     settings = settings or reasoner_settings()
     out: list[tuple[ReasoningStep, Any, bool | None]] = []
     for k, rec in enumerate(task.steps):
         if not rec.prompt and not rec.calls:
             out.append((rec, None, None))
             continue
-        history = _history_before(prompt_mod, task.steps, k, settings)
+        history = _history_before(loop_mod, prompt_mod, task.steps, k, settings)
         obs, exact = _observation(index, prompt_mod, task.vehicle_id, rec, history, rec.prompt.get("history"))
         out.append((rec, obs, exact))
     return out
@@ -397,7 +409,7 @@ async def rereason_log(path: str | Path, *, backend: str = "rules", variant: str
     """Re-run every recorded decision of `path` (or of one task) with another backend and/or variant.
     `backend_obj` (any reasoner Backend) overrides `backend`, e.g. a scripted policy in tests."""
     mods = _reasoner()
-    _backends, library_mod, _loop, _parse, prompt_mod, reasoner_settings = mods
+    _backends, library_mod, loop_mod, _parse, prompt_mod, reasoner_settings = mods
     if variant is not None and variant not in prompt_mod.PROMPT_PARTS:
         raise RereasonError(f"unknown variant {variant!r}; use one of {', '.join(prompt_mod.PROMPT_PARTS)}")
     index = LogIndex(path)
@@ -416,7 +428,7 @@ async def rereason_log(path: str | Path, *, backend: str = "rules", variant: str
             for k, rec in enumerate(task.steps):
                 if not rec.prompt and not rec.calls:
                     continue  # a model outage record: no decision was taken
-                history = _history_before(prompt_mod, task.steps, k, settings)
+                history = _history_before(loop_mod, prompt_mod, task.steps, k, settings)
                 # The History part does not depend on the variant, so the recorded one is the reference.
                 want = rec.prompt.get("history")
                 obs, exact = _observation(index, prompt_mod, task.vehicle_id, rec, history, want)

@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import logging
 import math
 import time
 from collections import deque
+from pathlib import Path
 
 import numpy as np
 
@@ -15,11 +17,12 @@ from services.sim.core import SimCore
 from services.sim.mavlink_server import LinkSettings, MavlinkServer
 from services.sim.render_worker import FrameEncoder, RenderWorker
 from services.sim.settings import SimSettings
-from services.sim.vehicle import realism_params
+from services.sim.snapshot import SnapshotError
+from services.sim.vehicle import VehicleParams, realism_params
 from shared.bus import Bus
 from shared.errors import ConfigError
 from shared.frames import DEFAULT_INTRINSICS, Mount
-from shared.messages import Health, JudgeRequest, ResetNotice, Scenario, SimLabels, now_ns
+from shared.messages import Health, JudgeRequest, ResetNotice, Scenario, SimLabels, SimState, now_ns
 from shared.sensors import (
     BODY_FRAME,
     CAMERA_FRAME,
@@ -55,13 +58,31 @@ def check_airframe(settings: SimSettings) -> None:
                           f"but AERMANI_MOUNT_* says {settings.mount}; unset AERMANI_MOUNT_* when flying the simulator")
 
 
+def restored(settings: SimSettings, params: VehicleParams) -> SimCore:
+    """The world of AERMANI_SIM_RESTORE (a `sim/state` sample as JSON): refused with the reason when it cannot be
+    read, or was captured from another world (services.sim.snapshot)."""
+    path = Path(settings.restore or "")
+    try:
+        sample = SimState.model_validate_json(path.read_bytes())
+        core = SimCore.from_capture(json.loads(sample.state), params)
+    except (OSError, ValueError, SnapshotError) as exc:
+        raise ConfigError(f"AERMANI_SIM_RESTORE={path}: cannot restore the simulator from it: {exc}") from exc
+    log.info("restored the world of task %s after step %d (%s) from %s: the vehicle %s in %s", sample.task_id,
+             sample.step, sample.skill or "?", path, "armed" if core.vehicle.armed else "disarmed",
+             core.vehicle.mode_name)
+    return core
+
+
 def build(settings: SimSettings) -> tuple[SimCore, MavlinkServer]:
     check_airframe(settings)
     params = realism_params(settings.realism, takeoff_alt=settings.takeoff_alt,
                             offboard_loss_timeout=settings.offboard_loss_timeout,
                             failsafe_land_delay=settings.failsafe_land_delay, seed=settings.seed,
                             hover_offset=settings.hover_offset)
-    core = SimCore(scenario_from(settings), params, realism=settings.realism, dynamics=settings.dynamics)
+    if settings.restore:
+        core = restored(settings, params)
+    else:
+        core = SimCore(scenario_from(settings), params, realism=settings.realism, dynamics=settings.dynamics)
     links = [LinkSettings("api", settings.api_local_port, settings.api_host, settings.api_port, settings.bind_host)]
     if settings.gcs_enabled:
         links.append(LinkSettings("gcs", settings.gcs_local_port, settings.gcs_host, settings.gcs_port,
@@ -307,6 +328,25 @@ def _world_fault(req: dict, unit: str, kind: str, camera: CameraPublisher) -> di
     return {"ok": True, "unit": unit, "type": kind}
 
 
+async def publish_snapshots(bus: Bus, core: SimCore, settings: SimSettings) -> None:
+    """`sim/state` at the end of every skill of a task: the world before the task's next step, where a flight
+    fork starts. The capture takes about a millisecond under the lock, between two physics ticks."""
+    keys = settings.keys
+    statuses = bus.subscribe(keys.skill_status, maxsize=64)
+    while True:
+        st = await statuses.recv()
+        if not st.state.terminal or not st.task_id:
+            continue
+        try:
+            doc = core.capture()
+        except Exception:  # a capture that fails is a missing fork point, never a stopped simulator
+            log.exception("capturing the simulator state after %s failed", st.skill)
+            continue
+        bus.publish(keys.sim_state, SimState(task_id=st.task_id, step=st.step, skill=st.skill,
+                                             sim_time_s=float(doc["world"]["sim_time"]),
+                                             state=json.dumps(doc, separators=(",", ":"))))
+
+
 async def run(bus: Bus, settings: SimSettings, stop: asyncio.Event, *, core: SimCore | None = None,
               server: MavlinkServer | None = None) -> None:
     if core is None or server is None:
@@ -349,11 +389,16 @@ async def run(bus: Bus, settings: SimSettings, stop: asyncio.Event, *, core: Sim
     bus.serve(keys.sim_fault, fault)
     bus.serve(keys.sim_reset, reset, concurrent=False)
     bus.serve(keys.sim_stats, stats)
+    snapshots = asyncio.create_task(publish_snapshots(bus, core, settings)) if settings.snapshots else None
     announce(bus, settings, "sim")
     log.info("sim ready: scenario %s", core.scenario.model_dump_json())
     try:
         await camera.run(stop)
     finally:
+        if snapshots is not None:
+            snapshots.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await snapshots
         server.stop()
         await asyncio.to_thread(camera.close)
 

@@ -29,6 +29,15 @@ class SimSettings(ServiceSettings):
     target_out_of_view: bool = False
     """Place the target outside the initial camera view."""
 
+    restore: str | None = None
+    """A recorded simulator state to start from instead of the initial scenario: a file holding one `sim/state`
+    sample (JSON, as `aermani fork` writes it). The room is rebuilt from the scenario it was generated from and
+    everything else is restored: objects, the vehicle in the air (in Hold where it flew), the gripper and what it
+    holds, the estimator's and the disturbances' random states. Empty: the initial scenario."""
+    snapshots: bool = True
+    """Publish the whole state on `sim/state` whenever a skill ends (about 12 kB each): the points a recorded
+    flight can be forked at (`aermani fork LOG --step K`)."""
+
     camera: bool = True
     """Publish the simulated camera (colour, depth, segmentation, calibration) and tf. Off when a camera service
     owns those keys (drone-side tests, `aermani up` with AERMANI_CAMERA_SOURCE set): the simulator then only
@@ -127,7 +136,7 @@ class SimSettings(ServiceSettings):
             return tuple(float(x) for x in parts)
         return v
 
-    @field_validator("target_object", "destination", mode="before")
+    @field_validator("target_object", "destination", "restore", mode="before")
     @classmethod
     def _empty(cls, v: object) -> object:
         return None if isinstance(v, str) and not v.strip() else v

@@ -31,3 +31,29 @@ def test_detections_of_frames_before_a_reset_are_not_let_back_in() -> None:
     mem.world_reset(reset_ns=1_000)
     mem.set_visible(_dets(1_800, "red cup"))
     assert mem.snapshot().seen == ()
+
+
+def test_a_restored_memory_keeps_each_sighting_s_age_and_is_the_task_s() -> None:
+    """A flight fork puts the recorded memory back: each entry as old as it was when recorded, the held object
+    with its size, the newest entries as the last ones, and the fork's first skill does not clear it."""
+    from shared.messages import MemoryObject, WorkingMemory
+
+    def obj(label: str, seen_ns: int) -> MemoryObject:
+        return MemoryObject(label=label, position=Vec3(x=1.0), size=Vec3(x=0.08, y=0.08, z=0.11),
+                            last_seen_ns=seen_ns)
+
+    recorded = WorkingMemory(objects=(obj("red cup", 9_000), obj("banana", 7_000)), placements=(obj("table", 9_500),),
+                             seen=(obj("red cup", 9_900),), held_object="red cup", visible=("table",),
+                             executed=("obj_localization(red cup)", "grasp(red cup)"))
+    mem = Memory()
+    mem.restore(recorded, "task-fork", shift_ns=1_000_000 - 10_000, now_ns=1_000_000)
+    mem.begin_task("task-fork")  # the fork's first skill
+    snap = mem.snapshot()
+    assert {o.label: o.last_seen_ns for o in snap.objects} == {"red cup": 999_000, "banana": 997_000}
+    assert snap.placements[0].last_seen_ns == 999_500 and snap.held_object == "red cup"
+    assert mem.held_size == Vec3(x=0.08, y=0.08, z=0.11) and snap.executed == recorded.executed
+    assert mem.find_object(None).label == "red cup" and mem.find_placement(None).label == "table"
+    mem.set_visible(_dets(999_999, "apple"))  # a frame from before the restore: the world before it
+    assert "apple" not in {o.label for o in mem.snapshot().seen}
+    mem.begin_task("task-next")  # another task starts clean, as ever; only the held object carries over
+    assert mem.snapshot().objects == () and mem.snapshot().held_object == "red cup"

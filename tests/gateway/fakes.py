@@ -81,6 +81,7 @@ class FakeVehicle:
         self.bus.serve(self.keys.decide_approval, self._decide)
         if "executor" in self.services:
             self.bus.serve(self.keys.skills, self._skills)
+            self.bus.serve(self.keys.restore_memory, self._restore_memory)
         self._tasks += [asyncio.create_task(self._aborts(self.bus.subscribe(key))) for key in (self.keys.abort,
                                                                                                 FLEET_ABORT)]
         self._tasks.append(asyncio.create_task(self._publish_sensors()))
@@ -110,6 +111,9 @@ class FakeVehicle:
             handle.publish(st)
         else:
             self.action.publish(st)
+
+    async def _restore_memory(self, req: object) -> CancelReply:
+        return CancelReply(accepted=False, reason="this stand-in executor keeps no working memory to restore")
 
     async def _skills(self, _req: object) -> SkillLibrary:
         from services.reasoner.library import default_library

@@ -218,8 +218,12 @@ async def serve_executor(bus: Bus, world: MiniWorld, keys: Keys, *, skill_delay:
     async def cancel_skill(handle: ServerGoalHandle[SkillRequest, SkillStatus], req: CancelGoal) -> CancelReply:
         return CancelReply(accepted=False, reason=f"goal {req.goal_id} cannot be cancelled (skills here end at once)")
 
+    async def restore_memory(req: object) -> CancelReply:
+        return CancelReply(accepted=False, reason="this stand-in's memory is its MiniWorld's; it takes no recorded one")
+
     bus.serve(keys.skills, skills)
     bus.serve(keys.check_skill, check)
+    bus.serve(keys.restore_memory, restore_memory)
     ActionServer(bus, SKILL_ACTION, keys.vehicle_id, goal_callback=accept, execute_callback=execute,
                  cancel_callback=cancel_skill).start()
 

@@ -50,6 +50,8 @@ def example(cls: type[m.Message], i: int = 0) -> m.Message:
         m.JudgeRequest: lambda: m.JudgeRequest(),
         m.JudgeResult: lambda: m.JudgeResult(held="red cup", checks=(m.JudgeCheck(name="hold", ok=i % 2 == 0),)),
         m.SimResetResult: lambda: m.SimResetResult(ok=True),
+        m.SimState: lambda: m.SimState(task_id="t", step=i, skill="forward", state='{"format": 1}'),
+        m.MemoryRestore: lambda: m.MemoryRestore(task_id="t", memory=m.WorkingMemory(), taken_ns=1 + i),
         m.CancelGoal: lambda: m.CancelGoal(goal_id=f"g{i}"),
         m.GoalRef: lambda: m.GoalRef(goal_id=f"g{i}"),
         m.CancelReply: lambda: m.CancelReply(accepted=True),

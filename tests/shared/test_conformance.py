@@ -21,7 +21,7 @@ def test_declarations_name_what_each_service_does():
     topics, queries = declared_by("executor")
     assert {t.name for t in topics} >= {"executor/skill_status", "executor/memory", "safety/abort_ack"}
     assert {q.name for q in queries} == {"executor/run_skill", "executor/check_skill", "executor/cancel_skill",
-                                         "executor/skill_result", "executor/skills"}
+                                         "executor/skill_result", "executor/skills", "executor/restore_memory"}
     topics, queries = declared_by("reasoner")
     assert {q.name for q in queries} == {"reasoner/start_task", "reasoner/cancel_task", "reasoner/task_result",
                                          "reasoner/decide_approval"}
