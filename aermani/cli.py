@@ -15,7 +15,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from aermani import demo, probe
+from aermani import demo, fork, probe
 from aermani.evaluation import cli as evaluation_cli
 from aermani.launcher import OPTIONAL, SERVICE_ORDER, Stack, available_services, default_services
 from shared.text import terminal_text
@@ -276,6 +276,7 @@ def _register_commands() -> None:
         if register is not None:
             register(app)
     demo.register(app)
+    fork.register(app)
     evaluation_cli.register(app)
     vlm = next((g.typer_instance for g in app.registered_groups if g.name == "vlm"), None)
     if vlm is not None:  # the probe checks an endpoint the way the reasoner uses it: only with the reasoner

@@ -152,12 +152,26 @@ def run_demo(command: str, scenario, accepted: tuple[str, ...], *, env: dict[str
              result: dict | None = None) -> int:
     """Start the stack, run one task, print the verdict; returns the exit code (0 = success). `result`, when
     given, receives the final TaskStatus, the ReasoningSteps and the judge's verdict."""
+    from pydantic import TypeAdapter
+
+    # read as the bridge reads it (pydantic's bool: 1/true/yes/on...), from what the bridge will be given
+    override = TypeAdapter(bool).validate_python(
+        {**os.environ, **env}.get("AERMANI_AUTOPILOT_BRIDGE_PREFLIGHT_OVERRIDE") or "false")
+    return run_on_stack(lambda stack: _demo_task(stack, command, scenario, accepted, t_max,
+                                                 {} if result is None else result, override_preflight=override),
+                        env=env, log_dir=log_dir, services=services)
+
+
+def run_on_stack(body, *, env: dict[str, str], log_dir: Path | None = None,
+                 services: tuple[str, ...] = DEMO_SERVICES, what: str = "demo") -> int:
+    """Start the embedded stack (`services`, MAVLink on loopback), run `body(stack)` (a coroutine giving the exit
+    code) and stop the stack whatever happens; the exit code (2: this checkout lacks a service)."""
     from aermani.launcher import Stack, available_services, loopback_mavlink_env
 
     have = available_services()
     missing = [s for s in services if s not in have and s != "recorder"]
     if missing:
-        console.print(f"[red]this checkout lacks services {terminal_text(missing)}; cannot run the demo[/red]")
+        console.print(f"[red]this checkout lacks services {terminal_text(missing)}; cannot run the {what}[/red]")
         return 2
     names = [s for s in services if s in have]
     stack = Stack(names, env=loopback_mavlink_env(env), log_dir=log_dir)
@@ -166,18 +180,12 @@ def run_demo(command: str, scenario, accepted: tuple[str, ...], *, env: dict[str
     try:
         stack.start(wait=True, timeout=180)
         console.print(f"stack up in {time.monotonic() - t0:.1f} s")
-        from pydantic import TypeAdapter
-
-        # read as the bridge reads it (pydantic's bool: 1/true/yes/on...), from what the bridge will be given
-        override = TypeAdapter(bool).validate_python(
-            {**os.environ, **env}.get("AERMANI_AUTOPILOT_BRIDGE_PREFLIGHT_OVERRIDE") or "false")
-        return asyncio.run(_demo_task(stack, command, scenario, accepted, t_max, {} if result is None else result,
-                                      override_preflight=override))
+        return asyncio.run(body(stack))
     except KeyboardInterrupt:
         console.print("[yellow]interrupted[/yellow]")
         return 130
     except Exception as exc:
-        console.print(f"[red]demo failed: {type(exc).__name__}: {terminal_text(exc)}[/red]")
+        console.print(f"[red]{what} failed: {type(exc).__name__}: {terminal_text(exc)}[/red]")
         return 1
     finally:
         stack.stop()
@@ -209,19 +217,15 @@ async def _preflight_passes(bus, keys, override: bool) -> bool:
 
 async def _demo_task(stack, command: str, scenario, accepted: tuple[str, ...], t_max: float, result: dict,
                      override_preflight: bool = False) -> int:
-    from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
-
     from shared.bus import Bus, query_ready
     from shared.keys import Keys
     from shared.messages import TaskRequest
-    from shared.tasks import follow_task, judge_episode
 
     keys = Keys(stack.procs[0].vehicle_id)
     bus = await Bus.open(connect=[stack.endpoint])
     try:
         health = bus.subscribe(keys.health("recorder"), maxsize=5)
-        perception_health = bus.subscribe(keys.health("perception"), maxsize=5)
-        sim_health = bus.subscribe(keys.health("sim"), maxsize=5)
+        reports = _config_reports(bus, keys)
         reset = await query_ready(bus, keys.sim_reset, scenario, timeout=30)
         if not reset.ok:
             console.print(f"[red]the simulator refused the scenario: {terminal_text(reset.message)} (use --target/"
@@ -231,67 +235,89 @@ async def _demo_task(stack, command: str, scenario, accepted: tuple[str, ...], t
         sc = reset.scenario or scenario
         console.print(f"scenario: seed {sc.seed}, target {terminal_text(sc.target_object)}, destination "
                       f"{terminal_text(sc.destination)}")
-        # What actually runs, from the services' own health reports (not from what was asked for).
-        seg, real = "unknown", "unknown"
-        with contextlib.suppress(TimeoutError):
-            seg = str((await perception_health.recv(timeout=10)).details.get("segmenter", "unknown"))
-        with contextlib.suppress(TimeoutError):
-            real = str((await sim_health.recv(timeout=10)).details.get("realism", "unknown"))
-        note = " (ground-truth oracle: the simulator's masks, not real perception)" if seg == "sim" else ""
-        console.print(f"perception: {terminal_text(seg)}{note}")
-        console.print(f"simulator: MuJoCo physics, realism {terminal_text(real)}")
-        result.update(segmenter=seg, realism=real)
+        await _print_config(reports, result)
         if not await _preflight_passes(bus, keys, override=override_preflight):
             result["preflight"] = "refused"
             return 2
-        console.print(f"[bold]task:[/bold] {terminal_text(command)}")
-        request = TaskRequest(command=command, t_max_s=t_max)
-        with Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(), console=console,
-                      transient=True) as progress:
-            bar = progress.add_task("waiting for the first step...", total=None)
-
-            def on_step(s) -> None:
-                call = (f"{s.ste.skill}({s.ste.argument})" if s.ste and s.ste.argument else
-                        (s.ste.skill if s.ste else "(no valid answer)"))
-                why = (s.drt.reasoning or s.drt.summary or "") if s.drt else ""
-                retries = f" [yellow]{s.retries} re-prompt(s)[/yellow]" if s.retries else ""
-                state = s.skill_state.value if s.skill_state else "-"
-                color = "green" if state == "succeeded" else "red"
-                console.print(f"  {s.step:>3} {terminal_text(call):<38} [{color}]{state:<9}[/{color}]{retries} "
-                              f"[dim]{terminal_text(why[:90])}[/dim]")
-                progress.update(bar, description=f"step {s.step} done; thinking...")
-
-            followed = await follow_task(bus, keys, request, on_step=on_step, timeout=t_max + 60)
-        accept, final, steps = followed.accept, followed.final, followed.steps
-        if not accept.accepted:
-            console.print(f"[red]the reasoner refused the task: {terminal_text(accept.reason)}[/red]")
-            return 1
-        if final is None:
-            console.print(f"[red]the task did not end within {t_max + 60:.0f} s[/red]")
-            return 1
-        calls = final.model_calls or 1
-        console.print(f"task {final.state.value}: {terminal_text(final.message)} ({final.steps} steps, "
-                      f"{final.model_calls} model calls, IAR {100 * final.invalid_answers / calls:.1f} %)")
         # Judge what the command asked: the simulator fills in a destination for every layout, but a command
         # without one ("pick up the tissue box") succeeds when the object is held.
         objects = accepted or ((sc.target_object,) if sc.target_object else ())
-        verdict_ = await judge_episode(bus, keys, objects, sc.destination if scenario.destination else None)
-        ok, verdict = verdict_.success, verdict_.message
-        console.print(("[bold green]SUCCESS[/bold green]" if ok else "[bold red]FAILURE[/bold red]") +
-                      f" (simulator judge: {terminal_text(verdict)})")
-        log_path = None
-        try:
-            h = health.latest_nowait() or await health.recv(timeout=3)
-            log_path = h.details.get("path")
-        except TimeoutError:
-            pass
-        result.update(final=final, steps=steps, success=ok, verdict=verdict, log=log_path)
-        console.print(f"log: {terminal_text(log_path)}" if log_path else
-                      "log: no recorder running (no MCAP log written)")
-        console.print(f"service logs: {stack.log_dir}")
-        return 0 if ok and final.state.value == "succeeded" else 1
+        return await run_and_judge(bus, keys, TaskRequest(command=command, t_max_s=t_max), objects,
+                                   sc.destination if scenario.destination else None, result, health, stack)
     finally:
         await bus.close()
+
+
+def _config_reports(bus, keys):
+    """Subscriptions to the health reports that say what actually runs (opened before anything is asked)."""
+    return bus.subscribe(keys.health("perception"), maxsize=5), bus.subscribe(keys.health("sim"), maxsize=5)
+
+
+async def _print_config(reports, result: dict) -> None:
+    """What actually runs, from the services' own health reports (not from what was asked for)."""
+    perception_health, sim_health = reports
+    seg, real = "unknown", "unknown"
+    with contextlib.suppress(TimeoutError):
+        seg = str((await perception_health.recv(timeout=10)).details.get("segmenter", "unknown"))
+    with contextlib.suppress(TimeoutError):
+        real = str((await sim_health.recv(timeout=10)).details.get("realism", "unknown"))
+    note = " (ground-truth oracle: the simulator's masks, not real perception)" if seg == "sim" else ""
+    console.print(f"perception: {terminal_text(seg)}{note}")
+    console.print(f"simulator: MuJoCo physics, realism {terminal_text(real)}")
+    result.update(segmenter=seg, realism=real)
+
+
+async def run_and_judge(bus, keys, request, objects: tuple[str, ...], destination: str | None, result: dict,
+                        recorder_health, stack) -> int:
+    """Send the task, stream its steps, judge it with the simulator's ground truth (`objects` held, or placed on
+    `destination`) and say where its log is; the exit code (0 = the task succeeded and the judge agrees)."""
+    from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+
+    from shared.tasks import follow_task, judge_episode
+
+    t_max = request.t_max_s or 600.0
+    console.print(f"[bold]task:[/bold] {terminal_text(request.command)}")
+    with Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(), console=console,
+                  transient=True) as progress:
+        bar = progress.add_task("waiting for the first step...", total=None)
+
+        def on_step(s) -> None:
+            call = (f"{s.ste.skill}({s.ste.argument})" if s.ste and s.ste.argument else
+                    (s.ste.skill if s.ste else "(no valid answer)"))
+            why = (s.drt.reasoning or s.drt.summary or "") if s.drt else ""
+            retries = f" [yellow]{s.retries} re-prompt(s)[/yellow]" if s.retries else ""
+            state = s.skill_state.value if s.skill_state else "-"
+            color = "green" if state == "succeeded" else "red"
+            console.print(f"  {s.step:>3} {terminal_text(call):<38} [{color}]{state:<9}[/{color}]{retries} "
+                          f"[dim]{terminal_text(why[:90])}[/dim]")
+            progress.update(bar, description=f"step {s.step} done; thinking...")
+
+        followed = await follow_task(bus, keys, request, on_step=on_step, timeout=t_max + 60)
+    accept, final, steps = followed.accept, followed.final, followed.steps
+    if not accept.accepted:
+        console.print(f"[red]the reasoner refused the task: {terminal_text(accept.reason)}[/red]")
+        return 1
+    if final is None:
+        console.print(f"[red]the task did not end within {t_max + 60:.0f} s[/red]")
+        return 1
+    calls = final.model_calls or 1
+    console.print(f"task {final.state.value}: {terminal_text(final.message)} ({final.steps} steps, "
+                  f"{final.model_calls} model calls, IAR {100 * final.invalid_answers / calls:.1f} %)")
+    verdict_ = await judge_episode(bus, keys, objects, destination)
+    ok, verdict = verdict_.success, verdict_.message
+    console.print(("[bold green]SUCCESS[/bold green]" if ok else "[bold red]FAILURE[/bold red]") +
+                  f" (simulator judge: {terminal_text(verdict)})")
+    log_path = None
+    try:
+        h = recorder_health.latest_nowait() or await recorder_health.recv(timeout=3)
+        log_path = h.details.get("path")
+    except TimeoutError:
+        pass
+    result.update(final=final, steps=steps, success=ok, verdict=verdict, log=log_path)
+    console.print(f"log: {terminal_text(log_path)}" if log_path else
+                  "log: no recorder running (no MCAP log written)")
+    console.print(f"service logs: {stack.log_dir}")
+    return 0 if ok and final.state.value == "succeeded" else 1
 
 
 def register(app: typer.Typer) -> None:
