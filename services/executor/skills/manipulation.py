@@ -84,10 +84,11 @@ class Target:
     top: float
     size: Vec3 | None
     yaw: float
+    seen_ns: int = 0  # the stamp of the frame it was detected in (0: from memory)
 
     @classmethod
     def of(cls, mo: MemoryObject) -> Target:
-        return cls(mo.position, _top(mo), mo.size, mo.yaw)
+        return cls(mo.position, _top(mo), mo.size, mo.yaw, mo.last_seen_ns)
 
 
 @dataclass
@@ -122,6 +123,14 @@ def gripper_xy(ctx: SkillContext, st: VehicleState) -> tuple[float, float]:
     gx, gy, _gz = ctx.settings.mount.gripper_offset
     c, s = math.cos(st.yaw), math.sin(st.yaw)
     return st.position.x + c * gx - s * gy, st.position.y + s * gx + c * gy
+
+
+def blind_note(ctx: SkillContext, label: str, target: Target) -> None:
+    """Note how long the gripper closes after the frame of the last detection it aims by: over that interval
+    the estimate's own drift is what the offset cannot see (vehicle and object share the estimate)."""
+    if target.seen_ns:
+        ctx.note(f"closing {(time.time_ns() - target.seen_ns) / 1e9:.1f} s after the frame of the last "
+                 f"detection of the {label}")
 
 
 def body_for(ctx: SkillContext, x: float, y: float, z: float, yaw: float) -> Vec3:
@@ -431,7 +440,7 @@ class Grasp(_Manipulation):
             assert est.pose is not None
             seen += 1
             new = Target(est.pose.position, est.top_z if est.top_z is not None else target.top,
-                         est.size or target.size, est.pose.yaw)
+                         est.size or target.size, est.pose.yaw, est.frame_stamp_ns)
             step = horizontal_distance(new.position, target.position)
             if step > s.max_object_shift:
                 raise AttemptFailed(OutcomeCode.KNOCKED_OVER, f"re-detected {step:.2f} m from where it stood",
@@ -468,7 +477,7 @@ class Grasp(_Manipulation):
         ctx.memory.store_object(est, query)
         why = _on_surface(est, before, s.knock_shift)
         new = Target(est.pose.position, est.top_z if est.top_z is not None else before.top, est.size or before.size,
-                     est.pose.yaw)
+                     est.pose.yaw, est.frame_stamp_ns)
         if why:
             raise AttemptFailed(OutcomeCode.KNOCKED_OVER, f"the attempt moved it: {why}, now at "
                                 f"{fmt(est.pose.position)}", final=True, target=new)
@@ -522,6 +531,7 @@ class Grasp(_Manipulation):
             new = await self.relook(ctx, query, label, target, yaw, hover_z)
             raise AttemptFailed(OutcomeCode.MISALIGNED, f"the gripper stayed {100 * off:.1f} cm from the {label} at "
                                 "grasp height, outside the window", target=new)
+        blind_note(ctx, label, target)
         await ctx.gripper("close")
         st = ctx.current()
         sensed = st.gripper_width is not None
