@@ -138,7 +138,8 @@ class ExecutorSettings(ServiceSettings):
     pregrasp_height: float = 0.12
     """Pre-grasp pose: the gripper point this far above the object's top, metres."""
     hover_clearance: float = 0.03
-    """The finger pads pass this far above the object's top on the last (blind) leg over it, metres."""
+    """After a failed attempt the finger pads climb this far above the object's top before backing off to look
+    at it again (clear of whatever the attempt left standing or lying between them), metres."""
     grasp_window_x: float = 0.018
     """Closing is allowed only with the gripper point within this of the object along the pad width (body x;
     the pads are 5 cm wide: +-2.5 cm lifts), metres."""
