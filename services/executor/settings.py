@@ -110,6 +110,9 @@ class ExecutorSettings(ServiceSettings):
     """Place starts only for a placement spot within this horizontal distance, metres (not yet from a measured
     curve: the placement estimate is re-used as is, and the rules baseline approaches a surface by where it
     saw it, not by the spot)."""
+    camera_min_depth: float = 0.2
+    """Nearest depth the RGB-D camera measures, metres (the simulator's stereo model: services/sim/render.py
+    MIN_DEPTH_M): grasp's last view of an object keeps its near top edge beyond it."""
     gripper_max_opening: float = 0.18
     """Widest opening of the gripper's fingers, metres: objects wider across their narrow side are refused."""
     final_descent_speed: float = 0.1

@@ -31,6 +31,9 @@ from shared.messages import (
 PAD_BELOW_M = 0.03  # the finger pads reach this far below the gripper point (plus a few mm of margin)
 PAD_HALF_M = 0.025  # the finger pads reach this far ahead of and behind the gripper point (5 cm wide)
 VIEW_MARGIN_DEG = 2.0  # the last view keeps the object this far above the image's lowest row (a hover's tilt)
+SIDE_MARGIN_M = 0.03  # room an open pad needs beside the object to pass along it (2 sigma of the measured
+# sideways error at the close on mr-realistic: 1.5 cm RMS over 16 closes); less, the pads come down from above
+TOP_SHIFT_M = 0.04  # the last view's top moves the gripper's height by at most this (beyond: a bad detection)
 ROUND_TOLERANCE_M = 0.015  # footprint sides closer than this: a round object, any yaw grasps it
 LIFT_M = 0.15  # the first lift after closing: enough to clear the surface, low enough to fall back softly
 TRACK_ITERATIONS = 4  # close-range re-localizations per tracked pose before going on with the newest one
@@ -288,9 +291,11 @@ class Grasp(_Manipulation):
 
     name = names.GRASP
     description = ("Pick up the localized object: re-localize it from a standoff {s.standoff_distance:g} m away, "
-                   "then from a pre-grasp pose {s.pregrasp_backoff:g} m behind it and again from close behind it "
-                   "at grasp height, move in and close the gripper as soon as aligned with it, verify the hold (finger contact and width, the "
-                   "spot empty afterwards), retry up to {s.grasp_attempts} attempts, and retreat to "
+                   "then from a pre-grasp pose {s.pregrasp_backoff:g} m behind it and again from close behind it, "
+                   "move in (the pads along its sides at grasp height, or over a wide one and down) and close "
+                   "the gripper as soon as aligned with it, verify the hold "
+                   "(finger contact and width, the spot empty afterwards), retry up to {s.grasp_attempts} attempts, "
+                   "and retreat to "
                    "{s.flight_altitude:g} m. Needs a recent obj_localization of the object.")
     argument = "object label (optional; defaults to the last localized object)"
 
@@ -468,22 +473,41 @@ class Grasp(_Manipulation):
                                 f"{fmt(target.position)}", final=True)
         return target, raw
 
-    def final_view(self, size: Vec3 | None, below: float) -> float:
-        """The nearest the gripper point comes behind the object at grasp height with the whole object still in
-        the image: the camera (mount: ahead of and above the gripper point, pitched down) loses the near bottom
-        edge of the object (`below` under the gripper point, half its length along body x ahead of the object's
-        centre) past the image's lowest row, VIEW_MARGIN_DEG before it for the vehicle's tilt. Nearer, a
-        detection is cut off at the image's bottom and biased; the rest of the way to the object is blind."""
+    def final_view(self, size: Vec3 | None, top: float, bottom: float) -> float:
+        """The nearest the gripper point comes behind the object (along body x, to its centre) with the object
+        still measured whole, its top `top` and its bottom `bottom` above the gripper point (negative: below).
+        Two limits, from the mount (the camera ahead of and above the gripper point, pitched down): the near
+        bottom edge (half its length ahead of its centre) must stay above the image's lowest row, by
+        VIEW_MARGIN_DEG for the vehicle's tilt, and the near top edge beyond the camera's nearest depth
+        (`camera_min_depth` + 1 cm). Nearer, a detection is cut off at the image's bottom and biased, or its
+        top loses its depth and reads low (a can seen from 0.26 m: its top 4 cm low, a view 2 cm lower 6 cm);
+        the rest of the way to the object is blind."""
         s = self.settings
         m, intr = s.mount, DEFAULT_INTRINSICS
         cam_x = m.camera_offset[0] - m.gripper_offset[0]
         cam_up = m.camera_offset[2] - m.gripper_offset[2]
         half = (max(size.x, size.y) if size is not None else 0.1) / 2
-        lowest = math.radians(m.camera_pitch_deg - VIEW_MARGIN_DEG) + math.atan((intr.height - 1 - intr.cy) / intr.fy)
+        pitch = math.radians(m.camera_pitch_deg)
+        lowest = pitch - math.radians(VIEW_MARGIN_DEG) + math.atan((intr.height - 1 - intr.cy) / intr.fy)
         near = half + PAD_HALF_M + 0.02  # never closer than the pads' front edge 2 cm behind the object
-        if lowest >= math.radians(89.0):
-            return min(max(near, cam_x + half), s.pregrasp_backoff)
-        return min(max(near, cam_x + half + (cam_up + below) / math.tan(lowest)), s.pregrasp_backoff)
+        if lowest < math.radians(89.0):
+            near = max(near, cam_x + half + (cam_up - bottom) / math.tan(lowest))
+        if math.cos(pitch) > 0.05:
+            # z-depth of a point d ahead of and h below the camera: d cos(pitch) + h sin(pitch)
+            ahead = (s.camera_min_depth + 0.01 - (cam_up - top) * math.sin(pitch)) / math.cos(pitch)
+            near = max(near, cam_x + half + ahead)
+        return min(near, s.pregrasp_backoff)
+
+    def side_clearance(self, size: Vec3 | None) -> float:
+        """Room between an open pad and the object's side as the pads pass along it: half the widest opening
+        less half its width across and, for a long one, what a heading error of `yaw_tolerance_deg` swings its
+        far end sideways by (a round one has none)."""
+        s = self.settings
+        if size is None:
+            return 0.0
+        long, short = max(size.x, size.y), min(size.x, size.y)
+        swing = 0.0 if round_footprint(size) else long / 2 * math.sin(math.radians(s.yaw_tolerance_deg))
+        return s.gripper_max_opening / 2 - short / 2 - swing
 
     async def relook(self, ctx: SkillContext, query: str, label: str, before: Target, shape: Target, yaw: float,
                      grip_z: float, backoff: float, clear_z: float) -> Target:
@@ -497,7 +521,7 @@ class Grasp(_Manipulation):
         p = before.position
         body_clear = clear_z - s.gripper_offset_z
         st = ctx.current()
-        if st.position.z < body_clear - s.position_tolerance:
+        if st.position.z < body_clear - 0.01:  # straight up first: never drag the pads back through it
             await ctx.goto(Vec3(x=st.position.x, y=st.position.y, z=body_clear), yaw, s.descent_speed,
                            low=s.manipulation_min_altitude, what="climb after the miss")
         up = body_for(ctx, p.x - backoff * ux, p.y - backoff * uy, max(clear_z, ctx.current().position.z
@@ -544,25 +568,42 @@ class Grasp(_Manipulation):
         depth = grip_depth(height, s.grasp_depth_fraction)
         grip_z = shape.top - depth
         clear_z = shape.top + s.hover_clearance + PAD_BELOW_M
-        near = self.final_view(size, height - depth)
+        # The pads pass along its sides at grasp height when there is room (the open pads 18 cm apart); a wide
+        # object (a tissue box, the cardboard box) they would push ahead of them, so it gets them from above.
+        sideways = self.side_clearance(size) >= SIDE_MARGIN_M
+        view_z = grip_z if sideways else clear_z
+        near = self.final_view(size, shape.top - view_z, shape.top - height - view_z)
 
-        # Down to grasp height behind it and in along the approach axis, re-detecting it from the nearest pose
-        # that still has it whole in view (the pads open around it, still behind it). Camera and gripper share
-        # the vehicle's estimate, so the offset is true at that frame; what it cannot see is the estimate's
-        # drift from then until the close: the blind interval, kept to the short leg `near` forward.
-        target, seen = await self.track(ctx, query, label, shape, yaw, grip_z, near,
-                                        f"{near:.2f} m behind the {label} at grasp height", shape=shape)
+        # Down behind it and in along the approach axis, re-detecting it from the nearest pose that still has
+        # it whole in view (the pads still behind it). Camera and gripper share the vehicle's estimate, so the
+        # offset is true at that frame; what it cannot see is the estimate's drift from then until the close
+        # (the blind interval, kept to the short leg `near` forward), vertically as well: the gripper's height
+        # comes from the same detection's top.
+        where = "grasp height" if sideways else "just above it"
+        target, seen = await self.track(ctx, query, label, shape, yaw, view_z, near,
+                                        f"{near:.2f} m behind the {label} {where}", shape=shape)
+        dz = max(-TOP_SHIFT_M, min(TOP_SHIFT_M, seen.top - shape.top))
+        grip_z, clear_z, view_z = grip_z + dz, clear_z + dz, view_z + dz
         p = target.position
-        ctx.note(f"{label} tracked at {fmt(p)} from {near:.2f} m at grasp height")
+        ctx.note(f"{label} tracked at {fmt(p)} from {near:.2f} m at {where}")
 
-        # The blind leg: forward at grasp height until the gripper point holds inside the window, then close.
+        # The blind leg: forward (over it, then down to grasp height, for a wide one) until the gripper point
+        # holds inside the window, then close.
         window = (s.grasp_window_x, s.grasp_window_y)
         leg_ns = time.time_ns()
+        if not sideways:
+            ok, off, _sp = await self.align(ctx, p.x, p.y, clear_z, yaw, window, f"aligned over the {label}",
+                                            speed=s.descent_speed)
+            rec.offset = off
+            if not ok:
+                new = await self.relook(ctx, query, label, seen, shape, yaw, view_z, near, clear_z)
+                raise AttemptFailed(OutcomeCode.MISALIGNED, f"the gripper stayed {100 * off:.1f} cm from the "
+                                    f"{label} above it, outside the window", target=new)
         ok, off, sp = await self.align(ctx, p.x, p.y, grip_z, yaw, window, f"aligned at the {label}",
-                                       speed=s.descent_speed)
+                                       speed=s.descent_speed if sideways else s.final_descent_speed)
         rec.offset = off
         if not ok:
-            new = await self.relook(ctx, query, label, seen, shape, yaw, grip_z, near, clear_z)
+            new = await self.relook(ctx, query, label, seen, shape, yaw, view_z, near, clear_z)
             raise AttemptFailed(OutcomeCode.MISALIGNED, f"the gripper stayed {100 * off:.1f} cm from the {label} at "
                                 "grasp height, outside the window", target=new)
         blind_note(ctx, label, target, leg_ns)
@@ -578,13 +619,13 @@ class Grasp(_Manipulation):
             width = st.gripper_width or 0.0
             if not st.gripper_holding:
                 await ctx.gripper("open")
-                new = await self.relook(ctx, query, label, seen, shape, yaw, grip_z, near, clear_z)
+                new = await self.relook(ctx, query, label, seen, shape, yaw, view_z, near, clear_z)
                 raise AttemptFailed(OutcomeCode.MISSED, f"the fingers closed to {100 * width:.1f} cm without "
                                     f"holding the {label}", target=new)
             wrong = self.hold_problem(label, width, size)
             if wrong is not None:
                 await ctx.gripper("open")
-                new = await self.relook(ctx, query, label, seen, shape, yaw, grip_z, near, clear_z)
+                new = await self.relook(ctx, query, label, seen, shape, yaw, view_z, near, clear_z)
                 raise AttemptFailed(*wrong, target=new)
             ctx.note(f"fingers hold the {label} at {100 * width:.1f} cm")
         body_grip = sp.z
