@@ -14,8 +14,8 @@ from services.perception.geometry import round_from_side, upright_box
 from services.perception.pipeline import Perception
 from services.perception.segmenters import make_segmenter
 from services.perception.settings import PerceptionSettings
-from shared.messages import LocalizeRequest
 from services.sim.physics import World
+from shared.messages import LocalizeRequest
 from tests.perception.scenes import _versions, furniture, manual_world, render_view, thing
 
 CAMERA = np.array([0.0, 0.0])
