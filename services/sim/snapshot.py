@@ -132,6 +132,40 @@ def restore_into(obj: Any, doc: dict, where: str = "") -> None:
             setattr(obj, name, decode(value))
 
 
+def generators(obj: Any, skip: frozenset[str] = frozenset()) -> dict[str, np.random.Generator]:
+    """Every random generator reachable through `obj`'s attributes but `skip` (objects walked as `encode` walks
+    them), by its path; a generator shared by two owners appears once, under the first path in attribute order."""
+    found: dict[str, np.random.Generator] = {}
+    seen: set[int] = set()
+
+    def walk(o: Any, path: str) -> None:
+        for name, value in sorted(_attributes(o).items()):
+            if not path and name in skip:
+                continue
+            here = f"{path}.{name}" if path else name
+            if isinstance(value, np.random.Generator):
+                if id(value) not in seen:
+                    seen.add(id(value))
+                    found[here] = value
+            elif not isinstance(value, (type, np.ndarray)) and (is_dataclass(value) or hasattr(value, "__dict__")):
+                walk(value, here)
+
+    walk(obj, "")
+    return found
+
+
+def reseed(core: Any, seed: int) -> list[str]:
+    """Draw every random process of the vehicle (estimator error, air, thrust noise...) afresh from `seed`,
+    keeping the world's state: the same moment with another realisation of the noise (`aermani eval
+    --fork-from`'s forks after the first). Each generator gets its own stream, keyed by its path, so the draws
+    do not depend on how many generators there are. Returns the paths reseeded."""
+    gens = generators(core.vehicle, VEHICLE_SKIP)
+    for path, gen in gens.items():
+        key = int.from_bytes(hashlib.sha256(path.encode()).digest()[:4], "little")
+        gen.bit_generator.state = np.random.default_rng([seed, key]).bit_generator.state
+    return sorted(gens)
+
+
 # --------------------------------------------------------------------------- the world and the vehicle
 
 
