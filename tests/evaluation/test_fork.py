@@ -56,6 +56,7 @@ def test_the_demo_forks_at_step_5_reproduces_with_its_policy_and_diverges_with_a
     assert code == 0 and parent["success"], parent.get("verdict")
     log = only_log(tmp_path / "parent")
     original = {s.step: s for s in mcaplog.reasoning_steps(log)}
+    assert max(original) == parent["steps"][-1].step  # the log holds the task's end (the demo waited for it)
     assert max(original) > K, sorted(original)
 
     point = read_fork_point(log, K)
