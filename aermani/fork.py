@@ -73,14 +73,35 @@ def read_fork_point(log: Path, step: int, task_id: str | None = None) -> ForkPoi
         raise ForkError(f"{log} has {len(tasks)} tasks ({', '.join(t.task_id for t in tasks)}): name one with --task")
     task = tasks[0]
     numbers = [s.step for s in task.steps]
+    if not numbers:
+        raise ForkError(f"task {task.task_id} in {log} has no recorded step to continue before")
     if step not in numbers:
         raise ForkError(f"task {task.task_id} has no step {step} (its steps: {numbers[0]}..{numbers[-1]})")
-    states = [v for _, v in read_topic(log, topic_of(task.vehicle_id, SIM_STATE))
-              if v.task_id == task.task_id and v.step == step - 1]
-    if not states:
-        raise ForkError(f"{log} has no simulator state recorded after step {step - 1} of task {task.task_id}: only a "
-                        "simulated flight recorded with AERMANI_SIM_SNAPSHOTS on (the default) can be forked")
     k = numbers.index(step)
+    # The world when step K-1's skill ended; before step 1, when the take-off ended. Holds the loop commands
+    # on a failure path carry no step (0) and are never a fork point.
+    wanted = "takeoff" if step == 1 else None
+    all_states = [v for _, v in read_topic(log, topic_of(task.vehicle_id, SIM_STATE)) if v.task_id == task.task_id]
+    states = [v for v in all_states if v.step == step - 1 and v.skill != "hold" and wanted in (None, v.skill)]
+    if not states:
+        prev = task.steps[k - 1] if k > 0 else None
+        if prev is not None and (prev.ste is None or prev.skill_state is None):
+            why = f"step {step - 1} ran no skill (no valid answer), so no world was recorded at its end"
+        elif step == 1:
+            why = "no take-off of this task was recorded (a task started in the air has no world before step 1)"
+        elif not all_states:
+            why = ("no simulator state at all: only a simulated flight recorded with AERMANI_SIM_SNAPSHOTS on (the "
+                   "default) can be forked")
+        else:
+            why = f"no simulator state was recorded when step {step - 1}'s skill ended"
+        raise ForkError(f"cannot fork task {task.task_id} of {log} before step {step}: {why}; fork at another step")
+    try:
+        doc = json.loads(states[-1].state)
+    except ValueError as exc:
+        raise ForkError(f"the simulator state recorded after step {step - 1} is not JSON ({exc})") from None
+    missing = [f for f in ("realism", "dynamics", "scenario") if not isinstance(doc, dict) or f not in doc]
+    if missing:  # what the fork's stack is configured from
+        raise ForkError(f"the simulator state recorded after step {step - 1} lacks {', '.join(missing)}")
     observed = observed_steps(index, task)
     obs = observed[k][1]
     segmenter = None
@@ -100,7 +121,8 @@ def fork_env(point: ForkPoint, state_file: Path, *, backend: str, variant: str, 
            "AERMANI_VEHICLE_ID": point.vehicle_id,
            "AERMANI_PERCEPTION_SEGMENTER": segmenter, "AERMANI_REASONER_BACKEND": backend,
            "AERMANI_REASONER_VARIANT": variant,
-           "AERMANI_RECORDER_SEGMENTATION": "1" if segmenter == "sim" else "0"}
+           "AERMANI_RECORDER_SEGMENTATION": "1" if segmenter == "sim" else "0",
+           "AERMANI_EXECUTOR_MEMORY_RESTORE": "1"}
     if model:
         env["AERMANI_REASONER_MODEL"] = model
     if base_url:

@@ -166,7 +166,7 @@ def _fork_eval(log: Path, step: int, task_id: str | None, backend: str, variants
                note: str, progress: bool, report_only: bool = False) -> None:
     """`aermani eval --fork-from LOG --step K` (aermani/evaluation/forks.py)."""
     from aermani.demo import backend_key_env
-    from aermani.evaluation.forks import Method, read_rows, run_forks, write_report
+    from aermani.evaluation.forks import ForkRunError, Method, counted, read_rows, run_forks, write_report
     from aermani.evaluation.runner import source_revision
     from aermani.fork import ForkError, read_fork_point
 
@@ -175,25 +175,29 @@ def _fork_eval(log: Path, step: int, task_id: str | None, backend: str, variants
     except ForkError as exc:
         console.print(f"[red]{terminal_text(exc)}[/red]")
         raise typer.Exit(2) from None
-    key_env = backend_key_env(backend, None)
-    if isinstance(key_env, str):
-        console.print(f"[red]{terminal_text(key_env)}[/red]")
-        raise typer.Exit(2)
     methods = [Method(backend, v, model) for v in variants]
     seg = segmenter or point.segmenter or "color"
     if report_only:
         rows = read_rows(out)
     else:
+        key_env = backend_key_env(backend, None)
+        if isinstance(key_env, str):
+            console.print(f"[red]{terminal_text(key_env)}[/red]")
+            raise typer.Exit(2)
         signal.signal(signal.SIGTERM, _interrupt)
-        rows = run_forks(point, methods, forks, out, base_url=base_url, segmenter=seg, speed_factor=speed_factor,
-                         t_max=t_max, key_env=key_env, progress=progress)
+        try:
+            rows = run_forks(point, methods, forks, out, base_url=base_url, segmenter=seg,
+                             speed_factor=speed_factor, t_max=t_max, key_env=key_env, progress=progress)
+        except ForkRunError as exc:
+            console.print(f"[red]{terminal_text(exc)}[/red]")
+            raise typer.Exit(2) from None
     config = {"speed_factor": speed_factor, "segmenter": seg, "t_max": t_max, "note": note, "forks": forks,
               **source_revision()}
     path = write_report(point, rows, out, config)
     for t in _fork_summary(rows):
         console.print(t)
     console.print(f"{len(rows)} forks; report: {path}")
-    if not report_only and len(rows) < len(methods) * forks:
+    if not report_only and len(counted(rows)) < len(methods) * forks:
         console.print("[yellow]interrupted: rerun the same command to resume[/yellow]")
         raise typer.Exit(130)
 

@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from aermani.evaluation.metrics import wilson
-from aermani.evaluation.report import method_name
+from aermani.evaluation.report import method_name, segmenter_text
 
 FORKS_FILE = "forks.jsonl"
 
@@ -62,6 +62,36 @@ class ForkRow:
     task_s: float | None = None
     log: str | None = None
     exit_code: int = 1
+    parent: str = ""
+    """The fork point, `<log name>:<task id>:<step>`: a resumed OUT must be of the same one."""
+
+    @property
+    def harness_error(self) -> bool:
+        """The fork never got a final status (the stack or the restore failed): not a policy's failure, so
+        not counted in its success rate, and run again on a rerun."""
+        return self.state == "error"
+
+
+class ForkRunError(ValueError):
+    """OUT holds forks of another fork point."""
+
+
+def parent_of(point) -> str:
+    return f"{point.log.name}:{point.task_id}:{point.step}"
+
+
+def method_label(m: Method, multi_backend: bool) -> str:
+    name = method_name(m.backend, m.variant, multi_backend)
+    return f"{name} [{m.model}]" if m.model else name
+
+
+def counted(rows: list[ForkRow]) -> list[ForkRow]:
+    """The forks that ran to an end, the newest of each (method, fork): what success rates are computed on."""
+    latest: dict[tuple[str, str, str, int], ForkRow] = {}
+    for r in rows:
+        if not r.harness_error:
+            latest[(r.backend, r.variant, r.model, r.fork)] = r
+    return list(latest.values())
 
 
 def noise_seed(fork: int) -> int | None:
@@ -79,14 +109,15 @@ def read_rows(out: Path) -> list[ForkRow]:
     return rows
 
 
-def row_of(method: Method, fork: int, code: int, result: dict[str, Any], multi_backend: bool) -> ForkRow:
+def row_of(method: Method, fork: int, code: int, result: dict[str, Any], multi_backend: bool,
+           parent: str = "") -> ForkRow:
     final, steps = result.get("final"), result.get("steps") or []
     task_s = None
     if final is not None and final.started_ns and final.ended_ns:
         task_s = round((final.ended_ns - final.started_ns) / 1e9, 2)
     skills = [(f"{s.ste.skill}({s.ste.argument})" if s.ste.argument else s.ste.skill) if s.ste else "(no answer)"
               for s in steps]
-    return ForkRow(method=method_name(method.backend, method.variant, multi_backend), backend=method.backend,
+    return ForkRow(method=method_label(method, multi_backend), backend=method.backend, parent=parent,
                    variant=method.variant, model=method.model, fork=fork, noise_seed=noise_seed(fork),
                    state=final.state.value if final is not None else "error",
                    success=bool(result.get("success")) and final is not None and final.state.value == "succeeded",
@@ -104,8 +135,13 @@ def run_forks(point, methods: list[Method], forks: int, out: Path, *, base_url: 
     console = Console()
     out.mkdir(parents=True, exist_ok=True)
     rows = read_rows(out)
+    parent = parent_of(point)
+    others = sorted({r.parent for r in rows if r.parent != parent})
+    if others:
+        raise ForkRunError(f"{out / FORKS_FILE} holds forks of {', '.join(others)}, not of {parent}: use another "
+                           "--out")
     multi = len({m.backend for m in methods}) > 1
-    done = {(r.backend, r.variant, r.model, r.fork) for r in rows}
+    done = {(r.backend, r.variant, r.model, r.fork) for r in counted(rows)}
     todo = [(m, n) for m in methods for n in range(1, forks + 1) if (m.backend, m.variant, m.model, n) not in done]
     if len(todo) < len(methods) * forks:
         console.print(f"{len(methods) * forks - len(todo)} forks already in {out / FORKS_FILE}: resuming")
@@ -115,7 +151,7 @@ def run_forks(point, methods: list[Method], forks: int, out: Path, *, base_url: 
         elapsed = time.monotonic() - t0
         eta = f", about {elapsed / (i - 1) * (len(todo) - i + 1) / 60:.0f} min left" if i > 1 else ""
         if progress:
-            console.rule(f"fork {i}/{len(todo)}: {method_name(m.backend, m.variant, multi)}, fork {n} of {forks} "
+            console.rule(f"fork {i}/{len(todo)}: {method_label(m, multi)}, fork {n} of {forks} "
                          f"({'recorded noise' if seed is None else f'noise seed {seed}'}){eta}")
         where = out / "forks" / f"{m.tag}-{n}"
         env = dict(key_env)
@@ -127,7 +163,7 @@ def run_forks(point, methods: list[Method], forks: int, out: Path, *, base_url: 
                         out_dir=where, extra_env=env, result=result)
         if code == 130:  # interrupted: what finished is kept, the rest runs on a rerun
             break
-        row = row_of(m, n, code, result, multi)
+        row = row_of(m, n, code, result, multi, parent)
         rows.append(row)
         with (out / FORKS_FILE).open("a") as f:
             f.write(json.dumps(asdict(row)) + "\n")
@@ -137,7 +173,7 @@ def run_forks(point, methods: list[Method], forks: int, out: Path, *, base_url: 
 def summary(rows: list[ForkRow]) -> list[dict[str, Any]]:
     """Per method, in the order first run: forks, successes, SR with its 95 % Wilson interval, mean steps and time."""
     by: dict[str, list[ForkRow]] = {}
-    for r in rows:
+    for r in counted(rows):
         by.setdefault(r.method, []).append(r)
     table = []
     for method, rs in by.items():
@@ -155,7 +191,7 @@ def summary(rows: list[ForkRow]) -> list[dict[str, Any]]:
 def markdown(point, rows: list[ForkRow], config: dict[str, Any], plots: list[str]) -> str:
     world = point.world
     table = summary(rows)
-    n = max((r.fork for r in rows), default=0)
+    n = int(config.get("forks") or max((r.fork for r in rows), default=0))
     lines = [f"# Forks of {point.log.name}, task {point.task_id}, before step {point.step}", "",
              f"Task: \"{point.command}\". Each fork starts the whole stack from the world recorded when step "
              f"{point.state.step}'s skill ({point.state.skill or '?'}) ended, the recorded working memory and the "
@@ -165,14 +201,13 @@ def markdown(point, rows: list[ForkRow], config: dict[str, Any], plots: list[str
              f"- parent: {point.log.name} (recorded policy {point.backend or '?'}, variant {point.variant})",
              f"- simulator: MuJoCo, realism {world['realism']}, dynamics {world['dynamics']}, scenario seed "
              f"{world['scenario'].get('seed')}; speed factor {config.get('speed_factor')}",
-             f"- segmenter: {config.get('segmenter')}"
-             + (" (ground-truth oracle: the simulator's masks, not real perception)"
-                if config.get("segmenter") == "sim" else ""),
-             f"- forks per method: {n}: fork 1 continues the recorded noise, "
+             f"- perception: {segmenter_text(config)}",
+             f"- forks per method: {n}: fork 1 continues the recorded draws of the vehicle's noise (the camera's "
+             "noise restarts from seed 0 in every process), "
              + ("fork 2 draws the vehicle's and the camera's noise afresh from seed 1" if n == 2 else
                 f"forks 2..{n} draw the vehicle's and the camera's noise afresh from seeds 1..{n - 1}")
              + " (the same for every method)" if n > 1 else
-             "- forks per method: 1, continuing the recorded noise",
+             "- forks per method: 1, continuing the recorded draws of the vehicle's noise",
              f"- T_max per fork: {config.get('t_max')} s; commit {config.get('commit', 'unrecorded')}"
              + (" (with uncommitted changes)" if config.get("dirty") else ""), ""]
     if config.get("note"):
@@ -186,11 +221,15 @@ def markdown(point, rows: list[ForkRow], config: dict[str, Any], plots: list[str
                      f"{t['sr_ci'][1]:.0f}] | {t['mean_steps']:.1f} | {tt} | {', '.join(t['first_skills'])} | "
                      f"{', '.join(t['endings'])} |")
     recorded = [s.ste.skill if s.ste else "(no answer)" for s in point.recorded]
+    errors = [r for r in rows if r.harness_error]
+    if errors:
+        lines += ["", f"{len(errors)} fork(s) never reached an end (the stack or the restore failed: see their "
+                  "service logs); they are not counted above and run again when the command is rerun."]
     lines += ["", f"What the parent did from step {point.step}: {', '.join(recorded) or '(nothing)'}.", ""]
     lines += [f"![success rate per method]({p})" for p in plots]
     lines += ["", "## Every fork", "", "| method | fork | noise | ended | judge | steps | skills | log |",
               "|---|---|---|---|---|---|---|---|"]
-    for r in rows:
+    for r in counted(rows) + errors:
         noise = "recorded" if r.noise_seed is None else f"seed {r.noise_seed}"
         skills = ", ".join(r.skills[:12]) + (" ..." if len(r.skills) > 12 else "")
         verdict = r.verdict.replace("|", "/")[:120]

@@ -351,12 +351,11 @@ async def publish_snapshots(bus: Bus, core: SimCore, settings: SimSettings) -> N
             continue
         try:
             doc = core.capture()
-        except Exception:  # a capture that fails is a missing fork point, never a stopped simulator
-            log.exception("capturing the simulator state after %s failed", st.skill)
-            continue
-        bus.publish(keys.sim_state, SimState(task_id=st.task_id, step=st.step, skill=st.skill,
-                                             sim_time_s=float(doc["world"]["sim_time"]),
-                                             state=json.dumps(doc, separators=(",", ":"))))
+            bus.publish(keys.sim_state, SimState(task_id=st.task_id, step=st.step, skill=st.skill,
+                                                 sim_time_s=float(doc["world"]["sim_time"]),
+                                                 state=json.dumps(doc, separators=(",", ":"))))
+        except Exception:  # a capture that fails is a missing fork point, never a stopped simulator or task
+            log.exception("capturing or publishing the simulator state after %s failed", st.skill)
 
 
 async def run(bus: Bus, settings: SimSettings, stop: asyncio.Event, *, core: SimCore | None = None,

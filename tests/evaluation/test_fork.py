@@ -64,6 +64,8 @@ def test_the_demo_forks_at_step_5_reproduces_with_its_policy_and_diverges_with_a
     assert point.memory is not None and point.segmenter == "color" and point.backend == "rules"
     with pytest.raises(ForkError, match="no step 99"):
         read_fork_point(log, 99)
+    first = read_fork_point(log, 1)  # before step 1: the take-off's world, never a hold's
+    assert first.state.skill == "takeoff" and first.state.step == 0 and first.before == []
 
     # The same policy, twice, through `aermani eval --fork-from` as a user runs it: fork 1 continues the recorded
     # noise, fork 2 draws it afresh from seed 1 (the ideal world has none to draw, so both reproduce the original).

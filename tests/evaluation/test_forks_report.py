@@ -6,11 +6,12 @@ from __future__ import annotations
 import json
 from dataclasses import asdict
 
-from aermani.evaluation.forks import FORKS_FILE, ForkRow, noise_seed, plot, read_rows, summary
+from aermani.evaluation.forks import FORKS_FILE, ForkRow, counted, noise_seed, plot, read_rows, summary
 
 
 def row(method: str, fork: int, success: bool, skills: list[str], steps: int = 3) -> ForkRow:
-    return ForkRow(method=method, backend="rules", variant="full", model="", fork=fork, noise_seed=noise_seed(fork),
+    return ForkRow(method=method, backend="rules", variant={"A": "full", "B": "no_drt"}[method], model="", fork=fork,
+                   noise_seed=noise_seed(fork),
                    state="succeeded" if success else "failed", success=success, verdict="v", steps=steps,
                    skills=skills, task_s=10.0 * fork)
 
@@ -34,3 +35,10 @@ def test_summary_per_method_with_wilson_intervals_and_first_decisions(tmp_path) 
     assert (b["successes"], b["sr"], b["sr_ci"][0]) == (0, 0.0, 0.0) and b["mean_steps"] == 1.0
     assert plot(back, tmp_path, "title") == ["plots/forks_sr.png"] and (tmp_path / "plots" / "forks_sr.png").is_file()
     assert read_rows(tmp_path / "nothing-here") == []
+    # A fork whose stack never reached an end is not the policy's failure: not counted, run again on a rerun (its
+    # newer row then counts).
+    broken = ForkRow(method="B", backend="rules", variant="no_drt", model="", fork=2, noise_seed=1, state="error",
+                     success=False, verdict="no verdict", steps=0)
+    assert broken.harness_error and counted([*rows, broken]) == rows
+    again = row("B", 2, True, ["forward"])
+    assert summary([*rows, broken, again])[1]["forks"] == 2 and summary([*rows, broken, again])[1]["successes"] == 1

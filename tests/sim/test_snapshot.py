@@ -79,6 +79,14 @@ def test_a_capture_of_another_world_or_format_is_refused() -> None:
         SimCore.from_capture({**doc, "world": {"sim_time": 1.0}})
     with pytest.raises(SnapshotError, match="malformed"):
         SimCore.from_capture({"format": 1})
+    # A capture sets only state this simulator has: no new attribute, no property, nothing a capture never holds.
+    vehicle = doc["vehicle"]["__obj"]
+    for name, value in (("injected", 1), ("mode_name", "x"), ("world", None), ("step", 0)):
+        bad = {**doc, "vehicle": {"__obj": {**vehicle, name: value}}}
+        with pytest.raises(SnapshotError):
+            SimCore.from_capture(bad)
+    with pytest.raises(SnapshotError, match="rotor gains"):
+        SimCore.from_capture({**doc, "rotor_gains": [1.0]})
 
 
 def test_the_simulator_starts_from_a_recorded_state(tmp_path) -> None:
