@@ -282,8 +282,7 @@ async def run_and_judge(bus, keys, request, objects: tuple[str, ...], destinatio
         bar = progress.add_task("waiting for the first step...", total=None)
 
         def on_step(s) -> None:
-            call = (f"{s.ste.skill}({s.ste.argument})" if s.ste and s.ste.argument else
-                    (s.ste.skill if s.ste else "(no valid answer)"))
+            call = s.ste.call if s.ste else "(no valid answer)"
             why = (s.drt.reasoning or s.drt.summary or "") if s.drt else ""
             retries = f" [yellow]{s.retries} re-prompt(s)[/yellow]" if s.retries else ""
             state = s.skill_state.value if s.skill_state else "-"

@@ -115,8 +115,7 @@ def row_of(method: Method, fork: int, code: int, result: dict[str, Any], multi_b
     task_s = None
     if final is not None and final.started_ns and final.ended_ns:
         task_s = round((final.ended_ns - final.started_ns) / 1e9, 2)
-    skills = [(f"{s.ste.skill}({s.ste.argument})" if s.ste.argument else s.ste.skill) if s.ste else "(no answer)"
-              for s in steps]
+    skills = [s.ste.call if s.ste else "(no answer)" for s in steps]
     return ForkRow(method=method_label(method, multi_backend), backend=method.backend, parent=parent,
                    variant=method.variant, model=method.model, fork=fork, noise_seed=noise_seed(fork),
                    state=final.state.value if final is not None else "error",
