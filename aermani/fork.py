@@ -136,7 +136,7 @@ async def _fork_task(stack, point: ForkPoint, t_max: float, result: dict) -> int
     from services.reasoner.rereason import resume_steps
     from shared.bus import Bus, query_ready
     from shared.keys import Keys
-    from shared.messages import ForkOrigin, MemoryRestore, Resume, Scenario, TaskRequest
+    from shared.messages import ForkOrigin, MemoryRestore, Resume, Scenario, TaskRequest, now_ns
 
     keys = Keys(point.vehicle_id)
     world = point.world
@@ -144,6 +144,7 @@ async def _fork_task(stack, point: ForkPoint, t_max: float, result: dict) -> int
     bus = await Bus.open(connect=[stack.endpoint])
     try:
         health = bus.subscribe(keys.health("recorder"), maxsize=5)
+        detections = bus.subscribe(keys.detections, maxsize=10, overflow="latest")
         request = TaskRequest(command=point.command, t_max_s=t_max, resume=Resume(
             origin=ForkOrigin(log=point.log.name, task_id=point.task_id, step=point.step),
             history=tuple(resume_steps(point.before))))
@@ -153,6 +154,13 @@ async def _fork_task(stack, point: ForkPoint, t_max: float, result: dict) -> int
             if not reply.accepted:
                 console.print(f"[red]the executor refused the recorded memory: {terminal_text(reply.reason)}[/red]")
                 return 1
+        # The parent decided step K with perception running; a fresh stack's first detections take a while (ci27:
+        # the fork's step 5 saw "nothing recognised" where the parent saw the table and the cup). The task starts
+        # once perception has published detections of frames rendered after the restore, twice (the second
+        # reaches the reasoner's own subscription as surely).
+        if not await _perception_live(detections, now_ns(), timeout=60.0):
+            console.print("[yellow]perception published no detections within 60 s: the fork's first step decides "
+                          "on what it has[/yellow]")
         parsed, accepted = scenario_for(point.command, None, None, sc.seed)
         objects = accepted or ((sc.target_object,) if sc.target_object else ())
         result.update(task_id=request.task_id)
@@ -160,6 +168,26 @@ async def _fork_task(stack, point: ForkPoint, t_max: float, result: dict) -> int
                                    result, health, stack)
     finally:
         await bus.close()
+
+
+async def _perception_live(detections, since_ns: int, *, timeout: float, count: int = 2) -> bool:
+    """Whether `count` detections of frames stamped after `since_ns` arrived within `timeout` seconds."""
+    import asyncio
+
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + timeout
+    seen = 0
+    while seen < count:
+        left = deadline - loop.time()
+        if left <= 0:
+            return False
+        try:
+            d = await detections.recv(timeout=left)
+        except TimeoutError:
+            return False
+        if d.frame_stamp_ns > since_ns:
+            seen += 1
+    return True
 
 
 def run_fork(point: ForkPoint, *, backend: str | None = None, variant: str | None = None, model: str = "",
