@@ -273,7 +273,7 @@ async def run_and_judge(bus, keys, request, objects: tuple[str, ...], destinatio
     `destination`) and say where its log is; the exit code (0 = the task succeeded and the judge agrees)."""
     from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 
-    from shared.tasks import follow_task, judge_episode
+    from shared.tasks import follow_task, judge_episode, recorded_end
 
     t_max = request.t_max_s or 600.0
     console.print(f"[bold]task:[/bold] {terminal_text(request.command)}")
@@ -282,8 +282,7 @@ async def run_and_judge(bus, keys, request, objects: tuple[str, ...], destinatio
         bar = progress.add_task("waiting for the first step...", total=None)
 
         def on_step(s) -> None:
-            call = (f"{s.ste.skill}({s.ste.argument})" if s.ste and s.ste.argument else
-                    (s.ste.skill if s.ste else "(no valid answer)"))
+            call = s.ste.call if s.ste else "(no valid answer)"
             why = (s.drt.reasoning or s.drt.summary or "") if s.drt else ""
             retries = f" [yellow]{s.retries} re-prompt(s)[/yellow]" if s.retries else ""
             state = s.skill_state.value if s.skill_state else "-"
@@ -307,12 +306,10 @@ async def run_and_judge(bus, keys, request, objects: tuple[str, ...], destinatio
     ok, verdict = verdict_.success, verdict_.message
     console.print(("[bold green]SUCCESS[/bold green]" if ok else "[bold red]FAILURE[/bold red]") +
                   f" (simulator judge: {terminal_text(verdict)})")
-    log_path = None
-    try:
-        h = recorder_health.latest_nowait() or await recorder_health.recv(timeout=3)
-        log_path = h.details.get("path")
-    except TimeoutError:
-        pass
+    log_path, complete = await recorded_end(recorder_health, final.task_id, max((s.step for s in steps), default=0))
+    if log_path and not complete:
+        console.print("[yellow]the recorder had not taken the task's end within 10 s: its log may lack the last "
+                      "steps[/yellow]")
     result.update(final=final, steps=steps, success=ok, verdict=verdict, log=log_path)
     console.print(f"log: {terminal_text(log_path)}" if log_path else
                   "log: no recorder running (no MCAP log written)")

@@ -73,14 +73,35 @@ def read_fork_point(log: Path, step: int, task_id: str | None = None) -> ForkPoi
         raise ForkError(f"{log} has {len(tasks)} tasks ({', '.join(t.task_id for t in tasks)}): name one with --task")
     task = tasks[0]
     numbers = [s.step for s in task.steps]
+    if not numbers:
+        raise ForkError(f"task {task.task_id} in {log} has no recorded step to continue before")
     if step not in numbers:
         raise ForkError(f"task {task.task_id} has no step {step} (its steps: {numbers[0]}..{numbers[-1]})")
-    states = [v for _, v in read_topic(log, topic_of(task.vehicle_id, SIM_STATE))
-              if v.task_id == task.task_id and v.step == step - 1]
-    if not states:
-        raise ForkError(f"{log} has no simulator state recorded after step {step - 1} of task {task.task_id}: only a "
-                        "simulated flight recorded with AERMANI_SIM_SNAPSHOTS on (the default) can be forked")
     k = numbers.index(step)
+    # The world when step K-1's skill ended; before step 1, when the take-off ended. Holds the loop commands
+    # on a failure path carry no step (0) and are never a fork point.
+    wanted = "takeoff" if step == 1 else None
+    all_states = [v for _, v in read_topic(log, topic_of(task.vehicle_id, SIM_STATE)) if v.task_id == task.task_id]
+    states = [v for v in all_states if v.step == step - 1 and v.skill != "hold" and wanted in (None, v.skill)]
+    if not states:
+        prev = task.steps[k - 1] if k > 0 else None
+        if prev is not None and (prev.ste is None or prev.skill_state is None):
+            why = f"step {step - 1} ran no skill (no valid answer), so no world was recorded at its end"
+        elif step == 1:
+            why = "no take-off of this task was recorded (a task started in the air has no world before step 1)"
+        elif not all_states:
+            why = ("no simulator state at all: only a simulated flight recorded with AERMANI_SIM_SNAPSHOTS on (the "
+                   "default) can be forked")
+        else:
+            why = f"no simulator state was recorded when step {step - 1}'s skill ended"
+        raise ForkError(f"cannot fork task {task.task_id} of {log} before step {step}: {why}; fork at another step")
+    try:
+        doc = json.loads(states[-1].state)
+    except ValueError as exc:
+        raise ForkError(f"the simulator state recorded after step {step - 1} is not JSON ({exc})") from None
+    missing = [f for f in ("realism", "dynamics", "scenario") if not isinstance(doc, dict) or f not in doc]
+    if missing:  # what the fork's stack is configured from
+        raise ForkError(f"the simulator state recorded after step {step - 1} lacks {', '.join(missing)}")
     observed = observed_steps(index, task)
     obs = observed[k][1]
     segmenter = None
@@ -100,7 +121,8 @@ def fork_env(point: ForkPoint, state_file: Path, *, backend: str, variant: str, 
            "AERMANI_VEHICLE_ID": point.vehicle_id,
            "AERMANI_PERCEPTION_SEGMENTER": segmenter, "AERMANI_REASONER_BACKEND": backend,
            "AERMANI_REASONER_VARIANT": variant,
-           "AERMANI_RECORDER_SEGMENTATION": "1" if segmenter == "sim" else "0"}
+           "AERMANI_RECORDER_SEGMENTATION": "1" if segmenter == "sim" else "0",
+           "AERMANI_EXECUTOR_MEMORY_RESTORE": "1"}
     if model:
         env["AERMANI_REASONER_MODEL"] = model
     if base_url:
@@ -114,7 +136,7 @@ async def _fork_task(stack, point: ForkPoint, t_max: float, result: dict) -> int
     from services.reasoner.rereason import resume_steps
     from shared.bus import Bus, query_ready
     from shared.keys import Keys
-    from shared.messages import ForkOrigin, MemoryRestore, Resume, Scenario, TaskRequest
+    from shared.messages import ForkOrigin, MemoryRestore, Resume, Scenario, TaskRequest, now_ns
 
     keys = Keys(point.vehicle_id)
     world = point.world
@@ -122,6 +144,7 @@ async def _fork_task(stack, point: ForkPoint, t_max: float, result: dict) -> int
     bus = await Bus.open(connect=[stack.endpoint])
     try:
         health = bus.subscribe(keys.health("recorder"), maxsize=5)
+        detections = bus.subscribe(keys.detections, maxsize=10, overflow="latest")
         request = TaskRequest(command=point.command, t_max_s=t_max, resume=Resume(
             origin=ForkOrigin(log=point.log.name, task_id=point.task_id, step=point.step),
             history=tuple(resume_steps(point.before))))
@@ -131,6 +154,13 @@ async def _fork_task(stack, point: ForkPoint, t_max: float, result: dict) -> int
             if not reply.accepted:
                 console.print(f"[red]the executor refused the recorded memory: {terminal_text(reply.reason)}[/red]")
                 return 1
+        # The parent decided step K with perception running; a fresh stack's first detections take a while (ci27:
+        # the fork's step 5 saw "nothing recognised" where the parent saw the table and the cup). The task starts
+        # once perception has published detections of frames rendered after the restore, twice (the second
+        # reaches the reasoner's own subscription as surely).
+        if not await _perception_live(detections, now_ns(), timeout=60.0):
+            console.print("[yellow]perception published no detections within 60 s: the fork's first step decides "
+                          "on what it has[/yellow]")
         parsed, accepted = scenario_for(point.command, None, None, sc.seed)
         objects = accepted or ((sc.target_object,) if sc.target_object else ())
         result.update(task_id=request.task_id)
@@ -138,6 +168,26 @@ async def _fork_task(stack, point: ForkPoint, t_max: float, result: dict) -> int
                                    result, health, stack)
     finally:
         await bus.close()
+
+
+async def _perception_live(detections, since_ns: int, *, timeout: float, count: int = 2) -> bool:
+    """Whether `count` detections of frames stamped after `since_ns` arrived within `timeout` seconds."""
+    import asyncio
+
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + timeout
+    seen = 0
+    while seen < count:
+        left = deadline - loop.time()
+        if left <= 0:
+            return False
+        try:
+            d = await detections.recv(timeout=left)
+        except TimeoutError:
+            return False
+        if d.frame_stamp_ns > since_ns:
+            seen += 1
+    return True
 
 
 def run_fork(point: ForkPoint, *, backend: str | None = None, variant: str | None = None, model: str = "",

@@ -853,6 +853,11 @@ class SkillToExecute(Part):
     argument: Label | None = None
     """Object or surface query for localization skills; None otherwise."""
 
+    @property
+    def call(self) -> str:
+        """How the stack writes the decision in text: `grasp(red cup)`, or the skill alone."""
+        return f"{self.skill}({self.argument})" if self.argument else self.skill
+
 
 Variant = Literal["unstructured", "no_drt", "drt_v1", "drt_v2", "drt_v3", "full", "react", "saycan", "direct",
                   "waypoint", "plan_once"]

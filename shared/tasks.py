@@ -12,7 +12,7 @@ from shared.action import GoalHandle, task_client
 from shared.bus import Bus, Subscription, query_ready
 from shared.errors import ServerLost
 from shared.keys import Keys
-from shared.messages import JudgeRequest, JudgeResult, ReasoningStep, TaskAccept, TaskRequest, TaskStatus
+from shared.messages import Health, JudgeRequest, JudgeResult, ReasoningStep, TaskAccept, TaskRequest, TaskStatus
 
 
 async def submit_task(bus: Bus, keys: Keys, request: TaskRequest, timeout: float = 30.0) -> TaskAccept:
@@ -170,3 +170,32 @@ async def judge_episode(bus: Bus, keys: Keys, accepted: Sequence[str], destinati
     if j.held in accepted:
         return Verdict(j.ok, j.message if j.ok else f"{j.message}: not picked", j)
     return Verdict(False, f"holding {j.held}, expected {want}" if j.held else f"{j.message}, expected {want}", j)
+
+
+async def recorded_end(recorder_health: Subscription[Health], task_id: str, last_step: int = 0, *,
+                       timeout: float = 10.0, first_timeout: float = 3.0) -> tuple[str | None, bool]:
+    """Wait until the recorder says its log holds the end of `task_id` and its steps up to `last_step` (its
+    `health/recorder` details `tasks`; Zenoh orders nothing across keys, so a step may come after the end), so a
+    stack stopped next loses nothing. Returns (the log's path, whether all of it is in); (None, False) when no
+    recorder reports within `first_timeout`."""
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + timeout
+    path: str | None = None
+    h = recorder_health.latest_nowait()
+    if h is None:
+        try:
+            h = await recorder_health.recv(timeout=first_timeout)
+        except TimeoutError:
+            return None, False
+    while True:
+        path = h.details.get("path") or path
+        entry = (h.details.get("tasks") or {}).get(task_id) or {}
+        if entry.get("ended") and int(entry.get("steps") or 0) >= last_step:
+            return path, True
+        left = deadline - loop.time()
+        if left <= 0:
+            return path, False
+        try:
+            h = await recorder_health.recv(timeout=left)
+        except TimeoutError:
+            return path, False

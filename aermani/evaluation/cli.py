@@ -66,14 +66,25 @@ def eval_command(
                                                      "instead of launching a stack (with --vehicles).")] = None,
     vehicles: Annotated[str | None, typer.Option(help="Comma list of vehicle ids to use with --connect.")] = None,
     note: Annotated[str, typer.Option(help="Sentence put at the top of the report (what the backend is).")] = "",
-    segmenter: Annotated[str, typer.Option(help="Perception segmenter: color (default, real computer vision), "
-                                                "sam3, or sim (ground-truth oracle).")] = "color",
+    segmenter: Annotated[str | None, typer.Option(help="Perception segmenter: color (default, real computer "
+                                                       "vision), sam3, or sim (ground-truth oracle); with "
+                                                       "--fork-from the recorded one by default.")] = None,
     realism: Annotated[str, typer.Option(help="Simulator realism: realistic (default), harsh or ideal.")] = "realistic",
     report_only: Annotated[bool, typer.Option(help="Rebuild the report from OUT/episodes.jsonl, run nothing.")]
     = False,
     progress: Annotated[bool, typer.Option(help="Show the progress bar.")] = True,
+    fork_from: Annotated[Path | None, typer.Option(help="Instead of the suites: fork this recorded MCAP log before "
+                                                        "--step, --forks times per method (backend x variants), and "
+                                                        "report each method's success from that moment.")] = None,
+    step: Annotated[int | None, typer.Option(min=1, help="With --fork-from: the step to continue before.")] = None,
+    forks: Annotated[int, typer.Option(min=1, max=100, help="With --fork-from: forks per method; the first "
+                                                            "continues the recorded noise, the others draw it "
+                                                            "from seeds 1..N-1.")] = 3,
+    fork_task: Annotated[str | None, typer.Option("--task-id", help="With --fork-from: the task to fork (when the "
+                                                                     "log holds several).")] = None,
 ) -> None:
-    """Evaluate a backend and prompt variants on the paper's task suites: SR, ARR, RS, IAR, RT, TT."""
+    """Evaluate a backend and prompt variants on the paper's task suites: SR, ARR, RS, IAR, RT, TT; or, with
+    --fork-from LOG --step K, from one moment of a recorded flight: N live forks per method, their success rates."""
     from aermani.evaluation.report import write_report
     from aermani.evaluation.runner import RunConfig, run
     from aermani.evaluation.tasks import SPLITS
@@ -83,7 +94,7 @@ def eval_command(
         # judge, so the value is not used.
         console.print(f"[yellow]--tolerance {tolerance:g} is ignored: the judge's criteria are each task's "
                       "('criteria' in its suite line; docs/evaluation.md)[/yellow]")
-    if report_only:
+    if report_only and fork_from is None:
         paths = write_report(out)
         console.print(f"report: {paths['markdown']}")
         return
@@ -98,6 +109,14 @@ def eval_command(
                       f"({', '.join(v for v in variants if v in BASELINES)}); run them with a model backend "
                       "(--backend openai or anthropic)[/red]")
         raise typer.Exit(2)
+    if fork_from is not None or step is not None:
+        if fork_from is None or step is None:
+            console.print("[red]--fork-from and --step go together: the log and the step to continue before[/red]")
+            raise typer.Exit(2)
+        _fork_eval(fork_from, step, fork_task, backend, variants, model, forks, out, base_url=base_url,
+                   segmenter=segmenter, speed_factor=speed_factor, t_max=t_max,
+                   note=note, progress=progress, report_only=report_only)
+        return
     if split not in SPLITS:
         console.print(f"[red]unknown split {split!r}; use one of {', '.join(SPLITS)}[/red]")
         raise typer.Exit(2)
@@ -119,7 +138,7 @@ def eval_command(
                     seeds_per_line=seeds_per_line,
                     split=split, suites=_split(suites), tasks_file=tasks, seed=seed, parallel=parallel,
                     speed_factor=speed_factor, t_max_s=t_max, connect=connect,
-                    vehicles=_split(vehicles), progress=progress, note=note, segmenter=segmenter,
+                    vehicles=_split(vehicles), progress=progress, note=note, segmenter=segmenter or "color",
                     realism=realism)
     # SIGTERM (and SIGINT, which a background job ignores) stop the run cleanly: finished episodes are kept.
     signal.signal(signal.SIGTERM, _interrupt)
@@ -140,6 +159,54 @@ def eval_command(
         from aermani.evaluation.report import write_mode_comparison
 
         console.print(f"modes compared: {write_mode_comparison(out, modes)}")
+
+
+def _fork_eval(log: Path, step: int, task_id: str | None, backend: str, variants: list[str], model: str, forks: int,
+               out: Path, *, base_url: str | None, segmenter: str | None, speed_factor: float, t_max: float,
+               note: str, progress: bool, report_only: bool = False) -> None:
+    """`aermani eval --fork-from LOG --step K` (aermani/evaluation/forks.py)."""
+    from aermani.demo import backend_key_env
+    from aermani.evaluation.forks import ForkRunError, Method, counted, read_rows, run_forks, write_report
+    from aermani.evaluation.runner import source_revision
+    from aermani.fork import ForkError, read_fork_point
+
+    try:
+        point = read_fork_point(log, step, task_id)
+    except ForkError as exc:
+        console.print(f"[red]{terminal_text(exc)}[/red]")
+        raise typer.Exit(2) from None
+    methods = [Method(backend, v, model) for v in variants]
+    seg = segmenter or point.segmenter or "color"
+    if report_only:
+        rows = read_rows(out)
+    else:
+        key_env = backend_key_env(backend, None)
+        if isinstance(key_env, str):
+            console.print(f"[red]{terminal_text(key_env)}[/red]")
+            raise typer.Exit(2)
+        signal.signal(signal.SIGTERM, _interrupt)
+        try:
+            rows = run_forks(point, methods, forks, out, base_url=base_url, segmenter=seg,
+                             speed_factor=speed_factor, t_max=t_max, key_env=key_env, progress=progress)
+        except ForkRunError as exc:
+            console.print(f"[red]{terminal_text(exc)}[/red]")
+            raise typer.Exit(2) from None
+    config = {"speed_factor": speed_factor, "segmenter": seg, "t_max": t_max, "note": note, "forks": forks,
+              **source_revision()}
+    path = write_report(point, rows, out, config)
+    for t in _fork_summary(rows):
+        console.print(t)
+    console.print(f"{len(rows)} forks; report: {path}")
+    if not report_only and len(counted(rows)) < len(methods) * forks:
+        console.print("[yellow]interrupted: rerun the same command to resume[/yellow]")
+        raise typer.Exit(130)
+
+
+def _fork_summary(rows) -> list[str]:
+    from aermani.evaluation.forks import summary
+
+    return [f"{terminal_text(t['method'])}: {t['successes']}/{t['forks']} succeeded, SR {t['sr']:.0f} % "
+            f"[{t['sr_ci'][0]:.0f}, {t['sr_ci'][1]:.0f}]" for t in summary(rows)]
 
 
 def diff_command(

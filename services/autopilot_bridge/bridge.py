@@ -439,7 +439,8 @@ class Bridge:
         if not self.armed:
             self.stream.stop()
             return "disarmed: nothing to hold"
-        if self.mode == "AUTO.LAND":
+        if self.mode == "AUTO.LAND" or self.mode_requested == "AUTO.LAND":
+            # Also when PX4 accepted our own land command and its next HEARTBEAT (1 Hz) still has to say so.
             return "landing (AUTO.LAND): an abort does not stop a landing"
         in_our_hands = self.offboard_expected or (self.mode_requested is not None and self.mode == self.mode_requested)
         if not in_our_hands:

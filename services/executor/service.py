@@ -383,7 +383,11 @@ class Executor:
 
     async def handle_restore_memory(self, req: MemoryRestore) -> CancelReply:
         """A recorded working memory put back for a task that continues a recorded one (`aermani fork`): never
-        mid-skill, where a skill reads and writes it."""
+        mid-skill, where a skill reads and writes it, and only where AERMANI_EXECUTOR_MEMORY_RESTORE allows it."""
+        if not self.settings.memory_restore:
+            return CancelReply(accepted=False, reason="this executor does not take a recorded working memory "
+                                                      "(AERMANI_EXECUTOR_MEMORY_RESTORE=1 allows it; aermani fork "
+                                                      "sets it in the simulated stack it starts)")
         goal = self.goal
         if goal is not None:
             return CancelReply(accepted=False, reason=f"skill {goal.request.skill} is running: working memory is not "

@@ -20,6 +20,11 @@ class ExecutorSettings(ServiceSettings):
     services.executor.registry), e.g. `["my_lab.skills.inspect"]`: a skill is one module plus its
     registration; the prompt, the validator and the rules baseline read it from the served library."""
 
+    memory_restore: bool = False
+    """Accept `executor/restore_memory` (a recorded working memory put back for a task that continues a recorded
+    one). Off by default: on a vehicle nobody should replace what the executor has seen; `aermani fork` and
+    `aermani eval --fork-from` turn it on in the simulated stack they start."""
+
     # ---- motion primitives (fixed parameters, paper Table II)
     yaw_step_deg: float = 45.0
     """Rotation of yaw_left / yaw_right, degrees. 45 keeps consecutive views of the 85 deg camera

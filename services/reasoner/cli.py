@@ -90,7 +90,7 @@ def check_command(
             console.print(f"{n}: rejected: parser error {type(exc).__name__}: {plain_text(exc)} (please report)",
                           markup=False)
             continue
-        call = f"{p.ste.skill}({p.ste.argument})" if p.ste.argument else p.ste.skill
+        call = p.ste.call
         console.print(f"{n}: accepted: {plain_text(call)}" + (" (recovered leniently)" if p.recovered else ""),
                       markup=False)
     console.print(f"{total - rejected}/{total} accepted, {rejected} rejected")

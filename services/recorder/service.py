@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import logging
 import re
 import socket
 import time
+from collections import OrderedDict
 from collections.abc import Callable
 from importlib.metadata import PackageNotFoundError, version
 from typing import Any
@@ -16,8 +18,8 @@ from services.recorder.settings import RecorderSettings
 from services.recorder.throttle import FrameThrottle
 from services.recorder.writer import RecordWriter
 from shared.bus import Bus, Subscription
-from shared.keys import CAMERA_SEGMENTATION
-from shared.messages import Health
+from shared.keys import CAMERA_SEGMENTATION, REASONER_STEP, REASONER_TASK_STATUS
+from shared.messages import Health, TaskState
 from shared.service import announce
 
 log = logging.getLogger("aermani.recorder")
@@ -48,6 +50,41 @@ def static_metadata(settings: RecorderSettings) -> dict[str, str]:
             "started_ns": str(time.time_ns()), **public_settings(settings)}
 
 
+class TaskLedger:
+    """What the recorder has taken of each recent task: its steps and whether its end came (`health/recorder`
+    details `tasks`: the highest step number taken and the terminal state), so whoever stops a stack after a task
+    can first wait until its log holds the task's end and its last step (`shared.tasks.recorded_end`) instead of
+    losing them to a stop a few milliseconds too early."""
+
+    KEEP = 16
+
+    def __init__(self) -> None:
+        self.tasks: OrderedDict[str, dict[str, Any]] = OrderedDict()
+
+    def note(self, key: str, payload: bytes) -> bool:
+        """Count a sample; True when it was a task's terminal status, or a step of an ended task (worth saying at
+        once)."""
+        status = key.endswith("/" + REASONER_TASK_STATUS.name)
+        if not status and not key.endswith("/" + REASONER_STEP.name):
+            return False
+        try:
+            doc = json.loads(payload)
+            task_id = str(doc["task_id"])
+            entry = self.tasks.setdefault(task_id, {"steps": 0, "ended": None})
+            self.tasks.move_to_end(task_id)
+            while len(self.tasks) > self.KEEP:
+                self.tasks.popitem(last=False)
+            if not status:
+                entry["steps"] = max(entry["steps"], int(doc["step"]))
+                return entry["ended"] is not None  # a step after the end (Zenoh orders nothing across keys)
+            state = TaskState(doc["state"])
+        except (ValueError, KeyError, TypeError):
+            return False  # recorded as it came; only not counted
+        if state.terminal:
+            entry["ended"] = state.value
+        return state.terminal
+
+
 async def _drain(sub: Subscription[Any], submit: Callable[[str, bytes, str, int], None]) -> None:
     """Whatever the bus already delivered belongs in the file too; then the subscription closes."""
     while sub.qsize():
@@ -71,10 +108,12 @@ async def run(bus: Bus, settings: RecorderSettings, stop: asyncio.Event) -> None
     health_key = settings.keys.health("recorder")
 
     throttle = FrameThrottle(settings.frame_max_hz)
+    ledger = TaskLedger()
 
     def health() -> Health:
         bus_dropped = sum(s.dropped for s in subs)
-        details = {**writer.stats(), "bus_dropped": bus_dropped, "frames_skipped": throttle.skipped}
+        details = {**writer.stats(), "bus_dropped": bus_dropped, "frames_skipped": throttle.skipped,
+                   "tasks": {k: dict(v) for k, v in ledger.tasks.items()}}
         details["dropped"] = writer.dropped_backlog + bus_dropped
         ok = writer.ok
         message = writer.error if not ok else ""
@@ -91,6 +130,9 @@ async def run(bus: Bus, settings: RecorderSettings, stop: asyncio.Event) -> None
     def submit(key: str, payload: bytes, encoding: str, receive_ns: int) -> None:
         for sample in throttle.admit(key, payload, encoding, receive_ns):
             writer.submit(*sample)
+        if ledger.note(key, payload):
+            with contextlib.suppress(Exception):
+                bus.publish(health_key, health())  # a task's end is in the log: say so now, not within a second
 
     async def take(one: Subscription[Any]) -> None:
         while True:

@@ -17,7 +17,7 @@ from services.sim.core import SimCore
 from services.sim.mavlink_server import LinkSettings, MavlinkServer
 from services.sim.render_worker import FrameEncoder, RenderWorker
 from services.sim.settings import SimSettings
-from services.sim.snapshot import SnapshotError
+from services.sim.snapshot import SnapshotError, reseed
 from services.sim.vehicle import VehicleParams, realism_params
 from shared.bus import Bus
 from shared.errors import ConfigError
@@ -58,6 +58,11 @@ def check_airframe(settings: SimSettings) -> None:
                           f"but AERMANI_MOUNT_* says {settings.mount}; unset AERMANI_MOUNT_* when flying the simulator")
 
 
+def camera_seed(settings: SimSettings) -> int:
+    """The camera noise's seed: the restore's seed when the noise is drawn afresh, else 0 (every process alike)."""
+    return settings.restore_seed if settings.restore and settings.restore_seed is not None else 0
+
+
 def restored(settings: SimSettings, params: VehicleParams) -> SimCore:
     """The world of AERMANI_SIM_RESTORE (a `sim/state` sample as JSON): refused with the reason when it cannot be
     read, or was captured from another world (services.sim.snapshot)."""
@@ -70,6 +75,11 @@ def restored(settings: SimSettings, params: VehicleParams) -> SimCore:
     log.info("restored the world of task %s after step %d (%s) from %s: the vehicle %s in %s", sample.task_id,
              sample.step, sample.skill or "?", path, "armed" if core.vehicle.armed else "disarmed",
              core.vehicle.mode_name)
+    if settings.restore_seed is not None:
+        with core.lock:
+            drawn = reseed(core, settings.restore_seed)
+        log.info("noise drawn afresh from seed %d (AERMANI_SIM_RESTORE_SEED): %s and the camera",
+                 settings.restore_seed, ", ".join(drawn))
     return core
 
 
@@ -103,9 +113,11 @@ class CameraPublisher:
         if not settings.camera:
             pass  # no renderer at all: nothing is drawn
         elif settings.render_process:
-            self.worker = RenderWorker(settings.render_scale, settings.jpeg_quality, settings.realism)
+            self.worker = RenderWorker(settings.render_scale, settings.jpeg_quality, settings.realism,
+                                       seed=camera_seed(settings))
         else:
-            self.encoder = FrameEncoder(settings.render_scale, settings.jpeg_quality, settings.realism)
+            self.encoder = FrameEncoder(settings.render_scale, settings.jpeg_quality, settings.realism,
+                                        seed=camera_seed(settings))
         self.frames = 0
         self.recent: deque[float] = deque(maxlen=600)
         self.failures = 0
@@ -250,7 +262,7 @@ class CameraPublisher:
                        "camera_fault": self.fault,
                        "camera": self.settings.camera, "mode": v.mode_name, "armed": v.armed,
                        "realism": self.core.realism, "dynamics": self.core.dynamics,
-                       "scenario_seed": self.core.scenario.seed,
+                       "scenario_seed": self.core.scenario.seed, "restore_seed": self.settings.restore_seed,
                        "setpoints_received": v.setpoints_received, **self.core.counters}
         ok = self.failures < 3
         return Health(service="sim", ok=ok, message="" if ok else f"rendering keeps failing: {self.last_error}",
@@ -339,12 +351,11 @@ async def publish_snapshots(bus: Bus, core: SimCore, settings: SimSettings) -> N
             continue
         try:
             doc = core.capture()
-        except Exception:  # a capture that fails is a missing fork point, never a stopped simulator
-            log.exception("capturing the simulator state after %s failed", st.skill)
-            continue
-        bus.publish(keys.sim_state, SimState(task_id=st.task_id, step=st.step, skill=st.skill,
-                                             sim_time_s=float(doc["world"]["sim_time"]),
-                                             state=json.dumps(doc, separators=(",", ":"))))
+            bus.publish(keys.sim_state, SimState(task_id=st.task_id, step=st.step, skill=st.skill,
+                                                 sim_time_s=float(doc["world"]["sim_time"]),
+                                                 state=json.dumps(doc, separators=(",", ":"))))
+        except Exception:  # a capture that fails is a missing fork point, never a stopped simulator or task
+            log.exception("capturing or publishing the simulator state after %s failed", st.skill)
 
 
 async def run(bus: Bus, settings: SimSettings, stop: asyncio.Event, *, core: SimCore | None = None,

@@ -68,8 +68,8 @@ class FrameEncoder:
                        time.perf_counter() - t0)
 
 
-def _worker(conn, scale: int, quality: int, realism: str) -> None:  # runs in the child
-    encoder = FrameEncoder(scale, quality, realism)
+def _worker(conn, scale: int, quality: int, realism: str, seed: int = 0) -> None:  # runs in the child
+    encoder = FrameEncoder(scale, quality, realism, seed)
     conn.send("ready")
     while True:
         try:
@@ -90,12 +90,12 @@ class RenderWorker:
     socketpair; call `render` from a worker thread. A plain subprocess rather than multiprocessing's spawn,
     which would re-import whatever script happens to be the parent's __main__."""
 
-    def __init__(self, scale: int = 1, jpeg_quality: int = 85, realism: str = "realistic",
+    def __init__(self, scale: int = 1, jpeg_quality: int = 85, realism: str = "realistic", seed: int = 0,
                  start_timeout: float = 120.0) -> None:
         parent, child = socket.socketpair()
         self._proc = subprocess.Popen(
             [sys.executable, "-m", "services.sim.render_worker", str(child.fileno()), str(scale), str(jpeg_quality),
-             realism],
+             realism, str(seed)],
             pass_fds=(child.fileno(),), cwd=str(Path(__file__).resolve().parents[2]))
         child.close()
         self._conn = Connection(parent.detach())
@@ -131,4 +131,4 @@ if __name__ == "__main__":
     # Import by name so pickled frames reference services.sim.render_worker.Encoded, not __main__.Encoded.
     from services.sim.render_worker import _worker as worker
 
-    worker(Connection(int(sys.argv[1])), int(sys.argv[2]), int(sys.argv[3]), sys.argv[4])
+    worker(Connection(int(sys.argv[1])), int(sys.argv[2]), int(sys.argv[3]), sys.argv[4], int(sys.argv[5]))

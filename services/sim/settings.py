@@ -34,6 +34,10 @@ class SimSettings(ServiceSettings):
     sample (JSON, as `aermani fork` writes it). The room is rebuilt from the scenario it was generated from and
     everything else is restored: objects, the vehicle in the air (in Hold where it flew), the gripper and what it
     holds, the estimator's and the disturbances' random states. Empty: the initial scenario."""
+    restore_seed: int | None = Field(None, ge=0)
+    """With `restore`: draw the vehicle's noise (estimator error, air, thrust) and the camera's afresh from this seed
+    instead of continuing the recorded draws: the same moment with another realisation of the noise (`aermani eval
+    --fork-from` runs its second and later forks so). Empty: the recorded draws continue."""
     snapshots: bool = True
     """Publish the whole state on `sim/state` whenever a skill ends (about 12 kB each): the points a recorded
     flight can be forked at (`aermani fork LOG --step K`)."""
@@ -136,7 +140,7 @@ class SimSettings(ServiceSettings):
             return tuple(float(x) for x in parts)
         return v
 
-    @field_validator("target_object", "destination", "restore", mode="before")
+    @field_validator("target_object", "destination", "restore", "restore_seed", mode="before")
     @classmethod
     def _empty(cls, v: object) -> object:
         return None if isinstance(v, str) and not v.strip() else v

@@ -1,6 +1,7 @@
 """The simulator's whole state, captured and restored: the flight fork's world (issue 29).
 
-A capture holds everything the next physics step depends on: MuJoCo's integration state (time, qpos, qvel,
+A capture holds what the next physics step depends on (but which islands sleep: see `restore_core`): the rotors'
+current thrust gains, MuJoCo's integration state (time, qpos, qvel,
 actuator activations, warm start, controls, applied forces: `mjSTATE_INTEGRATION`), the world's own book-keeping
 (the judge's per-object tracks, collisions, what each object rests on), and the vehicle's: the mode logic, the
 cascaded controller's integrators and filters, the estimator and the disturbances with their random generators'
@@ -117,9 +118,13 @@ def restore_into(obj: Any, doc: dict, where: str = "") -> None:
     its filters, the gains the controller reads) stay shared."""
     if "__obj" not in doc:
         raise SnapshotError(f"{where or type(obj).__name__}: expected an object")
+    known = _attributes(obj)
     for name, value in doc["__obj"].items():
-        live = getattr(obj, name, None)
         here = f"{where}.{name}" if where else name
+        if name not in known:
+            # Only state this simulator has: a capture cannot create attributes (or reach properties and methods).
+            raise SnapshotError(f"{here}: the capture has state this simulator does not have")
+        live = known[name]
         if isinstance(value, dict) and "__rng" in value:
             if not isinstance(live, np.random.Generator):
                 raise SnapshotError(f"{here}: a generator was captured, this simulator has {type(live).__name__}")
@@ -130,6 +135,40 @@ def restore_into(obj: Any, doc: dict, where: str = "") -> None:
             restore_into(live, value, here)
         else:
             setattr(obj, name, decode(value))
+
+
+def generators(obj: Any, skip: frozenset[str] = frozenset()) -> dict[str, np.random.Generator]:
+    """Every random generator reachable through `obj`'s attributes but `skip` (objects walked as `encode` walks
+    them), by its path; a generator shared by two owners appears once, under the first path in attribute order."""
+    found: dict[str, np.random.Generator] = {}
+    seen: set[int] = set()
+
+    def walk(o: Any, path: str) -> None:
+        for name, value in sorted(_attributes(o).items()):
+            if not path and name in skip:
+                continue
+            here = f"{path}.{name}" if path else name
+            if isinstance(value, np.random.Generator):
+                if id(value) not in seen:
+                    seen.add(id(value))
+                    found[here] = value
+            elif not isinstance(value, (type, np.ndarray)) and (is_dataclass(value) or hasattr(value, "__dict__")):
+                walk(value, here)
+
+    walk(obj, "")
+    return found
+
+
+def reseed(core: Any, seed: int) -> list[str]:
+    """Draw every random process of the vehicle (estimator error, air, thrust noise...) afresh from `seed`,
+    keeping the world's state: the same moment with another realisation of the noise (`aermani eval
+    --fork-from`'s forks after the first). Each generator gets its own stream, keyed by its path, so the draws
+    do not depend on how many generators there are. Returns the paths reseeded."""
+    gens = generators(core.vehicle, VEHICLE_SKIP)
+    for path, gen in gens.items():
+        key = int.from_bytes(hashlib.sha256(path.encode()).digest()[:4], "little")
+        gen.bit_generator.state = np.random.default_rng([seed, key]).bit_generator.state
+    return sorted(gens)
 
 
 # --------------------------------------------------------------------------- the world and the vehicle
@@ -150,7 +189,7 @@ def capture_core(core: Any) -> dict[str, Any]:
     return {"format": FORMAT, "requested": core.requested.model_dump(mode="json"),
             "scenario": core.scenario.model_dump(mode="json"), "realism": core.realism,
             "dynamics": core.dynamics, "model_digest": model_digest(w.xml), "mujoco": encode(state),
-            "world": world,
+            "world": world, "rotor_gains": [float(w.model.actuator_gainprm[a, 0]) for a in w.rotor_actuators],
             "vehicle": {"__obj": {k: encode(val) for k, val in vars(v).items() if k not in VEHICLE_SKIP}}}
 
 
@@ -171,6 +210,14 @@ def restore_core(core: Any, doc: dict[str, Any], *, hold: bool = True) -> None:
             raise SnapshotError(f"MuJoCo state of {state.size} numbers; this model has "
                                 f"{mujoco.mj_stateSize(w.model, STATE_SPEC)}")
         mujoco.mj_setState(w.model, w.data, state, STATE_SPEC)
+        # Model parameters the vehicle changes between its outer-loop ticks (ground effect x thrust noise). Which
+        # islands sleep is not restored: it lies outside MuJoCo's integration state, and writing `tree_asleep`
+        # back broke the restored flight here (the 3 s dash 0.8 m off), so a restore wakes every island and they
+        # fall asleep again after MuJoCo's sleep delay (resting objects stay where they rest).
+        gains = [float(g) for g in doc.get("rotor_gains", [])]
+        if len(gains) != len(w.rotor_actuators):
+            raise SnapshotError(f"{len(gains)} rotor gains captured; this vehicle has {len(w.rotor_actuators)} rotors")
+        w.set_rotor_gains(gains)
         mujoco.mj_forward(w.model, w.data)
         ws = doc["world"]
         w.sim_time, w._pending = float(ws["sim_time"]), float(ws["pending"])
@@ -189,10 +236,14 @@ def restore_core(core: Any, doc: dict[str, Any], *, hold: bool = True) -> None:
                 raise SnapshotError(f"object {e.name!r} of the rebuilt world is not in the capture")
             e.center, e.yaw, e.tilt = decode(saved["center"]), float(saved["yaw"]), float(saved["tilt"])
             e.attached, e.support = bool(saved["attached"]), saved["support"]
+        captured = doc["vehicle"].get("__obj", {}) if isinstance(doc["vehicle"], dict) else {}
+        skipped = sorted(set(captured) & VEHICLE_SKIP)
+        if skipped:
+            raise SnapshotError(f"vehicle: the capture sets {', '.join(skipped)}, which no capture holds")
         restore_into(v, doc["vehicle"], "vehicle")
     except SnapshotError:
         raise
-    except (KeyError, TypeError, ValueError) as exc:
+    except (KeyError, TypeError, ValueError, AttributeError, IndexError, RecursionError) as exc:
         raise SnapshotError(f"malformed simulator state: {type(exc).__name__}: {exc}") from exc
     v.events = []
     if hold:

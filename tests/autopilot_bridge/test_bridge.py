@@ -331,6 +331,23 @@ async def test_abort_without_executor_holds_through_px4_hold_mode() -> None:
         assert bridge.state().override == "" and bridge.state().mode == "OFFBOARD"
 
 
+async def test_an_abort_right_after_the_bridges_own_land_command_says_it_is_landing() -> None:
+    """PX4 sends its HEARTBEAT at 1 Hz: just after a land command was accepted the bridge may still read OFFBOARD.
+    An abort then must not answer "PX4 has control in OFFBOARD: left to it" (ci26: the executor's land on the abort
+    reached the bridge before the abort did): the vehicle lands on the bridge's own command."""
+    from shared.messages import Abort
+
+    async with bridge_and_fake() as (bridge, fake):
+        assert (await bridge.handle(TakeoffCommand(altitude=1.0, task_id="task-a"))).ok
+        fake.heartbeats = False  # the next HEARTBEAT, showing AUTO.LAND, is still to come
+        assert (await bridge.handle(LandCommand())).ok
+        assert bridge.mode == "OFFBOARD" and fake.mode == "AUTO.LAND"
+        ack = await bridge.on_abort(Abort(reason="stop", source="test", task_id="task-a"))
+        assert ack.message.startswith("landing"), ack.message
+        assert fake.mode == "AUTO.LAND"  # not switched to Hold: an abort does not stop a landing
+        fake.heartbeats = True
+
+
 async def test_a_takeoff_stopped_by_an_abort_answers_aborted() -> None:
     """The executor may get the abort after the bridge: the takeoff the bridge stopped says why (`aborted`)."""
     from shared.messages import Abort

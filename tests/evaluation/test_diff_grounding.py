@@ -18,9 +18,11 @@ from aermani.evaluation.records import RESULTS_FILE, EpisodeRecord
 from aermani.evaluation.report import write_report
 from aermani.evaluation.runs import load_run
 from aermani.evaluation.tasks import EvalTask
+from shared.bus import query_ready
 from shared.mcaplog import reasoning_steps
 from shared.messages import TaskRequest, TaskState, TaskStatus
 from shared.sensors import color_message
+from shared.tasks import recorded_end
 from tests.helpers import bus_for, run_stack
 from tests.reasoner.fake_vlm import FakeVLMServer
 from tests.reasoner.fake_world import MiniWorld, Thing, serve_executor
@@ -52,13 +54,14 @@ async def record_task(stack) -> TaskStatus:
         statuses = bus.subscribe(K.task_status, maxsize=100)
         try:
             await asyncio.sleep(0.5)
-            accept = await bus.query(K.start_task, TaskRequest(command=CMD), timeout=10)
+            accept = await query_ready(bus, K.start_task, TaskRequest(command=CMD), timeout=10)
             assert accept.accepted, accept.reason
             while True:
                 st = await statuses.recv(timeout=120)
                 if st.state.terminal:
                     break
-            await asyncio.sleep(1.0)  # the last samples reach the recorder
+            _path, ended = await recorded_end(health, st.task_id, st.steps, timeout=30)
+            assert ended, "the recorder never took the task's end"
             return st
         finally:
             ticker.cancel()

@@ -1,6 +1,7 @@
 """The flight fork end to end (issue 29): the demo's log, recorded by the real stack on the ideal simulator, forks
-at step 5; the fork with the same policy continues from the same world and reproduces the original; a fork with
-another policy (the local model server answering a detour first) diverges there, and `aermani diff` says so."""
+at step 5; `aermani eval --fork-from` runs two forks with the same policy (the recorded noise, then noise drawn
+from seed 1), which continue from the same world and reproduce the original, and reports their success; a fork
+with another policy (the local model server answering a detour first) diverges there, and `aermani diff` says so."""
 
 from __future__ import annotations
 
@@ -55,6 +56,7 @@ def test_the_demo_forks_at_step_5_reproduces_with_its_policy_and_diverges_with_a
     assert code == 0 and parent["success"], parent.get("verdict")
     log = only_log(tmp_path / "parent")
     original = {s.step: s for s in mcaplog.reasoning_steps(log)}
+    assert max(original) == parent["steps"][-1].step  # the log holds the task's end (the demo waited for it)
     assert max(original) > K, sorted(original)
 
     point = read_fork_point(log, K)
@@ -62,16 +64,30 @@ def test_the_demo_forks_at_step_5_reproduces_with_its_policy_and_diverges_with_a
     assert point.memory is not None and point.segmenter == "color" and point.backend == "rules"
     with pytest.raises(ForkError, match="no step 99"):
         read_fork_point(log, 99)
+    first = read_fork_point(log, 1)  # before step 1: the take-off's world, never a hold's
+    assert first.state.skill == "takeoff" and first.state.step == 0 and first.before == []
 
-    same: dict = {}
-    code = run_fork(point, t_max=400, log_dir=tmp_path / "a-logs", out_dir=tmp_path / "a", result=same)
-    assert code == 0 and same["success"], same.get("verdict")
-    final = same["final"]
-    assert final.forked_from == ForkOrigin(log=log.name, task_id=point.task_id, step=K)
-    fork_a = only_log(tmp_path / "a")
-    logged = [v for _, v in mcaplog.read_topic(fork_a, Keys("am1").task_status) if v.state.terminal]
-    assert logged and logged[-1].forked_from == final.forked_from  # the new log names its parent and step
-    forked = {s.step: s for s in same["steps"]}
+    # The same policy, twice, through `aermani eval --fork-from` as a user runs it: fork 1 continues the recorded
+    # noise, fork 2 draws it afresh from seed 1 (the ideal world has none to draw, so both reproduce the original).
+    out = tmp_path / "forks"
+    run = aermani("eval", "--fork-from", str(log), "--step", str(K), "--forks", "2", "--backend", "rules",
+                  "--speed-factor", "2", "--t-max", "400", "--out", str(out), timeout=900)
+    assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
+    rows = [json.loads(x) for x in (out / "forks.jsonl").read_text().splitlines()]
+    assert [(r["fork"], r["noise_seed"], r["success"]) for r in rows] == [(1, None, True), (2, 1, True)], rows
+    report = json.loads((out / "forks.json").read_text())
+    [method] = report["methods"]
+    assert (method["forks"], method["successes"], method["sr"]) == (2, 2, 100.0)
+    assert "| 2 | 2 | 100 [" in (out / "forks.md").read_text() and (out / "plots" / "forks_sr.png").is_file()
+    fork_a, fork_2 = (Path(r["log"]) for r in rows)
+    sim_health = [h.details for _, h in mcaplog.read_topic(fork_2, Keys("am1").health("sim"))]
+    assert sim_health and {h.get("restore_seed") for h in sim_health} == {1}  # the fork said how it drew its noise
+
+    statuses = [v for _, v in mcaplog.read_topic(fork_a, Keys("am1").task_status) if v.state.terminal]
+    assert statuses and statuses[-1].state.value == "succeeded"
+    # The new log names its parent and step.
+    assert statuses[-1].forked_from == ForkOrigin(log=log.name, task_id=point.task_id, step=K)
+    forked = {s.step: s for s in mcaplog.reasoning_steps(fork_a)}
     assert min(forked) == K  # numbered from the fork point
 
     # The fork starts from the world as it was: the same History of executed steps and the same working memory,
@@ -99,7 +115,7 @@ def test_the_demo_forks_at_step_5_reproduces_with_its_policy_and_diverges_with_a
                  log_dir=tmp_path / "b-logs", out_dir=tmp_path / "b", result=other,
                  extra_env={"AERMANI_REASONER_API_KEY": "none"})
     assert other["steps"][0].step == K and other["steps"][0].ste.skill == "yaw_left"
-    out = aermani("diff", str(fork_a), str(only_log(tmp_path / "b")), "--json")
-    assert out.returncode == 0, out.stderr
-    [task] = json.loads(out.stdout)["tasks"]
+    compared = aermani("diff", str(fork_a), str(only_log(tmp_path / "b")), "--json")
+    assert compared.returncode == 0, compared.stderr
+    [task] = json.loads(compared.stdout)["tasks"]
     assert task["first_divergence"] == K, task["steps"][0]

@@ -5,7 +5,7 @@ real bus."""
 from __future__ import annotations
 
 from shared.action import skill_client
-from shared.messages import OutcomeCode, SkillAccept, SkillRequest, SkillState
+from shared.messages import OutcomeCode, SkillAccept, SkillRequest, SkillState, Vec3, now_ns
 from tests.executor.rig import rig
 from tests.helpers import wait_until
 
@@ -95,3 +95,31 @@ async def test_check_skill_answers_as_run_skill_would_and_starts_nothing():
             if st.goal_id == acc.goal_id and st.state.terminal:
                 break
         assert seen == {refused.goal_id, acc.goal_id}, seen
+
+
+async def test_a_recorded_memory_is_refused_unless_allowed_and_never_taken_mid_skill():
+    """`executor/restore_memory` (the flight fork's): off on a vehicle by default; allowed, refused while a skill
+    runs (the memory unchanged), then taken between skills, each sighting as old as when recorded."""
+    from shared.messages import MemoryObject, MemoryRestore, WorkingMemory
+
+    cup = MemoryObject(label="red cup", position=Vec3(x=1.0, y=0.0, z=0.8), last_seen_ns=now_ns() - 5_000_000_000)
+    req = MemoryRestore(task_id="fork-1", memory=WorkingMemory(objects=(cup,)), taken_ns=now_ns())
+    async with rig() as r:
+        reply = await r.bus.query(r.keys.restore_memory, req, timeout=10)
+        assert not reply.accepted and "AERMANI_EXECUTOR_MEMORY_RESTORE" in reply.reason
+        assert r.executor.memory.find_object("red cup") is None
+    async with rig(memory_restore=True, motion_slack_s=300.0) as r:
+        async with skill_client(r.bus, r.keys.vehicle_id) as client:
+            goal = await client.send_goal(SkillRequest(skill="backward", task_id="t1"))
+            assert goal.accepted, goal.reason
+            await wait_until(lambda: "goto" in r.vehicle.commands, what="the step's setpoint")
+            r.vehicle.speed = 0.0
+            busy = await r.bus.query(r.keys.restore_memory, req, timeout=10)
+            assert not busy.accepted and "mid-skill" in busy.reason
+            assert r.executor.memory.find_object("red cup") is None
+            assert (await goal.cancel(reason="test stop", source="test")).accepted
+            await goal.result(timeout=30)
+        reply = await r.bus.query(r.keys.restore_memory, req, timeout=10)
+        assert reply.accepted, reply.reason
+        back = r.executor.memory.find_object("red cup")
+        assert back is not None and 4.0 < (now_ns() - back.last_seen_ns) / 1e9 < 60.0

@@ -13,9 +13,11 @@ import pytest
 from services.reasoner.backends.base import Backend, ModelReply, ModelRequest
 from services.reasoner.backends.rules import RulesBackend
 from services.reasoner.rereason import rereason_log
+from shared.bus import query_ready
 from shared.mcaplog import McapReplaySource, reasoning_steps
 from shared.messages import TaskRequest, TaskState, TaskStatus
 from shared.sensors import color_message
+from shared.tasks import recorded_end
 from tests.helpers import bus_for, run_stack
 from tests.reasoner.fake_world import MiniWorld, Thing, serve_executor
 from tests.recorder.samples import K
@@ -46,13 +48,14 @@ async def run_task(stack) -> TaskStatus:
         statuses = bus.subscribe(K.task_status, maxsize=100)
         try:
             await asyncio.sleep(0.5)  # let the router propagate the queryables
-            accept = await bus.query(K.start_task, TaskRequest(command=CMD), timeout=10)
+            accept = await query_ready(bus, K.start_task, TaskRequest(command=CMD), timeout=10)
             assert accept.accepted, accept.reason
             while True:
                 st = await statuses.recv(timeout=120)
                 if st.state.terminal:
                     break
-            await asyncio.sleep(1.0)  # the last samples reach the recorder
+            _path, ended = await recorded_end(health, st.task_id, st.steps, timeout=30)
+            assert ended, "the recorder never took the task's end"
             return st
         finally:
             ticker.cancel()

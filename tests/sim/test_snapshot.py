@@ -11,7 +11,7 @@ import pytest
 from services.sim.app import restored
 from services.sim.core import SimCore
 from services.sim.settings import SimSettings
-from services.sim.snapshot import SnapshotError
+from services.sim.snapshot import SnapshotError, reseed
 from services.sim.vehicle import MAIN_OFFBOARD, realism_params
 from shared.errors import ConfigError
 from shared.messages import JudgeRequest, Scenario, SimState
@@ -79,6 +79,14 @@ def test_a_capture_of_another_world_or_format_is_refused() -> None:
         SimCore.from_capture({**doc, "world": {"sim_time": 1.0}})
     with pytest.raises(SnapshotError, match="malformed"):
         SimCore.from_capture({"format": 1})
+    # A capture sets only state this simulator has: no new attribute, no property, nothing a capture never holds.
+    vehicle = doc["vehicle"]["__obj"]
+    for name, value in (("injected", 1), ("mode_name", "x"), ("world", None), ("step", 0)):
+        bad = {**doc, "vehicle": {"__obj": {**vehicle, name: value}}}
+        with pytest.raises(SnapshotError):
+            SimCore.from_capture(bad)
+    with pytest.raises(SnapshotError, match="rotor gains"):
+        SimCore.from_capture({**doc, "rotor_gains": [1.0]})
 
 
 def test_the_simulator_starts_from_a_recorded_state(tmp_path) -> None:
@@ -92,9 +100,31 @@ def test_the_simulator_starts_from_a_recorded_state(tmp_path) -> None:
     assert back.judge(JudgeRequest(op="held")).ok and back.vehicle.mode_name == "AUTO.LOITER"
     assert np.allclose(back.vehicle.true_position_enu(), core.vehicle.true_position_enu())
     assert back.scenario == core.scenario
+    fresh = restored(SimSettings(restore=str(path), restore_seed=4), params)  # AERMANI_SIM_RESTORE_SEED
+    assert np.allclose(fresh.vehicle.true_position_enu(), core.vehicle.true_position_enu())
+    assert fresh.vehicle.wind.rng.bit_generator.state != back.vehicle.wind.rng.bit_generator.state
     for bad in ('{"kind": "sim_state", "state": "{}"}', "not json", ""):
         path.write_text(bad)
         with pytest.raises(ConfigError, match="AERMANI_SIM_RESTORE"):
             restored(settings, params)
     with pytest.raises(ConfigError, match="AERMANI_SIM_RESTORE"):
         restored(SimSettings(restore=str(tmp_path / "missing.json")), params)
+
+
+def test_a_reseeded_fork_starts_from_the_same_world_and_flies_with_other_noise() -> None:
+    core, clock = holding_the_cup("multirotor")
+    doc = json.loads(json.dumps(core.capture()))
+    same = SimCore.from_capture(doc, hold=False)
+    a1, a2 = SimCore.from_capture(doc, hold=False), SimCore.from_capture(doc, hold=False)
+    other = SimCore.from_capture(doc, hold=False)
+    assert reseed(a1, 1) == reseed(a2, 1) == reseed(other, 2) == ["_thrust_rng", "estimator.bias.rng", "wind.rng"]
+    assert np.array_equal(a1.world.data.qpos, core.world.data.qpos)  # the world is the recorded one
+    runs = {name: fly_on(c, clock.now) for name, c in
+            (("original", core), ("same", same), ("a1", a1), ("a2", a2), ("other", other))}
+
+    def apart(x: str, y: str) -> float:
+        return max(float(np.abs(p - q).max()) for p, q in zip(runs[x], runs[y], strict=True))
+
+    assert apart("original", "same") < 1e-6 and apart("a1", "a2") < 1e-6  # a seed is a realisation, repeatable
+    assert apart("original", "a1") > 1e-3 and apart("a1", "other") > 1e-3  # another seed, other draws
+    assert a1.judge(JudgeRequest(op="held")).ok and other.judge(JudgeRequest(op="held")).ok
