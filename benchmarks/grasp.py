@@ -98,6 +98,7 @@ async def one_call(c: Client, seed: int, target: str) -> dict:
     row.update(grasp_state=st.state.value, code=st.outcome.code.value if st.outcome.code else None,
                message=st.message[:200],
                attempts=facts.attempts, reasons=list(facts.reasons), offset_m=facts.offset_m,
+               notes=st.outcome.perceived[:600],
                held=held, grasp_ok=held == target and st.state == SkillState.SUCCEEDED,
                grasp_claim_true=(st.state == SkillState.SUCCEEDED) == (held == target))
     if held and dest:

@@ -115,6 +115,9 @@ class ExecutorSettings(ServiceSettings):
     """Place starts only for a placement spot within this horizontal distance, metres (not yet from a measured
     curve: the placement estimate is re-used as is, and the rules baseline approaches a surface by where it
     saw it, not by the spot)."""
+    camera_min_depth: float = 0.2
+    """Nearest depth the RGB-D camera measures, metres (the simulator's stereo model: services/sim/render.py
+    MIN_DEPTH_M): grasp's last view of an object keeps its near top edge beyond it."""
     gripper_max_opening: float = 0.18
     """Widest opening of the gripper's fingers, metres: objects wider across their narrow side are refused."""
     final_descent_speed: float = 0.1
@@ -143,7 +146,8 @@ class ExecutorSettings(ServiceSettings):
     pregrasp_height: float = 0.12
     """Pre-grasp pose: the gripper point this far above the object's top, metres."""
     hover_clearance: float = 0.03
-    """The finger pads pass this far above the object's top on the last (blind) leg over it, metres."""
+    """After a failed attempt the finger pads climb this far above the object's top before backing off to look
+    at it again (clear of whatever the attempt left standing or lying between them), metres."""
     grasp_window_x: float = 0.018
     """Closing is allowed only with the gripper point within this of the object along the pad width (body x;
     the pads are 5 cm wide: +-2.5 cm lifts), metres."""

@@ -94,6 +94,60 @@ def upright_box(points: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
     return np.array([cx, cy]), yaw, np.array([w, h])
 
 
+MAX_ROUND_RADIUS = 0.15  # m: larger round footprints are not taken for an object's side seen alone
+
+
+def round_from_side(points: np.ndarray, camera_xy: np.ndarray, rect_center: np.ndarray, rect_yaw: float,
+                    rect_lw: np.ndarray, bin_m: float = 0.004) -> tuple[np.ndarray, float] | None:
+    """An upright round object whose top the mask misses (a can's bare lid, a bottle's cap and shoulder, a cup
+    seen from below its rim) shows only its near side: its points' footprint is the arc facing the camera, the
+    rectangle around that arc is about a radius deep and its centre about half a radius nearer than the axis.
+    The arc is the footprint's front as the camera sees it (per `bin_m` strip across the view, the nearest
+    point: the widest section, not a narrower neck above it). When it lies on a circle much better than on the
+    rectangle's edges, the circle spans about the rectangle's length (a half circle spans its diameter) and its
+    centre lies beyond the arc from the camera, the circle is the footprint: returns (its centre xy, its
+    radius), else None."""
+    xy = points[:, :2]
+    length, width = float(rect_lw[0]), float(rect_lw[1])
+    if len(xy) < 20 or width >= 0.8 * length:
+        return None  # about square already: the top is in view (or it is no arc)
+    mean = xy.mean(axis=0)
+    ahead = mean - camera_xy
+    norm = float(np.hypot(*ahead))
+    if norm < 1e-6:
+        return None  # looking straight down on it: no side
+    ahead = ahead / norm
+    rel = xy - mean
+    depth, lateral = rel @ ahead, rel @ np.array([-ahead[1], ahead[0]])
+    strip = np.floor(lateral / bin_m).astype(np.int64)
+    order = np.lexsort((depth, strip))
+    first = order[np.r_[True, strip[order][1:] != strip[order][:-1]]]
+    if first.size < 8:
+        return None
+    front = xy[first]
+    # Algebraic (Kasa) circle fit: x^2 + y^2 = 2 a x + 2 b y + c.
+    a = np.column_stack([2 * front, np.ones(len(front))])
+    sol, *_ = np.linalg.lstsq(a, (front ** 2).sum(axis=1), rcond=None)
+    centre = sol[:2]
+    r2 = float(sol[2] + centre @ centre)
+    if r2 <= 0:
+        return None
+    r = math.sqrt(r2)
+    if r > MAX_ROUND_RADIUS or not 0.7 * length / 2 <= r <= 1.4 * length / 2:
+        return None
+    circle_rms = float(np.sqrt(np.mean((np.linalg.norm(front - centre, axis=1) - r) ** 2)))
+    c, s = math.cos(rect_yaw), math.sin(rect_yaw)
+    off = front - rect_center
+    u, v = off @ np.array([c, s]), off @ np.array([-s, c])
+    edge = np.minimum(np.abs(length / 2 - np.abs(u)), np.abs(width / 2 - np.abs(v)))
+    rect_rms = float(np.sqrt(np.mean(edge ** 2)))
+    if circle_rms > max(0.004, 0.1 * r) or circle_rms > 0.5 * rect_rms:
+        return None
+    if float((centre - front.mean(axis=0)) @ ahead) <= 0:
+        return None  # the circle's centre is on the camera's side of the arc: not a near side seen
+    return centre, r
+
+
 def support_height(frame: Frame, idx: np.ndarray, bottom_z: float, ring_px: int = 6) -> float | None:
     """Median height of the surface just around the object's mask (a ring of pixels), when it is there."""
     h, w = frame.shape
@@ -121,7 +175,8 @@ def object_geometry(frame: Frame, cloud: Cloud, idx: np.ndarray) -> ObjectGeomet
 
     The camera sees only the near side. Objects here stand upright on horizontal surfaces and the camera
     looks down on them, so the visible top plus the near sides project onto the full footprint: the centre
-    of the footprint rectangle is the object's axis, not the (near-biased) mean of the visible points."""
+    of the footprint rectangle is the object's axis, not the (near-biased) mean of the visible points. A round
+    object whose top is not in its mask projects only its near arc: `round_from_side` finds the circle."""
     pts = cloud.points
     kept = remove_outliers(pts)
     pts = pts[kept] if kept.size >= 4 else pts
@@ -133,6 +188,10 @@ def object_geometry(frame: Frame, cloud: Cloud, idx: np.ndarray) -> ObjectGeomet
     # Only points at the object's own height span the footprint (a stray support pixel must not widen it).
     body = pts[z > support_z + 0.005] if np.count_nonzero(z > support_z + 0.005) >= 4 else pts
     cxy, yaw, lw = upright_box(body)
+    side = round_from_side(body, frame.world_from_camera[:2, 3], cxy, yaw, lw)
+    if side is not None:
+        cxy, r = side
+        yaw, lw = 0.0, np.array([2 * r, 2 * r])
     height = max(top_z - support_z, 0.0)
     center = np.array([cxy[0], cxy[1], support_z + height / 2])
     return ObjectGeometry(center, yaw, np.array([lw[0], lw[1], height]), top_z, support_z, int(len(pts)))

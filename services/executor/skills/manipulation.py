@@ -15,6 +15,7 @@ from services.executor.memory import age_s, horizontal_distance
 from services.executor.registry import Category, Skill, SkillResult, register
 from services.executor.skills.common import beyond_reach, fmt, not_found
 from shared import skills as names
+from shared.frames import DEFAULT_INTRINSICS
 from shared.messages import (
     GotoCommand,
     GripperState,
@@ -28,6 +29,11 @@ from shared.messages import (
 )
 
 PAD_BELOW_M = 0.03  # the finger pads reach this far below the gripper point (plus a few mm of margin)
+PAD_HALF_M = 0.025  # the finger pads reach this far ahead of and behind the gripper point (5 cm wide)
+VIEW_MARGIN_DEG = 2.0  # the last view keeps the object this far above the image's lowest row (a hover's tilt)
+SIDE_MARGIN_M = 0.03  # room an open pad needs beside the object to pass along it (2 sigma of the measured
+# sideways error at the close on mr-realistic: 1.5 cm RMS over 16 closes); less, the pads come down from above
+TOP_SHIFT_M = 0.04  # the last view's top moves the gripper's height by at most this (beyond: a bad detection)
 ROUND_TOLERANCE_M = 0.015  # footprint sides closer than this: a round object, any yaw grasps it
 LIFT_M = 0.15  # the first lift after closing: enough to clear the surface, low enough to fall back softly
 TRACK_ITERATIONS = 4  # close-range re-localizations per tracked pose before going on with the newest one
@@ -84,10 +90,11 @@ class Target:
     top: float
     size: Vec3 | None
     yaw: float
+    seen_ns: int = 0  # the stamp of the frame it was detected in (0: from memory)
 
     @classmethod
     def of(cls, mo: MemoryObject) -> Target:
-        return cls(mo.position, _top(mo), mo.size, mo.yaw)
+        return cls(mo.position, _top(mo), mo.size, mo.yaw, mo.last_seen_ns)
 
 
 @dataclass
@@ -122,6 +129,17 @@ def gripper_xy(ctx: SkillContext, st: VehicleState) -> tuple[float, float]:
     gx, gy, _gz = ctx.settings.mount.gripper_offset
     c, s = math.cos(st.yaw), math.sin(st.yaw)
     return st.position.x + c * gx - s * gy, st.position.y + s * gx + c * gy
+
+
+def blind_note(ctx: SkillContext, label: str, target: Target, leg_ns: int = 0) -> None:
+    """Note how long the gripper closes after the frame of the last detection it aims by (and of that, the leg
+    from where the answer came to the aligned close, when `leg_ns` says when it began): over that interval
+    the estimate's own drift is what the offset cannot see (vehicle and object share the estimate)."""
+    now = time.time_ns()
+    if target.seen_ns:
+        leg = f" (the leg to it {(now - leg_ns) / 1e9:.1f} s)" if leg_ns else ""
+        ctx.note(f"closing {(now - target.seen_ns) / 1e9:.1f} s after the frame of the last detection of the "
+                 f"{label}{leg}")
 
 
 def body_for(ctx: SkillContext, x: float, y: float, z: float, yaw: float) -> Vec3:
@@ -201,18 +219,21 @@ class _Manipulation(Skill):
         return self.settings.grasp_timeout_s
 
     async def align(self, ctx: SkillContext, x: float, y: float, z: float, yaw: float, window: tuple[float, float],
-                    what: str) -> tuple[bool, float, Vec3]:
+                    what: str, speed: float | None = None) -> tuple[bool, float, Vec3]:
         """Hold the gripper point over (x, y) at height `z` until it stays inside `window` (along the pad
         width = body x, along the closing axis = body y) for `align_samples` consecutive state samples; when
         it settles off target (wind, a trim error, a wandering hover), move the setpoint by the mean measured
-        offset and wait again. Returns (aligned, the last offset, the setpoint that aligned it)."""
+        offset and wait again. The first wait also covers the way there, from wherever the vehicle is, at
+        `speed` (default final_descent_speed). Returns (aligned, the last offset, the setpoint that aligned it)."""
         s = self.settings
         sp = body_for(ctx, x, y, z, yaw)
         ux, uy = math.cos(yaw), math.sin(yaw)
         offset = math.inf
         recent: deque[tuple[float, float]] = deque(maxlen=25)
-        for _k in range(s.align_corrections + 1):
-            await ctx.command(GotoCommand(position=sp, yaw=wrap(yaw), max_speed=s.final_descent_speed))
+        speed = min(speed or s.final_descent_speed, s.max_speed)
+        way = math.dist(ctx.current().position.as_tuple(), sp.as_tuple()) / speed
+        for k in range(s.align_corrections + 1):
+            await ctx.command(GotoCommand(position=sp, yaw=wrap(yaw), max_speed=speed))
             recent.clear()
             run = 0
 
@@ -230,7 +251,7 @@ class _Manipulation(Skill):
                 return run >= s.align_samples
 
             try:
-                await ctx.wait_for(inside, s.align_timeout_s, what)
+                await ctx.wait_for(inside, s.align_timeout_s + (2 * way if k == 0 else 0.0), what)
                 return True, offset, sp
             except TimeoutError:
                 pass
@@ -264,14 +285,17 @@ def _on_surface(est: ObjectEstimate, before: Target, knock: float) -> str | None
 
 @register
 class Grasp(_Manipulation):
-    """Skill grasp: a closed loop from a pre-grasp pose beside the object: re-localize at close range, track it
-    while descending, close only when aligned, verify the hold by the fingers and by looking, retry."""
+    """Skill grasp: a closed loop from a pre-grasp pose behind the object: re-localize it from above, then from
+    close behind it at grasp height, move in, close as soon as aligned, verify the hold by the fingers and by
+    looking, retry."""
 
     name = names.GRASP
     description = ("Pick up the localized object: re-localize it from a standoff {s.standoff_distance:g} m away, "
-                   "then from a pre-grasp pose {s.pregrasp_backoff:g} m beside it, track it while descending, "
-                   "close the gripper only when aligned with it, verify the hold (finger contact and width, the "
-                   "spot empty afterwards), retry up to {s.grasp_attempts} attempts, and retreat to "
+                   "then from a pre-grasp pose {s.pregrasp_backoff:g} m behind it and again from close behind it, "
+                   "move in (the pads along its sides at grasp height, or over a wide one and down) and close "
+                   "the gripper as soon as aligned with it, verify the hold "
+                   "(finger contact and width, the spot empty afterwards), retry up to {s.grasp_attempts} attempts, "
+                   "and retreat to "
                    "{s.flight_altitude:g} m. Needs a recent obj_localization of the object.")
     argument = "object label (optional; defaults to the last localized object)"
 
@@ -415,23 +439,28 @@ class Grasp(_Manipulation):
         return est if est.found and est.pose is not None else None
 
     async def track(self, ctx: SkillContext, query: str, label: str, target: Target, yaw: float, grip_z: float,
-                    what: str) -> Target:
-        """Put the gripper point `pregrasp_backoff` behind the object along the approach axis at `grip_z` and
-        re-detect it there until two detections agree; the pose follows each newer detection."""
+                    backoff: float, what: str, shape: Target | None = None) -> tuple[Target, Target]:
+        """Put the gripper point `backoff` behind the object along the approach axis at `grip_z` and re-detect it
+        there until two detections agree; the pose follows each newer detection. With `shape`, the object's top,
+        size and yaw stay that target's (a low, close view sees only part of it) and only its position follows.
+        Returns (the target to aim at, the newest detection as seen from here: the reference a look from the
+        same pose is compared with)."""
         s = self.settings
         ux, uy = math.cos(yaw), math.sin(yaw)
         seen = 0
+        raw = target
         for _ in range(TRACK_ITERATIONS):
             p = target.position
-            sp = body_for(ctx, p.x - s.pregrasp_backoff * ux, p.y - s.pregrasp_backoff * uy, grip_z, yaw)
+            sp = body_for(ctx, p.x - backoff * ux, p.y - backoff * uy, grip_z, yaw)
             await ctx.goto(sp, yaw, s.descent_speed, low=s.manipulation_min_altitude, what=what)
             est = await self.look(ctx, query)
             if est is None:
                 continue
             assert est.pose is not None
             seen += 1
-            new = Target(est.pose.position, est.top_z if est.top_z is not None else target.top,
-                         est.size or target.size, est.pose.yaw)
+            raw = Target(est.pose.position, est.top_z if est.top_z is not None else target.top,
+                         est.size or target.size, est.pose.yaw, est.frame_stamp_ns)
+            new = raw if shape is None else Target(raw.position, shape.top, shape.size, shape.yaw, raw.seen_ns)
             step = horizontal_distance(new.position, target.position)
             if step > s.max_object_shift:
                 raise AttemptFailed(OutcomeCode.KNOCKED_OVER, f"re-detected {step:.2f} m from where it stood",
@@ -440,25 +469,66 @@ class Grasp(_Manipulation):
             if step < s.track_converged and seen >= 2:
                 break
         if not seen:
-            raise AttemptFailed(OutcomeCode.NOT_DETECTED, f"the {label} was not seen from the pre-grasp pose beside "
+            raise AttemptFailed(OutcomeCode.NOT_DETECTED, f"the {label} was not seen from {backoff:.2f} m beside "
                                 f"{fmt(target.position)}", final=True)
-        return target
+        return target, raw
 
-    async def relook(self, ctx: SkillContext, query: str, label: str, before: Target, yaw: float,
-                     grip_z: float) -> Target:
-        """After a failed close: back beside the object at `grip_z` (where the last tracking detection was made:
-        the same view, so the comparison is not between two partial views) and look again. A moved, tipped or
-        vanished object ends the grasp (knocked_over: the policy re-localizes it); otherwise the next attempt
-        starts from it."""
+    def final_view(self, size: Vec3 | None, top: float, bottom: float) -> float:
+        """The nearest the gripper point comes behind the object (along body x, to its centre) with the object
+        still measured whole, its top `top` and its bottom `bottom` above the gripper point (negative: below).
+        Two limits, from the mount (the camera ahead of and above the gripper point, pitched down): the near
+        bottom edge (half its length ahead of its centre) must stay above the image's lowest row, by
+        VIEW_MARGIN_DEG for the vehicle's tilt, and the near top edge beyond the camera's nearest depth
+        (`camera_min_depth` + 1 cm). Nearer, a detection is cut off at the image's bottom and biased, or its
+        top loses its depth and reads low (a can seen from 0.26 m: its top 4 cm low, a view 2 cm lower 6 cm);
+        the rest of the way to the object is blind."""
+        s = self.settings
+        m, intr = s.mount, DEFAULT_INTRINSICS
+        cam_x = m.camera_offset[0] - m.gripper_offset[0]
+        cam_up = m.camera_offset[2] - m.gripper_offset[2]
+        half = (max(size.x, size.y) if size is not None else 0.1) / 2
+        pitch = math.radians(m.camera_pitch_deg)
+        lowest = pitch - math.radians(VIEW_MARGIN_DEG) + math.atan((intr.height - 1 - intr.cy) / intr.fy)
+        near = half + PAD_HALF_M + 0.02  # never closer than the pads' front edge 2 cm behind the object
+        if lowest < math.radians(89.0):
+            near = max(near, cam_x + half + (cam_up - bottom) / math.tan(lowest))
+        if math.cos(pitch) > 0.05:
+            # z-depth of a point d ahead of and h below the camera: d cos(pitch) + h sin(pitch)
+            ahead = (s.camera_min_depth + 0.01 - (cam_up - top) * math.sin(pitch)) / math.cos(pitch)
+            near = max(near, cam_x + half + ahead)
+        return min(near, s.pregrasp_backoff)
+
+    def side_clearance(self, size: Vec3 | None) -> float:
+        """Room between an open pad and the object's side as the pads pass along it: half the widest opening
+        less half its width across and, for a long one, what a heading error of `yaw_tolerance_deg` swings its
+        far end sideways by (a round one has none)."""
+        s = self.settings
+        if size is None:
+            return 0.0
+        long, short = max(size.x, size.y), min(size.x, size.y)
+        swing = 0.0 if round_footprint(size) else long / 2 * math.sin(math.radians(s.yaw_tolerance_deg))
+        return s.gripper_max_opening / 2 - short / 2 - swing
+
+    async def relook(self, ctx: SkillContext, query: str, label: str, before: Target, shape: Target, yaw: float,
+                     grip_z: float, backoff: float, clear_z: float) -> Target:
+        """After a failed close or alignment: up to `clear_z` (the pads clear of whatever stands or lies under
+        them), back to where `before` was seen (`backoff` behind it at `grip_z`: the same view, so the comparison
+        is not between two partial views) and look again. A moved, tipped or vanished object ends the grasp
+        (knocked_over: the policy re-localizes it); otherwise the next attempt starts from it (its top, size and
+        yaw those of `shape`, the view from above)."""
         s = self.settings
         ux, uy = math.cos(yaw), math.sin(yaw)
         p = before.position
-        sp = body_for(ctx, p.x - s.pregrasp_backoff * ux, p.y - s.pregrasp_backoff * uy, grip_z, yaw)
+        body_clear = clear_z - s.gripper_offset_z
         st = ctx.current()
-        if st.position.z < sp.z - s.position_tolerance:
-            await ctx.goto(Vec3(x=st.position.x, y=st.position.y, z=sp.z), yaw, s.descent_speed,
+        if st.position.z < body_clear - 0.01:  # straight up first: never drag the pads back through it
+            await ctx.goto(Vec3(x=st.position.x, y=st.position.y, z=body_clear), yaw, s.descent_speed,
                            low=s.manipulation_min_altitude, what="climb after the miss")
-        await ctx.goto(sp, yaw, s.descent_speed, low=s.manipulation_min_altitude, what=f"back beside the {label}")
+        up = body_for(ctx, p.x - backoff * ux, p.y - backoff * uy, max(clear_z, ctx.current().position.z
+                                                                         + s.gripper_offset_z), yaw)
+        await ctx.goto(up, yaw, s.descent_speed, low=s.manipulation_min_altitude, what=f"back beside the {label}")
+        sp = body_for(ctx, p.x - backoff * ux, p.y - backoff * uy, grip_z, yaw)
+        await ctx.goto(sp, yaw, s.descent_speed, low=s.manipulation_min_altitude, what=f"view of the {label}")
         est = await self.look(ctx, query)
         if est is None:
             ctx.memory.forget_object(label)
@@ -468,11 +538,11 @@ class Grasp(_Manipulation):
         ctx.memory.store_object(est, query)
         why = _on_surface(est, before, s.knock_shift)
         new = Target(est.pose.position, est.top_z if est.top_z is not None else before.top, est.size or before.size,
-                     est.pose.yaw)
+                     est.pose.yaw, est.frame_stamp_ns)
         if why:
             raise AttemptFailed(OutcomeCode.KNOCKED_OVER, f"the attempt moved it: {why}, now at "
                                 f"{fmt(est.pose.position)}", final=True, target=new)
-        return new
+        return Target(new.position, shape.top, shape.size, shape.yaw, new.seen_ns)
 
     async def attempt(self, ctx: SkillContext, label: str, query: str, target: Target, rec: Attempt) -> SkillResult:
         s, mem = self.settings, ctx.memory
@@ -484,44 +554,59 @@ class Grasp(_Manipulation):
         yaw = grasp_yaw(target.size, target.yaw, st.yaw)
         ux, uy = math.cos(yaw), math.sin(yaw)
         pre_z = target.top + s.pregrasp_height
-        hover_z = target.top + s.hover_clearance + PAD_BELOW_M
         p = target.position
         pre = body_for(ctx, p.x - s.pregrasp_backoff * ux, p.y - s.pregrasp_backoff * uy, pre_z, yaw)
         await self.travel(ctx, pre, yaw, f"pre-grasp pose beside the {label}", low=s.manipulation_min_altitude)
 
-        # Close range: re-detect, then descend to the pads' height over the object while re-detecting, the
-        # pose following each detection (camera and vehicle share the estimate, so its drift cancels).
-        target = await self.track(ctx, query, label, target, yaw, pre_z, f"pre-grasp pose beside the {label}")
-        hover_z = target.top + s.hover_clearance + PAD_BELOW_M
-        target = await self.track(ctx, query, label, target, yaw, hover_z, f"beside the {label} (descent)")
-        yaw = grasp_yaw(target.size, target.yaw, yaw)
-        size = target.size
+        # From above and behind, the whole object in view: where it stands, how it is turned, its size and top.
+        shape, _ = await self.track(ctx, query, label, target, yaw, pre_z, s.pregrasp_backoff,
+                                    f"pre-grasp pose beside the {label}")
+        yaw = grasp_yaw(shape.size, shape.yaw, yaw)
+        ux, uy = math.cos(yaw), math.sin(yaw)
+        size = shape.size
         height = size.z if size is not None else 0.1
-        grip_z = target.top - grip_depth(height, s.grasp_depth_fraction)
-        p = target.position
-        ctx.note(f"{label} tracked at {fmt(p)} from {s.pregrasp_backoff:.2f} m")
+        depth = grip_depth(height, s.grasp_depth_fraction)
+        grip_z = shape.top - depth
+        clear_z = shape.top + s.hover_clearance + PAD_BELOW_M
+        # The pads pass along its sides at grasp height when there is room (the open pads 18 cm apart); a wide
+        # object (a tissue box, the cardboard box) they would push ahead of them, so it gets them from above.
+        sideways = self.side_clearance(size) >= SIDE_MARGIN_M
+        view_z = grip_z if sideways else clear_z
+        near = self.final_view(size, shape.top - view_z, shape.top - height - view_z)
 
-        # The last leg over the object is blind (the camera looks forward, the gripper hangs below the body):
-        # the offset is held from the vehicle's own estimate against the newest detection.
-        over = body_for(ctx, p.x, p.y, hover_z, yaw)
-        await ctx.goto(over, yaw, s.final_descent_speed * 2, low=s.manipulation_min_altitude,
-                       what=f"over the {label}")
+        # Down behind it and in along the approach axis, re-detecting it from the nearest pose that still has
+        # it whole in view (the pads still behind it). Camera and gripper share the vehicle's estimate, so the
+        # offset is true at that frame; what it cannot see is the estimate's drift from then until the close
+        # (the blind interval, kept to the short leg `near` forward), vertically as well: the gripper's height
+        # comes from the same detection's top.
+        where = "grasp height" if sideways else "just above it"
+        target, seen = await self.track(ctx, query, label, shape, yaw, view_z, near,
+                                        f"{near:.2f} m behind the {label} {where}", shape=shape)
+        dz = max(-TOP_SHIFT_M, min(TOP_SHIFT_M, seen.top - shape.top))
+        grip_z, clear_z, view_z = grip_z + dz, clear_z + dz, view_z + dz
+        p = target.position
+        ctx.note(f"{label} tracked at {fmt(p)} from {near:.2f} m at {where}")
+
+        # The blind leg: forward (over it, then down to grasp height, for a wide one) until the gripper point
+        # holds inside the window, then close.
         window = (s.grasp_window_x, s.grasp_window_y)
-        ok, off, sp = await self.align(ctx, p.x, p.y, hover_z, yaw, window, f"aligned over the {label}")
+        leg_ns = time.time_ns()
+        if not sideways:
+            ok, off, _sp = await self.align(ctx, p.x, p.y, clear_z, yaw, window, f"aligned over the {label}",
+                                            speed=s.descent_speed)
+            rec.offset = off
+            if not ok:
+                new = await self.relook(ctx, query, label, seen, shape, yaw, view_z, near, clear_z)
+                raise AttemptFailed(OutcomeCode.MISALIGNED, f"the gripper stayed {100 * off:.1f} cm from the "
+                                    f"{label} above it, outside the window", target=new)
+        ok, off, sp = await self.align(ctx, p.x, p.y, grip_z, yaw, window, f"aligned at the {label}",
+                                       speed=s.descent_speed if sideways else s.final_descent_speed)
         rec.offset = off
         if not ok:
-            await self.relook(ctx, query, label, target, yaw, hover_z)
-            raise AttemptFailed(OutcomeCode.MISALIGNED, f"the gripper stayed {100 * off:.1f} cm from the {label} "
-                                "above it, outside the window")
-        body_grip = body_for(ctx, p.x, p.y, grip_z, yaw).z
-        await ctx.goto(Vec3(x=sp.x, y=sp.y, z=body_grip), yaw, s.final_descent_speed,
-                       low=s.manipulation_min_altitude, what=f"grasp height over the {label}")
-        ok, off, sp = await self.align(ctx, p.x, p.y, grip_z, yaw, window, f"aligned at the {label}")
-        rec.offset = off
-        if not ok:
-            new = await self.relook(ctx, query, label, target, yaw, hover_z)
+            new = await self.relook(ctx, query, label, seen, shape, yaw, view_z, near, clear_z)
             raise AttemptFailed(OutcomeCode.MISALIGNED, f"the gripper stayed {100 * off:.1f} cm from the {label} at "
                                 "grasp height, outside the window", target=new)
+        blind_note(ctx, label, target, leg_ns)
         await ctx.gripper("close")
         st = ctx.current()
         sensed = st.gripper_width is not None
@@ -534,15 +619,16 @@ class Grasp(_Manipulation):
             width = st.gripper_width or 0.0
             if not st.gripper_holding:
                 await ctx.gripper("open")
-                new = await self.relook(ctx, query, label, target, yaw, hover_z)
+                new = await self.relook(ctx, query, label, seen, shape, yaw, view_z, near, clear_z)
                 raise AttemptFailed(OutcomeCode.MISSED, f"the fingers closed to {100 * width:.1f} cm without "
                                     f"holding the {label}", target=new)
             wrong = self.hold_problem(label, width, size)
             if wrong is not None:
                 await ctx.gripper("open")
-                new = await self.relook(ctx, query, label, target, yaw, hover_z)
+                new = await self.relook(ctx, query, label, seen, shape, yaw, view_z, near, clear_z)
                 raise AttemptFailed(*wrong, target=new)
             ctx.note(f"fingers hold the {label} at {100 * width:.1f} cm")
+        body_grip = sp.z
         lift = Vec3(x=sp.x, y=sp.y, z=body_grip + LIFT_M)
         await ctx.goto(lift, yaw, s.descent_speed, what="lift")
         if sensed and not ctx.current().gripper_holding:
