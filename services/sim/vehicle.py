@@ -809,6 +809,7 @@ class Vehicle:
         ah = float(np.linalg.norm(a[:2]))
         if ah > p.accel_h:
             a[:2] *= p.accel_h / ah
+        clipped_z = abs(a[2]) > p.accel_v
         a[2] = min(max(a[2], -p.accel_v), p.accel_v)
         # Jerk limit on the horizontal acceleration (MPC_JERK_MAX): the tilt follows a ramp without overshooting
         # the acceleration limit.
@@ -818,11 +819,15 @@ class Vehicle:
         # The integral carries a payload's weight and leans into a steady draft. Horizontally it integrates only
         # near the setpoint (conditional integration): a manoeuvre's large errors would wind it up and break
         # the acceleration limit.
-        # Vertically near a hover, or while a climb or descent is stalled: asked to move at 0.3 m/s or more and
-        # slower than 0.1 m/s, a load the gravity feed-forward does not know holds it (a payload taken off a
-        # table weighs more than the acceleration limit's share of the thrust), so it integrates until it moves.
-        stalled = abs(dv[2]) >= 0.3 and abs(self.v[2]) < 0.1
-        if stalled or (abs(vel_cmd[2]) < 0.2 and abs(dv[2]) < p.accel_v * p.vel_tau_z):
+        # Vertically it integrates unless the acceleration is clipped at its limit (anti-windup: a climb's first
+        # jump does not wind it up), and always while a climb or descent is stalled (asked to move, not moving:
+        # a load the gravity feed-forward does not know holds it, e.g. a payload heavier than the acceleration
+        # limit's share of the thrust) or while it unwinds. So any steady error, however small, is taken up:
+        # a condition tied to fixed speed bands (integrate near a hover or when a 0.3 m/s climb stalls) left a
+        # dead band where a 0.25 m/s lift hung 13-20 cm short for good, and the vehicle hung 20 cm above its
+        # retreat height after letting go of a bottle.
+        stalled = abs(dv[2]) >= 0.1 and abs(self.v[2]) < 0.1
+        if not clipped_z or stalled or dv[2] * self.v_int[2] < 0:
             self.v_int[2] = min(max(self.v_int[2] + dv[2] * dt * p.vel_ki_z, -3.0), 3.0)
         if float(np.linalg.norm(dv[:2])) < 0.15:
             self.v_int[:2] = np.clip(self.v_int[:2] + dv[:2] * dt * p.vel_ki, -1.0, 1.0)
