@@ -284,10 +284,36 @@ def _register_commands() -> None:
 
 
 def main() -> None:
+    """Run the CLI, then leave without the interpreter's finalization. Commands open Zenoh sessions in this
+    process (`up`'s routers and their heartbeat watch, `demo`, `fork`, `eval`), and Zenoh's own threads call
+    into Python (a late sample, a callback dropped): one that wants the GIL while the interpreter finalizes is
+    ended by CPython with pthread_exit, whose forced unwind cannot cross Rust's thread entry, and the process
+    aborts with "FATAL: exception not rethrown" (SIGABRT, exit -6) after every service had stopped cleanly
+    (seen at the exit of `aermani up` and of a fork). Everything the CLI writes is flushed first."""
+    import logging
+    import os
+    import traceback
+
     _register_commands()
-    with contextlib.suppress(BrokenPipeError):
+    code: int = 0
+    try:
         app()
-    sys.stdout.flush()
+    except SystemExit as exc:
+        code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+        if exc.code is not None and not isinstance(exc.code, int):
+            print(exc.code, file=sys.stderr)
+    except BrokenPipeError:
+        code = 0
+    except KeyboardInterrupt:
+        code = 130
+    except BaseException:  # noqa: BLE001 - printed as Python would, then the same exit status
+        traceback.print_exc()
+        code = 1
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    os._exit(code)
 
 
 if __name__ == "__main__":
