@@ -131,24 +131,25 @@ def summary(rows: list[dict]) -> dict:
             "place_false_claims": sum(1 for r in places if r.get("place_claim_true") is False)}
 
 
-async def run_level(level: str, calls: int, seed0: int, speed: float, tmp: Path) -> list[dict]:
+async def run_level(level: str, seeds: list[int], speed: float, tmp: Path) -> list[dict]:
     rows: list[dict] = []
     sim_env, faults = LEVELS[level]
     env = {"AERMANI_SIM_SPEED_FACTOR": str(speed), "AERMANI_PERCEPTION_SEGMENTER": "color", **sim_env}
     with run_stack(SERVICES, tmp / level, env=env) as stack:
         async with bus_for(stack) as bus:
             c = Client(bus)
-            await c.reset(seed=seed0)  # the sim answers queries once it is up
+            await c.reset(seed=seeds[0])  # the sim answers queries once it is up
             for f in faults:  # they outlive every reset
                 res = await bus.query(KEYS.sim_fault, f, timeout=10)
                 assert res["ok"], res
-            for i in range(calls):
-                target = GRIPPABLE[(seed0 + i) % len(GRIPPABLE)]
+            calls = len(seeds)
+            for i, seed in enumerate(seeds):
+                target = GRIPPABLE[seed % len(GRIPPABLE)]
                 t0 = time.monotonic()
                 try:
-                    row = await one_call(c, seed0 + i, target)
+                    row = await one_call(c, seed, target)
                 except (ScenarioError, AssertionError, TimeoutError) as exc:
-                    row = {"seed": seed0 + i, "object": target, "eligible": False, "why": f"{type(exc).__name__}: "
+                    row = {"seed": seed, "object": target, "eligible": False, "why": f"{type(exc).__name__}: "
                            f"{str(exc)[:120]}"}
                 row["wall_s"] = round(time.monotonic() - t0, 1)
                 rows.append(row)
@@ -165,13 +166,19 @@ def main() -> None:
     ap.add_argument("--calls", type=int, default=4, help="grasp calls per level (the catalogue cycles)")
     ap.add_argument("--seed", type=int, default=0, help="first layout seed (call i uses seed + i)")
     ap.add_argument("--speed", type=float, default=3.0, help="sim speed factor")
+    ap.add_argument("--seeds", default=None, metavar="LIST",
+                    help="comma-separated layout seeds instead of --seed/--calls (the catalogue object follows "
+                    "the seed)")
+    ap.add_argument("--keep", type=Path, default=None, metavar="DIR",
+                    help="keep every service's log under DIR/<level>/logs (default: a temporary directory)")
     add_json_option(ap)
     a = ap.parse_args()
     figures: dict = {}
     all_rows: dict = {}
+    seeds = [int(x) for x in a.seeds.split(",")] if a.seeds else list(range(a.seed, a.seed + a.calls))
     with tempfile.TemporaryDirectory() as tmp:
         for level in a.levels.split(","):
-            rows = asyncio.run(run_level(level, a.calls, a.seed, a.speed, Path(tmp)))
+            rows = asyncio.run(run_level(level, seeds, a.speed, a.keep or Path(tmp)))
             all_rows[level] = rows
             figures[level] = summary(rows)
             print(f"[{level}] {figures[level]}", flush=True)
