@@ -173,8 +173,23 @@ class ExecutorSettings(ServiceSettings):
     hold_width_tolerance: float = 0.035
     """A closed gripper whose finger gap differs from the object's measured width by more than this holds
     something else, metres."""
-    rest_tolerance: float = 0.015
-    """After place, two detections of the released object closer than this mean it is at rest, metres."""
+    rest_tolerance: float = 0.025
+    """After place, two detections of the released object 0.5 s apart closer than this horizontally mean it is
+    at rest, metres. Horizontally only, and not tighter: the vehicle's estimate wanders between the looks (on the
+    realistic multirotor two looks at a resting cup 0.5 s apart differ by a median 0.9 cm, at most 1.9 cm,
+    horizontally, and by 1.5 cm in 3-D, where the vertical wander dominates), while an object still rolling or
+    sliding after the retreat moves 2.5 cm in 0.5 s at 5 cm/s."""
+    support_tolerance: float = 0.03
+    """After place, the support seen under the object and the named surface's top, both from the verification
+    view, agree within this, metres."""
+    estimate_wander_z: float = 0.05
+    """How far the vehicle's vertical position estimate may wander between two views seconds apart, added to
+    support_tolerance when the surface's top can only be compared with its measurement from before the release:
+    about 2 sigma of the change of the realistic multirotor's vertical estimate error (sigma 2.8 cm, tau 10 s),
+    metres. On a real vehicle, from its estimator's specification."""
+    upright_tolerance: float = 0.03
+    """After place, a non-rolling object seen this much (or a quarter of its height, whichever is more) shorter
+    or taller than it was held has fallen over, metres."""
     round_place_margin: float = 0.12
     """Extra clearance from the surface's edges for a round (rolling) object's placement spot, metres."""
 

@@ -312,7 +312,7 @@ def _world_fault(req: dict, unit: str, kind: str, camera: CameraPublisher) -> di
     """The faults of the flown world (until cleared with `ok`): `hover` `offset` {x, y} (metres, the vehicle
     settles that far off every position setpoint, its estimate shows it) or `wander` {radius_m, period_s} (it
     circles there); `camera_mount` `offset` {x, y, z} (body frame, metres: the published base_link->camera
-    transform is that far from where the camera really is, a miscalibrated mount); `estimate` `offset` {x, y}
+    transform is that far from where the camera really is, a miscalibrated mount); `estimate` `offset` {x, y, z}
     (world, metres: the pose estimate jumps that far from the truth, and the vehicle with it); `object` `knock`
     {name} (the named object is tipped onto its side where it stands) or `slip` {name} (the held object drops
     out of the gripper)."""
@@ -329,7 +329,7 @@ def _world_fault(req: dict, unit: str, kind: str, camera: CameraPublisher) -> di
             params.hover_wander = num["radius_m"] if kind == "wander" else 0.0
             params.hover_wander_period = period
         elif unit == "estimate":
-            params.estimate_offset = (num["x"], num["y"]) if kind == "offset" else (0.0, 0.0)
+            params.estimate_offset = (num["x"], num["y"], num["z"]) if kind == "offset" else (0.0, 0.0, 0.0)
         elif unit == "camera_mount":
             camera.mount_error = np.array([num["x"], num["y"], num["z"]]) if kind == "offset" else np.zeros(3)
         elif kind == "slip" and not core.world.slip(str(req.get("name", ""))):

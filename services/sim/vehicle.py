@@ -143,7 +143,7 @@ class VehicleParams:
     hover_wander_period: float = 2.0  # s: ... once per this many seconds of simulated time
     # m, ENU (x, y): a step in the estimate (estimate - truth) on top of the drift: a relocalization jump, which
     # nothing on board sees (the camera's tf carries the same estimate); tests use it to send a release astray
-    estimate_offset: tuple[float, float] = (0.0, 0.0)
+    estimate_offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
     vio_noise: float = 0.0  # m, white noise on the multirotor's estimated position
     vel_noise: float = 0.0  # m/s, white noise on the multirotor's estimated velocity
     yaw_bias: float = 0.0  # rad, sigma of the estimated yaw's wandering bias
@@ -361,9 +361,9 @@ class Vehicle:
             p, q, r = w.vehicle_rates()
             self.rates = (p, -q, -r)  # FRD
             self.yaw_rate = -w.vehicle_yaw_rate()
-        ox, oy = self.params.estimate_offset
-        if ox or oy:
-            self.p = self.p + enu_to_ned(np.array([ox, oy, 0.0]))
+        ox, oy, oz = self.params.estimate_offset
+        if ox or oy or oz:
+            self.p = self.p + enu_to_ned(np.array([ox, oy, oz]))
 
     def attitude_quaternion(self) -> tuple[float, float, float, float]:
         """(w, x, y, z) of the FRD body in NED from the reported roll, pitch and (estimated) yaw."""

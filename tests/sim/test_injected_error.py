@@ -34,7 +34,7 @@ def test_estimate_offset_moves_the_vehicle_by_the_opposite_unseen():
     to_offboard(core, clock)
     goal = np.array([0.5, 0.3, 1.5])
     clock.fly(goal, 0.0, 5.0)
-    v.params.estimate_offset = (0.3, 0.0)
+    v.params.estimate_offset = (0.3, 0.0, 0.0)
     clock.fly(goal, 0.0, 5.0)
     assert np.linalg.norm(v.position_enu()[:2] - goal[:2]) < 0.01  # the estimate says: on the setpoint
     assert np.linalg.norm(v.true_position_enu()[:2] - (goal[:2] - [0.3, 0.0])) < 0.01  # truly 0.3 m off

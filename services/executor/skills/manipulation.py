@@ -758,21 +758,57 @@ class Place(_Manipulation):
                 raise SkillFailed(f"the {held} did not come free of the opened fingers", OutcomeCode.FAILED,
                                   rec.facts(ctx, held)) from exc
         mem.set_held(None)
+        try:
+            return await self.after_release(ctx, pl, held, size, surface_z, bottom + height / 2, sp, yaw, rec)
+        except AuthorityLost:
+            raise
+        except SkillFailed as exc:
+            if exc.code == OutcomeCode.UNSTABLE:
+                raise
+            # The object is out of the gripper whatever stopped the retreat or the look: say so (unstable:
+            # released, not seen at rest), so that no policy goes on as if it still held it.
+            raise SkillFailed(f"released the {held} over the {pl.label}, then could not verify it rests there: "
+                              f"{exc}", OutcomeCode.UNSTABLE, rec.facts(ctx)) from exc
+
+    async def after_release(self, ctx: SkillContext, pl: MemoryObject, held: str, size: Vec3 | None,
+                            surface_z: float, centre_z: float, sp: Vec3, yaw: float, rec: Attempt) -> SkillResult:
+        """Retreat from the released object, look at it from a verification view, and report where it rests."""
+        s, mem = self.settings, ctx.memory
         await ctx.goto(Vec3(x=sp.x, y=sp.y, z=max(s.flight_altitude, sp.z)), yaw, s.descent_speed,
                        what="retreat height")
 
-        # Verify: back off, look at the spot; the object must rest there: two detections a moment apart agree,
-        # its bottom on the surface's top, near the spot.
-        target = Vec3(x=pl.position.x, y=pl.position.y, z=bottom + height / 2)
+        # Verify: back off, look at the spot; the object must rest there.
+        target = Vec3(x=pl.position.x, y=pl.position.y, z=centre_z)
         vp, vyaw = self.standoff(ctx, target, ctx.current())
         await self.travel(ctx, Vec3(x=vp.x, y=vp.y, z=max(vp.z, s.min_altitude)), vyaw, "verification view")
+        est, why = await self.verify_rest(ctx, pl, held, size, surface_z, rec)
+        mo = mem.store_object(est, held)
+        if why:
+            raise SkillFailed(f"released the {held} but it lies at {fmt(mo.position)}, not at rest on the "
+                              f"{pl.label}: {why}", OutcomeCode.UNSTABLE, rec.facts(ctx))
+        ctx.note(f"{held} rests on the {pl.label} at {fmt(mo.position)}")
+        return SkillResult(f"placed the {held} on the {pl.label} at {fmt(mo.position)} (at rest: two detections "
+                           "agree)", OutcomeCode.SUCCEEDED, rec.facts(ctx))
+
+    async def verify_rest(self, ctx: SkillContext, pl: MemoryObject, held: str, size: Vec3 | None, surface_z: float,
+                          rec: Attempt) -> tuple[ObjectEstimate, str]:
+        """Look at the released object from the verification view: at rest (two consecutive looks REST_GAP_S
+        apart agree horizontally), standing on the named surface (the support under it and the surface's top,
+        both seen from this view), upright (as tall as when held) and near the spot. Returns the last estimate
+        and why it is not placed ('' when it is).
+
+        Every comparison is made within one view or between looks a moment apart, because the vehicle's
+        position estimate wanders and perception places what it sees with that estimate: on the realistic
+        multirotor (sigma 2.5 cm horizontally, 2.8 cm vertically, tau 10 s) two looks at a resting cup 0.5 s
+        apart differ by a median 0.9 cm horizontally but 1.5 cm in 3-D, and the surface's top measured before
+        the release can sit several centimetres off the support seen now."""
+        s = self.settings
         first = await ctx.localize_object(held)
         if not first.found or first.pose is None:
             raise SkillFailed(f"released the {held} over the {pl.label} but could not see it there afterwards: "
                               f"{not_found(held, first)}", OutcomeCode.UNSTABLE, rec.facts(ctx))
-        # At rest: two consecutive looks REST_GAP_S apart agree. A hovering multirotor's view rocks, so a pair
-        # that disagrees gets another look (up to REST_LOOKS); an object still rolling never yields an agreeing
-        # pair, one that stopped does (and is then judged where it lies).
+        # A hovering multirotor's view rocks, so a pair that disagrees gets another look (up to REST_LOOKS); an
+        # object still rolling never yields an agreeing pair, one that stopped does (and is judged where it lies).
         prev, second, moved = first, first, math.inf
         for _ in range(REST_LOOKS - 1):
             await asyncio.sleep(REST_GAP_S)
@@ -781,30 +817,40 @@ class Place(_Manipulation):
             if not second.found or second.pose is None:
                 break
             assert prev.pose is not None
-            moved = math.dist(prev.pose.position.as_tuple(), second.pose.position.as_tuple())
+            moved = horizontal_distance(prev.pose.position, second.pose.position)
             if moved <= s.rest_tolerance:
                 break
             prev = second
         est = second if second.found and second.pose is not None else prev
         assert est.pose is not None
-        mo = mem.store_object(est, held)
-        off = horizontal_distance(est.pose.position, pl.position)
-        rec.offset = off
-        bottom_seen = est.pose.position.z - (est.size.z / 2 if est.size is not None else height / 2)
+        rec.offset = off = horizontal_distance(est.pose.position, pl.position)
         if not second.found or second.pose is None:
-            why = "it was seen and then no more (still moving?)"
-        elif moved > s.rest_tolerance:
-            why = (f"it is still moving ({100 * moved:.1f} cm between the last two of {REST_LOOKS} looks "
-                   f"{REST_GAP_S:g} s apart)")
-        elif abs(bottom_seen - surface_z) > 0.05:
-            why = f"its bottom is at {bottom_seen:.2f} m, not on the surface at {surface_z:.2f} m"
-        elif off > s.place_tolerance:
-            why = f"{off:.2f} m from the placement spot"
-        else:
-            why = ""
-        if why:
-            raise SkillFailed(f"released the {held} but it lies at {fmt(mo.position)}, not at rest on the "
-                              f"{pl.label}: {why}", OutcomeCode.UNSTABLE, rec.facts(ctx))
-        ctx.note(f"{held} rests on the {pl.label} at {fmt(mo.position)}")
-        return SkillResult(f"placed the {held} on the {pl.label} at {fmt(mo.position)} (at rest: two detections "
-                           "agree)", OutcomeCode.SUCCEEDED, rec.facts(ctx))
+            return est, "it was seen and then no more (still moving?)"
+        if moved > s.rest_tolerance:
+            return est, (f"it is still moving ({100 * moved:.1f} cm between the last two of {REST_LOOKS} looks "
+                         f"{REST_GAP_S:g} s apart)")
+        support = est.support_z if est.support_z is not None else est.pose.position.z - (
+            est.size.z / 2 if est.size is not None else 0.0)
+        top, tolerance = await self.surface_now(ctx, pl, surface_z)
+        if abs(support - top) > tolerance:
+            return est, f"it stands at {support:.2f} m, not on the {pl.label}'s top at {top:.2f} m"
+        if size is not None and est.size is not None and not rolls(size) \
+                and abs(est.size.z - size.z) > max(s.upright_tolerance, 0.25 * size.z):
+            return est, (f"it is {100 * est.size.z:.0f} cm tall where it was {100 * size.z:.0f} cm when held: "
+                         "fallen over")
+        if off > s.place_tolerance:
+            return est, f"{off:.2f} m from the placement spot"
+        return est, ""
+
+    async def surface_now(self, ctx: SkillContext, pl: MemoryObject, remembered: float) -> tuple[float, float]:
+        """The named surface's top as seen now, from the verification view, and the tolerance for comparing a
+        support seen in the same view with it (one estimate frame: only perception's own error counts). When
+        the surface cannot be measured now: its top from before the release, with the estimate's possible wander
+        since then added to the tolerance."""
+        s = self.settings
+        now = await ctx.localize_placement(pl.query or pl.label, None)
+        if now.surface_z is not None:
+            return now.surface_z, s.support_tolerance
+        ctx.note(f"the {pl.label}'s top not measured from the verification view: compared with its top from "
+                 "before the release")
+        return remembered, s.support_tolerance + s.estimate_wander_z
