@@ -489,8 +489,21 @@ def test_place_codes_decide_release() -> None:
     unstable = PastStep("place", None, "failed", "", OutcomeCode.UNSTABLE)
     assert policy.decide(_ctx(PLACE_CMD, [*_PICKED, unstable], pose=(2.0, -0.8, 1.57)))[:2] == \
         ("obj_localization", "red cup")
-    blocked = PastStep("place", None, "rejected", "", OutcomeCode.BLOCKED)
+    blocked = PastStep("place", None, "rejected", "", OutcomeCode.BLOCKED, SkillFacts(holding="red cup"))
     assert policy.decide(_ctx(PLACE_CMD, [*_PICKED, blocked], pose=(2.0, -0.8, 1.57)))[0] != "obj_localization"
+
+
+def test_a_place_refused_for_holding_nothing_ends_the_belief_that_the_grasp_still_holds() -> None:
+    """Working memory can lag the steps, so a grasp that succeeded since the last release counts as holding;
+    a later place that the executor refused while its facts said the gripper held nothing settles it (a fork
+    under load once looped placement_localization and place 30 times on the stale belief)."""
+    policy = RulesPolicy()
+    refused = PastStep("place", None, "rejected", "", OutcomeCode.BLOCKED, SkillFacts(target="table"))
+    # The table in view and its spot in memory: on the old belief the policy would place again.
+    ctx = _ctx(PLACE_CMD, [*_PICKED, refused], pose=(2.0, -0.8, 1.57), visible=[Seen("table", "surface", 0.0, 1.2)],
+               known_placements=["table"], positions={"table": (2.0, 0.0)})
+    skill = policy.decide(ctx)[0]
+    assert skill not in ("place", "placement_localization"), skill  # it looks for the cup again
 
 
 @pytest.mark.parametrize(("state", "code"), [("succeeded", OutcomeCode.SUCCEEDED), ("failed", OutcomeCode.FAILED),

@@ -133,8 +133,11 @@ class RulesPolicy:
             return S.DONE, None, "The object has been placed on the destination: the command is complete."
         holding = ctx.held
         if holding is None:
+            # Working memory may lag the last step (it is read without waiting for a newer copy): a grasp that
+            # succeeded since the last release means holding. A place refused while the executor's own facts
+            # said it held nothing is newer than that and settles it.
             for s in reversed(rest):
-                if _released(s):
+                if _released(s) or (s.skill == S.PLACE and s.state == "rejected" and s.facts.holding is None):
                     break
                 if s.skill == S.GRASP and s.state == "succeeded":
                     holding = "object"
