@@ -5,7 +5,10 @@ Frames are most of a log's bytes (a realistic 640x480 depth PNG is about 240 kB,
 one-hour log must fit in 2 GB (docs/performance.md). A pair is kept or skipped together (see FrameThrottle).
 Skipped frames wait in a ring per key, so when a `reasoner/step` names
 the frame its model saw (`image_stamp_ns`), that colour frame and its depth are written after all: the log
-always shows what each decision was made on. Everything that is not a colour or depth frame passes.
+always shows what each decision was made on. Zenoh orders nothing across keys, so a step can also arrive before
+its frame (a `done` is published within milliseconds of its decision; under load its frame came later): the
+stamps a step named and the ring did not hold are remembered, and such a frame is written when it comes.
+Everything that is not a colour or depth frame passes.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ RING = 64  # written stamps remembered per stream, for the pair's other half
 # its frame: 64 MB holds about 2 minutes of colour at 15 fps; depth, 8 times larger a frame, only seconds
 # (the model saw the colour frame; the decision's depth is kept when the step comes soon enough).
 RING_BYTES = {"/camera/color": 64 << 20, "/camera/depth": 16 << 20}
+WANTED = 64  # stamps named by steps whose frames had not come yet, remembered per vehicle
 
 
 Sample = tuple[str, bytes, str, int]  # key, payload, encoding, receive_ns
@@ -35,6 +39,8 @@ class _Vehicle:
     kept: dict[str, collections.deque[int]] = field(default_factory=dict)  # suffix -> recent stamps written
     skipped: dict[str, collections.OrderedDict[int, Sample]] = field(default_factory=dict)
     held: collections.Counter[str] = field(default_factory=collections.Counter)  # bytes in each ring
+    wanted: collections.OrderedDict[int, set[str]] = field(default_factory=collections.OrderedDict)
+    """Stamps a step named before their frames came -> the streams still to write."""
 
 
 class FrameThrottle:
@@ -74,6 +80,8 @@ class FrameThrottle:
         # 5 % slack: a 15 fps camera's 15th frame is a few ns short of the second, and stamps jitter; a clock
         # that steps back by more than a period restarts the count.
         due = last is None or stamp - last >= self.period_ns * 0.95 or stamp < last - self.period_ns
+        if self._wanted(v, suffix, stamp):
+            due = True
         if not (due or stamp in v.kept.get(other, ())):
             self._hold(v, suffix, stamp, sample)
             return []
@@ -87,6 +95,17 @@ class FrameThrottle:
             self._written(v, other, stamp)
             out.append(partner)
         return out
+
+    @staticmethod
+    def _wanted(v: _Vehicle, suffix: str, stamp: int) -> bool:
+        """Whether a step already named this frame (it came after the step); it is then no longer wanted."""
+        streams = v.wanted.get(stamp)
+        if streams is None or suffix not in streams:
+            return False
+        streams.discard(suffix)
+        if not streams:
+            del v.wanted[stamp]
+        return True
 
     def _written(self, v: _Vehicle, suffix: str, stamp: int) -> None:
         last = v.last_kept.get(suffix)
@@ -108,13 +127,20 @@ class FrameThrottle:
             stamp = int(json.loads(payload).get("image_stamp_ns") or 0)
         except (ValueError, AttributeError, TypeError):
             return []
-        v = self.vehicles.get(prefix)
-        if v is None or not stamp:
+        if not stamp:
             return []
+        v = self.vehicles.setdefault(prefix, _Vehicle())
         out = []
+        missing = set(FRAME_SUFFIXES)
         for suffix, ring in v.skipped.items():
             if (s := ring.pop(stamp, None)) is not None:
                 v.held[suffix] -= len(s[1])
                 out.append(s)
+                missing.discard(suffix)
+        missing -= {suffix for suffix in FRAME_SUFFIXES if stamp in v.kept.get(suffix, ())}
+        if missing:  # not here yet: written when it comes
+            v.wanted[stamp] = missing
+            while len(v.wanted) > WANTED:
+                v.wanted.popitem(last=False)
         self.skipped -= len(out)
         return out

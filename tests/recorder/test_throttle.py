@@ -51,6 +51,20 @@ def test_the_frame_a_step_was_decided_on_is_written_with_the_step() -> None:
     assert written(th, [(K.reasoning_step.key, step, "application/json", 1)]) == [(K.reasoning_step.key, 1)]
 
 
+def test_a_frame_that_comes_after_the_step_that_names_it_is_written() -> None:
+    """Zenoh orders nothing across keys: a `done` step, published milliseconds after its decision, reached the
+    recorder before its frame under load (ci30's test_demo_rules found that frame missing from the log)."""
+    th = FrameThrottle(1.0)
+    base = 10**12
+    written(th, pair(base))  # the pair of this second is written
+    late = base + 7 * PERIOD  # within the second: the rate limit would skip it
+    step = ReasoningStep(task_id="t", step=1, image_stamp_ns=late).model_dump_json().encode()
+    assert written(th, [(K.reasoning_step.key, step, "application/json", base + 8 * PERIOD)]) == \
+        [(K.reasoning_step.key, base + 8 * PERIOD)]
+    out = written(th, [s for i in range(1, FPS) for s in pair(base + i * PERIOD)])
+    assert sorted(out) == [(K.camera_color.key, late), (K.camera_depth.key, late)]
+
+
 def test_zero_keeps_every_frame_and_other_keys_always_pass() -> None:
     every = FrameThrottle(0.0)
     samples = [s for i in range(10) for s in pair(i * PERIOD)]
