@@ -201,9 +201,11 @@ class SkillContext:
         return res
 
     async def goto(self, target: Vec3, yaw: float, speed: float, *, low: float | None = None,
-                   what: str = "target", timeout: float | None = None) -> VehicleState:
-        """Fly to `target` and wait for arrival. The envelope is checked first: a violating target raises
-        SkillFailed before any setpoint is sent."""
+                   what: str = "target", timeout: float | None = None,
+                   until: Callable[[VehicleState], bool] | None = None) -> VehicleState:
+        """Fly to `target` and wait for arrival (or, with `until`, for whichever of arrival and `until(state)`
+        comes first). The envelope is checked first: a violating target raises SkillFailed before any setpoint
+        is sent."""
         s = self.settings
         fence = geofence_problem(target, s, what)
         problem = fence or altitude_problem(target.z, s, low, what)
@@ -223,8 +225,9 @@ class SkillContext:
                     and math.sqrt(v.x ** 2 + v.y ** 2 + v.z ** 2) <= s.settle_speed)
 
         budget = timeout or (dist / speed + turn / math.radians(45.0) + s.motion_slack_s)
+        done = arrived if until is None else (lambda st: arrived(st) or until(st))
         try:
-            return await self.wait_for(arrived, budget, what)
+            return await self.wait_for(done, budget, what)
         finally:
             self.settled_ns = time.time_ns()
 

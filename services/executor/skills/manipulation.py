@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 from typing import ClassVar
 
 from services.executor.context import AuthorityLost, SkillContext, SkillFailed
-from services.executor.envelope import geofence_problem, wrap
+from services.executor.envelope import altitude_problem, geofence_problem, wrap
 from services.executor.memory import age_s, horizontal_distance
 from services.executor.registry import Category, Skill, SkillResult, register
 from services.executor.skills.common import beyond_reach, fmt, not_found
@@ -39,6 +39,15 @@ LIFT_M = 0.15  # the first lift after closing: enough to clear the surface, low 
 TRACK_ITERATIONS = 4  # close-range re-localizations per tracked pose before going on with the newest one
 VERTICAL_WINDOW_M = 0.015  # the pads are 6 cm tall: close within this of the planned gripper height
 MAX_CORRECTION_M = 0.15  # an alignment that needs more than this is not a wandering vehicle: give up
+PLACE_ALIGN_ABOVE_M = 0.05  # place aligns over the spot this far above the release height, then descends the rest
+# A place's descent has touched down when the vehicle, more than TOUCH_ABOVE_M and at most TOUCH_BAND_M above its
+# target, came down less than TOUCH_SINK_M in the last TOUCH_WINDOW_S (descending at 0.1-0.25 m/s it sinks 6-15 cm
+# in that time; hovering, the realistic multirotor's estimate wanders about 1 cm). The band spans the tallest
+# object held short by a whole height (the catalogue's 22 cm bottle).
+TOUCH_WINDOW_S = 0.6
+TOUCH_SINK_M = 0.01
+TOUCH_ABOVE_M = 0.015
+TOUCH_BAND_M = 0.25
 TIP_LOWER_M = 0.02  # a top this much lower than it stood: tipped (a cup on its side is 3 cm lower)
 TIP_M = 0.015  # an object both this much lower and this much longer than it stood lies on its side
 REST_GAP_S = 0.5  # between the two detections that must agree for a placed object to be at rest
@@ -150,6 +159,30 @@ def body_for(ctx: SkillContext, x: float, y: float, z: float, yaw: float) -> Vec
 
 
 # --------------------------------------------------------------------------- manipulation routines
+
+
+class TouchDown:
+    """A descent stalled on contact: the vehicle, above its target, has come down less than TOUCH_SINK_M in the
+    last TOUCH_WINDOW_S while still holding (a held object standing on the surface carries the vehicle's push).
+    Called on every state sample of the descent; `down` says whether it happened."""
+
+    def __init__(self, target_z: float) -> None:
+        self.target_z = target_z
+        self.down = False
+        self.track: deque[tuple[int, float]] = deque()
+
+    def __call__(self, st: VehicleState) -> bool:
+        z = st.position.z
+        self.track.append((st.stamp_ns, z))
+        while self.track and st.stamp_ns - self.track[0][0] > TOUCH_WINDOW_S * 1e9:
+            self.track.popleft()
+        span = (st.stamp_ns - self.track[0][0]) / 1e9
+        sinking = self.track[0][1] - z
+        above = z - self.target_z
+        if span >= 0.9 * TOUCH_WINDOW_S and sinking < TOUCH_SINK_M and TOUCH_ABOVE_M < above <= TOUCH_BAND_M \
+                and st.gripper_holding is not False:
+            self.down = True
+        return self.down
 
 
 class _Manipulation(Skill):
@@ -683,7 +716,8 @@ class Place(_Manipulation):
 
     name = names.PLACE
     description = ("Place the held object at the localized placement spot: approach above it, controlled descent "
-                   "until the object's bottom is {s.place_vertical_offset:g} m above the surface, open the gripper, "
+                   "until the object's bottom is {s.place_vertical_offset:g} m above the surface (or it touches "
+                   "down first), open the gripper, "
                    "retreat to {s.flight_altitude:g} m and verify that the object rests on the surface (two "
                    "detections that agree, on its top); a rolling object gets a spot away from edges. Needs a held "
                    "object and a placement_localization.")
@@ -741,14 +775,28 @@ class Place(_Manipulation):
         grip_z = bottom + height - grip_depth(height, s.grasp_depth_fraction)
         yaw = st.yaw
         body = body_for(ctx, pl.position.x, pl.position.y, grip_z, yaw)
-        transit = max(st.position.z, s.flight_altitude, body.z)
+        transit = max(st.position.z, s.flight_altitude, body.z + PLACE_ALIGN_ABOVE_M)
         await self.travel(ctx, Vec3(x=body.x, y=body.y, z=transit), yaw, f"above the {pl.label} spot")
-        await ctx.goto(body, yaw, s.descent_speed, low=s.manipulation_min_altitude,
-                       what=f"release height over the {pl.label}")
-        # Hold the release point against a steady offset (wind, trim): the object lands where the spot is.
-        _ok, off, sp = await self.align(ctx, pl.position.x, pl.position.y, grip_z, yaw,
-                                        (2 * s.grasp_window_x, 2 * s.grasp_window_x), f"over the {pl.label} spot")
-        rec.offset = off
+        # Down to just above the release height, over the spot against a steady offset (wind, trim), then the
+        # last few centimetres. Both descents stop where the object touches down: its bottom hangs lower than
+        # planned when its height was measured short (a tall box seen from above) or the estimate drifted
+        # since the surface was measured, and a descent that waits for the planned height then presses it into
+        # the surface until it times out (a cracker box 14 cm above its release height, dev seed 23).
+        above = Vec3(x=body.x, y=body.y, z=body.z + PLACE_ALIGN_ABOVE_M)
+        touch = TouchDown(above.z)
+        st = await ctx.goto(above, yaw, s.descent_speed, low=s.manipulation_min_altitude,
+                            what=f"just above the release height over the {pl.label}", until=touch)
+        sp = above
+        if not touch.down:
+            _ok, off, sp = await self.align(ctx, pl.position.x, pl.position.y, grip_z + PLACE_ALIGN_ABOVE_M, yaw,
+                                            (2 * s.grasp_window_x, 2 * s.grasp_window_x), f"over the {pl.label} spot")
+            rec.offset = off
+            touch = TouchDown(body.z)
+            st = await self.lower(ctx, Vec3(x=sp.x, y=sp.y, z=body.z), yaw, touch,
+                                  f"release height over the {pl.label}")
+        if touch.down:
+            ctx.note(f"the {held} touched down with the vehicle {100 * (st.position.z - body.z):.0f} cm above "
+                     "the planned release height: released there")
         await ctx.gripper("open")
         if ctx.current().gripper_width is not None:
             # Verify the release with the gripper's sensing: no pad in contact any more.
@@ -769,6 +817,25 @@ class Place(_Manipulation):
             # released, not seen at rest), so that no policy goes on as if it still held it.
             raise SkillFailed(f"released the {held} over the {pl.label}, then could not verify it rests there: "
                               f"{exc}", OutcomeCode.UNSTABLE, rec.facts(ctx)) from exc
+
+    async def lower(self, ctx: SkillContext, release: Vec3, yaw: float, touch: TouchDown, what: str) -> VehicleState:
+        """The last few centimetres, slowly, to the release height within VERTICAL_WINDOW_M (the arrival
+        tolerance of a goto is coarser than that) or until the object touches down."""
+        s = self.settings
+        problem = altitude_problem(release.z, s, s.manipulation_min_altitude, what)
+        if problem:
+            raise SkillFailed(problem.replace("nothing was moved", "the routine stopped before that leg"),
+                              OutcomeCode.BLOCKED)
+        await ctx.command(GotoCommand(position=release, yaw=wrap(yaw), max_speed=s.final_descent_speed))
+
+        def low_enough(st: VehicleState) -> bool:
+            return touch(st) or abs(st.position.z - release.z) <= VERTICAL_WINDOW_M
+
+        budget = 2 * PLACE_ALIGN_ABOVE_M / s.final_descent_speed + s.align_timeout_s
+        try:
+            return await ctx.wait_for(low_enough, budget, what)
+        finally:
+            ctx.settled_ns = time.time_ns()
 
     async def after_release(self, ctx: SkillContext, pl: MemoryObject, held: str, size: Vec3 | None,
                             surface_z: float, centre_z: float, sp: Vec3, yaw: float, rec: Attempt) -> SkillResult:
@@ -835,7 +902,7 @@ class Place(_Manipulation):
         if abs(support - top) > tolerance:
             return est, f"it stands at {support:.2f} m, not on the {pl.label}'s top at {top:.2f} m"
         if size is not None and est.size is not None and not rolls(size) \
-                and abs(est.size.z - size.z) > max(s.upright_tolerance, 0.25 * size.z):
+                and size.z - est.size.z > max(s.upright_tolerance, 0.25 * size.z):
             return est, (f"it is {100 * est.size.z:.0f} cm tall where it was {100 * size.z:.0f} cm when held: "
                          "fallen over")
         if off > s.place_tolerance:
