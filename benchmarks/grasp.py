@@ -5,7 +5,8 @@ Usage: .venv/bin/python benchmarks/grasp.py [--levels ideal,realistic,harsh,wand
 
 For each realism level a real stack runs (sim, autopilot bridge, perception with the colour segmenter, executor,
 as processes over Zenoh and MAVLink/UDP); each call resets the sim to a seeded layout with the next catalogue
-object as the target, takes off, searches and approaches the object like a policy would, runs grasp once
+object as the target, takes off, flies within 2 m of it (steered by the judge: search is not measured), localizes
+and approaches it like a policy would, runs grasp once
 (its own retries inside), and when it holds something, flies toward the layout's destination (steered by the
 judge: search is not measured here), placement_localization and place on it. The simulator's ground truth
 judges: the target held after grasp, at rest on the destination after place. Levels, on the kinematic body
@@ -81,6 +82,9 @@ async def one_call(c: Client, seed: int, target: str) -> dict:
     row["destination"] = dest
     await c.takeoff()
     try:
+        # Near it by the judge's truth first (search is not measured here; the smaller objects are not found
+        # from across the room), then localized and approached by perception as a policy would.
+        await toward(c, target, 2.0)
         await c.approach(target)
     except AssertionError as exc:
         row.update(eligible=False, why=str(exc)[:120])
