@@ -200,6 +200,11 @@ def _freeze_text(config: dict[str, Any]) -> str:
     if not frozen and not policy:
         return "unrecorded (a run before the split's freeze was recorded)"
     text = f"`{str(frozen)[:12]}` / `{str(policy)[:12]}`"
+    subject = config.get("policy_changed_subject")
+    if subject:
+        text += f" (the last policy change: \"{_cell(str(subject), 100)}\""
+        files = config.get("policy_changed_files")
+        text += f", {_cell(str(files), 160)})" if files else ")"
     after = config.get("policy_changed_after_freeze")
     if after is True:
         text += (" (the policy changed after the split froze: a test figure is held out only if that change was "
@@ -224,7 +229,8 @@ def configuration_lines(records: list[EpisodeRecord], config: dict[str, Any]) ->
         ("rebuild the report from episodes.jsonl",
          f"`{config.get('report_only_command', 'aermani eval --out DIR --report-only')}`"),
         ("commit", rev),
-        ("test split frozen at / last parser or policy change", _freeze_text(config)),
+        ("test split frozen at / last change to the policy stack (reasoner, executor, perception)",
+         _freeze_text(config)),
         ("backend", ", ".join(f"{b}" + (" (non-VLM baseline)" if b == "rules" else "") for b in backends)),
         ("model", ", ".join(models)),
         ("variant", ", ".join(variants)),
@@ -545,6 +551,7 @@ def write_report(out: Path, config: dict[str, Any] | None = None) -> dict[str, P
         "dirty": config.get("dirty"),
         "split_frozen": config.get("split_frozen"),
         "policy_changed": config.get("policy_changed"),
+        "policy_changed_subject": config.get("policy_changed_subject"),
         "policy_changed_after_freeze": config.get("policy_changed_after_freeze"),
         "backend": config.get("backend"),
         "model": config.get("model"),

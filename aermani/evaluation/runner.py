@@ -14,7 +14,6 @@ import json
 import logging
 import os
 import shlex
-import subprocess
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -22,6 +21,7 @@ from pathlib import Path
 
 from pydantic import BaseModel, ConfigDict
 
+from aermani.evaluation.provenance import source_revision
 from aermani.evaluation.records import RESULTS_FILE, EpisodeRecord, ResultsFile
 from aermani.evaluation.tasks import (
     DEFAULT_SPLIT,
@@ -139,47 +139,6 @@ class RunConfig(BaseModel):
         if self.vehicles:
             return list(self.vehicles)
         return [f"ev{i + 1}" for i in range(max(1, self.parallel))]
-
-
-SUITE_PATHS = ("aermani/evaluation/suites",)
-"""Where the built-in suites live (the split's freezing commit is looked up there)."""
-POLICY_PATHS = ("services/reasoner/backends/rules.py", "services/reasoner/backends/rules_parse.py",
-                "services/reasoner/backends/rules_lexicon.py", "services/reasoner/prompt.py",
-                "services/reasoner/schema.py")
-"""The default policy (the rules baseline and its command reader) and what every model is shown (the prompt,
-the answer schema): a change to any of them after the test split froze is a change the split must not have
-seen."""
-
-
-def source_revision() -> dict[str, str | bool]:
-    """The commit of the code that runs the evaluation and whether the work tree had uncommitted changes
-    (a dirty run cannot be reproduced from the commit alone)."""
-    root = Path(__file__).resolve().parents[2]
-
-    def git(*args: str) -> str:
-        try:
-            return subprocess.run(["git", *args], cwd=root, capture_output=True, text=True, timeout=20,
-                                  check=True).stdout.strip()
-        except (OSError, subprocess.SubprocessError):
-            return ""
-
-    commit = git("rev-parse", "HEAD")
-    dirty = bool(git("status", "--porcelain", "--untracked-files=no")) if commit else False
-    out: dict[str, str | bool] = {"commit": commit or "unknown (not a git checkout)", "dirty": dirty}
-    if commit:
-        # The held-out rule (docs/evaluation.md, "Suites and splits"): the test split is frozen by the last commit
-        # that changed a test line, and a parser or policy change after it must not have been tuned on it.
-        frozen = git("log", "-1", "--format=%H", "-G", '"split": "test"', "--", *SUITE_PATHS)
-        policy = git("log", "-1", "--format=%H", "--", *POLICY_PATHS)
-        out["split_frozen"] = frozen or "unknown"
-        out["policy_changed"] = policy or "unknown"
-        if frozen and policy and frozen != policy:
-            after = subprocess.run(["git", "merge-base", "--is-ancestor", frozen, policy], cwd=root,
-                                   capture_output=True, timeout=20).returncode == 0
-            out["policy_changed_after_freeze"] = after
-        elif frozen and policy:
-            out["policy_changed_after_freeze"] = False
-    return out
 
 
 def episode_specs(cfg: RunConfig) -> list[EpisodeSpec]:
