@@ -16,6 +16,7 @@ from aermani.evaluation.records import RESULTS_FILE, EpisodeRecord, ResultsFile
 from aermani.evaluation.runs import episode_grounding
 from aermani.evaluation.tasks import PAPER_RS, PAPER_SUITES, SUITE_TITLES
 from shared.messages import VARIANTS
+from shared.search import NOT_FOUND_MAX_STEPS, SEARCH_STEPS
 from shared.text import plain_text
 
 VARIANT_TITLES = {
@@ -246,10 +247,37 @@ def configuration_lines(records: list[EpisodeRecord], config: dict[str, Any]) ->
         ("T_max, judge criteria", f"{config.get('t_max_s', '?')} s, " + (
             f"a caller's placement tolerance of {config['tolerance']} m (a run before the task criteria)"
             if "tolerance" in config else "each task's (`criteria` in its scenario; docs/evaluation.md)")),
+        ("not-found bound (`\"expect\": \"not_found\"` tasks)", _not_found_bound_text(records)),
         ("vehicles", ", ".join(sorted({r.vehicle_id for r in records if r.vehicle_id})) or "--"),
         ("AERMANI_* settings from the shell", _environment_text(config)),
     ]
     return ["## Configuration", "", "| | |", "|---|---|"] + [f"| {k} | {v} |" for k, v in rows] + [""]
+
+
+def _not_found_bound_text(records: list[EpisodeRecord]) -> str:
+    """The bound on a not-found task's reasoning steps: the default (from the room search's coverage) and the
+    bounds the run's not-found episodes were held to."""
+    text = (f"{NOT_FOUND_MAX_STEPS} reasoning steps by default: a whole search of the room ({SEARCH_STEPS} steps, "
+            "the rules baseline's search budget), the `done` and 3 steps of slack (shared/search.py)")
+    bounds = sorted({r.task.not_found_max_steps for r in records if r.task.expect == "not_found"})
+    n = sum(1 for r in records if r.task.expect == "not_found" and not r.harness_error)
+    if bounds:
+        text += f"; this run's {n} not-found episode(s) held to {', '.join(str(b) for b in bounds)}"
+    return text
+
+
+def not_found_lines(records: list[EpisodeRecord]) -> list[str]:
+    """Every not-found episode: its steps against its bound and the verdict (empty when the run has none)."""
+    recs = [r for r in records if r.task.expect == "not_found" and not r.harness_error]
+    if not recs:
+        return []
+    lines = ["## Not-found tasks", "", "The world lacks the object: success is the task ending failed with a "
+             "not-found reason within the bound, holding nothing.", "",
+             "| Episode | Object the world lacks | Steps / bound | Success | Verdict |", "|---|---|---|---|---|"]
+    for r in recs:
+        lines.append(f"| {r.episode_id} | {r.task.target_object} | {reasoning_steps(r)} / "
+                     f"{r.task.not_found_max_steps} | {'yes' if r.success else 'no'} | {_cell(r.verdict)} |")
+    return [*lines, ""]
 
 
 def _environment_text(config: dict) -> str:
@@ -426,6 +454,7 @@ def markdown(records: list[EpisodeRecord], config: dict[str, Any], plots: list[s
             for m, (bad, n) in sorted(modes.items())) or "no model calls"))
     lines += _endings_section(records, configs, multi)
     lines += incident_lines(records)
+    lines += not_found_lines(records)
     lines += grounding_lines(records)
     lines += _paper_section(records, suites, configs, multi)
     lines += paper_comparison_lines(records, config)

@@ -11,6 +11,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from shared.errors import ConfigError
 from shared.messages import MAX_COMMAND_CHARS, JudgeCriteria, Scenario, command_text
+from shared.search import NOT_FOUND_MAX_STEPS
 
 SUITES_DIR = Path(__file__).resolve().parent / "suites"
 # Paper order (Section IV-B, Table II); also the row order of the report.
@@ -70,8 +71,10 @@ class EvalTask(BaseModel):
     `extra_objects`, which must not name it), and the episode succeeds when the task ends failed with a
     not-found reason within `not_found_max_steps` reasoning steps: a policy that claims success, gives up for
     another reason, or searches without end fails it."""
-    not_found_max_steps: int = Field(40, ge=1, le=200)
-    """A not-found task's bound on reasoning steps."""
+    not_found_max_steps: int = Field(NOT_FOUND_MAX_STEPS, ge=1, le=200)
+    """A not-found task's bound on reasoning steps: by default the steps of a whole search of the room plus the
+    `done` and a little slack (shared/search.py, the same coverage the rules baseline's search budget comes
+    from); a line whose command asks for motions first adds them. Records from before it was derived carry 40."""
 
     @field_validator("command")
     @classmethod

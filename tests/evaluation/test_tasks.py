@@ -337,3 +337,32 @@ def test_the_report_names_the_split_freeze_and_the_last_policy_change():
     assert "the policy changed after the split froze" in text
     text = "\n".join(configuration_lines([], {**rev, "policy_changed_after_freeze": False}))
     assert "no policy change since the split froze" in text
+
+
+def test_the_not_found_bound_comes_from_the_room_search_and_the_report_shows_it() -> None:
+    """One number for the rules baseline's search budget and the not-found bound (issue 26: 60 vs 40): the bound
+    allows the whole search, the reasoner's step cap does not end such a task first, no suite line sets a bound
+    below it, and the report names it with each not-found episode's steps."""
+    from aermani.evaluation.report import configuration_lines, not_found_lines
+    from aermani.evaluation.tasks import EvalTask
+    from services.reasoner.backends.rules import EXPLORE_BUDGET
+    from services.reasoner.settings import ReasonerSettings
+    from shared.search import NOT_FOUND_MAX_STEPS, SEARCH_STEPS
+
+    assert EXPLORE_BUDGET == SEARCH_STEPS and NOT_FOUND_MAX_STEPS > SEARCH_STEPS
+    assert ReasonerSettings().max_steps >= NOT_FOUND_MAX_STEPS
+    absent = [t for s in load_suites(split=None).values() for t in s if t.expect == "not_found"]
+    assert absent and all(t.not_found_max_steps >= NOT_FOUND_MAX_STEPS for t in absent)
+    task = EvalTask(command="Pick up the hammer.", target_object="hammer", distractors=("apple",),
+                    expect="not_found", suite="localization")
+    assert task.not_found_max_steps == NOT_FOUND_MAX_STEPS
+    rec = EpisodeRecord(episode_id="rules/full/localization/000-s1", suite="localization", backend="rules",
+                        variant="full", task=task, seed=1, state="failed", success=True,
+                        verdict="said not found after 72 reasoning steps (bound 80): not found: the hammer")
+    text = "\n".join(configuration_lines([rec], {}))
+    assert f"{NOT_FOUND_MAX_STEPS} reasoning steps by default" in text and f"({SEARCH_STEPS} steps" in text
+    assert "1 not-found episode(s) held to 80" in text
+    table = "\n".join(not_found_lines([rec]))
+    assert "| rules/full/localization/000-s1 | hammer | 0 / 80 | yes |" in table
+    assert not_found_lines([rec.model_copy(update={"task": task.model_copy(update={"expect": "success",
+                                                                                   "distractors": None})})]) == []
