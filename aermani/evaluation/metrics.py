@@ -32,7 +32,9 @@ Definitions, exactly as computed here (docs/evaluation.md repeats them):
   episode the larger of the recorded calls and the terminal status's counters is taken, so an invalid answer
   whose step ended in a transport error (and a lost step sample) still counts.
 - RT = median and 95th percentile (linear interpolation) of the model latency per query, seconds.
-- TT = mean end-to-end time of successful episodes, seconds (reasoner start to terminal status).
+- TT = mean end-to-end time of successful episodes, seconds (reasoner start to terminal status), on the wall
+  clock (which mixes simulated time sped up by the speed factor with real waits: model calls, perception) and in
+  simulated seconds (the simulator's clock, read from the judge just before the start and just after the end).
 - Collisions: the simulator's contacts of the airframe with furniture, walls or the ceiling since the reset
   (services/sim/physics.py), per episode; reported as the total, the mean per episode and the episodes with any.
 
@@ -257,6 +259,9 @@ class Metrics(BaseModel):
     rt_median: float | None = None
     rt_p95: float | None = None
     tt: float | None = None
+    """TT on the wall clock, seconds."""
+    tt_sim: float | None = None
+    """TT in simulated seconds (successful episodes whose record has the simulator's clock)."""
     queries: int = 0
     invalid: int = 0
     ended_succeeded: int = 0
@@ -327,6 +332,7 @@ def compute(records: Iterable[EpisodeRecord]) -> Metrics:
     invalid, queries = sum(c[0] for c in counts), sum(c[1] for c in counts)
     collisions = [len(r.collisions) for r in ran]
     grounded = [g for r in ran for g in episode_grounding(r) if g.checked]
+    sim = [d for r in ok if (d := r.sim_duration_s) is not None]
     n = len(ran)
     return Metrics(
         episodes=n,
@@ -341,6 +347,7 @@ def compute(records: Iterable[EpisodeRecord]) -> Metrics:
         rt_median=percentile(latencies, 50) if latencies else None,
         rt_p95=percentile(latencies, 95) if latencies else None,
         tt=sum(r.duration_s for r in ok) / len(ok) if ok else None,
+        tt_sim=sum(sim) / len(sim) if sim else None,
         queries=queries,
         invalid=invalid,
         ended_succeeded=sum(1 for r in ran if r.state == "succeeded"),

@@ -64,6 +64,10 @@ class EpisodeRecord(BaseModel):
     """T_max in force."""
     started_ns: int = 0
     """When the task was started (harness clock)."""
+    sim_started_s: float | None = None
+    """Simulated seconds since the reset when the task was started (the judge's clock, asked just before)."""
+    sim_ended_s: float | None = None
+    """Simulated seconds since the reset when the terminal status arrived (asked just after)."""
     ended_ns: int = 0
     """When the terminal status arrived."""
     attempts: int = 1
@@ -94,6 +98,13 @@ class EpisodeRecord(BaseModel):
         if self.status is not None and self.status.started_ns and self.status.ended_ns:
             return (self.status.ended_ns - self.status.started_ns) / 1e9
         return max(0.0, (self.ended_ns - self.started_ns) / 1e9)
+
+    @property
+    def sim_duration_s(self) -> float | None:
+        """End-to-end task time in simulated seconds (None in records from before the judge told its clock)."""
+        if self.sim_started_s is None or self.sim_ended_s is None:
+            return None
+        return max(0.0, self.sim_ended_s - self.sim_started_s)
 
     @property
     def config(self) -> str:

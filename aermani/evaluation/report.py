@@ -440,11 +440,12 @@ def markdown(records: list[EpisodeRecord], config: dict[str, Any], plots: list[s
                          f"{_fmt(m.arr)} | {_fmt(m.rs)} | {_fmt(m.iar)} | {_gvr(m)} |")
     lines += ["", "## Summary per method (paper Table V layout)", "",
               "| Method | N | SR ↑ [95 % CI] | ARR ↓ | RS ↓ | IAR ↓ | GVR ↓ | RT median (s) ↓ | RT p95 (s) ↓ "
-              "| TT (s) ↓ |", "|---|---|---|---|---|---|---|---|---|---|"]
+              "| TT wall (s) ↓ | TT sim (s) ↓ |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for b, v in configs:
         m = compute(r for r in records if r.backend == b and r.variant == v)
         lines.append(f"| {method_name(b, v, multi)} | {m.episodes} | {_sr(m)} | {_fmt(m.arr)} | {_fmt(m.rs)} | "
-                     f"{_fmt(m.iar)} | {_gvr(m)} | {_rt(m, b)} | {_rt(m, b, p95=True)} | {_fmt(m.tt)} |")
+                     f"{_fmt(m.iar)} | {_gvr(m)} | {_rt(m, b)} | {_rt(m, b, p95=True)} | {_fmt(m.tt)} | "
+                     f"{_fmt(m.tt_sim)} |")
     lines += ["", "IAR by answer decoding (schema-constrained: the request carried the answer's JSON schema; free "
               "text: read by the lenient parser):", ""]
     for b, v in configs:
@@ -466,9 +467,9 @@ def markdown(records: list[EpisodeRecord], config: dict[str, Any], plots: list[s
               "GVR = % of checked steps whose DRT contradicts what the stack measured (objects said seen but "
               "not detected, a held object the gripper does not hold, positions off; flagged/checked steps in "
               "brackets; for the rules policy the DRT is its own template); "
-              "RT = model latency per query; TT = mean end-to-end time of successful episodes (wall clock, "
-              "simulator speed factor "
-              f"{config.get('speed_factor', '?')}).", ""]
+              "RT = model latency per query; TT = mean end-to-end time of successful episodes, on the wall clock "
+              f"(simulator speed factor {config.get('speed_factor', '?')}, plus real waits: model calls, perception) "
+              "and in simulated seconds (the simulator's clock; -- for records from before it was kept).", ""]
     failed = [r for r in records if not r.success and not r.harness_error]
     if failed:
         lines += ["## Failed episodes", "", "| Episode | Vehicle | State | Judge | Steps | Collisions | Verdict |",

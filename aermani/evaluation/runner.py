@@ -42,6 +42,8 @@ from shared.messages import (
     Abort,
     GripperCommand,
     GripperState,
+    JudgeRequest,
+    JudgeResult,
     LandedState,
     SkillRequest,
     TaskRequest,
@@ -285,6 +287,16 @@ class VehicleWorker:
         log.warning("%s: vehicle not reported grounded %.0f s after reset; starting anyway", self.vehicle_id,
                     timeout)
 
+    async def _world(self) -> JudgeResult | None:
+        """The simulator's ground truth now (objects, surfaces, its clock); None when it does not answer (the
+        record then lacks what it would have told, and says so)."""
+        try:
+            return await query_ready(self.bus, self.keys.sim_judge, JudgeRequest(op="world"), timeout=QUERY_TIMEOUT_S,
+                                     ready_timeout=READY_WAIT_S)
+        except AermaniError as exc:
+            log.warning("%s: the simulator's world query failed (%s)", self.vehicle_id, exc)
+            return None
+
     async def run(self, spec: EpisodeSpec) -> EpisodeRecord:
         task = spec.task
         t_max = task.t_max_s or self.cfg.t_max_s
@@ -320,6 +332,7 @@ class VehicleWorker:
         # The simulator's reset notice clears the executor's working memory (services/executor/memory.py,
         # world_reset): the episode starts from an empty memory without restarting any process.
         await self._wait_grounded()
+        before = await self._world()  # the simulated clock at the start
         task_id = new_id("ev-")
         request = TaskRequest(command=task.command, task_id=task_id, variant=spec.variant, t_max_s=t_max,
                               takeoff=True)
@@ -331,6 +344,7 @@ class VehicleWorker:
                                           "task_id": task_id})
         status, steps, foreign = followed.final, followed.steps, followed.foreign
         ended = now_ns()
+        after = await self._world()  # the simulated clock at the end, before the judge waits for a rest
         if status is None:
             # The reasoner never ended the task: stop it so the next episode starts clean.
             self.bus.publish(self.keys.abort, Abort(reason="evaluation: no terminal status", source="evaluation",
@@ -353,6 +367,8 @@ class VehicleWorker:
             "success": success, "judge_success": judged_ok, "verdict": verdict, "held": judge.held,
             "collisions": judge.collisions,
             "steps": steps, "status": status, "judge": judge, "started_ns": started, "ended_ns": ended,
+            "sim_started_s": before.sim_time_s if before else None,
+            "sim_ended_s": after.sim_time_s if after else None,
             "foreign_samples": foreign,
         })
 
