@@ -35,8 +35,11 @@ Definitions, exactly as computed here (docs/evaluation.md repeats them):
 - TT = mean end-to-end time of successful episodes, seconds (reasoner start to terminal status), on the wall
   clock (which mixes simulated time sped up by the speed factor with real waits: model calls, perception) and in
   simulated seconds (the simulator's clock, read from the judge just before the start and just after the end).
-- Collisions: the simulator's contacts of the airframe with furniture, walls or the ceiling since the reset
-  (services/sim/physics.py), per episode; reported as the total, the mean per episode and the episodes with any.
+- Collisions: every entry of the simulator judge's `collisions` since the reset, per episode, by kind: an entry
+  `vehicle-<thing>` is an airframe contact with furniture, walls or the ceiling (services/sim/physics.py); any
+  other entry (gripper strikes, knocked or dropped objects) is counted under the kind its name starts with (the
+  text before a ':', else before the first '-'), so kinds the simulator adds are counted without a change here.
+  Reported as the total, airframe and other, the mean per episode, the episodes with any and the count per kind.
 
 Episodes the harness could not run (harness_error) are left out of every metric and counted in `not_run`.
 """
@@ -234,6 +237,28 @@ def redundancy_ratio(actions: Sequence[Action]) -> float:
     return len(redundant_actions(actions)) / len(actions) if actions else 0.0
 
 
+AIRFRAME = "airframe"
+_AIRFRAME_PREFIXES = ("vehicle", "airframe")
+
+
+def collision_kind(entry: str) -> str:
+    """The kind of one entry of the judge's collisions: `airframe` for `vehicle-shelf` (the airframe's contacts),
+    otherwise the name it starts with: `gripper-table` -> gripper, `knocked: red cup` -> knocked."""
+    text = entry.strip().lower()
+    head = text.split(":", 1)[0] if ":" in text else text.split("-", 1)[0]
+    head = head.strip() or "other"
+    return AIRFRAME if head in _AIRFRAME_PREFIXES else head
+
+
+def collision_kinds(entries: Iterable[str]) -> dict[str, int]:
+    """Entries per kind, airframe first, then by name."""
+    out: dict[str, int] = {}
+    for e in entries:
+        k = collision_kind(e)
+        out[k] = out.get(k, 0) + 1
+    return dict(sorted(out.items(), key=lambda kv: (kv[0] != AIRFRAME, kv[0])))
+
+
 def reasoning_steps(rec: EpisodeRecord) -> int:
     """Reasoning cycles of an episode: the step records, or the terminal status's count if more were announced
     than recorded (a lost sample must not make a policy look better)."""
@@ -269,7 +294,13 @@ class Metrics(BaseModel):
     judged_success: int = 0
     """Episodes the simulator's judge found right, whatever the task's end state."""
     collisions: int = 0
-    """Collisions over all episodes (airframe contacts with furniture, walls, ceiling)."""
+    """Collisions over all episodes, every kind the simulator's judge reports."""
+    airframe_collisions: int = 0
+    """Of them, the airframe's contacts with furniture, walls or the ceiling."""
+    other_collisions: int = 0
+    """Of them, every other kind (gripper strikes, knocked or dropped objects)."""
+    collision_kinds: dict[str, int] = {}
+    """Collisions per kind (`collision_kind`)."""
     collision_episodes: int = 0
     """Episodes with at least one collision."""
     collisions_per_episode: float | None = None
@@ -331,6 +362,7 @@ def compute(records: Iterable[EpisodeRecord]) -> Metrics:
     counts = [query_counts(r) for r in ran]
     invalid, queries = sum(c[0] for c in counts), sum(c[1] for c in counts)
     collisions = [len(r.collisions) for r in ran]
+    kinds = collision_kinds(c for r in ran for c in r.collisions)
     grounded = [g for r in ran for g in episode_grounding(r) if g.checked]
     sim = [d for r in ok if (d := r.sim_duration_s) is not None]
     n = len(ran)
@@ -353,6 +385,9 @@ def compute(records: Iterable[EpisodeRecord]) -> Metrics:
         ended_succeeded=sum(1 for r in ran if r.state == "succeeded"),
         judged_success=sum(1 for r in ran if judged_ok(r)),
         collisions=sum(collisions),
+        airframe_collisions=kinds.get(AIRFRAME, 0),
+        other_collisions=sum(n for k, n in kinds.items() if k != AIRFRAME),
+        collision_kinds=kinds,
         collision_episodes=sum(1 for c in collisions if c),
         collisions_per_episode=sum(collisions) / n if n else None,
         gvr=violation_rate(grounded),

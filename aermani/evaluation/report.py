@@ -373,10 +373,11 @@ def _endings_section(records: list[EpisodeRecord], configs: list[tuple[str, str]
     """End state, judge and collisions per method: SR needs both the task's end state and the judge."""
     lines = ["", "## End state, judge and collisions", "",
              "SR counts an episode only when both hold: the task's own end state is `succeeded` and the "
-             "simulator's ground-truth judge agrees. Collisions: airframe contacts with furniture, walls or the "
-             "ceiling recorded by the physics simulator since the episode's reset.", "",
-             "| Method | N | ended succeeded | judge success | both (SR numerator) | collisions | "
-             "episodes with a collision | terminal states |", "|---|---|---|---|---|---|---|---|"]
+             "simulator's ground-truth judge agrees. Collisions: every entry the simulator's judge recorded since "
+             "the episode's reset, by kind: airframe contacts with furniture, walls or the ceiling, and every "
+             "other kind it reports (gripper strikes, knocked or dropped objects), named by the entry's prefix.", "",
+             "| Method | N | ended succeeded | judge success | both (SR numerator) | collisions (airframe / other) | "
+             "by kind | episodes with a collision | terminal states |", "|---|---|---|---|---|---|---|---|---|"]
     for b, v in configs:
         recs = [r for r in records if r.backend == b and r.variant == v and not r.harness_error]
         m = compute(recs)
@@ -384,7 +385,9 @@ def _endings_section(records: list[EpisodeRecord], configs: list[tuple[str, str]
         for r in recs:
             states[r.state] = states.get(r.state, 0) + 1
         lines.append(f"| {method_name(b, v, multi)} | {m.episodes} | {m.ended_succeeded} | {m.judged_success} | "
-                     f"{m.successes} | {m.collisions} ({_fmt(m.collisions_per_episode, 2)} per episode) | "
+                     f"{m.successes} | {m.collisions} ({m.airframe_collisions} / {m.other_collisions}; "
+                     f"{_fmt(m.collisions_per_episode, 2)} per episode) | "
+                     + (", ".join(f"{k} {n}" for k, n in m.collision_kinds.items()) or "--") + " | "
                      f"{m.collision_episodes} | " + ", ".join(f"{k} {n}" for k, n in sorted(states.items())) + " |")
     lines.append("")
     return lines
