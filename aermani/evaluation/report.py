@@ -249,7 +249,8 @@ def configuration_lines(records: list[EpisodeRecord], config: dict[str, Any]) ->
             if "tolerance" in config else "each task's (`criteria` in its scenario; docs/evaluation.md)")),
         ("not-found bound (`\"expect\": \"not_found\"` tasks)", _not_found_bound_text(records)),
         ("vehicles", ", ".join(sorted({r.vehicle_id for r in records if r.vehicle_id})) or "--"),
-        ("AERMANI_* settings from the shell", _environment_text(config)),
+        ("effective settings (as the services read them)", _effective_text(config)),
+        ("AERMANI_* variables in the shell", _environment_text(config)),
     ]
     return ["## Configuration", "", "| | |", "|---|---|"] + [f"| {k} | {v} |" for k, v in rows] + [""]
 
@@ -280,14 +281,29 @@ def not_found_lines(records: list[EpisodeRecord]) -> list[str]:
     return [*lines, ""]
 
 
+def _effective_text(config: dict) -> str:
+    """The effective values of the settings that shape the numbers (run_config.json `effective`)."""
+    eff = config.get("effective")
+    if not eff:
+        return "unrecorded (a run before they were recorded)"
+    if "error" in eff:
+        return _cell(str(eff["error"]), 300)
+    names = {"realism": "realism", "dynamics": "dynamics (AERMANI_SIM_DYNAMICS)", "speed_factor": "speed factor",
+             "step_cap": "step cap", "t_max_s": "T_max (s)", "backend": "backend", "output_mode": "output mode",
+             "segmenter": "segmenter"}
+    return "<br>".join(f"{names.get(k, k)} `{v}`" for k, v in eff.items())
+
+
 def _environment_text(config: dict) -> str:
-    """The services' settings inherited from the shell (run_config.json `environment`), or why there are none."""
+    """Every AERMANI_* variable of the shell (run_config.json `environment`), those the run overrode marked, or why
+    there are none."""
     env = config.get("environment")
     if env is None:
         return "unrecorded (a run before they were recorded)"
     if not env:
         return "none (every setting at its default or set by the run)"
-    return "<br>".join(f"`{k}={v}`" for k, v in env.items())
+    over = set(config.get("environment_overridden") or ())
+    return "<br>".join(f"`{k}={v}`" + (" (overridden by the run)" if k in over else "") for k, v in env.items())
 
 
 def incident_lines(records: list[EpisodeRecord]) -> list[str]:
@@ -593,6 +609,8 @@ def write_report(out: Path, config: dict[str, Any] | None = None) -> dict[str, P
         "segmenter_description": segmenter_text(config),
         "realism": config.get("realism"),
         "speed_factor": config.get("speed_factor"),
+        "effective": config.get("effective"),
+        "environment": config.get("environment"),
         "split": config.get("split"),
         "seeds": sorted({r.seed for r in records}),
         "n": len(ran),

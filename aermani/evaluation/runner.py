@@ -21,6 +21,7 @@ from pathlib import Path
 
 from pydantic import BaseModel, ConfigDict
 
+from aermani.evaluation.accounting import effective_settings, masked
 from aermani.evaluation.provenance import source_revision
 from aermani.evaluation.records import RESULTS_FILE, EpisodeRecord, ResultsFile
 from aermani.evaluation.tasks import (
@@ -494,26 +495,29 @@ def run(cfg: RunConfig) -> RunSummary:
     return summary
 
 
-SECRET_WORDS = ("KEY", "TOKEN", "SECRET", "PASSWORD")
-
-
 def shell_settings(environ: Mapping[str, str], extra: Mapping[str, str] | None = None) -> dict[str, str]:
-    """Every AERMANI_* setting the services inherit from the shell (and the run's extra environment) besides
-    what the run sets itself: they change what the services do, so the run's record names them. A secret's
-    value is never recorded (only that it was set)."""
-    own = set(PORT_KEYS) | set(run_env(RunConfig(out=Path("."))))
-    out = {}
-    for k, v in sorted({**environ, **(extra or {})}.items()):
-        if k.startswith("AERMANI_") and k not in own:
-            out[k] = "(set, not recorded)" if any(w in k for w in SECRET_WORDS) else v
-    return out
+    """Every AERMANI_* variable the services inherit from the shell (and the run's extra environment): they
+    change what the services do, so the run's record names them all, those the run overrides included
+    (`overridden_settings`). A secret's value is never recorded (only that it was set)."""
+    return masked({**environ, **(extra or {})})
+
+
+def overridden_settings(cfg: RunConfig, environ: Mapping[str, str]) -> list[str]:
+    """The shell's AERMANI_* variables the run sets itself (its own settings and each vehicle's ports): the
+    services never see the shell's value of these."""
+    own = set(PORT_KEYS) | set(run_env(cfg))
+    return sorted(k for k in environ if k.startswith("AERMANI_") and k in own)
 
 
 def run_config_of(cfg: RunConfig) -> dict:
-    """run_config.json: the settings (no API key), the source revision, and the command that reproduces it."""
+    """run_config.json: the settings (no API key), the source revision, every AERMANI_* variable of the shell, the
+    run's own, the effective values of the settings that shape the numbers, and the command that reproduces it."""
     doc = cfg.model_dump(mode="json", exclude={"api_key", "extra_env", "stop_after", "progress"})
     doc.update(source_revision())
     doc["environment"] = shell_settings(os.environ, cfg.extra_env)
+    doc["environment_overridden"] = overridden_settings(cfg, os.environ)
+    doc["run_environment"] = masked(run_env(cfg))
+    doc["effective"] = effective_settings({**os.environ, **run_env(cfg)})
     doc["command"] = cfg.command_line()
     doc["report_only_command"] = shlex.join(["aermani", "eval", "--out", str(cfg.out), "--report-only"])
     return doc

@@ -257,25 +257,41 @@ def test_report_puts_a_real_model_run_in_its_paper_row(tmp_path):
 
 
 def test_shell_settings_reach_the_run_config_and_the_report_without_secrets(tmp_path) -> None:
-    """Issue 26: an AERMANI_* variable in the shell changes what the services do, so the run's record names it;
-    the run's own settings are not repeated and a secret's value never reaches a file."""
-    from aermani.evaluation.report import _environment_text
-    from aermani.evaluation.runner import RunConfig, run_config_of, shell_settings
-
-    env = {"AERMANI_EXECUTOR_MAX_SPEED": "0.8", "AERMANI_REASONER_API_KEY": "sk-secret-value",
-           "AERMANI_GATEWAY_TOKEN": "t0k3n", "AERMANI_SIM_SPEED_FACTOR": "9", "HOME": "/root"}
-    got = shell_settings(env)
-    assert got == {"AERMANI_EXECUTOR_MAX_SPEED": "0.8", "AERMANI_GATEWAY_TOKEN": "(set, not recorded)",
-                   "AERMANI_REASONER_API_KEY": "(set, not recorded)"}, got  # the speed factor is the run's own
+    """Issue 26: every AERMANI_* variable in the shell changes what the services do (or would, but for the run's
+    own setting), so the run's record names them all, marks those the run overrides, and states the effective
+    values of the settings that shape the numbers as the services' own settings classes read them; a secret's
+    value never reaches a file."""
     import os
     from unittest import mock
 
+    from aermani.evaluation.report import _effective_text, _environment_text
+    from aermani.evaluation.runner import RunConfig, run_config_of, shell_settings
+
+    env = {"AERMANI_EXECUTOR_MAX_SPEED": "0.8", "AERMANI_REASONER_API_KEY": "sk-secret-value",
+           "AERMANI_GATEWAY_TOKEN": "t0k3n", "AERMANI_SIM_SPEED_FACTOR": "9", "AERMANI_SIM_DYNAMICS": "multirotor",
+           "AERMANI_REASONER_MAX_STEPS": "55", "HOME": "/root"}
+    got = shell_settings(env)
+    assert got == {"AERMANI_EXECUTOR_MAX_SPEED": "0.8", "AERMANI_GATEWAY_TOKEN": "(set, not recorded)",
+                   "AERMANI_REASONER_API_KEY": "(set, not recorded)", "AERMANI_REASONER_MAX_STEPS": "55",
+                   "AERMANI_SIM_DYNAMICS": "multirotor", "AERMANI_SIM_SPEED_FACTOR": "9"}, got
     with mock.patch.dict(os.environ, env):
-        doc = run_config_of(RunConfig(out=tmp_path))
+        doc = run_config_of(RunConfig(out=tmp_path, speed_factor=3.0, segmenter="sim", realism="harsh"))
     assert doc["environment"]["AERMANI_EXECUTOR_MAX_SPEED"] == "0.8"
+    assert "AERMANI_SIM_SPEED_FACTOR" in doc["environment_overridden"]  # the run's --speed-factor wins
+    assert "AERMANI_SIM_DYNAMICS" not in doc["environment_overridden"]
+    assert doc["effective"] == {"realism": "harsh", "dynamics": "multirotor", "speed_factor": 3.0, "step_cap": 55,
+                                "t_max_s": 600.0, "backend": "rules", "output_mode": "auto", "segmenter": "sim"}
+    assert doc["run_environment"]["AERMANI_SIM_SPEED_FACTOR"] == "3.0"
     assert "sk-secret-value" not in str(doc) and "t0k3n" not in str(doc)
-    assert "`AERMANI_EXECUTOR_MAX_SPEED=0.8`" in _environment_text(doc)
+    text = _environment_text(doc)
+    assert "`AERMANI_EXECUTOR_MAX_SPEED=0.8`" in text and "`AERMANI_SIM_SPEED_FACTOR=9` (overridden by the run)" in text
+    eff = _effective_text(doc)
+    assert "dynamics (AERMANI_SIM_DYNAMICS) `multirotor`" in eff and "step cap `55`" in eff
+    assert "speed factor `3.0`" in eff and "segmenter `sim`" in eff
+    with mock.patch.dict(os.environ, {"AERMANI_SIM_DYNAMICS": "rocket"}):
+        assert "would refuse" in run_config_of(RunConfig(out=tmp_path))["effective"]["error"]
     assert _environment_text({}).startswith("unrecorded") and _environment_text({"environment": {}}).startswith("none")
+    assert _effective_text({}).startswith("unrecorded")
 
 
 def test_a_not_found_task_lays_out_a_world_without_its_object_and_is_scored_for_saying_so() -> None:
