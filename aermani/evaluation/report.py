@@ -240,8 +240,7 @@ def configuration_lines(records: list[EpisodeRecord], config: dict[str, Any]) ->
         ("speed factor", str(config.get("speed_factor", "unrecorded"))),
         ("split", f"`{config.get('split') or 'unrecorded'}`" + (f" (task file {config['tasks_file']})"
                                                                 if config.get("tasks_file") else "")),
-        ("episodes per suite", f"every line x {config['seeds_per_line']} layout seeds" if config.get("seeds_per_line")
-         else str(config.get("episodes"))),
+        ("episodes per suite", _episodes_text(config)),
         ("N (episodes in the metrics / recorded)", f"{len(ran)} / {len(records)}"),
         ("seeds", _seeds_text(records)),
         ("T_max, judge criteria", f"{config.get('t_max_s', '?')} s, " + (
@@ -253,6 +252,16 @@ def configuration_lines(records: list[EpisodeRecord], config: dict[str, Any]) ->
         ("AERMANI_* variables in the shell", _environment_text(config)),
     ]
     return ["## Configuration", "", "| | |", "|---|---|"] + [f"| {k} | {v} |" for k, v in rows] + [""]
+
+
+def _episodes_text(config: dict[str, Any]) -> str:
+    """How many episodes each suite ran: every line on K layouts, or N cycling through the lines (opt-in)."""
+    if config.get("seeds_per_line"):
+        return f"every line x {config['seeds_per_line']} layout seeds"
+    if config.get("episodes"):
+        return (f"{config['episodes']}, cycling through each suite's lines (`--episodes`: with fewer episodes than "
+                "lines, some lines never ran)")
+    return "each line of the task file once" if config.get("tasks_file") else str(config.get("episodes"))
 
 
 def _not_found_bound_text(records: list[EpisodeRecord]) -> str:

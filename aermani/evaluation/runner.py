@@ -19,12 +19,13 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, model_validator
 
 from aermani.evaluation.accounting import effective_settings, masked
 from aermani.evaluation.provenance import source_revision
 from aermani.evaluation.records import RESULTS_FILE, EpisodeRecord, ResultsFile
 from aermani.evaluation.tasks import (
+    DEFAULT_SEEDS_PER_LINE,
     DEFAULT_SPLIT,
     DEFAULT_T_MAX_S,
     EpisodeSpec,
@@ -81,9 +82,11 @@ class RunConfig(BaseModel):
     model: str = ""
     base_url: str | None = None
     api_key: str | None = None
-    episodes: int | None = 10
+    episodes: int | None = None
+    """Episodes per suite cycling through its lines (opt-in; some lines may not run)."""
     seeds_per_line: int | None = None
-    """Every line of each suite on this many layouts (episodes = lines x seeds); overrides `episodes`."""
+    """Every line of each suite on this many layouts (episodes = lines x seeds); overrides `episodes`. With neither
+    set, the built-in suites run every line on DEFAULT_SEEDS_PER_LINE layouts and a task file each line once."""
     split: str = DEFAULT_SPLIT
     """Built-in suites' split: dev (work against it) or test (held out; headline figures only)."""
     suites: list[str] | None = None
@@ -107,6 +110,12 @@ class RunConfig(BaseModel):
     note: str = ""
     # Testing hook: stop (as if interrupted) after this many episodes have finished in this run.
     stop_after: int | None = None
+
+    @model_validator(mode="after")
+    def _every_line_by_default(self) -> RunConfig:
+        if self.episodes is None and self.seeds_per_line is None and self.tasks_file is None:
+            self.seeds_per_line = DEFAULT_SEEDS_PER_LINE
+        return self
 
     def command_line(self) -> str:
         """The `aermani eval` command that reproduces this run, every option that shapes the numbers explicit

@@ -30,6 +30,9 @@ DEFAULT_T_MAX_S = 600.0  # paper: T_max = 10 min
 # at while changing the project. Commands are disjoint between the splits, and so are the layout seeds: a
 # derived seed of split k lies in [k * 2^30, (k + 1) * 2^30).
 SPLITS = ("dev", "test")
+DEFAULT_SEEDS_PER_LINE = 2
+"""Layouts per suite line when a run names neither --episodes nor --seeds-per-line: every line runs, each on two
+layouts (episodes = lines x 2)."""
 DEFAULT_SPLIT = "dev"
 _SEED_RANGE = 1 << 30
 

@@ -382,3 +382,60 @@ def test_the_not_found_bound_comes_from_the_room_search_and_the_report_shows_it(
     assert "| rules/full/localization/000-s1 | hammer | 0 / 80 | yes |" in table
     assert not_found_lines([rec.model_copy(update={"task": task.model_copy(update={"expect": "success",
                                                                                    "distractors": None})})]) == []
+
+
+def test_by_default_every_line_of_every_suite_runs_on_two_layouts(tmp_path) -> None:
+    """Issue 26: `--episodes 10` ran 10 of the 12 lines of a suite; with no count given every line runs, each on
+    DEFAULT_SEEDS_PER_LINE layouts, and the reproduce line says so. --episodes stays an opt-in; a task file runs
+    each of its lines once."""
+    import typer
+    from typer.testing import CliRunner
+
+    from aermani.evaluation import cli as evaluation_cli
+    from aermani.evaluation.report import _episodes_text
+    from aermani.evaluation.tasks import DEFAULT_SEEDS_PER_LINE
+
+    cfg = RunConfig(out=tmp_path, split="dev")
+    assert cfg.seeds_per_line == DEFAULT_SEEDS_PER_LINE == 2 and cfg.episodes is None
+    suites = load_suites(split="dev")
+    specs = episode_specs(cfg)
+    assert len(specs) == 2 * sum(len(t) for t in suites.values())
+    for name, tasks in suites.items():
+        for task in tasks:
+            assert len({s.seed for s in specs if s.task == task and s.task.suite == name}) == 2, task.command
+    assert "--seeds-per-line 2" in cfg.command_line() and "--episodes" not in cfg.command_line()
+    assert _episodes_text(run_config_of_dict(cfg)) == "every line x 2 layout seeds"
+    opt_in = RunConfig(out=tmp_path, episodes=3)
+    assert opt_in.seeds_per_line is None and len(episode_specs(opt_in)) == 3 * len(suites)
+    assert "some lines never ran" in _episodes_text({"episodes": 3})
+    f = tmp_path / "mine.jsonl"
+    f.write_text('{"command": "Pick up the red cup.", "target_object": "red cup", "seed": 4}\n')
+    assert len(episode_specs(RunConfig(out=tmp_path, tasks_file=f))) == 1
+    # the CLI passes no count of its own (the run itself is replaced: it would start the stack)
+    from unittest import mock
+
+    from aermani.evaluation.runner import RunSummary
+
+    seen: list[RunConfig] = []
+    app = typer.Typer()
+    evaluation_cli.register(app)
+
+    def fake_run(c: RunConfig) -> RunSummary:
+        seen.append(c)
+        return RunSummary(c.out, planned=0, skipped=0, ran=0, records=[])
+
+    import signal
+
+    handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGTERM, signal.SIGINT)}  # the CLI sets its own
+    with mock.patch("aermani.evaluation.runner.run", fake_run), mock.patch("signal.signal"):
+        res = CliRunner().invoke(app, ["eval", "--out", str(tmp_path / "x"), "--no-progress"])
+        assert res.exit_code == 0, res.output
+        res = CliRunner().invoke(app, ["eval", "--out", str(tmp_path / "y"), "--episodes", "3", "--no-progress"])
+        assert res.exit_code == 0, res.output
+    assert handlers == {sig: signal.getsignal(sig) for sig in handlers}
+    assert (seen[0].seeds_per_line, seen[0].episodes) == (2, None)
+    assert (seen[1].seeds_per_line, seen[1].episodes) == (None, 3)
+
+
+def run_config_of_dict(cfg: RunConfig) -> dict:
+    return cfg.model_dump(mode="json")
