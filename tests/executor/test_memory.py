@@ -74,8 +74,8 @@ def test_estimates_of_frames_before_a_reset_are_not_stored() -> None:
                               size=Vec3(x=0.08, y=0.08, z=0.11), frame_stamp_ns=frame_ns)
 
     def spot(frame_ns: int) -> PlacementEstimate:
-        return PlacementEstimate(query="table", found=True, label="table", pose=Pose(position=Vec3(x=2.0, z=0.76)), surface_z=0.75,
-                                 frame_stamp_ns=frame_ns)
+        return PlacementEstimate(query="table", found=True, label="table", pose=Pose(position=Vec3(x=2.0, z=0.76)),
+                                 surface_z=0.75, frame_stamp_ns=frame_ns)
 
     mem = Memory()
     mem.store_object(obj(1_000), "red cup")
