@@ -303,6 +303,55 @@ def _effective_text(config: dict) -> str:
     return "<br>".join(f"{names.get(k, k)} `{v}`" for k, v in eff.items())
 
 
+def motion_lines(records: list[EpisodeRecord]) -> list[str]:
+    """Every episode whose task asks for motions: whether they happened before the pick (empty: none asks)."""
+    recs = [r for r in records if r.task.motions and not r.harness_error]
+    if not recs:
+        return []
+    failed = [r for r in recs if r.motions_ok is False]
+    judged = sum(1 for r in failed if judged_ok(r) and r.state == "succeeded")
+    lines = ["## Motion checks", "", f"Sequential tasks are scored for the motions they ask for, from the recorded "
+             f"trajectory (docs/evaluation.md, Scoring what a task asks): {len(recs) - len(failed)} of {len(recs)} "
+             f"episode(s) made them before the pick; {judged} episode(s) that ended succeeded with the judge's "
+             "agreement are failures because a commanded motion did not happen.", "",
+             "| Episode | Asked | Happened | Success | How |", "|---|---|---|---|---|"]
+    for r in recs:
+        asked = ", ".join(m.text() for m in r.task.motions)
+        ok = {True: "yes", False: "**no**", None: "not checked"}[r.motions_ok]
+        lines.append(f"| {r.episode_id} | {_cell(asked, 80)} | {ok} | {'yes' if r.success else 'no'} | "
+                     f"{_cell(r.motions_detail, 160)} |")
+    return [*lines, ""]
+
+
+def choice_lines(records: list[EpisodeRecord]) -> list[str]:
+    """Every size or conditional task: the simulator's decision, the object chosen, and each success on a guess
+    flagged (empty: none)."""
+    recs = [r for r in records if r.task.choice is not None and not r.harness_error]
+    if not recs:
+        return []
+    guesses = [r for r in recs if r.success and r.choice is not None and r.choice.informed is False]
+    lines = ["## Size and conditional tasks", "", "The simulator decides which object meets the command's criterion "
+             "from the world at the start; only that object counts. A success whose object was picked before the "
+             "policy had seen what decides the choice (every compared object; the place the condition is about) is "
+             f"a **success on a guess**: {len(guesses)} of {sum(r.success for r in recs)} success(es) here.", "",
+             "| Episode | Criterion | World's answer (why) | Chosen | Seen before the pick | Success |",
+             "|---|---|---|---|---|---|"]
+    for r in recs:
+        c = r.choice
+        if c is None:
+            lines.append(f"| {r.episode_id} | {_cell(r.task.choice.text() if r.task.choice else '', 80)} | "
+                         "not recorded | -- | -- | " + ("yes" if r.success else "no") + " |")
+            continue
+        seen = {True: "all", False: "not all", None: "unknown"}[c.informed]
+        seen += f" ({', '.join(c.seen) or 'none'} of {', '.join(c.needed) or '--'})"
+        ok = "yes" if r.success else "no"
+        if r.success and c.informed is False:
+            ok = "yes, **on a guess**"
+        lines.append(f"| {r.episode_id} | {_cell(c.criterion, 80)} | {' or '.join(c.answer)} ({_cell(c.reason, 100)}) "
+                     f"| {c.chosen or '--'} | {seen} | {ok} |")
+    return [*lines, ""]
+
+
 def _environment_text(config: dict) -> str:
     """Every AERMANI_* variable of the shell (run_config.json `environment`), those the run overrode marked, or why
     there are none."""
@@ -484,6 +533,8 @@ def markdown(records: list[EpisodeRecord], config: dict[str, Any], plots: list[s
     lines += _endings_section(records, configs, multi)
     lines += incident_lines(records)
     lines += not_found_lines(records)
+    lines += motion_lines(records)
+    lines += choice_lines(records)
     lines += grounding_lines(records)
     lines += _paper_section(records, suites, configs, multi)
     lines += paper_comparison_lines(records, config)

@@ -24,6 +24,7 @@ from pydantic import BaseModel, ConfigDict, model_validator
 from aermani.evaluation.accounting import effective_settings, masked
 from aermani.evaluation.provenance import source_revision
 from aermani.evaluation.records import RESULTS_FILE, EpisodeRecord, ResultsFile
+from aermani.evaluation.scoring import accepted_objects, score_episode
 from aermani.evaluation.tasks import (
     DEFAULT_SEEDS_PER_LINE,
     DEFAULT_SPLIT,
@@ -342,7 +343,10 @@ class VehicleWorker:
         # The simulator's reset notice clears the executor's working memory (services/executor/memory.py,
         # world_reset): the episode starts from an empty memory without restarting any process.
         await self._wait_grounded()
-        before = await self._world()  # the simulated clock at the start
+        before = await self._world()  # the simulated clock and the world a choice is decided in, at the start
+        accepted, undecided = accepted_objects(task, before)
+        if undecided:
+            return rec.model_copy(update={"harness_error": undecided})
         task_id = new_id("ev-")
         request = TaskRequest(command=task.command, task_id=task_id, variant=spec.variant, t_max_s=t_max,
                               takeoff=True)
@@ -360,8 +364,7 @@ class VehicleWorker:
             self.bus.publish(self.keys.abort, Abort(reason="evaluation: no terminal status", source="evaluation",
                                                     task_id=task_id))
 
-        v = await judge_episode(self.bus, self.keys, task.accepted, task.destination,
-                                timeout=QUERY_TIMEOUT_S)
+        v = await judge_episode(self.bus, self.keys, accepted, task.destination, timeout=QUERY_TIMEOUT_S)
         judge, judged_ok = v.result, v.success
         state = status.state.value if status else "timeout"
         # Success needs both: the task's own end state (the policy finished it before T_max) and the judge.
@@ -371,7 +374,10 @@ class VehicleWorker:
             success, verdict = not_found_verdict(state, status.message if status else "", len(steps),
                                                  task.not_found_max_steps, judge.held)
             judged_ok = judge.held is None
-        return rec.model_copy(update={
+        # Scored for what it asks: the commanded motions from the trajectory, the choice's decision and how it
+        # was made (aermani/evaluation/scoring.py).
+        success, verdict, scores = score_episode(task, steps, before, judge.held, success, verdict)
+        return rec.model_copy(update={**scores,
             "task_id": task_id, "state": state,
             "message": status.message if status else f"no terminal status within {t_max + STATUS_MARGIN_S:.0f} s",
             "success": success, "judge_success": judged_ok, "verdict": verdict, "held": judge.held,
