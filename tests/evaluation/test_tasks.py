@@ -439,3 +439,27 @@ def test_by_default_every_line_of_every_suite_runs_on_two_layouts(tmp_path) -> N
 
 def run_config_of_dict(cfg: RunConfig) -> dict:
     return cfg.model_dump(mode="json")
+
+
+def test_every_suite_line_says_how_it_is_scored_consistently_with_its_layout() -> None:
+    """Both splits (their lines, never their episodes): every sequential line names its motions, an approach goes
+    to a surface the simulator has, and each conditional's lines lay out the branch they expect: the `then` line
+    puts the object on the place the condition is about, the `otherwise` line lacks it."""
+    from aermani.evaluation.tasks import ConditionalChoice, SizeChoice
+
+    for split in ("dev", "test"):
+        suites = load_suites(split=split)
+        assert all(t.motions for t in suites["sequential"] if t.expect == "success"), split
+        assert any(isinstance(t.choice, SizeChoice) for t in suites["clutter"]), split
+        for t in (t for ts in suites.values() for t in ts):
+            for m in t.motions:
+                assert m.skill != "approach" or m.to in SURFACES, (t.command, m)
+            c = t.choice
+            if isinstance(c, ConditionalChoice):
+                laid_out = {t.target_object, *t.extra_objects, *(t.distractors or ())}
+                if t.target_object == c.then:
+                    assert (t.placements or {}).get(c.if_present) == c.on, t.command
+                else:
+                    assert t.target_object == c.otherwise and c.if_present not in laid_out, t.command
+            elif isinstance(c, SizeChoice):
+                assert set(c.among) <= {t.target_object, *t.extra_objects, *(t.distractors or ())}, t.command
