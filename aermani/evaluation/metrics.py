@@ -3,8 +3,9 @@
 Definitions, exactly as computed here (docs/evaluation.md repeats them):
 
 - SR = successful episodes / episodes x 100. An episode succeeds when the task's own end state is `succeeded`
-  (the policy declared it done before T_max) AND the simulator's ground-truth judge agrees; the report shows
-  both counts apart.
+  (the policy declared it done before T_max) AND the simulator's ground-truth judge agrees (for a size or
+  conditional task, on the object the simulator decided) AND the motions the task asks for happened before the
+  pick (aermani/evaluation/scoring.py); the report shows the counts apart.
 - Actions of an episode: the skills the policy chose and the executor ran (a step with an STE and a skill
   state), except `done`, which moves nothing. n_total = number of actions.
 - An action is redundant (counted once even if several rules match) when it is

@@ -540,8 +540,9 @@ def markdown(records: list[EpisodeRecord], config: dict[str, Any], plots: list[s
     lines += paper_comparison_lines(records, config)
     lines += ["", "Metrics (definitions in docs/evaluation.md): SR = % of episodes where the simulator's ground "
               "truth has the right object placed on the destination (or picked, when the command has no "
-              "destination) by the task's criteria before T_max, with its 95 % Wilson score interval in brackets "
-              "(N episodes); ARR = mean % of redundant actions over successful "
+              "destination) by the task's criteria before T_max (for a size or conditional task the object the "
+              "simulator decided; a sequential task's motions made before the pick), with its 95 % Wilson score "
+              "interval in brackets (N episodes); ARR = mean % of redundant actions over successful "
               "episodes; RS = mean reasoning steps per episode; IAR = % of model answers that were invalid; "
               "GVR = % of checked steps whose DRT contradicts what the stack measured (objects said seen but "
               "not detected, a held object the gripper does not hold, positions off; flagged/checked steps in "
