@@ -671,6 +671,7 @@ def write_report(out: Path, config: dict[str, Any] | None = None) -> dict[str, P
         "realism": config.get("realism"),
         "speed_factor": config.get("speed_factor"),
         "effective": config.get("effective"),
+        "not_found_bound": NOT_FOUND_MAX_STEPS,
         "environment": config.get("environment"),
         "split": config.get("split"),
         "seeds": sorted({r.seed for r in records}),

@@ -533,6 +533,8 @@ def run_config_of(cfg: RunConfig) -> dict:
     doc["environment_overridden"] = overridden_settings(cfg, os.environ)
     doc["run_environment"] = masked(run_env(cfg))
     doc["effective"] = effective_settings({**os.environ, **run_env(cfg)})
+    if cfg.connect:  # the vehicles were started elsewhere: these are what this shell would have given them
+        doc["effective"]["note"] = "computed from this shell; the vehicles behind --connect were started elsewhere"
     doc["command"] = cfg.command_line()
     doc["report_only_command"] = shlex.join(["aermani", "eval", "--out", str(cfg.out), "--report-only"])
     return doc
