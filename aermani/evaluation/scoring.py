@@ -201,9 +201,15 @@ def decide(choice: SizeChoice | ConditionalChoice, world: JudgeResult) -> tuple[
                                                                       else ": the condition does not hold")
 
 
+def _norm(text: str) -> str:
+    words = text.lower().split()
+    return " ".join(words[1:] if words and words[0] in ("the", "a", "an") else words)
+
+
 def _same(label: str, name: str) -> bool:
-    label, name = " ".join(label.lower().split()), " ".join(name.lower().split())
-    return label == name or f" {name} " in f" {label} "
+    """A perception label (or a localized query) names the simulator's object: the same words, an article aside
+    ("table" is not the "round table")."""
+    return _norm(label) == _norm(name)
 
 
 def seen_before_pick(steps: Sequence[ReasoningStep], names: Sequence[str]) -> tuple[set[str], bool]:

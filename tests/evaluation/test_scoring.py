@@ -227,3 +227,11 @@ def test_every_dev_choice_line_is_decided_by_its_own_layouts_as_the_line_expects
         assert spec.task.choice is not None
         answer, why = decide(spec.task.choice, _world(spec.task.scenario(spec.seed)))
         assert answer == (spec.task.target_object,), (spec.task.command, spec.seed, why)
+
+
+def test_a_round_table_is_not_the_table() -> None:
+    from aermani.evaluation.scoring import _same
+
+    assert _same("the round table", "round table") and _same("Cracker  Box", "cracker box")
+    assert not _same("round table", "table") and not _same("table", "round table")
+    assert not _same("red cup", "cup")
