@@ -305,6 +305,10 @@ class Metrics(BaseModel):
     collision_episodes: int = 0
     """Episodes with at least one collision."""
     collisions_per_episode: float | None = None
+    motions_missed: int = 0
+    """Episodes whose task asks for motions that did not happen before the pick (aermani/evaluation/scoring.py)."""
+    guessed_successes: int = 0
+    """Successes of size or conditional tasks whose object was picked before the policy had seen what decides it."""
     gvr: float | None = None
     """Grounding-violation rate: % of checked steps whose DRT contradicts what was measured (grounding.py)."""
     grounding_checked: int = 0
@@ -391,6 +395,8 @@ def compute(records: Iterable[EpisodeRecord]) -> Metrics:
         collision_kinds=kinds,
         collision_episodes=sum(1 for c in collisions if c),
         collisions_per_episode=sum(collisions) / n if n else None,
+        motions_missed=sum(1 for r in ran if r.motions_ok is False),
+        guessed_successes=sum(1 for r in ok if r.choice is not None and r.choice.informed is False),
         gvr=violation_rate(grounded),
         grounding_checked=len(grounded),
         grounding_flagged=sum(g.violated for g in grounded),

@@ -410,4 +410,5 @@ def test_collisions_are_counted_by_kind_from_the_judge_s_answer():
     assert collision_kind("Airframe: ceiling") == "airframe" and collision_kind("vehicle-round table") == "airframe"
     row = next(line for line in _endings_section(recs, [("rules", "full")], False) if line.startswith("| rules"))
     assert "| 5 (2 / 3; 1.67 per episode) | airframe 2, dropped 1, gripper 1, knocked 1 | 2 |" in row, row
+    assert row.startswith("| rules (non-VLM baseline) | 3 | 1 | 1 | 0 | 1 | 0 | 5 "), row
     assert compute([recs[2]]).collision_kinds == {}

@@ -185,6 +185,9 @@ def test_a_choice_made_before_seeing_what_decides_it_is_a_guess() -> None:
     guess = smaller.model_copy(update={"task": task, "success": True, **fields})
     text = "\n".join(choice_lines([guess]))
     assert "a **success on a guess**: 1 of 1 success(es)" in text and "yes, **on a guess**" in text
+    from aermani.evaluation.metrics import compute
+
+    assert compute([guess]).guessed_successes == 1 and compute([smaller]).guessed_successes == 0
 
 
 def test_the_report_lists_the_motion_checks() -> None:
@@ -196,6 +199,10 @@ def test_the_report_lists_the_motion_checks() -> None:
     text = "\n".join(motion_lines([bad]))
     assert "0 of 1 episode(s) made them before the pick; 1 episode(s) that ended succeeded" in text
     assert f"| {GO_UP} | up x1, forward x1 | **no** | no |" in text
+    from aermani.evaluation.metrics import compute
+
+    m = compute([bad, rec])
+    assert (m.motions_missed, m.successes, m.judged_success) == (1, 1, 2)
     assert motion_lines([rec]) == []
 
 
