@@ -102,12 +102,18 @@ def footprint_distance(x: float, y: float, thing: SimObjectTruth) -> float:
     return math.hypot(max(u, 0.0), max(v, 0.0))
 
 
-def _poses(steps: Sequence[ReasoningStep], start: int, stop: int) -> list[tuple[int, Pose]]:
+def _poses(steps: Sequence[ReasoningStep], after: int, stop: int) -> list[tuple[int, Pose]]:
+    """The vehicle's recorded poses from the end of step index `after` (-1: from the start) to the pick, each with
+    the index of the last step that had ended when it was taken (a start pose: the step before)."""
     out = []
-    for i in range(start, stop):
+    for i in range(max(after, 0), stop):
         o = steps[i].outcome
-        if o is not None:
-            out += [(i, p) for p in (o.start_pose, o.end_pose) if p is not None]
+        if o is None:
+            continue
+        if o.start_pose is not None and i > after:
+            out.append((i - 1, o.start_pose))
+        if o.end_pose is not None:
+            out.append((i, o.end_pose))
     return out
 
 
@@ -146,15 +152,15 @@ def check_motions(motions: Sequence[ExpectedMotion], steps: Sequence[ReasoningSt
             if thing is None:
                 return MotionCheck(ok=False, detail=f"{want.text()}: cannot be checked: the simulator's world has "
                                                     f"no {want.to}" + ("" if world else " (no world recorded)"))
-            near = [(i, footprint_distance(p.position.x, p.position.y, thing))
-                    for i, p in _poses(steps, max(after, 0), stop)]
+            near = [(i, footprint_distance(p.position.x, p.position.y, thing)) for i, p in _poses(steps, after, stop)]
             hit = next(((i, d) for i, d in near if d <= APPROACH_M), None)
             if hit is None:
                 closest = min((d for _, d in near), default=math.inf)
                 return MotionCheck(ok=False, detail=f"{want.text()} never happened before the pick: the vehicle came "
                                                     f"within {closest:.2f} m of it at best (needs {APPROACH_M} m)")
             after = max(after, hit[0])
-            found.append(f"{want.text()}: within {hit[1]:.2f} m at step {steps[hit[0]].step}")
+            when = f"after step {steps[hit[0]].step}" if hit[0] >= 0 else "at the start"
+            found.append(f"{want.text()}: within {hit[1]:.2f} m {when}")
             continue
         got = _match_moves(want, moves, after, stop)
         if got is None:

@@ -129,8 +129,13 @@ def test_a_task_that_never_climbed_fails_whatever_the_judge_says() -> None:
 
 def test_an_approach_is_checked_against_the_true_footprint() -> None:
     sink = _rec("rules/full/sequential/008-s686749748")  # "Go over to the sink. If there's a red cup there ..."
-    got = check_motions([M("approach", to="sink")], sink.steps, _recorded_world(sink))
-    assert got.ok and "within 1.32 m at step 1" in got.detail, got.detail
+    world = _recorded_world(sink)
+    got = check_motions([M("approach", to="sink")], sink.steps, world)
+    assert got.ok and "within 1.32 m at the start" in got.detail, got.detail  # it took off near the sink
+    # a motion right after an arrival counts (its step began there), and one asked for after it must follow it
+    assert [s.ste.skill for s in sink.steps[:3]] == ["yaw_left", "yaw_right", "forward"]
+    assert check_motions([M("approach", to="sink"), M("yaw_left")], sink.steps, world).ok
+    assert not check_motions([M("yaw_right"), M("yaw_left")], sink.steps, world).ok
     # "Approach the counter. ...": the policy scanned, never came near the counter, and picked from afar
     counter = _rec("rules/full/sequential/001-s935737221")
     got = check_motions([M("approach", to="counter")], counter.steps, _recorded_world(counter))
@@ -242,3 +247,19 @@ def test_a_round_table_is_not_the_table() -> None:
     assert _same("the round table", "round table") and _same("Cracker  Box", "cracker box")
     assert not _same("round table", "table") and not _same("table", "round table")
     assert not _same("red cup", "cup")
+
+
+def test_an_approach_asked_after_a_motion_must_come_after_it() -> None:
+    from shared.messages import Pose, ReasoningStep, SimObjectTruth, SkillOutcome, SkillState, SkillToExecute, Vec3
+
+    def pose(x: float) -> Pose:
+        return Pose(position=Vec3(x=x, z=1.5), yaw=math.pi)  # facing -x: forward moves away from the table
+
+    away = ReasoningStep(task_id="t", step=1, ste=SkillToExecute(skill="forward"), skill_state=SkillState.SUCCEEDED,
+                         outcome=SkillOutcome(start_pose=pose(0.0), end_pose=pose(-2.5)))
+    table = SimObjectTruth(name="table", category="surface", position=Vec3(x=1.5, z=0.375),
+                           size=Vec3(x=1.2, y=0.8, z=0.75))
+    world = JudgeResult(objects=(table,))
+    assert check_motions([M("approach", to="table"), M("forward")], [away], world).ok  # near it, then away
+    got = check_motions([M("forward"), M("approach", to="table")], [away], world)
+    assert not got.ok and "within 3.40 m of it at best" in got.detail, got.detail
