@@ -27,7 +27,7 @@ from pydantic import (
 SCHEMA_VERSION = 1
 """Major version of the message schemas. A receiver rejects a message of a newer major version with an
 error naming both versions."""
-SCHEMA_MINOR = 9
+SCHEMA_MINOR = 10
 """Minor version: bumped when fields are added (or deprecated and ignored, never removed). A receiver accepts a
 message of a newer minor version, ignoring the fields it does not know (logged once per field)."""
 MAX_COMMAND_CHARS = 500
@@ -1414,6 +1414,9 @@ class JudgeResult(Message):
     """Collisions since the last reset, e.g. "vehicle-shelf"."""
     scenario: Scenario | None = None
     """Scenario in force."""
+    sim_time_s: float | None = Field(None, ge=0.0)
+    """Simulated seconds since the world was last reset, when the answer was made (minor version 10): the
+    evaluation's clock for task time in simulated seconds, apart from the wall clock at a speed factor."""
 
 
 class SimState(Message):

@@ -33,11 +33,13 @@ def eval_command(
                                               f"({', '.join(VARIANTS)}), or 'baselines' or one of the paper's "
                                               f"baseline frameworks ({', '.join(BASELINES)}; plan-once is "
                                               "plan_once), which need a model backend.")] = "full",
-    episodes: Annotated[int | None, typer.Option(help="Episodes per suite (cycling through its tasks); "
-                                                      "default 10, or each task of --tasks once.")] = None,
+    episodes: Annotated[int | None, typer.Option(help="Episodes per suite cycling through its lines (opt-in: "
+                                                      "with fewer episodes than lines some lines never run).")]
+    = None,
     seeds_per_line: Annotated[int | None, typer.Option(min=1, max=100, help="Run every line of each suite on this "
-                                                       "many layouts (episodes = lines x seeds); "
-                                                       "instead of --episodes.")] = None,
+                                                       "many layouts (episodes = lines x seeds); the default is 2 "
+                                                       "for the built-in suites, each line once for --tasks.")]
+    = None,
     split: Annotated[str, typer.Option(help="Split of the built-in suites: dev (work against it) or test (held "
                                             "out: headline figures only, never tuned on).")] = "dev",
     suites: Annotated[str | None, typer.Option(help="Comma list of suites (localization, clutter, sequential, "
@@ -134,8 +136,7 @@ def eval_command(
     cfg = RunConfig(out=out, backend=backend, output_mode=modes[0], variants=variants, model=model, base_url=base_url,
                     paper_history=paper_history, free_text_baselines=free_text_baselines,
                     api_key=api_key,
-                    episodes=episodes if episodes is not None else (None if tasks or seeds_per_line else 10),
-                    seeds_per_line=seeds_per_line,
+                    episodes=episodes, seeds_per_line=seeds_per_line,
                     split=split, suites=_split(suites), tasks_file=tasks, seed=seed, parallel=parallel,
                     speed_factor=speed_factor, t_max_s=t_max, connect=connect,
                     vehicles=_split(vehicles), progress=progress, note=note, segmenter=segmenter or "color",

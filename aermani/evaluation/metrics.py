@@ -3,8 +3,9 @@
 Definitions, exactly as computed here (docs/evaluation.md repeats them):
 
 - SR = successful episodes / episodes x 100. An episode succeeds when the task's own end state is `succeeded`
-  (the policy declared it done before T_max) AND the simulator's ground-truth judge agrees; the report shows
-  both counts apart.
+  (the policy declared it done before T_max) AND the simulator's ground-truth judge agrees (for a size or
+  conditional task, on the object the simulator decided) AND the motions the task asks for happened before the
+  pick (aermani/evaluation/scoring.py); the report shows the counts apart.
 - Actions of an episode: the skills the policy chose and the executor ran (a step with an STE and a skill
   state), except `done`, which moves nothing. n_total = number of actions.
 - An action is redundant (counted once even if several rules match) when it is
@@ -32,9 +33,14 @@ Definitions, exactly as computed here (docs/evaluation.md repeats them):
   episode the larger of the recorded calls and the terminal status's counters is taken, so an invalid answer
   whose step ended in a transport error (and a lost step sample) still counts.
 - RT = median and 95th percentile (linear interpolation) of the model latency per query, seconds.
-- TT = mean end-to-end time of successful episodes, seconds (reasoner start to terminal status).
-- Collisions: the simulator's contacts of the airframe with furniture, walls or the ceiling since the reset
-  (services/sim/physics.py), per episode; reported as the total, the mean per episode and the episodes with any.
+- TT = mean end-to-end time of successful episodes, seconds (reasoner start to terminal status), on the wall
+  clock (which mixes simulated time sped up by the speed factor with real waits: model calls, perception) and in
+  simulated seconds (the simulator's clock, read from the judge just before the start and just after the end).
+- Collisions: every entry of the simulator judge's `collisions` since the reset, per episode, by kind: an entry
+  `vehicle-<thing>` is an airframe contact with furniture, walls or the ceiling (services/sim/physics.py); any
+  other entry (gripper strikes, knocked or dropped objects) is counted under the kind its name starts with (the
+  text before a ':', else before the first '-'), so kinds the simulator adds are counted without a change here.
+  Reported as the total, airframe and other, the mean per episode, the episodes with any and the count per kind.
 
 Episodes the harness could not run (harness_error) are left out of every metric and counted in `not_run`.
 """
@@ -232,6 +238,28 @@ def redundancy_ratio(actions: Sequence[Action]) -> float:
     return len(redundant_actions(actions)) / len(actions) if actions else 0.0
 
 
+AIRFRAME = "airframe"
+_AIRFRAME_PREFIXES = ("vehicle", "airframe")
+
+
+def collision_kind(entry: str) -> str:
+    """The kind of one entry of the judge's collisions: `airframe` for `vehicle-shelf` (the airframe's contacts),
+    otherwise the name it starts with: `gripper-table` -> gripper, `knocked: red cup` -> knocked."""
+    text = entry.strip().lower()
+    head = text.split(":", 1)[0] if ":" in text else text.split("-", 1)[0]
+    head = head.strip() or "other"
+    return AIRFRAME if head in _AIRFRAME_PREFIXES else head
+
+
+def collision_kinds(entries: Iterable[str]) -> dict[str, int]:
+    """Entries per kind, airframe first, then by name."""
+    out: dict[str, int] = {}
+    for e in entries:
+        k = collision_kind(e)
+        out[k] = out.get(k, 0) + 1
+    return dict(sorted(out.items(), key=lambda kv: (kv[0] != AIRFRAME, kv[0])))
+
+
 def reasoning_steps(rec: EpisodeRecord) -> int:
     """Reasoning cycles of an episode: the step records, or the terminal status's count if more were announced
     than recorded (a lost sample must not make a policy look better)."""
@@ -257,6 +285,9 @@ class Metrics(BaseModel):
     rt_median: float | None = None
     rt_p95: float | None = None
     tt: float | None = None
+    """TT on the wall clock, seconds."""
+    tt_sim: float | None = None
+    """TT in simulated seconds (successful episodes whose record has the simulator's clock)."""
     queries: int = 0
     invalid: int = 0
     ended_succeeded: int = 0
@@ -264,10 +295,20 @@ class Metrics(BaseModel):
     judged_success: int = 0
     """Episodes the simulator's judge found right, whatever the task's end state."""
     collisions: int = 0
-    """Collisions over all episodes (airframe contacts with furniture, walls, ceiling)."""
+    """Collisions over all episodes, every kind the simulator's judge reports."""
+    airframe_collisions: int = 0
+    """Of them, the airframe's contacts with furniture, walls or the ceiling."""
+    other_collisions: int = 0
+    """Of them, every other kind (gripper strikes, knocked or dropped objects)."""
+    collision_kinds: dict[str, int] = {}
+    """Collisions per kind (`collision_kind`)."""
     collision_episodes: int = 0
     """Episodes with at least one collision."""
     collisions_per_episode: float | None = None
+    motions_missed: int = 0
+    """Episodes whose task asks for motions that did not happen before the pick (aermani/evaluation/scoring.py)."""
+    guessed_successes: int = 0
+    """Successes of size or conditional tasks whose object was picked before the policy had seen what decides it."""
     gvr: float | None = None
     """Grounding-violation rate: % of checked steps whose DRT contradicts what was measured (grounding.py)."""
     grounding_checked: int = 0
@@ -326,7 +367,9 @@ def compute(records: Iterable[EpisodeRecord]) -> Metrics:
     counts = [query_counts(r) for r in ran]
     invalid, queries = sum(c[0] for c in counts), sum(c[1] for c in counts)
     collisions = [len(r.collisions) for r in ran]
+    kinds = collision_kinds(c for r in ran for c in r.collisions)
     grounded = [g for r in ran for g in episode_grounding(r) if g.checked]
+    sim = [d for r in ok if (d := r.sim_duration_s) is not None]
     n = len(ran)
     return Metrics(
         episodes=n,
@@ -341,13 +384,19 @@ def compute(records: Iterable[EpisodeRecord]) -> Metrics:
         rt_median=percentile(latencies, 50) if latencies else None,
         rt_p95=percentile(latencies, 95) if latencies else None,
         tt=sum(r.duration_s for r in ok) / len(ok) if ok else None,
+        tt_sim=sum(sim) / len(sim) if sim else None,
         queries=queries,
         invalid=invalid,
         ended_succeeded=sum(1 for r in ran if r.state == "succeeded"),
         judged_success=sum(1 for r in ran if judged_ok(r)),
         collisions=sum(collisions),
+        airframe_collisions=kinds.get(AIRFRAME, 0),
+        other_collisions=sum(n for k, n in kinds.items() if k != AIRFRAME),
+        collision_kinds=kinds,
         collision_episodes=sum(1 for c in collisions if c),
         collisions_per_episode=sum(collisions) / n if n else None,
+        motions_missed=sum(1 for r in ran if r.motions_ok is False),
+        guessed_successes=sum(1 for r in ok if r.choice is not None and r.choice.informed is False),
         gvr=violation_rate(grounded),
         grounding_checked=len(grounded),
         grounding_flagged=sum(g.violated for g in grounded),

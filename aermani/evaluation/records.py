@@ -15,6 +15,29 @@ from shared.tasks import REFUSED_BEFORE_TAKEOFF
 RESULTS_FILE = "episodes.jsonl"
 
 
+class ChoiceOutcome(BaseModel):
+    """A choice task's decision by the simulator and what the policy did with it (EpisodeRecord.choice)."""
+
+    model_config = ConfigDict(frozen=True)
+
+    criterion: str
+    """What decides the object, in words."""
+    answer: tuple[str, ...]
+    """The object(s) meeting it in this world (two on a tie)."""
+    reason: str
+    """Why, from the world: the true sizes, or where the conditional's object is."""
+    chosen: str | None = None
+    """The object the policy picked (the grasp that succeeded last), if any."""
+    informed: bool | None = None
+    """Whether the policy had seen what decides the choice before it picked: every compared object (size), the
+    place the condition is about (conditional); None where the recorded steps cannot tell (no live observation
+    in the prompt and no localization of them)."""
+    needed: tuple[str, ...] = ()
+    """What the policy had to see for its choice to be informed."""
+    seen: tuple[str, ...] = ()
+    """What of that the policy had seen before the pick."""
+
+
 class EpisodeRecord(BaseModel):
     """Everything about one finished episode; the report and the metrics are computed from these only."""
 
@@ -64,6 +87,10 @@ class EpisodeRecord(BaseModel):
     """T_max in force."""
     started_ns: int = 0
     """When the task was started (harness clock)."""
+    sim_started_s: float | None = None
+    """Simulated seconds since the reset when the task was started (the judge's clock, asked just before)."""
+    sim_ended_s: float | None = None
+    """Simulated seconds since the reset when the terminal status arrived (asked just after)."""
     ended_ns: int = 0
     """When the terminal status arrived."""
     attempts: int = 1
@@ -75,6 +102,14 @@ class EpisodeRecord(BaseModel):
     executor's memory left over from the previous episode and restarted the executor process. Reported."""
     foreign_samples: int = 0
     """Step samples seen on this vehicle's key during the episode that belonged to another task (cross-talk)."""
+    motions_ok: bool | None = None
+    """Whether the motions the task asks for (`task.motions`) happened before the pick, from the recorded
+    trajectory (None: the task asks for none, or a record from before they were checked)."""
+    motions_detail: str = ""
+    """How each motion was found in the trajectory, or the first that was not."""
+    choice: ChoiceOutcome | None = None
+    """A choice task's decision by the simulator (the object meeting the size comparison or the conditional's
+    branch, from the world at the start), the object chosen and whether the policy had seen what decides it."""
     harness_error: str = ""
     """Set when the episode could not run (reset failed, no status...)."""
 
@@ -94,6 +129,13 @@ class EpisodeRecord(BaseModel):
         if self.status is not None and self.status.started_ns and self.status.ended_ns:
             return (self.status.ended_ns - self.status.started_ns) / 1e9
         return max(0.0, (self.ended_ns - self.started_ns) / 1e9)
+
+    @property
+    def sim_duration_s(self) -> float | None:
+        """End-to-end task time in simulated seconds (None in records from before the judge told its clock)."""
+        if self.sim_started_s is None or self.sim_ended_s is None:
+            return None
+        return max(0.0, self.sim_ended_s - self.sim_started_s)
 
     @property
     def config(self) -> str:

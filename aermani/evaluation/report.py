@@ -16,6 +16,7 @@ from aermani.evaluation.records import RESULTS_FILE, EpisodeRecord, ResultsFile
 from aermani.evaluation.runs import episode_grounding
 from aermani.evaluation.tasks import PAPER_RS, PAPER_SUITES, SUITE_TITLES
 from shared.messages import VARIANTS
+from shared.search import NOT_FOUND_MAX_STEPS, SEARCH_STEPS
 from shared.text import plain_text
 
 VARIANT_TITLES = {
@@ -200,6 +201,11 @@ def _freeze_text(config: dict[str, Any]) -> str:
     if not frozen and not policy:
         return "unrecorded (a run before the split's freeze was recorded)"
     text = f"`{str(frozen)[:12]}` / `{str(policy)[:12]}`"
+    subject = config.get("policy_changed_subject")
+    if subject:
+        text += f" (the last policy change: \"{_cell(str(subject), 100)}\""
+        files = config.get("policy_changed_files")
+        text += f", {_cell(str(files), 160)})" if files else ")"
     after = config.get("policy_changed_after_freeze")
     if after is True:
         text += (" (the policy changed after the split froze: a test figure is held out only if that change was "
@@ -224,7 +230,8 @@ def configuration_lines(records: list[EpisodeRecord], config: dict[str, Any]) ->
         ("rebuild the report from episodes.jsonl",
          f"`{config.get('report_only_command', 'aermani eval --out DIR --report-only')}`"),
         ("commit", rev),
-        ("test split frozen at / last parser or policy change", _freeze_text(config)),
+        ("test split frozen at / last change to the policy stack (reasoner, executor, perception)",
+         _freeze_text(config)),
         ("backend", ", ".join(f"{b}" + (" (non-VLM baseline)" if b == "rules" else "") for b in backends)),
         ("model", ", ".join(models)),
         ("variant", ", ".join(variants)),
@@ -233,27 +240,128 @@ def configuration_lines(records: list[EpisodeRecord], config: dict[str, Any]) ->
         ("speed factor", str(config.get("speed_factor", "unrecorded"))),
         ("split", f"`{config.get('split') or 'unrecorded'}`" + (f" (task file {config['tasks_file']})"
                                                                 if config.get("tasks_file") else "")),
-        ("episodes per suite", f"every line x {config['seeds_per_line']} layout seeds" if config.get("seeds_per_line")
-         else str(config.get("episodes"))),
+        ("episodes per suite", _episodes_text(config)),
         ("N (episodes in the metrics / recorded)", f"{len(ran)} / {len(records)}"),
         ("seeds", _seeds_text(records)),
         ("T_max, judge criteria", f"{config.get('t_max_s', '?')} s, " + (
             f"a caller's placement tolerance of {config['tolerance']} m (a run before the task criteria)"
             if "tolerance" in config else "each task's (`criteria` in its scenario; docs/evaluation.md)")),
+        ("not-found bound (`\"expect\": \"not_found\"` tasks)", _not_found_bound_text(records)),
         ("vehicles", ", ".join(sorted({r.vehicle_id for r in records if r.vehicle_id})) or "--"),
-        ("AERMANI_* settings from the shell", _environment_text(config)),
+        ("effective settings (as the services read them)", _effective_text(config)),
+        ("AERMANI_* variables in the shell", _environment_text(config)),
     ]
     return ["## Configuration", "", "| | |", "|---|---|"] + [f"| {k} | {v} |" for k, v in rows] + [""]
 
 
+def _episodes_text(config: dict[str, Any]) -> str:
+    """How many episodes each suite ran: every line on K layouts, or N cycling through the lines (opt-in)."""
+    if config.get("seeds_per_line"):
+        return f"every line x {config['seeds_per_line']} layout seeds"
+    if config.get("episodes"):
+        return (f"{config['episodes']}, cycling through each suite's lines (`--episodes`: with fewer episodes than "
+                "lines, some lines never ran)")
+    return "each line of the task file once" if config.get("tasks_file") else str(config.get("episodes"))
+
+
+def _not_found_bound_text(records: list[EpisodeRecord]) -> str:
+    """The bound on a not-found task's reasoning steps: the default (from the room search's coverage) and the
+    bounds the run's not-found episodes were held to."""
+    text = (f"{NOT_FOUND_MAX_STEPS} reasoning steps by default: a whole search of the room ({SEARCH_STEPS} steps, "
+            "the rules baseline's search budget), the `done` and 3 steps of slack (shared/search.py)")
+    bounds = sorted({r.task.not_found_max_steps for r in records if r.task.expect == "not_found"})
+    n = sum(1 for r in records if r.task.expect == "not_found" and not r.harness_error)
+    if bounds:
+        text += f"; this run's {n} not-found episode(s) held to {', '.join(str(b) for b in bounds)}"
+    return text
+
+
+def not_found_lines(records: list[EpisodeRecord]) -> list[str]:
+    """Every not-found episode: its steps against its bound and the verdict (empty when the run has none)."""
+    recs = [r for r in records if r.task.expect == "not_found" and not r.harness_error]
+    if not recs:
+        return []
+    lines = ["## Not-found tasks", "", "The world lacks the object: success is the task ending failed with a "
+             "not-found reason within the bound, holding nothing.", "",
+             "| Episode | Object the world lacks | Steps / bound | Success | Verdict |", "|---|---|---|---|---|"]
+    for r in recs:
+        lines.append(f"| {r.episode_id} | {r.task.target_object} | {reasoning_steps(r)} / "
+                     f"{r.task.not_found_max_steps} | {'yes' if r.success else 'no'} | {_cell(r.verdict)} |")
+    return [*lines, ""]
+
+
+def _effective_text(config: dict) -> str:
+    """The effective values of the settings that shape the numbers (run_config.json `effective`)."""
+    eff = config.get("effective")
+    if not eff:
+        return "unrecorded (a run before they were recorded)"
+    if "error" in eff:
+        return _cell(str(eff["error"]), 300)
+    names = {"realism": "realism", "dynamics": "dynamics (AERMANI_SIM_DYNAMICS)", "speed_factor": "speed factor",
+             "step_cap": "step cap", "t_max_s": "T_max (s)", "backend": "backend", "output_mode": "output mode",
+             "segmenter": "segmenter"}
+    return "<br>".join(f"{names.get(k, k)} `{v}`" for k, v in eff.items())
+
+
+def motion_lines(records: list[EpisodeRecord]) -> list[str]:
+    """Every episode whose task asks for motions: whether they happened before the pick (empty: none asks)."""
+    recs = [r for r in records if r.task.motions and not r.harness_error]
+    if not recs:
+        return []
+    failed = [r for r in recs if r.motions_ok is False]
+    judged = sum(1 for r in failed if judged_ok(r) and r.state == "succeeded")
+    lines = ["## Motion checks", "", f"Sequential tasks are scored for the motions they ask for, from the recorded "
+             f"trajectory (docs/evaluation.md, Scoring what a task asks): {len(recs) - len(failed)} of {len(recs)} "
+             f"episode(s) made them before the pick; {judged} episode(s) that ended succeeded with the judge's "
+             "agreement are failures because a commanded motion did not happen.", "",
+             "| Episode | Asked | Happened | Success | How |", "|---|---|---|---|---|"]
+    for r in recs:
+        asked = ", ".join(m.text() for m in r.task.motions)
+        ok = {True: "yes", False: "**no**", None: "not checked"}[r.motions_ok]
+        lines.append(f"| {r.episode_id} | {_cell(asked, 80)} | {ok} | {'yes' if r.success else 'no'} | "
+                     f"{_cell(r.motions_detail, 160)} |")
+    return [*lines, ""]
+
+
+def choice_lines(records: list[EpisodeRecord]) -> list[str]:
+    """Every size or conditional task: the simulator's decision, the object chosen, and each success on a guess
+    flagged (empty: none)."""
+    recs = [r for r in records if r.task.choice is not None and not r.harness_error]
+    if not recs:
+        return []
+    guesses = [r for r in recs if r.success and r.choice is not None and r.choice.informed is False]
+    lines = ["## Size and conditional tasks", "", "The simulator decides which object meets the command's criterion "
+             "from the world at the start; only that object counts. A success whose object was picked before the "
+             "policy had seen what decides the choice (every compared object; the place the condition is about) is "
+             f"a **success on a guess**: {len(guesses)} of {sum(r.success for r in recs)} success(es) here.", "",
+             "| Episode | Criterion | World's answer (why) | Chosen | Seen before the pick | Success |",
+             "|---|---|---|---|---|---|"]
+    for r in recs:
+        c = r.choice
+        if c is None:
+            lines.append(f"| {r.episode_id} | {_cell(r.task.choice.text() if r.task.choice else '', 80)} | "
+                         "not recorded | -- | -- | " + ("yes" if r.success else "no") + " |")
+            continue
+        seen = {True: "all", False: "not all", None: "unknown"}[c.informed]
+        seen += f" ({', '.join(c.seen) or 'none'} of {', '.join(c.needed) or '--'})"
+        ok = "yes" if r.success else "no"
+        if r.success and c.informed is False:
+            ok = "yes, **on a guess**"
+        lines.append(f"| {r.episode_id} | {_cell(c.criterion, 80)} | {' or '.join(c.answer)} ({_cell(c.reason, 100)}) "
+                     f"| {c.chosen or '--'} | {seen} | {ok} |")
+    return [*lines, ""]
+
+
 def _environment_text(config: dict) -> str:
-    """The services' settings inherited from the shell (run_config.json `environment`), or why there are none."""
+    """Every AERMANI_* variable of the shell (run_config.json `environment`), those the run overrode marked, or why
+    there are none."""
     env = config.get("environment")
     if env is None:
         return "unrecorded (a run before they were recorded)"
     if not env:
         return "none (every setting at its default or set by the run)"
-    return "<br>".join(f"`{k}={v}`" for k, v in env.items())
+    over = set(config.get("environment_overridden") or ())
+    return "<br>".join(f"`{k}={v}`" + (" (overridden by the run)" if k in over else "") for k, v in env.items())
 
 
 def incident_lines(records: list[EpisodeRecord]) -> list[str]:
@@ -339,10 +447,16 @@ def _endings_section(records: list[EpisodeRecord], configs: list[tuple[str, str]
     """End state, judge and collisions per method: SR needs both the task's end state and the judge."""
     lines = ["", "## End state, judge and collisions", "",
              "SR counts an episode only when both hold: the task's own end state is `succeeded` and the "
-             "simulator's ground-truth judge agrees. Collisions: airframe contacts with furniture, walls or the "
-             "ceiling recorded by the physics simulator since the episode's reset.", "",
-             "| Method | N | ended succeeded | judge success | both (SR numerator) | collisions | "
-             "episodes with a collision | terminal states |", "|---|---|---|---|---|---|---|---|"]
+             "simulator's ground-truth judge agrees (and a sequential task's motions happened). Collisions: every "
+             "entry the simulator's judge recorded since the episode's reset, by kind: airframe contacts with "
+             "furniture, walls or the ceiling, and every other kind it reports (gripper strikes, knocked or "
+             "dropped objects), named by the entry's prefix.", "",
+             "Motions missed: episodes whose commanded motions did not happen before the pick (failures whatever "
+             "the judge said); successes on a guess: size or conditional successes picked before what decides the "
+             "choice was seen (counted in SR, flagged).", "",
+             "| Method | N | ended succeeded | judge success | motions missed | both (SR numerator) | successes on a "
+             "guess | collisions (airframe / other) | by kind | episodes with a collision | terminal states |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for b, v in configs:
         recs = [r for r in records if r.backend == b and r.variant == v and not r.harness_error]
         m = compute(recs)
@@ -350,7 +464,10 @@ def _endings_section(records: list[EpisodeRecord], configs: list[tuple[str, str]
         for r in recs:
             states[r.state] = states.get(r.state, 0) + 1
         lines.append(f"| {method_name(b, v, multi)} | {m.episodes} | {m.ended_succeeded} | {m.judged_success} | "
-                     f"{m.successes} | {m.collisions} ({_fmt(m.collisions_per_episode, 2)} per episode) | "
+                     f"{m.motions_missed} | {m.successes} | {m.guessed_successes} | {m.collisions} "
+                     f"({m.airframe_collisions} / {m.other_collisions}; "
+                     f"{_fmt(m.collisions_per_episode, 2)} per episode) | "
+                     + (", ".join(f"{k} {n}" for k, n in m.collision_kinds.items()) or "--") + " | "
                      f"{m.collision_episodes} | " + ", ".join(f"{k} {n}" for k, n in sorted(states.items())) + " |")
     lines.append("")
     return lines
@@ -406,11 +523,12 @@ def markdown(records: list[EpisodeRecord], config: dict[str, Any], plots: list[s
                          f"{_fmt(m.arr)} | {_fmt(m.rs)} | {_fmt(m.iar)} | {_gvr(m)} |")
     lines += ["", "## Summary per method (paper Table V layout)", "",
               "| Method | N | SR ↑ [95 % CI] | ARR ↓ | RS ↓ | IAR ↓ | GVR ↓ | RT median (s) ↓ | RT p95 (s) ↓ "
-              "| TT (s) ↓ |", "|---|---|---|---|---|---|---|---|---|---|"]
+              "| TT wall (s) ↓ | TT sim (s) ↓ |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for b, v in configs:
         m = compute(r for r in records if r.backend == b and r.variant == v)
         lines.append(f"| {method_name(b, v, multi)} | {m.episodes} | {_sr(m)} | {_fmt(m.arr)} | {_fmt(m.rs)} | "
-                     f"{_fmt(m.iar)} | {_gvr(m)} | {_rt(m, b)} | {_rt(m, b, p95=True)} | {_fmt(m.tt)} |")
+                     f"{_fmt(m.iar)} | {_gvr(m)} | {_rt(m, b)} | {_rt(m, b, p95=True)} | {_fmt(m.tt)} | "
+                     f"{_fmt(m.tt_sim)} |")
     lines += ["", "IAR by answer decoding (schema-constrained: the request carried the answer's JSON schema; free "
               "text: read by the lenient parser):", ""]
     for b, v in configs:
@@ -420,20 +538,24 @@ def markdown(records: list[EpisodeRecord], config: dict[str, Any], plots: list[s
             for m, (bad, n) in sorted(modes.items())) or "no model calls"))
     lines += _endings_section(records, configs, multi)
     lines += incident_lines(records)
+    lines += not_found_lines(records)
+    lines += motion_lines(records)
+    lines += choice_lines(records)
     lines += grounding_lines(records)
     lines += _paper_section(records, suites, configs, multi)
     lines += paper_comparison_lines(records, config)
     lines += ["", "Metrics (definitions in docs/evaluation.md): SR = % of episodes where the simulator's ground "
               "truth has the right object placed on the destination (or picked, when the command has no "
-              "destination) by the task's criteria before T_max, with its 95 % Wilson score interval in brackets "
-              "(N episodes); ARR = mean % of redundant actions over successful "
+              "destination) by the task's criteria before T_max (for a size or conditional task the object the "
+              "simulator decided; a sequential task's motions made before the pick), with its 95 % Wilson score "
+              "interval in brackets (N episodes); ARR = mean % of redundant actions over successful "
               "episodes; RS = mean reasoning steps per episode; IAR = % of model answers that were invalid; "
               "GVR = % of checked steps whose DRT contradicts what the stack measured (objects said seen but "
               "not detected, a held object the gripper does not hold, positions off; flagged/checked steps in "
               "brackets; for the rules policy the DRT is its own template); "
-              "RT = model latency per query; TT = mean end-to-end time of successful episodes (wall clock, "
-              "simulator speed factor "
-              f"{config.get('speed_factor', '?')}).", ""]
+              "RT = model latency per query; TT = mean end-to-end time of successful episodes, on the wall clock "
+              f"(simulator speed factor {config.get('speed_factor', '?')}, plus real waits: model calls, perception) "
+              "and in simulated seconds (the simulator's clock; -- for records from before it was kept).", ""]
     failed = [r for r in records if not r.success and not r.harness_error]
     if failed:
         lines += ["## Failed episodes", "", "| Episode | Vehicle | State | Judge | Steps | Collisions | Verdict |",
@@ -545,6 +667,7 @@ def write_report(out: Path, config: dict[str, Any] | None = None) -> dict[str, P
         "dirty": config.get("dirty"),
         "split_frozen": config.get("split_frozen"),
         "policy_changed": config.get("policy_changed"),
+        "policy_changed_subject": config.get("policy_changed_subject"),
         "policy_changed_after_freeze": config.get("policy_changed_after_freeze"),
         "backend": config.get("backend"),
         "model": config.get("model"),
@@ -553,6 +676,9 @@ def write_report(out: Path, config: dict[str, Any] | None = None) -> dict[str, P
         "segmenter_description": segmenter_text(config),
         "realism": config.get("realism"),
         "speed_factor": config.get("speed_factor"),
+        "effective": config.get("effective"),
+        "not_found_bound": NOT_FOUND_MAX_STEPS,
+        "environment": config.get("environment"),
         "split": config.get("split"),
         "seeds": sorted({r.seed for r in records}),
         "n": len(ran),

@@ -14,16 +14,19 @@ import json
 import logging
 import os
 import shlex
-import subprocess
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, model_validator
 
+from aermani.evaluation.accounting import effective_settings, masked
+from aermani.evaluation.provenance import source_revision
 from aermani.evaluation.records import RESULTS_FILE, EpisodeRecord, ResultsFile
+from aermani.evaluation.scoring import accepted_objects, score_episode
 from aermani.evaluation.tasks import (
+    DEFAULT_SEEDS_PER_LINE,
     DEFAULT_SPLIT,
     DEFAULT_T_MAX_S,
     EpisodeSpec,
@@ -42,6 +45,8 @@ from shared.messages import (
     Abort,
     GripperCommand,
     GripperState,
+    JudgeRequest,
+    JudgeResult,
     LandedState,
     SkillRequest,
     TaskRequest,
@@ -78,9 +83,11 @@ class RunConfig(BaseModel):
     model: str = ""
     base_url: str | None = None
     api_key: str | None = None
-    episodes: int | None = 10
+    episodes: int | None = None
+    """Episodes per suite cycling through its lines (opt-in; some lines may not run)."""
     seeds_per_line: int | None = None
-    """Every line of each suite on this many layouts (episodes = lines x seeds); overrides `episodes`."""
+    """Every line of each suite on this many layouts (episodes = lines x seeds); overrides `episodes`. With neither
+    set, the built-in suites run every line on DEFAULT_SEEDS_PER_LINE layouts and a task file each line once."""
     split: str = DEFAULT_SPLIT
     """Built-in suites' split: dev (work against it) or test (held out; headline figures only)."""
     suites: list[str] | None = None
@@ -104,6 +111,12 @@ class RunConfig(BaseModel):
     note: str = ""
     # Testing hook: stop (as if interrupted) after this many episodes have finished in this run.
     stop_after: int | None = None
+
+    @model_validator(mode="after")
+    def _every_line_by_default(self) -> RunConfig:
+        if self.episodes is None and self.seeds_per_line is None and self.tasks_file is None:
+            self.seeds_per_line = DEFAULT_SEEDS_PER_LINE
+        return self
 
     def command_line(self) -> str:
         """The `aermani eval` command that reproduces this run, every option that shapes the numbers explicit
@@ -139,47 +152,6 @@ class RunConfig(BaseModel):
         if self.vehicles:
             return list(self.vehicles)
         return [f"ev{i + 1}" for i in range(max(1, self.parallel))]
-
-
-SUITE_PATHS = ("aermani/evaluation/suites",)
-"""Where the built-in suites live (the split's freezing commit is looked up there)."""
-POLICY_PATHS = ("services/reasoner/backends/rules.py", "services/reasoner/backends/rules_parse.py",
-                "services/reasoner/backends/rules_lexicon.py", "services/reasoner/prompt.py",
-                "services/reasoner/schema.py")
-"""The default policy (the rules baseline and its command reader) and what every model is shown (the prompt,
-the answer schema): a change to any of them after the test split froze is a change the split must not have
-seen."""
-
-
-def source_revision() -> dict[str, str | bool]:
-    """The commit of the code that runs the evaluation and whether the work tree had uncommitted changes
-    (a dirty run cannot be reproduced from the commit alone)."""
-    root = Path(__file__).resolve().parents[2]
-
-    def git(*args: str) -> str:
-        try:
-            return subprocess.run(["git", *args], cwd=root, capture_output=True, text=True, timeout=20,
-                                  check=True).stdout.strip()
-        except (OSError, subprocess.SubprocessError):
-            return ""
-
-    commit = git("rev-parse", "HEAD")
-    dirty = bool(git("status", "--porcelain", "--untracked-files=no")) if commit else False
-    out: dict[str, str | bool] = {"commit": commit or "unknown (not a git checkout)", "dirty": dirty}
-    if commit:
-        # The held-out rule (docs/evaluation.md, "Suites and splits"): the test split is frozen by the last commit
-        # that changed a test line, and a parser or policy change after it must not have been tuned on it.
-        frozen = git("log", "-1", "--format=%H", "-G", '"split": "test"', "--", *SUITE_PATHS)
-        policy = git("log", "-1", "--format=%H", "--", *POLICY_PATHS)
-        out["split_frozen"] = frozen or "unknown"
-        out["policy_changed"] = policy or "unknown"
-        if frozen and policy and frozen != policy:
-            after = subprocess.run(["git", "merge-base", "--is-ancestor", frozen, policy], cwd=root,
-                                   capture_output=True, timeout=20).returncode == 0
-            out["policy_changed_after_freeze"] = after
-        elif frozen and policy:
-            out["policy_changed_after_freeze"] = False
-    return out
 
 
 def episode_specs(cfg: RunConfig) -> list[EpisodeSpec]:
@@ -326,6 +298,16 @@ class VehicleWorker:
         log.warning("%s: vehicle not reported grounded %.0f s after reset; starting anyway", self.vehicle_id,
                     timeout)
 
+    async def _world(self) -> JudgeResult | None:
+        """The simulator's ground truth now (objects, surfaces, its clock); None when it does not answer (the
+        record then lacks what it would have told, and says so)."""
+        try:
+            return await query_ready(self.bus, self.keys.sim_judge, JudgeRequest(op="world"), timeout=QUERY_TIMEOUT_S,
+                                     ready_timeout=READY_WAIT_S)
+        except AermaniError as exc:
+            log.warning("%s: the simulator's world query failed (%s)", self.vehicle_id, exc)
+            return None
+
     async def run(self, spec: EpisodeSpec) -> EpisodeRecord:
         task = spec.task
         t_max = task.t_max_s or self.cfg.t_max_s
@@ -361,6 +343,10 @@ class VehicleWorker:
         # The simulator's reset notice clears the executor's working memory (services/executor/memory.py,
         # world_reset): the episode starts from an empty memory without restarting any process.
         await self._wait_grounded()
+        before = await self._world()  # the simulated clock and the world a choice is decided in, at the start
+        accepted, undecided = accepted_objects(task, before)
+        if undecided:
+            return rec.model_copy(update={"harness_error": undecided})
         task_id = new_id("ev-")
         request = TaskRequest(command=task.command, task_id=task_id, variant=spec.variant, t_max_s=t_max,
                               takeoff=True)
@@ -372,13 +358,13 @@ class VehicleWorker:
                                           "task_id": task_id})
         status, steps, foreign = followed.final, followed.steps, followed.foreign
         ended = now_ns()
+        after = await self._world()  # the simulated clock at the end, before the judge waits for a rest
         if status is None:
             # The reasoner never ended the task: stop it so the next episode starts clean.
             self.bus.publish(self.keys.abort, Abort(reason="evaluation: no terminal status", source="evaluation",
                                                     task_id=task_id))
 
-        v = await judge_episode(self.bus, self.keys, task.accepted, task.destination,
-                                timeout=QUERY_TIMEOUT_S)
+        v = await judge_episode(self.bus, self.keys, accepted, task.destination, timeout=QUERY_TIMEOUT_S)
         judge, judged_ok = v.result, v.success
         state = status.state.value if status else "timeout"
         # Success needs both: the task's own end state (the policy finished it before T_max) and the judge.
@@ -388,12 +374,17 @@ class VehicleWorker:
             success, verdict = not_found_verdict(state, status.message if status else "", len(steps),
                                                  task.not_found_max_steps, judge.held)
             judged_ok = judge.held is None
-        return rec.model_copy(update={
+        # Scored for what it asks: the commanded motions from the trajectory, the choice's decision and how it
+        # was made (aermani/evaluation/scoring.py).
+        success, verdict, scores = score_episode(task, steps, before, judge.held, success, verdict)
+        return rec.model_copy(update={**scores,
             "task_id": task_id, "state": state,
             "message": status.message if status else f"no terminal status within {t_max + STATUS_MARGIN_S:.0f} s",
             "success": success, "judge_success": judged_ok, "verdict": verdict, "held": judge.held,
             "collisions": judge.collisions,
             "steps": steps, "status": status, "judge": judge, "started_ns": started, "ended_ns": ended,
+            "sim_started_s": before.sim_time_s if before else None,
+            "sim_ended_s": after.sim_time_s if after else None,
             "foreign_samples": foreign,
         })
 
@@ -519,26 +510,31 @@ def run(cfg: RunConfig) -> RunSummary:
     return summary
 
 
-SECRET_WORDS = ("KEY", "TOKEN", "SECRET", "PASSWORD")
-
-
 def shell_settings(environ: Mapping[str, str], extra: Mapping[str, str] | None = None) -> dict[str, str]:
-    """Every AERMANI_* setting the services inherit from the shell (and the run's extra environment) besides
-    what the run sets itself: they change what the services do, so the run's record names them. A secret's
-    value is never recorded (only that it was set)."""
-    own = set(PORT_KEYS) | set(run_env(RunConfig(out=Path("."))))
-    out = {}
-    for k, v in sorted({**environ, **(extra or {})}.items()):
-        if k.startswith("AERMANI_") and k not in own:
-            out[k] = "(set, not recorded)" if any(w in k for w in SECRET_WORDS) else v
-    return out
+    """Every AERMANI_* variable the services inherit from the shell (and the run's extra environment): they
+    change what the services do, so the run's record names them all, those the run overrides included
+    (`overridden_settings`). A secret's value is never recorded (only that it was set)."""
+    return masked({**environ, **(extra or {})})
+
+
+def overridden_settings(cfg: RunConfig, environ: Mapping[str, str]) -> list[str]:
+    """The shell's AERMANI_* variables the run sets itself (its own settings and each vehicle's ports): the
+    services never see the shell's value of these."""
+    own = set(PORT_KEYS) | set(run_env(cfg))
+    return sorted(k for k in environ if k.startswith("AERMANI_") and k in own)
 
 
 def run_config_of(cfg: RunConfig) -> dict:
-    """run_config.json: the settings (no API key), the source revision, and the command that reproduces it."""
+    """run_config.json: the settings (no API key), the source revision, every AERMANI_* variable of the shell, the
+    run's own, the effective values of the settings that shape the numbers, and the command that reproduces it."""
     doc = cfg.model_dump(mode="json", exclude={"api_key", "extra_env", "stop_after", "progress"})
     doc.update(source_revision())
     doc["environment"] = shell_settings(os.environ, cfg.extra_env)
+    doc["environment_overridden"] = overridden_settings(cfg, os.environ)
+    doc["run_environment"] = masked(run_env(cfg))
+    doc["effective"] = effective_settings({**os.environ, **run_env(cfg)})
+    if cfg.connect:  # the vehicles were started elsewhere: these are what this shell would have given them
+        doc["effective"]["note"] = "computed from this shell; the vehicles behind --connect were started elsewhere"
     doc["command"] = cfg.command_line()
     doc["report_only_command"] = shlex.join(["aermani", "eval", "--out", str(cfg.out), "--report-only"])
     return doc

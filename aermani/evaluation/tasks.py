@@ -11,6 +11,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from shared.errors import ConfigError
 from shared.messages import MAX_COMMAND_CHARS, JudgeCriteria, Scenario, command_text
+from shared.search import NOT_FOUND_MAX_STEPS
+from shared.skills import MOTION_PRIMITIVES
 
 SUITES_DIR = Path(__file__).resolve().parent / "suites"
 # Paper order (Section IV-B, Table II); also the row order of the report.
@@ -29,8 +31,82 @@ DEFAULT_T_MAX_S = 600.0  # paper: T_max = 10 min
 # at while changing the project. Commands are disjoint between the splits, and so are the layout seeds: a
 # derived seed of split k lies in [k * 2^30, (k + 1) * 2^30).
 SPLITS = ("dev", "test")
+DEFAULT_SEEDS_PER_LINE = 2
+"""Layouts per suite line when a run names neither --episodes nor --seeds-per-line: every line runs, each on two
+layouts (episodes = lines x 2)."""
 DEFAULT_SPLIT = "dev"
 _SEED_RANGE = 1 << 30
+
+
+MOTION_KINDS = (*MOTION_PRIMITIVES, "turn", "approach")
+"""What an expected motion may name: a motion primitive, `turn` (yaw steps in either direction, all the same
+way: "turn around", "spin around") or `approach` (come near the thing named in `to`)."""
+
+
+class ExpectedMotion(BaseModel):
+    """One motion a command asks for (`EvalTask.motions`), checked from the recorded trajectory."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid", use_attribute_docstrings=True)
+
+    skill: Literal["yaw_left", "yaw_right", "forward", "backward", "left", "right", "up", "down", "turn", "approach"]
+    """The motion: a motion primitive's name (its direction), `turn` or `approach`."""
+    times: int = Field(1, ge=1, le=16)
+    """How many steps of it the command asks for ("twice": 2); `approach` is one arrival."""
+    to: str | None = None
+    """`approach`: the surface (or object) the vehicle must come near."""
+
+    @model_validator(mode="after")
+    def _to_for_approach(self) -> ExpectedMotion:
+        if (self.skill == "approach") != (self.to is not None):
+            raise ValueError("an approach names what it goes `to`, and only an approach does")
+        if self.skill == "approach" and self.times != 1:
+            raise ValueError("an approach is one arrival (times 1)")
+        return self
+
+    def text(self) -> str:
+        return f"approach the {self.to}" if self.skill == "approach" else f"{self.skill} x{self.times}"
+
+
+class SizeChoice(BaseModel):
+    """Which object a size comparison names, decided by the simulator from the layout's true sizes."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid", use_attribute_docstrings=True)
+
+    kind: Literal["size"] = "size"
+    select: Literal["largest", "smallest", "tallest", "shortest"]
+    """largest/smallest: by the volume of the true bounding box; tallest/shortest: by its height."""
+    among: tuple[str, ...] = Field(..., min_length=2)
+    """The objects compared (all laid out)."""
+
+    def candidates(self) -> tuple[str, ...]:
+        return self.among
+
+    def text(self) -> str:
+        return f"the {self.select} of {', '.join(self.among)}"
+
+
+class ConditionalChoice(BaseModel):
+    """Which branch of a conditional holds ("if the apple is on the table take it, otherwise the orange"),
+    decided by the simulator from what is in the world when the task starts."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid", use_attribute_docstrings=True)
+
+    kind: Literal["conditional"] = "conditional"
+    if_present: str
+    """The object the condition asks about."""
+    on: str | None = None
+    """Where it must be for the condition to hold (a surface); None: anywhere in the room."""
+    then: str
+    """The object to take when the condition holds."""
+    otherwise: str
+    """The object to take when it does not."""
+
+    def candidates(self) -> tuple[str, ...]:
+        return (self.then, self.otherwise)
+
+    def text(self) -> str:
+        where = f" on the {self.on}" if self.on else ""
+        return f"the {self.then} if a {self.if_present} is{where}, otherwise the {self.otherwise}"
 
 
 class EvalTask(BaseModel):
@@ -70,8 +146,19 @@ class EvalTask(BaseModel):
     `extra_objects`, which must not name it), and the episode succeeds when the task ends failed with a
     not-found reason within `not_found_max_steps` reasoning steps: a policy that claims success, gives up for
     another reason, or searches without end fails it."""
-    not_found_max_steps: int = Field(40, ge=1, le=200)
-    """A not-found task's bound on reasoning steps."""
+    motions: tuple[ExpectedMotion, ...] = ()
+    """The motions the command asks for before the pick, in order (e.g. [{"skill": "up"}, {"skill": "yaw_right"}]
+    for "go a bit higher, turn right, and fetch the cup"): the runner checks from the recorded trajectory that
+    each happened, in that order, before the grasp that picked the object; an episode whose motions did not
+    happen is not a success, whatever the judge says of the pick."""
+    choice: SizeChoice | ConditionalChoice | None = Field(None, discriminator="kind")
+    """What decides the right object, when the command leaves it to the world (a size comparison, a
+    conditional): the simulator decides it from the layout at the start, the decision is recorded per episode,
+    and only that object counts (it replaces `target_object` and `accept_objects` for the judge)."""
+    not_found_max_steps: int = Field(NOT_FOUND_MAX_STEPS, ge=1, le=200)
+    """A not-found task's bound on reasoning steps: by default the steps of a whole search of the room plus the
+    `done` and a little slack (shared/search.py, the same coverage the rules baseline's search budget comes
+    from); a line whose command asks for motions first adds them. Records from before it was derived carry 40."""
 
     @field_validator("command")
     @classmethod
@@ -86,6 +173,19 @@ class EvalTask(BaseModel):
                                  f"{self.target_object!r}")
             if self.target_object in (*self.distractors, *self.extra_objects, *(self.placements or {})):
                 raise ValueError(f"a not_found task's world must lack {self.target_object!r}")
+        return self
+
+    @model_validator(mode="after")
+    def _choice_is_laid_out(self) -> EvalTask:
+        if self.choice is None:
+            return self
+        laid_out = {self.target_object, *self.extra_objects, *(self.distractors or ()), *(self.placements or {})}
+        if self.target_object not in self.choice.candidates():
+            raise ValueError(f"the target {self.target_object!r} is not one the choice can name "
+                             f"({', '.join(self.choice.candidates())})")
+        if isinstance(self.choice, SizeChoice) and not set(self.choice.among) <= laid_out:
+            missing = sorted(set(self.choice.among) - laid_out)
+            raise ValueError(f"a size choice compares objects the layout has: {missing} are not laid out")
         return self
 
     @property

@@ -16,10 +16,11 @@ from services.executor.envelope import (
     state_problem,
     wrap,
 )
+from services.executor.failures import SkillFailed
 from services.executor.memory import Memory
 from services.executor.settings import ExecutorSettings
 from shared.bus import Bus
-from shared.errors import BusError, SkillError
+from shared.errors import BusError
 from shared.keys import Keys
 from shared.messages import (
     AutopilotCommand,
@@ -32,24 +33,12 @@ from shared.messages import (
     OutcomeCode,
     PlacementEstimate,
     Pose,
-    SkillFacts,
     Vec3,
     VehicleState,
 )
 
 STALE_GRACE_S = 0.25
 """A state that reads stale gets this long for a newer sample before a skill fails on it (`SkillContext.fresh`)."""
-
-
-class SkillFailed(SkillError):
-    """A skill could not reach its termination condition: `code` and `facts` are what a policy decides from,
-    the message is the same for a person (and a VLM) to read."""
-
-    def __init__(self, message: str, code: OutcomeCode | None = OutcomeCode.FAILED,
-                 facts: SkillFacts | None = None) -> None:
-        super().__init__(message)
-        self.code = code or OutcomeCode.FAILED
-        self.facts = facts or SkillFacts()
 
 
 class AuthorityLost(SkillFailed):

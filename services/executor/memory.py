@@ -6,7 +6,16 @@ import math
 import time
 from collections.abc import Callable
 
-from shared.messages import Detections, MemoryObject, ObjectEstimate, PlacementEstimate, Vec3, WorkingMemory
+from services.executor.failures import SkillFailed
+from shared.messages import (
+    Detections,
+    MemoryObject,
+    ObjectEstimate,
+    OutcomeCode,
+    PlacementEstimate,
+    Vec3,
+    WorkingMemory,
+)
 
 SEEN_MOVE_M = 0.25  # a detection centroid that moved less than this is the same sighting
 
@@ -25,6 +34,15 @@ def _find(table: dict[str, MemoryObject], last: str | None, label: str | None) -
         return table[key]
     matches = [e for k, e in table.items() if key in k or k in key or key in _norm(e.query)]
     return max(matches, key=lambda e: e.last_seen_ns) if matches else None
+
+
+class StaleEstimate(SkillFailed):
+    """An estimate computed from a frame taken before the world was last reset: it describes the old layout, so
+    memory refuses it and the skill fails as not detected (a fresh look sees the new world)."""
+
+    def __init__(self, what: str, frame_ns: int, reset_ns: int) -> None:
+        super().__init__(f"the {what} estimate comes from a frame taken {(reset_ns - frame_ns) / 1e9:.2f} s before "
+                         "the world was reset: not stored; localize it again", OutcomeCode.NOT_DETECTED)
 
 
 class Memory:
@@ -108,8 +126,16 @@ class Memory:
         del self.executed[:-self._max_executed]
         self._changed()
 
+    def _check_fresh(self, frame_ns: int, what: str) -> None:
+        """Raises StaleEstimate for an estimate of a frame from before the last reset (a frame of the reset
+        instant itself is the old world's too, as in `set_visible`); an unstamped estimate is taken as new."""
+        if frame_ns and frame_ns <= self.reset_ns:
+            raise StaleEstimate(what, frame_ns, self.reset_ns)
+
     def store_object(self, est: ObjectEstimate, query: str) -> MemoryObject:
+        """Stores a found object's estimate; raises StaleEstimate (nothing stored) for a pre-reset frame's."""
         assert est.found and est.pose is not None
+        self._check_fresh(est.frame_stamp_ns, est.label or query)
         label = _norm(est.label or query)
         size = est.size
         top = est.top_z if est.top_z is not None else (
@@ -122,7 +148,9 @@ class Memory:
         return mo
 
     def store_placement(self, est: PlacementEstimate, query: str) -> MemoryObject:
+        """Stores a placement spot; raises StaleEstimate (nothing stored) for a pre-reset frame's."""
         assert est.found and est.pose is not None
+        self._check_fresh(est.frame_stamp_ns, f"placement spot on the {est.label or query}")
         label = _norm(est.label or query)
         mo = MemoryObject(label=label, query=query, position=est.pose.position, yaw=est.pose.yaw,
                           top_z=est.surface_z, last_seen_ns=est.frame_stamp_ns or time.time_ns(),

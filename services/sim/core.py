@@ -114,7 +114,8 @@ class SimCore:
             w = self.world
             held = w.holding()
             common = {"held": held.name if held else None, "vehicle": self.vehicle_pose(),
-                      "collisions": tuple(w.collisions), "scenario": self.scenario}
+                      "collisions": tuple(w.collisions), "scenario": self.scenario,
+                      "sim_time_s": max(0.0, float(w.sim_time))}
             if req.op == "held":
                 v = w.picked()
                 return JudgeResult(ok=v.ok, message=v.message, checks=v.checks, pending_s=v.pending_s, **common)

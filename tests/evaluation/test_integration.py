@@ -31,8 +31,9 @@ def _check_episode(rec) -> None:
     assert [s.step for s in rec.steps] == sorted(s.step for s in rec.steps)
     assert len(rec.steps) == rec.status.steps
     assert rec.judge is not None and rec.verdict and rec.judge_success is not None
-    # success is the task's own end state AND the simulator's ground truth, never the reasoner's claim alone
-    assert rec.success == (rec.state == "succeeded" and rec.judge_success)
+    # success is the task's own end state AND the simulator's ground truth (AND the motions the task asks for, from
+    # the trajectory), never the reasoner's claim alone
+    assert rec.success == (rec.state == "succeeded" and rec.judge_success and rec.motions_ok is not False)
     # every verdict says why: its reason and each check with the measured number, by the task's criteria
     assert rec.judge.checks and rec.judge.scenario is not None
     assert rec.judge.scenario.criteria == rec.task.criteria
@@ -58,6 +59,41 @@ def test_smoke_two_suites_one_episode_each(tmp_path):
     doc = json.loads((tmp_path / "report.json").read_text())
     assert len(doc["episodes"]) == 2 and doc["episodes"][0]["steps"]
     assert (tmp_path / "plots" / "steps_per_episode.png").exists()
+
+
+def test_each_episode_is_scored_for_what_it_asks_on_the_real_stack(tmp_path):
+    """A sequential line with its motions and a size comparison (issue 26): the runner reads the simulator's world
+    and clock before and after the task, checks the motions from the recorded trajectory and records the
+    simulator's decision of the choice; the report lists both, with TT in simulated seconds."""
+    from aermani.evaluation.tasks import load_suites
+
+    suites = load_suites(["sequential", "clutter"], split="dev")
+    go_up = next(t for t in suites["sequential"] if t.command.startswith("Go up a bit, then forward once"))
+    larger = next(t for t in suites["clutter"] if t.command == "Of the two boxes, pick up the larger one.")
+    tasks = tmp_path / "tasks.jsonl"
+    tasks.write_text("".join(t.model_copy(update={"seed": 7}).model_dump_json(exclude_defaults=False) + "\n"
+                             for t in (go_up, larger)))
+    summary = run(RunConfig(out=tmp_path / "eval", tasks_file=tasks, **FAST))
+    assert summary.ran == 2
+    recs = {r.task.command: r for r in ResultsFile(tmp_path / "eval" / RESULTS_FILE).load()}
+    for rec in recs.values():
+        _check_episode(rec)
+        assert rec.sim_started_s is not None and rec.sim_ended_s is not None and rec.sim_duration_s
+        assert rec.sim_duration_s > 1.0
+    up = recs[go_up.command]
+    assert up.motions_ok is not None and up.motions_detail, up
+    assert up.motions_ok == ("up x1: step" in up.motions_detail), up.motions_detail
+    if up.state == "succeeded" and up.judge_success:
+        assert up.success == up.motions_ok
+    box = recs[larger.command]
+    assert box.choice is not None and box.choice.answer == ("cardboard box",), box.choice
+    assert "cardboard box 5.28 L, cracker box 2.35 L" in box.choice.reason
+    assert box.choice.informed is not None
+    if box.held == "cracker box":
+        assert not box.success  # only the simulator's answer counts
+    md = (tmp_path / "eval" / "report.md").read_text()
+    assert "## Motion checks" in md and "## Size and conditional tasks" in md and "TT sim (s)" in md
+    print(up.motions_detail, box.choice, sep="\n")
 
 
 def test_parallel_vehicles_have_no_cross_talk(tmp_path):

@@ -377,3 +377,38 @@ def test_wilson_interval_at_the_edges_and_in_the_middle() -> None:
     assert wilson(0, 10)[0] == 0.0 and round(wilson(0, 10)[1], 1) == 27.8
     lo, hi = wilson(80, 100)
     assert lo < 80.0 < hi and hi - lo < wilson(8, 10)[1] - wilson(8, 10)[0]  # more episodes, narrower
+
+
+def test_tt_in_simulated_seconds_beside_the_wall_clock():
+    """TT on the wall clock mixes sped-up simulated time with real waits; the simulator's clock (read from the
+    judge just before the start and just after the end) gives TT in simulated seconds, over successes only."""
+    a = record("e1", True, [step(1, "grasp")], duration_s=10.0, sim_started_s=2.0, sim_ended_s=42.0)
+    b = record("e2", True, [step(1, "grasp")], duration_s=20.0, sim_started_s=1.5, sim_ended_s=61.5)
+    c = record("e3", False, [step(1, "grasp")], duration_s=50.0, sim_started_s=0.0, sim_ended_s=500.0)
+    m = compute([a, b, c])
+    assert m.tt == pytest.approx(15.0) and m.tt_sim == pytest.approx(50.0)
+    old = record("e4", True, [step(1, "grasp")], duration_s=30.0)  # a record from before the clock was kept
+    assert old.sim_duration_s is None and compute([old]).tt_sim is None
+    assert compute([a, old]).tt_sim == pytest.approx(40.0) and compute([a, old]).tt == pytest.approx(20.0)
+
+
+def test_collisions_are_counted_by_kind_from_the_judge_s_answer():
+    """The runner keeps the judge's `collisions` as they come; the metrics count every entry by kind, so kinds the
+    simulator adds (gripper strikes, knocked or dropped objects) count without a change in the evaluation."""
+    from aermani.evaluation.metrics import collision_kind
+    from aermani.evaluation.report import _endings_section
+    from shared.messages import JudgeResult
+
+    answers = [JudgeResult(held="red cup", collisions=("vehicle-shelf", "gripper-table", "knocked-red cup")),
+               JudgeResult(collisions=("dropped: coke can", "vehicle-wall")), JudgeResult()]
+    recs = [record(f"e{i}", i == 0, [step(1, "grasp")], judge=j, collisions=j.collisions)
+            for i, j in enumerate(answers)]
+    m = compute(recs)
+    assert (m.collisions, m.airframe_collisions, m.other_collisions, m.collision_episodes) == (5, 2, 3, 2)
+    assert m.collision_kinds == {"airframe": 2, "dropped": 1, "gripper": 1, "knocked": 1}
+    assert list(m.collision_kinds) == ["airframe", "dropped", "gripper", "knocked"]
+    assert collision_kind("Airframe: ceiling") == "airframe" and collision_kind("vehicle-round table") == "airframe"
+    row = next(line for line in _endings_section(recs, [("rules", "full")], False) if line.startswith("| rules"))
+    assert "| 5 (2 / 3; 1.67 per episode) | airframe 2, dropped 1, gripper 1, knocked 1 | 2 |" in row, row
+    assert row.startswith("| rules (non-VLM baseline) | 3 | 1 | 1 | 0 | 1 | 0 | 5 "), row
+    assert compute([recs[2]]).collision_kinds == {}

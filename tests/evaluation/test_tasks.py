@@ -229,7 +229,8 @@ def test_report_states_the_configuration_names_the_rules_baseline_and_lists_ever
                    "rules/full/localization/002-s13 on ?: sim/reset refused the scenario: no room",
                    "restarted (2 trials, the last one is in the metrics): rules/full/localization/001-s12",
                    "takeoff failed: no climb",
-                   "| rules (non-VLM baseline) | 2 | 1 | 2 | 1 | 1 (0.50 per episode) | 1 |",
+                   "| rules (non-VLM baseline) | 2 | 1 | 2 | 0 | 1 | 0 | 1 (1 / 0; 0.50 per episode) | airframe 1 "
+                   "| 1 |",
                    "| AERMANI-VLM (Qwen2-VL) | 77.5 | 4.5 | 22.8 | 8.7 | 0.61 | not run here: needs a GPU/API key |"):
         assert needle in md, needle
     doc = json.loads(paths["json"].read_text())
@@ -257,25 +258,41 @@ def test_report_puts_a_real_model_run_in_its_paper_row(tmp_path):
 
 
 def test_shell_settings_reach_the_run_config_and_the_report_without_secrets(tmp_path) -> None:
-    """Issue 26: an AERMANI_* variable in the shell changes what the services do, so the run's record names it;
-    the run's own settings are not repeated and a secret's value never reaches a file."""
-    from aermani.evaluation.report import _environment_text
-    from aermani.evaluation.runner import RunConfig, run_config_of, shell_settings
-
-    env = {"AERMANI_EXECUTOR_MAX_SPEED": "0.8", "AERMANI_REASONER_API_KEY": "sk-secret-value",
-           "AERMANI_GATEWAY_TOKEN": "t0k3n", "AERMANI_SIM_SPEED_FACTOR": "9", "HOME": "/root"}
-    got = shell_settings(env)
-    assert got == {"AERMANI_EXECUTOR_MAX_SPEED": "0.8", "AERMANI_GATEWAY_TOKEN": "(set, not recorded)",
-                   "AERMANI_REASONER_API_KEY": "(set, not recorded)"}, got  # the speed factor is the run's own
+    """Issue 26: every AERMANI_* variable in the shell changes what the services do (or would, but for the run's
+    own setting), so the run's record names them all, marks those the run overrides, and states the effective
+    values of the settings that shape the numbers as the services' own settings classes read them; a secret's
+    value never reaches a file."""
     import os
     from unittest import mock
 
+    from aermani.evaluation.report import _effective_text, _environment_text
+    from aermani.evaluation.runner import RunConfig, run_config_of, shell_settings
+
+    env = {"AERMANI_EXECUTOR_MAX_SPEED": "0.8", "AERMANI_REASONER_API_KEY": "sk-secret-value",
+           "AERMANI_GATEWAY_TOKEN": "t0k3n", "AERMANI_SIM_SPEED_FACTOR": "9", "AERMANI_SIM_DYNAMICS": "multirotor",
+           "AERMANI_REASONER_MAX_STEPS": "55", "HOME": "/root"}
+    got = shell_settings(env)
+    assert got == {"AERMANI_EXECUTOR_MAX_SPEED": "0.8", "AERMANI_GATEWAY_TOKEN": "(set, not recorded)",
+                   "AERMANI_REASONER_API_KEY": "(set, not recorded)", "AERMANI_REASONER_MAX_STEPS": "55",
+                   "AERMANI_SIM_DYNAMICS": "multirotor", "AERMANI_SIM_SPEED_FACTOR": "9"}, got
     with mock.patch.dict(os.environ, env):
-        doc = run_config_of(RunConfig(out=tmp_path))
+        doc = run_config_of(RunConfig(out=tmp_path, speed_factor=3.0, segmenter="sim", realism="harsh"))
     assert doc["environment"]["AERMANI_EXECUTOR_MAX_SPEED"] == "0.8"
+    assert "AERMANI_SIM_SPEED_FACTOR" in doc["environment_overridden"]  # the run's --speed-factor wins
+    assert "AERMANI_SIM_DYNAMICS" not in doc["environment_overridden"]
+    assert doc["effective"] == {"realism": "harsh", "dynamics": "multirotor", "speed_factor": 3.0, "step_cap": 55,
+                                "t_max_s": 600.0, "backend": "rules", "output_mode": "auto", "segmenter": "sim"}
+    assert doc["run_environment"]["AERMANI_SIM_SPEED_FACTOR"] == "3.0"
     assert "sk-secret-value" not in str(doc) and "t0k3n" not in str(doc)
-    assert "`AERMANI_EXECUTOR_MAX_SPEED=0.8`" in _environment_text(doc)
+    text = _environment_text(doc)
+    assert "`AERMANI_EXECUTOR_MAX_SPEED=0.8`" in text and "`AERMANI_SIM_SPEED_FACTOR=9` (overridden by the run)" in text
+    eff = _effective_text(doc)
+    assert "dynamics (AERMANI_SIM_DYNAMICS) `multirotor`" in eff and "step cap `55`" in eff
+    assert "speed factor `3.0`" in eff and "segmenter `sim`" in eff
+    with mock.patch.dict(os.environ, {"AERMANI_SIM_DYNAMICS": "rocket"}):
+        assert "would refuse" in run_config_of(RunConfig(out=tmp_path))["effective"]["error"]
     assert _environment_text({}).startswith("unrecorded") and _environment_text({"environment": {}}).startswith("none")
+    assert _effective_text({}).startswith("unrecorded")
 
 
 def test_a_not_found_task_lays_out_a_world_without_its_object_and_is_scored_for_saying_so() -> None:
@@ -337,3 +354,113 @@ def test_the_report_names_the_split_freeze_and_the_last_policy_change():
     assert "the policy changed after the split froze" in text
     text = "\n".join(configuration_lines([], {**rev, "policy_changed_after_freeze": False}))
     assert "no policy change since the split froze" in text
+
+
+def test_the_not_found_bound_comes_from_the_room_search_and_the_report_shows_it() -> None:
+    """One number for the rules baseline's search budget and the not-found bound (issue 26: 60 vs 40): the bound
+    allows the whole search, the reasoner's step cap does not end such a task first, no suite line sets a bound
+    below it, and the report names it with each not-found episode's steps."""
+    from aermani.evaluation.report import configuration_lines, not_found_lines
+    from aermani.evaluation.tasks import EvalTask
+    from services.reasoner.backends.rules import EXPLORE_BUDGET
+    from services.reasoner.settings import ReasonerSettings
+    from shared.search import NOT_FOUND_MAX_STEPS, SEARCH_STEPS
+
+    assert EXPLORE_BUDGET == SEARCH_STEPS and NOT_FOUND_MAX_STEPS > SEARCH_STEPS
+    assert ReasonerSettings().max_steps >= NOT_FOUND_MAX_STEPS
+    absent = [t for s in load_suites(split=None).values() for t in s if t.expect == "not_found"]
+    assert absent and all(t.not_found_max_steps >= NOT_FOUND_MAX_STEPS for t in absent)
+    task = EvalTask(command="Pick up the hammer.", target_object="hammer", distractors=("apple",),
+                    expect="not_found", suite="localization")
+    assert task.not_found_max_steps == NOT_FOUND_MAX_STEPS
+    rec = EpisodeRecord(episode_id="rules/full/localization/000-s1", suite="localization", backend="rules",
+                        variant="full", task=task, seed=1, state="failed", success=True,
+                        verdict="said not found after 72 reasoning steps (bound 80): not found: the hammer")
+    text = "\n".join(configuration_lines([rec], {}))
+    assert f"{NOT_FOUND_MAX_STEPS} reasoning steps by default" in text and f"({SEARCH_STEPS} steps" in text
+    assert "1 not-found episode(s) held to 80" in text
+    table = "\n".join(not_found_lines([rec]))
+    assert "| rules/full/localization/000-s1 | hammer | 0 / 80 | yes |" in table
+    assert not_found_lines([rec.model_copy(update={"task": task.model_copy(update={"expect": "success",
+                                                                                   "distractors": None})})]) == []
+
+
+def test_by_default_every_line_of_every_suite_runs_on_two_layouts(tmp_path) -> None:
+    """Issue 26: `--episodes 10` ran 10 of the 12 lines of a suite; with no count given every line runs, each on
+    DEFAULT_SEEDS_PER_LINE layouts, and the reproduce line says so. --episodes stays an opt-in; a task file runs
+    each of its lines once."""
+    import typer
+    from typer.testing import CliRunner
+
+    from aermani.evaluation import cli as evaluation_cli
+    from aermani.evaluation.report import _episodes_text
+    from aermani.evaluation.tasks import DEFAULT_SEEDS_PER_LINE
+
+    cfg = RunConfig(out=tmp_path, split="dev")
+    assert cfg.seeds_per_line == DEFAULT_SEEDS_PER_LINE == 2 and cfg.episodes is None
+    suites = load_suites(split="dev")
+    specs = episode_specs(cfg)
+    assert len(specs) == 2 * sum(len(t) for t in suites.values())
+    for name, tasks in suites.items():
+        for task in tasks:
+            assert len({s.seed for s in specs if s.task == task and s.task.suite == name}) == 2, task.command
+    assert "--seeds-per-line 2" in cfg.command_line() and "--episodes" not in cfg.command_line()
+    assert _episodes_text(run_config_of_dict(cfg)) == "every line x 2 layout seeds"
+    opt_in = RunConfig(out=tmp_path, episodes=3)
+    assert opt_in.seeds_per_line is None and len(episode_specs(opt_in)) == 3 * len(suites)
+    assert "some lines never ran" in _episodes_text({"episodes": 3})
+    f = tmp_path / "mine.jsonl"
+    f.write_text('{"command": "Pick up the red cup.", "target_object": "red cup", "seed": 4}\n')
+    assert len(episode_specs(RunConfig(out=tmp_path, tasks_file=f))) == 1
+    # the CLI passes no count of its own (the run itself is replaced: it would start the stack)
+    from unittest import mock
+
+    from aermani.evaluation.runner import RunSummary
+
+    seen: list[RunConfig] = []
+    app = typer.Typer()
+    evaluation_cli.register(app)
+
+    def fake_run(c: RunConfig) -> RunSummary:
+        seen.append(c)
+        return RunSummary(c.out, planned=0, skipped=0, ran=0, records=[])
+
+    import signal
+
+    handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGTERM, signal.SIGINT)}  # the CLI sets its own
+    with mock.patch("aermani.evaluation.runner.run", fake_run), mock.patch("signal.signal"):
+        res = CliRunner().invoke(app, ["eval", "--out", str(tmp_path / "x"), "--no-progress"])
+        assert res.exit_code == 0, res.output
+        res = CliRunner().invoke(app, ["eval", "--out", str(tmp_path / "y"), "--episodes", "3", "--no-progress"])
+        assert res.exit_code == 0, res.output
+    assert handlers == {sig: signal.getsignal(sig) for sig in handlers}
+    assert (seen[0].seeds_per_line, seen[0].episodes) == (2, None)
+    assert (seen[1].seeds_per_line, seen[1].episodes) == (None, 3)
+
+
+def run_config_of_dict(cfg: RunConfig) -> dict:
+    return cfg.model_dump(mode="json")
+
+
+def test_every_suite_line_says_how_it_is_scored_consistently_with_its_layout() -> None:
+    """Both splits (their lines, never their episodes): every sequential line names its motions, an approach goes
+    to a surface the simulator has, and each conditional's lines lay out the branch they expect: the `then` line
+    puts the object on the place the condition is about, the `otherwise` line lacks it."""
+    from aermani.evaluation.tasks import ConditionalChoice, SizeChoice
+
+    for split in ("dev", "test"):
+        suites = load_suites(split=split)
+        assert all(t.motions for t in suites["sequential"] if t.expect == "success"), split
+        assert any(isinstance(t.choice, SizeChoice) for t in suites["clutter"]), split
+        for t in (t for ts in suites.values() for t in ts):
+            for m in t.motions:
+                assert m.skill != "approach" or m.to in SURFACES, (t.command, m)
+            c = t.choice
+            if isinstance(c, ConditionalChoice):
+                laid_out = {t.target_object, *t.extra_objects, *(t.distractors or ())}
+                if t.target_object == c.then:
+                    assert (t.placements or {}).get(c.if_present) == c.on, t.command
+                else:
+                    assert t.target_object == c.otherwise and c.if_present not in laid_out, t.command
+            elif isinstance(c, SizeChoice):
+                assert set(c.among) <= {t.target_object, *t.extra_objects, *(t.distractors or ())}, t.command

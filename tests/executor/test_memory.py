@@ -3,6 +3,8 @@ computed after it, must not bring the old layout's objects back (they leaked int
 
 from __future__ import annotations
 
+import pytest
+
 from services.executor.memory import Memory
 from shared.messages import Detection, Detections, Vec3
 
@@ -57,3 +59,39 @@ def test_a_restored_memory_keeps_each_sighting_s_age_and_is_the_task_s() -> None
     assert "apple" not in {o.label for o in mem.snapshot().seen}
     mem.begin_task("task-next")  # another task starts clean, as ever; only the held object carries over
     assert mem.snapshot().objects == () and mem.snapshot().held_object == "red cup"
+
+
+def test_estimates_of_frames_before_a_reset_are_not_stored() -> None:
+    """The part that leaked besides `seen`: a localization answered from a frame taken before the reset (perception
+    still holding the old world's frame) must not put the old layout's object or spot into memory, and the skill
+    fails as not detected, so the policy looks again."""
+    from services.executor.context import SkillFailed
+    from services.executor.memory import StaleEstimate
+    from shared.messages import ObjectEstimate, OutcomeCode, PlacementEstimate, Pose
+
+    def obj(frame_ns: int, label: str = "red cup") -> ObjectEstimate:
+        return ObjectEstimate(query=label, found=True, label=label, pose=Pose(position=Vec3(x=1.0, y=0.5, z=0.8)),
+                              size=Vec3(x=0.08, y=0.08, z=0.11), frame_stamp_ns=frame_ns)
+
+    def spot(frame_ns: int) -> PlacementEstimate:
+        return PlacementEstimate(query="table", found=True, label="table", pose=Pose(position=Vec3(x=2.0, z=0.76)),
+                                 surface_z=0.75, frame_stamp_ns=frame_ns)
+
+    mem = Memory()
+    mem.store_object(obj(1_000), "red cup")
+    mem.store_placement(spot(1_000), "table")
+    mem.world_reset(reset_ns=2_000)
+    for stamp in (1_500, 2_000):  # the old world's frames, the reset instant's included
+        with pytest.raises(StaleEstimate) as err:
+            mem.store_object(obj(stamp, "banana"), "banana")
+        assert isinstance(err.value, SkillFailed) and err.value.code is OutcomeCode.NOT_DETECTED
+        assert "before the world was reset" in str(err.value)
+        with pytest.raises(StaleEstimate):
+            mem.store_placement(spot(stamp), "table")
+    snap = mem.snapshot()
+    assert snap.objects == () and snap.placements == ()
+    assert mem.find_object("banana") is None and mem.find_placement(None) is None
+    # frames of the new world are stored as before, and an unstamped estimate is taken as new
+    assert mem.store_object(obj(2_001, "apple"), "apple").label == "apple"
+    assert mem.store_placement(spot(0), "table").label == "table"
+    assert [o.label for o in mem.snapshot().objects] == ["apple"] and mem.find_placement("table") is not None

@@ -521,3 +521,21 @@ def test_a_verbless_command_is_flown_and_its_first_step_says_how_it_was_read() -
     assert "no task verb" in d.reasoning and "red cup" in d.reasoning and "table" in d.reasoning
     later = policy.decide_full(_ctx("red cup to the table", [_motion("yaw_left", 0.0, 0.0, 45.0)]))
     assert "no task verb" not in later.reasoning
+
+
+def test_the_search_covers_every_viewpoint_within_the_not_found_bound() -> None:
+    """The search budget is the coverage itself (shared/search.py): from any start the policy scans, flies to all
+    four viewpoints and scans there before it says not found, and the episode stays within the evaluation's
+    not-found bound (a budget of 60 steps cut the search short at the third viewpoint)."""
+    from shared.search import NOT_FOUND_MAX_STEPS, SCAN_TURNS, SEARCH_STEPS, VIEWPOINTS
+
+    for x, y, yaw in ((0.3, -0.2, 0.0), (2.5, 2.5, 1.0), (-3.0, 0.0, 0.0), (0.0, 0.0, math.pi), (1.0, -2.9, -2.0)):
+        room = Room()
+        room.x, room.y, room.yaw = x, y, yaw
+        room.path = [(x, y)]
+        d = room.fly("Could you look around and find the unicorn for me?", max_steps=200)
+        assert d is not None and d.skill == "done" and d.failure, (x, y, yaw)
+        skills = [s.skill for s in room.steps]
+        assert skills[-SCAN_TURNS:] == ["yaw_left"] * SCAN_TURNS, skills  # it ended scanning the last viewpoint
+        assert skills.count("obj_localization") == VIEWPOINTS + 1, skills  # a look after every earlier scan
+        assert len(room.steps) <= SEARCH_STEPS and len(room.steps) + 1 <= NOT_FOUND_MAX_STEPS, len(room.steps)

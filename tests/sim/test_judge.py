@@ -166,3 +166,17 @@ def test_a_callers_tolerance_is_ignored_and_the_scenarios_criteria_decide():
     _run(lax, 3.0)
     res = _placed(lax, "red cup", "table")
     assert res.ok and res.scenario is not None and res.scenario.criteria.upright_tolerance_deg == 100.0, res.message
+
+
+def test_every_answer_carries_the_simulated_time_since_the_reset():
+    """The evaluation's clock for TT in simulated seconds (JudgeResult.sim_time_s, minor version 10): it starts at
+    0 when a layout settles, advances with the physics only, and starts again at the next reset."""
+    core = _core()
+    t0 = core.judge(JudgeRequest(op="world")).sim_time_s
+    assert t0 is not None and t0 < 0.05
+    _run(core, 2.5)
+    for op in ("world", "held"):
+        assert core.judge(JudgeRequest(op=op)).sim_time_s == pytest.approx(t0 + 2.5, abs=0.01)
+    assert _placed(core, "red cup", "table").sim_time_s == pytest.approx(t0 + 2.5, abs=0.01)
+    assert core.reset(Scenario(seed=3, target_object="red cup", distractors=(), start=START)).ok
+    assert core.judge(JudgeRequest(op="world")).sim_time_s < 0.05

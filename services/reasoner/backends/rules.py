@@ -48,22 +48,23 @@ from services.reasoner.backends.rules_parse import (
 from services.reasoner.drt import DRT_FIELDS
 from shared import skills as S  # noqa: N812 - reads like the paper tables
 from shared.messages import BASELINES, OutcomeCode
+from shared.search import EXPLORE_RADIUS_M, SCAN_TURNS, SEARCH_STEPS, TRANSIT_LIMIT
 
 __all__ = ["CATEGORY_WORDS", "SNACKS", "Plan", "RulesBackend", "RulesPolicy", "parse_command", "render_answer"]
 
 SEEN_FOV_HALF_DEG = 30  # a remembered thing within this of the heading is in view (camera: +-42 deg)
 SCAN_LIMIT = 8  # consecutive yaw steps (one full turn at 45 deg) before trying something else
-SCAN_TURNS = 7  # yaw steps of a scan at one viewpoint: 8 headings 45 deg apart, the whole circle
 APPROACH_RADIUS = 1.5  # "approach the counter" ends within this horizontal distance of what was seen of it
 # Turn first when further off the heading than this (> half the 45 deg yaw step, or it oscillates).
 APPROACH_FACING_DEG = 30
 APPROACH_LIMIT = 12  # motion steps an "approach" may take before the policy decides from where it is
 SURFACE_RETRY_RADIUS = 2.0  # after a failed placement_localization, fly this close to the surface first
 ON_SURFACE_XY = 0.35  # a released object this close to its placement spot (and at its height) rests there
-EXPLORE_RADIUS = 2.0  # viewpoints of the exploration: this far from where the search began, ahead/left/behind/right
+EXPLORE_RADIUS = EXPLORE_RADIUS_M  # viewpoints of the exploration: this far from where the search began
 EXPLORE_ARRIVED = 0.6  # a viewpoint counts as reached (or visited earlier) within this horizontal distance
-TRANSIT_LIMIT = 9  # motion steps toward one viewpoint before scanning from wherever the vehicle got to
-EXPLORE_BUDGET = 60  # steps of one search (since it began) after which the thing is reported not found
+# Steps of one search (since it began) after which the thing is reported not found: the whole coverage
+# (shared/search.py), the same number the evaluation's not-found tasks are bounded by.
+EXPLORE_BUDGET = SEARCH_STEPS
 _MOTION_SKILLS = (S.YAW_LEFT, S.YAW_RIGHT, S.FORWARD, S.BACKWARD, S.LEFT, S.RIGHT, S.UP, S.DOWN)
 _APPROACH = APPROACH  # motion token: fly to the named thing, as many steps as it takes
 DEFAULT_REACH = 1.0  # an out_of_reach refusal that does not say its reach (an older log): assume this, metres
