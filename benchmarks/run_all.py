@@ -121,6 +121,15 @@ def fig(bench: str, *path: str) -> Get:
     return get
 
 
+def axes(bench: str, prefix: str, pick: Callable[[list[float]], float]) -> Get:
+    """`pick` (min, max) over figures[bench][prefix_n_cm], _e_cm, _d_cm (None unless all three are there)."""
+    def get(r: Results) -> float | None:
+        got = [fig(bench, f"{prefix}_{a}_cm")(r) for a in "ned"]
+        vals = [v for v in got if v is not None]
+        return pick(vals) if len(vals) == 3 else None
+    return get
+
+
 def const(value: float) -> Get:
     """An anchor that is a fixed number."""
     return lambda _r: value
@@ -208,17 +217,29 @@ FIGURES: list[Figure] = [
                          ("report", "of it, the skill's status reaching the reasoner"),
                          ("model", "the model (rules baseline: a Python call)"),
                          ("skill", "the skill, as the executor timed it"))),
-    Figure("sim.physics_rtf", "sim: physics real-time factor, vehicle + 14 objects, objects at rest asleep as "
+    Figure("sim.physics_rtf", "sim: physics real-time factor, kinematic body + 14 objects, objects at rest asleep as "
            "simulated (one thread)", "x", fig("sim", "physics_rtf"), "real time (1x)", const(1.0), (">=", 20.0),
            "value", "#13"),
     Figure("sim.physics_cpu_rtf", "sim: the same by CPU time (what one free core would give)", "x",
            fig("sim", "physics_cpu_rtf"), "real time (1x)", const(1.0)),
     Figure("sim.physics_share", "sim: of it, object-steps awake (measured)", "%",
            fig("sim", "physics_awake_share_pct")),
-    Figure("sim.physics_awake_rtf", "sim: physics real-time factor, every object awake (MuJoCo sleeping off; the "
-           "share awake is measured in the JSON)", "x", fig("sim", "physics_awake_rtf"), "real time (1x)", const(1.0)),
+    Figure("sim.physics_awake_rtf", "sim: physics real-time factor, kinematic body, every object awake (MuJoCo "
+           "sleeping off; the share awake is measured in the JSON)", "x", fig("sim", "physics_awake_rtf"),
+           "real time (1x)", const(1.0)),
     Figure("sim.physics_awake_cpu_rtf", "sim: the same by CPU time", "x", fig("sim", "physics_awake_cpu_rtf"),
            "real time (1x)", const(1.0)),
+    Figure("sim.physics_rtf_multirotor", "sim: physics real-time factor, multirotor + 14 objects, objects at rest "
+           "asleep as simulated (one thread)", "x", fig("sim", "physics_multirotor_rtf"), "real time (1x)",
+           const(1.0), (">=", 20.0), "value", "#24"),
+    Figure("sim.physics_awake_rtf_multirotor", "sim: physics real-time factor, multirotor + 14 objects, every object "
+           "awake (MuJoCo sleeping off)", "x", fig("sim", "physics_awake_multirotor_rtf"), "real time (1x)",
+           const(1.0), (">=", 5.0), "value", "#24"),
+    Figure("sim.hover_sigma_max", "sim: multirotor still hover in realistic, true position error sigma, largest axis "
+           "(N/E/D; 4 seeds x 60 s)", "cm", axes("sim", "hover_realistic_sigma", max), target=("<=", 5.0),
+           source="#24"),
+    Figure("sim.hover_sigma_min", "sim: the same, smallest axis (a real indoor multirotor holds a few centimetres, "
+           "not millimetres)", "cm", axes("sim", "hover_realistic_sigma", min), target=(">=", 2.0), source="#24"),
     Figure("sim.render_fps", "sim: render 640x480 colour+depth, one core", "fps", fig("sim", "render_fps"), CAM,
            lambda r: 1000.0 / camera_period_ms(r), (">=", 15.0), "value", "#13"),
     Figure("sim.render_ms", "sim: render 640x480 colour+depth, one core, per frame", "ms", fig("sim", "render_ms"),
