@@ -4,12 +4,12 @@ two-finger parallel gripper, contacts and collisions (world frame ENU, z up).
 The vehicle is a body on three slide joints and a yaw hinge (a multirotor's attitude is not simulated: the
 position controller in `services.sim.vehicle` commands forces on those joints, limited like PX4's). It
 collides with furniture, walls and objects; every contact of the airframe with furniture or walls is recorded,
-and one faster than `crash_speed` is a crash. The fingers slide along the body's y axis, driven by position
-actuators with a bounded force: an object is held only by the fingers' contact and friction.
+and one faster than `crash_speed` is a crash. The fingers slide along the body's y axis, coupled and driven by
+one force-limited servo: an object is held only by the pads' contact and friction.
 
 Collision groups (contype/conaffinity bits): 1 furniture and walls, 2 objects, 4 fingers, 8 airframe, 16 floor.
-Fingers touch objects and furniture (not the floor, which the landing gear reaches first); the airframe
-touches furniture, walls, floor and objects.
+Fingers (pads and arms) touch objects, furniture, walls and the floor (the landing gear's feet reach 5 mm below
+the pads); the airframe and its gear touch furniture, walls, floor and objects.
 """
 
 from __future__ import annotations
@@ -51,13 +51,26 @@ ROTOR_XY = tuple((ROTOR_ARM * math.cos(a), ROTOR_ARM * math.sin(a))
 ROTOR_SPIN = (1.0, 1.0, -1.0, -1.0)  # +1 counter-clockwise from above: its reaction torque turns the body clockwise
 FINGER_MASS = 0.04
 FINGER_MAX_HALF = 0.09  # each finger travels 0..9 cm from the centre line: opening 0..18 cm
-FINGER_FORCE = 12.0  # N, grip force limit per finger
-FINGER_KP = 600.0  # N/m, position servo of a finger
+FINGER_MAX_OPENING = 2 * FINGER_MAX_HALF
+# A small servo-driven parallel gripper (README "Gripper" has the sources): one motor drives both fingers through
+# a linkage, so they are coupled (equal travel); each pad squeezes with at most GRIP_FORCE; the opening changes at
+# CLOSING_SPEED. The heaviest catalogue object (0.55 kg) lifted at the 2 m/s^2 vertical acceleration limit needs
+# 0.55 * (9.81 + 2) / (2 * PAD_FRICTION) = 4.1 N per pad: GRIP_FORCE holds it with a margin of 1.7.
+GRIP_FORCE = 7.0  # N per pad: the force limit on the opening tendon (each finger joint sees it with arm 1)
+CLOSING_SPEED = 0.15  # m/s of opening: the full 18 cm in 1.2 s
+FINGER_KP = 600.0  # N/m, the servo's stiffness on the opening (it saturates at GRIP_FORCE 1.2 cm off its target)
 FINGER_PAD = (0.025, 0.006, 0.03)  # half sizes: along body x (width), thickness (y), height (z)
 FINGER_PAD_Z = 0.005  # pad centre above the gripper point: the pad spans 2.5 cm below to 3.5 cm above it
-FINGER_FRICTION = 1.2  # rubber pads
+# Rubber pads: dry rubber slides at mu ~0.8 on hard surfaces (kinetic; static ~1.0; README "Gripper"), the
+# kinetic value because a grasp fails by sliding. A higher contact `priority` than everything else makes MuJoCo
+# use the pad's own friction in its contacts (otherwise it takes the larger of the two geoms' coefficients).
+PAD_FRICTION = 0.8
+PAD_PRIORITY = 1
+ARM_FRICTION = 0.4  # the finger links (aluminium or hard plastic; without priority the larger coefficient applies)
 GEAR_OFFSETS = ((0.12, 0.12), (0.12, -0.12), (-0.12, 0.12), (-0.12, -0.12))
-GEAR_RADIUS = 0.02
+GEAR_RADIUS = 0.02  # the feet: spheres at the bottom of the legs, on the floor when the body origin is at z = 0
+LEG_RADIUS = 0.006  # the legs: carbon tubes from the airframe's bottom down to the feet
+LEG_MASS = 0.005
 CRASH_SPEED = 0.5  # m/s: the airframe meeting furniture or a wall faster than this is a crash
 # An object is at rest while both stay below these (a sleeping body is at rest by definition): a ball rolling at
 # 5 mm/s turns at 0.125 rad/s (a 8 cm orange), so a slow roll is movement, not rest.
@@ -124,6 +137,9 @@ def _vehicle_xml(fovy: float, dynamics: str = "kinematic") -> str:
     air = f'contype="{GROUP_AIRFRAME}" conaffinity="{GROUP_ENV | GROUP_OBJ | GROUP_FLOOR}"'
     half_h = VEHICLE_HEIGHT / 2
     gear_z = FLOOR_Z + GEAR_RADIUS  # gear bottom on the floor when the body origin is at z = 0
+    legs = "".join(f'<geom name="leg{i}" type="capsule" size="{_f(LEG_RADIUS)}" '
+                   f'fromto="{_vec([gx, gy, -VEHICLE_BELOW])} {_vec([gx, gy, gear_z])}" mass="{_f(LEG_MASS)}" '
+                   f'rgba="0.1 0.1 0.1 1" {air}/>' for i, (gx, gy) in enumerate(GEAR_OFFSETS))
     camera = (f'<camera name="camera" pos="{_vec(CAMERA_OFFSET_BODY)}" quat="{_vec(camera_quat())}" '
               f'fovy="{_f(fovy)}"/>')
     if dynamics == "kinematic":
@@ -136,6 +152,7 @@ def _vehicle_xml(fovy: float, dynamics: str = "kinematic") -> str:
         for i, (gx, gy) in enumerate(GEAR_OFFSETS):
             out.append(f'<geom name="gear{i}" type="sphere" size="{_f(GEAR_RADIUS)}" pos="{_vec([gx, gy, gear_z])}" '
                        f'mass="0.01" rgba="0.1 0.1 0.1 1" {air} friction="1 0.01 0.001"/>')
+        out.append(legs)
         out.append(camera)
         return "".join(out)
     out = ['<body name="vehicle" pos="0 0 0" sleep="never"><freejoint name="vehicle"/>']
@@ -148,6 +165,7 @@ def _vehicle_xml(fovy: float, dynamics: str = "kinematic") -> str:
     for i, (gx, gy) in enumerate(GEAR_OFFSETS):
         out.append(f'<geom name="gear{i}" type="sphere" size="{_f(GEAR_RADIUS)}" pos="{_vec([gx, gy, gear_z])}" '
                    f'mass="0.01" rgba="0.1 0.1 0.1 1" {air} friction="1 0.01 0.001"/>')
+    out.append(legs)
     for i, (rx, ry) in enumerate(ROTOR_XY):
         # The motor's mass at the arm tip (it sets the roll and pitch inertia); never collides, never rendered.
         out.append(f'<geom name="motor{i}" type="cylinder" size="0.014 0.012" pos="{_vec([rx, ry, ROTOR_Z - 0.012])}" '
@@ -233,29 +251,56 @@ def build_xml(entities: list[Entity], light_seed: int = 0, light_variation: bool
             f'conaffinity="{GROUP_ENV | GROUP_OBJ | GROUP_FINGER | GROUP_FLOOR}"/></body>')
     # The vehicle: a free rigid body (airframe, landing gear, rotors, camera) carrying the two fingers.
     add(_vehicle_xml(fovy, dynamics))
-    gz = GRIPPER_OFFSET_BODY[2]
-    pad = FINGER_PAD
-    fingers = f'contype="{GROUP_FINGER}" conaffinity="{GROUP_ENV}" friction="{_f(FINGER_FRICTION)} 0.02 0.001"'
-    for side, sign in (("left", 1.0), ("right", -1.0)):
-        add(f'<body name="finger_{side}" pos="0 0 {_f(gz)}">'
-            f'<joint name="finger_{side}" type="slide" axis="0 {_f(sign)} 0" range="0 {_f(FINGER_MAX_HALF)}" '
-            'damping="8" armature="0.01"/>'
-            f'<geom name="finger_{side}" type="box" size="{_vec(pad)}" pos="0 {_f(sign * pad[1])} '
-            f'{_f(FINGER_PAD_Z)}" mass="{_f(FINGER_MASS)}" rgba="0.2 0.2 0.2 1" group="3" {fingers}/>'
-            f'<geom type="box" size="0.01 0.004 {_f((-gz - 0.05 - pad[2] - FINGER_PAD_Z) / 2)}" '
-            f'pos="0 {_f(sign * pad[1])} {_f(FINGER_PAD_Z + pad[2] + (-gz - 0.05 - pad[2] - FINGER_PAD_Z) / 2)}" '
-            'mass="0.001" contype="0" conaffinity="0" rgba="0.2 0.2 0.2 1" group="3"/></body>')
+    add(_gripper_xml(GRIPPER_OFFSET_BODY[2]))
     add('</body>')
     add('</worldbody>')
+    add(_gripper_coupling_xml())
     add('<actuator>')
-    for side in ("left", "right"):
-        add(f'<position name="finger_{side}" joint="finger_{side}" kp="{_f(FINGER_KP)}" '
-            f'ctrlrange="0 {_f(FINGER_MAX_HALF)}" forcerange="{_f(-FINGER_FORCE)} {_f(FINGER_FORCE)}"/>')
+    add(_gripper_actuator_xml())
     if dynamics == "multirotor":
         add(_rotor_actuators_xml())
     add('</actuator>')
     add('</mujoco>')
     return "\n".join(parts)
+
+
+def _gripper_xml(gz: float) -> str:
+    """The two fingers, children of the "vehicle" body at the gripper point `gz` below its origin: each a rubber
+    pad and the link (arm) carrying it up to 5 cm under the body origin, on a slide joint along the body's y axis.
+    Pads and arms collide with objects, furniture, walls and the floor (never rendered by the camera: group 3)."""
+    pad = FINGER_PAD
+    hit = f'contype="{GROUP_FINGER}" conaffinity="{GROUP_ENV | GROUP_FLOOR}"'
+    arm_half = (-gz - 0.05 - pad[2] - FINGER_PAD_Z) / 2
+    out = []
+    for side, sign in (("left", 1.0), ("right", -1.0)):
+        out.append(
+            f'<body name="finger_{side}" pos="0 0 {_f(gz)}">'
+            f'<joint name="finger_{side}" type="slide" axis="0 {_f(sign)} 0" range="0 {_f(FINGER_MAX_HALF)}" '
+            'damping="8" armature="0.01"/>'
+            f'<geom name="finger_{side}" type="box" size="{_vec(pad)}" pos="0 {_f(sign * pad[1])} '
+            f'{_f(FINGER_PAD_Z)}" mass="{_f(FINGER_MASS)}" rgba="0.2 0.2 0.2 1" group="3" {hit} '
+            f'friction="{_f(PAD_FRICTION)} 0.02 0.001" priority="{PAD_PRIORITY}"/>'
+            # The arm sits 2 mm behind the pad's face: an object squeezed between the pads touches the pads.
+            f'<geom name="finger_{side}_arm" type="box" size="0.01 0.004 {_f(arm_half)}" '
+            f'pos="0 {_f(sign * pad[1])} {_f(FINGER_PAD_Z + pad[2] + arm_half)}" mass="0.001" {hit} '
+            f'friction="{_f(ARM_FRICTION)} 0.005 0.0005" rgba="0.2 0.2 0.2 1" group="3"/></body>')
+    return "".join(out)
+
+
+def _gripper_coupling_xml() -> str:
+    """The linkage of a single-motor gripper: a fixed tendon whose length is the opening (left + right travel),
+    which the servo drives, and an equality that keeps the two travels equal."""
+    return ('<tendon><fixed name="opening"><joint joint="finger_left" coef="1"/>'
+            '<joint joint="finger_right" coef="1"/></fixed></tendon>'
+            '<equality><joint name="finger_coupling" joint1="finger_left" joint2="finger_right" '
+            'polycoef="0 1 0 0 0" solref="0.004 1"/></equality>')
+
+
+def _gripper_actuator_xml() -> str:
+    """The servo: a position actuator on the opening tendon, its force limited to GRIP_FORCE (per pad: the
+    tendon's force acts on each finger with arm 1); `World.step` moves its target at CLOSING_SPEED."""
+    return (f'<position name="gripper" tendon="opening" kp="{_f(FINGER_KP)}" ctrlrange="0 {_f(FINGER_MAX_OPENING)}" '
+            f'forcerange="{_f(-GRIP_FORCE)} {_f(GRIP_FORCE)}"/>')
 
 
 # ---- the textured look (services.sim.assets): meshes and textures by absolute path in the asset cache, which the
@@ -447,7 +492,11 @@ class World:
             raise RuntimeError(f"rotor actuators {self.rotor_actuators} are not contiguous in the model")
         self._rotor_ctrl = slice(first, first + n_rotors)
         self.finger_geoms = (m.geom("finger_left").id, m.geom("finger_right").id)
-        self.airframe_geoms = {m.geom("airframe").id} | {m.geom(f"gear{i}").id for i in range(4)}
+        self.gripper_geoms = set(self.finger_geoms) | {m.geom("finger_left_arm").id, m.geom("finger_right_arm").id}
+        self._grip_act = m.actuator("gripper").id
+        self._opening_target = FINGER_MAX_OPENING  # where the servo's target is heading (CLOSING_SPEED)
+        self.airframe_geoms = ({m.geom("airframe").id} | {m.geom(f"gear{i}").id for i in range(len(GEAR_OFFSETS))}
+                               | {m.geom(f"leg{i}").id for i in range(len(GEAR_OFFSETS))})
         self.vehicle_mass = float(m.body_subtreemass[self.vehicle_body])
         # Inertia of the airframe body about its own axes (the fingers' small bodies left out: the gains need no more).
         rot = np.zeros(9)
@@ -479,6 +528,7 @@ class World:
         self.sim_time = 0.0
         self._pending = 0.0
         self.set_fingers(FINGER_MAX_HALF)
+        self.data.ctrl[self._grip_act] = FINGER_MAX_OPENING
         self.data.qpos[self._jnt["finger_left"]] = self.data.qpos[self._jnt["finger_right"]] = FINGER_MAX_HALF
         mujoco.mj_forward(self.model, self.data)
         if self.settle_s > 0:
@@ -598,10 +648,20 @@ class World:
         return float(self.data.qpos[self._jnt["finger_left"]] + self.data.qpos[self._jnt["finger_right"]])
 
     def set_fingers(self, half_opening: float) -> None:
-        self.data.ctrl[:2] = min(max(half_opening, 0.0), FINGER_MAX_HALF)
+        """Command each finger to `half_opening` from the centre line: the servo's target moves there at
+        CLOSING_SPEED (of the opening), as a real gripper's does, and it squeezes with at most GRIP_FORCE."""
+        self._opening_target = 2 * min(max(half_opening, 0.0), FINGER_MAX_HALF)
 
     def fingers_closing(self) -> bool:
-        return float(self.data.ctrl[0]) < FINGER_MAX_HALF / 2
+        return self._opening_target < FINGER_MAX_OPENING / 2
+
+    def _ramp_gripper(self, dt: float) -> None:
+        """Move the servo's target towards the commanded opening by CLOSING_SPEED * dt (callers step 20 ms at most:
+        3 mm of opening)."""
+        a = self._grip_act
+        cmd = float(self.data.ctrl[a])
+        ramp = CLOSING_SPEED * dt
+        self.data.ctrl[a] = cmd + max(-ramp, min(ramp, self._opening_target - cmd))
 
     def apply_vehicle_force(self, force: np.ndarray, torque_z: float = 0.0) -> None:
         """Multirotor: an external force on the vehicle's centre of mass (wind, rotor drag), world frame, newtons.
@@ -668,6 +728,7 @@ class World:
             return new
         self._pending -= n * TIMESTEP
         velocity = self.vehicle_velocity()
+        self._ramp_gripper(n * TIMESTEP)
         if before_step is None:
             mujoco.mj_step(self.model, self.data, nstep=n)
         else:
