@@ -18,6 +18,7 @@ import math
 import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Literal, get_args
 from xml.sax.saxutils import quoteattr
 
 import mujoco
@@ -76,6 +77,11 @@ CRASH_SPEED = 0.5  # m/s: the airframe meeting furniture or a wall faster than t
 # 5 mm/s turns at 0.125 rad/s (a 8 cm orange), so a slow roll is movement, not rest.
 REST_SPEED = 0.005  # m/s
 REST_SPIN = 0.1  # rad/s
+# Incidents (README "Gripper"): an object not in the pads whose own up axis tips this far from where it stood
+# upright, or that comes to rest on something else than it stood on, was knocked; an object that left the pads
+# after a lift and came to rest this much lower was dropped (a placement lets go a few centimetres above the top).
+KNOCK_TILT = math.radians(45.0)
+DROP_FALL = 0.10  # m, of its centre
 
 GROUP_ENV, GROUP_OBJ, GROUP_FINGER, GROUP_AIRFRAME, GROUP_FLOOR = 1, 2, 4, 8, 16
 
@@ -453,6 +459,38 @@ class ObjectTrack:
     clear_since: float | None = None  # in both pads and touching no other thing continuously since
     lifted_since: float | None = None  # ... and its bottom `criteria.lift_m` above `lifted_from` since
     lifted_from: float | None = None  # top z of what it stood on when both pads took it
+    # The incidents' history (knocked, dropped):
+    in_pads: bool = False  # in both pads at the last step
+    lifted: bool = False  # lifted clear (`lifted_since`) during the current hold
+    released_z: float | None = None  # centre z where it left the pads after a lift, until it comes to rest
+    ref_set: bool = False  # what it stood on and whether upright, at its last rest out of the gripper's doing:
+    ref_support: str | None = None  # the layout, or where a lifted object came to rest after leaving the pads
+    ref_upright: bool = False
+
+
+IncidentKind = Literal["vehicle", "gripper", "knocked", "dropped"]
+
+
+def incident_kind(value: object) -> IncidentKind:
+    """`value` as an incident kind; ValueError when it is none."""
+    for kind in get_args(IncidentKind):
+        if value == kind:
+            return kind  # type: ignore[no-any-return]
+    raise ValueError(f"unknown incident kind {value!r}")
+
+
+@dataclass(frozen=True)
+class Incident:
+    """One incident since the reset (`World.incidents`; shared.messages.SimIncident on the wire)."""
+
+    kind: IncidentKind
+    thing: str
+    t_s: float  # simulated time since the reset
+    detail: str = ""
+
+    @property
+    def tag(self) -> str:
+        return f"{self.kind}-{self.thing}"
 
 
 @dataclass
@@ -470,6 +508,7 @@ class World:
     crash_speed: float = CRASH_SPEED
     settle_s: float = 0.3  # let the objects come to rest on their supports before anything else
     criteria: JudgeCriteria = field(default_factory=JudgeCriteria)  # the task's (`Scenario.criteria`)
+    target: str | None = None  # the task's object (`Scenario.target_object`): the pads may touch it, not others
 
     def __post_init__(self) -> None:
         self.xml = build_xml(self.entities, self.light_seed, self.light_variation, self.look, self.dynamics)
@@ -522,6 +561,8 @@ class World:
         for gid, e in self.geom_entity.items():
             self.geom_instance[gid] = e.id
         self._static_contact: set[int] = set()
+        self._gripper_touching: set[str] = set()  # what a pad or arm touches that is a strike (`_struck`)
+        self.incidents: list[Incident] = []  # each tag of `collisions` once, with its time
         self.tracks: dict[str, ObjectTrack] = {e.name: ObjectTrack() for e in self.objects}
         self._ray_geom = np.zeros(1, dtype=np.int32)
         self.contacts: list[Contact] = []
@@ -534,10 +575,12 @@ class World:
         if self.settle_s > 0:
             self.settle(self.settle_s)
         # The layout's objects stand where the generator put them (the settling only absorbed the contact
-        # penetration): those at rest count as at rest since the layout.
-        for t in self.tracks.values():
+        # penetration): those at rest count as at rest since the layout, and that is where they belong.
+        for e in self.objects:
+            t = self.tracks[e.name]
             if t.rest_since is not None:
                 t.rest_since = -math.inf
+            t.ref_set, t.ref_support, t.ref_upright = True, e.support, self._upright(e)
 
     # ---- lookup (same names as the layout)
 
@@ -741,17 +784,37 @@ class World:
             # The speed towards the surface is what breaks propellers: a tilting multirotor that brushes a
             # wall it climbs along is not a crash. The kinematic body keeps its whole speed (it never tilts).
             speed = max(0.0, -float(velocity @ now[gid])) if self.multirotor else float(np.linalg.norm(velocity))
-            e = self.geom_entity[gid]
-            name = "ceiling" if e.name == "ceiling" else ("wall" if e.name.startswith("wall") else e.name)
+            name = _static_name(self.geom_entity[gid])
             c = Contact(name, speed, speed > self.crash_speed)
             new.append(c)
             self.contacts.append(c)
-            tag = f"vehicle-{name}"
-            if tag not in self.collisions:
-                self.collisions.append(tag)
+            self._record("vehicle", name, f"{speed:.2f} m/s")
         self._static_contact = set(now)
+        struck = self._struck()
+        for name in sorted(struck - self._gripper_touching):
+            self._record("gripper", name, f"vehicle at {float(np.linalg.norm(velocity)):.2f} m/s")
+        self._gripper_touching = struck
         self.sync()
         return new
+
+    def _record(self, kind: IncidentKind, thing: str, detail: str = "") -> None:
+        """An incident, each tag once since the reset (`collisions`, `incidents`)."""
+        incident = Incident(kind, thing, self.sim_time, detail)
+        if incident.tag not in self.collisions:
+            self.collisions.append(incident.tag)
+            self.incidents.append(incident)
+
+    def _struck(self) -> set[str]:
+        """What a finger pad or arm touches that it should not: furniture, a wall, the ceiling (not the floor,
+        which a landing may bring the pads down to), or an object other than the task's target."""
+        out: set[str] = set()
+        for g1, g2 in self._contact_pairs():
+            for a, b in ((g1, g2), (g2, g1)):
+                e = self.geom_entity.get(int(b)) if a in self.gripper_geoms else None
+                if e is None or e.name == "floor" or e.category == "object" and e.name == self.target:
+                    continue
+                out.add(_static_name(e) if e.category == "structure" else e.name)
+        return out
 
     def settle(self, seconds: float) -> None:
         """Let the objects come to rest (after a reset), the vehicle held where it is."""
@@ -759,7 +822,9 @@ class World:
         self.step(seconds)
         self.set_vehicle(pos, yaw)
         self.collisions.clear()
+        self.incidents.clear()
         self.contacts.clear()
+        self._gripper_touching = self._struck()
         self.sim_time = 0.0
 
     # ---- mirror MuJoCo's state into the entities
@@ -785,6 +850,7 @@ class World:
                 # (a held object shares the never-sleeping vehicle's island).
                 e.attached = False
                 self._advance(e, track, at_rest=True, clear=False)
+                self._watch(e, track)
                 continue
             others = set().union(*(touching.get(g, set()) for g in self.obj_geoms[e.name]))
             was_attached = e.attached
@@ -806,6 +872,43 @@ class World:
             # Clear: nothing but the vehicle (pads, airframe) touches it; every other thing is an entity.
             clear = e.attached and not any(o in self.geom_entity for o in others)
             self._advance(e, track, at_rest=speed < REST_SPEED and spin < REST_SPIN and not e.attached, clear=clear)
+            self._watch(e, track)
+
+    @staticmethod
+    def _upright(e: Entity) -> bool:
+        return e.shape != "sphere" and e.tilt < KNOCK_TILT
+
+    def _watch(self, e: Entity, t: ObjectTrack) -> None:
+        """Knocked and dropped: an object that left the pads after a lift is watched until it rests (dropped when
+        it came to rest more than DROP_FALL lower; where it rests becomes where it belongs, a placement's doing);
+        any other object not in the pads is knocked when it tips past KNOCK_TILT from upright or comes to rest on
+        something else than it stood on."""
+        if e.attached:
+            t.in_pads = True
+            t.lifted = t.lifted or t.lifted_since is not None
+            return
+        if t.in_pads:  # just left the pads
+            t.in_pads = False
+            if t.lifted:
+                t.released_z = float(e.center[2])
+            t.lifted = False
+        at_rest = t.rest_since is not None
+        if t.released_z is not None:
+            if not at_rest:
+                return
+            fall = t.released_z - float(e.center[2])
+            if fall > DROP_FALL:
+                self._record("dropped", e.name, f"fell {fall:.2f} m after leaving the pads")
+            t.released_z = None
+            t.ref_set = False
+        if not t.ref_set:
+            if at_rest:
+                t.ref_set, t.ref_support, t.ref_upright = True, e.support, self._upright(e)
+            return
+        if t.ref_upright and e.shape != "sphere" and e.tilt > KNOCK_TILT:
+            self._record("knocked", e.name, f"tipped {math.degrees(e.tilt):.0f} deg")
+        elif at_rest and t.ref_support is not None and e.support != t.ref_support:
+            self._record("knocked", e.name, f"moved from the {t.ref_support} to the {e.support or 'air'}")
 
     def _motion(self, name: str) -> tuple[float, float]:
         """Linear speed (world, m/s) and spin (rad/s) of an object's free joint."""
@@ -992,6 +1095,11 @@ class World:
     def state_vector(self) -> np.ndarray:
         """qpos: what a renderer needs besides the model."""
         return self.data.qpos.copy()
+
+
+def _static_name(e: Entity) -> str:
+    """How an incident names a static thing: every wall is "wall"."""
+    return "wall" if e.name.startswith("wall") else e.name
 
 
 def _edge_distance(obj: Entity, surface: Entity) -> float:

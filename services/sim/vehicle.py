@@ -260,6 +260,7 @@ class Vehicle:
         self._thrust_z = 0.0  # N, the vertical thrust the controller asks for (the land detector's "throttle")
         self._land_stages = [0.0, 0.0, 0.0]  # s each stage's condition has held: ground contact, maybe, landed
         self._landed_at: float | None = None  # simulated time the land detector declared the landing (latched)
+        self._incidents_seen = 0  # the world's incidents already announced
         self.sp_pos: np.ndarray | None = None
         self.sp_vel: np.ndarray | None = None
         self.sp_yaw: float | None = None
@@ -631,6 +632,7 @@ class Vehicle:
                             f"Crash: hit the {c.name} at {c.speed:.1f} m/s, motors stopped")
             else:
                 self._event(mav.MAV_SEVERITY_CRITICAL, f"Collision with {c.name} at {c.speed:.2f} m/s")
+        self._announce_incidents()
         self._read_state()
         held = self.world.holding()
         name = held.name if held is not None else None
@@ -650,6 +652,17 @@ class Vehicle:
             not self.armed or not self._climbing())
         if was and not self.on_ground:
             self.landing_touch_wall = None
+
+    def _announce_incidents(self) -> None:
+        """STATUSTEXT for the world's new gripper strikes, knocked and dropped objects (the airframe's contacts
+        have theirs above)."""
+        texts = {"gripper": "Gripper struck the {thing} ({detail})", "knocked": "Knocked over the {thing} ({detail})",
+                 "dropped": "Dropped the {thing} ({detail})"}
+        new = self.world.incidents[self._incidents_seen:]
+        self._incidents_seen += len(new)
+        for i in new:
+            if i.kind in texts:
+                self._event(mav.MAV_SEVERITY_WARNING, texts[i.kind].format(thing=i.thing, detail=i.detail))
 
     def _land_detected(self, dt: float) -> bool:
         """PX4's multicopter land detector in AUTO.LAND (LNDMC_* above): commanded down, not moving and at low
