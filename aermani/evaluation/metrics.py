@@ -264,9 +264,19 @@ class Metrics(BaseModel):
     judged_success: int = 0
     """Episodes the simulator's judge found right, whatever the task's end state."""
     collisions: int = 0
-    """Collisions over all episodes (airframe contacts with furniture, walls, ceiling)."""
+    """Collisions over all episodes: every incident the simulator recorded (each tag once per episode), the sum of
+    the four kinds below."""
+    vehicle_collisions: int = 0
+    """Airframe or landing-gear contacts with furniture, walls or the ceiling ("vehicle-<thing>")."""
+    gripper_strikes: int = 0
+    """A finger pad or arm against furniture, a wall, the ceiling or an object other than the target
+    ("gripper-<thing>")."""
+    knocked_objects: int = 0
+    """Objects knocked over or off what they stood on while not in the pads ("knocked-<object>")."""
+    dropped_objects: int = 0
+    """Objects that left the pads after a lift and fell more than 0.1 m ("dropped-<object>")."""
     collision_episodes: int = 0
-    """Episodes with at least one collision."""
+    """Episodes with at least one collision (of any kind)."""
     collisions_per_episode: float | None = None
     gvr: float | None = None
     """Grounding-violation rate: % of checked steps whose DRT contradicts what was measured (grounding.py)."""
@@ -318,6 +328,22 @@ def wilson(successes: int, n: int, z: float = 1.959964) -> tuple[float, float]:
     return 100.0 * lo, 100.0 * hi
 
 
+INCIDENT_KINDS = ("vehicle", "gripper", "knocked", "dropped")
+"""The simulator's incident tags are "<kind>-<thing>" (services/sim/README.md "Gripper"); records from before
+the gripper's incidents hold only "vehicle-" tags."""
+
+
+def incident_counts(records: Iterable[EpisodeRecord]) -> dict[str, int]:
+    """How many incidents of each kind (INCIDENT_KINDS) the records hold; a tag of no known kind counts as a
+    vehicle collision (the only kind there was)."""
+    out = dict.fromkeys(INCIDENT_KINDS, 0)
+    for r in records:
+        for tag in r.collisions:
+            kind = tag.split("-", 1)[0]
+            out[kind if kind in out else "vehicle"] += 1
+    return out
+
+
 def compute(records: Iterable[EpisodeRecord]) -> Metrics:
     records = list(records)
     ran = [r for r in records if not r.harness_error]
@@ -327,6 +353,7 @@ def compute(records: Iterable[EpisodeRecord]) -> Metrics:
     invalid, queries = sum(c[0] for c in counts), sum(c[1] for c in counts)
     collisions = [len(r.collisions) for r in ran]
     grounded = [g for r in ran for g in episode_grounding(r) if g.checked]
+    kinds = incident_counts(ran)
     n = len(ran)
     return Metrics(
         episodes=n,
@@ -346,6 +373,10 @@ def compute(records: Iterable[EpisodeRecord]) -> Metrics:
         ended_succeeded=sum(1 for r in ran if r.state == "succeeded"),
         judged_success=sum(1 for r in ran if judged_ok(r)),
         collisions=sum(collisions),
+        vehicle_collisions=kinds["vehicle"],
+        gripper_strikes=kinds["gripper"],
+        knocked_objects=kinds["knocked"],
+        dropped_objects=kinds["dropped"],
         collision_episodes=sum(1 for c in collisions if c),
         collisions_per_episode=sum(collisions) / n if n else None,
         gvr=violation_rate(grounded),

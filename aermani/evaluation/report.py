@@ -339,10 +339,15 @@ def _endings_section(records: list[EpisodeRecord], configs: list[tuple[str, str]
     """End state, judge and collisions per method: SR needs both the task's end state and the judge."""
     lines = ["", "## End state, judge and collisions", "",
              "SR counts an episode only when both hold: the task's own end state is `succeeded` and the "
-             "simulator's ground-truth judge agrees. Collisions: airframe contacts with furniture, walls or the "
-             "ceiling recorded by the physics simulator since the episode's reset.", "",
-             "| Method | N | ended succeeded | judge success | both (SR numerator) | collisions | "
-             "episodes with a collision | terminal states |", "|---|---|---|---|---|---|---|---|"]
+             "simulator's ground-truth judge agrees. Collisions: every incident the physics simulator recorded "
+             "since the episode's reset, each once, counted by kind: airframe (the airframe or its gear against "
+             "furniture, walls or the ceiling), gripper strikes (a finger pad or arm against furniture, a wall, the "
+             "ceiling or an object other than the task's target), knocked (an object not in the gripper tipped over "
+             "or left what it stood on), dropped (an object let go or slipping after a lift fell more than 0.1 m).",
+             "",
+             "| Method | N | ended succeeded | judge success | both (SR numerator) | collisions | airframe | "
+             "gripper strikes | knocked | dropped | episodes with a collision | terminal states |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for b, v in configs:
         recs = [r for r in records if r.backend == b and r.variant == v and not r.harness_error]
         m = compute(recs)
@@ -351,6 +356,7 @@ def _endings_section(records: list[EpisodeRecord], configs: list[tuple[str, str]
             states[r.state] = states.get(r.state, 0) + 1
         lines.append(f"| {method_name(b, v, multi)} | {m.episodes} | {m.ended_succeeded} | {m.judged_success} | "
                      f"{m.successes} | {m.collisions} ({_fmt(m.collisions_per_episode, 2)} per episode) | "
+                     f"{m.vehicle_collisions} | {m.gripper_strikes} | {m.knocked_objects} | {m.dropped_objects} | "
                      f"{m.collision_episodes} | " + ", ".join(f"{k} {n}" for k, n in sorted(states.items())) + " |")
     lines.append("")
     return lines

@@ -20,6 +20,7 @@ from aermani.evaluation.metrics import (
     zero_net_sequences,
 )
 from aermani.evaluation.records import EpisodeRecord
+from aermani.evaluation.report import _endings_section
 from aermani.evaluation.runner import success_verdict
 from aermani.evaluation.tasks import EvalTask
 from shared.messages import (
@@ -328,6 +329,22 @@ def test_collisions_are_counted_per_episode():
     m = compute([a, b, c])
     assert (m.collisions, m.collision_episodes) == (3, 2)
     assert m.collisions_per_episode == pytest.approx(1.0)
+
+
+def test_gripper_strikes_knocked_and_dropped_objects_are_collisions_counted_by_kind():
+    a = record("e1", True, [step(1, "grasp")], collisions=("gripper-table", "knocked-red cup"))
+    b = record("e2", False, [step(1, "grasp")], collisions=("dropped-apple", "vehicle-wall", "gripper-purple cup"))
+    c = record("e3", True, [step(1, "grasp")])  # a clean one
+    old = record("e4", False, [step(1, "forward")], collisions=("vehicle-shelf",))  # before the gripper's tags
+    m = compute([a, b, c, old])
+    assert (m.collisions, m.collision_episodes) == (6, 3)
+    assert (m.vehicle_collisions, m.gripper_strikes, m.knocked_objects, m.dropped_objects) == (2, 2, 1, 1)
+    assert compute([c]).collisions == 0 and compute([c]).gripper_strikes == 0
+    # The report's table counts each kind in its own column.
+    table = next(line for line in _endings_section([a, b, c, old], [("rules", "full")], False)
+                 if line.startswith("| ") and not line.startswith("| Method"))
+    cells = [x.strip() for x in table.strip("|").split("|")]
+    assert cells[5].startswith("6 ") and cells[6:11] == ["2", "2", "1", "1", "3"], cells
 
 
 def test_displacement_rules_from_step_records():
