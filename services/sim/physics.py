@@ -700,11 +700,16 @@ class World:
 
     def _ramp_gripper(self, dt: float) -> None:
         """Move the servo's target towards the commanded opening by CLOSING_SPEED * dt (callers step 20 ms at most:
-        3 mm of opening)."""
+        3 mm of opening). The target never runs further than twice the force limit's travel (2 x 1.2 cm) past the
+        fingers: stopped by an object, the servo pushes with its full force and stalls there, as a real one does,
+        so an open command moves the fingers off the object at once instead of first winding its target back."""
         a = self._grip_act
         cmd = float(self.data.ctrl[a])
         ramp = CLOSING_SPEED * dt
-        self.data.ctrl[a] = cmd + max(-ramp, min(ramp, self._opening_target - cmd))
+        cmd += max(-ramp, min(ramp, self._opening_target - cmd))
+        band = 2 * GRIP_FORCE / FINGER_KP
+        width = self.finger_width()
+        self.data.ctrl[a] = min(max(cmd, width - band), width + band)
 
     def apply_vehicle_force(self, force: np.ndarray, torque_z: float = 0.0) -> None:
         """Multirotor: an external force on the vehicle's centre of mass (wind, rotor drag), world frame, newtons.

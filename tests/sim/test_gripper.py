@@ -10,6 +10,7 @@ import pytest
 
 from services.sim.physics import (
     CLOSING_SPEED,
+    FINGER_KP,
     FINGER_MAX_HALF,
     FINGER_MAX_OPENING,
     GRIP_FORCE,
@@ -130,3 +131,26 @@ def test_pads_and_arms_collide_with_the_floor_furniture_and_objects():
     assert ("e" + str(table.id), "finger_right_arm") in hits
     hits = contacts_at(cup.center[2] + 0.215, cup.center[0], cup.center[1] + cup.size[0] / 2 + 0.100)
     assert ("e" + str(cup.id), "finger_right") in hits
+
+
+def test_a_held_object_is_let_go_at_once_and_the_telemetry_follows():
+    """Stopped by the cup, the servo stalls at its force limit instead of winding its target on to zero: an open
+    command takes the pads off the cup within 0.2 s. The gripper's own sensing (width, both pads in contact, the
+    command) is what DEBUG_VECT "GRIPPER" reports."""
+    core = _core()
+    clock = Clock(core)
+    to_offboard(core, clock)
+    w, v = core.world, core.vehicle
+    assert grasp(core, clock, "red cup", 0.0)
+    clock.run(2.0, (v.p.copy(), v.yaw))  # held for 2 s more: a runaway target would be 30 cm past the cup by now
+    assert v.holding and v.gripper_closed and v.finger_width == pytest.approx(0.08, abs=0.005)
+    assert float(w.data.ctrl[w._grip_act]) > 0.08 - 2 * GRIP_FORCE / FINGER_KP - 0.002
+    v.gripper(False)
+    released = None
+    for i in range(100):
+        clock.run(DT, (v.p.copy(), v.yaw))
+        if not v.holding:
+            released = (i + 1) * DT
+            break
+    assert released is not None and released <= 0.2, released
+    assert not v.gripper_closed
