@@ -113,6 +113,7 @@ async def one_call(c: Client, seed: int, target: str) -> dict:
                        place_message=pst.message[:200])
         except AssertionError as exc:
             row.update(place_state="not_reached", place_ok=None, why=str(exc)[:120])
+    row["collisions"] = list((await c.judge(op="world")).collisions)  # airframe, gripper strikes, knocks, drops
     await c.run("land")
     return row
 
@@ -155,7 +156,8 @@ async def run_level(level: str, seeds: list[int], speed: float, tmp: Path) -> li
                 rows.append(row)
                 print(f"[{level}] {i + 1}/{calls} seed {row['seed']} {target}: "
                       + (f"grasp {row.get('code')} in {row.get('attempts')} (held {row.get('held')}), "
-                         f"place {row.get('place_code')}" if row.get("eligible") else f"not eligible: {row.get('why')}")
+                         f"place {row.get('place_code')}, incidents {row.get('collisions')}" if row.get("eligible")
+                         else f"not eligible: {row.get('why')}")
                       + f" [{row['wall_s']} s]", flush=True)
     return rows
 
