@@ -54,9 +54,10 @@ ROLLING_ASPECT = 1.2  # a round footprint no taller than this many diameters rol
 
 def grip_depth(height: float, fraction: float) -> float:
     """How far below an object's top the gripper point goes: a fraction of its height, but the pads (and the
-    landing gear's feet below them) must stay above the surface it stands on (a flat hammer is gripped at its top,
-    the pads 1 cm above the table)."""
-    return max(0.0, min(fraction * height, height - PAD_BELOW_M))
+    landing gear's feet below them) must stay above the surface it stands on: an object under 3.5 cm is gripped
+    with the gripper point above its top (negative), the pads 1 cm above the table on its upper part (a 2 cm
+    wrench by its top centimetre; at its top the feet stood on the table)."""
+    return min(fraction * height, height - PAD_BELOW_M)
 
 
 def round_footprint(size: Vec3 | None) -> bool:
