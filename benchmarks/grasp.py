@@ -117,6 +117,9 @@ async def one_call(c: Client, seed: int, target: str) -> dict:
                        place_message=pst.message[:200])
         except AssertionError as exc:
             row.update(place_state="not_reached", place_ok=None, why=str(exc)[:120])
+    world = await c.judge(op="world")
+    row["collisions"] = list(world.collisions)  # airframe, gripper strikes, knocks, drops
+    row["incidents"] = [f"{i.kind}-{i.thing} at {i.t_s:.1f} s ({i.detail})" for i in world.incidents]
     await c.run("land")
     return row
 
@@ -159,7 +162,8 @@ async def run_level(level: str, seeds: list[int], speed: float, tmp: Path) -> li
                 rows.append(row)
                 print(f"[{level}] {i + 1}/{calls} seed {row['seed']} {target}: "
                       + (f"grasp {row.get('code')} in {row.get('attempts')} (held {row.get('held')}), "
-                         f"place {row.get('place_code')}" if row.get("eligible") else f"not eligible: {row.get('why')}")
+                         f"place {row.get('place_code')}, incidents {row.get('incidents')}" if row.get("eligible")
+                         else f"not eligible: {row.get('why')}")
                       + f" [{row['wall_s']} s]", flush=True)
     return rows
 

@@ -1391,6 +1391,24 @@ class JudgeCheck(Part):
     """Unit of `measured` and `limit`."""
 
 
+class SimIncident(Part):
+    """Something the simulator recorded since the reset that a careful operator would count against a flight
+    (minor version 10): the airframe or the gripper touching what it should not, an object knocked over or
+    dropped."""
+
+    kind: Literal["vehicle", "gripper", "knocked", "dropped"]
+    """vehicle: the airframe or its gear touched furniture, a wall or the ceiling; gripper: a finger pad or arm
+    struck furniture, a wall, the ceiling or an object other than the task's target; knocked: an object not in the
+    pads tipped over or left what it stood on; dropped: an object lifted clear left the pads and fell more than
+    0.1 m before coming to rest."""
+    thing: Label
+    """What was hit, knocked or dropped (walls are "wall")."""
+    t_s: float
+    """Simulated time since the reset, seconds."""
+    detail: Text = ""
+    """What was measured (contact speed, tilt, fall)."""
+
+
 class JudgeResult(Message):
     """The judge's ground-truth answer (evaluation only; no policy reads it)."""
 
@@ -1411,7 +1429,10 @@ class JudgeResult(Message):
     vehicle: Pose | None = None
     """Vehicle pose (ground truth)."""
     collisions: tuple[Text, ...] = Field((), max_length=MAX_WORLD_OBJECTS)
-    """Collisions since the last reset, e.g. "vehicle-shelf"."""
+    """Incidents since the last reset as tags, each once: "vehicle-shelf" (the airframe), "gripper-table" (a
+    pad or arm), "knocked-red cup", "dropped-red cup" (`incidents` has each with its time)."""
+    incidents: tuple[SimIncident, ...] = Field((), max_length=MAX_WORLD_OBJECTS)
+    """The same incidents with their kind, simulated time and what was measured (minor version 10)."""
     scenario: Scenario | None = None
     """Scenario in force."""
     sim_time_s: float | None = Field(None, ge=0.0)

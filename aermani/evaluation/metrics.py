@@ -238,28 +238,6 @@ def redundancy_ratio(actions: Sequence[Action]) -> float:
     return len(redundant_actions(actions)) / len(actions) if actions else 0.0
 
 
-AIRFRAME = "airframe"
-_AIRFRAME_PREFIXES = ("vehicle", "airframe")
-
-
-def collision_kind(entry: str) -> str:
-    """The kind of one entry of the judge's collisions: `airframe` for `vehicle-shelf` (the airframe's contacts),
-    otherwise the name it starts with: `gripper-table` -> gripper, `knocked: red cup` -> knocked."""
-    text = entry.strip().lower()
-    head = text.split(":", 1)[0] if ":" in text else text.split("-", 1)[0]
-    head = head.strip() or "other"
-    return AIRFRAME if head in _AIRFRAME_PREFIXES else head
-
-
-def collision_kinds(entries: Iterable[str]) -> dict[str, int]:
-    """Entries per kind, airframe first, then by name."""
-    out: dict[str, int] = {}
-    for e in entries:
-        k = collision_kind(e)
-        out[k] = out.get(k, 0) + 1
-    return dict(sorted(out.items(), key=lambda kv: (kv[0] != AIRFRAME, kv[0])))
-
-
 def reasoning_steps(rec: EpisodeRecord) -> int:
     """Reasoning cycles of an episode: the step records, or the terminal status's count if more were announced
     than recorded (a lost sample must not make a policy look better)."""
@@ -295,15 +273,19 @@ class Metrics(BaseModel):
     judged_success: int = 0
     """Episodes the simulator's judge found right, whatever the task's end state."""
     collisions: int = 0
-    """Collisions over all episodes, every kind the simulator's judge reports."""
-    airframe_collisions: int = 0
-    """Of them, the airframe's contacts with furniture, walls or the ceiling."""
-    other_collisions: int = 0
-    """Of them, every other kind (gripper strikes, knocked or dropped objects)."""
-    collision_kinds: dict[str, int] = {}
-    """Collisions per kind (`collision_kind`)."""
+    """Collisions over all episodes: every incident the simulator recorded (each tag once per episode), the sum of
+    the four kinds below."""
+    vehicle_collisions: int = 0
+    """Airframe or landing-gear contacts with furniture, walls or the ceiling ("vehicle-<thing>")."""
+    gripper_strikes: int = 0
+    """A finger pad or arm against furniture, a wall, the ceiling or an object other than the target
+    ("gripper-<thing>")."""
+    knocked_objects: int = 0
+    """Objects knocked over or off what they stood on while not in the pads ("knocked-<object>")."""
+    dropped_objects: int = 0
+    """Objects that left the pads after a lift and fell more than 0.1 m ("dropped-<object>")."""
     collision_episodes: int = 0
-    """Episodes with at least one collision."""
+    """Episodes with at least one collision (of any kind)."""
     collisions_per_episode: float | None = None
     motions_missed: int = 0
     """Episodes whose task asks for motions that did not happen before the pick (aermani/evaluation/scoring.py)."""
@@ -359,6 +341,22 @@ def wilson(successes: int, n: int, z: float = 1.959964) -> tuple[float, float]:
     return 100.0 * lo, 100.0 * hi
 
 
+INCIDENT_KINDS = ("vehicle", "gripper", "knocked", "dropped")
+"""The simulator's incident tags are "<kind>-<thing>" (services/sim/README.md "Gripper"); records from before
+the gripper's incidents hold only "vehicle-" tags."""
+
+
+def incident_counts(records: Iterable[EpisodeRecord]) -> dict[str, int]:
+    """How many incidents of each kind (INCIDENT_KINDS) the records hold; a tag of no known kind counts as a
+    vehicle collision (the only kind there was)."""
+    out = dict.fromkeys(INCIDENT_KINDS, 0)
+    for r in records:
+        for tag in r.collisions:
+            kind = tag.split("-", 1)[0]
+            out[kind if kind in out else "vehicle"] += 1
+    return out
+
+
 def compute(records: Iterable[EpisodeRecord]) -> Metrics:
     records = list(records)
     ran = [r for r in records if not r.harness_error]
@@ -367,9 +365,9 @@ def compute(records: Iterable[EpisodeRecord]) -> Metrics:
     counts = [query_counts(r) for r in ran]
     invalid, queries = sum(c[0] for c in counts), sum(c[1] for c in counts)
     collisions = [len(r.collisions) for r in ran]
-    kinds = collision_kinds(c for r in ran for c in r.collisions)
     grounded = [g for r in ran for g in episode_grounding(r) if g.checked]
     sim = [d for r in ok if (d := r.sim_duration_s) is not None]
+    kinds = incident_counts(ran)
     n = len(ran)
     return Metrics(
         episodes=n,
@@ -390,9 +388,10 @@ def compute(records: Iterable[EpisodeRecord]) -> Metrics:
         ended_succeeded=sum(1 for r in ran if r.state == "succeeded"),
         judged_success=sum(1 for r in ran if judged_ok(r)),
         collisions=sum(collisions),
-        airframe_collisions=kinds.get(AIRFRAME, 0),
-        other_collisions=sum(n for k, n in kinds.items() if k != AIRFRAME),
-        collision_kinds=kinds,
+        vehicle_collisions=kinds["vehicle"],
+        gripper_strikes=kinds["gripper"],
+        knocked_objects=kinds["knocked"],
+        dropped_objects=kinds["dropped"],
         collision_episodes=sum(1 for c in collisions if c),
         collisions_per_episode=sum(collisions) / n if n else None,
         motions_missed=sum(1 for r in ran if r.motions_ok is False),

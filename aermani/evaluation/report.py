@@ -448,15 +448,18 @@ def _endings_section(records: list[EpisodeRecord], configs: list[tuple[str, str]
     lines = ["", "## End state, judge and collisions", "",
              "SR counts an episode only when both hold: the task's own end state is `succeeded` and the "
              "simulator's ground-truth judge agrees (and a sequential task's motions happened). Collisions: every "
-             "entry the simulator's judge recorded since the episode's reset, by kind: airframe contacts with "
-             "furniture, walls or the ceiling, and every other kind it reports (gripper strikes, knocked or "
-             "dropped objects), named by the entry's prefix.", "",
+             "incident the physics simulator recorded since the episode's reset, each once, counted by kind: airframe "
+             "(the airframe or its gear against furniture, walls or the ceiling), gripper strikes (a finger pad or "
+             "arm against furniture, a wall, the ceiling or an object other than the task's target), knocked (an "
+             "object not in the gripper tipped over or left what it stood on), dropped (an object let go or "
+             "slipping after a lift fell more than 0.1 m).", "",
              "Motions missed: episodes whose commanded motions did not happen before the pick (failures whatever "
              "the judge said); successes on a guess: size or conditional successes picked before what decides the "
              "choice was seen (counted in SR, flagged).", "",
              "| Method | N | ended succeeded | judge success | motions missed | both (SR numerator) | successes on a "
-             "guess | collisions (airframe / other) | by kind | episodes with a collision | terminal states |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "guess | collisions | airframe | gripper strikes | knocked | dropped | episodes with a collision | "
+             "terminal states |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for b, v in configs:
         recs = [r for r in records if r.backend == b and r.variant == v and not r.harness_error]
         m = compute(recs)
@@ -465,9 +468,8 @@ def _endings_section(records: list[EpisodeRecord], configs: list[tuple[str, str]
             states[r.state] = states.get(r.state, 0) + 1
         lines.append(f"| {method_name(b, v, multi)} | {m.episodes} | {m.ended_succeeded} | {m.judged_success} | "
                      f"{m.motions_missed} | {m.successes} | {m.guessed_successes} | {m.collisions} "
-                     f"({m.airframe_collisions} / {m.other_collisions}; "
-                     f"{_fmt(m.collisions_per_episode, 2)} per episode) | "
-                     + (", ".join(f"{k} {n}" for k, n in m.collision_kinds.items()) or "--") + " | "
+                     f"({_fmt(m.collisions_per_episode, 2)} per episode) | "
+                     f"{m.vehicle_collisions} | {m.gripper_strikes} | {m.knocked_objects} | {m.dropped_objects} | "
                      f"{m.collision_episodes} | " + ", ".join(f"{k} {n}" for k, n in sorted(states.items())) + " |")
     lines.append("")
     return lines

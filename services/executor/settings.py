@@ -99,8 +99,12 @@ class ExecutorSettings(ServiceSettings):
     """How long a localization waits for a camera frame captured after the vehicle settled, seconds."""
     command_timeout_s: float = 5.0
     """Timeout of an autopilot command reply (takeoff excepted), seconds."""
-    gripper_timeout_s: float = 3.0
-    """Time for the gripper state to follow a command, seconds."""
+    gripper_timeout_s: float = 4.0
+    """Time for the gripper to follow a command (its state, then both pads on the object or an empty close, then
+    the pads off it), seconds. A small servo gripper closes at 0.15 m/s (services/sim/README.md "Gripper"): the
+    full 18 cm in 1.2 s, the narrowest object (a 2.5 cm screwdriver) held after 1.0 s, the holding flag at 10 Hz
+    through the bridge; 4 s leaves 3x that for a simulator running slower than real time under load (the 12 N
+    gripper this was 3 s for closed in ~0.15 s)."""
 
     # ---- routines
     flight_altitude: float = 1.5

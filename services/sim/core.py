@@ -19,6 +19,7 @@ from shared.messages import (
     JudgeResult,
     Pose,
     Scenario,
+    SimIncident,
     SimLabel,
     SimObjectTruth,
     SimResetResult,
@@ -113,8 +114,10 @@ class SimCore:
         with self.lock:
             w = self.world
             held = w.holding()
+            incidents = tuple(SimIncident(kind=i.kind, thing=i.thing, t_s=i.t_s, detail=i.detail)
+                              for i in w.incidents)
             common = {"held": held.name if held else None, "vehicle": self.vehicle_pose(),
-                      "collisions": tuple(w.collisions), "scenario": self.scenario,
+                      "collisions": tuple(w.collisions), "incidents": incidents, "scenario": self.scenario,
                       "sim_time_s": max(0.0, float(w.sim_time))}
             if req.op == "held":
                 v = w.picked()

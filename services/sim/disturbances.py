@@ -96,7 +96,7 @@ def ground_effect(height: float, rotor_radius: float, rotor_spacing: float = 0.0
     """Thrust in ground effect over thrust out of it for a rotor `height` above a surface. One rotor:
     Cheeseman & Bennett (1955), 1 / (1 - (R / 4z)^2). Given the spacing of adjacent rotors and the arm length,
     the multirotor model of Sanchez-Cuevas, Heredia & Ollero (2017), whose neighbouring rotors' and the body's
-    reflected wakes make the gain several times larger (~10 % with the gear on the floor here). Bounded where
+    reflected wakes make the gain several times larger (~10 % 0.18 m above a surface). Bounded where
     the models' singularity lies (z < R / 2)."""
     z = max(height, rotor_radius / 2)
     r2 = rotor_radius * rotor_radius

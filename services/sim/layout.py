@@ -16,8 +16,11 @@ Category = Literal["object", "surface", "furniture", "structure"]
 
 ROOM_HALF = 4.0  # the room is 8 m x 8 m centred on the world origin; its walls are the geofence
 # The autopilot's ground is z = 0 (the body origin of a landed vehicle, as PX4 reports it); the floor plane
-# sits one landing-gear height below, so the camera of a landed vehicle is above the floor, not inside it.
-FLOOR_Z = -0.10
+# sits one landing-gear height below. The gear is taller than the gripper (its feet 5 mm below the finger pads'
+# bottom, 0.245 m under the body origin), as an aerial manipulator's must be for the vehicle to land on its gear
+# with the pads clear of the floor: the pads collide with the floor too (services/sim/README.md "Gripper").
+GEAR_HEIGHT = 0.25
+FLOOR_Z = -GEAR_HEIGHT
 WALL_HEIGHT = 2.6
 VEHICLE_RADIUS = 0.25  # collision cylinder of the airframe around the body origin
 VEHICLE_HEIGHT = 0.15  # ... from VEHICLE_BELOW under the body origin up

@@ -4,12 +4,12 @@ two-finger parallel gripper, contacts and collisions (world frame ENU, z up).
 The vehicle is a body on three slide joints and a yaw hinge (a multirotor's attitude is not simulated: the
 position controller in `services.sim.vehicle` commands forces on those joints, limited like PX4's). It
 collides with furniture, walls and objects; every contact of the airframe with furniture or walls is recorded,
-and one faster than `crash_speed` is a crash. The fingers slide along the body's y axis, driven by position
-actuators with a bounded force: an object is held only by the fingers' contact and friction.
+and one faster than `crash_speed` is a crash. The fingers slide along the body's y axis, coupled and driven by
+one force-limited servo: an object is held only by the pads' contact and friction.
 
 Collision groups (contype/conaffinity bits): 1 furniture and walls, 2 objects, 4 fingers, 8 airframe, 16 floor.
-Fingers touch objects and furniture (not the floor, which the landing gear reaches first); the airframe
-touches furniture, walls, floor and objects.
+Fingers (pads and arms) touch objects, furniture, walls and the floor (the landing gear's feet reach 5 mm below
+the pads); the airframe and its gear touch furniture, walls, floor and objects.
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ import math
 import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Literal, get_args
 from xml.sax.saxutils import quoteattr
 
 import mujoco
@@ -51,18 +52,36 @@ ROTOR_XY = tuple((ROTOR_ARM * math.cos(a), ROTOR_ARM * math.sin(a))
 ROTOR_SPIN = (1.0, 1.0, -1.0, -1.0)  # +1 counter-clockwise from above: its reaction torque turns the body clockwise
 FINGER_MASS = 0.04
 FINGER_MAX_HALF = 0.09  # each finger travels 0..9 cm from the centre line: opening 0..18 cm
-FINGER_FORCE = 12.0  # N, grip force limit per finger
-FINGER_KP = 600.0  # N/m, position servo of a finger
+FINGER_MAX_OPENING = 2 * FINGER_MAX_HALF
+# A small servo-driven parallel gripper (README "Gripper" has the sources): one motor drives both fingers through
+# a linkage, so they are coupled (equal travel); each pad squeezes with at most GRIP_FORCE; the opening changes at
+# CLOSING_SPEED. The heaviest catalogue object (0.55 kg) lifted at the 2 m/s^2 vertical acceleration limit needs
+# 0.55 * (9.81 + 2) / (2 * PAD_FRICTION) = 4.1 N per pad: GRIP_FORCE holds it with a margin of 1.7.
+GRIP_FORCE = 7.0  # N per pad: the force limit on the opening tendon (each finger joint sees it with arm 1)
+CLOSING_SPEED = 0.15  # m/s of opening: the full 18 cm in 1.2 s
+FINGER_KP = 600.0  # N/m, the servo's stiffness on the opening (it saturates at GRIP_FORCE 1.2 cm off its target)
 FINGER_PAD = (0.025, 0.006, 0.03)  # half sizes: along body x (width), thickness (y), height (z)
 FINGER_PAD_Z = 0.005  # pad centre above the gripper point: the pad spans 2.5 cm below to 3.5 cm above it
-FINGER_FRICTION = 1.2  # rubber pads
+# Rubber pads: dry rubber slides at mu ~0.8 on hard surfaces (kinetic; static ~1.0; README "Gripper"), the
+# kinetic value because a grasp fails by sliding. A higher contact `priority` than everything else makes MuJoCo
+# use the pad's own friction in its contacts (otherwise it takes the larger of the two geoms' coefficients).
+PAD_FRICTION = 0.8
+PAD_PRIORITY = 1
+ARM_FRICTION = 0.4  # the finger links (aluminium or hard plastic; without priority the larger coefficient applies)
 GEAR_OFFSETS = ((0.12, 0.12), (0.12, -0.12), (-0.12, 0.12), (-0.12, -0.12))
-GEAR_RADIUS = 0.02
+GEAR_RADIUS = 0.02  # the feet: spheres at the bottom of the legs, on the floor when the body origin is at z = 0
+LEG_RADIUS = 0.006  # the legs: carbon tubes from the airframe's bottom down to the feet
+LEG_MASS = 0.005
 CRASH_SPEED = 0.5  # m/s: the airframe meeting furniture or a wall faster than this is a crash
 # An object is at rest while both stay below these (a sleeping body is at rest by definition): a ball rolling at
 # 5 mm/s turns at 0.125 rad/s (a 8 cm orange), so a slow roll is movement, not rest.
 REST_SPEED = 0.005  # m/s
 REST_SPIN = 0.1  # rad/s
+# Incidents (README "Gripper"): an object not in the pads whose own up axis tips this far from where it stood
+# upright, or that comes to rest on something else than it stood on, was knocked; an object that left the pads
+# after a lift and came to rest this much lower was dropped (a placement lets go a few centimetres above the top).
+KNOCK_TILT = math.radians(45.0)
+DROP_FALL = 0.10  # m, of its centre
 
 GROUP_ENV, GROUP_OBJ, GROUP_FINGER, GROUP_AIRFRAME, GROUP_FLOOR = 1, 2, 4, 8, 16
 
@@ -124,6 +143,9 @@ def _vehicle_xml(fovy: float, dynamics: str = "kinematic") -> str:
     air = f'contype="{GROUP_AIRFRAME}" conaffinity="{GROUP_ENV | GROUP_OBJ | GROUP_FLOOR}"'
     half_h = VEHICLE_HEIGHT / 2
     gear_z = FLOOR_Z + GEAR_RADIUS  # gear bottom on the floor when the body origin is at z = 0
+    legs = "".join(f'<geom name="leg{i}" type="capsule" size="{_f(LEG_RADIUS)}" '
+                   f'fromto="{_vec([gx, gy, -VEHICLE_BELOW])} {_vec([gx, gy, gear_z])}" mass="{_f(LEG_MASS)}" '
+                   f'rgba="0.1 0.1 0.1 1" {air}/>' for i, (gx, gy) in enumerate(GEAR_OFFSETS))
     camera = (f'<camera name="camera" pos="{_vec(CAMERA_OFFSET_BODY)}" quat="{_vec(camera_quat())}" '
               f'fovy="{_f(fovy)}"/>')
     if dynamics == "kinematic":
@@ -136,6 +158,7 @@ def _vehicle_xml(fovy: float, dynamics: str = "kinematic") -> str:
         for i, (gx, gy) in enumerate(GEAR_OFFSETS):
             out.append(f'<geom name="gear{i}" type="sphere" size="{_f(GEAR_RADIUS)}" pos="{_vec([gx, gy, gear_z])}" '
                        f'mass="0.01" rgba="0.1 0.1 0.1 1" {air} friction="1 0.01 0.001"/>')
+        out.append(legs)
         out.append(camera)
         return "".join(out)
     out = ['<body name="vehicle" pos="0 0 0" sleep="never"><freejoint name="vehicle"/>']
@@ -148,6 +171,7 @@ def _vehicle_xml(fovy: float, dynamics: str = "kinematic") -> str:
     for i, (gx, gy) in enumerate(GEAR_OFFSETS):
         out.append(f'<geom name="gear{i}" type="sphere" size="{_f(GEAR_RADIUS)}" pos="{_vec([gx, gy, gear_z])}" '
                    f'mass="0.01" rgba="0.1 0.1 0.1 1" {air} friction="1 0.01 0.001"/>')
+    out.append(legs)
     for i, (rx, ry) in enumerate(ROTOR_XY):
         # The motor's mass at the arm tip (it sets the roll and pitch inertia); never collides, never rendered.
         out.append(f'<geom name="motor{i}" type="cylinder" size="0.014 0.012" pos="{_vec([rx, ry, ROTOR_Z - 0.012])}" '
@@ -233,29 +257,56 @@ def build_xml(entities: list[Entity], light_seed: int = 0, light_variation: bool
             f'conaffinity="{GROUP_ENV | GROUP_OBJ | GROUP_FINGER | GROUP_FLOOR}"/></body>')
     # The vehicle: a free rigid body (airframe, landing gear, rotors, camera) carrying the two fingers.
     add(_vehicle_xml(fovy, dynamics))
-    gz = GRIPPER_OFFSET_BODY[2]
-    pad = FINGER_PAD
-    fingers = f'contype="{GROUP_FINGER}" conaffinity="{GROUP_ENV}" friction="{_f(FINGER_FRICTION)} 0.02 0.001"'
-    for side, sign in (("left", 1.0), ("right", -1.0)):
-        add(f'<body name="finger_{side}" pos="0 0 {_f(gz)}">'
-            f'<joint name="finger_{side}" type="slide" axis="0 {_f(sign)} 0" range="0 {_f(FINGER_MAX_HALF)}" '
-            'damping="8" armature="0.01"/>'
-            f'<geom name="finger_{side}" type="box" size="{_vec(pad)}" pos="0 {_f(sign * pad[1])} '
-            f'{_f(FINGER_PAD_Z)}" mass="{_f(FINGER_MASS)}" rgba="0.2 0.2 0.2 1" group="3" {fingers}/>'
-            f'<geom type="box" size="0.01 0.004 {_f((-gz - 0.05 - pad[2] - FINGER_PAD_Z) / 2)}" '
-            f'pos="0 {_f(sign * pad[1])} {_f(FINGER_PAD_Z + pad[2] + (-gz - 0.05 - pad[2] - FINGER_PAD_Z) / 2)}" '
-            'mass="0.001" contype="0" conaffinity="0" rgba="0.2 0.2 0.2 1" group="3"/></body>')
+    add(_gripper_xml(GRIPPER_OFFSET_BODY[2]))
     add('</body>')
     add('</worldbody>')
+    add(_gripper_coupling_xml())
     add('<actuator>')
-    for side in ("left", "right"):
-        add(f'<position name="finger_{side}" joint="finger_{side}" kp="{_f(FINGER_KP)}" '
-            f'ctrlrange="0 {_f(FINGER_MAX_HALF)}" forcerange="{_f(-FINGER_FORCE)} {_f(FINGER_FORCE)}"/>')
+    add(_gripper_actuator_xml())
     if dynamics == "multirotor":
         add(_rotor_actuators_xml())
     add('</actuator>')
     add('</mujoco>')
     return "\n".join(parts)
+
+
+def _gripper_xml(gz: float) -> str:
+    """The two fingers, children of the "vehicle" body at the gripper point `gz` below its origin: each a rubber
+    pad and the link (arm) carrying it up to 5 cm under the body origin, on a slide joint along the body's y axis.
+    Pads and arms collide with objects, furniture, walls and the floor (never rendered by the camera: group 3)."""
+    pad = FINGER_PAD
+    hit = f'contype="{GROUP_FINGER}" conaffinity="{GROUP_ENV | GROUP_FLOOR}"'
+    arm_half = (-gz - 0.05 - pad[2] - FINGER_PAD_Z) / 2
+    out = []
+    for side, sign in (("left", 1.0), ("right", -1.0)):
+        out.append(
+            f'<body name="finger_{side}" pos="0 0 {_f(gz)}">'
+            f'<joint name="finger_{side}" type="slide" axis="0 {_f(sign)} 0" range="0 {_f(FINGER_MAX_HALF)}" '
+            'damping="8" armature="0.01"/>'
+            f'<geom name="finger_{side}" type="box" size="{_vec(pad)}" pos="0 {_f(sign * pad[1])} '
+            f'{_f(FINGER_PAD_Z)}" mass="{_f(FINGER_MASS)}" rgba="0.2 0.2 0.2 1" group="3" {hit} '
+            f'friction="{_f(PAD_FRICTION)} 0.02 0.001" priority="{PAD_PRIORITY}"/>'
+            # The arm sits 2 mm behind the pad's face: an object squeezed between the pads touches the pads.
+            f'<geom name="finger_{side}_arm" type="box" size="0.01 0.004 {_f(arm_half)}" '
+            f'pos="0 {_f(sign * pad[1])} {_f(FINGER_PAD_Z + pad[2] + arm_half)}" mass="0.001" {hit} '
+            f'friction="{_f(ARM_FRICTION)} 0.005 0.0005" rgba="0.2 0.2 0.2 1" group="3"/></body>')
+    return "".join(out)
+
+
+def _gripper_coupling_xml() -> str:
+    """The linkage of a single-motor gripper: a fixed tendon whose length is the opening (left + right travel),
+    which the servo drives, and an equality that keeps the two travels equal."""
+    return ('<tendon><fixed name="opening"><joint joint="finger_left" coef="1"/>'
+            '<joint joint="finger_right" coef="1"/></fixed></tendon>'
+            '<equality><joint name="finger_coupling" joint1="finger_left" joint2="finger_right" '
+            'polycoef="0 1 0 0 0" solref="0.004 1"/></equality>')
+
+
+def _gripper_actuator_xml() -> str:
+    """The servo: a position actuator on the opening tendon, its force limited to GRIP_FORCE (per pad: the
+    tendon's force acts on each finger with arm 1); `World.step` moves its target at CLOSING_SPEED."""
+    return (f'<position name="gripper" tendon="opening" kp="{_f(FINGER_KP)}" ctrlrange="0 {_f(FINGER_MAX_OPENING)}" '
+            f'forcerange="{_f(-GRIP_FORCE)} {_f(GRIP_FORCE)}"/>')
 
 
 # ---- the textured look (services.sim.assets): meshes and textures by absolute path in the asset cache, which the
@@ -408,6 +459,38 @@ class ObjectTrack:
     clear_since: float | None = None  # in both pads and touching no other thing continuously since
     lifted_since: float | None = None  # ... and its bottom `criteria.lift_m` above `lifted_from` since
     lifted_from: float | None = None  # top z of what it stood on when both pads took it
+    # The incidents' history (knocked, dropped):
+    in_pads: bool = False  # in both pads at the last step
+    lifted: bool = False  # lifted clear (`lifted_since`) during the current hold
+    released_z: float | None = None  # centre z where it left the pads after a lift, until it comes to rest
+    ref_set: bool = False  # what it stood on and whether upright, at its last rest out of the gripper's doing:
+    ref_support: str | None = None  # the layout, or where a lifted object came to rest after leaving the pads
+    ref_upright: bool = False
+
+
+IncidentKind = Literal["vehicle", "gripper", "knocked", "dropped"]
+
+
+def incident_kind(value: object) -> IncidentKind:
+    """`value` as an incident kind; ValueError when it is none."""
+    for kind in get_args(IncidentKind):
+        if value == kind:
+            return kind  # type: ignore[no-any-return]
+    raise ValueError(f"unknown incident kind {value!r}")
+
+
+@dataclass(frozen=True)
+class Incident:
+    """One incident since the reset (`World.incidents`; shared.messages.SimIncident on the wire)."""
+
+    kind: IncidentKind
+    thing: str
+    t_s: float  # simulated time since the reset
+    detail: str = ""
+
+    @property
+    def tag(self) -> str:
+        return f"{self.kind}-{self.thing}"
 
 
 @dataclass
@@ -425,6 +508,7 @@ class World:
     crash_speed: float = CRASH_SPEED
     settle_s: float = 0.3  # let the objects come to rest on their supports before anything else
     criteria: JudgeCriteria = field(default_factory=JudgeCriteria)  # the task's (`Scenario.criteria`)
+    target: str | None = None  # the task's object (`Scenario.target_object`): the pads may touch it, not others
 
     def __post_init__(self) -> None:
         self.xml = build_xml(self.entities, self.light_seed, self.light_variation, self.look, self.dynamics)
@@ -447,7 +531,11 @@ class World:
             raise RuntimeError(f"rotor actuators {self.rotor_actuators} are not contiguous in the model")
         self._rotor_ctrl = slice(first, first + n_rotors)
         self.finger_geoms = (m.geom("finger_left").id, m.geom("finger_right").id)
-        self.airframe_geoms = {m.geom("airframe").id} | {m.geom(f"gear{i}").id for i in range(4)}
+        self.gripper_geoms = set(self.finger_geoms) | {m.geom("finger_left_arm").id, m.geom("finger_right_arm").id}
+        self._grip_act = m.actuator("gripper").id
+        self._opening_target = FINGER_MAX_OPENING  # where the servo's target is heading (CLOSING_SPEED)
+        self.airframe_geoms = ({m.geom("airframe").id} | {m.geom(f"gear{i}").id for i in range(len(GEAR_OFFSETS))}
+                               | {m.geom(f"leg{i}").id for i in range(len(GEAR_OFFSETS))})
         self.vehicle_mass = float(m.body_subtreemass[self.vehicle_body])
         # Inertia of the airframe body about its own axes (the fingers' small bodies left out: the gains need no more).
         rot = np.zeros(9)
@@ -473,21 +561,26 @@ class World:
         for gid, e in self.geom_entity.items():
             self.geom_instance[gid] = e.id
         self._static_contact: set[int] = set()
+        self._gripper_touching: set[str] = set()  # what a pad or arm touches that is a strike (`_struck`)
+        self.incidents: list[Incident] = []  # each tag of `collisions` once, with its time
         self.tracks: dict[str, ObjectTrack] = {e.name: ObjectTrack() for e in self.objects}
         self._ray_geom = np.zeros(1, dtype=np.int32)
         self.contacts: list[Contact] = []
         self.sim_time = 0.0
         self._pending = 0.0
         self.set_fingers(FINGER_MAX_HALF)
+        self.data.ctrl[self._grip_act] = FINGER_MAX_OPENING
         self.data.qpos[self._jnt["finger_left"]] = self.data.qpos[self._jnt["finger_right"]] = FINGER_MAX_HALF
         mujoco.mj_forward(self.model, self.data)
         if self.settle_s > 0:
             self.settle(self.settle_s)
         # The layout's objects stand where the generator put them (the settling only absorbed the contact
-        # penetration): those at rest count as at rest since the layout.
-        for t in self.tracks.values():
+        # penetration): those at rest count as at rest since the layout, and that is where they belong.
+        for e in self.objects:
+            t = self.tracks[e.name]
             if t.rest_since is not None:
                 t.rest_since = -math.inf
+            t.ref_set, t.ref_support, t.ref_upright = True, e.support, self._upright(e)
 
     # ---- lookup (same names as the layout)
 
@@ -598,10 +691,25 @@ class World:
         return float(self.data.qpos[self._jnt["finger_left"]] + self.data.qpos[self._jnt["finger_right"]])
 
     def set_fingers(self, half_opening: float) -> None:
-        self.data.ctrl[:2] = min(max(half_opening, 0.0), FINGER_MAX_HALF)
+        """Command each finger to `half_opening` from the centre line: the servo's target moves there at
+        CLOSING_SPEED (of the opening), as a real gripper's does, and it squeezes with at most GRIP_FORCE."""
+        self._opening_target = 2 * min(max(half_opening, 0.0), FINGER_MAX_HALF)
 
     def fingers_closing(self) -> bool:
-        return float(self.data.ctrl[0]) < FINGER_MAX_HALF / 2
+        return self._opening_target < FINGER_MAX_OPENING / 2
+
+    def _ramp_gripper(self, dt: float) -> None:
+        """Move the servo's target towards the commanded opening by CLOSING_SPEED * dt (callers step 20 ms at most:
+        3 mm of opening). The target never runs further than twice the force limit's travel (2 x 1.2 cm) past the
+        fingers: stopped by an object, the servo pushes with its full force and stalls there, as a real one does,
+        so an open command moves the fingers off the object at once instead of first winding its target back."""
+        a = self._grip_act
+        cmd = float(self.data.ctrl[a])
+        ramp = CLOSING_SPEED * dt
+        cmd += max(-ramp, min(ramp, self._opening_target - cmd))
+        band = 2 * GRIP_FORCE / FINGER_KP
+        width = self.finger_width()
+        self.data.ctrl[a] = min(max(cmd, width - band), width + band)
 
     def apply_vehicle_force(self, force: np.ndarray, torque_z: float = 0.0) -> None:
         """Multirotor: an external force on the vehicle's centre of mass (wind, rotor drag), world frame, newtons.
@@ -668,6 +776,7 @@ class World:
             return new
         self._pending -= n * TIMESTEP
         velocity = self.vehicle_velocity()
+        self._ramp_gripper(n * TIMESTEP)
         if before_step is None:
             mujoco.mj_step(self.model, self.data, nstep=n)
         else:
@@ -680,17 +789,37 @@ class World:
             # The speed towards the surface is what breaks propellers: a tilting multirotor that brushes a
             # wall it climbs along is not a crash. The kinematic body keeps its whole speed (it never tilts).
             speed = max(0.0, -float(velocity @ now[gid])) if self.multirotor else float(np.linalg.norm(velocity))
-            e = self.geom_entity[gid]
-            name = "ceiling" if e.name == "ceiling" else ("wall" if e.name.startswith("wall") else e.name)
+            name = _static_name(self.geom_entity[gid])
             c = Contact(name, speed, speed > self.crash_speed)
             new.append(c)
             self.contacts.append(c)
-            tag = f"vehicle-{name}"
-            if tag not in self.collisions:
-                self.collisions.append(tag)
+            self._record("vehicle", name, f"{speed:.2f} m/s")
         self._static_contact = set(now)
+        struck = self._struck()
+        for name in sorted(struck - self._gripper_touching):
+            self._record("gripper", name, f"vehicle at {float(np.linalg.norm(velocity)):.2f} m/s")
+        self._gripper_touching = struck
         self.sync()
         return new
+
+    def _record(self, kind: IncidentKind, thing: str, detail: str = "") -> None:
+        """An incident, each tag once since the reset (`collisions`, `incidents`)."""
+        incident = Incident(kind, thing, self.sim_time, detail)
+        if incident.tag not in self.collisions:
+            self.collisions.append(incident.tag)
+            self.incidents.append(incident)
+
+    def _struck(self) -> set[str]:
+        """What a finger pad or arm touches that it should not: furniture, a wall, the ceiling (not the floor,
+        which a landing may bring the pads down to), or an object other than the task's target."""
+        out: set[str] = set()
+        for g1, g2 in self._contact_pairs():
+            for a, b in ((g1, g2), (g2, g1)):
+                e = self.geom_entity.get(int(b)) if a in self.gripper_geoms else None
+                if e is None or e.name == "floor" or e.category == "object" and e.name == self.target:
+                    continue
+                out.add(_static_name(e) if e.category == "structure" else e.name)
+        return out
 
     def settle(self, seconds: float) -> None:
         """Let the objects come to rest (after a reset), the vehicle held where it is."""
@@ -698,7 +827,9 @@ class World:
         self.step(seconds)
         self.set_vehicle(pos, yaw)
         self.collisions.clear()
+        self.incidents.clear()
         self.contacts.clear()
+        self._gripper_touching = self._struck()
         self.sim_time = 0.0
 
     # ---- mirror MuJoCo's state into the entities
@@ -724,6 +855,7 @@ class World:
                 # (a held object shares the never-sleeping vehicle's island).
                 e.attached = False
                 self._advance(e, track, at_rest=True, clear=False)
+                self._watch(e, track)
                 continue
             others = set().union(*(touching.get(g, set()) for g in self.obj_geoms[e.name]))
             was_attached = e.attached
@@ -745,6 +877,43 @@ class World:
             # Clear: nothing but the vehicle (pads, airframe) touches it; every other thing is an entity.
             clear = e.attached and not any(o in self.geom_entity for o in others)
             self._advance(e, track, at_rest=speed < REST_SPEED and spin < REST_SPIN and not e.attached, clear=clear)
+            self._watch(e, track)
+
+    @staticmethod
+    def _upright(e: Entity) -> bool:
+        return e.shape != "sphere" and e.tilt < KNOCK_TILT
+
+    def _watch(self, e: Entity, t: ObjectTrack) -> None:
+        """Knocked and dropped: an object that left the pads after a lift is watched until it rests (dropped when
+        it came to rest more than DROP_FALL lower; where it rests becomes where it belongs, a placement's doing);
+        any other object not in the pads is knocked when it tips past KNOCK_TILT from upright or comes to rest on
+        something else than it stood on."""
+        if e.attached:
+            t.in_pads = True
+            t.lifted = t.lifted or t.lifted_since is not None
+            return
+        if t.in_pads:  # just left the pads
+            t.in_pads = False
+            if t.lifted:
+                t.released_z = float(e.center[2])
+            t.lifted = False
+        at_rest = t.rest_since is not None
+        if t.released_z is not None:
+            if not at_rest:
+                return
+            fall = t.released_z - float(e.center[2])
+            if fall > DROP_FALL:
+                self._record("dropped", e.name, f"fell {fall:.2f} m after leaving the pads")
+            t.released_z = None
+            t.ref_set = False
+        if not t.ref_set:
+            if at_rest:
+                t.ref_set, t.ref_support, t.ref_upright = True, e.support, self._upright(e)
+            return
+        if t.ref_upright and e.shape != "sphere" and e.tilt > KNOCK_TILT:
+            self._record("knocked", e.name, f"tipped {math.degrees(e.tilt):.0f} deg")
+        elif at_rest and t.ref_support is not None and e.support != t.ref_support:
+            self._record("knocked", e.name, f"moved from the {t.ref_support} to the {e.support or 'air'}")
 
     def _motion(self, name: str) -> tuple[float, float]:
         """Linear speed (world, m/s) and spin (rad/s) of an object's free joint."""
@@ -931,6 +1100,11 @@ class World:
     def state_vector(self) -> np.ndarray:
         """qpos: what a renderer needs besides the model."""
         return self.data.qpos.copy()
+
+
+def _static_name(e: Entity) -> str:
+    """How an incident names a static thing: every wall is "wall"."""
+    return "wall" if e.name.startswith("wall") else e.name
 
 
 def _edge_distance(obj: Entity, surface: Entity) -> float:

@@ -242,7 +242,7 @@ def generate(scenario: Scenario, light_variation: bool = True,
         dest = rng.choice([s for s in surfaces if s != placed[0].support])
     world = World(entities=_structure() + furniture + placed, light_seed=scenario.seed,
                   light_variation=light_variation, look=look, dynamics=dynamics,
-                  criteria=scenario.criteria)
+                  criteria=scenario.criteria, target=target)
     filled = Scenario(seed=scenario.seed, target_object=target, destination=dest, distractors=distractors,
                       target_out_of_view=scenario.target_out_of_view, extra_objects=extras, start=start,
                       placements=fixed or None, criteria=scenario.criteria)

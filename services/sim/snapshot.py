@@ -25,7 +25,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from services.sim.physics import Contact
+from services.sim.physics import Contact, Incident, incident_kind
 from services.sim.vehicle import MAIN_AUTO, MAIN_OFFBOARD, SUB_LOITER, Vehicle
 
 FORMAT = 1
@@ -185,6 +185,9 @@ def capture_core(core: Any) -> dict[str, Any]:
     world = {"sim_time": w.sim_time, "pending": w._pending, "collisions": list(w.collisions),
              "contacts": [[c.name, c.speed, c.crash] for c in w.contacts],
              "static_contact": sorted(int(g) for g in w._static_contact),
+             "opening_target": float(w._opening_target),
+             "gripper_touching": sorted(w._gripper_touching),
+             "incidents": [[i.kind, i.thing, i.t_s, i.detail] for i in w.incidents],
              "tracks": {name: encode(t) for name, t in w.tracks.items()}, "entities": entities}
     return {"format": FORMAT, "requested": core.requested.model_dump(mode="json"),
             "scenario": core.scenario.model_dump(mode="json"), "realism": core.realism,
@@ -224,6 +227,9 @@ def restore_core(core: Any, doc: dict[str, Any], *, hold: bool = True) -> None:
         w.collisions[:] = [str(c) for c in ws["collisions"]]
         w.contacts[:] = [Contact(str(n), float(s), bool(c)) for n, s, c in ws["contacts"]]
         w._static_contact = {int(g) for g in ws["static_contact"]}
+        w._opening_target = float(ws["opening_target"])
+        w._gripper_touching = {str(n) for n in ws["gripper_touching"]}
+        w.incidents[:] = [Incident(incident_kind(k), str(n), float(t), str(d)) for k, n, t, d in ws["incidents"]]
         for name, track in ws["tracks"].items():
             if name not in w.tracks:
                 raise SnapshotError(f"object {name!r} of the capture is not in the rebuilt world")

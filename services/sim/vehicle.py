@@ -35,7 +35,6 @@ MAIN_POSCTL = mavutil.PX4_CUSTOM_MAIN_MODE_POSCTL
 MAIN_AUTO = mavutil.PX4_CUSTOM_MAIN_MODE_AUTO
 MAIN_OFFBOARD = mavutil.PX4_CUSTOM_MAIN_MODE_OFFBOARD
 SUB_TAKEOFF = mavutil.PX4_CUSTOM_SUB_MODE_AUTO_TAKEOFF
-LAND_DETECT_S = 1.5  # no vertical motion while landing for this long: landed (PX4's land detector)
 SUB_LOITER = mavutil.PX4_CUSTOM_SUB_MODE_AUTO_LOITER
 SUB_LAND = mavutil.PX4_CUSTOM_SUB_MODE_AUTO_LAND
 SUB_RTL = mavutil.PX4_CUSTOM_SUB_MODE_AUTO_RTL
@@ -73,6 +72,25 @@ ATTITUDE_DIV = 2
 OUTER_DIV = 10
 OUTER_DT = OUTER_DIV * TIMESTEP
 ROTOR_SPACING = math.dist(ROTOR_XY[0], ROTOR_XY[2])  # adjacent rotors (front right, front left)
+# PX4's multicopter land detector (src/modules/land_detector/MulticopterLandDetector.cpp), for a landing on
+# something other than the gear (a held object reaches the floor first): three stages, each of which needs its
+# condition to hold without a break for a third of LNDMC_TRIG_TIME (PX4's hysteresis restarts on any sample that
+# breaks it). Ground contact: a descent commanded (AUTO.LAND), no vertical movement (|vz| at most
+# min(0.45 x MPC_LAND_SPEED, LNDMC_Z_VEL_MAX)), no horizontal movement, low thrust. Maybe landed: ground contact
+# and no rotation. Landed: maybe landed. Once landed (motors at idle), PX4 keeps the state until a climb is asked
+# for or the vehicle moves vertically faster than LNDMC_Z_VEL_MAX, widened 2.5 times for the first 2 s
+# (LAND_DETECTOR_LAND_PHASE_TIME_US): the settling of a vehicle that came down on something is not a take-off.
+LNDMC_TRIG_TIME = 1.0  # s, the three stages together
+LAND_PHASE_S = 2.0  # s after landing with the widened vertical threshold
+LNDMC_Z_VEL_MAX = 0.25  # m/s
+LNDMC_XY_VEL_MAX = 1.5  # m/s
+LNDMC_ROT_MAX = math.radians(20.0)  # rad/s, roll and pitch rates
+# Low thrust, as a fraction of the hover thrust: PX4 (with its hover thrust estimate, MPC_USE_HTE) takes 60 % of the
+# range from MPC_THR_MIN (0.12) to the hover thrust (0.5 by default): 0.35 of full thrust, 0.70 of the hover thrust.
+# PX4's maybe-landed stage also asks for the minimal thrust (10 % of that range), which its velocity integral
+# reaches by winding down to MPC_THR_MIN; this simulator's integral is bounded (the thrust of a blocked descent
+# settles near half the hover thrust), so that check is left out.
+LAND_LOW_THRUST = 0.7
 
 
 def ned_to_enu(p: np.ndarray) -> np.ndarray:
@@ -239,7 +257,10 @@ class Vehicle:
         self.main_mode, self.sub_mode = MAIN_AUTO, SUB_LOITER
         self.on_ground = True
         self.landing_touch_wall: float | None = None
-        self._blocked_s = 0.0
+        self._thrust_z = 0.0  # N, the vertical thrust the controller asks for (the land detector's "throttle")
+        self._land_stages = [0.0, 0.0, 0.0]  # s each stage's condition has held: ground contact, maybe, landed
+        self._landed_at: float | None = None  # simulated time the land detector declared the landing (latched)
+        self._incidents_seen = 0  # the world's incidents already announced
         self.sp_pos: np.ndarray | None = None
         self.sp_vel: np.ndarray | None = None
         self.sp_yaw: float | None = None
@@ -601,6 +622,7 @@ class Vehicle:
             if self.armed and not self.crashed:
                 force, torque = self._kinematic_control(dt)
             self.world.apply_vehicle_force(force, torque)
+            self._thrust_z = float(force[2])
             contacts = self.world.step(dt)
         for c in contacts:
             if c.crash and self.armed:
@@ -610,6 +632,7 @@ class Vehicle:
                             f"Crash: hit the {c.name} at {c.speed:.1f} m/s, motors stopped")
             else:
                 self._event(mav.MAV_SEVERITY_CRITICAL, f"Collision with {c.name} at {c.speed:.2f} m/s")
+        self._announce_incidents()
         self._read_state()
         held = self.world.holding()
         name = held.name if held is not None else None
@@ -620,24 +643,54 @@ class Vehicle:
                 self._event(mav.MAV_SEVERITY_INFO, f"Gripper: no longer holding {self.held_name}")
             self.held_name = name
         was = self.on_ground
-        # Resting on something: the gear, the floor, a payload that touched down first (descent blocked while
-        # landing), or anything at all once the motors are off and it no longer moves.
+        # Landed: PX4's land detector (whatever touched down first: the gear, or a payload hanging below the
+        # gripper), or resting on the gear or the floor, or on anything at all once the motors are off and it no
+        # longer moves.
         resting = (self.world.gear_on_something() or self.world.vehicle_position()[2] < 0.003
-                   or self._descent_blocked(dt) or (not self.armed and abs(self.v[2]) < 0.05))
-        self.on_ground = resting and abs(self.v[2]) < 0.15 and (
+                   or (not self.armed and abs(self.v[2]) < 0.05))
+        self.on_ground = self._land_detected(dt) or resting and abs(self.v[2]) < 0.15 and (
             not self.armed or not self._climbing())
         if was and not self.on_ground:
             self.landing_touch_wall = None
 
-    def _descent_blocked(self, dt: float) -> bool:
-        """PX4's land detector in AUTO.LAND: commanded down but no vertical motion for a while means ground
-        contact, whatever touches (the gear, or a payload hanging below the gripper that reached the floor)."""
+    def _announce_incidents(self) -> None:
+        """STATUSTEXT for the world's new gripper strikes, knocked and dropped objects (the airframe's contacts
+        have theirs above)."""
+        texts = {"gripper": "Gripper struck the {thing} ({detail})", "knocked": "Knocked over the {thing} ({detail})",
+                 "dropped": "Dropped the {thing} ({detail})"}
+        new = self.world.incidents[self._incidents_seen:]
+        self._incidents_seen += len(new)
+        for i in new:
+            if i.kind in texts:
+                self._event(mav.MAV_SEVERITY_WARNING, texts[i.kind].format(thing=i.thing, detail=i.detail))
+
+    def _land_detected(self, dt: float) -> bool:
+        """PX4's multicopter land detector in AUTO.LAND (LNDMC_* above): commanded down, not moving and at low
+        thrust means ground contact, whatever touches (the gear, or a payload hanging below the gripper that reached
+        the floor first, slipping a little in the pads); maybe landed, then landed, each after a third of
+        LNDMC_TRIG_TIME without a break."""
+        p = self.params
+        s = self._land_stages
+        if self._landed_at is not None:
+            widened = 2.5 if self.sim_time - self._landed_at < LAND_PHASE_S else 1.0
+            if self.armed and not self._climbing() and abs(self.v[2]) <= widened * LNDMC_Z_VEL_MAX:
+                return True
+            self._landed_at = None
+            s[:] = [0.0, 0.0, 0.0]
         landing = self.main_mode == MAIN_AUTO and self.sub_mode == SUB_LAND
-        if landing and abs(self.v[2]) < 0.05:
-            self._blocked_s += dt
-        else:
-            self._blocked_s = 0.0
-        return self._blocked_s >= LAND_DETECT_S
+        thrust = self._thrust_z if (self._flying or not self.world.multirotor) else 0.0
+        contact = (landing and abs(self.v[2]) <= min(0.45 * p.land_speed, LNDMC_Z_VEL_MAX)
+                   and math.hypot(self.v[0], self.v[1]) <= LNDMC_XY_VEL_MAX
+                   and thrust <= LAND_LOW_THRUST * self.world.vehicle_mass * GRAVITY)
+        still = math.hypot(self.rates[0], self.rates[1]) <= LNDMC_ROT_MAX
+        stage = LNDMC_TRIG_TIME / 3
+        s[0] = s[0] + dt if contact else 0.0
+        s[1] = s[1] + dt if s[0] >= stage and still else 0.0
+        s[2] = s[2] + dt if s[1] >= stage else 0.0
+        if s[2] < stage:
+            return False
+        self._landed_at = self.sim_time
+        return True
 
     def _disturb(self, dt: float) -> None:
         """Advance the disturbances `dt` and apply them: the estimator's error, wind and rotor drag on the body,
@@ -839,6 +892,7 @@ class Vehicle:
         if fh > m * p.max_tilt_accel:
             force_enu[:2] *= m * p.max_tilt_accel / fh
         force_enu[2] = max(force_enu[2], 0.1 * m * GRAVITY)
+        self._thrust_z = float(force_enu[2])
         self._h_force_max = m * min(p.accel_h + float(np.linalg.norm(self.v_int[:2])), p.max_tilt_accel)
         self._z_sp = attitude_setpoint((float(force_enu[0]), float(force_enu[1]), float(force_enu[2])),
                                        p.inner.max_tilt)

@@ -20,6 +20,7 @@ from aermani.evaluation.metrics import (
     zero_net_sequences,
 )
 from aermani.evaluation.records import EpisodeRecord
+from aermani.evaluation.report import _endings_section
 from aermani.evaluation.runner import success_verdict
 from aermani.evaluation.tasks import EvalTask
 from shared.messages import (
@@ -330,6 +331,22 @@ def test_collisions_are_counted_per_episode():
     assert m.collisions_per_episode == pytest.approx(1.0)
 
 
+def test_gripper_strikes_knocked_and_dropped_objects_are_collisions_counted_by_kind():
+    a = record("e1", True, [step(1, "grasp")], collisions=("gripper-table", "knocked-red cup"))
+    b = record("e2", False, [step(1, "grasp")], collisions=("dropped-apple", "vehicle-wall", "gripper-purple cup"))
+    c = record("e3", True, [step(1, "grasp")])  # a clean one
+    old = record("e4", False, [step(1, "forward")], collisions=("vehicle-shelf",))  # before the gripper's tags
+    m = compute([a, b, c, old])
+    assert (m.collisions, m.collision_episodes) == (6, 3)
+    assert (m.vehicle_collisions, m.gripper_strikes, m.knocked_objects, m.dropped_objects) == (2, 2, 1, 1)
+    assert compute([c]).collisions == 0 and compute([c]).gripper_strikes == 0
+    # The report's table counts each kind in its own column.
+    table = next(line for line in _endings_section([a, b, c, old], [("rules", "full")], False)
+                 if line.startswith("| ") and not line.startswith("| Method"))
+    cells = [x.strip() for x in table.strip("|").split("|")]
+    assert cells[7].startswith("6 ") and cells[8:13] == ["2", "2", "1", "1", "3"], cells
+
+
 def test_displacement_rules_from_step_records():
     """The trajectory log as recorded: poses in the skills' outcomes of real ReasoningStep messages."""
     steps = [step(1, "forward", start=_p(0, 0), end=_p(0.5, 0)),
@@ -393,22 +410,19 @@ def test_tt_in_simulated_seconds_beside_the_wall_clock():
 
 
 def test_collisions_are_counted_by_kind_from_the_judge_s_answer():
-    """The runner keeps the judge's `collisions` as they come; the metrics count every entry by kind, so kinds the
-    simulator adds (gripper strikes, knocked or dropped objects) count without a change in the evaluation."""
-    from aermani.evaluation.metrics import collision_kind
+    """The runner keeps the judge's `collisions` as they come; the metrics and the report's end-state table count
+    every entry by its kind (airframe, gripper strikes, knocked and dropped objects)."""
     from aermani.evaluation.report import _endings_section
     from shared.messages import JudgeResult
 
     answers = [JudgeResult(held="red cup", collisions=("vehicle-shelf", "gripper-table", "knocked-red cup")),
-               JudgeResult(collisions=("dropped: coke can", "vehicle-wall")), JudgeResult()]
+               JudgeResult(collisions=("dropped-coke can", "vehicle-wall")), JudgeResult()]
     recs = [record(f"e{i}", i == 0, [step(1, "grasp")], judge=j, collisions=j.collisions)
             for i, j in enumerate(answers)]
     m = compute(recs)
-    assert (m.collisions, m.airframe_collisions, m.other_collisions, m.collision_episodes) == (5, 2, 3, 2)
-    assert m.collision_kinds == {"airframe": 2, "dropped": 1, "gripper": 1, "knocked": 1}
-    assert list(m.collision_kinds) == ["airframe", "dropped", "gripper", "knocked"]
-    assert collision_kind("Airframe: ceiling") == "airframe" and collision_kind("vehicle-round table") == "airframe"
+    assert (m.collisions, m.vehicle_collisions, m.gripper_strikes, m.knocked_objects, m.dropped_objects,
+            m.collision_episodes) == (5, 2, 1, 1, 1, 2)
     row = next(line for line in _endings_section(recs, [("rules", "full")], False) if line.startswith("| rules"))
-    assert "| 5 (2 / 3; 1.67 per episode) | airframe 2, dropped 1, gripper 1, knocked 1 | 2 |" in row, row
+    assert "| 5 (1.67 per episode) | 2 | 1 | 1 | 1 | 2 |" in row, row
     assert row.startswith("| rules (non-VLM baseline) | 3 | 1 | 1 | 0 | 1 | 0 | 5 "), row
-    assert compute([recs[2]]).collision_kinds == {}
+    assert compute([recs[2]]).collisions == 0

@@ -229,7 +229,7 @@ def test_report_states_the_configuration_names_the_rules_baseline_and_lists_ever
                    "rules/full/localization/002-s13 on ?: sim/reset refused the scenario: no room",
                    "restarted (2 trials, the last one is in the metrics): rules/full/localization/001-s12",
                    "takeoff failed: no climb",
-                   "| rules (non-VLM baseline) | 2 | 1 | 2 | 0 | 1 | 0 | 1 (1 / 0; 0.50 per episode) | airframe 1 "
+                   "| rules (non-VLM baseline) | 2 | 1 | 2 | 0 | 1 | 0 | 1 (0.50 per episode) | 1 | 0 | 0 | 0 "
                    "| 1 |",
                    "| AERMANI-VLM (Qwen2-VL) | 77.5 | 4.5 | 22.8 | 8.7 | 0.61 | not run here: needs a GPU/API key |"):
         assert needle in md, needle

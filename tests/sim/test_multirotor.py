@@ -10,8 +10,8 @@ import pytest
 
 from services.sim.disturbances import GaussMarkov, PoseEstimator, Wind, downwash_force, ground_effect
 from services.sim.multirotor import Mixer
-from services.sim.physics import ROTOR_MAX_THRUST, ROTOR_SPIN, ROTOR_XY, ROTOR_YAW_MOMENT
-from services.sim.vehicle import GRAVITY, VehicleParams
+from services.sim.physics import ROTOR_ARM, ROTOR_MAX_THRUST, ROTOR_RADIUS, ROTOR_SPIN, ROTOR_XY, ROTOR_YAW_MOMENT
+from services.sim.vehicle import GRAVITY, ROTOR_SPACING, VehicleParams
 from shared.messages import JudgeRequest, Pose, Scenario, Vec3
 from tests.sim.flight import DT, Clock, make_core, to_offboard
 
@@ -163,7 +163,7 @@ def test_pose_estimator_error_is_bounded_and_wanders():
 
 def test_ground_effect_and_downwash_models():
     assert ground_effect(2.0, 0.075) == pytest.approx(1.0, abs=1e-3)
-    quad = ground_effect(0.18, 0.075, 0.24, 0.17)  # gear on the floor: rotors 18 cm above it
+    quad = ground_effect(0.18, 0.075, 0.24, 0.17)  # rotors 18 cm above a surface
     assert 1.05 < quad < 1.2 and quad > ground_effect(0.18, 0.075)  # the neighbours' wakes add to one rotor's
     assert ground_effect(0.1, 0.075) > ground_effect(0.3, 0.075) > 1.0
     assert ground_effect(0.0, 0.075) == pytest.approx(ground_effect(0.0375, 0.075))  # bounded, finite
@@ -175,14 +175,19 @@ def test_ground_effect_and_downwash_models():
 
 
 def test_ground_effect_lowers_the_thrust_needed_near_the_floor():
-    def hover_thrust(alt: float) -> float:
+    def hover_thrust(alt: float, ground: bool = True) -> float:
         core = make_core(SCENARIO, dynamics="multirotor")
-        core.vehicle.params = VehicleParams(ground_effect=True)
+        core.vehicle.params = VehicleParams(ground_effect=ground)
         clock = Clock(core)
         to_offboard(core, clock, alt=alt)
         return sum(core.world.rotor_thrusts())
 
-    assert hover_thrust(0.12) < 0.97 * hover_thrust(1.5)
+    # The gear (0.25 m, taller than the gripper) keeps the rotors 0.33 m above the floor on the ground: hovering
+    # with the feet 7 cm above it (rotors 0.40 m up) the model's gain is 2.5 %, and nothing far from the floor.
+    expected = 1 / ground_effect(0.40, ROTOR_RADIUS, ROTOR_SPACING, ROTOR_ARM)
+    ratio = hover_thrust(0.07) / hover_thrust(1.5)
+    assert ratio == pytest.approx(expected, abs=0.01) and ratio < 0.985
+    assert hover_thrust(0.07, ground=False) / hover_thrust(1.5) == pytest.approx(1.0, abs=0.005)
 
 
 def test_downwash_pushes_an_object_under_a_rotor():

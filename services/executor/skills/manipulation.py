@@ -28,7 +28,12 @@ from shared.messages import (
     VehicleState,
 )
 
-PAD_BELOW_M = 0.03  # the finger pads reach this far below the gripper point (plus a few mm of margin)
+# The vehicle reaches this far below the gripper point: the finger pads 2.5 cm, the simulated airframe's landing
+# gear 5 mm lower (its feet reach just below the pads, so a landed vehicle's pads clear the floor), plus 5 mm of
+# margin. The pads stop this far above what an object stands on (3 cm kept the pads 5 mm up but put the feet on the
+# table's top: an airframe collision).
+PAD_BELOW_M = 0.035
+EMPTY_CLOSE_M = 0.005  # fingers closed this far without both pads in contact: closed on nothing
 PAD_HALF_M = 0.025  # the finger pads reach this far ahead of and behind the gripper point (5 cm wide)
 VIEW_MARGIN_DEG = 2.0  # the last view keeps the object this far above the image's lowest row (a hover's tilt)
 SIDE_MARGIN_M = 0.03  # room an open pad needs beside the object to pass along it (2 sigma of the measured
@@ -57,9 +62,11 @@ ROLLING_ASPECT = 1.2  # a round footprint no taller than this many diameters rol
 
 
 def grip_depth(height: float, fraction: float) -> float:
-    """How far below an object's top the gripper point goes: a fraction of its height, but the pads must stay
-    above the surface it stands on (a flat wrench is gripped near its middle, pads just above the table)."""
-    return max(0.0, min(fraction * height, height - PAD_BELOW_M))
+    """How far below an object's top the gripper point goes: a fraction of its height, but the pads (and the
+    landing gear's feet below them) must stay above the surface it stands on: an object under 3.5 cm is gripped
+    with the gripper point above its top (negative), the pads 1 cm above the table on its upper part (a 2 cm
+    wrench by its top centimetre; at its top the feet stood on the table)."""
+    return min(fraction * height, height - PAD_BELOW_M)
 
 
 def round_footprint(size: Vec3 | None) -> bool:
@@ -644,9 +651,12 @@ class Grasp(_Manipulation):
         st = ctx.current()
         sensed = st.gripper_width is not None
         if sensed:
-            # The gripper's own sensing: both pads in contact at an opening that fits the object.
+            # The gripper's own sensing: both pads in contact at an opening that fits the object, or the fingers
+            # closed on nothing (no need to wait out the timeout).
             try:
-                st = await ctx.wait_for(lambda st: bool(st.gripper_holding), s.gripper_timeout_s, "fingers closing")
+                st = await ctx.wait_for(lambda st: bool(st.gripper_holding) or (
+                    st.gripper_width is not None and st.gripper_width < EMPTY_CLOSE_M), s.gripper_timeout_s,
+                    "fingers closing")
             except TimeoutError:
                 st = ctx.current()
             width = st.gripper_width or 0.0
