@@ -21,6 +21,8 @@ from shared.sensors import Intrinsics, pose_matrix
 
 MAX_DEPTH_M = 6.0  # stereo range: farther pixels carry no depth
 MIN_DEPTH_M = 0.2  # closer than this the stereo pair cannot match
+NEAR_PLANE_M = 0.03  # OpenGL near plane, absolute: the floor 4-9 cm below a landed camera's lower half stays in view
+FAR_PLANE_M = 30.0  # OpenGL far plane, absolute (the room is 8 m across)
 DEPTH_K = 0.004  # sigma of the depth error = DEPTH_K * z^2 (m; ~1.6 cm at 2 m, like a 5 cm-baseline camera)
 EDGE_JUMP = 0.06  # relative depth jump between neighbours that makes an occlusion edge
 REALISM = ("realistic", "ideal", "harsh")  # harsh: the realistic camera (its extra is in the flight)
@@ -77,6 +79,11 @@ class Renderer:
             self._renderer.close()
         check_gl_platform()
         self.model = mujoco.MjModel.from_xml_string(snap.xml)
+        # MuJoCo's clip planes are fractions of the model's extent (16.7 m for the room, so the MJCF's 0.01 put the
+        # near plane at 0.17 m): set them absolute, or a landed camera 5 cm above the floor, pitched down, sees
+        # the floor of its lower 75 % clipped away (black colour, no depth).
+        self.model.vis.map.znear = NEAR_PLANE_M / self.model.stat.extent
+        self.model.vis.map.zfar = FAR_PLANE_M / self.model.stat.extent
         scale = self.intr.height / DEFAULT_INTRINSICS.height
         if scale != 1.0:  # a coarse camera keeps the field of view
             self.model.vis.global_.offwidth, self.model.vis.global_.offheight = self.intr.width, self.intr.height
