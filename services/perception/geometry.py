@@ -39,14 +39,40 @@ def touches_border(bbox: BBox2D | None, shape: tuple[int, int], margin: int = 1)
     return bbox.x0 < margin or bbox.y0 < margin or bbox.x1 > w - margin or bbox.y1 > h - margin
 
 
+def interior(idx: np.ndarray, shape: tuple[int, int], px: int, keep: int) -> np.ndarray:
+    """The mask's pixels at least `px` pixels inside its edge (a (2 px + 1)-square erosion), when at least `keep`
+    remain, else the whole mask. An RGB-D camera's depth sits a pixel or two off the colour a mask is drawn on
+    (the colour imager's extrinsic calibration error) and a stereo matcher mixes depths along depth edges: a
+    mask's rim carries depths of what lies behind or beside the object, which stretch its footprint away from
+    the camera (a cracker box seen from 0.75 m, 16 cm long, measured 29 cm)."""
+    if px <= 0 or idx.size == 0:
+        return idx
+    h, w = shape
+    v, u = np.divmod(idx, w)
+    y0, y1 = max(int(v.min()) - px, 0), min(int(v.max()) + px + 1, h)
+    x0, x1 = max(int(u.min()) - px, 0), min(int(u.max()) + px + 1, w)
+    crop = np.zeros((y1 - y0, x1 - x0), np.uint8)
+    crop[v - y0, u - x0] = 1
+    inner = cv2.erode(crop, np.ones((2 * px + 1, 2 * px + 1), np.uint8), borderValue=0)
+    iv, iu = np.nonzero(inner)
+    if iv.size < keep:
+        return idx
+    out: np.ndarray = ((iv + y0) * w + (iu + x0)).astype(idx.dtype)
+    return out
+
+
 def lift(frame: Frame, idx: np.ndarray, max_points: int | None = None) -> Cloud:
     """Flat pixel indices -> world points; invalid depth (0 or beyond MAX_DEPTH_M) is dropped; evenly
     subsampled to at most `max_points` (deterministic, so answers are repeatable)."""
     h, w = frame.shape
     d = frame.depth_mm.ravel()[idx]
     keep = (d > 0) & (d < MAX_DEPTH_M * 1000)
+    n_valid = int(np.count_nonzero(keep))  # what the camera returned; mixed depths at edges are then dropped
+    if idx.size:
+        solid = keep & ~flying_pixels(frame, idx)
+        if np.count_nonzero(solid) >= 4:  # a mask that is all edge keeps what it has
+            keep = solid
     good = idx[keep]
-    n_valid = int(good.size)
     if max_points is not None and good.size > max_points:
         good = good[np.linspace(0, good.size - 1, max_points).astype(np.int64)]
     z = frame.depth_mm.ravel()[good].astype(np.float64) * 0.001
@@ -59,6 +85,26 @@ def lift(frame: Frame, idx: np.ndarray, max_points: int | None = None) -> Cloud:
     T = frame.world_from_camera  # noqa: N806
     pts = pc @ T[:3, :3].T + T[:3, 3]
     return Cloud(pts, good, int(idx.size), n_valid)
+
+
+def flying_pixels(frame: Frame, idx: np.ndarray, rel: float = 0.015, abs_mm: float = 8.0) -> np.ndarray:
+    """Which of the pixels `idx` have a depth well between the nearest and the farthest valid depth of their
+    5x5 neighbourhood. A stereo matcher's window straddling a depth edge gives such mixed depths (flying pixels,
+    on both sides of the edge, so the clean depths on either side are two pixels away): points in mid-air along
+    the ray, beside or behind an object, that stretch its footprint box. A pixel on a surface matches (to noise)
+    its neighbours on one side of an edge, so it stays; only in-between values go."""
+    h, w = frame.shape
+    v, u = np.divmod(idx, w)
+    y0, y1 = max(int(v.min()) - 2, 0), min(int(v.max()) + 3, h)
+    x0, x1 = max(int(u.min()) - 2, 0), min(int(u.max()) + 3, w)
+    crop = frame.depth_mm[y0:y1, x0:x1].astype(np.float32)
+    k = np.ones((5, 5), np.uint8)
+    near = cv2.erode(np.where(crop > 0, crop, np.float32(1e9)), k)[v - y0, u - x0]
+    far = cv2.dilate(crop, k)[v - y0, u - x0]
+    d = crop[v - y0, u - x0]
+    t = rel * d + abs_mm
+    out: np.ndarray = (d - near > t) & (far - d > t)
+    return out
 
 
 def remove_outliers(points: np.ndarray, nb_neighbors: int = 16, std_ratio: float = 2.0) -> np.ndarray:

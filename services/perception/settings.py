@@ -26,6 +26,10 @@ class PerceptionSettings(ServiceSettings):
     """Masks with fewer pixels count as not visible."""
     min_points: int = Field(30, ge=3)
     """Fewer valid 3D points than this -> too_few_points."""
+    mask_erode_px: int = Field(2, ge=0, le=8)
+    """An object's depth points come from its mask's interior, this many pixels inside the rim (unless fewer than
+    `min_points` pixels remain): an RGB-D camera's depth sits a pixel or two off the colour the mask is drawn on,
+    and a stereo matcher mixes depths along edges, so the rim carries depths of what lies behind the object."""
     max_object_points: int = Field(3000, ge=100)
     """Object clouds are evenly subsampled to this many points (latency bound)."""
     max_surface_points: int = Field(12000, ge=500)
