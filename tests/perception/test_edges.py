@@ -1,6 +1,7 @@
 """What perception does about a stereo camera's edges: flying pixels (a depth mixed between foreground and
-background) are dropped, a surface's own pixels next to an edge are kept, and an object's points come from its
-mask's interior (the misregistered rim carries the background's depth)."""
+background) are dropped, a surface's own pixels next to an edge are kept, and a mask's rim pixels whose depth is
+the background's (the depth image a pixel off the colour) are dropped while a rim that continues the object
+stays."""
 
 from __future__ import annotations
 
@@ -52,12 +53,21 @@ def test_lift_drops_flying_pixels_and_keeps_their_count_as_returned():
     assert cloud.n_valid == 80 * 82  # what the camera returned, before the filter
 
 
-def test_interior_drops_the_rim_unless_too_little_is_left():
-    _, mask = box_scene()
+def test_rim_pixels_with_the_background_depth_go_the_surface_s_own_rim_stays():
+    """A mask drawn on colour, its depth a pixel off (misregistration): the rim column of the box's mask carries
+    the wall's depth (2 m) and goes; the top rim rows of a tilted surface continue the interior's depth and stay;
+    a thin mask (no interior) keeps everything."""
+    depth = np.full((H, W), 2000, np.uint16)
+    # A surface seen at a grazing angle: depth grows 1 cm per row (rows 200-279), the box's columns 200-279.
+    depth[200:280, 200:280] = (1000 + 10 * (np.arange(80)[:, None] * np.ones((1, 80)))).astype(np.uint16)
+    depth[200:280, 198:200] = 2000  # the mask's two left columns show the wall behind (depth shifted)
+    mask = np.zeros((H, W), bool)
+    mask[200:280, 198:280] = True
     idx = np.flatnonzero(mask.ravel())
-    inner = geo.interior(idx, (H, W), 2, keep=30)
-    v, u = np.divmod(inner, W)
-    assert (u.min(), u.max(), v.min(), v.max()) == (201, 278, 202, 277)
+    out = geo.rim_outliers(frame(depth), idx, 2)
+    v, u = np.divmod(idx[out], W)
+    assert set(u.tolist()) == {198, 199} and out.sum() == 160
+    assert not geo.rim_outliers(frame(depth), idx, 0).any()
     thin = np.flatnonzero((np.arange(H * W) // W == 240) & (np.arange(H * W) % W < 50))  # a 1-px line
-    assert np.array_equal(geo.interior(thin, (H, W), 2, keep=30), thin)
-    assert np.array_equal(geo.interior(idx, (H, W), 0, keep=30), idx)
+    depth[240, :50] = np.arange(50) * 100 + 500
+    assert not geo.rim_outliers(frame(depth), thin, 2).any()
