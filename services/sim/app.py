@@ -233,7 +233,7 @@ class CameraPublisher:
                     # consumers see frames older than the pose (the render already took part of that time).
                     late = captured + self.latency_s - self.clock()
                     if late > 0:
-                        asyncio.get_running_loop().call_later(late, self._publish_frames, color, depth, seg)
+                        asyncio.get_running_loop().call_later(late, self._publish_late, stop, color, depth, seg)
                     else:
                         self._publish_frames(color, depth, seg)
                     self.frames += 1
@@ -254,6 +254,11 @@ class CameraPublisher:
         self.bus.publish(self.keys.tf, self.transforms(self.core.snapshot(), stamp, self.mount_error), reliable=False)
         if self.fault == "stuck" and self.last_frames is not None:
             self._publish_frames(*self.last_frames)
+
+    def _publish_late(self, stop: asyncio.Event, color: bytes, depth: bytes, seg: bytes | None) -> None:
+        """A frame whose latency ran out; none once the loop stopped (the bus may be closing)."""
+        if not stop.is_set():
+            self._publish_frames(color, depth, seg)
 
     def _publish_frames(self, color: bytes, depth: bytes, seg: bytes | None) -> None:
         assert self.bus is not None
