@@ -113,8 +113,9 @@ class ExecutorSettings(ServiceSettings):
     """Horizontal distance from the object at which grasp/place re-localize, facing it, metres."""
     reach: float = 2.0
     """Grasp starts only for an object within this horizontal distance, metres; beyond it the skill is
-    rejected with "too far: approach first". Default from the measured localization error against distance
-    under the realistic depth noise (docs/skills.md, benchmarks/localization_reach.py)."""
+    rejected with "too far: approach first". Bounded by grasp's first re-look from the standoff (the object must
+    be re-found within max_object_shift of memory): the measured error curve of the realistic depth camera
+    (benchmarks/depth_error.py) plus the estimate's drift keeps that within budget up to 3 m; docs/skills.md."""
     place_reach: float = 6.0
     """Place starts only for a placement spot within this horizontal distance, metres (not yet from a measured
     curve: the placement estimate is re-used as is, and the rules baseline approaches a surface by where it

@@ -39,14 +39,47 @@ def touches_border(bbox: BBox2D | None, shape: tuple[int, int], margin: int = 1)
     return bbox.x0 < margin or bbox.y0 < margin or bbox.x1 > w - margin or bbox.y1 > h - margin
 
 
+def rim_outliers(frame: Frame, idx: np.ndarray, px: int, rel: float = 0.02, abs_mm: float = 20.0) -> np.ndarray:
+    """Which of the mask's pixels lie on its rim (within `px` of its edge) with a depth outside the range of the
+    mask's interior depths around them (a (4 px + 1)-square window) by more than `rel` * depth + `abs_mm`. The
+    depth image of an RGB-D camera sits a pixel or two off the colour the mask is drawn on (the colour imager's
+    calibration), so the rim carries depths of what lies behind or in front of the object; a rim pixel that
+    continues the object's surface stays (unlike eroding the mask, which also takes the far edge of a small or
+    distant object's visible top and pulls its footprint towards the camera). A rim pixel with no interior near
+    it (a thin part) stays too."""
+    out = np.zeros(idx.shape, bool)
+    if px <= 0 or idx.size == 0:
+        return out
+    h, w = frame.shape
+    v, u = np.divmod(idx, w)
+    y0, y1 = max(int(v.min()) - 2 * px, 0), min(int(v.max()) + 2 * px + 1, h)
+    x0, x1 = max(int(u.min()) - 2 * px, 0), min(int(u.max()) + 2 * px + 1, w)
+    mask = np.zeros((y1 - y0, x1 - x0), np.uint8)
+    mask[v - y0, u - x0] = 1
+    depth = frame.depth_mm[y0:y1, x0:x1].astype(np.float32)
+    inner = (cv2.erode(mask, np.ones((2 * px + 1, 2 * px + 1), np.uint8), borderValue=0) > 0) & (depth > 0)
+    k = np.ones((4 * px + 1, 4 * px + 1), np.uint8)
+    hi = cv2.dilate(np.where(inner, depth, np.float32(0.0)), k)[v - y0, u - x0]
+    lo = cv2.erode(np.where(inner, depth, np.float32(1e9)), k)[v - y0, u - x0]
+    d = depth[v - y0, u - x0]
+    t = rel * d + abs_mm
+    rim = ~inner[v - y0, u - x0] & (d > 0) & (hi > 0)
+    out = rim & ((d > hi + t) | (d < lo - t))
+    return out
+
+
 def lift(frame: Frame, idx: np.ndarray, max_points: int | None = None) -> Cloud:
     """Flat pixel indices -> world points; invalid depth (0 or beyond MAX_DEPTH_M) is dropped; evenly
     subsampled to at most `max_points` (deterministic, so answers are repeatable)."""
     h, w = frame.shape
     d = frame.depth_mm.ravel()[idx]
     keep = (d > 0) & (d < MAX_DEPTH_M * 1000)
+    n_valid = int(np.count_nonzero(keep))  # what the camera returned; mixed depths at edges are then dropped
+    if idx.size:
+        solid = keep & ~flying_pixels(frame, idx)
+        if np.count_nonzero(solid) >= 4:  # a mask that is all edge keeps what it has
+            keep = solid
     good = idx[keep]
-    n_valid = int(good.size)
     if max_points is not None and good.size > max_points:
         good = good[np.linspace(0, good.size - 1, max_points).astype(np.int64)]
     z = frame.depth_mm.ravel()[good].astype(np.float64) * 0.001
@@ -59,6 +92,26 @@ def lift(frame: Frame, idx: np.ndarray, max_points: int | None = None) -> Cloud:
     T = frame.world_from_camera  # noqa: N806
     pts = pc @ T[:3, :3].T + T[:3, 3]
     return Cloud(pts, good, int(idx.size), n_valid)
+
+
+def flying_pixels(frame: Frame, idx: np.ndarray, rel: float = 0.015, abs_mm: float = 8.0) -> np.ndarray:
+    """Which of the pixels `idx` have a depth well between the nearest and the farthest valid depth of their
+    5x5 neighbourhood. A stereo matcher's window straddling a depth edge gives such mixed depths (flying pixels,
+    on both sides of the edge, so the clean depths on either side are two pixels away): points in mid-air along
+    the ray, beside or behind an object, that stretch its footprint box. A pixel on a surface matches (to noise)
+    its neighbours on one side of an edge, so it stays; only in-between values go."""
+    h, w = frame.shape
+    v, u = np.divmod(idx, w)
+    y0, y1 = max(int(v.min()) - 2, 0), min(int(v.max()) + 3, h)
+    x0, x1 = max(int(u.min()) - 2, 0), min(int(u.max()) + 3, w)
+    crop = frame.depth_mm[y0:y1, x0:x1].astype(np.float32)
+    k = np.ones((5, 5), np.uint8)
+    near = cv2.erode(np.where(crop > 0, crop, np.float32(1e9)), k)[v - y0, u - x0]
+    far = cv2.dilate(crop, k)[v - y0, u - x0]
+    d = crop[v - y0, u - x0]
+    t = rel * d + abs_mm
+    out: np.ndarray = (d - near > t) & (far - d > t)
+    return out
 
 
 def remove_outliers(points: np.ndarray, nb_neighbors: int = 16, std_ratio: float = 2.0) -> np.ndarray:

@@ -65,7 +65,7 @@ class Perception:
 
     def localize_object(self, frame: Frame, req: LocalizeRequest, parsed: q.Query) -> ObjectEstimate:
         target = self._target(frame, parsed, OBJECT_CATEGORIES, ObjectEstimate, self.settings.max_object_points,
-                              self.settings.min_pixels)
+                              self.settings.min_pixels, self.settings.rim_px)
         if not isinstance(target, _Target):
             return target
         found, seg, idx, bbox, cloud, base = target
@@ -123,9 +123,10 @@ class Perception:
             confidence=round(float(conf), 3), n_points=int(inliers.size), **base)
 
     def _target(self, frame: Frame, parsed: q.Query, categories: tuple[str, ...], estimate: type[E], max_points: int,
-                min_pixels: int = 0) -> _Target | E:
-        """What the query names, its pixels and their depth points; or the `estimate` saying why not (a bad
-        query, not found, too few pixels, no valid depth)."""
+                min_pixels: int = 0, rim_px: int = 0) -> _Target | E:
+        """What the query names, its pixels and their depth points (without the rim pixels, `rim_px` wide, whose
+        depth does not continue the mask's interior); or the `estimate` saying why not (a bad query, not found,
+        too few pixels, no valid depth)."""
         base: dict[str, Any] = {"query": parsed.text, "frame_stamp_ns": frame.stamp_ns}
         try:
             found = self.segmenter.find(frame, parsed, categories)
@@ -139,7 +140,7 @@ class Perception:
         base.update(label=seg.label, bbox=bbox)
         if idx.size < min_pixels:
             return estimate(found=False, reason="not_visible", message=f"{seg.label}: only {idx.size} pixels", **base)
-        cloud = geo.lift(frame, idx, max_points)
+        cloud = geo.lift(frame, idx[~geo.rim_outliers(frame, idx, rim_px)] if rim_px else idx, max_points)
         if cloud.n_valid == 0:
             return estimate(found=False, reason="depth_invalid", n_points=0,
                             message=f"{seg.label} is in view ({idx.size} px) but has no valid depth", **base)

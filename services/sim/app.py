@@ -15,6 +15,7 @@ import numpy as np
 
 from services.sim.core import SimCore
 from services.sim.mavlink_server import LinkSettings, MavlinkServer
+from services.sim.render import FLAWS
 from services.sim.render_worker import FrameEncoder, RenderWorker
 from services.sim.settings import SimSettings
 from services.sim.snapshot import SnapshotError, reseed
@@ -114,10 +115,13 @@ class CameraPublisher:
             pass  # no renderer at all: nothing is drawn
         elif settings.render_process:
             self.worker = RenderWorker(settings.render_scale, settings.jpeg_quality, settings.realism,
-                                       seed=camera_seed(settings))
+                                       seed=camera_seed(settings), unit=settings.camera_unit)
         else:
             self.encoder = FrameEncoder(settings.render_scale, settings.jpeg_quality, settings.realism,
-                                        seed=camera_seed(settings))
+                                        seed=camera_seed(settings), unit=settings.camera_unit)
+        self.latency_s = (FLAWS[settings.realism].latency_s if settings.camera_latency_s is None
+                          else settings.camera_latency_s)
+        self.clock = time.monotonic  # what a frame's capture and its publication are timed with
         self.frames = 0
         self.recent: deque[float] = deque(maxlen=600)
         self.failures = 0
@@ -204,7 +208,7 @@ class CameraPublisher:
                 if now - last_labels >= 1.0:
                     bus.publish(self.keys.health("sim"), self.health())
                 last_labels, self.last_labels_version = now, version
-            stamp = now_ns()
+            stamp, captured = now_ns(), self.clock()
             if not self.settings.camera:
                 pass  # the camera service publishes frames and tf; the bridge publishes world->base_link
             elif self._camera_fault() != "ok":
@@ -224,8 +228,14 @@ class CameraPublisher:
                     log.exception("rendering failed; retrying next frame")
                 else:
                     self.last_frames = (color, depth, seg)
-                    self._publish_frames(color, depth, seg)
-                    bus.publish(self.keys.tf, tf)
+                    bus.publish(self.keys.tf, tf)  # the pose comes from the autopilot, without the camera's delay
+                    # A real camera delivers a frame some time after its capture, stamped with the capture time:
+                    # consumers see frames older than the pose (the render already took part of that time).
+                    late = captured + self.latency_s - self.clock()
+                    if late > 0:
+                        asyncio.get_running_loop().call_later(late, self._publish_late, stop, color, depth, seg)
+                    else:
+                        self._publish_frames(color, depth, seg)
                     self.frames += 1
                     self.failures = 0
                     self.recent.append(time.monotonic())
@@ -245,6 +255,11 @@ class CameraPublisher:
         if self.fault == "stuck" and self.last_frames is not None:
             self._publish_frames(*self.last_frames)
 
+    def _publish_late(self, stop: asyncio.Event, color: bytes, depth: bytes, seg: bytes | None) -> None:
+        """A frame whose latency ran out; none once the loop stopped (the bus may be closing)."""
+        if not stop.is_set():
+            self._publish_frames(color, depth, seg)
+
     def _publish_frames(self, color: bytes, depth: bytes, seg: bytes | None) -> None:
         assert self.bus is not None
         self.bus.publish(self.keys.camera_color, color)
@@ -259,7 +274,8 @@ class CameraPublisher:
             now = time.monotonic()
             fps = sum(1 for t in self.recent if now - t <= 5.0) / 5.0
             details = {"fps_5s": fps, "frames": st["frames"], "idle_frames": st["idle_frames"],
-                       "camera_fault": self.fault,
+                       "camera_fault": self.fault, "camera_unit": self.settings.camera_unit,
+                       "camera_latency_s": self.latency_s,
                        "camera": self.settings.camera, "mode": v.mode_name, "armed": v.armed,
                        "realism": self.core.realism, "dynamics": self.core.dynamics,
                        "scenario_seed": self.core.scenario.seed, "restore_seed": self.settings.restore_seed,

@@ -34,7 +34,7 @@ def render_cmd(
     destination: Annotated[str | None, typer.Option(help="Destination surface.")] = None,
     out_of_view: Annotated[bool, typer.Option(help="Put the target out of the initial view.")] = False,
     altitude: Annotated[float, typer.Option(help="Camera height above the start point, metres.")] = 1.5,
-    realism: Annotated[str, typer.Option(help="realistic (noise, exposure), harsh or ideal.")] = "realistic",
+    realism: Annotated[str, typer.Option(help="realistic (stereo camera flaws), harsh or ideal.")] = "realistic",
     out: Annotated[Path, typer.Option(help="PNG to write (a _seg.png with instance colours goes beside it).")]
     = Path("sim_view.png"),
 ) -> None:

@@ -47,11 +47,12 @@ def coarse_intrinsics(scale: int, full: Intrinsics = DEFAULT_INTRINSICS) -> Intr
 class FrameEncoder:
     """Render + upsample + encode one frame (runs in the worker process, or in-process for tests)."""
 
-    def __init__(self, scale: int = 1, jpeg_quality: int = 85, realism: str = "realistic", seed: int = 0) -> None:
+    def __init__(self, scale: int = 1, jpeg_quality: int = 85, realism: str = "realistic", seed: int = 0,
+                 unit: int = 0) -> None:
         from services.sim.render import Renderer
 
         self.scale, self.quality = scale, jpeg_quality
-        self.renderer = Renderer(coarse_intrinsics(scale), realism=realism, seed=seed)
+        self.renderer = Renderer(coarse_intrinsics(scale), realism=realism, seed=seed, unit=unit)
 
     def __call__(self, snap: Snapshot, stamp_ns: int, segmentation: bool = True) -> Encoded:
         t0 = time.perf_counter()
@@ -68,8 +69,8 @@ class FrameEncoder:
                        time.perf_counter() - t0)
 
 
-def _worker(conn, scale: int, quality: int, realism: str, seed: int = 0) -> None:  # runs in the child
-    encoder = FrameEncoder(scale, quality, realism, seed)
+def _worker(conn, scale: int, quality: int, realism: str, seed: int = 0, unit: int = 0) -> None:  # in the child
+    encoder = FrameEncoder(scale, quality, realism, seed, unit)
     conn.send("ready")
     while True:
         try:
@@ -91,11 +92,11 @@ class RenderWorker:
     which would re-import whatever script happens to be the parent's __main__."""
 
     def __init__(self, scale: int = 1, jpeg_quality: int = 85, realism: str = "realistic", seed: int = 0,
-                 start_timeout: float = 120.0) -> None:
+                 start_timeout: float = 120.0, unit: int = 0) -> None:
         parent, child = socket.socketpair()
         self._proc = subprocess.Popen(
             [sys.executable, "-m", "services.sim.render_worker", str(child.fileno()), str(scale), str(jpeg_quality),
-             realism, str(seed)],
+             realism, str(seed), str(unit)],
             pass_fds=(child.fileno(),), cwd=str(Path(__file__).resolve().parents[2]))
         child.close()
         self._conn = Connection(parent.detach())
@@ -131,4 +132,5 @@ if __name__ == "__main__":
     # Import by name so pickled frames reference services.sim.render_worker.Encoded, not __main__.Encoded.
     from services.sim.render_worker import _worker as worker
 
-    worker(Connection(int(sys.argv[1])), int(sys.argv[2]), int(sys.argv[3]), sys.argv[4], int(sys.argv[5]))
+    worker(Connection(int(sys.argv[1])), int(sys.argv[2]), int(sys.argv[3]), sys.argv[4], int(sys.argv[5]),
+           int(sys.argv[6]))

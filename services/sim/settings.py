@@ -53,11 +53,18 @@ class SimSettings(ServiceSettings):
     render_scale: int = Field(1, ge=1, le=4)
     """Render at 1/render_scale of the resolution and upsample (1 = full resolution)."""
     realism: Literal["realistic", "ideal", "harsh"] = "realistic"
-    """realistic: stereo depth noise and holes, exposure and lighting variation, textured objects and a drifting
-    VIO-like pose estimate; with dynamics=multirotor also indoor air (draft, turbulence, gusts), thrust noise,
-    ground effect and downwash (hover error sigma 2-5 cm). harsh: the same camera; with dynamics=multirotor
-    stronger wind and gusts and a worse estimate (stress tests). ideal: clean buffers, primitive shapes, still
-    air and the true pose (debugging)."""
+    """realistic: a stereo depth camera's flaws (noise, scale bias, occlusion bands, flying pixels, dropouts,
+    colour/depth misregistration, frame latency), exposure and lighting variation, textured objects and a
+    drifting VIO-like pose estimate; with dynamics=multirotor also indoor air (draft, turbulence, gusts), thrust
+    noise, ground effect and downwash (hover error sigma 2-5 cm). harsh: the same camera flaws, worse; with
+    dynamics=multirotor stronger wind and gusts and a worse estimate (stress tests). ideal: clean buffers,
+    primitive shapes, still air and the true pose (debugging). services/sim/README.md (Realism)."""
+    camera_unit: int = Field(0, ge=0)
+    """The simulated camera unit: its depth scale bias and colour/depth misregistration are drawn from it (a
+    unit's calibration error, the same in every run), services/sim/README.md (Realism)."""
+    camera_latency_s: float | None = Field(None, ge=0, le=1.0)
+    """Delay from a frame's capture to its publication, seconds; frames keep the capture stamp and tf is not
+    delayed. Empty: the realism level's (ideal 0, realistic 0.07, harsh 0.15)."""
     dynamics: Literal["kinematic", "multirotor"] = "kinematic"
     """The vehicle's body. kinematic: an ideal body on sliding joints pushed by a perfect world-frame force (it
     never tilts; position error in hover a few mm). multirotor: a free rigid body with four lagged rotors flown by

@@ -41,10 +41,16 @@ SEED, TARGET = 3, "red cup"
 
 
 def write_view(folder, world, x: float, y: float, z: float, yaw: float) -> None:
-    from services.sim.render import snapshot_at
-    from tests.perception.scenes import renderer
+    """The view as a clean depth camera sees it (`ideal` buffers): the check is of the plumbing (pixels, depth,
+    calibration, mount, the bridge's pose), and the target is ~3 m away, where a real stereo camera's unit bias
+    alone is 5-7 cm (services/sim/README.md, Realism), more than the 5 cm a plumbing error must show within."""
+    from services.sim.render import Renderer, snapshot_at
 
-    f = renderer().render(snapshot_at(world, np.array([x, y, z]), yaw))
+    r = Renderer(realism="ideal")
+    try:
+        f = r.render(snapshot_at(world, np.array([x, y, z]), yaw))
+    finally:
+        r.close()
     folder.mkdir(parents=True)
     cv2.imwrite(str(folder / "0000.png"), cv2.cvtColor(f.rgb, cv2.COLOR_RGB2BGR))
     cv2.imwrite(str(folder / "0000_depth.png"), f.depth_mm)

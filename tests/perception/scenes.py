@@ -43,9 +43,10 @@ class View:
 
 
 def render_view(world: World, x: float, y: float, z: float, yaw: float, stamp_ns: int | None = None,
-                jpeg_quality: int = 85) -> View:
-    """Render the world from a body pose into a perception Frame (colour goes through JPEG like on the bus)."""
-    r = renderer()
+                jpeg_quality: int = 85, camera: Renderer | None = None) -> View:
+    """Render the world from a body pose into a perception Frame (colour goes through JPEG like on the bus);
+    `camera` defaults to the seeded realistic one."""
+    r = camera or renderer()
     f = r.render(snapshot_at(world, np.array([x, y, z]), yaw))
     stamp = stamp_ns or time.time_ns()
     frame = Frame(stamp, f.depth_mm, DEFAULT_INTRINSICS, f.camera_to_world, time.time_ns(),
@@ -107,6 +108,19 @@ def unoccluded_pixels(view: View, entity: Entity) -> int:
     x, y, z, yaw = view.body
     f = Renderer(realism="ideal").render(snapshot_at(alone, np.array([x, y, z]), yaw))
     return int((f.instance == entity.id).sum())
+
+
+def classify(view: View, e: Entity) -> str:
+    """How `e` appears in `view`: "in_view" (at least 100 px, the whole bounding box projects inside the image,
+    within 3 m of the camera, at least half of its pixels unoccluded), "absent" (no pixel) or "partial"."""
+    px = int((view.instance == e.id).sum())
+    if px == 0:
+        return "absent"
+    if (px >= 100 and projected_corners_in_view(e, view.frame)
+            and np.linalg.norm(e.center - view.frame.world_from_camera[:3, 3]) <= 3.0
+            and px >= 0.5 * unoccluded_pixels(view, e)):
+        return "in_view"
+    return "partial"
 
 
 def furniture(name: str, x: float, y: float) -> Entity:
