@@ -6,7 +6,7 @@ Usage: .venv/bin/python scripts/demo_frames.py [--out docs/images] [--realism re
 The scenario is the one `make demo` runs (`aermani demo` with its defaults: layout seed 0, the command's target
 and destination, realism `realistic`, camera unit 0). Two views, through the level's camera model
 (services/sim/render.py):
-- `ground`: the vehicle landed at its start pose (gear on the floor, the camera 5 cm above it);
+- `ground`: the vehicle landed at its start pose (gear on the floor, the camera 0.2 m above it);
 - `near`: at the flight altitude (1.5 m), 1 m from the target horizontally on the side it comes from, facing it.
 Writes `demo_<view>_color.png` and `demo_<view>_depth.png` (turbo colour map from 0.2 m to 4 m with its scale,
 black = no depth) under `--out`, colour quantized to an adaptive 256-colour palette so each file stays small.
