@@ -31,9 +31,10 @@ def test_a_landed_camera_sees_the_floor(realism, monkeypatch):
     """Landed (gear on the floor), the camera is CAMERA_OFFSET_BODY[2] - FLOOR_Z above it (0.2 m with the gear
     that reaches below the gripper's pads; 5 cm when this test was written), pitched 35 deg down: the lower half of
     the image is floor a few tens of centimetres from the lens. MuJoCo's near plane, a fraction of the model's
-    extent (0.17 m here), clipped the nearest of it: black colour, no depth. With the absolute near plane it renders: floor in colour and segmentation,
-    and in the clean z-buffer at the floor's distance (checked with the stereo minimum range lifted: a real stereo
-    camera, like the simulated one, returns no depth nearer than 0.2 m, i.e. below row ~100)."""
+    extent (0.17 m here), clipped the nearest of it: black colour, no depth. With the absolute near plane it
+    renders: floor in colour and segmentation, and in the clean z-buffer at the floor's distance (checked with the
+    stereo minimum range lifted: a real stereo camera, like the simulated one, returns no depth nearer than
+    0.2 m)."""
     world = layout(1, look="primitive" if realism == "ideal" else "textured")
     start = np.array([0.0, 0.0, 0.0])
     snap = snapshot_at(world, start, 0.3)
