@@ -51,7 +51,7 @@ class SimCore:
                  dynamics: str | None = None) -> None:
         self.lock = threading.RLock()
         self.realism = realism
-        if dynamics is None:  # the configured one (AERMANI_SIM_DYNAMICS, kinematic by default)
+        if dynamics is None:  # the configured one (AERMANI_SIM_DYNAMICS, multirotor by default)
             dynamics = configured_dynamics()
         self.dynamics = dynamics  # physics.DYNAMICS: the vehicle's body (SimSettings.dynamics)
         world, filled, start = generate(scenario, light_variation=realism != "ideal", look=look_for(realism),

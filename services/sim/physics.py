@@ -25,6 +25,7 @@ import mujoco
 import numpy as np
 
 from services.sim.layout import FLOOR_Z, VEHICLE_BELOW, VEHICLE_HEIGHT, VEHICLE_RADIUS, Entity
+from services.sim.settings import DEFAULT_DYNAMICS
 from shared.frames import CAMERA_OFFSET_BODY, CAMERA_PITCH_DOWN, DEFAULT_INTRINSICS, GRIPPER_OFFSET_BODY
 from shared.messages import JudgeCheck, JudgeCriteria
 
@@ -121,9 +122,9 @@ LOOKS = ("primitive", "textured")
 
 
 def configured_dynamics() -> str:
-    """The dynamics `AERMANI_SIM_DYNAMICS` names, `kinematic` when unset: the variable `SimSettings.dynamics`
+    """The dynamics `AERMANI_SIM_DYNAMICS` names, DEFAULT_DYNAMICS when unset: the variable `SimSettings.dynamics`
     reads, for code that builds a world without the settings (`SimCore` in-process, tests)."""
-    value = os.environ.get("AERMANI_SIM_DYNAMICS", "").strip().lower() or "kinematic"
+    value = os.environ.get("AERMANI_SIM_DYNAMICS", "").strip().lower() or DEFAULT_DYNAMICS
     if value not in DYNAMICS:
         raise ValueError(f"AERMANI_SIM_DYNAMICS={value!r}: {' or '.join(DYNAMICS)}")
     return value

@@ -9,6 +9,9 @@ from pydantic_settings import NoDecode, SettingsConfigDict
 
 from shared.settings import ServiceSettings, parse_endpoints
 
+DEFAULT_DYNAMICS: Literal["kinematic", "multirotor"] = "multirotor"
+"""The vehicle's body when AERMANI_SIM_DYNAMICS is unset (`dynamics` below; `physics.configured_dynamics`)."""
+
 
 class SimSettings(ServiceSettings):
     """Simulator configuration (AERMANI_SIM_*): scenario seed and target, realism, rates and camera."""
@@ -65,7 +68,7 @@ class SimSettings(ServiceSettings):
     camera_latency_s: float | None = Field(None, ge=0, le=1.0)
     """Delay from a frame's capture to its publication, seconds; frames keep the capture stamp and tf is not
     delayed. Empty: the realism level's (ideal 0, realistic 0.07, harsh 0.15)."""
-    dynamics: Literal["kinematic", "multirotor"] = "kinematic"
+    dynamics: Literal["kinematic", "multirotor"] = DEFAULT_DYNAMICS
     """The vehicle's body. kinematic: an ideal body on sliding joints pushed by a perfect world-frame force (it
     never tilts; position error in hover a few mm). multirotor: a free rigid body with four lagged rotors flown by
     a PX4-style cascade (position/velocity, attitude, rate, mixer), which tilts to accelerate and carries the

@@ -13,8 +13,9 @@ from shared.messages import Scenario
 DT = 0.01
 
 
-def make_core(scenario: Scenario, realism: str = "ideal", dynamics: str | None = None) -> SimCore:
-    """`dynamics` None: the configured one (AERMANI_SIM_DYNAMICS, kinematic by default)."""
+def make_core(scenario: Scenario, realism: str = "ideal", dynamics: str | None = "kinematic") -> SimCore:
+    """The kinematic body unless asked (its flight is exact, so tests of the modes, the judge, contacts and faults
+    are about them, not about a hover's wander); `dynamics` None: the configured one (AERMANI_SIM_DYNAMICS)."""
     return SimCore(scenario, realism_params(realism), realism=realism, dynamics=dynamics)
 
 
