@@ -1,25 +1,21 @@
 """Closed-loop grasp and place success against the vehicle's position error, over the catalogue objects.
 
-Usage: .venv/bin/python benchmarks/grasp.py [--levels ideal,realistic,harsh,wander,mr-realistic] [--calls 4]
-       [--seed 0] [--json PATH]
+Usage: .venv/bin/python benchmarks/grasp.py [--levels ideal,realistic,harsh,kinematic] [--calls 4] [--seed 0]
+       [--seeds LIST] [--keep DIR] [--json PATH]
 
-For each realism level a real stack runs (sim, autopilot bridge, perception with the colour segmenter, executor,
-as processes over Zenoh and MAVLink/UDP); each call resets the sim to a seeded layout with the next catalogue
-object as the target, takes off, flies within 2 m of it (steered by the judge: search is not measured), localizes
-and approaches it like a policy would, runs grasp once
-(its own retries inside), and when it holds something, flies toward the layout's destination (steered by the
-judge: search is not measured here), placement_localization and place on it. The simulator's ground truth
-judges: the target held after grasp, at rest on the destination after place. Levels, on the kinematic body
-(position error emulated):
-  ideal      the estimate is the truth, the vehicle settles on its setpoints;
-  realistic  the sim's realistic estimate (2 mm noise, bias drifting up to 3 cm) and camera;
-  harsh      realistic plus a steady 4.6 cm hover offset off every setpoint (sim/fault hover offset);
-  wander     realistic plus a hover that circles its setpoint at 2 cm radius every 4 s (sim/fault hover wander);
-and on the multirotor (AERMANI_SIM_DYNAMICS=multirotor: the quadrotor and its cascade, the position error its
-own: the realistic estimator's Gauss-Markov drift, turbulence, gusts, thrust noise, ground effect, downwash;
-services/sim/README.md "Dynamics", "Disturbances"):
-  mr-ideal, mr-realistic, mr-harsh   the sim's realism levels of the same names.
-Calls whose object was never found or stayed beyond reach count separately (not a grasp question).
+For each level a real stack runs (sim, autopilot bridge, perception with the colour segmenter, executor, as
+processes over Zenoh and MAVLink/UDP); each call resets the sim to a seeded layout with the next catalogue object
+as the target (the object follows the seed), takes off, flies within 2 m of it (steered by the judge: search is
+not measured), localizes and approaches it like a policy would, runs grasp once (its own retries inside), and when
+it holds something, flies toward the layout's destination (steered by the judge), placement_localization and
+place on it. The simulator's ground truth judges: the target held after grasp, at rest on the destination after
+place. Levels:
+  ideal, realistic, harsh   the multirotor (the simulator's default body: its PX4-style cascade, its own position
+                            error from the estimator's drift, turbulence, gusts, thrust noise, ground effect and
+                            downwash; services/sim/README.md "Dynamics") at the realism level of that name;
+  kinematic                 the ideal body on sliding joints (millimetres of hover error) in realistic, to
+                            compare with.
+Calls whose object was not found near it or stayed beyond reach count separately (not a grasp question).
 """
 
 from __future__ import annotations
@@ -43,14 +39,9 @@ from tests.helpers import bus_for, run_stack  # noqa: E402
 
 SERVICES = ["sim", "autopilot_bridge", "perception", "executor"]
 LEVELS: dict[str, tuple[dict[str, str], list[dict]]] = {  # sim environment, sim/fault requests at the start
-    "ideal": ({"AERMANI_SIM_REALISM": "ideal"}, []),
-    "realistic": ({"AERMANI_SIM_REALISM": "realistic"}, []),
-    "harsh": ({"AERMANI_SIM_REALISM": "realistic"},
-              [{"unit": "hover", "type": "offset", "x": 0.035, "y": -0.03}]),
-    "wander": ({"AERMANI_SIM_REALISM": "realistic"},
-               [{"unit": "hover", "type": "wander", "radius_m": 0.02, "period_s": 4.0}]),
-    **{f"mr-{realism}": ({"AERMANI_SIM_DYNAMICS": "multirotor", "AERMANI_SIM_REALISM": realism}, [])
+    **{realism: ({"AERMANI_SIM_DYNAMICS": "multirotor", "AERMANI_SIM_REALISM": realism}, [])
        for realism in ("ideal", "realistic", "harsh")},
+    "kinematic": ({"AERMANI_SIM_DYNAMICS": "kinematic", "AERMANI_SIM_REALISM": "realistic"}, []),
 }
 GRIPPABLE = [n for n, o in OBJECTS.items() if min(o.size[0], o.size[1]) <= 0.17]
 
@@ -170,13 +161,15 @@ async def run_level(level: str, seeds: list[int], speed: float, tmp: Path) -> li
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--levels", default="ideal,realistic,harsh,wander")
+    ap.add_argument("--levels", default="ideal,realistic,harsh")
     ap.add_argument("--calls", type=int, default=4, help="grasp calls per level (the catalogue cycles)")
     ap.add_argument("--seed", type=int, default=0, help="first layout seed (call i uses seed + i)")
     ap.add_argument("--speed", type=float, default=3.0, help="sim speed factor")
     ap.add_argument("--seeds", default=None, metavar="LIST",
                     help="comma-separated layout seeds instead of --seed/--calls (the catalogue object follows "
                     "the seed)")
+    ap.add_argument("--level-calls", default="", metavar="LEVEL=N,...",
+                    help="calls for some levels instead of --calls (their seeds run on from --seed)")
     ap.add_argument("--keep", type=Path, default=None, metavar="DIR",
                     help="keep every service's log under DIR/<level>/logs (default: a temporary directory)")
     add_json_option(ap)
@@ -184,9 +177,11 @@ def main() -> None:
     figures: dict = {}
     all_rows: dict = {}
     seeds = [int(x) for x in a.seeds.split(",")] if a.seeds else list(range(a.seed, a.seed + a.calls))
+    per_level = {k: int(v) for k, v in (x.split("=") for x in a.level_calls.split(",") if x)}
     with tempfile.TemporaryDirectory() as tmp:
         for level in a.levels.split(","):
-            rows = asyncio.run(run_level(level, seeds, a.speed, a.keep or Path(tmp)))
+            level_seeds = list(range(a.seed, a.seed + per_level[level])) if level in per_level else seeds
+            rows = asyncio.run(run_level(level, level_seeds, a.speed, a.keep or Path(tmp)))
             all_rows[level] = rows
             figures[level] = summary(rows)
             print(f"[{level}] {figures[level]}", flush=True)
