@@ -62,8 +62,9 @@ def demo_command(
     segmenter: Annotated[str, typer.Option(help="Perception segmenter: color (real computer vision on the rendered "
                                                 "pixels), sam3, or sim (ground-truth oracle, debugging only).")]
     = "color",
-    realism: Annotated[str, typer.Option(help="Simulator realism: realistic (depth noise, exposure, pose drift) "
-                                              "or ideal (debugging).")] = "realistic",
+    realism: Annotated[str, typer.Option(help="Simulator realism: realistic (the depth camera's flaws, exposure, "
+                                              "indoor air, a drifting pose estimate), harsh (stress) or ideal "
+                                              "(debugging).")] = "realistic",
     model: Annotated[str, typer.Option(help="Model name for a model backend (empty: the backend's default).")] = "",
     base_url: Annotated[str | None, typer.Option(help="Endpoint of a model backend (e.g. a local vLLM).")] = None,
     t_max: Annotated[float, typer.Option(help="T_max, seconds.")] = 600.0,
@@ -256,15 +257,16 @@ def _config_reports(bus, keys):
 async def _print_config(reports, result: dict) -> None:
     """What actually runs, from the services' own health reports (not from what was asked for)."""
     perception_health, sim_health = reports
-    seg, real = "unknown", "unknown"
+    seg, real, body = "unknown", "unknown", "unknown"
     with contextlib.suppress(TimeoutError):
         seg = str((await perception_health.recv(timeout=10)).details.get("segmenter", "unknown"))
     with contextlib.suppress(TimeoutError):
-        real = str((await sim_health.recv(timeout=10)).details.get("realism", "unknown"))
+        details = (await sim_health.recv(timeout=10)).details
+        real, body = str(details.get("realism", "unknown")), str(details.get("dynamics", "unknown"))
     note = " (ground-truth oracle: the simulator's masks, not real perception)" if seg == "sim" else ""
     console.print(f"perception: {terminal_text(seg)}{note}")
-    console.print(f"simulator: MuJoCo physics, realism {terminal_text(real)}")
-    result.update(segmenter=seg, realism=real)
+    console.print(f"simulator: MuJoCo physics, {terminal_text(body)} vehicle, realism {terminal_text(real)}")
+    result.update(segmenter=seg, realism=real, dynamics=body)
 
 
 async def run_and_judge(bus, keys, request, objects: tuple[str, ...], destination: str | None, result: dict,

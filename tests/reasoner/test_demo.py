@@ -44,9 +44,10 @@ def test_demo_rules(tmp_path) -> None:
     assert code == 0 and result["success"], result.get("verdict")
     skills = [s.ste.skill for s in result["steps"]]
     assert skills[-1] == "done" and "grasp" in skills and "place" in skills
-    # The default demo: real computer vision on the rendered pixels, realistic camera and pose noise, as the
-    # running services report it.
+    # The default demo: real computer vision on the rendered pixels, realistic camera and pose noise, the
+    # multirotor, as the running services report them.
     assert result["segmenter"] == "color" and result["realism"] == "realistic", result
+    assert result["dynamics"] == "multirotor", result  # the simulator's default body (issue 24)
     (log,) = sorted((tmp_path / "rec").glob("*.mcap"))
     # The recorder keeps 1 frame pair a second, and every frame a step was decided on.
     colour = list(mcaplog.iter_samples(log, Keys("am1").camera_color.key))
