@@ -23,6 +23,11 @@ GEAR_HEIGHT = 0.25
 FLOOR_Z = -GEAR_HEIGHT
 WALL_HEIGHT = 2.6
 VEHICLE_RADIUS = 0.25  # collision cylinder of the airframe around the body origin
+# The vehicle's body (SimSettings.dynamics; physics builds it): `multirotor`, a free rigid body with four lagged
+# rotors under a PX4-style cascade, the default; `kinematic`, an ideal body on sliding joints pushed by a perfect
+# world-frame force (it never tilts). README "Dynamics".
+DYNAMICS = ("kinematic", "multirotor")
+DEFAULT_DYNAMICS: Literal["kinematic", "multirotor"] = "multirotor"
 VEHICLE_HEIGHT = 0.15  # ... from VEHICLE_BELOW under the body origin up
 VEHICLE_BELOW = 0.05
 

@@ -24,15 +24,20 @@ from xml.sax.saxutils import quoteattr
 import mujoco
 import numpy as np
 
-from services.sim.layout import FLOOR_Z, VEHICLE_BELOW, VEHICLE_HEIGHT, VEHICLE_RADIUS, Entity
-from services.sim.settings import DEFAULT_DYNAMICS
+from services.sim.layout import (
+    DEFAULT_DYNAMICS,
+    DYNAMICS,
+    FLOOR_Z,
+    VEHICLE_BELOW,
+    VEHICLE_HEIGHT,
+    VEHICLE_RADIUS,
+    Entity,
+)
 from shared.frames import CAMERA_OFFSET_BODY, CAMERA_PITCH_DOWN, DEFAULT_INTRINSICS, GRIPPER_OFFSET_BODY
 from shared.messages import JudgeCheck, JudgeCriteria
 
 TIMESTEP = 0.002  # s; contacts of small objects in a gripper want a few ms at most
-# The vehicle's dynamics (SimSettings.dynamics): `kinematic`, an ideal body on sliding joints pushed by a perfect
-# world-frame force (it never tilts); `multirotor`, a free rigid body with four lagged rotors (README "Dynamics").
-DYNAMICS = ("kinematic", "multirotor")
+# The vehicle's dynamics: layout.DYNAMICS (SimSettings.dynamics, multirotor by default).
 KINEMATIC_MASS = 1.5  # kg, the kinematic body's airframe (fingers add FINGER_MASS each)
 VEHICLE_YAW_INERTIA = 0.03  # kg m^2 about z, the kinematic body's (its yaw torque's scale)
 VEHICLE_MASS = 1.0  # kg, the multirotor's airframe (battery, motors, gear and fingers add ~0.86 kg: ~1.86 kg in all)

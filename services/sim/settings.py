@@ -7,10 +7,8 @@ from typing import Annotated, Literal
 from pydantic import Field, field_validator
 from pydantic_settings import NoDecode, SettingsConfigDict
 
+from services.sim.layout import DEFAULT_DYNAMICS
 from shared.settings import ServiceSettings, parse_endpoints
-
-DEFAULT_DYNAMICS: Literal["kinematic", "multirotor"] = "multirotor"
-"""The vehicle's body when AERMANI_SIM_DYNAMICS is unset (`dynamics` below; `physics.configured_dynamics`)."""
 
 
 class SimSettings(ServiceSettings):
