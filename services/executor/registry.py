@@ -78,6 +78,18 @@ def register(cls: type[Skill]) -> type[Skill]:
     return cls
 
 
+def library_order() -> list[str]:
+    """Every registered skill's name in the Skill Library's order: the built-in modules in their order
+    (`skills.builtin_modules`), each skill where its module defines it, then the others as they registered; the
+    same whichever module was imported first (a test importing one skill module directly, before the library
+    loaded, put grasp and place first and made the committed library file read stale)."""
+    from services.executor.skills import builtin_modules
+
+    rank = {m: i for i, m in enumerate(builtin_modules())}
+    seen = {n: i for i, n in enumerate(REGISTRY)}
+    return sorted(REGISTRY, key=lambda n: (rank.get(REGISTRY[n].__module__, len(rank)), seen[n]))
+
+
 def load_skills(modules: list[str] | tuple[str, ...] = ()) -> None:
     """Register the built-in skills and those of `modules` (extra skills outside this package)."""
     import importlib
@@ -102,7 +114,7 @@ def build_library(settings: ExecutorSettings, names: list[str] | None = None) ->
     """Instances of the registered skills (all, or `names` in that order)."""
     load_skills(settings.skill_modules)
 
-    chosen = names or list(REGISTRY)
+    chosen = names or library_order()
     unknown = [n for n in chosen if n not in REGISTRY]
     if unknown:
         raise ValueError(f"unknown skills {unknown}; registered: {sorted(REGISTRY)}")
@@ -116,8 +128,8 @@ def builtin_library() -> SkillLibrary:
 
     load_builtin()
     settings = ExecutorSettings.model_construct()  # field defaults only: no environment, no .env file
-    return SkillLibrary(skills=tuple(cls(settings).spec() for cls in REGISTRY.values()
-                                     if cls.__module__.startswith("services.executor.skills.")))
+    return SkillLibrary(skills=tuple(REGISTRY[n](settings).spec() for n in library_order()
+                                     if REGISTRY[n].__module__.startswith("services.executor.skills.")))
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -12,8 +12,13 @@ _ORDER = ("motion", "localization", "manipulation", "control")
 this package comes after them, alphabetically."""
 
 
+def builtin_modules() -> list[str]:
+    """The modules of this package in the Skill Library's order: the paper's tables, then the others."""
+    found = sorted(info.name for info in pkgutil.iter_modules(__path__))
+    return [f"{__name__}.{n}" for n in (*[n for n in _ORDER if n in found], *[n for n in found if n not in _ORDER])]
+
+
 def load_builtin() -> None:
     """Import every module of this package (each registers its skills)."""
-    found = sorted(info.name for info in pkgutil.iter_modules(__path__))
-    for name in (*[n for n in _ORDER if n in found], *[n for n in found if n not in _ORDER]):
-        importlib.import_module(f"{__name__}.{name}")
+    for name in builtin_modules():
+        importlib.import_module(name)
