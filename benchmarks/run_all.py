@@ -670,7 +670,7 @@ def render(r: Results, info: dict[str, str], command: str, partial: bool) -> str
          if partial else ""),
         f"Generated {info['date']} from commit `{info['commit']}` by `{command}` "
         f"({info['duration']}). Every figure below comes from this one run"
-        + (f", except the soak's, read from {info['soak_from']}." if info.get("soak_from") else "."),
+        + ("".join(f", except {k[:-5]}'s, read from {v}" for k, v in info.items() if k.endswith("_from")) + "."),
         "",
         f"Machine: {info['cpu']}, {info['cores']} cores, {info['ram']} RAM, load average at start {info['load']} "
         f"(1, 5, 15 min); Python {info['python']} on {info['os']}.",
@@ -718,10 +718,20 @@ def select(args: argparse.Namespace) -> list[str]:
             raise SystemExit(f"unknown benchmark(s) {', '.join(bad)}; choose from {', '.join(BENCHMARKS)}")
         return [n for n in chosen if n in wanted]
     chosen = [n for n in chosen if args.long or not BENCHMARKS[n].long]
-    if args.soak_json:
-        chosen = [n for n in chosen if n != "soak"]
+    chosen = [n for n in chosen if n not in earlier_runs(args)]
     skip = set(args.skip.split(",")) if args.skip else set()
     return [n for n in chosen if n not in skip]
+
+
+def earlier_runs(args: argparse.Namespace) -> dict[str, Path]:
+    """--from NAME=JSON (and --soak-json): benchmarks whose figures come from an earlier run's JSON."""
+    out = {"soak": args.soak_json} if args.soak_json else {}
+    for item in args.earlier:
+        name, _, path = item.partition("=")
+        if name not in BENCHMARKS or not path:
+            raise SystemExit(f"--from {item!r}: NAME=JSON with NAME one of {', '.join(BENCHMARKS)}")
+        out[name] = Path(path)
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -732,6 +742,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--long", action="store_true", help="also run the long ones (soak 30 min, eval_parallel)")
     ap.add_argument("--soak-json", type=Path, default=None,
                     help="take the soak figures from this earlier `benchmarks/soak.py --json` output")
+    ap.add_argument("--from", dest="earlier", action="append", default=[], metavar="NAME=JSON",
+                    help="take benchmark NAME's figures from an earlier `benchmarks/NAME.py --json JSON` run instead "
+                    "of running it (a long one: grasp, soak, eval_parallel); the report names the file")
     ap.add_argument("--out", type=Path, default=None,
                     help=f"report path (default {DOC.relative_to(ROOT)} for a full run, else "
                          f"{PARTIAL_DOC.relative_to(ROOT)})")
@@ -758,13 +771,14 @@ def main(argv: list[str] | None = None) -> int:
     results: Results = {}
     for i, name in enumerate(names, 1):
         results[name] = run_one(name, BENCHMARKS[name], args.quick, args.results, t_start, f"{i}/{len(names)}")
-    if args.soak_json:
-        doc = json.loads(args.soak_json.read_text())
-        doc["command"] = f"(read from {args.soak_json}) python benchmarks/soak.py {shlex.join(doc.get('argv', []))}"
-        doc.setdefault("seconds", 60 * float(doc.get("figures", {}).get("minutes", 0)))
-        results["soak"] = doc
-        info["soak_from"] = (f"`{args.soak_json}` (finished {doc.get('finished', '?')}, commit "
-                             f"{doc.get('commit', 'not recorded')})")
+    for name, path in earlier_runs(args).items():
+        doc = json.loads(path.read_text())
+        doc["command"] = f"(read from {path}) python benchmarks/{name}.py {shlex.join(doc.get('argv', []))}"
+        if name == "soak":
+            doc.setdefault("seconds", 60 * float(doc.get("figures", {}).get("minutes", 0)))
+        results[name] = doc
+        info[f"{name}_from"] = (f"`{path}` (finished {doc.get('finished', '?')}, commit "
+                                f"{doc.get('commit', 'not recorded')})")
     info["duration"] = f"{(time.monotonic() - t_start) / 60:.1f} min"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(render(results, info, command, partial))
