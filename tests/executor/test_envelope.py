@@ -180,10 +180,11 @@ async def test_memory_drops_a_held_object_when_the_gripper_reports_open_and_a_ne
         assert mem.objects == {} and mem.seen == {}
 
 
-async def test_a_stall_of_the_executors_own_process_does_not_fail_a_skill_but_a_silent_bridge_does():
+async def test_a_stall_of_the_executors_own_process_does_not_fail_a_skill():
     """At the production limit (0.5 s): the whole event loop (executor and fake autopilot alike, as when a loaded
     machine does not schedule the process) blocks for 0.7 s mid-skill; the autopilot's next sample comes at
-    once after it, so the skill goes on. A bridge that stays silent still fails it, and it holds."""
+    once after it, so the skill goes on. (A bridge that stays silent still fails it and holds:
+    test_monitor_stops_a_skill_that_leaves_the_geofence_or_loses_state, at the same limit.)"""
     async with rig(translation_speed=0.3, state_max_age_s=0.5) as r:
         acc = await r.request("forward")
         assert acc.accepted
@@ -191,10 +192,3 @@ async def test_a_stall_of_the_executors_own_process_does_not_fail_a_skill_but_a_
         time.sleep(0.7)  # noqa: ASYNC251 - the stall under test: nothing on this loop runs
         st = await r.terminal(acc.goal_id, 20)
         assert st.state == SkillState.SUCCEEDED, st.message
-        acc = await r.request("backward")
-        assert acc.accepted
-        await asyncio.sleep(0.3)
-        r.vehicle.publishing = False
-        st = await r.terminal(acc.goal_id, 10)
-        assert st.state == SkillState.FAILED and "stale" in st.message
-        assert r.vehicle.commands[-1] == "hold"
