@@ -124,9 +124,18 @@ def summary(rows: list[dict]) -> dict:
     pok = [r for r in places if r.get("place_ok")]
     return {"calls": len(rows), "eligible_calls": len(el), "grasp_success_per_call": len(ok) / len(el) if el else None,
             "grasp_success_per_attempt": len(ok) / att if att else None, "first_attempt_successes": first,
-            "attempts": att, "false_success_claims": sum(1 for r in el if r.get("grasp_claim_true") is False),
+            "attempts": att,
+            # a claim the judge refused (said succeeded, the target is not held / not at rest on the surface) apart
+            # from the opposite miss (said failed, the judge found it done): only the first misleads a user
+            "false_success_claims": sum(1 for r in el if r.get("grasp_claim_true") is False
+                                        and r.get("grasp_state") == SkillState.SUCCEEDED.value),
+            "false_failure_reports": sum(1 for r in el if r.get("grasp_claim_true") is False
+                                         and r.get("grasp_state") != SkillState.SUCCEEDED.value),
             "place_calls": len(places), "place_at_rest_per_call": len(pok) / len(places) if places else None,
-            "place_false_claims": sum(1 for r in places if r.get("place_claim_true") is False)}
+            "place_false_claims": sum(1 for r in places if r.get("place_claim_true") is False
+                                      and r.get("place_state") == SkillState.SUCCEEDED.value),
+            "place_false_failure_reports": sum(1 for r in places if r.get("place_claim_true") is False
+                                               and r.get("place_state") != SkillState.SUCCEEDED.value)}
 
 
 async def run_level(level: str, seeds: list[int], speed: float, tmp: Path) -> list[dict]:

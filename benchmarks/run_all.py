@@ -134,6 +134,14 @@ def axes(bench: str, prefix: str, pick: Callable[[list[float]], float]) -> Get:
     return get
 
 
+def fig_sum(*gets: Get) -> Get:
+    """The sum of several figures (None when any is missing)."""
+    def total(r: Results) -> float | None:
+        vals = [g(r) for g in gets]
+        return None if any(v is None for v in vals) else sum(v for v in vals if v is not None)
+    return total
+
+
 def pct(bench: str, *path: str) -> Get:
     """A fraction figure (0-1) as a percentage."""
     get = fig(bench, *path)
@@ -281,6 +289,10 @@ FIGURES: list[Figure] = [
            target=(">=", 95.0), source="#25"),
     Figure("grasp.realistic_place_false_claims", "place on the multirotor, realistic: places claimed that the judge "
            "refused", "calls", fig("grasp", "realistic", "place_false_claims"), target=("<=", 0.0), source="#25"),
+    Figure("grasp.realistic_false_failures", "grasp and place on the multirotor, realistic: calls reported failed "
+           "that the judge found done (grasp + place)", "calls",
+           fig_sum(fig("grasp", "realistic", "false_failure_reports"),
+                   fig("grasp", "realistic", "place_false_failure_reports"))),
     Figure("grasp.ideal_per_call", "grasp on the multirotor, ideal (no disturbance, true estimate): success per "
            "call", "%", pct("grasp", "ideal", "grasp_success_per_call")),
     Figure("grasp.harsh_per_call", "grasp on the multirotor, harsh (stronger air, worse estimate and camera): "
