@@ -78,11 +78,13 @@ async def tasks(bus: Bus, keys: Keys, until: float) -> tuple[int, int]:
     return done, run
 
 
-async def measure(stack: Stack, out: Path, minutes: float, warmup_s: float) -> dict[str, object]:
+async def measure(stack: Stack, out: Path, minutes: float, warmup_s: float, certs: Path) -> dict[str, object]:
     keys = Keys("am1")
-    bus = await Bus.open(connect=[stack.endpoint])  # the ground router's loopback side
+    # the routers are mutual-TLS (the deployed default): this benchmark joins as a client of the deployment
+    bus = await Bus.open(connect=[stack.endpoint], certs=str(certs), identity="client")  # the ground router
     sub = bus.subscribe("aermani/**", maxsize=5000, overflow="drop_oldest")
-    onboard = await Bus.open(connect=[stack.drone_endpoint])  # the vehicle's side, every depth frame
+    # the vehicle's side, every depth frame
+    onboard = await Bus.open(connect=[stack.drone_endpoint], certs=str(certs), identity="client")
     onboard_depth = onboard.subscribe(keys.camera_depth, maxsize=100, overflow="drop_oldest")
     depth_onboard = {"png": 0, "raw": 0}
     by_key: collections.Counter[str] = collections.Counter()
@@ -177,7 +179,7 @@ def main() -> None:
     if not (certs / "ca.pem").exists():
         init_certs(certs)
     with Stack(SERVICES, env=env, log_dir=out / "logs", secure=certs) as stack:
-        figures = asyncio.run(measure(stack, out, args.minutes, args.warmup))
+        figures = asyncio.run(measure(stack, out, args.minutes, args.warmup, certs))
     write_json(args.json or out / "link.json", "link_budget", figures, args)
 
 

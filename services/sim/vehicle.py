@@ -187,7 +187,7 @@ def realism_params(realism: str, **kw) -> VehicleParams:
 
     `ideal`: no disturbances, the estimate is the truth. `realistic`, kinematic body: a VIO-grade estimate (2 mm
     noise, bias drifting ~1 cm/min up to 3 cm, yaw up to 1 deg), nothing else. `realistic`, multirotor: an indoor
-    VIO-grade estimate (bias sigma 2.5 cm horizontal, 2.8 cm vertical, wandering over ~10 s; 3 mm and 1 cm/s
+    VIO-grade estimate (bias sigma 2.5 cm horizontal, 3.1 cm vertical, wandering over ~10 s; 3 mm and 1 cm/s
     noise; yaw bias sigma 0.5 deg), indoor air (a 0.15 m/s draft, 0.25 m/s turbulence, a 0.5-1 m/s gust every
     ~30 s), rotor drag, 2 % thrust noise, ground effect, downwash; calibrated so a still hover's true position
     error is sigma 2-5 cm per axis (README "Dynamics"). `harsh`: the kinematic body as `realistic`; the
@@ -201,7 +201,7 @@ def realism_params(realism: str, **kw) -> VehicleParams:
     common: dict = {**kinematic, "rotor_drag": 0.4, "ground_effect": True, "downwash": True,
                     "thrust_noise_tau": 0.05}
     if realism == "realistic":
-        return VehicleParams(**common, pose_bias_xy=0.025, pose_bias_z=0.028, pose_bias_tau=10.0, vio_noise=0.003,
+        return VehicleParams(**common, pose_bias_xy=0.025, pose_bias_z=0.031, pose_bias_tau=10.0, vio_noise=0.003,
                              vel_noise=0.01, yaw_bias=math.radians(0.5), yaw_bias_tau=30.0, wind_mean=0.15,
                              wind_sigma=0.25, wind_tau=1.5, gust_rate=1 / 30, gust_amp=(0.5, 1.0),
                              gust_s=(1.0, 3.0), thrust_noise=0.02, **kw)
