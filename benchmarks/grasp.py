@@ -194,6 +194,8 @@ def main() -> None:
             all_rows[level] = rows
             figures[level] = summary(rows)
             print(f"[{level}] {figures[level]}", flush=True)
+            # after every level, not only at the end: a run cut during a later level keeps what finished
+            write_json(a.json, "grasp", figures, a, rows=all_rows)
     print("level         eligible  grasp/call  grasp/attempt  false_claims  place_at_rest/call")
     for level, f in figures.items():
         def pct(v: float | None) -> str:
