@@ -162,13 +162,16 @@ async def _fly_and_check(stack, segmenter: str) -> None:
                     if px == 0:
                         assert not est.found and est.reason == "not_visible", est
                     elif est.found:
-                        p = est.pose.position
+                        # in the estimated frame too: the realistic multirotor's vertical estimate bias (sigma 3.1 cm)
+                        # moves the surface's measured height with it (ci33: 5.4 cm above the truth, compared
+                        # uncorrected)
+                        sx, sy, sz = in_truth_frame(est.pose.position, est.surface_z)
                         assert est.label == truth.name
-                        assert abs(est.surface_z - truth.top_z) <= 0.05
-                        assert e.contains_xy(p.x, p.y, 0.0), (truth, est)
+                        assert abs(sz - truth.top_z) <= 0.05, (truth, est, believed, v)
+                        assert e.contains_xy(sx, sy, 0.0), (truth, est)
                         for o in world.objects:
                             if o.support == e.name:
-                                assert math.hypot(p.x - o.center[0], p.y - o.center[1]) >= o.footprint_radius()
+                                assert math.hypot(sx - o.center[0], sy - o.center[1]) >= o.footprint_radius()
                         checked += 1
             assert checked >= 2, "the viewpoint should show the target and its surface"
             await wait_until(lambda: dets.value is not None and any(d.label == "red cup" for d in dets.value.items),
