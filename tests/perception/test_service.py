@@ -87,8 +87,14 @@ def publish_cup_frame(bus: Bus) -> int:
 @pytest.mark.slow
 @pytest.mark.parametrize("segmenter", ["sim", "color"])
 def test_real_sim_objects_surfaces_and_detections(segmenter: str, tmp_path) -> None:
+    # The kinematic body (its estimate still drifts, by up to 3 cm): the test compares each answer, in the estimated
+    # frame, with the truth through one estimate/truth pair read once; the multirotor's estimate bias (sigma 2.5 cm
+    # horizontal, 3.1 cm vertical, tau 10 s) moves centimetres between that read and the frames perception
+    # answers from, and its hover tilts the view a fraction of a degree (ci33 and a local loop: 5.4 cm, 5.7 cm and
+    # 4.7 cm over their tolerances in about 1 run of 6). Perception on the multirotor's frames is measured by
+    # benchmarks/detection_recall.py and the grasp benchmark, and flown by the demo and evaluation tests.
     env = {"AERMANI_SIM_FPS": "4", "AERMANI_SIM_SPEED_FACTOR": "3", "AERMANI_PERCEPTION_SEGMENTER": segmenter,
-           "AERMANI_SIM_SEED": "3"}
+           "AERMANI_SIM_SEED": "3", "AERMANI_SIM_DYNAMICS": "kinematic"}
     with run_stack(["sim", "autopilot_bridge", "perception"], tmp_path, env=env) as stack:
         arun(_fly_and_check(stack, segmenter), timeout=400)
 
@@ -125,8 +131,9 @@ async def _fly_and_check(stack, segmenter: str) -> None:
             view = render_view(world, v.position.x, v.position.y, v.position.z, v.yaw)
             believed = state.value  # the bridge's estimate of the same settled pose
 
-            def in_truth_frame(p: Vec3, top_z: float) -> tuple[float, float, float]:
-                """A point perception gave in the estimated frame, moved into the true one."""
+            def in_truth_frame(p: Vec3, top_z: float, believed=believed, v=v) -> tuple[float, float, float]:
+                """A point perception gave in the estimated frame, moved into the true one (by the estimate and the
+                truth of the vehicle's pose read at about the same moment: their difference drifts over ~10 s)."""
                 dyaw = believed.yaw - v.yaw
                 dx, dy = p.x - believed.position.x, p.y - believed.position.y
                 c, s_ = math.cos(-dyaw), math.sin(-dyaw)
@@ -177,7 +184,11 @@ async def _fly_and_check(stack, segmenter: str) -> None:
             await wait_until(lambda: dets.value is not None and any(d.label == "red cup" for d in dets.value.items),
                              30, what="red cup in the detections")
             red = next(d for d in dets.value.items if d.label == "red cup")
-            assert math.hypot(red.centroid.x - target.center[0], red.centroid.y - target.center[1]) < 0.05
+            # the detection is in the estimated frame too (the realistic multirotor's horizontal estimate bias,
+            # sigma 2.5 cm, put one 5.7 cm off when compared uncorrected): correct it by the pose now
+            now_truth = (await ask(bus, KEYS.sim_judge, JudgeRequest(op="world"))).vehicle
+            rx, ry, _ = in_truth_frame(red.centroid, red.centroid.z, believed=state.value, v=now_truth)
+            assert math.hypot(rx - target.center[0], ry - target.center[1]) < 0.05, (red, now_truth, state.value)
             assert dets.value.segmenter == segmenter
         finally:
             for t in tasks:
