@@ -115,6 +115,14 @@ async def one_call(c: Client, seed: int, target: str) -> dict:
     return row
 
 
+def misclaims(rows: list[dict], claim: str, state: str) -> tuple[int, int]:
+    """Rows whose skill's claim the judge contradicted, split: said succeeded but not done (what misleads a user),
+    and said failed but done."""
+    wrong = [r for r in rows if r.get(claim) is False]
+    said_ok = sum(1 for r in wrong if r.get(state) == SkillState.SUCCEEDED.value)
+    return said_ok, len(wrong) - said_ok
+
+
 def summary(rows: list[dict]) -> dict:
     el = [r for r in rows if r.get("eligible")]
     ok = [r for r in el if r.get("grasp_ok")]
@@ -122,20 +130,13 @@ def summary(rows: list[dict]) -> dict:
     first = sum(1 for r in ok if r.get("attempts") == 1)
     places = [r for r in rows if r.get("place_ok") is not None and "place_state" in r]
     pok = [r for r in places if r.get("place_ok")]
+    grasp_false, grasp_missed = misclaims(el, "grasp_claim_true", "grasp_state")
+    place_false, place_missed = misclaims(places, "place_claim_true", "place_state")
     return {"calls": len(rows), "eligible_calls": len(el), "grasp_success_per_call": len(ok) / len(el) if el else None,
             "grasp_success_per_attempt": len(ok) / att if att else None, "first_attempt_successes": first,
-            "attempts": att,
-            # a claim the judge refused (said succeeded, the target is not held / not at rest on the surface) apart
-            # from the opposite miss (said failed, the judge found it done): only the first misleads a user
-            "false_success_claims": sum(1 for r in el if r.get("grasp_claim_true") is False
-                                        and r.get("grasp_state") == SkillState.SUCCEEDED.value),
-            "false_failure_reports": sum(1 for r in el if r.get("grasp_claim_true") is False
-                                         and r.get("grasp_state") != SkillState.SUCCEEDED.value),
+            "attempts": att, "false_success_claims": grasp_false, "false_failure_reports": grasp_missed,
             "place_calls": len(places), "place_at_rest_per_call": len(pok) / len(places) if places else None,
-            "place_false_claims": sum(1 for r in places if r.get("place_claim_true") is False
-                                      and r.get("place_state") == SkillState.SUCCEEDED.value),
-            "place_false_failure_reports": sum(1 for r in places if r.get("place_claim_true") is False
-                                               and r.get("place_state") != SkillState.SUCCEEDED.value)}
+            "place_false_claims": place_false, "place_false_failure_reports": place_missed}
 
 
 async def run_level(level: str, seeds: list[int], speed: float, tmp: Path) -> list[dict]:

@@ -19,11 +19,8 @@ pytestmark = [pytest.mark.integration, pytest.mark.slow]
 SERVICES = ["sim", "autopilot_bridge", "perception", "executor"]
 
 
-# The kinematic body: these tests assert what one skill call does (a grasp under an injected error, its outcome
-# code). On the multirotor's realistic hover a grasp call succeeds at the rate benchmarks/grasp.py measures, not
-# always, and a pass/fail test of one call would be a draw; the subject here is the skill's logic,
-# with the camera's realism and perception unchanged. The multirotor flies the policy-level stack tests
-# (tests/reasoner/test_demo.py, tests/faults, tests/evaluation) and the grasp benchmark.
+# The kinematic body, for the reason tests/executor/test_integration.py's stack gives: these tests assert what one
+# grasp call does (under an injected error, its outcome code).
 @pytest.fixture(scope="module")
 def stack(tmp_path_factory):
     with run_stack(SERVICES, tmp_path_factory.mktemp("closed_loop_stack"),

@@ -169,9 +169,7 @@ async def _fly_and_check(stack, segmenter: str) -> None:
                     if px == 0:
                         assert not est.found and est.reason == "not_visible", est
                     elif est.found:
-                        # in the estimated frame too: the realistic multirotor's vertical estimate bias (sigma 3.1 cm)
-                        # moves the surface's measured height with it (ci33: 5.4 cm above the truth, compared
-                        # uncorrected)
+                        # in the estimated frame, like the objects: the estimate's bias moves the measured height
                         sx, sy, sz = in_truth_frame(est.pose.position, est.surface_z)
                         assert est.label == truth.name
                         assert abs(sz - truth.top_z) <= 0.05, (truth, est, believed, v)
@@ -184,8 +182,7 @@ async def _fly_and_check(stack, segmenter: str) -> None:
             await wait_until(lambda: dets.value is not None and any(d.label == "red cup" for d in dets.value.items),
                              30, what="red cup in the detections")
             red = next(d for d in dets.value.items if d.label == "red cup")
-            # the detection is in the estimated frame too (the realistic multirotor's horizontal estimate bias,
-            # sigma 2.5 cm, put one 5.7 cm off when compared uncorrected): correct it by the pose now
+            # in the estimated frame too, seconds after the pair above: corrected by the pose read now
             now_truth = (await ask(bus, KEYS.sim_judge, JudgeRequest(op="world"))).vehicle
             rx, ry, _ = in_truth_frame(red.centroid, red.centroid.z, believed=state.value, v=now_truth)
             assert math.hypot(rx - target.center[0], ry - target.center[1]) < 0.05, (red, now_truth, state.value)
