@@ -15,6 +15,7 @@ import time
 from pathlib import Path
 
 import httpx
+import numpy as np
 import pytest
 from pymavlink.dialects.v20 import common as mav
 
@@ -212,9 +213,12 @@ async def test_abort_through_the_api_holds_the_vehicle_with_the_executor_dead(tm
                     t_end = time.monotonic() + 3.0
                     while time.monotonic() < t_end:
                         st = await state.wait(2.0)
-                        samples.append((st.position.z, abs(st.velocity.z)))
-                    assert all(abs(z - z0) < 0.05 for z, _ in samples), samples[-5:]
-                    assert all(vz < 0.05 for _, vz in samples), samples[-5:]
+                        samples.append((time.monotonic(), st.position.z))
+                    assert all(abs(z - z0) < 0.05 for _, z in samples), samples[-5:]
+                    # Held, not climbing: the height's trend over the 3 s, not any one velocity sample (the
+                    # realistic multirotor's hover jitters a few cm/s in gusts; the cut climb was 0.12 m/s).
+                    slope = float(np.polyfit([t for t, _ in samples], [z for _, z in samples], 1)[0])
+                    assert abs(slope) < 0.03, f"still moving vertically at {slope:.3f} m/s: {samples[-5:]}"
                     assert z0 < goal.z - 0.5, f"the vehicle kept climbing to {z0:.2f} m"
                     st = state.value
                     assert st.armed and st.landed_state == "in_air"
