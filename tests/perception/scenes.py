@@ -142,7 +142,7 @@ def thing(name: str, x: float, y: float, on: Entity, yaw: float = 0.0) -> Entity
                   spec.size, spec.rgb, spec.color, yaw if spec.shape == "box" else 0.0, support=on.name)
 
 
-def manual_world(*entities: Entity) -> World:
+def manual_world(*entities: Entity, look: str = "primitive") -> World:
     from services.sim.scenarios import _structure
 
-    return World(entities=_structure() + list(entities), version=next(_versions))
+    return World(entities=_structure() + list(entities), version=next(_versions), look=look)

@@ -51,6 +51,20 @@ class SurfaceClass:
     more_rgb: tuple[tuple[int, int, int], ...] = ()  # other colours of the same top (a sink's basin)
 
 
+@dataclass(frozen=True)
+class ToneClass:
+    """An object with no hue of its own (bare steel, black plastic), which a hue lookup cannot find: it is a patch
+    on a known furniture top that is unlike the top, and is told apart by its albedo's brightness, estimated
+    through the top's known albedo (the light and the exposure that scale the top scale what lies on it)."""
+
+    name: str
+    color: str
+    brightness: tuple[float, float]  # albedo brightness range (mean of R, G, B; 0-255)
+    dims: tuple[float, float, float]  # long, short, height (m)
+    category: str = "object"
+    max_saturation: float = 90.0  # the patch's median HSV saturation: bare steel and black carry little
+
+
 DEFAULT_OBJECTS = (
     ColorClass("red cup", "red", (0, 225, 215), (0.08, 0.08, 0.11)),
     ColorClass("purple cup", "purple", (136, 198, 200), (0.08, 0.08, 0.11)),
@@ -75,17 +89,26 @@ DEFAULT_SURFACES = (
     SurfaceClass("sink", "blue steel", (140, 165, 200)),
     SurfaceClass("counter", "dark grey", (70, 70, 75)),
 )
+DEFAULT_TONES = (
+    ToneClass("wrench", "silver", (60.0, 235.0), (0.20, 0.045, 0.02)),
+    # Black handle, a red band, a thin steel shaft: the patch is mostly the handle. A black object's hue and
+    # saturation are noise (and the top's colour bleeds into them through JPEG), so no saturation bound.
+    ToneClass("screwdriver", "black", (0.0, 60.0), (0.18, 0.025, 0.025), max_saturation=256.0),
+)
 SURFACE_HEIGHT = (0.3, 1.6)  # metres above the floor where furniture tops are
 
 
-def load_catalog(path: str) -> tuple[tuple[ColorClass, ...], tuple[SurfaceClass, ...]]:
-    """JSON {"objects": [{name, color, hsv, dims, ...}], "surfaces": [{name, color, rgb, ...}]}."""
+def load_catalog(path: str) -> tuple[tuple[ColorClass, ...], tuple[SurfaceClass, ...], tuple[ToneClass, ...]]:
+    """JSON {"objects": [{name, color, hsv, dims, ...}], "surfaces": [{name, color, rgb, ...}],
+    "tones": [{name, color, brightness, dims, ...}]} ("tones" optional: objects without a hue of their own)."""
     data = json.loads(Path(path).read_text())
     objs = tuple(ColorClass(**{**o, "hsv": tuple(o["hsv"]), "dims": tuple(o["dims"])}) for o in data.get("objects", []))
     surfs = tuple(SurfaceClass(**{**s, "rgb": tuple(s["rgb"]),
                                   "more_rgb": tuple(tuple(c) for c in s.get("more_rgb", ()))})
                   for s in data.get("surfaces", []))
-    return objs, surfs
+    tones = tuple(ToneClass(**{**t, "brightness": tuple(t["brightness"]), "dims": tuple(t["dims"])})
+                  for t in data.get("tones", []))
+    return objs, surfs, tones
 
 
 def robust_footprint(xy: np.ndarray) -> tuple[float, float]:
@@ -106,6 +129,77 @@ def robust_footprint(xy: np.ndarray) -> tuple[float, float]:
 # them apart. At 0.45 this check rejected the red cup on the shelf's shaded side for seconds on end while the
 # vehicle hovered 2 m away (V 90-94 against a limit of 97), and a whole search then missed it.
 DARK_SHARE = 0.25
+
+# Tone classes (objects without a hue), measured on dev layouts 100-149 and 200-239:
+# - a pixel inside a top's outline (less TONE_RIM_PX of its rim) is unlike the top when its chromaticity is more
+#   than TONE_CHROMA x the top's chroma tolerance off the top's albedo, or its brightness more than TONE_BRIGHTNESS
+#   off the top's own within TONE_WINDOW_PX around it; an opening with TONE_KERNEL clears JPEG speckle and parts
+#   under TONE_MIN_PART_PX; a part within TONE_CLEAR_PX of a coloured object's pixels is its shadow or its rim;
+# - parts of one tone within TONE_GAP_PX of each other are one patch (a thin handle 3-4 px wide at 2 m breaks);
+#   a patch needs TONE_MIN_AREA_PX, and one with more than TONE_HUED_SHARE of strongly saturated hue-class pixels
+#   (S >= TONE_HUED_SAT) is a coloured object the hue classes refused;
+# - a patch must rise TONE_MIN_RISE (or TONE_RISE_PER_M2 x distance^2: stereo depth noise grows with the square
+#   of the range) above the top around it: tools rose 1.3-2.3 cm at 0.8-1.6 m; stains, seams and shadows
+#   0-0.9 cm (one 1.7 cm at 2.9 m).
+TONE_CHROMA = 1.5
+TONE_BRIGHTNESS = 0.18
+TONE_WINDOW_PX = 31
+TONE_RIM_PX = 3
+TONE_KERNEL = np.ones((2, 2), np.uint8)
+TONE_MIN_PART_PX = 15
+TONE_CLEAR_PX = 3
+TONE_GAP_PX = 6
+TONE_MIN_AREA_PX = 40
+TONE_HUED_SAT = 120
+TONE_HUED_SHARE = 0.3
+TONE_MAX_TINT = 0.045
+TONE_MIN_RISE = 0.01
+TONE_RISE_PER_M2 = 0.0025
+
+
+@dataclass
+class _Part:
+    """A connected part of a patch on a top: its pixels, its image box (x0, y0, x1, y1) and its top's height."""
+
+    idx: np.ndarray
+    box: tuple[int, int, int, int]
+    top_z: float
+    top_chroma: np.ndarray  # the top's albedo over its sum
+
+
+def _near_groups(parts: list[_Part], gap: int) -> list[list[_Part]]:
+    """Parts whose image boxes come within `gap` pixels of each other, transitively, are one group (the opening
+    that clears JPEG speckle breaks a thin handle seen from 2 m into pieces a few pixels apart)."""
+    group = list(range(len(parts)))
+
+    def root(i: int) -> int:
+        while group[i] != i:
+            group[i] = group[group[i]]
+            i = group[i]
+        return i
+
+    for i, a in enumerate(parts):
+        for j in range(i + 1, len(parts)):
+            b = parts[j]
+            if (a.box[0] - gap <= b.box[2] and b.box[0] - gap <= a.box[2]
+                    and a.box[1] - gap <= b.box[3] and b.box[1] - gap <= a.box[3]):
+                group[root(j)] = root(i)
+    out: dict[int, list[_Part]] = {}
+    for i, p in enumerate(parts):
+        out.setdefault(root(i), []).append(p)
+    return list(out.values())
+
+
+def _tint(rgb: np.ndarray, top_chroma: np.ndarray) -> float:
+    """How far the mean chromaticity of `rgb` (N x 3) lies from every mix of grey and the top's chromaticity:
+    a grey or black object shows grey plus what JPEG bleeds in from the top around it; any other colour is its own."""
+    c = rgb.astype(np.float64).sum(axis=0)
+    c = c / max(float(c.sum()), 1e-6)
+    grey = np.full(3, 1 / 3)
+    d = top_chroma - grey
+    s = float(np.clip(np.dot(c - grey, d) / max(float(np.dot(d, d)), 1e-12), 0.0, 1.0))
+    return float(np.linalg.norm(c - (grey + s * d)))
+
 
 
 def _hs_lut(classes: tuple[ColorClass, ...]) -> np.ndarray:
@@ -135,18 +229,19 @@ class ColorSegmenter(Segmenter):
 
     def start(self) -> None:
         path = getattr(self.settings, "color_catalog", "")
-        self.objects, self.surfaces = load_catalog(path) if path else (DEFAULT_OBJECTS, DEFAULT_SURFACES)
+        self.objects, self.surfaces, self.tones = (load_catalog(path) if path
+                                                   else (DEFAULT_OBJECTS, DEFAULT_SURFACES, DEFAULT_TONES))
         self.lut = _hs_lut(self.objects)
         self.kernel = np.ones((3, 3), np.uint8)
         self._cache: dict[tuple[int, int, str], list[Segment]] = {}
         self._lock = threading.Lock()
 
     def known_names(self, frame: Frame | None) -> list[str]:
-        return [c.name for c in self.objects] + [s.name for s in self.surfaces]
+        return [c.name for c in self.objects] + [t.name for t in self.tones] + [s.name for s in self.surfaces]
 
     def detect(self, frame: Frame) -> list[Segment]:
-        return self._cached(frame, "objects", self.detect_objects) + self._cached(frame, "surfaces",
-                                                                                    self.detect_surfaces)
+        return (self._cached(frame, "objects", self.detect_objects) + self._cached(frame, "tones", self.detect_tones)
+                + self._cached(frame, "surfaces", self.detect_surfaces))
 
     def _cached(self, frame: Frame, part: str, fn) -> list[Segment]:
         """Several queries (and the detections) on one frame segment it once. Segments are read-only."""
@@ -165,12 +260,24 @@ class ColorSegmenter(Segmenter):
         segments = []
         if "object" in categories:
             segments += self._cached(frame, "objects", self.detect_objects)
+            if self._may_name_tone(query):  # needs the surface pass: only when the query could mean one
+                segments += self._cached(frame, "tones", self.detect_tones)
         if {"surface", "furniture"} & set(categories):
             segments += self._cached(frame, "surfaces", self.detect_surfaces)
         result = q.match(query, [s.candidate() for s in segments], self.known_names(frame), categories)
         if result.chosen is None:
             return Found(None, result.reason, result.message)
         return Found(next(s for s in segments if s.key == result.chosen.key), "ok", result.message)
+
+    def _may_name_tone(self, query: q.Query) -> bool:
+        """Whether the query could be answered by a tone class: one of its words is in a tone class's name,
+        names a family holding one, or its colour words cover a tone's colour."""
+        names = {t.name for t in self.tones}
+        words = {w for n in names for w in n.split()}
+        return bool(set(query.words) & words
+                    or any(q.FAMILIES.get(w, frozenset()) & names for w in query.words)
+                    or any(t.color in covered for t in self.tones for c in query.colors
+                           for covered in [q.COLOR_WORDS.get(c, frozenset({c}))]))
 
     # ---- objects
 
@@ -256,6 +363,147 @@ class ColorSegmenter(Segmenter):
         seg = Segment(key, c.name, c.category, c.color, score, long_ * short * max(height, 0.01), int(keep.size),
                       _indices=keep)
         return seg, pts.mean(axis=0)
+
+    # ---- objects without a hue: patches on a known top
+
+    def detect_tones(self, frame: Frame) -> list[Segment]:
+        """Objects of the tone classes (bare steel, black): on each furniture top the surface pass found, the
+        pixels inside the top's outline that are unlike the top around them, in connected parts (`_top_parts`);
+        neighbouring parts of one tone are one patch, which is the object when it is not a coloured object's (no
+        strong hue in or beside it, no tint of its own) and its 3D shape fits (`_check_tone`)."""
+        if not self.tones:
+            return []
+        h, w = frame.shape
+        hsv = cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2HSV)
+        sat = hsv[..., 1]
+        # Pixels a hue class takes with a strong saturation: an olive hammer grip the size checks refused is still
+        # not steel. (Weakly saturated ones are not counted: the top's colour bleeds into a thin grey object's
+        # pixels through JPEG's chroma subsampling.)
+        hue_strong = (self.lut[hsv[..., 0], sat] > 0) & (sat >= TONE_HUED_SAT) & (hsv[..., 2] >= 30)
+        # The coloured objects' own pixels are theirs, and a part touching them is their shadow or rim.
+        hued8 = np.zeros((h, w), np.uint8)
+        for o in self._cached(frame, "objects", self.detect_objects):
+            hued8.ravel()[o.indices] = 1
+        hued = cv2.dilate(hued8, np.ones((2 * TONE_CLEAR_PX + 1,) * 2, np.uint8)) > 0
+        by_name = {s.name: s for s in self.surfaces}
+        parts: dict[int, list[_Part]] = {}  # tone class -> its parts on every top
+        unlike_all = np.zeros((h, w), bool)  # on any top, unlike it
+        for top_seg in self._cached(frame, "surfaces", self.detect_surfaces):
+            for i, part in self._top_parts(frame, top_seg, by_name[top_seg.label], sat, hued, unlike_all):
+                parts.setdefault(i, []).append(part)
+        hue_beside = unlike_all & hue_strong
+        out: list[Segment] = []
+        for i, found in parts.items():
+            for group in _near_groups(found, TONE_GAP_PX):
+                idx = np.concatenate([p.idx for p in group])
+                if idx.size < TONE_MIN_AREA_PX:
+                    continue
+                if np.count_nonzero(hue_strong.ravel()[idx]) > TONE_HUED_SHARE * idx.size:
+                    continue  # mostly a hue class's pixels: a coloured object the hue classes refused
+                if _tint(frame.rgb.reshape(-1, 3)[idx], group[0].top_chroma) > TONE_MAX_TINT:
+                    continue  # its own colour: a coloured object's shaded side or a shadow tinted by it
+                if self._beside_hue(idx, w, h, hue_beside):
+                    continue  # the bare part of a coloured object: a hammer's steel head by its olive grip
+                seg = self._check_tone(frame, self.tones[i], idx, group[0].top_z, 2000 + len(out))
+                if seg is not None:
+                    out.append(seg)
+        return out
+
+    def _top_parts(self, frame: Frame, top_seg: Segment, sc: SurfaceClass, sat: np.ndarray, hued: np.ndarray,
+                   unlike_all: np.ndarray) -> list[tuple[int, _Part]]:
+        """The parts on one top with the tone class each fits: pixels inside the top's outline whose chromaticity is
+        off the top's albedo or whose brightness is off the top's around them, not a coloured object's or beside
+        one, in connected parts; a part's albedo brightness (its brightness over the top's, times the top's known
+        albedo) and its saturation give its tone. Marks the top's unlike pixels in `unlike_all`."""
+        w = frame.shape[1]
+        top_pts = geo.lift(frame, top_seg.indices, max_points=400).points
+        if len(top_pts) < 10:
+            return []
+        top_z = float(np.median(top_pts[:, 2]))
+        v, u = np.divmod(top_seg.indices, w)
+        y0, y1, x0, x1 = int(v.min()), int(v.max()) + 2, int(u.min()), int(u.max()) + 2
+        grid = np.zeros((y1 - y0, x1 - x0), np.uint8)
+        grid[v - y0, u - x0] = 1
+        top = cv2.dilate(grid, np.ones((2, 2), np.uint8), anchor=(0, 0))  # the surface pass's grid, filled in
+        # What lies on the top is inside its outline: the convex hull (tops are convex; a long object lying across
+        # the top can split the top's pixels in two, and the surface pass keeps the larger part), less its rim,
+        # where the depth mixes the top with its side and the floor.
+        contours, _ = cv2.findContours(top, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+        hull = np.zeros_like(top)
+        cv2.fillConvexPoly(hull, cv2.convexHull(np.concatenate(contours)), 1)
+        region = cv2.erode(hull, np.ones((2 * TONE_RIM_PX + 1,) * 2, np.uint8)) > 0
+        rgb = frame.rgb[y0:y1, x0:x1].astype(np.float32)
+        b = rgb.sum(axis=2)
+        ch = rgb / (b[..., None] + 1e-3)
+        albedos = np.array([sc.rgb, *sc.more_rgb], np.float32)
+        chroma_off = np.ones(b.shape, bool)  # off every albedo's chromaticity (squared distances: no root)
+        for a in albedos:
+            chroma_off &= ((ch - a / a.sum()) ** 2).sum(axis=2) > (TONE_CHROMA * sc.chroma_tol) ** 2
+        # The top's brightness around each pixel, from the top's own pixels only (normalised box filter).
+        k = (TONE_WINDOW_PX, TONE_WINDOW_PX)
+        topf = top.astype(np.float32)
+        den = cv2.boxFilter(topf, -1, k, normalize=False)
+        ratio = b / np.maximum(cv2.boxFilter(b * topf, -1, k, normalize=False) / np.maximum(den, 1e-6), 1e-3)
+        patch = region & (chroma_off | (np.abs(ratio - 1.0) > TONE_BRIGHTNESS)) & (den > 0)
+        unlike_all[y0:y1, x0:x1] |= patch
+        patch &= ~hued[y0:y1, x0:x1]
+        opened = cv2.morphologyEx(patch.astype(np.uint8), cv2.MORPH_OPEN, TONE_KERNEL)
+        n, lab, stats, _ = cv2.connectedComponentsWithStats(opened, connectivity=8)
+        a_bright = float(albedos[0].sum()) / 3.0
+        top_chroma = albedos[0] / albedos[0].sum()
+        out: list[tuple[int, _Part]] = []
+        for k_ in range(1, n):
+            if stats[k_, cv2.CC_STAT_AREA] < TONE_MIN_PART_PX:
+                continue
+            bx, by, bw, bh = (int(stats[k_, j]) for j in range(4))
+            py, px_ = np.nonzero(lab[by:by + bh, bx:bx + bw] == k_)
+            py, px_ = py + by, px_ + bx
+            idx = (py + y0) * w + (px_ + x0)
+            albedo = float(np.median(ratio[py, px_])) * a_bright
+            s_med = float(np.median(sat.ravel()[idx]))
+            for i, t in enumerate(self.tones):
+                if t.brightness[0] <= albedo <= t.brightness[1] and s_med <= t.max_saturation:
+                    out.append((i, _Part(idx, (bx + x0, by + y0, bx + x0 + bw, by + y0 + bh), top_z, top_chroma)))
+                    break
+        return out
+
+    @staticmethod
+    def _beside_hue(idx: np.ndarray, w: int, h: int, hue_unlike: np.ndarray) -> bool:
+        """Whether at least TONE_MIN_PART_PX strongly hued pixels that are not the top lie within TONE_GAP_PX of
+        the patch."""
+        v, u = np.divmod(idx, w)
+        y0, y1 = max(int(v.min()) - TONE_GAP_PX, 0), min(int(v.max()) + TONE_GAP_PX + 1, h)
+        x0, x1 = max(int(u.min()) - TONE_GAP_PX, 0), min(int(u.max()) + TONE_GAP_PX + 1, w)
+        mask = np.zeros((y1 - y0, x1 - x0), np.uint8)
+        mask[v - y0, u - x0] = 1
+        near = cv2.dilate(mask, np.ones((2 * TONE_GAP_PX + 1,) * 2, np.uint8)) > 0
+        return int(np.count_nonzero(near & hue_unlike[y0:y1, x0:x1])) >= TONE_MIN_PART_PX
+
+    def _check_tone(self, frame: Frame, t: ToneClass, idx: np.ndarray, top_z: float, key: int) -> Segment | None:
+        """A patch that stands off the top around it (a stain, a seam or a shadow lies in it: the 90th percentile
+        of its heights at least TONE_MIN_RISE above the top's, more where the depth is noisier) and whose 3D extent
+        fits the tone class (its long side 0.4 to 1.5 times the class's: a screwdriver's black handle is half its
+        length; its short side no wider than 1.5 times the class's, plus the depth's noise)."""
+        cloud = geo.lift(frame, idx, max_points=600)
+        if len(cloud.points) < 10:
+            return None
+        pts = cloud.points
+        support = geo.support_height(frame, idx, top_z)
+        if support is None:
+            return None
+        dist = float(np.linalg.norm(pts.mean(axis=0) - frame.world_from_camera[:3, 3]))
+        if np.percentile(pts[:, 2], 90) - support < max(TONE_MIN_RISE, TONE_RISE_PER_M2 * dist * dist):
+            return None
+        height = float(np.percentile(pts[:, 2], 98) - np.percentile(pts[:, 2], 2))
+        long_, short = robust_footprint(pts[:, :2])
+        exp_long, exp_short, exp_h = max(t.dims[:2]), min(t.dims[:2]), t.dims[2]
+        if long_ > 1.5 * exp_long + 0.04 or short > 1.5 * exp_short + 0.04 or height > 1.5 * exp_h + 0.04:
+            return None
+        if not geo.touches_border(geo.bbox_of(idx, frame.shape[1]), frame.shape) and long_ < 0.4 * exp_long:
+            return None
+        fit = min(1.0, long_ / exp_long)
+        return Segment(key, t.name, t.category, t.color, float(0.5 + 0.5 * fit), long_ * short * max(height, 0.01),
+                       int(idx.size), _indices=idx)
 
     # ---- surfaces
 
