@@ -235,6 +235,7 @@ class ColorSegmenter(Segmenter):
         self.kernel = np.ones((3, 3), np.uint8)
         self._cache: dict[tuple[int, int, str], list[Segment]] = {}
         self._lock = threading.Lock()
+        self._grids: dict[tuple, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
     def known_names(self, frame: Frame | None) -> list[str]:
         return [c.name for c in self.objects] + [t.name for t in self.tones] + [s.name for s in self.surfaces]
@@ -507,25 +508,45 @@ class ColorSegmenter(Segmenter):
 
     # ---- surfaces
 
+    def _grid(self, frame: Frame, stride: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The surface pass's pixel grid for this frame size and camera: flat indices and each pixel's ray
+        ((u - cx) / fx, (v - cy) / fy), computed once per camera."""
+        intr = frame.intr
+        key = (frame.shape, stride, intr.fx, intr.fy, intr.cx, intr.cy)
+        hit = self._grids.get(key)
+        if hit is None:
+            h, w = frame.shape
+            vv, uu = np.mgrid[0:h:stride, 0:w:stride]
+            hit = ((vv * w + uu).ravel(), ((uu - intr.cx) / intr.fx).astype(np.float32),
+                   ((vv - intr.cy) / intr.fy).astype(np.float32))
+            self._grids = {key: hit}
+        return hit
+
     def detect_surfaces(self, frame: Frame, stride: int = 2) -> list[Segment]:
         h, w = frame.shape
-        vv, uu = np.mgrid[0:h:stride, 0:w:stride]
-        idx = (vv * w + uu).ravel()
-        gh, gw = vv.shape
-        d = frame.depth_mm.ravel()[idx].astype(np.float32) * 0.001
-        intr = frame.intr
-        pc = np.stack([(uu.ravel() - intr.cx) * d / intr.fx, (vv.ravel() - intr.cy) * d / intr.fy, d], axis=1)
+        idx, rx, ry = self._grid(frame, stride)
+        gh, gw = rx.shape
+        d = frame.depth_mm[::stride, ::stride].astype(np.float32) * np.float32(0.001)
+        # World points per component, in float32 (nine multiply-adds per point, not a float64 N x 3 matmul: the
+        # matmul was 40 % of this pass).
         T = frame.world_from_camera  # noqa: N806
-        pw = (pc @ T[:3, :3].T + T[:3, 3]).reshape(gh, gw, 3).astype(np.float32)
-        valid = (d > 0).reshape(gh, gw)
-        # Normal from the cross product of neighbour differences (both must have depth).
+        R, t = T[:3, :3].astype(np.float32), T[:3, 3].astype(np.float32)  # noqa: N806
+        xc, yc = rx * d, ry * d
+        pw = np.empty((gh, gw, 3), np.float32)
+        for k in range(3):
+            pw[..., k] = R[k, 0] * xc + R[k, 1] * yc + R[k, 2] * d + t[k]
+        valid = d > 0
+        # Normal from the cross product of neighbour differences (both must have depth): flat where its vertical
+        # component is within 12 degrees, compared squared (no root).
         dx = np.zeros_like(pw)
         dy = np.zeros_like(pw)
         dx[:, :-1] = pw[:, 1:] - pw[:, :-1]
         dy[:-1] = pw[1:] - pw[:-1]
-        n = np.cross(dx, dy)
-        nn = np.linalg.norm(n, axis=2) + 1e-9
-        flat = (np.abs(n[..., 2]) / nn > math.cos(math.radians(12))) & valid
+        nx = dx[..., 1] * dy[..., 2] - dx[..., 2] * dy[..., 1]
+        ny = dx[..., 2] * dy[..., 0] - dx[..., 0] * dy[..., 2]
+        nz = dx[..., 0] * dy[..., 1] - dx[..., 1] * dy[..., 0]
+        nz2 = nz * nz
+        flat = (nz2 > np.float32(math.cos(math.radians(12)) ** 2) * (nx * nx + ny * ny + nz2)) & (nz2 > 0) & valid
         flat[:, -1] = flat[-1] = False
         zf = pw[..., 2]
         flat &= (zf > SURFACE_HEIGHT[0]) & (zf < SURFACE_HEIGHT[1])
@@ -559,8 +580,8 @@ class ColorSegmenter(Segmenter):
                 continue
             mask = np.zeros((gh, gw), np.uint8)
             mask[fy[pick], fx[pick]] = 1
-            mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, self.kernel)
-            n_cc, lab, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+            closed = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, self.kernel)
+            n_cc, lab, stats, _ = cv2.connectedComponentsWithStats(closed, connectivity=8)
             if n_cc <= 1:
                 continue
             best: tuple[float, np.ndarray] | None = None
