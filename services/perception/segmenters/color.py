@@ -201,7 +201,6 @@ def _tint(rgb: np.ndarray, top_chroma: np.ndarray) -> float:
     return float(np.linalg.norm(c - (grey + s * d)))
 
 
-
 def _hs_lut(classes: tuple[ColorClass, ...]) -> np.ndarray:
     """(H, S) -> 1 + index of the nearest class within its tolerance ellipse, 0 for none."""
     h = np.arange(180, dtype=np.float32)[:, None]
@@ -236,6 +235,8 @@ class ColorSegmenter(Segmenter):
         self._cache: dict[tuple[int, int, str], list[Segment]] = {}
         self._lock = threading.Lock()
         self._grids: dict[tuple, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        self._tone_names = frozenset(t.name for t in self.tones)
+        self._tone_words = frozenset(w for n in self._tone_names for w in q.words(n))
 
     def known_names(self, frame: Frame | None) -> list[str]:
         return [c.name for c in self.objects] + [t.name for t in self.tones] + [s.name for s in self.surfaces]
@@ -273,10 +274,8 @@ class ColorSegmenter(Segmenter):
     def _may_name_tone(self, query: q.Query) -> bool:
         """Whether the query could be answered by a tone class: one of its words is in a tone class's name,
         names a family holding one, or its colour words cover a tone's colour."""
-        names = {t.name for t in self.tones}
-        words = {w for n in names for w in q.words(n)}
-        return bool(set(query.words) & words
-                    or any(q.FAMILIES.get(w, frozenset()) & names for w in query.words)
+        return bool(self._tone_words.intersection(query.words)
+                    or any(q.FAMILIES.get(w, frozenset()) & self._tone_names for w in query.words)
                     or any(t.color in covered for t in self.tones for c in query.colors
                            for covered in [q.COLOR_WORDS.get(c, frozenset({c}))]))
 
@@ -485,8 +484,9 @@ class ColorSegmenter(Segmenter):
     def _check_tone(self, frame: Frame, t: ToneClass, idx: np.ndarray, top_z: float, key: int) -> Segment | None:
         """A patch that stands off the top around it (a stain, a seam or a shadow lies in it: the 90th percentile
         of its heights at least TONE_MIN_RISE above the top's, more where the depth is noisier) and whose 3D extent
-        fits the tone class (its long side 0.4 to 1.5 times the class's: a screwdriver's black handle is half its
-        length; its short side no wider than 1.5 times the class's, plus the depth's noise)."""
+        fits the tone class: long side, short side and height at most 1.5 times the class's + 4 cm (the depth's
+        noise); long side at least 0.4 times the class's unless the image border cuts it (a screwdriver's black
+        handle is half its length)."""
         cloud = geo.lift(frame, idx, max_points=600)
         if len(cloud.points) < 10:
             return None
