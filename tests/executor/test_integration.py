@@ -42,7 +42,8 @@ KEYS = Keys("am1")
 # a fault's outcome). On the multirotor's realistic hover a grasp call succeeds at the rate benchmarks/grasp.py
 # measures, not always, and a pass/fail test of one call would be a draw; the subject here is the skill's logic,
 # with the camera's realism and perception unchanged. The multirotor flies the policy-level stack tests
-# (tests/reasoner/test_demo.py, tests/faults, tests/evaluation) and the grasp benchmark.
+# (tests/reasoner/test_demo.py, tests/faults, tests/evaluation; those that assert a task's success fly it in the
+# ideal world, where no gust decides the grasp) and the grasp benchmark.
 @pytest.fixture(scope="module")
 def stack(tmp_path_factory):
     with run_stack(SERVICES, tmp_path_factory.mktemp("executor_stack"),

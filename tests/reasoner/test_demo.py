@@ -23,6 +23,10 @@ if not set(available_services()) >= NEEDED:
     pytest.skip("the full stack is not in this checkout", allow_module_level=True)
 
 CMD = "pick up the red cup and place it on the table"
+# Where a test asserts that the task succeeds, the world is the ideal one: no gusts, no drift, no sensor noise,
+# so the grasp's outcome is not left to chance (in the realistic world about 1 demo in 20 knocks the cup off the
+# table). test_demo_rules covers the realistic default.
+IDEAL = {"AERMANI_SIM_REALISM": "ideal"}
 
 
 def demo(tmp_path, env: dict[str, str], command: str = CMD,
@@ -36,14 +40,28 @@ def demo(tmp_path, env: dict[str, str], command: str = CMD,
 
 
 def test_demo_rules(tmp_path) -> None:
-    """The default demo, recorded; its log exported as a ROS 2 bag reads back in full with rosbags and with
-    mcap-ros2-support (every message deserialized by both, the same counts)."""
+    """The default demo in the default (realistic) world, recorded; its log exported as a ROS 2 bag reads back in
+    full with rosbags and with mcap-ros2-support (every message deserialized by both, the same counts).
+
+    In the realistic world the pick-and-place succeeds by chance, not always: the multirotor drifts and gusts
+    push it, and a grasp can knock the cup off the table where no viewpoint sees it again (CI, stop 46: 1 demo
+    in about 20). What holds every time is asserted here: the task ends, a success is claimed only when the
+    simulator's judge confirms it, a failure says why, and the log is complete either way. That the stack does
+    the whole pick-and-place is asserted in the ideal world below (the same policy through a model backend),
+    where the outcome does not depend on the weather; the realistic rates are measured by benchmarks/grasp.py."""
     code, result = demo(tmp_path, {"AERMANI_REASONER_BACKEND": "rules",
                                    "AERMANI_RECORDER_OUT_DIR": str(tmp_path / "rec")},
                         services=("sim", "autopilot_bridge", "perception", "executor", "reasoner", "recorder"))
-    assert code == 0 and result["success"], result.get("verdict")
-    skills = [s.ste.skill for s in result["steps"]]
-    assert skills[-1] == "done" and "grasp" in skills and "place" in skills
+    assert "final" in result, f"the task never ended (exit {code})"
+    final, skills = result["final"], [s.ste.skill for s in result["steps"] if s.ste]
+    assert "grasp" in skills, skills  # it found the cup and tried
+    claimed = final.state.value == "succeeded"
+    assert not claimed or result["success"], f"claimed success the judge denies: {result['verdict']}"
+    assert (code == 0) == (claimed and result["success"])
+    if claimed:
+        assert skills[-1] == "done" and "place" in skills
+    else:
+        assert final.message, final  # a failure says why
     # The default demo: real computer vision on the rendered pixels, realistic camera and pose noise, the
     # multirotor, as the running services report them.
     assert result["segmenter"] == "color" and result["realism"] == "realistic", result
@@ -105,8 +123,12 @@ def test_demo_model_backend_with_schema_reprompt_and_done(tmp_path, kind: str) -
         vlm.faults.extend(["invalid_json", None, "fences", "500", None, "unknown_skill"])
         base = vlm.openai_base_url if kind == "openai" else vlm.anthropic_base_url
         code, result = demo(tmp_path, {"AERMANI_REASONER_BACKEND": kind, "AERMANI_REASONER_API_KEY": "none",
-                                       "AERMANI_REASONER_BASE_URL": base, "AERMANI_REASONER_MODEL": "fake-vlm"})
+                                       "AERMANI_REASONER_BASE_URL": base, "AERMANI_REASONER_MODEL": "fake-vlm",
+                                       **IDEAL})
     assert code == 0 and result["success"], result.get("verdict")
+    assert result["realism"] == "ideal"
+    skills = [s.ste.skill for s in result["steps"]]
+    assert "grasp" in skills and "place" in skills  # the whole pick-and-place, confirmed by the judge
     final, steps = result["final"], result["steps"]
     assert [s.retries for s in steps[:4]] == [1, 0, 0, 1]
     assert final.invalid_answers == 2 and final.model_calls == sum(len(s.calls) for s in steps)
@@ -134,7 +156,7 @@ def test_demo_refuses_to_take_off_after_a_failed_preflight_until_overridden(tmp_
     assert "steps" not in result  # no task was started
     # overridden, it arms and flies a task (a pick without the place: the flight, not the task, is under test)
     code, result = demo(tmp_path / "overridden", {"AERMANI_REASONER_BACKEND": "rules",
-                                                  "AERMANI_AUTOPILOT_BRIDGE_PREFLIGHT_OVERRIDE": "1"},
+                                                  "AERMANI_AUTOPILOT_BRIDGE_PREFLIGHT_OVERRIDE": "1", **IDEAL},
                         command="pick up the red cup")
     assert code == 0 and result["success"], result.get("verdict")
     log = (tmp_path / "overridden" / "logs" / "autopilot_bridge-am1.log").read_text()
