@@ -74,6 +74,7 @@ BENCHMARKS: dict[str, Bench] = {
                          ("--seeds", "100", "--levels", "realistic", "--no-in-view"), timeout_s=1200),
     "executor": Bench(("--trials", "10"), ("--trials", "2"), timeout_s=600),
     "step_breakdown": Bench(("--episodes", "1"), ("--no-eval",), timeout_s=1800),
+    "speculation": Bench(("--runs", "2"), ("--runs", "1"), timeout_s=2400),
     "fleet_abort": Bench(("--trials", "10"), ("--trials", "2"), timeout_s=900),
     "profile_paths": Bench(("--frames", "30", "--steps", "300"), ("--frames", "5", "--steps", "30"), timeout_s=300),
     "soak": Bench(("--minutes", "30", "--out", "runs/bench/soak"), ("--minutes", "2", "--out", "runs/bench/soak"),
@@ -218,6 +219,12 @@ FIGURES: list[Figure] = [
            fig("reasoner", "total_p95_ms"), PAPER, const(PAPER_MEDIAN_RT_MS), ("<=", 10.0), "value", "#6"),
     Figure("reasoner.overhead_p50", "reasoner: the same, p50", "ms",
            fig("reasoner", "total_p50_ms"), PAPER, const(PAPER_MEDIAN_RT_MS)),
+    Figure("speculation.saved", "speculative next step (AERMANI_REASONER_SPECULATE=1): task time saved, the demo "
+           "task in real time, ideal world, model: the local stand-in server answering after 1 s", "s",
+           fig("speculation", "saved_s"), "the same task without speculation", fig("speculation", "off", "task_s"),
+           source="#27"),
+    Figure("speculation.use_rate", "speculative next step: answers used of those asked for (the skill ended as "
+           "predicted and the fresh observation agreed)", "%", fig("speculation", "use_rate_pct"), source="#27"),
     Figure("reasoner.hostile_parse", "reasoner: worst CPU time to read or reject a hostile answer up to the size cap "
            "(16 shapes x 3 variants)", "ms", fig("reasoner", "hostile_parse_max_ms"), target=("<=", 100.0),
            source="#31"),

@@ -27,7 +27,7 @@ from pydantic import (
 SCHEMA_VERSION = 1
 """Major version of the message schemas. A receiver rejects a message of a newer major version with an
 error naming both versions."""
-SCHEMA_MINOR = 10
+SCHEMA_MINOR = 11
 """Minor version: bumped when fields are added (or deprecated and ignored, never removed). A receiver accepts a
 message of a newer minor version, ignoring the fields it does not know (logged once per field)."""
 MAX_COMMAND_CHARS = 500
@@ -989,6 +989,10 @@ class ReasoningStep(Message):
     """SayCan-style variant: every candidate's score and feasibility (empty for other variants; minor 7)."""
     plan: tuple[SkillToExecute, ...] = Field((), max_length=MAX_CANDIDATES)
     """Plan-once variant: the whole plan, in the step that asked for it (empty otherwise; minor 7)."""
+    speculative: bool = False
+    """The answer was asked for while the previous skill flew, on the observation its predicted outcome implied
+    (`prompt` is that one), and used because the fresh observation agreed (AERMANI_REASONER_SPECULATE; minor
+    11)."""
 
 
 class CancelGoal(Message):
@@ -1226,6 +1230,11 @@ class TaskStatus(Message):
     """End time (0 while running)."""
     forked_from: ForkOrigin | None = None
     """The recorded task this one continues (a flight fork, minor version 9)."""
+    speculations: int = 0
+    """Next steps asked for while the previous skill flew (AERMANI_REASONER_SPECULATE; minor 11). Their model
+    calls count in `model_calls` only when the answer was used."""
+    speculations_used: int = 0
+    """Of those, the answers used: the skill ended as predicted and the fresh observation agreed (minor 11)."""
 
 
 # --------------------------------------------------------------------------- health

@@ -24,6 +24,13 @@ RIGHT = "right"
 UP = "up"
 DOWN = "down"
 MOTION_PRIMITIVES = (YAW_LEFT, YAW_RIGHT, FORWARD, BACKWARD, LEFT, RIGHT, UP, DOWN)
+# How each flies: the body-frame direction of a translation (x forward, y left, z up; times the step the Skill
+# Library states) and the sense of a turn (+1 counter-clockwise). The executor flies them so; the reasoner's
+# speculative step predicts where one ends from them.
+STEP_AXES: dict[str, tuple[float, float, float]] = {
+    FORWARD: (1.0, 0.0, 0.0), BACKWARD: (-1.0, 0.0, 0.0), LEFT: (0.0, 1.0, 0.0), RIGHT: (0.0, -1.0, 0.0),
+    UP: (0.0, 0.0, 1.0), DOWN: (0.0, 0.0, -1.0)}
+TURNS: dict[str, float] = {YAW_LEFT: 1.0, YAW_RIGHT: -1.0}
 
 # Perception-driven routines (paper Table III).
 OBJ_LOCALIZATION = "obj_localization"  # argument: object query, e.g. "red cup"

@@ -175,6 +175,9 @@ class Metrics(ApiModel):
     """Total wall time of the executed skills."""
     duration_s: float | None = None
     """Task wall time so far (or in total once ended)."""
+    speculative_steps: int = 0
+    """Steps whose answer was asked for while the previous skill flew and used (AERMANI_REASONER_SPECULATE); the
+    task's status says how many were asked for (`speculations`, `speculations_used`)."""
 
 
 class TaskDetail(TaskSummary):

@@ -27,6 +27,7 @@ from services.reasoner.prompt import (
     PromptCompiler,
 )
 from services.reasoner.settings import ReasonerSettings
+from services.reasoner.speculation import assume, disagreement
 from shared import skills as S  # noqa: N812
 from shared.errors import AermaniError, InvalidAnswer, ModelError, ServerLost
 from shared.messages import (
@@ -155,6 +156,20 @@ def skill_times(st: SkillStatus, sent_ns: int, received_ns: int,
 
 
 @dataclass
+class Guess:
+    """The next step's answer, asked for while the current skill flies (`speculation.py`)."""
+
+    task: asyncio.Task[tuple[StepResult, float]]
+    context: PolicyContext
+    """What the policy was given: compared with the fresh context when the skill has ended."""
+
+
+SPECULATION_VARIANTS_EXCLUDED = ("plan_once", "saycan")
+"""plan_once answers once per task; saycan weighs its candidates by the executor's feasibility now, which the
+running skill is changing."""
+
+
+@dataclass
 class StepResult:
     """One finished reasoning step: the published record and the parsed answer (None when invalid)."""
 
@@ -188,6 +203,9 @@ class TaskRunner:
         self.steps = 0
         self.calls = 0
         self.invalid = 0
+        self.speculations = 0
+        self.speculations_used = 0
+        self._guess: Guess | None = None
         self.started_ns = now_ns()
         self.records: list[ReasoningStep] = []
         self._abort: asyncio.Event | None = None
@@ -204,7 +222,8 @@ class TaskRunner:
                           state=state, message=message, steps=self.steps, model_calls=self.calls,
                           invalid_answers=self.invalid, backend=self.backend.name, variant=self.variant,
                           started_ns=self.started_ns, ended_ns=0 if not state.terminal else now_ns(),
-                          forked_from=self.resume.origin if self.resume is not None else None)
+                          forked_from=self.resume.origin if self.resume is not None else None,
+                          speculations=self.speculations, speculations_used=self.speculations_used)
 
     async def run(self, abort: asyncio.Event) -> TaskStatus:
         """Run until done/failure/abort/T_max; always returns (and publishes) the terminal status."""
@@ -234,6 +253,7 @@ class TaskRunner:
             final = self.status(TaskState.FAILED, f"reasoner error: {type(exc).__name__}: {exc}")
         finally:
             aborter.cancel()
+            await self._drop_guess()
         self.publish_status(final)
         return final
 
@@ -284,7 +304,7 @@ class TaskRunner:
             link_s = time.perf_counter() - t_link
             self.steps += 1
             try:
-                result, model_time = await self._next(compiler, library, obs)
+                result, model_time = await self._take_guess(library, obs) or await self._next(compiler, library, obs)
             except ModelError as exc:
                 await self.world.hold(self.req.task_id, "model outage")
                 rec = ReasoningStep(vehicle_id=self.settings.vehicle_id, task_id=self.req.task_id, step=self.steps,
@@ -313,11 +333,15 @@ class TaskRunner:
             failed_in_row = 0
             overhead = time.perf_counter() - t_step - model_time
             ste = parsed.ste
+            if self._speculating():
+                self._guess = self._speculate(compiler, library, obs, parsed)
             t_skill, sent_ns = time.perf_counter(), now_ns()
             try:
                 st = await self._execute(SkillRequest(skill=ste.skill, argument=ste.argument,
                                                       task_id=self.req.task_id, step=self.steps),
                                          self.settings.skill_timeout_s, reasoning=parsed.drt.reasoning or "")
+                if st.state is not SkillState.SUCCEEDED:
+                    await self._drop_guess()  # it assumed a success
             except ExecutorUnreachable as exc:
                 self._publish(rec.model_copy(update={"skill_state": SkillState.FAILED, "skill_message": str(exc),
                                                      "overhead_s": overhead}))
@@ -495,12 +519,17 @@ class TaskRunner:
         self.records.append(rec)
         self.publish_step(rec)
 
-    async def _decide(self, compiler: PromptCompiler, library: SkillLibrary,
-                      obs: Observation) -> tuple[StepResult, float]:
-        """Query the policy, re-prompting with the error up to N times. Returns (result, model seconds)."""
+    async def _decide(self, compiler: PromptCompiler, library: SkillLibrary, obs: Observation,
+                      history: History | None = None, step: int | None = None,
+                      count: bool = True) -> tuple[StepResult, float]:
+        """Query the policy, re-prompting with the error up to N times. Returns (result, model seconds).
+        `history` and `step` default to the task's; a speculative step passes its assumed ones and `count`
+        False (its calls count when it is used)."""
+        history = self.history if history is None else history
+        step = self.steps if step is None else step
         t_prompt = time.perf_counter()
-        prompt: CompiledPrompt = compiler.compile(self.req.command, self.history, obs)
-        ctx = policy_context(self.req.command, self.variant, library, self.history, obs)
+        prompt: CompiledPrompt = compiler.compile(self.req.command, history, obs)
+        ctx = policy_context(self.req.command, self.variant, library, history, obs)
         first_call = time.perf_counter()
         feedback: list[tuple[str, str]] = []
         calls: list[ModelCall] = []
@@ -516,7 +545,7 @@ class TaskRunner:
                 exc.calls = tuple(calls)
                 raise
             model_time += time.perf_counter() - t0
-            self.calls += 1
+            self.calls += count
             try:
                 parsed = parse_answer(reply.text, self.variant, library, coverage=self.settings.prediction_coverage)
                 calls.append(ModelCall(raw_answer=recorded_answer(reply.text), valid=True, latency_s=reply.latency_s,
@@ -525,18 +554,18 @@ class TaskRunner:
                 failure = reply.failure
                 break
             except InvalidAnswer as exc:
-                self.invalid += 1
+                self.invalid += count
                 calls.append(ModelCall(raw_answer=recorded_answer(reply.text), valid=False, error=str(exc),
                                        latency_s=reply.latency_s,
                                        tokens_in=reply.tokens_in, tokens_out=reply.tokens_out,
                                        structured=reply.structured, tokens_cached=reply.cached_tokens))
                 feedback.append((reply.text, str(exc)))
-                log.info("invalid answer (step %d): %s", self.steps, plain_text(exc))  # it may quote the answer
+                log.info("invalid answer (step %d): %s", step, plain_text(exc))  # it may quote the answer
         scores: tuple[SkillScore, ...] = ()
         if parsed is not None and parsed.scores:
             parsed, scores = await self._weigh(parsed)
         rec = ReasoningStep(
-            vehicle_id=self.settings.vehicle_id, task_id=self.req.task_id, step=self.steps, backend=self.backend.name,
+            vehicle_id=self.settings.vehicle_id, task_id=self.req.task_id, step=step, backend=self.backend.name,
             variant=self.variant, prompt=prompt.parts, image_stamp_ns=obs.image_stamp_ns if prompt.has_image else 0,
             calls=tuple(calls), drt=parsed.drt if parsed else None, ste=parsed.ste if parsed else None,
             valid=parsed is not None, retries=len(calls) - 1, scores=scores, plan=parsed.plan if parsed else ())
@@ -552,6 +581,62 @@ class TaskRunner:
         if self.variant == "plan_once" and result.parsed is not None:
             self.plan = list(result.parsed.plan[1:])  # the first step runs now
         return result, model_time
+
+    def _speculating(self) -> bool:
+        return (self.settings.speculate and self.backend.speculates
+                and self.variant not in SPECULATION_VARIANTS_EXCLUDED)
+
+    def _speculate(self, compiler: PromptCompiler, library: SkillLibrary, obs: Observation,
+                   parsed: ParsedAnswer) -> Guess | None:
+        """Ask for step k+1 now, on the observation skill k's predicted success implies; None when its outcome
+        cannot be predicted (speculation.assume)."""
+        ste, drt = parsed.ste, parsed.drt
+        assumed = assume(self.history, obs, library, ste, self.steps, (drt.action_predictions or {}).get(ste.skill, ""),
+                         drt.summary or "", drt.reasoning or "")
+        if assumed is None:
+            return None
+        self.speculations += 1
+        ctx = policy_context(self.req.command, self.variant, library, assumed.history, assumed.obs)
+        task = asyncio.create_task(self._decide(compiler, library, assumed.obs, assumed.history, self.steps + 1,
+                                                count=False))
+        return Guess(task, ctx)
+
+    async def _drop_guess(self) -> None:
+        guess, self._guess = self._guess, None
+        if guess is not None and not guess.task.done():
+            guess.task.cancel()
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await guess.task
+
+    async def _take_guess(self, library: SkillLibrary, obs: Observation) -> tuple[StepResult, float] | None:
+        """This step's speculative answer when the skill before it ended as predicted and the policy would read
+        the same from the fresh observation (speculation.disagreement); else None (it is discarded, with the
+        reason in the log). The seconds returned are the wait for it after the skill's end (often none)."""
+        guess = self._guess
+        if guess is None:
+            return None
+        fresh = policy_context(self.req.command, self.variant, library, self.history, obs)
+        why = disagreement(guess.context, fresh)
+        if why is None:
+            t0 = time.perf_counter()
+            try:
+                result, _ = await guess.task
+            except Exception as exc:  # a model outage, or anything else: the step is asked again, not lost
+                why = f"the model failed: {type(exc).__name__}: {exc}"
+            else:
+                if result.parsed is None:
+                    why = "its answers were invalid"
+        if why is not None:
+            log.info("task %s step %d: speculative answer discarded: %s", self.req.task_id, self.steps, why)
+            await self._drop_guess()
+            return None
+        self._guess = None
+        self.speculations_used += 1
+        self.calls += len(result.record.calls)
+        self.invalid += sum(not c.valid for c in result.record.calls)
+        record = result.record.model_copy(update={"speculative": True})
+        # The user waited for none of the prompt's compilation, only for what was left of the model's answer.
+        return replace(result, record=record, prompt_s=0.0, first_call=t0), time.perf_counter() - t0
 
     def _planned(self, obs: Observation) -> StepResult:
         """Plan-once: the plan's next step as this step's record (no model call, no prompt)."""

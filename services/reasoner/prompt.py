@@ -219,6 +219,12 @@ class History:
     def append(self, entry: HistoryEntry) -> None:
         self.entries.append(entry)
 
+    def extended(self, entry: HistoryEntry) -> History:
+        """A copy with `entry` appended (this one unchanged): the History a speculative step is asked with."""
+        other = History(self.full_steps, self.max_chars, paper=self.paper)
+        other.entries = [*self.entries, entry]
+        return other
+
     def __len__(self) -> int:
         return len(self.entries)
 

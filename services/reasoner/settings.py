@@ -90,6 +90,11 @@ class ReasonerSettings(ServiceSettings):
     kill.)"""
     skill_timeout_s: float = Field(180.0, gt=0)
     """Longest wait for one skill's terminal status before the reasoner holds and records a timeout."""
+    speculate: bool = False
+    """While a skill flies, ask the model for the next step on the observation the skill's predicted outcome
+    implies (a motion's end pose, a localization's estimate at the detection), and use that answer when the
+    skill ended so and the fresh observation agrees (services/reasoner/speculation.py); otherwise ask again.
+    Saves a model's latency per step when predictions hold; costs the discarded calls."""
     frame_wait_s: float = Field(1.0, ge=0)
     """How long to wait for a colour frame newer than the last skill's end before using the latest one."""
     library_timeout_s: float = Field(10.0, gt=0)

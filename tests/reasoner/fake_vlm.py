@@ -211,8 +211,11 @@ def shaped_answer(answer: str, schema: dict) -> str:
 class FakeVLMServer:
     def __init__(self, *, timeout_delay: float = 3.0, outage: bool = False, model: str = "fake-vlm",
                  reject_schema: bool = False, fault_every: int = 0, periodic_fault: str = "invalid_json",
-                 port: int = 0, reject_images: bool = False) -> None:
+                 port: int = 0, reject_images: bool = False, latency_s: float = 0.0) -> None:
         self.faults: deque[str | None] = deque()
+        self.latency_s = latency_s
+        """Every answer is sent this long after its request arrived, like a model's response time (a remote
+        VLM's median is about 1 s: benchmarks/speculation.py)."""
         self.fault_every = fault_every
         """When > 0 and no fault is queued, every fault_every-th answer gets `periodic_fault` (a standing schedule
         for pipeline checks, e.g. scripts/eval_variants.sh: every 20th answer truncated)."""
@@ -320,6 +323,8 @@ class FakeVLMServer:
             return None, 500, fault
         if fault == "timeout":
             await asyncio.sleep(self.timeout_delay)
+        if self.latency_s > 0:
+            await asyncio.sleep(self.latency_s)
         answer = answer_for_prompt(text)
         if schema is not None:
             answer = shaped_answer(answer, schema)

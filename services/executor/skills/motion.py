@@ -90,26 +90,25 @@ class _Step(Skill):
                      distance_m=round(moved, 3))
 
 
-# Paper Table II as a table: (name, Skill Library text, body-frame direction, turn).
-_PRIMITIVES: tuple[tuple[str, str, tuple[float, float, float], float], ...] = (
+# Paper Table II as a table: (name, Skill Library text); the body-frame direction or turn of each is
+# shared.skills.STEP_AXES / TURNS (the reasoner predicts a motion's end from them: speculation.py).
+_PRIMITIVES: tuple[tuple[str, str], ...] = (
     (names.YAW_LEFT, "Rotate left (counter-clockwise) about the body z-axis by {s.yaw_step_deg:g} deg, to look "
-     "around.", (0.0, 0.0, 0.0), 1.0),
-    (names.YAW_RIGHT, "Rotate right (clockwise) about the body z-axis by {s.yaw_step_deg:g} deg, to look around.",
-     (0.0, 0.0, 0.0), -1.0),
+     "around."),
+    (names.YAW_RIGHT, "Rotate right (clockwise) about the body z-axis by {s.yaw_step_deg:g} deg, to look around."),
     (names.FORWARD, "Translate forward along the body x-axis by {s.horizontal_step:g} m, to approach a target "
-     "(refused when the depth image shows an obstacle in the way).", (1.0, 0.0, 0.0), 0.0),
-    (names.BACKWARD, "Translate backward along the body x-axis by {s.horizontal_step:g} m, to retreat.",
-     (-1.0, 0.0, 0.0), 0.0),
+     "(refused when the depth image shows an obstacle in the way)."),
+    (names.BACKWARD, "Translate backward along the body x-axis by {s.horizontal_step:g} m, to retreat."),
     (names.LEFT, "Translate left along the body y-axis by {s.horizontal_step:g} m, to correct lateral "
-     "misalignment.", (0.0, 1.0, 0.0), 0.0),
+     "misalignment."),
     (names.RIGHT, "Translate right along the body y-axis by {s.horizontal_step:g} m, to correct lateral "
-     "misalignment.", (0.0, -1.0, 0.0), 0.0),
-    (names.UP, "Climb by {s.vertical_step:g} m, to gain clearance or see more of the scene.", (0.0, 0.0, 1.0), 0.0),
-    (names.DOWN, "Descend by {s.vertical_step:g} m, to reach manipulation height or see closer.", (0.0, 0.0, -1.0),
-     0.0),
+     "misalignment."),
+    (names.UP, "Climb by {s.vertical_step:g} m, to gain clearance or see more of the scene."),
+    (names.DOWN, "Descend by {s.vertical_step:g} m, to reach manipulation height or see closer."),
 )
 
-for _name, _text, _body, _turn in _PRIMITIVES:
+for _name, _text in _PRIMITIVES:
     register(type(_name.title().replace("_", ""), (_Step,), {
-        "name": _name, "description": _text, "body": _body, "turn": _turn, "__module__": __name__,
+        "name": _name, "description": _text, "body": names.STEP_AXES.get(_name, (0.0, 0.0, 0.0)),
+        "turn": names.TURNS.get(_name, 0.0), "__module__": __name__,
         "__doc__": f"Motion primitive `{_name}` (paper Table II)."}))

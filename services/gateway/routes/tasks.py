@@ -160,7 +160,8 @@ async def get_task(task_id: TaskId, store: StoreDep, fleet: FleetDep) -> TaskDet
     metrics = Metrics(steps=len(ordered), model_calls=len(calls), invalid_answers=invalid,
                       iar=(invalid / len(calls)) if calls else None, latency_p50_s=percentile_or_none(latencies, 50),
                       latency_p95_s=percentile_or_none(latencies, 95), skills=by_state, skill_time_s=skill_time,
-                      duration_s=((end or _now()) - start) / 1e9)
+                      duration_s=((end or _now()) - start) / 1e9,
+                      speculative_steps=sum(1 for s in ordered if s.step.get("speculative")))
     return TaskDetail(**summary(row, len(ordered), fleet).model_dump(), request=row["request"], status=row["status"],
                       reasoning_steps=ordered, skill_results=list(skills.values()), metrics=metrics,
                       last_event_id=events[-1].id if events else 0)

@@ -167,6 +167,9 @@ class Backend(ABC):
     """One line saying what the backend is and which settings it reads."""
     name: str = ""
     """Label of this instance in records, e.g. `openai:gpt-4o` (the kind plus the model when there is one)."""
+    speculates: ClassVar[bool] = True
+    """Whether an answer depends on its request alone, so a speculative call (AERMANI_REASONER_SPECULATE) may be
+    made and thrown away; False for a backend that answers in sequence (a replayed log)."""
 
     @classmethod
     def from_settings(cls, settings: ReasonerSettings) -> Backend:

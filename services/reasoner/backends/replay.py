@@ -69,6 +69,7 @@ class ReplayBackend(Backend):
     kind = "replay"
     summary = "answers from a JSONL of recorded ReasoningSteps, {\"raw\": ...} objects or strings; REPLAY_PATH"
     name = "replay"
+    speculates = False  # one answer per call, in order: a discarded speculative call would skip one
 
     @classmethod
     def from_settings(cls, settings) -> ReplayBackend:
