@@ -302,8 +302,10 @@ async def run_and_judge(bus, keys, request, objects: tuple[str, ...], destinatio
         console.print(f"[red]the task did not end within {t_max + 60:.0f} s[/red]")
         return 1
     calls = final.model_calls or 1
+    speculated = (f", speculative steps {final.speculations_used} of {final.speculations} asked"
+                  if final.speculations else "")
     console.print(f"task {final.state.value}: {terminal_text(final.message)} ({final.steps} steps, "
-                  f"{final.model_calls} model calls, IAR {100 * final.invalid_answers / calls:.1f} %)")
+                  f"{final.model_calls} model calls, IAR {100 * final.invalid_answers / calls:.1f} %{speculated})")
     verdict_ = await judge_episode(bus, keys, objects, destination)
     ok, verdict = verdict_.success, verdict_.message
     console.print(("[bold green]SUCCESS[/bold green]" if ok else "[bold red]FAILURE[/bold red]") +

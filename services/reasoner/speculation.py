@@ -49,6 +49,9 @@ class Tolerance:
     """Vehicle heading."""
     distance_m: float = 0.15
     """Each detection's distance from the vehicle."""
+    remembered_m: float = 0.3
+    """Each remembered thing's position in working memory: coarse detection centroids, which for a piece of
+    furniture move with the part of it in view."""
 
 
 @dataclass
@@ -118,7 +121,9 @@ def assume(history: History, obs: Observation, library: SkillLibrary, ste: Skill
                 label=ste.argument, query=ste.argument, position=where, size=seen[0].size))})
     else:
         return None
-    outcome = SkillOutcome(code=OutcomeCode.SUCCEEDED, facts=SkillFacts(holding=held), start_pose=here,
+    # The facts the executor reports with such a success: a localization names its target.
+    target = ste.argument if ste.skill == S.OBJ_LOCALIZATION else None
+    outcome = SkillOutcome(code=OutcomeCode.SUCCEEDED, facts=SkillFacts(holding=held, target=target), start_pose=here,
                            end_pose=there, held_object=held, estimate=estimate)
     entry = HistoryEntry(step, ste.skill, ste.argument, "succeeded", f"(predicted) {prediction}".strip(), "",
                          summary, reasoning, outcome, prediction=prediction)
@@ -151,7 +156,8 @@ def _step_problem(a: PastStep, b: PastStep, tol: Tolerance) -> str | None:
     if (a.skill, a.argument, a.state, a.code) != (b.skill, b.argument, b.state, b.code):
         return f"{b.skill} ended {b.code}, not {a.code}"
     if (a.facts.holding, a.facts.target) != (b.facts.holding, b.facts.target):
-        return f"{b.skill} holds {b.facts.holding}, not {a.facts.holding}"
+        return (f"{b.skill} ended holding {b.facts.holding} with target {b.facts.target}, not holding "
+                f"{a.facts.holding} with target {a.facts.target}")
     problem = _pose_problem(a.pose, b.pose, tol, f"{b.skill}'s end pose")
     if problem:
         return problem
@@ -194,6 +200,6 @@ def disagreement(assumed: PolicyContext, fresh: PolicyContext, tol: Tolerance = 
     if assumed.positions.keys() != fresh.positions.keys():
         return "other things are remembered"
     for label, (x, y) in fresh.positions.items():
-        if math.dist((x, y), assumed.positions[label]) > tol.position_m:
+        if math.dist((x, y), assumed.positions[label]) > tol.remembered_m:
             return f"the {label} is remembered elsewhere"
     return None

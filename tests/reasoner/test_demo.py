@@ -147,6 +147,27 @@ def test_demo_model_backend_with_schema_reprompt_and_done(tmp_path, kind: str) -
     assert all(c.structured for s in steps for c in s.calls)
 
 
+def test_demo_with_the_speculative_next_step(tmp_path) -> None:
+    """AERMANI_REASONER_SPECULATE=1 on the whole stack, the model a local server answering after 0.3 s: steps are
+    asked for while the skill before them flies (motions, localizations), each used one is recorded as such, and the
+    pick-and-place completes as without it."""
+    with FakeVLMServer(latency_s=0.3) as vlm:
+        code, result = demo(tmp_path, {"AERMANI_REASONER_BACKEND": "openai", "AERMANI_REASONER_API_KEY": "none",
+                                       "AERMANI_REASONER_BASE_URL": vlm.openai_base_url,
+                                       "AERMANI_REASONER_MODEL": "fake-vlm", "AERMANI_REASONER_SPECULATE": "1",
+                                       **IDEAL})
+    assert code == 0 and result["success"], result.get("verdict")
+    final, steps = result["final"], result["steps"]
+    skills = [s.ste.skill for s in steps]
+    assert "grasp" in skills and "place" in skills and skills[-1] == "done"
+    assert final.speculations >= 1  # the task's first motions and its localization were speculated on
+    assert final.speculations_used == sum(s.speculative for s in steps) <= final.speculations
+    # a used answer's calls count once; a discarded one's are not in model_calls
+    assert final.model_calls == sum(len(s.calls) for s in steps)
+    assert len(vlm.requests) >= final.model_calls  # (a discarded one may be cancelled before it was sent)
+    assert all(not s.speculative for s in steps[:1])  # the first step had no skill before it
+
+
 def test_demo_refuses_to_take_off_after_a_failed_preflight_until_overridden(tmp_path, monkeypatch) -> None:
     """The simulated PX4 configured unsafely (offboard loss -> Disarm, no geofence action): the demo stops
     before the task with the preflight's reasons; overridden, it flies the task (the bridge logs the override)."""

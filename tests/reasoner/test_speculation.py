@@ -62,7 +62,9 @@ def assumed(skill: str, argument: str | None = None, obs: Observation | None = N
 
 def done_entry(skill: str, end: Pose, argument: str | None = None, code: OutcomeCode = OutcomeCode.SUCCEEDED,
                estimate=None) -> HistoryEntry:
-    outcome = SkillOutcome(code=code, facts=SkillFacts(), end_pose=end, estimate=estimate)
+    # the facts the executor reports: a localization names its target
+    facts = SkillFacts(target=argument if skill == S.OBJ_LOCALIZATION else None)
+    outcome = SkillOutcome(code=code, facts=facts, end_pose=end, estimate=estimate)
     return HistoryEntry(1, skill, argument, "succeeded" if code is OutcomeCode.SUCCEEDED else "failed", "moved",
                         outcome=outcome)
 
@@ -114,6 +116,22 @@ def test_the_fresh_observation_must_agree_with_the_assumed_one() -> None:
     a, b = contexts(g, done_entry(S.FORWARD, ahead, code=OutcomeCode.BLOCKED), observation(x=STEP_M))
     assert "blocked" in (disagreement(a, b) or "")
     assert disagreement(a, b, Tolerance(position_m=10.0)) is not None  # a code is never within a tolerance
+
+
+def test_a_localization_agrees_when_the_estimate_is_where_the_detection_was() -> None:
+    from shared.messages import MemoryObject, ObjectEstimate
+
+    g = assumed(S.OBJ_LOCALIZATION, "red cup")
+    here = Pose(position=Vec3(z=1.2))
+
+    def localized(at: Vec3):
+        est = ObjectEstimate(query="red cup", found=True, label="red cup", pose=Pose(position=at))
+        memory = WorkingMemory(objects=(MemoryObject(label="red cup", query="red cup", position=at),))
+        fresh = Observation(state=state(), detections=(CUP,), memory=memory)
+        return contexts(g, done_entry(S.OBJ_LOCALIZATION, here, "red cup", estimate=est), fresh)
+
+    assert disagreement(*localized(Vec3(x=3.03, y=0.18, z=0.8))) is None
+    assert "estimate" in (disagreement(*localized(Vec3(x=3.5, y=0.2, z=0.8))) or "")
 
 
 class ApproachBackend(Backend):
