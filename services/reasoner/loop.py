@@ -27,7 +27,7 @@ from services.reasoner.prompt import (
     PromptCompiler,
 )
 from services.reasoner.settings import ReasonerSettings
-from services.reasoner.speculation import assume, disagreement
+from services.reasoner.speculation import assume, disagreement, height_problem
 from shared import skills as S  # noqa: N812
 from shared.errors import AermaniError, InvalidAnswer, ModelError, ServerLost
 from shared.messages import (
@@ -162,6 +162,8 @@ class Guess:
     task: asyncio.Task[tuple[StepResult, float]]
     context: PolicyContext
     """What the policy was given: compared with the fresh context when the skill has ended."""
+    height: float | None
+    """The assumed vehicle height (the prompt shows it; PolicyContext's pose is x, y, yaw)."""
 
 
 SPECULATION_VARIANTS_EXCLUDED = ("plan_once", "saycan")
@@ -584,7 +586,8 @@ class TaskRunner:
 
     def _speculating(self) -> bool:
         return (self.settings.speculate and self.backend.speculates
-                and self.variant not in SPECULATION_VARIANTS_EXCLUDED)
+                and self.variant not in SPECULATION_VARIANTS_EXCLUDED
+                and self.steps < self.settings.max_steps)  # no step after the last one
 
     def _speculate(self, compiler: PromptCompiler, library: SkillLibrary, obs: Observation,
                    parsed: ParsedAnswer) -> Guess | None:
@@ -599,14 +602,18 @@ class TaskRunner:
         ctx = policy_context(self.req.command, self.variant, library, assumed.history, assumed.obs)
         task = asyncio.create_task(self._decide(compiler, library, assumed.obs, assumed.history, self.steps + 1,
                                                 count=False))
-        return Guess(task, ctx)
+        return Guess(task, ctx, assumed.obs.state.position.z if assumed.obs.state is not None else None)
 
     async def _drop_guess(self) -> None:
+        """Cancel the speculative call (if any) and wait for it to stop. A cancel of this loop meanwhile (T_max,
+        an abort) still reaches the loop: asyncio.wait re-raises the caller's cancellation, never the guess's."""
         guess, self._guess = self._guess, None
-        if guess is not None and not guess.task.done():
-            guess.task.cancel()
-            with contextlib.suppress(asyncio.CancelledError, Exception):
-                await guess.task
+        if guess is None:
+            return
+        guess.task.cancel()
+        await asyncio.wait({guess.task})
+        if not guess.task.cancelled():
+            guess.task.exception()  # retrieved: a failed guess is not logged as "never retrieved"
 
     async def _take_guess(self, library: SkillLibrary, obs: Observation) -> tuple[StepResult, float] | None:
         """This step's speculative answer when the skill before it ended as predicted and the policy would read
@@ -616,7 +623,7 @@ class TaskRunner:
         if guess is None:
             return None
         fresh = policy_context(self.req.command, self.variant, library, self.history, obs)
-        why = disagreement(guess.context, fresh)
+        why = disagreement(guess.context, fresh) or height_problem(guess.height, obs)
         if why is None:
             t0 = time.perf_counter()
             try:

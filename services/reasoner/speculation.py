@@ -179,6 +179,17 @@ def _seen_problem(a: list[Seen], b: list[Seen], tol: Tolerance) -> str | None:
     return None
 
 
+def height_problem(assumed_z: float | None, fresh: Observation, tol: Tolerance = Tolerance()) -> str | None:
+    """The vehicle's height against the assumed one (an `up` or `down` that did not climb as far): the prompt
+    shows it, and PolicyContext's pose has none."""
+    z = fresh.state.position.z if fresh.state is not None else None
+    if (assumed_z is None) != (z is None):
+        return "the vehicle's height is known in one, not in the other"
+    if assumed_z is not None and z is not None and abs(z - assumed_z) > tol.position_m:
+        return f"the vehicle is at {z:.2f} m, not {assumed_z:.2f} m"
+    return None
+
+
 def disagreement(assumed: PolicyContext, fresh: PolicyContext, tol: Tolerance = Tolerance()) -> str | None:
     """None when a policy reads the same from both (within `tol`); else what differs, for the log."""
     if len(assumed.steps) != len(fresh.steps) or not fresh.steps:

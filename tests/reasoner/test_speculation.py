@@ -13,7 +13,7 @@ from services.reasoner.library import default_library
 from services.reasoner.loop import TaskRunner, World, policy_context
 from services.reasoner.prompt import History, HistoryEntry, Observation
 from services.reasoner.settings import ReasonerSettings
-from services.reasoner.speculation import Tolerance, assume, disagreement
+from services.reasoner.speculation import Tolerance, assume, disagreement, height_problem
 from shared import skills as S  # noqa: N812
 from shared.messages import (
     Detection,
@@ -118,6 +118,16 @@ def test_the_fresh_observation_must_agree_with_the_assumed_one() -> None:
     assert disagreement(a, b, Tolerance(position_m=10.0)) is not None  # a code is never within a tolerance
 
 
+def test_a_climb_that_fell_short_disagrees_on_height() -> None:
+    g = assumed(S.UP)
+    climbed = g.obs.state.position.z
+    assert climbed > 1.2
+    assert height_problem(climbed, observation()) is not None  # still at 1.2 m
+    reached = observation()
+    reached.state = reached.state.model_copy(update={"position": Vec3(z=climbed + 0.05)})
+    assert height_problem(climbed, reached) is None
+
+
 def test_a_localization_agrees_when_the_estimate_is_where_the_detection_was() -> None:
     from shared.messages import MemoryObject, ObjectEstimate
 
@@ -195,9 +205,11 @@ def forwards_needed(step: float) -> int:
     return n
 
 
-def run(world: FlyingWorld, backend: ApproachBackend, speculate: bool):
+def run(world: FlyingWorld, backend: ApproachBackend, speculate: bool | None):
+    """The task on `world`; `speculate` None: the settings' default."""
     steps: list = []
-    runner = TaskRunner(TaskRequest(command="approach the red cup"), ReasonerSettings(speculate=speculate),
+    settings = ReasonerSettings() if speculate is None else ReasonerSettings(speculate=speculate)
+    runner = TaskRunner(TaskRequest(command="approach the red cup"), settings,
                         backend, world, publish_step=steps.append, publish_status=lambda _s: None)
     t0 = time.perf_counter()
     final = asyncio.run(runner.run(asyncio.Event()))
@@ -240,8 +252,10 @@ def test_a_skill_that_ends_elsewhere_discards_the_speculation_and_asks_again() -
     assert 3.0 - x_done <= 2.0 + 1e-9
 
 
-def test_speculation_is_off_by_default() -> None:
+def test_speculation_is_off_by_default(monkeypatch) -> None:
+    monkeypatch.delenv("AERMANI_REASONER_SPECULATE", raising=False)
+    assert ReasonerSettings().speculate is False
     world = FlyingWorld(STEP_M, skill_s=0.05)
-    final, steps, _ = run(world, ApproachBackend(0.01, world), speculate=False)
+    final, steps, _ = run(world, ApproachBackend(0.01, world), speculate=None)
     assert final.state is TaskState.SUCCEEDED
     assert final.speculations == 0 and not any(s.speculative for s in steps)
