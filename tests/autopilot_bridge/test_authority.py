@@ -141,7 +141,10 @@ async def test_px4_failsafe_mid_task_ends_the_task_and_nothing_reenters_offboard
                     assert after_switch[0] in ("AUTO.RTL", "AUTO.LAND"), modes
                     assert "OFFBOARD" not in after_switch, f"the stack re-entered OFFBOARD: {after_switch}"
                     assert not any(armed_after), "the stack armed again after PX4's landing"
-                    assert z > -0.05, "the vehicle took off again"
+                    # Landed, the realistic world's estimate reads the height with its vertical bias (sigma 3.1 cm,
+                    # wandering): a 5 cm bound failed at 6.3 cm (ci39; P(bias > 5 cm) is about 5 %). A take-off
+                    # climbs to 1 m.
+                    assert z > -0.3, f"the vehicle took off again: estimated {-z:.2f} m up"
                     # The task ended with PX4's reason (while PX4 flew home), not with a retry.
                     await wait_until(lambda: any(t.task_id == tid and t.state.terminal for t in statuses), 30,
                                      what="the task's terminal status")
