@@ -9,6 +9,7 @@ the prompt, the validator and the rules baseline read it from there.
 from __future__ import annotations
 
 import json
+import math
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
@@ -31,6 +32,18 @@ STEP_AXES: dict[str, tuple[float, float, float]] = {
     FORWARD: (1.0, 0.0, 0.0), BACKWARD: (-1.0, 0.0, 0.0), LEFT: (0.0, 1.0, 0.0), RIGHT: (0.0, -1.0, 0.0),
     UP: (0.0, 0.0, 1.0), DOWN: (0.0, 0.0, -1.0)}
 TURNS: dict[str, float] = {YAW_LEFT: 1.0, YAW_RIGHT: -1.0}
+
+
+def motion_end(x: float, y: float, z: float, yaw: float, axis: tuple[float, float, float], turn: float,
+               step: float) -> tuple[float, float, float, float]:
+    """Where a motion primitive ends from (x, y, z, yaw) (world ENU, m, yaw in rad): with `turn` (+1/-1, TURNS) it
+    turns by `step` degrees in place, else it moves `step` metres along the body-frame `axis` (STEP_AXES). The
+    yaw is not wrapped. The executor flies to it; the reasoner's speculative step predicts it."""
+    if turn:
+        return x, y, z, yaw + turn * math.radians(step)
+    fx, fy, fz = axis
+    c, s = math.cos(yaw), math.sin(yaw)
+    return x + step * (c * fx - s * fy), y + step * (s * fx + c * fy), z + step * fz, yaw
 
 # Perception-driven routines (paper Table III).
 OBJ_LOCALIZATION = "obj_localization"  # argument: object query, e.g. "red cup"

@@ -73,22 +73,17 @@ def _param(library: SkillLibrary, skill: str, name: str) -> float | None:
 
 
 def _moved(pose: Pose, skill: str, library: SkillLibrary) -> Pose | None:
-    """Where the motion primitive `skill` ends from `pose`, by the step its library entry states."""
-    if skill in S.TURNS:
-        angle = _param(library, skill, "angle")
-        if angle is None:
-            return None
-        yaw = math.remainder(pose.yaw + S.TURNS[skill] * math.radians(angle), 2 * math.pi)
-        return Pose(position=pose.position, yaw=yaw)
-    axis = S.STEP_AXES.get(skill)
-    d = _param(library, skill, "distance")
-    if axis is None or d is None:
+    """Where the motion primitive `skill` ends from `pose`, by the step its library entry states (as the executor
+    flies it: shared.skills.motion_end)."""
+    turn, axis = S.TURNS.get(skill, 0.0), S.STEP_AXES.get(skill)
+    step = _param(library, skill, "angle" if turn else "distance")
+    if (not turn and axis is None) or step is None:
         return None
-    c, s = math.cos(pose.yaw), math.sin(pose.yaw)
-    fx, fy, fz = axis
     p = pose.position
-    return Pose(position=Vec3(x=p.x + d * (c * fx - s * fy), y=p.y + d * (s * fx + c * fy), z=p.z + d * fz),
-                yaw=pose.yaw)
+    x, y, z, yaw = S.motion_end(p.x, p.y, p.z, pose.yaw, axis or (0.0, 0.0, 0.0), turn, step)
+    if turn:
+        return Pose(position=p, yaw=math.remainder(yaw, 2 * math.pi))
+    return Pose(position=Vec3(x=x, y=y, z=z), yaw=yaw)
 
 
 def assume(history: History, obs: Observation, library: SkillLibrary, ste: SkillToExecute, step: int,

@@ -38,13 +38,12 @@ class _Step(Skill):
                 SkillParameter(name="speed", value=s.translation_speed, unit="m/s"))
 
     def target(self, st: VehicleState) -> tuple[Vec3, float]:
-        if self.turn:
-            return st.position, wrap(st.yaw + self.turn * math.radians(self.settings.yaw_step_deg))
-        d = self._distance()
-        c, sn = math.cos(st.yaw), math.sin(st.yaw)
-        fx, fy, fz = self.body
         p = st.position
-        return Vec3(x=p.x + d * (c * fx - sn * fy), y=p.y + d * (sn * fx + c * fy), z=p.z + d * fz), st.yaw
+        step = self.settings.yaw_step_deg if self.turn else self._distance()
+        x, y, z, yaw = names.motion_end(p.x, p.y, p.z, st.yaw, self.body, self.turn, step)
+        if self.turn:
+            return p, wrap(yaw)
+        return Vec3(x=x, y=y, z=z), yaw
 
     def check(self, ctx: SkillContext, argument: str | None) -> str | None:
         st = ctx.state.value
