@@ -34,14 +34,13 @@ STEP_AXES: dict[str, tuple[float, float, float]] = {
 TURNS: dict[str, float] = {YAW_LEFT: 1.0, YAW_RIGHT: -1.0}
 
 
-def motion_end(x: float, y: float, z: float, yaw: float, axis: tuple[float, float, float], turn: float,
-               step: float) -> tuple[float, float, float, float]:
-    """Where a motion primitive ends from (x, y, z, yaw) (world ENU, m, yaw in rad): with `turn` (+1/-1, TURNS) it
-    turns by `step` degrees in place, else it moves `step` metres along the body-frame `axis` (STEP_AXES). The
-    yaw is not wrapped. The executor flies to it; the reasoner's speculative step predicts it."""
-    if turn:
-        return x, y, z, yaw + turn * math.radians(step)
-    fx, fy, fz = axis
+def motion_end(skill: str, x: float, y: float, z: float, yaw: float, step: float) -> tuple[float, float, float, float]:
+    """Where the motion primitive `skill` ends from (x, y, z, yaw) (world ENU, m, yaw in rad): a turn (TURNS) turns
+    by `step` degrees in place, a step (STEP_AXES) moves `step` metres along its body-frame axis; KeyError for any
+    other skill. The yaw is not wrapped. The executor flies to it; the reasoner's speculative step predicts it."""
+    if skill in TURNS:
+        return x, y, z, yaw + TURNS[skill] * math.radians(step)
+    fx, fy, fz = STEP_AXES[skill]
     c, s = math.cos(yaw), math.sin(yaw)
     return x + step * (c * fx - s * fy), y + step * (s * fx + c * fy), z + step * fz, yaw
 

@@ -75,12 +75,12 @@ def _param(library: SkillLibrary, skill: str, name: str) -> float | None:
 def _moved(pose: Pose, skill: str, library: SkillLibrary) -> Pose | None:
     """Where the motion primitive `skill` ends from `pose`, by the step its library entry states (as the executor
     flies it: shared.skills.motion_end)."""
-    turn, axis = S.TURNS.get(skill, 0.0), S.STEP_AXES.get(skill)
+    turn = skill in S.TURNS
     step = _param(library, skill, "angle" if turn else "distance")
-    if (not turn and axis is None) or step is None:
+    if step is None or not (turn or skill in S.STEP_AXES):
         return None
     p = pose.position
-    x, y, z, yaw = S.motion_end(p.x, p.y, p.z, pose.yaw, axis or (0.0, 0.0, 0.0), turn, step)
+    x, y, z, yaw = S.motion_end(skill, p.x, p.y, p.z, pose.yaw, step)
     if turn:
         return Pose(position=p, yaw=math.remainder(yaw, 2 * math.pi))
     return Pose(position=Vec3(x=x, y=y, z=z), yaw=yaw)

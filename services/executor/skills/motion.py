@@ -40,7 +40,7 @@ class _Step(Skill):
     def target(self, st: VehicleState) -> tuple[Vec3, float]:
         p = st.position
         step = self.settings.yaw_step_deg if self.turn else self._distance()
-        x, y, z, yaw = names.motion_end(p.x, p.y, p.z, st.yaw, self.body, self.turn, step)
+        x, y, z, yaw = names.motion_end(self.name, p.x, p.y, p.z, st.yaw, step)
         if self.turn:
             return p, wrap(yaw)
         return Vec3(x=x, y=y, z=z), yaw
