@@ -45,9 +45,9 @@ def scene(n: int, w: int, h: int) -> list[tuple[bytes, np.ndarray, np.ndarray]]:
     return out
 
 
-async def publish(bus: Bus, keys: Keys, seconds: float, fps: float, frames,
-                  per_key: dict[str, int]) -> tuple[int, int, float]:
-    sent = 0
+async def publish(bus: Bus, keys: Keys, seconds: float, fps: float, frames) -> tuple[dict[str, int], int, float]:
+    """Messages published per key, bytes of frames, seconds."""
+    per_key: dict[str, int] = {}
     nbytes = 0
     t0 = time.monotonic()
     n = 0
@@ -60,17 +60,15 @@ async def publish(bus: Bus, keys: Keys, seconds: float, fps: float, frames,
             (keys.camera_segmentation, raw16_message(seg, stamp)),
         ):
             bus.publish(key, data)
-            sent += 1
             per_key[key.key] = per_key.get(key.key, 0) + 1
             nbytes += len(data)
         if n % 3 == 0:  # vehicle state beside the frames (~15 Hz at 3x)
             data = VehicleState(stamp_ns=stamp)
             bus.publish(keys.autopilot_state, data)
-            sent += 1
             per_key[keys.autopilot_state.key] = per_key.get(keys.autopilot_state.key, 0) + 1
         n += 1
         await asyncio.sleep(max(0.0, t0 + n / fps - time.monotonic()))
-    return sent, nbytes, time.monotonic() - t0
+    return per_key, nbytes, time.monotonic() - t0
 
 
 def recorded(files: list[Path], keys: Keys) -> dict[str, int]:
@@ -106,8 +104,8 @@ async def main_async(args: argparse.Namespace) -> None:
         fps = DEMO_FPS * args.rate_mult
         print(f"publishing {args.width}x{args.height} colour+depth+segmentation at {fps:.0f} fps "
               f"({args.rate_mult:g}x demo) + state for {args.seconds:.0f} s into {out}")
-        sent_by_key: dict[str, int] = {}
-        sent, nbytes, pub_s = await publish(bus, keys, args.seconds, fps, frames, sent_by_key)
+        sent_by_key, nbytes, pub_s = await publish(bus, keys, args.seconds, fps, frames)
+        sent = sum(sent_by_key.values())
         t_pub_end = time.monotonic()
         # Drained when the writer has caught up with everything the recorder received. What it received counts
         # its own health messages too, so the counts can match while a frame is still on its way: the stop waits
@@ -127,6 +125,7 @@ async def main_async(args: argparse.Namespace) -> None:
     written_by_key = recorded(files, keys)
     written = sum(written_by_key.values())
     missing_by_key = {k.split("/", 3)[3]: sent_by_key.get(k, 0) - n for k, n in written_by_key.items()}
+    not_written = d["received"] - d["written"] - d["lost_on_error"]
     total_s = pub_s + drain_s
     file_mb = sum(f.stat().st_size for f in files) / 1e6
     dropped = d["dropped"]
@@ -136,15 +135,15 @@ async def main_async(args: argparse.Namespace) -> None:
           f"sustained (writer drained {drain_s:.1f} s after the publishers stopped; backlog then {max_backlog} B)")
     print(f"dropped       {dropped} (bus queue {d.get('bus_dropped', 0)}, writer backlog "
           f"{dropped - d.get('bus_dropped', 0)}), lost to write errors {d['lost_on_error']}, "
-          f"missing {sent - written} of {sent}: " + ", ".join(f"{k} {v}" for k, v in missing_by_key.items())
-          + " (every one a best-effort key: Zenoh drops their samples under congestion before the recorder)")
+          f"missing {sent - written} of {sent} (" + ", ".join(f"{k} {v}" for k, v in missing_by_key.items())
+          + f"); received by the recorder but not written {not_written}")
     compression = nbytes / 1e6 / max(file_mb, 1e-9)
     print(f"file size     {file_mb:.1f} MB in {len(files)} file(s), compression {compression:.1f}x")
     print(f"target zero drops at {args.rate_mult:g}x:", "MET" if dropped == 0 and sent == written else "NOT MET")
     write_json(args.json, "recorder", {
         "offered_fps": fps, "sent": sent, "written": written, "dropped": dropped,
         "missing": sent - written, "missing_by_key": missing_by_key,
-        "not_written_of_received": d["received"] - d["written"] - d["lost_on_error"],
+        "not_written_of_received": not_written,
         "lost_on_error": d["lost_on_error"], "msg_per_s": written / total_s, "mb_per_s": nbytes / 1e6 / total_s,
         "drain_s": drain_s, "file_mb": file_mb, "compression": compression}, args)
     if args.out is None:
