@@ -106,8 +106,12 @@ PRODUCED_BY = (
     "(dev split, realistic MuJoCo, colour segmenter); the localization rows use the colour segmenter on realistic "
     "renders; the link and log rows run the same `rules` baseline and colour segmenter on the realistic "
     "simulator at real time, every other setting at its default, pick-and-place commands from seed 2001 "
-    "(benchmarks/link_budget.py); the bus, camera, recorder and abort rows involve no policy. No figure here is "
-    "about a VLM.")
+    "(benchmarks/link_budget.py); the step rows run the `rules` baseline with the colour segmenter on the "
+    "realistic simulator: the README's demo command at real time, and one episode of every dev-split suite at the "
+    "evaluation's default speed factor (benchmarks/step_breakdown.py); the speculation rows run the README's demo "
+    "command in the ideal world with the colour segmenter, the model being the local stand-in server answering "
+    "the rules baseline's answers after 1 s, so they measure the loop, not a model (benchmarks/speculation.py); "
+    "the bus, camera, recorder and abort rows involve no policy. No figure here is about a VLM.")
 """The simulator's camera rate (`AERMANI_SIM_FPS`, default 15 fps), used when the run does not report it."""
 
 Results = dict[str, dict[str, Any]]
