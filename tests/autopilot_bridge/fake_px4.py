@@ -63,6 +63,7 @@ class FakePX4:
         self.deny_offboard = False
         self.heartbeats = True
         self.ack_commands = True
+        self.follow_setpoints = True  # False: OFFBOARD setpoints move nothing (a climb that never arrives)
         self.last_setpoint_t = 0.0
         self.params = dict(SAFE_FAILSAFE_PARAMS)
         self._stop = threading.Event()
@@ -135,7 +136,7 @@ class FakePX4:
             with self.lock:
                 self.setpoints.append(m)
             self.last_setpoint_t = time.monotonic()
-            if self.mode == "OFFBOARD" and self.armed:
+            if self.mode == "OFFBOARD" and self.armed and self.follow_setpoints:
                 self.ned = [m.x, m.y, m.z]
                 self.yaw_ned = m.yaw
         elif t == "PARAM_REQUEST_READ":
