@@ -284,8 +284,12 @@ class VehicleWorker:
             log.warning("%s: gripper open refused before landing: %s", self.vehicle_id, res.message)
         await asyncio.sleep(1.0)  # let the object fall clear before descending
 
-    async def _wait_grounded(self, timeout: float = 30.0) -> None:
-        """After a reset the bridge must report the vehicle on the ground, disarmed, before a task starts."""
+    async def _wait_grounded(self, since_ns: int, timeout: float = 30.0) -> None:
+        """After a reset the bridge must report the vehicle on the ground, disarmed, before a task starts, from a
+        HEARTBEAT received after the reset (`since_ns`): its armed flag and mode are those of PX4's last
+        HEARTBEAT (1 Hz), so a state from before it still shows the previous episode's end (an AUTO.LAND, or
+        OFFBOARD after a crash stopped the motors), and the next takeoff would read the reset's mode change as
+        PX4 taking the vehicle from the stack."""
         self.state.latest_nowait()  # anything queued predates the reset
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
@@ -293,7 +297,8 @@ class VehicleWorker:
                 st = await self.state.recv(timeout=max(0.1, deadline - time.monotonic()))
             except TimeoutError:
                 break
-            if not st.armed and st.landed_state in (LandedState.ON_GROUND, LandedState.UNKNOWN) and st.link_ok:
+            if (not st.armed and st.landed_state in (LandedState.ON_GROUND, LandedState.UNKNOWN) and st.link_ok
+                    and st.last_heartbeat_ns >= since_ns):
                 return
         log.warning("%s: vehicle not reported grounded %.0f s after reset; starting anyway", self.vehicle_id,
                     timeout)
@@ -342,7 +347,7 @@ class VehicleWorker:
             return rec.model_copy(update={"harness_error": f"sim/reset refused the scenario: {reset.message}"})
         # The simulator's reset notice clears the executor's working memory (services/executor/memory.py,
         # world_reset): the episode starts from an empty memory without restarting any process.
-        await self._wait_grounded()
+        await self._wait_grounded(since_ns=now_ns())
         before = await self._world()  # the simulated clock and the world a choice is decided in, at the start
         accepted, undecided = accepted_objects(task, before)
         if undecided:

@@ -303,7 +303,10 @@ class Bridge:
             log.warning("%s", self.message)
             self.take_over(f"PX4 switched from OFFBOARD to {mode}{self._status_hint()}")
         elif mode == self.mode_pending:
-            self.mode_requested, self.mode_pending = mode, None  # the switch we asked for
+            # The switch we asked for; a request never outlives a disarm, even when the first heartbeat that
+            # shows the mode (a short AUTO.LAND) already shows the vehicle disarmed: kept, it would read the next
+            # arming's mode as PX4 taking the vehicle from us.
+            self.mode_requested, self.mode_pending = (mode if self.armed else None), None
         elif self.armed and mode != previous and previous == self.mode_requested and mode != self.mode_requested:
             self.mode_requested = None
             self.take_over(f"PX4 switched from {previous} to {mode}{self._status_hint()}")
@@ -685,8 +688,12 @@ class Bridge:
             x, y, z = self.position
             yaw = self.yaw
             code: int | None = None
-            if not (self.offboard_ok and self.offboard_expected):
+            if not (self.armed and self.offboard_ok and self.offboard_expected):
                 if not self.armed:
+                    # Disarmed with our stream still running (a crash stopped the motors in OFFBOARD): the old
+                    # offboard flight is over; arm and enter OFFBOARD anew rather than wait on a vehicle that
+                    # cannot climb.
+                    self.offboard_expected = False
                     # Stream first so PX4 sees setpoints while it arms (it auto-disarms if idle too long).
                     self.stream.start(Target(x, y, z, yaw))
                     code = await self.command_long(px4.MAV_CMD_COMPONENT_ARM_DISARM, 1)

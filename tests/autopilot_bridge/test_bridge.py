@@ -362,3 +362,39 @@ async def test_a_takeoff_stopped_by_an_abort_answers_aborted() -> None:
         res = await asyncio.wait_for(takeoff, 10)
         assert not res.ok and res.aborted and "aborted by test: stop" in res.message, res
 
+
+async def test_a_landing_whose_first_heartbeat_is_disarmed_leaves_no_mode_request_behind() -> None:
+    """PX4 can touch down and auto-disarm before the bridge's next HEARTBEAT (1 Hz) shows AUTO.LAND armed: the
+    land's request is confirmed by a disarmed heartbeat. The next task arms in the mode PX4 now shows (Hold after
+    a landing, or a simulator's reset); that must not read as PX4 switching away from the bridge's AUTO.LAND."""
+    async with bridge_and_fake() as (bridge, fake):
+        assert (await bridge.handle(TakeoffCommand(altitude=1.0, task_id="task-a"))).ok
+        fake.heartbeats = False  # the landing and the disarm fall between two heartbeats
+        assert (await bridge.handle(LandCommand())).ok and fake.mode == "AUTO.LAND"
+        fake.armed, fake.ned = False, [0.0, 0.0, 0.0]
+        fake.heartbeats = True
+        await wait_until(lambda: not bridge.armed and bridge.mode == "AUTO.LAND", 10, what="disarmed in AUTO.LAND")
+        fake.heartbeats = False  # PX4 is in Hold again and the next takeoff arms before a heartbeat shows it
+        fake.mode = "AUTO.LOITER"
+        takeoff = asyncio.create_task(bridge.handle(TakeoffCommand(altitude=1.0, task_id="task-b")))
+        await wait_until(lambda: fake.armed, 10, what="armed by the takeoff")
+        fake.heartbeats = True  # the first heartbeat: armed, AUTO.LOITER, before OFFBOARD is asked for
+        res = await takeoff
+        assert res.ok, res.message
+        assert bridge.state().override == "" and fake.mode == "OFFBOARD"
+
+
+async def test_a_takeoff_after_a_crash_stopped_the_motors_in_offboard_arms_again() -> None:
+    """A crash stops the motors while PX4 stays in OFFBOARD and the bridge's stream still runs: the next task's
+    takeoff must arm (not wait on a disarmed vehicle that cannot climb and report it disarmed)."""
+    async with bridge_and_fake() as (bridge, fake):
+        assert (await bridge.handle(TakeoffCommand(altitude=1.0, task_id="task-a"))).ok
+        fake.armed, fake.ned = False, [0.0, 0.0, 0.0]  # motors stopped, on the floor, mode still OFFBOARD
+        await wait_until(lambda: not bridge.armed, 10, what="the bridge sees the disarm")
+        assert fake.mode == "OFFBOARD" and bridge.stream.running
+        n_arms = sum(1 for c in fake.commands if c.command == px4.MAV_CMD_COMPONENT_ARM_DISARM and c.param1 == 1)
+        res = await bridge.handle(TakeoffCommand(altitude=1.0, task_id="task-b"))
+        assert res.ok, res.message
+        assert fake.armed and sum(1 for c in fake.commands
+                                  if c.command == px4.MAV_CMD_COMPONENT_ARM_DISARM and c.param1 == 1) == n_arms + 1
+        assert bridge.state().offboard_ok and math.isclose(bridge.state().position.z, 1.0)
