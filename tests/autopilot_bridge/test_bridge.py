@@ -31,8 +31,9 @@ from tests.helpers import free_udp_port, wait_until
 async def bridge_and_fake(fake_init=None, **overrides):
     """`fake_init(fake)` sets the fake PX4's state before its first message (e.g. already flying)."""
     port = free_udp_port()
-    s = BridgeSettings(connection=f"udpin:127.0.0.1:{port}", command_timeout_s=0.5, offboard_warmup_s=0.3,
-                       heartbeat_timeout_s=1.0, takeoff_timeout_s=20.0, **overrides)
+    s = BridgeSettings(**{"connection": f"udpin:127.0.0.1:{port}", "command_timeout_s": 0.5,
+                          "offboard_warmup_s": 0.3, "heartbeat_timeout_s": 1.0, "takeoff_timeout_s": 20.0,
+                          **overrides})
     link = MavlinkLink(s.connection, source_system=s.source_system, source_component=s.source_component)
     bridge = Bridge(None, s, link)
     stop = asyncio.Event()
@@ -366,8 +367,9 @@ async def test_a_takeoff_stopped_by_an_abort_answers_aborted() -> None:
 async def test_a_landing_whose_first_heartbeat_is_disarmed_leaves_no_mode_request_behind() -> None:
     """PX4 can touch down and auto-disarm before the bridge's next HEARTBEAT (1 Hz) shows AUTO.LAND armed: the
     land's request is confirmed by a disarmed heartbeat. The next task arms in the mode PX4 now shows (Hold after
-    a landing, or a simulator's reset); that must not read as PX4 switching away from the bridge's AUTO.LAND."""
-    async with bridge_and_fake() as (bridge, fake):
+    a landing, or a simulator's reset); that must not read as PX4 switching away from the bridge's AUTO.LAND.
+    The fake's telemetry pauses stay well inside the link timeout however slow the machine."""
+    async with bridge_and_fake(heartbeat_timeout_s=10.0) as (bridge, fake):
         assert (await bridge.handle(TakeoffCommand(altitude=1.0, task_id="task-a"))).ok
         fake.heartbeats = False  # the landing and the disarm fall between two heartbeats
         assert (await bridge.handle(LandCommand())).ok and fake.mode == "AUTO.LAND"
