@@ -293,8 +293,6 @@ class Bridge:
             # direct command) takes the vehicle back, e.g. to land clear of the furniture.
             self.take_over(f"found PX4 flying in {mode} at the bridge's start (its failsafe or the pilot has "
                            f"control){self._status_hint()}")
-        if not self.armed:
-            self.mode_requested = None
         if self.offboard_expected and mode != "OFFBOARD":
             self.offboard_expected = False
             self.mode_requested = None
@@ -303,13 +301,14 @@ class Bridge:
             log.warning("%s", self.message)
             self.take_over(f"PX4 switched from OFFBOARD to {mode}{self._status_hint()}")
         elif mode == self.mode_pending:
-            # The switch we asked for; a request never outlives a disarm, even when the first heartbeat that
-            # shows the mode (a short AUTO.LAND) already shows the vehicle disarmed: kept, it would read the next
-            # arming's mode as PX4 taking the vehicle from us.
-            self.mode_requested, self.mode_pending = (mode if self.armed else None), None
+            self.mode_requested, self.mode_pending = mode, None  # the switch we asked for
         elif self.armed and mode != previous and previous == self.mode_requested and mode != self.mode_requested:
             self.mode_requested = None
             self.take_over(f"PX4 switched from {previous} to {mode}{self._status_hint()}")
+        if not self.armed:
+            # A mode request never outlives a disarm, also when the heartbeat that confirms it (a short AUTO.LAND)
+            # already shows the vehicle disarmed: kept, the next arming's mode would read as PX4 taking over.
+            self.mode_requested = None
 
     def _finite(self, msg: Any, *values: float) -> bool:
         if px4.all_finite(*values):

@@ -394,9 +394,12 @@ async def test_a_takeoff_after_a_crash_stopped_the_motors_in_offboard_arms_again
         fake.armed, fake.ned = False, [0.0, 0.0, 0.0]  # motors stopped, on the floor, mode still OFFBOARD
         await wait_until(lambda: not bridge.armed, 10, what="the bridge sees the disarm")
         assert fake.mode == "OFFBOARD" and bridge.stream.running
-        n_arms = sum(1 for c in fake.commands if c.command == px4.MAV_CMD_COMPONENT_ARM_DISARM and c.param1 == 1)
+
+        def arms() -> int:
+            return sum(1 for c in fake.commands if c.command == px4.MAV_CMD_COMPONENT_ARM_DISARM and c.param1 == 1)
+
+        n_arms = arms()
         res = await bridge.handle(TakeoffCommand(altitude=1.0, task_id="task-b"))
         assert res.ok, res.message
-        assert fake.armed and sum(1 for c in fake.commands
-                                  if c.command == px4.MAV_CMD_COMPONENT_ARM_DISARM and c.param1 == 1) == n_arms + 1
+        assert fake.armed and arms() == n_arms + 1
         assert bridge.state().offboard_ok and math.isclose(bridge.state().position.z, 1.0)
