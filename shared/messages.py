@@ -27,7 +27,7 @@ from pydantic import (
 SCHEMA_VERSION = 1
 """Major version of the message schemas. A receiver rejects a message of a newer major version with an
 error naming both versions."""
-SCHEMA_MINOR = 11
+SCHEMA_MINOR = 12
 """Minor version: bumped when fields are added (or deprecated and ignored, never removed). A receiver accepts a
 message of a newer minor version, ignoring the fields it does not know (logged once per field)."""
 MAX_COMMAND_CHARS = 500
@@ -747,6 +747,10 @@ class SkillFacts(Part):
     """What the gripper holds at the end according to its contact sensing and width; None if empty."""
     target: Label | None = None
     """The object or surface the skill acted on."""
+    upright: bool | None = None
+    """After a place: whether the released object stands as tall as when it was held (False: it lies fallen
+    over, and no skill of this gripper can stand it up again); None when not measured or for a round object
+    (minor 12)."""
 
 
 class SkillOutcome(Part):

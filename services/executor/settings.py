@@ -194,7 +194,7 @@ class ExecutorSettings(ServiceSettings):
     metres. On a real vehicle, from its estimator's specification."""
     upright_tolerance: float = 0.03
     """After place, a non-rolling object seen this much (or a quarter of its height, whichever is more) shorter
-    or taller than it was held has fallen over, metres."""
+    than it was held has fallen over, metres."""
     round_place_margin: float = 0.12
     """Extra clearance from the surface's edges for a round (rolling) object's placement spot, metres."""
 

@@ -115,7 +115,8 @@ class HistoryEntry:
 
 def outcome_text(outcome: SkillOutcome) -> str:
     """A skill's outcome in the prompt's one fixed form: `missed (target red cup, attempts 2, offset 0.031 m,
-    holding none)`; only the facts the skill measured appear, always in this order, `holding` always."""
+    holding none)`; only the facts the skill measured appear, always in this order (`upright` or `fallen over`
+    after a place that looked), `holding` always."""
     f = outcome.facts
     parts: list[str] = []
     if f.target:
@@ -126,6 +127,8 @@ def outcome_text(outcome: SkillOutcome) -> str:
                         ("gripper", f.gripper_width_m)):
         if value is not None:
             parts.append(f"{name} {value:.3f} m")
+    if f.upright is not None:
+        parts.append("upright" if f.upright else "fallen over")
     parts.append(f"holding {_clip(f.holding, 40) if f.holding else 'none'}")
     code = outcome.code.value if outcome.code is not None else "running"
     return f"{code} ({', '.join(parts)})"

@@ -47,10 +47,17 @@ class Thing:
         return float(self.center[2] + self.size[2] / 2)
 
 
+ROCK_LOOKS = 10
+
+
 @dataclass
 class ToyWorld:
     objects: dict[str, Thing] = field(default_factory=dict)
     surfaces: dict[str, Thing] = field(default_factory=dict)
+    topple: set[str] = field(default_factory=set)
+    """Objects that fall over when released: they lie on their side (their length becomes their height) and
+    rock, each of the next `ROCK_LOOKS` localizations seeing them 3 cm to the other side."""
+    rocking: dict[str, int] = field(default_factory=dict)
 
     def add_object(self, name: str, x: float, y: float, support_z: float, size=(0.08, 0.08, 0.11)) -> Thing:
         t = Thing(name, np.array([x, y, support_z + size[2] / 2]), size)
@@ -84,6 +91,9 @@ class ToyWorld:
                     if (abs(t.center[0] - s.center[0]) <= s.size[0] / 2 and abs(t.center[1] - s.center[1])
                             <= s.size[1] / 2 and s.top <= t.center[2] - t.size[2] / 2 + 0.02):
                         support = max(support, s.top)
+                if t.name in self.topple:
+                    t.size = (t.size[2], t.size[1], t.size[0])
+                    self.rocking[t.name] = ROCK_LOOKS
                 t.center = np.array([t.center[0], t.center[1], support + t.size[2] / 2])
 
 
@@ -207,8 +217,12 @@ class FakePerception:
         self.queries.append(req.query)
         for t in self.world.objects.values():
             if req.query.lower() in t.name and not t.attached and self.visible(t.center):
+                rock = self.world.rocking.get(t.name, 0)
+                dx = 0.03 * (1 if rock % 2 else -1) if rock else 0.0
+                if rock:
+                    self.world.rocking[t.name] = rock - 1
                 return ObjectEstimate(query=req.query, found=True, label=t.name,
-                                      pose=Pose(position=Vec3(x=t.center[0], y=t.center[1], z=t.center[2])),
+                                      pose=Pose(position=Vec3(x=t.center[0] + dx, y=t.center[1], z=t.center[2])),
                                       size=Vec3(x=t.size[0], y=t.size[1], z=t.size[2]), top_z=t.top,
                                       support_z=t.center[2] - t.size[2] / 2, confidence=0.9, frame_stamp_ns=now_ns())
         return ObjectEstimate(query=req.query, found=False, reason="not_visible", message=f"{req.query} not visible")

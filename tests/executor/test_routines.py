@@ -6,7 +6,7 @@ import asyncio
 
 import numpy as np
 
-from services.reasoner.prompt import memory_summary
+from services.reasoner.prompt import memory_summary, outcome_text
 from shared.messages import Abort, OutcomeCode, SkillState
 from tests.executor.rig import rig
 from tests.helpers import matched, wait_until
@@ -50,6 +50,32 @@ async def test_localize_grasp_localize_placement_place():
         assert [e.split(":")[0] for e in executed] == [
             "obj_localization(blue box)", "obj_localization(red cup)", "grasp", "placement_localization(table)",
             "place"]
+
+
+async def test_place_reports_an_object_that_fell_over_even_while_it_still_rocks():
+    # Dev episode localization/028: the released cup toppled and was still rocking when looked at; place said
+    # only "still moving", so the policy took it for placed. Fallen over is checked first and is in the facts.
+    async with rig() as r:
+        r.world.add_surface("table", 1.6, 0.0, 0.75)
+        r.world.add_object("green bottle", 1.5, 0.1, 0.75, size=(0.07, 0.07, 0.25))
+        r.world.topple.add("green bottle")
+        for skill, arg in (("obj_localization", "green bottle"), ("grasp", None),
+                           ("placement_localization", "table")):
+            st = await r.run_skill(skill, arg)
+            assert st.state == SkillState.SUCCEEDED, (skill, st.message)
+        st = await r.run_skill("place")
+        facts = st.outcome.facts
+        assert st.state == SkillState.FAILED and st.outcome.code == OutcomeCode.UNSTABLE, st.message
+        assert facts.upright is False and "fallen over" in st.message, (st.message, facts)
+        assert facts.holding is None and r.executor.memory.held is None
+        assert "fallen over" in outcome_text(st.outcome)
+        # An upright place says so too.
+        r.world.add_object("red cup", 1.5, -0.2, 0.75)
+        for skill, arg in (("obj_localization", "red cup"), ("grasp", None), ("placement_localization", "table"),
+                           ("place", None)):
+            st = await r.run_skill(skill, arg)
+            assert st.state == SkillState.SUCCEEDED, (skill, st.message)
+        assert st.outcome.facts.upright is True and "upright" in outcome_text(st.outcome)
 
 
 async def test_grasp_fails_when_the_object_moved_after_localization():

@@ -172,6 +172,19 @@ def test_place_off_spot_but_on_surface_is_done() -> None:
     assert RulesPolicy().decide(_ctx(PLACE_CMD, [*_PICKED, off], pose=(2.0, -0.8, 1.57)))[0] == "done"
 
 
+def test_a_place_that_left_the_object_fallen_over_ends_the_task_failed() -> None:
+    # Dev episode localization/028: the cup toppled on release and lay on the sink; the task ended succeeded.
+    # Lying there (or picked up again and set down the same way) it is not placed, and nothing stands it up.
+    fallen = PastStep("place", None, "failed", "", OutcomeCode.UNSTABLE,
+                      SkillFacts(target="table", upright=False), found_at=(2.05, 0.02, 0.79))
+    d = RulesPolicy().decide_full(_ctx(PLACE_CMD, [*_PICKED, fallen], pose=(2.0, -0.8, 1.57)))
+    assert d.skill == "done" and d.failure is not None and "fallen over" in d.failure, d
+    standing = PastStep("place", None, "failed", "", OutcomeCode.UNSTABLE, SkillFacts(target="table", upright=True),
+                        found_at=(2.05, 0.02, 0.79))
+    d = RulesPolicy().decide_full(_ctx(PLACE_CMD, [*_PICKED, standing], pose=(2.0, -0.8, 1.57)))
+    assert d.skill == "done" and d.failure is None, d
+
+
 def test_failed_placement_localization_flies_toward_remembered_surface() -> None:
     cmd = "Find the purple cup and place it on the round table."
     steps = [PastStep("obj_localization", "purple cup", "succeeded", "localized purple cup at (2.10, -1.14, 0.81)"),
@@ -455,6 +468,8 @@ def _scenarios() -> list[PolicyContext]:
     lost = PastStep("place", None, "failed", "", OutcomeCode.UNSTABLE)
     off = PastStep("place", None, "failed", "", OutcomeCode.UNSTABLE, found_at=(2.25, 0.05, 0.80))
     far = PastStep("place", None, "failed", "", OutcomeCode.UNSTABLE, found_at=(3.25, 1.05, 0.05))
+    fallen = PastStep("place", None, "failed", "", OutcomeCode.UNSTABLE, SkillFacts(upright=False),
+                      found_at=(2.25, 0.05, 0.80))
     missed = PastStep("grasp", "red cup", "failed", "", OutcomeCode.MISSED, SkillFacts(attempts=2, offset_m=0.031))
     room = Room()
     room.fly("Could you look around and find the unicorn for me?", max_steps=30)
@@ -465,6 +480,7 @@ def _scenarios() -> list[PolicyContext]:
         _ctx(PLACE_CMD, [*_PICKED, lost], pose=(2.0, -0.8, 1.57)),
         _ctx(PLACE_CMD, [*_PICKED, off], pose=(2.0, -0.8, 1.57)),
         _ctx(PLACE_CMD, [*_PICKED, far], pose=(2.0, -0.8, 1.57), known_objects=["red cup"]),
+        _ctx(PLACE_CMD, [*_PICKED, fallen], pose=(2.0, -0.8, 1.57)),
         _ctx(PLACE_CMD, [*_PICKED[:1], missed], pose=(0.5, 0.0, 0.0), known_objects=["red cup"]),
         _ctx("Could you look around and find the unicorn for me?", room.steps, pose=(room.x, room.y, room.yaw)),
     ]

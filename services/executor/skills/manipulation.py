@@ -122,6 +122,7 @@ class Attempt:
     reasons: list[str] = field(default_factory=list)
     offset: float | None = None
     distance: float | None = None
+    upright: bool | None = None
 
     def facts(self, ctx: SkillContext, holding: str | None = None) -> SkillFacts:
         st = ctx.state.value
@@ -129,7 +130,7 @@ class Attempt:
         return SkillFacts(distance_m=None if self.distance is None else round(self.distance, 4),
                           offset_m=None if self.offset is None else round(self.offset, 4), attempts=self.attempts,
                           reasons=tuple(r[:200] for r in self.reasons[-16:]), gripper_width_m=width,
-                          holding=holding, target=self.target)
+                          holding=holding, target=self.target, upright=self.upright)
 
 
 class AttemptFailed(Exception):
@@ -871,8 +872,8 @@ class Place(_Manipulation):
                           rec: Attempt) -> tuple[ObjectEstimate, str]:
         """Look at the released object from the verification view: at rest (two consecutive looks REST_GAP_S
         apart agree horizontally), standing on the named surface (the support under it and the surface's top,
-        both seen from this view), upright (as tall as when held) and near the spot. Returns the last estimate
-        and why it is not placed ('' when it is).
+        both seen from this view), upright (as tall as when held, checked first and reported in the facts) and near
+        the spot. Returns the last estimate and why it is not placed ('' when it is).
 
         Every comparison is made within one view or between looks a moment apart, because the vehicle's
         position estimate wanders and perception places what it sees with that estimate: on the realistic
@@ -901,6 +902,14 @@ class Place(_Manipulation):
         est = second if second.found and second.pose is not None else prev
         assert est.pose is not None
         rec.offset = off = horizontal_distance(est.pose.position, pl.position)
+        if size is not None and est.size is not None and not rolls(size):
+            # Checked first, on whatever look came last: an object that toppled is often still rocking when
+            # looked at, and "still moving" must not hide that it lies (dev localization/028: a cup on its side,
+            # 2 cm tall in the last look, reported only as moving; the policy then took it for placed).
+            rec.upright = size.z - est.size.z <= max(s.upright_tolerance, 0.25 * size.z)
+            if not rec.upright:
+                return est, (f"it is {100 * est.size.z:.0f} cm tall where it was {100 * size.z:.0f} cm when held: "
+                             "fallen over")
         if not second.found or second.pose is None:
             return est, "it was seen and then no more (still moving?)"
         if moved > s.rest_tolerance:
@@ -911,10 +920,6 @@ class Place(_Manipulation):
         top, tolerance = await self.surface_now(ctx, pl, surface_z)
         if abs(support - top) > tolerance:
             return est, f"it stands at {support:.2f} m, not on the {pl.label}'s top at {top:.2f} m"
-        if size is not None and est.size is not None and not rolls(size) \
-                and size.z - est.size.z > max(s.upright_tolerance, 0.25 * size.z):
-            return est, (f"it is {100 * est.size.z:.0f} cm tall where it was {100 * size.z:.0f} cm when held: "
-                         "fallen over")
         if off > s.place_tolerance:
             return est, f"{off:.2f} m from the placement spot"
         return est, ""

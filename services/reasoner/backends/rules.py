@@ -71,6 +71,8 @@ DEFAULT_REACH = 1.0  # an out_of_reach refusal that does not say its reach (an o
 # A place that reported one of these let the object go: succeeded, or released but not at rest on the spot.
 _RELEASED = (OutcomeCode.SUCCEEDED, OutcomeCode.UNSTABLE)
 NOT_FOUND = "not found"
+FALLEN = "fallen over"
+FAILURES = (NOT_FOUND, FALLEN)  # a `done` whose reasoning starts so ends the task failed
 """Start of the failure reason when the room was explored without finding the target (or destination)."""
 _singular = singular
 
@@ -120,7 +122,7 @@ class RulesPolicy:
         skill, arg, why = self._decide(ctx, plan)
         if plan.note and all(s.skill in S.OPERATOR_SKILLS for s in ctx.steps):
             why = f"{plan.note} {why}"  # the first step says how an unsure reading was made (issue 33)
-        failure = why if skill == S.DONE and why.startswith(NOT_FOUND) else None
+        failure = why if skill == S.DONE and why.startswith(FAILURES) else None
         return Decision(skill, arg, why, failure)
 
     def _decide(self, ctx: PolicyContext, plan: Plan) -> tuple[str, str | None, str]:
@@ -244,6 +246,13 @@ class RulesPolicy:
         if idx is None or not plan.destination:
             return None
         place = rest[idx]
+        if place.code == OutcomeCode.UNSTABLE and place.facts.upright is False:
+            # It lies where it fell: picked up again it would hang and be set down the same way, and this
+            # gripper has no skill that stands an object up.
+            what = place.facts.target or plan.destination
+            return S.DONE, None, (f"{FALLEN}: the released object lies on its side (place measured it shorter "
+                                  f"than when held, near the {what}); no skill of mine can stand it up again, so "
+                                  "the command cannot be completed.")
         spot = next((s for s in reversed(rest[:idx]) if s.skill == S.PLACEMENT_LOCALIZATION
                      and s.state == "succeeded"), None)
         grasped = next((s for s in reversed(rest[:idx]) if s.skill == S.GRASP and s.state == "succeeded"), None)
