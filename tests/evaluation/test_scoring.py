@@ -1,6 +1,6 @@
 """Each task scored for what it asks (aermani/evaluation/scoring.py), on real recorded episodes of the dev split
-(docs/eval/rules-dev/episodes.jsonl.gz: their steps, skill outcomes and poses) and on the simulator's real world
-answers (SimCore's judge, op world, for the recorded scenario: the layout rebuilt from its seed)."""
+(tests/evaluation/data/rules-dev-2026-12-06.jsonl.gz: their steps, skill outcomes and poses) and on the
+simulator's real world answers (SimCore's judge, op world, for the recorded scenario: the layout rebuilt from its seed)."""
 
 from __future__ import annotations
 
@@ -34,7 +34,9 @@ from aermani.evaluation.tasks import (
 )
 from shared.messages import JudgeRequest, JudgeResult, Scenario
 
-DEV_RUN = Path(__file__).resolve().parents[2] / "docs" / "eval" / "rules-dev" / "episodes.jsonl.gz"
+# The dev report of 2026-12-06 (kinematic vehicle, split of 2026-11): recorded episodes whose steps these tests
+# name; the report that replaced it in docs/eval/rules-dev is a later run on another world.
+DEV_RUN = Path(__file__).resolve().parent / "data" / "rules-dev-2026-12-06.jsonl.gz"
 
 
 @cache
