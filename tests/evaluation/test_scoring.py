@@ -1,6 +1,7 @@
 """Each task scored for what it asks (aermani/evaluation/scoring.py), on real recorded episodes of the dev split
 (tests/evaluation/data/rules-dev-2026-12-06.jsonl.gz: their steps, skill outcomes and poses) and on the
-simulator's real world answers (SimCore's judge, op world, for the recorded scenario: the layout rebuilt from its seed)."""
+simulator's real world answers (SimCore's judge, op world, for the recorded scenario: the layout rebuilt from its
+seed)."""
 
 from __future__ import annotations
 
