@@ -55,8 +55,8 @@ class ToyWorld:
     objects: dict[str, Thing] = field(default_factory=dict)
     surfaces: dict[str, Thing] = field(default_factory=dict)
     topple: set[str] = field(default_factory=set)
-    """Objects that fall over when released: they lie on their side (their length becomes their height) and
-    rock, each of the next `ROCK_LOOKS` localizations seeing them 3 cm to the other side."""
+    """Objects that fall over when next released: they lie on their side (x and z swap: the height becomes the
+    length) and rock, each of the next `ROCK_LOOKS` localizations seeing them 3 cm to the other side. Once."""
     rocking: dict[str, int] = field(default_factory=dict)
 
     def add_object(self, name: str, x: float, y: float, support_z: float, size=(0.08, 0.08, 0.11)) -> Thing:
@@ -92,6 +92,7 @@ class ToyWorld:
                             <= s.size[1] / 2 and s.top <= t.center[2] - t.size[2] / 2 + 0.02):
                         support = max(support, s.top)
                 if t.name in self.topple:
+                    self.topple.discard(t.name)
                     t.size = (t.size[2], t.size[1], t.size[0])
                     self.rocking[t.name] = ROCK_LOOKS
                 t.center = np.array([t.center[0], t.center[1], support + t.size[2] / 2])

@@ -54,7 +54,8 @@ async def test_localize_grasp_localize_placement_place():
 
 async def test_place_reports_an_object_that_fell_over_even_while_it_still_rocks():
     # Dev episode localization/028: the released cup toppled and was still rocking when looked at; place said
-    # only "still moving", so the policy took it for placed. Fallen over is checked first and is in the facts.
+    # only "still moving", so the policy took it for placed. Fallen over is checked first (and confirmed by a
+    # second look) and is in the facts. Here a bottle topples and rocks through every look.
     async with rig() as r:
         r.world.add_surface("table", 1.6, 0.0, 0.75)
         r.world.add_object("green bottle", 1.5, 0.1, 0.75, size=(0.07, 0.07, 0.25))

@@ -139,9 +139,9 @@ def test_a_rolling_ball_is_not_at_rest_and_one_that_stopped_is():
 
 
 def test_a_ball_set_down_rolling_slowly_comes_to_rest_as_a_real_fruit_does():
-    # Rolling friction (condim 6 on round objects): a ball released with 4 mm/s of drift (dev episode
-    # localization/017 ended with an orange still rolling at that speed) stops within a second instead of rolling
-    # on at constant speed, and the judge then finds it at rest where it stopped.
+    # Rolling friction (condim 6 on round objects): a ball set down rolling at 4 cm/s (dev episode localization/017
+    # ended with an orange still rolling at 4 mm/s) stops within a second instead of rolling on at constant speed,
+    # and the judge then finds it at rest where it stopped.
     core = _core("orange")
     orange = core.world.by_name("orange")
     r = orange.size[0] / 2

@@ -905,11 +905,23 @@ class Place(_Manipulation):
         if size is not None and est.size is not None and not rolls(size):
             # Checked first, on whatever look came last: an object that toppled is often still rocking when
             # looked at, and "still moving" must not hide that it lies (dev localization/028: a cup on its side,
-            # 2 cm tall in the last look, reported only as moving; the policy then took it for placed).
-            rec.upright = size.z - est.size.z <= max(s.upright_tolerance, 0.25 * size.z)
+            # 2 cm tall in the last look, reported only as moving; the policy then took it for placed). A short
+            # reading is confirmed by one more look (a partial view measures short too), since the policy ends
+            # the task on it.
+            def short(e: ObjectEstimate) -> bool:
+                return e.size is not None and size.z - e.size.z > max(s.upright_tolerance, 0.25 * size.z)
+
+            rec.upright = not short(est)
             if not rec.upright:
-                return est, (f"it is {100 * est.size.z:.0f} cm tall where it was {100 * size.z:.0f} cm when held: "
-                             "fallen over")
+                await asyncio.sleep(REST_GAP_S)
+                ctx.settled_ns = time.time_ns()
+                again = await ctx.localize_object(held)
+                if again.found and again.pose is not None and again.size is not None:
+                    rec.upright = not short(again)
+                if not rec.upright:
+                    assert est.size is not None
+                    return est, (f"it is {100 * est.size.z:.0f} cm tall where it was {100 * size.z:.0f} cm when "
+                                 "held: fallen over")
         if not second.found or second.pose is None:
             return est, "it was seen and then no more (still moving?)"
         if moved > s.rest_tolerance:

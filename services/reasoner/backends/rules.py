@@ -71,9 +71,10 @@ DEFAULT_REACH = 1.0  # an out_of_reach refusal that does not say its reach (an o
 # A place that reported one of these let the object go: succeeded, or released but not at rest on the spot.
 _RELEASED = (OutcomeCode.SUCCEEDED, OutcomeCode.UNSTABLE)
 NOT_FOUND = "not found"
-FALLEN = "fallen over"
-FAILURES = (NOT_FOUND, FALLEN)  # a `done` whose reasoning starts so ends the task failed
 """Start of the failure reason when the room was explored without finding the target (or destination)."""
+FALLEN = "fallen over"
+"""Start of the failure reason when place left the object fallen over (no skill stands it up again)."""
+FAILURES = (NOT_FOUND, FALLEN)  # a `done` whose reasoning starts so ends the task failed
 _singular = singular
 
 
@@ -241,7 +242,8 @@ class RulesPolicy:
     def _after_release(self, ctx: PolicyContext, plan: Plan,
                        rest: list[PastStep]) -> tuple[str, str | None, str] | None:
         """`place` let the object go but reported failure (not seen afterwards, or off the spot): look where it
-        is. On the destination is done; anywhere else it is picked up again (the normal pick phase)."""
+        is. On the destination is done; anywhere else it is picked up again (the normal pick phase). Fallen over
+        (the place's facts say so) ends the task failed."""
         idx = next((i for i in range(len(rest) - 1, -1, -1) if _released(rest[i])), None)
         if idx is None or not plan.destination:
             return None

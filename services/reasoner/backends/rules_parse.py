@@ -683,8 +683,8 @@ def _dest_np(text: str) -> str | None:
 
 _PLACE_CLAUSE = re.compile(r"\b(?:put|place|set|drop|deposit|leave|lay|rest|position|stick|stash|stow|plop|pop|park|"
                            r"transfer|relocate|move|carry|take|bring|deliver|return|unload|shift|"
-                           r"get(?=\s+(?:it|them|that|this|the one)\b))\b"  # "get it to the shelf", not "get to"
-                           r"(?:\s+(?:it|them|that one|this one|the one|that|this|the object|the item|the thing|one))?"
+                           r"get(?=\s+(?:it|them|that|this)\b))\b"  # "get it to the shelf", not "get to"
+                           r"(?:\s+(?:it|them|that one|this one|that|this|the object|the item|the thing|one))?"
                            r"(?:\s+(?:down|back|over|off|up|right|away))?\s+(?P<prep>" + _STRONG_PREP + "|" + _WEAK_PREP
                            + r")\s+(?=(?P<np>[a-z][a-z \-]*))")  # a lookahead: the next clause is searched too
 
