@@ -259,7 +259,7 @@ def build_xml(entities: list[Entity], light_seed: int = 0, light_variation: bool
             geom = f'type="box" size="{_vec(np.array(e.size) / 2)}"'
         add(f'<body name={quoteattr("obj " + e.name)} pos="{_vec(e.center)}" quat="{_yaw_quat(e.yaw)}">'
             f'<freejoint/><geom name={name} {geom} mass="{_f(spec.mass)}" rgba="{_rgba(e.rgb)}" '
-            f'friction="{_f(spec.friction)} 0.005 0.0005"{_rolling(e)} contype="{GROUP_OBJ}" '
+            f'{_object_friction(e, spec.friction)} contype="{GROUP_OBJ}" '
             f'conaffinity="{GROUP_ENV | GROUP_OBJ | GROUP_FINGER | GROUP_FLOOR}"/></body>')
     # The vehicle: a free rigid body (airframe, landing gear, rotors, camera) carrying the two fingers.
     add(_vehicle_xml(fovy, dynamics))
@@ -392,12 +392,14 @@ def _primitive_collider(e: Entity) -> tuple[str, str]:
     return "box", _vec(np.array(e.size) / 2)
 
 
-def _rolling(e: Entity) -> str:
-    """condim 6 on a round object's colliders: its friction's third (rolling) coefficient only acts in 6-D
-    contacts (a pair takes the larger condim of its two geoms), and without it a fruit set down with a few mm/s
-    rolls on for as long as the table lasts, which no real one does (dev episode localization/017: an orange
-    still rolling at 4 mm/s when the task ended). With the furniture's 1 mm it slows at about 0.17 m/s^2."""
-    return ' condim="6"' if e.shape == "sphere" else ""
+def _object_friction(e: Entity, friction: float) -> str:
+    """An object collider's friction attributes (both looks: primitive and textured). A round object gets condim
+    6: the friction's third (rolling) coefficient only acts in 6-D contacts (a pair takes the larger condim of its
+    two geoms), and without it a fruit set down with a few mm/s rolls on for as long as the table lasts, which no
+    real one does (dev episode localization/017: an orange still rolling at 4 mm/s when the task ended). With the
+    furniture's 1 mm it slows at about 0.17 m/s^2."""
+    rolling = ' condim="6"' if e.shape == "sphere" else ""
+    return f'friction="{_f(friction)} 0.005 0.0005"{rolling}'
 
 
 def _textured_object(e: Entity, mass: float, friction: float) -> str:
@@ -410,7 +412,7 @@ def _textured_object(e: Entity, mass: float, friction: float) -> str:
     inertia = [mass / 12 * (sy * sy + sz * sz), mass / 12 * (sx * sx + sz * sz), mass / 12 * (sx * sx + sy * sy)]
     parts = [f'<body name={quoteattr("obj " + e.name)} pos="{_vec(e.center)}" quat="{_yaw_quat(e.yaw)}">',
              f'<freejoint/><inertial pos="0 0 0" mass="{_f(mass)}" diaginertia="{_vec(inertia)}"/>']
-    fr = f'friction="{_f(friction)} 0.005 0.0005"{_rolling(e)}'
+    fr = _object_friction(e, friction)
     colliders = model.colliders or (assets.Collider(*_primitive_collider(e)),)  # type: ignore[arg-type]
     for i, c in enumerate(colliders):
         name = entity_geom_name(e) if i == 0 else f"{entity_geom_name(e)}c{i}"

@@ -881,6 +881,12 @@ class Place(_Manipulation):
         apart differ by a median 0.9 cm horizontally but 1.5 cm in 3-D, and the surface's top measured before
         the release can sit several centimetres off the support seen now."""
         s = self.settings
+
+        async def look_again() -> ObjectEstimate:
+            await asyncio.sleep(REST_GAP_S)
+            ctx.settled_ns = time.time_ns()
+            return await ctx.localize_object(held)
+
         first = await ctx.localize_object(held)
         if not first.found or first.pose is None:
             raise SkillFailed(f"released the {held} over the {pl.label} but could not see it there afterwards: "
@@ -889,9 +895,7 @@ class Place(_Manipulation):
         # object still rolling never yields an agreeing pair, one that stopped does (and is judged where it lies).
         prev, second, moved = first, first, math.inf
         for _ in range(REST_LOOKS - 1):
-            await asyncio.sleep(REST_GAP_S)
-            ctx.settled_ns = time.time_ns()
-            second = await ctx.localize_object(held)
+            second = await look_again()
             if not second.found or second.pose is None:
                 break
             assert prev.pose is not None
@@ -913,9 +917,7 @@ class Place(_Manipulation):
 
             rec.upright = not short(est)
             if not rec.upright:
-                await asyncio.sleep(REST_GAP_S)
-                ctx.settled_ns = time.time_ns()
-                again = await ctx.localize_object(held)
+                again = await look_again()
                 if again.found and again.pose is not None and again.size is not None:
                     rec.upright = not short(again)
                 if not rec.upright:
