@@ -66,7 +66,7 @@ async def test_grasp_corrects_a_hover_offset_lifts_and_place_verifies_rest(clien
     assert facts.gripper_width_m is not None and 0.05 <= facts.gripper_width_m <= 0.11, facts
     held = await c.judge(op="held")
     assert held.held == "red cup", held.message
-    await c.search("placement_localization", "table")
+    await c.search_near("placement_localization", "table")
     st = await c.run("place")
     assert st.state == SkillState.SUCCEEDED, (st.message, st.outcome.facts)
     assert st.outcome.code == OutcomeCode.SUCCEEDED and st.outcome.facts.target == "table"
@@ -169,7 +169,7 @@ async def test_place_reports_unstable_when_the_released_object_falls_off(client)
     st = await c.run("grasp")
     assert st.state == SkillState.SUCCEEDED, (st.message, st.outcome.facts)
     assert (await c.judge(op="held")).held == "red cup"
-    loc = await c.search("placement_localization", "table")
+    loc = await c.search_near("placement_localization", "table")
     spot = loc.outcome.estimate.pose.position
     table = next(o for o in (await c.judge(op="world")).objects if o.name == "table")
     # The pose estimate jumps (a bad relocalization) so that flying to the spot truly ends 25 cm beyond the
@@ -199,7 +199,7 @@ async def test_place_verifies_rest_against_the_surface_seen_now_when_the_estimat
     await c.approach("red cup")
     st = await c.run("grasp")
     assert st.state == SkillState.SUCCEEDED, (st.message, st.outcome.facts)
-    await c.search("placement_localization", "table")
+    await c.search_near("placement_localization", "table")
     await fault(c, "estimate", "offset", z=-0.06)  # the vehicle believes itself 6 cm lower than it is
     st = await c.run("place")
     assert st.state == SkillState.SUCCEEDED, (st.message, st.outcome.perceived)

@@ -118,6 +118,17 @@ class Client:
             raise AssertionError(f"{argument} never found: {st.message}; {await self.where(argument)}")
         return st
 
+    async def search_near(self, skill: str, surface: str, within: float = 1.6) -> SkillStatus:
+        """Fly toward `surface` (where the simulator has it) until within `within` m of its centre, then look
+        around for it. For tests whose subject is what comes after the search: seed 5's table stands 2.6 m from
+        the shelf the cup is taken from, where its top is found in some frames only (a grazing view of a
+        noisy depth image; a CI run once looked all round from there without finding it)."""
+        where = next(o for o in (await self.judge(op="world")).objects if o.name == surface)
+        for _ in range(16):
+            if await self.step_toward(where.position, within):
+                return await self.search(skill, surface)
+        raise AssertionError(f"could not approach the {surface}")
+
     async def search_backing_off(self, skill: str, argument: str, steps: int) -> SkillStatus:
         """Back off one step and look around a full circle (yaw_left turns 40 deg), up to `steps` times; where a
         step back is refused (the room's end, an obstacle behind) the look from there is the last."""
@@ -199,7 +210,7 @@ async def test_pick_and_place_sequence_judged_by_ground_truth(stack):
         assert "in contact" in st.message, st.message
         assert st.outcome.held_object == "red cup"
         assert (await c.judge(op="held")).held == "red cup"
-        await c.search("placement_localization", "table")
+        await c.search_near("placement_localization", "table")
         st = await c.ok("place")
         verdict = await c.judge(op="on_surface", object="red cup", surface="table")
         assert verdict.ok, verdict.message
