@@ -27,7 +27,7 @@ from pydantic import (
 SCHEMA_VERSION = 1
 """Major version of the message schemas. A receiver rejects a message of a newer major version with an
 error naming both versions."""
-SCHEMA_MINOR = 12
+SCHEMA_MINOR = 13
 """Minor version: bumped when fields are added (or deprecated and ignored, never removed). A receiver accepts a
 message of a newer minor version, ignoring the fields it does not know (logged once per field)."""
 MAX_COMMAND_CHARS = 500
@@ -506,6 +506,9 @@ class ObjectEstimate(LocalizeAnswer):
     """Height of the object's top, world z, metres."""
     support_z: float | None = None
     """Height of the surface under it, world z, metres."""
+    catalog_size: Vec3 | None = None
+    """The matched class's catalogued extent as it stands when upright (x the long and y the short horizontal
+    side, z the height), metres; None when the segmenter knows no catalogue (minor 13)."""
 
 
 class PlacementEstimate(LocalizeAnswer):
@@ -541,6 +544,9 @@ class Detection(Part):
     """0..1."""
     n_points: int = 0
     """Supporting 3D points."""
+    catalog_size: Vec3 | None = None
+    """An object's class's catalogued extent standing (as ObjectEstimate.catalog_size); None for a surface, or
+    when the segmenter knows no catalogue (minor 13)."""
 
 
 class Detections(Message):
@@ -748,9 +754,10 @@ class SkillFacts(Part):
     target: Label | None = None
     """The object or surface the skill acted on."""
     upright: bool | None = None
-    """After a place: whether the released object stands as tall as when it was held (False: it lies fallen
-    over, and no skill of this gripper can stand it up again); None when not measured or for a round object
-    (minor 12)."""
+    """After a place: whether the released object stands as tall as when it was held and was held standing
+    (False: it lies fallen over, and no skill of this gripper can stand it up again); after a grasp: whether the
+    fingers closed across the side they close across when it stands (False: it lies on its side, minor 13);
+    None when not measured or not measurable (a round object, a box with no catalogued extent) (minor 12)."""
 
 
 class SkillOutcome(Part):

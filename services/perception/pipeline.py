@@ -81,7 +81,8 @@ class Perception:
         return ObjectEstimate(
             found=True, reason="ok", message=msg, pose=Pose(position=_vec(g.center), yaw=g.yaw),
             size=_vec(g.size), top_z=g.top_z, support_z=g.support_z, confidence=round(float(conf), 3),
-            n_points=g.n_points, **base)
+            n_points=g.n_points, catalog_size=_vec(seg.nominal) if seg.nominal is not None else None,
+            **base)
 
     # ---- placement
 
@@ -183,8 +184,10 @@ class Perception:
         bbox = geo.bbox_of(idx, frame.shape[1])
         cloud = geo.lift(frame, idx, max_points=1500)
         cat = seg.category if seg.category in ("object", "surface", "furniture") else "other"
+        catalog = _vec(seg.nominal) if seg.nominal is not None else None
         if len(cloud.points) < 3:
-            return Detection(label=seg.label, category=cat, bbox=bbox, confidence=0.0)  # type: ignore[arg-type]
+            return Detection(label=seg.label, category=cat, bbox=bbox, confidence=0.0,  # type: ignore[arg-type]
+                             catalog_size=catalog)
         lo = np.percentile(cloud.points, 2, axis=0)
         hi = np.percentile(cloud.points, 98, axis=0)
         if seg.category == "object":
@@ -192,4 +195,5 @@ class Perception:
             hi[2] = np.percentile(cloud.points[:, 2], 99)
         conf = seg.score * min(1.0, cloud.n_valid / 200)
         return Detection(label=seg.label, category=cat, bbox=bbox, centroid=_vec((lo + hi) / 2),  # type: ignore[arg-type]
-                         size=_vec(hi - lo), confidence=round(float(conf), 3), n_points=cloud.n_valid)
+                         size=_vec(hi - lo), confidence=round(float(conf), 3), n_points=cloud.n_valid,
+                         catalog_size=catalog)

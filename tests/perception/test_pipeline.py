@@ -68,6 +68,9 @@ def test_object_within_3cm(kind: str, e, view, sim, color) -> None:
     assert abs(est.support_z - TABLE.top_z) <= 0.02
     assert est.n_points > 30 and 0 < est.confidence <= 1
     assert est.bbox is not None and est.frame_stamp_ns == view.frame.stamp_ns
+    # the class's catalogued extent standing (long, short, height): the grasp tells lying from standing by it
+    long_, short = max(e.size[0], e.size[1]), min(e.size[0], e.size[1])
+    assert est.catalog_size == Vec3(x=long_, y=short, z=e.size[2]), est.catalog_size
 
 
 def test_box_yaw_and_size_are_not_pca_diagonals(view, sim) -> None:
@@ -154,7 +157,9 @@ def test_detections_list_objects_and_surfaces(view, sim, color) -> None:
             assert o.name in labels, (p.segmenter.type, sorted(labels))
             c = labels[o.name].centroid
             assert math.hypot(c.x - o.center[0], c.y - o.center[1]) < 0.05
-        assert labels["table"].category == "surface"
+            standing = Vec3(x=max(o.size[0], o.size[1]), y=min(o.size[0], o.size[1]), z=o.size[2])
+            assert labels[o.name].catalog_size == standing, (p.segmenter.type, o.name)
+        assert labels["table"].category == "surface" and labels["table"].catalog_size is None
         assert dets.segmenter == p.segmenter.type and dets.frame_stamp_ns == view.frame.stamp_ns
         assert "floor" not in labels
 

@@ -29,6 +29,7 @@ class Segment:
     score: float = 1.0
     volume: float = 0.0  # m^3, for size words ("the larger box")
     n_pixels: int = 0
+    nominal: tuple[float, float, float] | None = None  # the class's catalogued extent standing: long, short, height
     _indices: np.ndarray | None = field(default=None, repr=False)
     _compute: Callable[[], np.ndarray] | None = field(default=None, repr=False)
 

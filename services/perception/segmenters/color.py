@@ -328,7 +328,7 @@ class ColorSegmenter(Segmenter):
             if len(g) > 1:
                 idx = np.concatenate([s.indices for s, _ in g])
                 seg = Segment(seg.key, seg.label, seg.category, seg.color, seg.score, seg.volume, int(idx.size),
-                              _indices=idx)
+                              seg.nominal, _indices=idx)
             out.append(seg)
         return out
 
@@ -361,7 +361,7 @@ class ColorSegmenter(Segmenter):
         dropped = np.setdiff1d(cloud.pixels, cloud.pixels[sel]) if sel.size < len(cloud.pixels) else sel[:0]
         keep = np.setdiff1d(idx, dropped) if dropped.size else idx
         seg = Segment(key, c.name, c.category, c.color, score, long_ * short * max(height, 0.01), int(keep.size),
-                      _indices=keep)
+                      (exp_long, exp_short, exp_h), _indices=keep)
         return seg, pts.mean(axis=0)
 
     # ---- objects without a hue: patches on a known top
@@ -506,7 +506,7 @@ class ColorSegmenter(Segmenter):
             return None
         fit = min(1.0, long_ / exp_long)
         return Segment(key, t.name, t.category, t.color, float(0.5 + 0.5 * fit), long_ * short * max(height, 0.01),
-                       int(idx.size), _indices=idx)
+                       int(idx.size), (exp_long, exp_short, exp_h), _indices=idx)
 
     # ---- surfaces
 

@@ -46,6 +46,9 @@ class SimSegmenter(Segmenter):
                 continue
             size = lab.size
             volume = float(size.x * size.y * size.z) if size is not None else 0.0
+            # The simulator's label carries the object's extent as built (the oracle's catalogue).
+            nominal = ((max(size.x, size.y), min(size.x, size.y), size.z)
+                       if size is not None and lab.category == "object" else None)
             out.append(Segment(int(inst), lab.name, lab.category, lab.color, 1.0, volume, int(counts[inst]),
-                               _compute=partial(_instance_pixels, flat, int(inst))))
+                               nominal, _compute=partial(_instance_pixels, flat, int(inst))))
         return out
