@@ -54,6 +54,7 @@ class Memory:
         self.placements: dict[str, MemoryObject] = {}
         self.held: str | None = None
         self.held_size: Vec3 | None = None
+        self.held_upright: bool | None = None
         self.visible: tuple[str, ...] = ()
         self.seen: dict[str, MemoryObject] = {}
         self.executed: list[str] = []
@@ -94,7 +95,7 @@ class Memory:
         self.placements.clear()
         self.seen.clear()
         self.visible = ()
-        self.held, self.held_size = None, None
+        self.held, self.held_size, self.held_upright = None, None, None
         self.last_object = self.last_placement = None
         self._changed()
 
@@ -114,6 +115,7 @@ class Memory:
         self.executed = list(wm.executed)[-self._max_executed:]
         held = self.objects.get(_norm(wm.held_object)) if wm.held_object else None
         self.held, self.held_size = wm.held_object, held.size if held is not None else None
+        self.held_upright = None  # not in the published memory: unknown after a restore
 
         def newest(table: dict[str, MemoryObject]) -> str | None:
             return max(table, key=lambda k: table[k].last_seen_ns) if table else None
@@ -166,9 +168,11 @@ class Memory:
                 self.last_object = None
             self._changed()
 
-    def set_held(self, label: str | None, size: Vec3 | None = None) -> None:
+    def set_held(self, label: str | None, size: Vec3 | None = None, upright: bool | None = None) -> None:
+        """What the gripper holds, its size as found and whether it stood upright when grasped (None: unknown)."""
         self.held = label
         self.held_size = size if label else None
+        self.held_upright = upright if label else None
         self._changed()
 
     def set_visible(self, det: Detections) -> None:

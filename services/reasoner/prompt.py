@@ -116,7 +116,7 @@ class HistoryEntry:
 def outcome_text(outcome: SkillOutcome) -> str:
     """A skill's outcome in the prompt's one fixed form: `missed (target red cup, attempts 2, offset 0.031 m,
     holding none)`; only the facts the skill measured appear, always in this order (`upright` or `fallen over`
-    when a place measured it), `holding` always."""
+    when a grasp or place measured it), `holding` always."""
     f = outcome.facts
     parts: list[str] = []
     if f.target:

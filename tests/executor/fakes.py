@@ -41,6 +41,7 @@ class Thing:
     center: np.ndarray
     size: tuple[float, float, float]
     attached: bool = False
+    catalog: tuple[float, float, float] | None = None  # what perception's catalogue says of it standing
 
     @property
     def top(self) -> float:
@@ -59,8 +60,9 @@ class ToyWorld:
     length) and rock, each of the next `ROCK_LOOKS` localizations seeing them 3 cm to the other side. Once."""
     rocking: dict[str, int] = field(default_factory=dict)
 
-    def add_object(self, name: str, x: float, y: float, support_z: float, size=(0.08, 0.08, 0.11)) -> Thing:
-        t = Thing(name, np.array([x, y, support_z + size[2] / 2]), size)
+    def add_object(self, name: str, x: float, y: float, support_z: float, size=(0.08, 0.08, 0.11),
+                   catalog: tuple[float, float, float] | None = None) -> Thing:
+        t = Thing(name, np.array([x, y, support_z + size[2] / 2]), size, catalog=catalog)
         self.objects[name] = t
         return t
 
@@ -117,6 +119,9 @@ class FakeAutopilot:
         self.offboard_ok = False
         self.px4_mode = "POSCTL"  # the mode reported when not in OFFBOARD (the pilot's, or PX4's AUTO.LOITER)
         self.publishing = True
+        self.fingers = False
+        """Report the finger gap and contact (as the simulator's gripper does: the held thing's narrower side, 0
+        closed on nothing, 0.18 m open); off, a gripper without sensing."""
         self.commands: list[str] = []
         self.dt = 1.0 / rate_hz
         if airborne_at is not None:
@@ -131,7 +136,16 @@ class FakeAutopilot:
         return VehicleState(vehicle_id=self.keys.vehicle_id, position=Vec3(x=self.pos[0], y=self.pos[1], z=self.pos[2]),
                             velocity=Vec3(x=self.vel[0], y=self.vel[1], z=self.vel[2]), yaw=self.yaw, armed=self.armed,
                             mode="OFFBOARD" if self.offboard_ok else self.px4_mode, landed_state=self.landed,
-                            gripper=self.gripper, link_ok=self.link_ok, offboard_ok=self.offboard_ok)
+                            gripper=self.gripper, link_ok=self.link_ok, offboard_ok=self.offboard_ok,
+                            **self.finger_sense())
+
+    def finger_sense(self) -> dict[str, float | bool]:
+        if not self.fingers:
+            return {}
+        held = next((t for t in self.world.objects.values() if t.attached), None) if self.world else None
+        if held is not None:
+            return {"gripper_width": min(held.size[0], held.size[1]), "gripper_holding": True}
+        return {"gripper_width": 0.0 if self.gripper == GripperState.CLOSED else 0.18, "gripper_holding": False}
 
     def gripper_point(self) -> np.ndarray:
         return self.pos + np.array([0.0, 0.0, -0.22])
@@ -225,7 +239,9 @@ class FakePerception:
                 return ObjectEstimate(query=req.query, found=True, label=t.name,
                                       pose=Pose(position=Vec3(x=t.center[0] + dx, y=t.center[1], z=t.center[2])),
                                       size=Vec3(x=t.size[0], y=t.size[1], z=t.size[2]), top_z=t.top,
-                                      support_z=t.center[2] - t.size[2] / 2, confidence=0.9, frame_stamp_ns=now_ns())
+                                      support_z=t.center[2] - t.size[2] / 2, confidence=0.9, frame_stamp_ns=now_ns(),
+                                      catalog_size=Vec3(x=t.catalog[0], y=t.catalog[1], z=t.catalog[2])
+                                      if t.catalog else None)
         return ObjectEstimate(query=req.query, found=False, reason="not_visible", message=f"{req.query} not visible")
 
     async def localize_placement(self, req: LocalizeRequest) -> PlacementEstimate:

@@ -206,3 +206,30 @@ async def test_place_verifies_rest_against_the_surface_seen_now_when_the_estimat
     assert (await c.judge(op="on_surface", object="red cup", surface="table")).ok
     await fault(c, "estimate", "ok")
     await c.ok("land")
+
+
+@pytest.mark.parametrize("name", ["tissue box", "red cup"])
+async def test_an_object_found_lying_is_grasped_and_placed_but_not_claimed_standing(client, name):
+    """Dev episodes localization/002, /008, search/000, /007: an object tipped by an earlier knock was grasped
+    lying and set down lying, and place, comparing its height with the height it had when found, called it
+    placed. Grasp now tells from its finger gap (a box: 10 cm across its height, 12 cm across its short side
+    standing) or its shape (a cup: 8 cm tall, 11 cm long), and place reports it fallen over."""
+    c = client
+    # seed 8: it stands on the counter (1.4 x 0.6 m), 1.6 m from the table, and lies there knocked over
+    await c.reset(seed=8, target_object=name, destination="table")
+    await fault(c, "object", "knock", name=name)
+    await c.takeoff()
+    await c.search_near("obj_localization", name)
+    await c.approach(name)
+    st = await c.run("grasp")
+    facts = st.outcome.facts
+    assert st.state == SkillState.SUCCEEDED, (st.message, facts)
+    assert facts.upright is False and "it lay on its side" in st.message, (st.message, facts)
+    await c.search_near("placement_localization", "table", within=2.0)  # 1.6 m from the counter's edge
+    st = await c.run("place")
+    assert st.state == SkillState.FAILED and st.outcome.code == OutcomeCode.UNSTABLE, st.message
+    assert st.outcome.facts.upright is False and "lies on its side" in st.message, st.message
+    verdict = await c.judge(op="on_surface", object=name, surface="table")
+    # the simulator agrees: not placed, and for that reason
+    assert not verdict.ok and any(ch.name == "upright" and not ch.ok for ch in verdict.checks), verdict.message
+    await c.ok("land")

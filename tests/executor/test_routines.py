@@ -79,6 +79,40 @@ async def test_place_reports_an_object_that_fell_over_even_while_it_still_rocks(
         assert st.outcome.facts.upright is True and "upright" in outcome_text(st.outcome)
 
 
+async def test_a_box_grasped_lying_on_its_side_is_reported_lying_and_placed_so():
+    # Dev episodes localization/002, /008, search/007: a tissue box tipped by an earlier knock was grasped on its
+    # side and set down so, and place, comparing its height with the height it had when found, called it
+    # placed. The finger gap tells: standing it is held across its 12 cm side, lying across its 10 cm height.
+    box = (0.24, 0.12, 0.10)
+    async with rig() as r:
+        r.vehicle.fingers = True
+        r.world.add_surface("table", 1.6, 0.0, 0.75)
+        r.world.add_object("tissue box", 1.5, 0.1, 0.75, size=(0.24, 0.10, 0.12), catalog=box)
+        for skill, arg in (("obj_localization", "tissue box"), ("grasp", None)):
+            st = await r.run_skill(skill, arg)
+            assert st.state == SkillState.SUCCEEDED, (skill, st.message)
+        assert st.outcome.facts.upright is False and "it lay on its side" in st.message, (st.message,
+                                                                                          st.outcome.facts)
+        assert st.outcome.facts.gripper_width_m == 0.10
+        st = await r.run_skill("placement_localization", "table")
+        assert st.state == SkillState.SUCCEEDED, st.message
+        st = await r.run_skill("place")
+        facts = st.outcome.facts
+        assert st.state == SkillState.FAILED and st.outcome.code == OutcomeCode.UNSTABLE, st.message
+        assert facts.upright is False and "lies on its side" in st.message, (st.message, facts)
+        assert not r.world.objects["tissue box"].attached and r.executor.memory.held is None
+        # Standing, the same box is held across its 12 cm side and placed.
+        r.world.add_object("tissue box", 1.5, -0.2, 0.75, size=box, catalog=box)
+        for skill, arg in (("obj_localization", "tissue box"), ("grasp", None)):
+            st = await r.run_skill(skill, arg)
+            assert st.state == SkillState.SUCCEEDED, (skill, st.message)
+        assert st.outcome.facts.upright is True and "on its side" not in st.message, st.message
+        for skill, arg in (("placement_localization", "table"), ("place", None)):
+            st = await r.run_skill(skill, arg)
+            assert st.state == SkillState.SUCCEEDED, (skill, st.message)
+        assert st.outcome.facts.upright is True
+
+
 async def test_grasp_fails_when_the_object_moved_after_localization():
     async with rig() as r:
         _scene(r)

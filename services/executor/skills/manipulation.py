@@ -6,6 +6,7 @@ import asyncio
 import math
 import time
 from collections import deque
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from typing import ClassVar
 
@@ -58,6 +59,9 @@ TIP_M = 0.015  # an object both this much lower and this much longer than it sto
 REST_GAP_S = 0.5  # between the two detections that must agree for a placed object to be at rest
 REST_LOOKS = 4  # looks at most for two consecutive ones that agree (a hovering multirotor's view rocks)
 UNIDENTIFIED = "unidentified object"  # what the gripper holds when it is not the target (as the executor says)
+WIDTH_MATCH_M = 0.004  # a finger gap within this of a catalogued extent holds the object across that extent
+SHAPE_MATCH_M = 0.015  # a measured extent within this of a catalogued one (perception's error at 0.3-0.8 m)
+THIN_M = 0.06  # an object with an extent under this lies flat as it belongs (tools, fruit like a banana)
 ROLLING_ASPECT = 1.2  # a round footprint no taller than this many diameters rolls (apple, orange)
 
 
@@ -97,6 +101,38 @@ def rolls(size: Vec3 | None) -> bool:
     return size is not None and round_footprint(size) and size.z <= ROLLING_ASPECT * max(size.x, size.y)
 
 
+def upright_by_width(width: float, catalog: Vec3 | None) -> bool | None:
+    """Whether an object the fingers hold at `width` stood upright, from its catalogued extent (x long, y short
+    horizontal, z height; the fingers close across the short side of what they find). Standing, they close
+    across y; lying on its side, across min(y, z) (on its long end) or min(x, z) (on a long side). True or False
+    only when the width matches one and none of the other within WIDTH_MATCH_M (the gripper's telemetry is good
+    to 0.5 mm): a tissue box (24 x 12 x 10 cm) is held at 12 cm standing and 10 cm on its side; a cracker box
+    (16 x 7 x 21 cm) on its 7 x 21 cm side is held at 7 cm as when it stands, and a cup at its diameter either
+    way (None). Nor for a thin object (any extent under THIN_M: a tool, a banana), which belongs lying flat and
+    whose shape is held at gaps its box does not predict (a banana catalogued 4.5 cm wide is held at 3.1-3.6)."""
+    if catalog is None or min(catalog.x, catalog.y, catalog.z) < THIN_M:
+        return None
+    standing = abs(width - catalog.y) <= WIDTH_MATCH_M
+    lying = any(abs(width - w) <= WIDTH_MATCH_M for w in (min(catalog.y, catalog.z), min(catalog.x, catalog.z)))
+    return None if standing == lying else standing
+
+
+def upright_by_shape(size: Vec3 | None, catalog: Vec3 | None) -> bool | None:
+    """Whether a round object taller than wide (a cup, a can, a bottle: the finger gap is its diameter either way)
+    stood when found, from its measured extent (x, y footprint, z height) against its catalogued one: lying, it
+    measures about its diameter tall and its height long (dev: standing cups 7-8 x 7-8 x 10-11 cm at 0.3-0.8 m,
+    a toppled one 10-11 x 5-8 x 8 cm; a tall one's top is measured short: bottles 22 of 25 cm). None when neither
+    fits within SHAPE_MATCH_M (15 % of the height for standing; a partial view)."""
+    if size is None or catalog is None or not round_footprint(catalog) or catalog.z < catalog.x + 2 * SHAPE_MATCH_M:
+        return None
+    long_ = max(size.x, size.y)
+    if size.z <= catalog.x + SHAPE_MATCH_M and long_ >= catalog.z - SHAPE_MATCH_M:
+        return False
+    if size.z >= catalog.z - max(SHAPE_MATCH_M, 0.15 * catalog.z) and long_ <= catalog.x + SHAPE_MATCH_M:
+        return True
+    return None
+
+
 @dataclass
 class Target:
     """The object as the newest detection places it (world frame of the vehicle's own estimate, so a slowly
@@ -123,6 +159,8 @@ class Attempt:
     offset: float | None = None
     distance: float | None = None
     upright: bool | None = None
+    catalog: Vec3 | None = None  # the target's catalogued extent standing (perception's), not a reported fact
+    size: Vec3 | None = None  # its extent as measured where it was found, just before the close
 
     def facts(self, ctx: SkillContext, holding: str | None = None) -> SkillFacts:
         st = ctx.state.value
@@ -429,6 +467,7 @@ class Grasp(_Manipulation):
             if step < s.relocalize_converged:
                 break
         ctx.note(f"{label} re-localized at {fmt(est_pos)}")
+        rec.catalog = est.catalog_size
         target = Target.of(mo)
 
         for attempt in range(1, max(1, s.grasp_attempts) + 1):
@@ -604,7 +643,7 @@ class Grasp(_Manipulation):
                                     f"pre-grasp pose beside the {label}")
         yaw = grasp_yaw(shape.size, shape.yaw, yaw)
         ux, uy = math.cos(yaw), math.sin(yaw)
-        size = shape.size
+        rec.size = size = shape.size
         height = size.z if size is not None else 0.1
         depth = grip_depth(height, s.grasp_depth_fraction)
         grip_z = shape.top - depth
@@ -672,6 +711,9 @@ class Grasp(_Manipulation):
                 new = await self.relook(ctx, query, label, seen, shape, yaw, view_z, near, clear_z)
                 raise AttemptFailed(*wrong, target=new)
             ctx.note(f"fingers hold the {label} at {100 * width:.1f} cm")
+            rec.upright = upright_by_width(width, rec.catalog)
+            if rec.upright is None:
+                rec.upright = upright_by_shape(size, rec.catalog)
         body_grip = sp.z
         lift = Vec3(x=sp.x, y=sp.y, z=body_grip + LIFT_M)
         await ctx.goto(lift, yaw, s.descent_speed, what="lift")
@@ -701,7 +743,7 @@ class Grasp(_Manipulation):
             raise AttemptFailed(OutcomeCode.MISSED, f"the {label} is still at {fmt(check.pose.position)} after "
                                 "closing the gripper")
         mem.forget_object(label)
-        mem.set_held(label, size)
+        mem.set_held(label, size, rec.upright)
         up = max(s.flight_altitude, ctx.current().position.z)
         here = ctx.current().position
         await ctx.goto(Vec3(x=here.x, y=here.y, z=up), yaw, s.descent_speed, what="retreat height")
@@ -712,12 +754,20 @@ class Grasp(_Manipulation):
                                 f"{100 * (end.gripper_width or 0):.1f} cm)", final=True)
         ctx.note(f"{label} no longer at {fmt(p)}: held")
         rec.distance = rec.offset  # the gripper point to the object when it closed
-        if sensed:
-            text = (f"grasped the {label} (fingers at {100 * (end.gripper_width or 0):.1f} cm, in contact) after "
-                    f"{rec.attempts} attempt{'s' if rec.attempts > 1 else ''}; holding it at {fmt(end.position)}")
-        else:
-            text = f"grasped the {label}; holding it at {fmt(end.position)}"
-        return SkillResult(text, OutcomeCode.SUCCEEDED, rec.facts(ctx, label))
+        return SkillResult(self.held_text(label, rec, end, sensed), OutcomeCode.SUCCEEDED, rec.facts(ctx, label))
+
+    @staticmethod
+    def held_text(label: str, rec: Attempt, end: VehicleState, sensed: bool) -> str:
+        if not sensed:
+            return f"grasped the {label}; holding it at {fmt(end.position)}"
+        width = end.gripper_width or 0.0
+        text = (f"grasped the {label} (fingers at {100 * width:.1f} cm, in contact) after {rec.attempts} "
+                f"attempt{'s' if rec.attempts > 1 else ''}; holding it at {fmt(end.position)}")
+        if rec.upright is False and rec.catalog is not None:
+            text += (f"; it lay on its side (held across {100 * width:.1f} cm, found "
+                     f"{100 * (rec.size.z if rec.size else 0):.0f} cm tall; standing it is {100 * rec.catalog.y:.1f} "
+                     f"cm across and {100 * rec.catalog.z:.0f} cm tall): set down, it will lie so")
+        return text
 
 
 @register
@@ -767,6 +817,8 @@ class Place(_Manipulation):
     async def _run(self, ctx: SkillContext, pl: MemoryObject, held: str, rec: Attempt) -> SkillResult:
         s, mem = self.settings, ctx.memory
         size = mem.held_size
+        if mem.held_upright is False:
+            rec.upright = False  # grasped lying on its side (the finger gap said so): it will lie so
         height = size.z if size is not None else 0.1
         rolling = rolls(size)
         if rolling and size is not None:
@@ -872,7 +924,8 @@ class Place(_Manipulation):
                           rec: Attempt) -> tuple[ObjectEstimate, str]:
         """Look at the released object from the verification view: at rest (two consecutive looks REST_GAP_S
         apart agree horizontally), standing on the named surface (the support under it and the surface's top,
-        both seen from this view), upright (as tall as when held, checked first and reported in the facts) and near
+        both seen from this view), upright (held standing and as tall as when held, checked first and reported in the
+        facts) and near
         the spot. Returns the last estimate and why it is not placed ('' when it is).
 
         Every comparison is made within one view or between looks a moment apart, because the vehicle's
@@ -906,24 +959,9 @@ class Place(_Manipulation):
         est = second if second.found and second.pose is not None else prev
         assert est.pose is not None
         rec.offset = off = horizontal_distance(est.pose.position, pl.position)
-        if size is not None and est.size is not None and not rolls(size):
-            # Checked first, on whatever look came last: an object that toppled is often still rocking when
-            # looked at, and "still moving" must not hide that it lies (dev localization/028: a cup on its side,
-            # 2 cm tall in the last look, reported only as moving; the policy then took it for placed). A short
-            # reading is confirmed by one more look (a partial view measures short too), since the policy ends
-            # the task on it.
-            def short(e: ObjectEstimate) -> bool:
-                return e.size is not None and size.z - e.size.z > max(s.upright_tolerance, 0.25 * size.z)
-
-            rec.upright = not short(est)
-            if not rec.upright:
-                again = await look_again()
-                if again.found and again.pose is not None and again.size is not None:
-                    rec.upright = not short(again)
-                if not rec.upright:
-                    assert est.size is not None
-                    return est, (f"it is {100 * est.size.z:.0f} cm tall where it was {100 * size.z:.0f} cm when "
-                                 "held: fallen over")
+        fallen = await self.fallen_over(size, est, rec, look_again)
+        if fallen:
+            return est, fallen
         if not second.found or second.pose is None:
             return est, "it was seen and then no more (still moving?)"
         if moved > s.rest_tolerance:
@@ -937,6 +975,34 @@ class Place(_Manipulation):
         if off > s.place_tolerance:
             return est, f"{off:.2f} m from the placement spot"
         return est, ""
+
+    async def fallen_over(self, size: Vec3 | None, est: ObjectEstimate, rec: Attempt,
+                          look_again: Callable[[], Awaitable[ObjectEstimate]]) -> str:
+        """Why the released object does not stand (its rec.upright set), or '' when it stands or cannot tell."""
+        if rec.upright is False:
+            # Its height cannot tell here: it was measured as found, lying (a tissue box is about as tall on its
+            # side as standing), so grasp's finger gap against its catalogued extent decided (dev
+            # localization/002, /008, search/007: claimed placed, lying on the table).
+            return "it lies on its side, as it lay when grasped (the finger gap or its shape said so)"
+        if size is None or est.size is None or rolls(size):
+            return ""
+        # Checked first, on whatever look came last: an object that toppled is often still rocking when looked
+        # at, and "still moving" must not hide that it lies (dev localization/028: a cup on its side, 2 cm tall
+        # in the last look, reported only as moving; the policy then took it for placed). A short reading is
+        # confirmed by one more look (a partial view measures short too), since the policy ends the task on it.
+        tolerance = max(self.settings.upright_tolerance, 0.25 * size.z)
+
+        def short(e: ObjectEstimate) -> bool:
+            return e.size is not None and size.z - e.size.z > tolerance
+
+        rec.upright = not short(est)
+        if not rec.upright:
+            again = await look_again()
+            if again.found and again.pose is not None and again.size is not None:
+                rec.upright = not short(again)
+            if not rec.upright:
+                return f"it is {100 * est.size.z:.0f} cm tall where it was {100 * size.z:.0f} cm when held: fallen over"
+        return ""
 
     async def surface_now(self, ctx: SkillContext, pl: MemoryObject, remembered: float) -> tuple[float, float]:
         """The named surface's top as seen now, from the verification view, and the tolerance for comparing a
