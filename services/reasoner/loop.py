@@ -117,7 +117,8 @@ def policy_context(command: str, variant: str, library: SkillLibrary, history: H
         vol = d.size.x * d.size.y * d.size.z if d.size is not None else None
         dist = (math.dist((d.centroid.x, d.centroid.y, d.centroid.z), (pos.x, pos.y, pos.z))
                 if d.centroid is not None and pos is not None else None)
-        seen.append(Seen(d.label, d.category, vol, dist))
+        c = d.catalog_size
+        seen.append(Seen(d.label, d.category, vol, dist, c.x * c.y * c.z if c is not None else None))
     mem = obs.memory
     return PolicyContext(
         command=command, variant=variant, skills=[s.name for s in policy_skills(library)],

@@ -51,6 +51,8 @@ class Thing:
     size: tuple[float, float, float] = (0.08, 0.08, 0.1)
     needs_forward: int = 0
     """Forward steps needed before it becomes visible."""
+    catalog: tuple[float, float, float] | None = None
+    """Its class's catalogued extent standing, as perception reports it (None: no catalogue)."""
 
 
 @dataclass
@@ -76,6 +78,7 @@ class MiniWorld:
     def detections(self) -> tuple[Detection, ...]:
         return tuple(Detection(label=t.label, category=t.category if t.category != "surface" else "surface",
                                size=Vec3(x=t.size[0], y=t.size[1], z=t.size[2]),
+                               catalog_size=Vec3(x=t.catalog[0], y=t.catalog[1], z=t.catalog[2]) if t.catalog else None,
                                centroid=Vec3(x=1.0 + 0.1 * i, y=0.0, z=0.5)) for i, t in enumerate(self.visible()))
 
     def memory(self) -> WorkingMemory:

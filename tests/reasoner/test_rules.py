@@ -66,6 +66,14 @@ def test_clutter_larger_box() -> None:
     assert "obj_localization(cracker box)" in w.executed and w.held == "cracker box" and w.executed[-1] == "done"
 
 
+def test_clutter_larger_box_by_the_catalogue_through_the_loop() -> None:
+    # measured from afar the cardboard box (partly hidden) reads smaller; perception's catalogue knows better
+    w = MiniWorld([Thing("cracker box", size=(0.16, 0.07, 0.21), catalog=(0.16, 0.07, 0.21)),
+                   Thing("cardboard box", size=(0.05, 0.04, 0.08), catalog=(0.22, 0.16, 0.15))])
+    final, *_ = run_task("Of the two boxes, pick up the larger one.", w)
+    assert final.state is TaskState.SUCCEEDED and w.held == "cardboard box", w.executed
+
+
 def test_clutter_smaller_and_ignore_tools() -> None:
     w = MiniWorld([Thing("tissue box", size=(0.2, 0.1, 0.1)), Thing("cracker box", size=(0.3, 0.2, 0.1))])
     run_task("of the two boxes pick up the smaller one", w)
@@ -405,6 +413,42 @@ def test_larger_box_by_name_when_only_one_is_in_view() -> None:
         "yaw_left"
     assert policy.decide(_ctx(cmd, steps, visible=small, pose=(0.0, 0.0, math.pi), positions=where))[:2] == \
         ("obj_localization", "large box")
+
+
+def test_larger_box_by_catalogued_size_when_perception_knows_both_classes() -> None:
+    # Dev clutter/000: at 2.3 m the cardboard box, half hidden behind the cracker box, measured smaller; their
+    # classes' catalogued sizes (22 x 16 x 15 cm against 16 x 7 x 21 cm) say which is larger.
+    cmd = "Of the two boxes, pick up the larger one."
+    both = [Seen("cracker box", "object", 0.0030, 2.3, 0.16 * 0.07 * 0.21),
+            Seen("cardboard box", "object", 0.0016, 2.4, 0.22 * 0.16 * 0.15)]
+    policy = RulesPolicy()
+    skill, arg, why = policy.decide(_ctx(cmd, [], visible=both))
+    assert (skill, arg) == ("obj_localization", "cardboard box") and "catalogued" in why, why
+    smaller = "Grab the smaller of the two boxes."
+    assert policy.decide(_ctx(smaller, [], visible=both))[:2] == ("obj_localization", "cracker box")
+    # Two of one class (or no catalogue): as measured.
+    twins = [Seen("cracker box", "object", 0.0030, 2.3, 0.0024), Seen("cracker box 2", "object", 0.0020, 2.0, 0.0024)]
+    assert policy.decide(_ctx(cmd, [], visible=twins))[:2] == ("obj_localization", "cracker box")
+    assert policy.decide(_ctx(cmd, [], visible=[Seen(v.label, v.category, v.volume, v.distance) for v in both]))[:2] \
+        == ("obj_localization", "cracker box")
+
+
+def test_the_only_box_in_view_is_taken_for_the_larger_only_after_a_full_scan() -> None:
+    # Dev clutter/044: one look into the scan it saw the cracker box, took "the only box I detect" and never saw
+    # the larger one elsewhere in the room.
+    cmd = "Pick up the larger box -- ignore the tissue box."
+    one = [Seen("cracker box", "object", 0.0024, 2.9, 0.0024)]
+    policy = RulesPolicy()
+    turns = [_motion("yaw_left", 0.0, 0.0, 45 * (i + 1)) for i in range(7)]
+    for k in range(7):
+        skill, arg, why = policy.decide(_ctx(cmd, turns[:k], visible=one, pose=(0.0, 0.0, math.radians(45 * k))))
+        assert (skill, arg) == ("yaw_left", None), (k, skill, arg, why)
+    skill, arg, why = policy.decide(_ctx(cmd, turns, visible=one, pose=(0.0, 0.0, math.radians(315))))
+    assert (skill, arg) == ("obj_localization", "cracker box") and "after a full scan" in why, why
+    # Out of view when the scan ends, the one box it showed is chosen (and faced); the excluded one never is.
+    where = {"cracker box": (0.0, -2.9), "tissue box": (2.0, 0.0)}
+    skill, arg, why = policy.decide(_ctx(cmd, turns, visible=[], pose=(0.0, 0.0, 0.0), positions=where))
+    assert skill == "yaw_right" and "only box a full scan showed" in why, (skill, why)
 
 
 def test_approach_retries_one_blocked_forward_and_decides_after_two() -> None:

@@ -32,6 +32,7 @@ class Seen:
     category: str = "object"
     volume: float | None = None
     distance: float | None = None
+    catalog_volume: float | None = None  # its class's catalogued volume (perception's catalogue), when known
 
 
 LEGACY_CODES: dict[str, OutcomeCode] = {

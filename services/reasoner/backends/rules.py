@@ -252,9 +252,9 @@ class RulesPolicy:
             # It lies where it fell: picked up again it would hang and be set down the same way, and this
             # gripper has no skill that stands an object up.
             what = place.facts.target or plan.destination
-            return S.DONE, None, (f"{FALLEN}: the released object lies on its side (place measured it shorter "
-                                  f"than when held, near the {what}); no skill of mine can stand it up again, so "
-                                  "the command cannot be completed.")
+            return S.DONE, None, (f"{FALLEN}: the released object lies on its side (place reports it fallen over, "
+                                  f"near the {what}); no skill of mine can stand it up again, so the command "
+                                  "cannot be completed.")
         spot = next((s for s in reversed(rest[:idx]) if s.skill == S.PLACEMENT_LOCALIZATION
                      and s.state == "succeeded"), None)
         grasped = next((s for s in reversed(rest[:idx]) if s.skill == S.GRASP and s.state == "succeeded"), None)
@@ -463,9 +463,16 @@ class _TargetChoice:
         cands = [v for v in self.visible if not group or _matches(v.label, group) or group in v.label]
         sized = [v for v in cands if v.volume is not None]
         if len(sized) >= 2:
-            pick = (max if selector == "larger" else min)(sized, key=lambda v: v.volume or 0.0)
-            return pick.label, (f"Of the {len(sized)} {group or 'object'} candidates I compare sizes: the "
-                                f"{selector} is the {pick.label}.")
+            # Their classes' catalogued sizes when perception knows them and they differ (a box measured at 2 m
+            # behind another is measured short: dev clutter/000 took a cracker box for larger than a cardboard
+            # box of twice its volume); otherwise, two of one class, as measured.
+            known = {v.catalog_volume for v in sized}
+            catalogued = None not in known and len(known) > 1
+            pick = (max if selector == "larger" else min)(
+                sized, key=lambda v: (v.catalog_volume if catalogued else v.volume) or 0.0)
+            return pick.label, (f"Of the {len(sized)} {group or 'object'} candidates I compare "
+                                f"{'their catalogued sizes' if catalogued else 'sizes'}: the {selector} is the "
+                                f"{pick.label}.")
         # Only one in view: a name that says its size ("large box") settles it, in view or seen earlier;
         # one whose name says the opposite is not taken for want of the other.
         want, avoid = SIZE_WORDS[selector], SIZE_WORDS["smaller" if selector == "larger" else "larger"]
@@ -474,8 +481,16 @@ class _TargetChoice:
         named = next((n for n in names if set(n.lower().split()) & want), None)
         if named:
             return named, f"The {named} is the {selector} {group or 'one'} by its name."
-        if len(sized) == 1 and not set(sized[0].label.lower().split()) & avoid:
-            return sized[0].label, f"The {sized[0].label} is the only {group or 'candidate'} I detect."
+        # The only one in view is taken after a full scan here has shown no other (dev clutter/044 took the
+        # first box it saw, one look into the scan, and the larger stood elsewhere).
+        scanned = sum(s.skill in (S.YAW_LEFT, S.YAW_RIGHT) for s in self.rest) >= SCAN_TURNS
+        if len(sized) == 1 and scanned and not set(sized[0].label.lower().split()) & avoid:
+            return sized[0].label, (f"The {sized[0].label} is the only {group or 'candidate'} I detect, after a "
+                                    "full scan.")
+        seen = [n for n in self.ctx.positions
+                if group and (_matches(n, group) or group in n) and not _excluded(n, self.plan)]
+        if not sized and scanned and len(seen) == 1 and not set(seen[0].lower().split()) & avoid:
+            return seen[0], f"The {seen[0]} is the only {group} a full scan showed me."
         return None, f"I need both {group or 'candidate'}s in view to compare sizes."
 
     def by_category(self) -> tuple[str | None, str] | None:
