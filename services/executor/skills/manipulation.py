@@ -818,7 +818,7 @@ class Place(_Manipulation):
         s, mem = self.settings, ctx.memory
         size = mem.held_size
         if mem.held_upright is False:
-            rec.upright = False  # grasped lying on its side (the finger gap said so): it will lie so
+            rec.upright = False  # grasped lying on its side (its finger gap or shape said so): it will lie so
         height = size.z if size is not None else 0.1
         rolling = rolls(size)
         if rolling and size is not None:
@@ -924,9 +924,8 @@ class Place(_Manipulation):
                           rec: Attempt) -> tuple[ObjectEstimate, str]:
         """Look at the released object from the verification view: at rest (two consecutive looks REST_GAP_S
         apart agree horizontally), standing on the named surface (the support under it and the surface's top,
-        both seen from this view), upright (held standing and as tall as when held, checked first and reported in the
-        facts) and near
-        the spot. Returns the last estimate and why it is not placed ('' when it is).
+        both seen from this view), upright (grasped standing and as tall as when held, checked first and reported
+        in the facts) and near the spot. Returns the last estimate and why it is not placed ('' when it is).
 
         Every comparison is made within one view or between looks a moment apart, because the vehicle's
         position estimate wanders and perception places what it sees with that estimate: on the realistic
