@@ -13,8 +13,9 @@ from services.perception import query as q
 from services.perception.pipeline import Perception
 from services.perception.segmenters import make_segmenter
 from services.perception.settings import PerceptionSettings
+from services.sim.render import Renderer
 from shared.messages import LocalizeRequest, Vec3
-from tests.perception.scenes import furniture, manual_world, render_view, thing
+from tests.perception.scenes import furniture, layout, manual_world, render_view, thing
 
 TABLE = furniture("table", 2.0, 0.0)  # 1.2 x 0.8, top at 0.75
 OBJS = [
@@ -180,3 +181,25 @@ def test_color_sink_and_catalog_file(tmp_path) -> None:
     assert p2.segmenter.known_names(None) == ["green bottle", "sink"]
     assert obj(p2, v.frame, "red cup").reason == "not_visible"
     assert place(p2, v.frame, "sink").found
+
+
+def test_color_segment_keys_are_unique_when_a_split_blob_is_merged() -> None:
+    """Dev clutter/000: localizing "cardboard box" answered "matched cardboard box" with the cracker box's pose,
+    label and size. A class split in two blobs was merged under its larger blob's key, and the next class's first
+    blob was numbered from the count of segments so far: the same key, and find() returned the first segment with
+    it. Seen in 3 of 258 aimed views of dev layouts 100-129 (all a cracker box, whose print the colour classes
+    also read as a cardboard box in part: a false detection, issue 33); this is one."""
+    world = layout(103, look="textured")
+    camera = Renderer(realism="realistic", seed=1)  # its first frame: a fresh camera's noise, the same every run
+    try:
+        view = render_view(world, -3.552, 1.634, 1.871, -0.694, camera=camera)
+    finally:
+        camera.close()
+    p = perception("color")
+    segs = p.segmenter.detect_objects(view.frame)
+    assert len(segs) >= 3 and len({s.key for s in segs}) == len(segs), [(s.key, s.label) for s in segs]
+    for name in {s.label for s in segs}:
+        est = obj(p, view.frame, name)
+        assert est.found and est.label == name, (name, est.label, est.message)
+    est, truth = obj(p, view.frame, "cracker box"), world.by_name("cracker box")
+    assert math.hypot(est.pose.position.x - truth.center[0], est.pose.position.y - truth.center[1]) < 0.1

@@ -287,6 +287,7 @@ class ColorSegmenter(Segmenter):
         cls[hsv[..., 2] < 30] = 0
         h, w = cls.shape
         out: list[Segment] = []
+        serial = 0  # every blob's key, unique in the frame (a merge keeps its largest blob's key)
         counts = np.bincount(cls.ravel(), minlength=len(self.objects) + 1)
         for ci in np.flatnonzero(counts[1:] >= self.settings.color_min_area_px) + 1:
             c = self.objects[int(ci) - 1]
@@ -305,7 +306,8 @@ class ColorSegmenter(Segmenter):
                 x, y, bw, bh = (int(stats[k, j]) for j in range(4))
                 sv, su = np.nonzero(lab[y:y + bh, x:x + bw] == k)
                 idx = (sv + y + oy) * w + (su + x + ox)
-                checked = self._check_blob(frame, hsv, c, idx, len(out) + len(found))
+                checked = self._check_blob(frame, hsv, c, idx, serial)
+                serial += 1
                 if checked is not None:
                     found.append(checked)
             out.extend(self._merge(found, c))
