@@ -212,9 +212,9 @@ async def test_an_object_found_lying_is_grasped_and_placed_but_not_claimed_stand
     """Dev episode search/000 (and, with a tissue box, localization/002, /008, search/007): an object tipped by an
     earlier knock was grasped lying and set down lying, and place, comparing its height with the height it had
     when found, called it placed. Grasp now tells from its shape (a cup lying: 8 cm tall, 11 cm long) or, for a
-    box, its finger gap (tests/executor/test_routines.py), and place reports it fallen over. (A knocked tissue box runs the same way
-    here, except that in 1 of 6 runs place timed out lowering it onto the table: issue 25, not this test's
-    subject.)"""
+    box, its finger gap (tests/executor/test_routines.py), and place reports it fallen over. (A knocked tissue
+    box runs the same way here, except that in 1 of 6 runs place timed out lowering it onto the table: issue 25,
+    not this test's subject.)"""
     c, name = client, "red cup"
     # seed 8: it stands on the counter (1.4 x 0.6 m), 1.6 m from the table, and lies there knocked over
     await c.reset(seed=8, target_object=name, destination="table")
