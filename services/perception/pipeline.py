@@ -34,6 +34,11 @@ def _vec(a: np.ndarray | tuple[float, float, float]) -> Vec3:
     return Vec3(x=float(a[0]), y=float(a[1]), z=float(a[2]))
 
 
+def _catalog(seg: Segment) -> Vec3 | None:
+    """The segment's class's catalogued extent standing (x long, y short, z height), when the segmenter knows it."""
+    return _vec(seg.nominal) if seg.nominal is not None else None
+
+
 def camera_yaw(frame: Frame) -> float:
     """Heading of the camera's optical axis projected on the ground plane."""
     fwd = frame.world_from_camera[:3, 2]
@@ -81,8 +86,7 @@ class Perception:
         return ObjectEstimate(
             found=True, reason="ok", message=msg, pose=Pose(position=_vec(g.center), yaw=g.yaw),
             size=_vec(g.size), top_z=g.top_z, support_z=g.support_z, confidence=round(float(conf), 3),
-            n_points=g.n_points, catalog_size=_vec(seg.nominal) if seg.nominal is not None else None,
-            **base)
+            n_points=g.n_points, catalog_size=_catalog(seg), **base)
 
     # ---- placement
 
@@ -184,7 +188,7 @@ class Perception:
         bbox = geo.bbox_of(idx, frame.shape[1])
         cloud = geo.lift(frame, idx, max_points=1500)
         cat = seg.category if seg.category in ("object", "surface", "furniture") else "other"
-        catalog = _vec(seg.nominal) if seg.nominal is not None else None
+        catalog = _catalog(seg)
         if len(cloud.points) < 3:
             return Detection(label=seg.label, category=cat, bbox=bbox, confidence=0.0,  # type: ignore[arg-type]
                              catalog_size=catalog)

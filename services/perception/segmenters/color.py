@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import math
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -329,8 +329,7 @@ class ColorSegmenter(Segmenter):
             seg = g[0][0]
             if len(g) > 1:
                 idx = np.concatenate([s.indices for s, _ in g])
-                seg = Segment(seg.key, seg.label, seg.category, seg.color, seg.score, seg.volume, int(idx.size),
-                              seg.nominal, _indices=idx)
+                seg = replace(seg, n_pixels=int(idx.size), _indices=idx, _compute=None)
             out.append(seg)
         return out
 

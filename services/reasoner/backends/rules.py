@@ -454,13 +454,15 @@ class _TargetChoice:
         selector, group = self.plan.selector, self.plan.group or ""
         if not selector:
             return None
+        def in_group(name: str) -> bool:
+            return not group or _matches(name, group) or group in name
+
         # Sizes are compared while both are in view; once chosen, a turn that hides the other one (or the
         # choice itself) must not flip the decision to "the larger of the one I see".
         for s in self.rest:
-            if s.skill == S.OBJ_LOCALIZATION and s.argument and (not group or _matches(s.argument, group)
-                                                                 or group in s.argument):
+            if s.skill == S.OBJ_LOCALIZATION and s.argument and in_group(s.argument):
                 return s.argument, f"I already chose the {s.argument} as the {selector} {group or 'one'}."
-        cands = [v for v in self.visible if not group or _matches(v.label, group) or group in v.label]
+        cands = [v for v in self.visible if in_group(v.label)]
         sized = [v for v in cands if v.volume is not None]
         if len(sized) >= 2:
             # Their classes' catalogued sizes when perception knows them and they differ (a box measured at 2 m
@@ -476,21 +478,19 @@ class _TargetChoice:
         # Only one in view: a name that says its size ("large box") settles it, in view or seen earlier;
         # one whose name says the opposite is not taken for want of the other.
         want, avoid = SIZE_WORDS[selector], SIZE_WORDS["smaller" if selector == "larger" else "larger"]
-        names = [v.label for v in cands] + [n for n in self.ctx.positions
-                                            if not group or _matches(n, group) or group in n]
+        names = [v.label for v in cands] + [n for n in self.ctx.positions if in_group(n)]
         named = next((n for n in names if set(n.lower().split()) & want), None)
         if named:
             return named, f"The {named} is the {selector} {group or 'one'} by its name."
-        # The only one in view is taken after a full scan here has shown no other (dev clutter/044 took the
-        # first box it saw, one look into the scan, and the larger stood elsewhere).
-        scanned = sum(s.skill in (S.YAW_LEFT, S.YAW_RIGHT) for s in self.rest) >= SCAN_TURNS
-        if len(sized) == 1 and scanned and not set(sized[0].label.lower().split()) & avoid:
-            return sized[0].label, (f"The {sized[0].label} is the only {group or 'candidate'} I detect, after a "
-                                    "full scan.")
-        seen = [n for n in self.ctx.positions
-                if group and (_matches(n, group) or group in n) and not _excluded(n, self.plan)]
-        if not sized and scanned and len(seen) == 1 and not set(seen[0].lower().split()) & avoid:
-            return seen[0], f"The {seen[0]} is the only {group} a full scan showed me."
+        # The only one in view (or, none in view, the only one seen) is taken after a full scan here has shown
+        # no other (dev clutter/044 took the first box it saw, one look into the scan, and the larger stood
+        # elsewhere).
+        if sum(s.skill in (S.YAW_LEFT, S.YAW_RIGHT) for s in self.rest) >= SCAN_TURNS:
+            seen = [n for n in self.ctx.positions if group and in_group(n) and not _excluded(n, self.plan)]
+            lone, how = ((sized[0].label, "I detect, after a full scan") if len(sized) == 1
+                         else (seen[0], "a full scan showed me") if not sized and len(seen) == 1 else (None, ""))
+            if lone is not None and not set(lone.lower().split()) & avoid:
+                return lone, f"The {lone} is the only {group or 'candidate'} {how}."
         return None, f"I need both {group or 'candidate'}s in view to compare sizes."
 
     def by_category(self) -> tuple[str | None, str] | None:
