@@ -59,6 +59,9 @@ class ToyWorld:
     """Objects that fall over when next released: they lie on their side (x and z swap: the height becomes the
     length) and rock, each of the next `ROCK_LOOKS` localizations seeing them 3 cm to the other side. Once."""
     rocking: dict[str, int] = field(default_factory=dict)
+    looks: dict[str, list[tuple[float, float]]] = field(default_factory=dict)
+    """Per object, what its next localizations read off the truth, one (dx, dtop) per look, in metres: a view
+    that scatters (dx back and forth), one that runs off (dx growing: rolling), a top read low (dtop < 0)."""
 
     def add_object(self, name: str, x: float, y: float, support_z: float, size=(0.08, 0.08, 0.11),
                    catalog: tuple[float, float, float] | None = None) -> Thing:
@@ -236,9 +239,11 @@ class FakePerception:
                 dx = 0.03 * (1 if rock % 2 else -1) if rock else 0.0
                 if rock:
                     self.world.rocking[t.name] = rock - 1
+                queued = self.world.looks.get(t.name)
+                ox, otop = queued.pop(0) if queued else (0.0, 0.0)
                 return ObjectEstimate(query=req.query, found=True, label=t.name,
-                                      pose=Pose(position=Vec3(x=t.center[0] + dx, y=t.center[1], z=t.center[2])),
-                                      size=Vec3(x=t.size[0], y=t.size[1], z=t.size[2]), top_z=t.top,
+                                      pose=Pose(position=Vec3(x=t.center[0] + dx + ox, y=t.center[1], z=t.center[2])),
+                                      size=Vec3(x=t.size[0], y=t.size[1], z=t.size[2]), top_z=t.top + otop,
                                       support_z=t.center[2] - t.size[2] / 2, confidence=0.9, frame_stamp_ns=now_ns(),
                                       catalog_size=Vec3(x=t.catalog[0], y=t.catalog[1], z=t.catalog[2])
                                       if t.catalog else None)

@@ -91,25 +91,22 @@ async def test_a_miss_fails_and_its_code_agrees_with_what_happened_to_the_cup(cl
     assert (await c.judge(op="held")).held is None
     # What the skill reports must agree with what happened. Usually the pads close on air and the cup stands
     # where it was: missed, three attempts, a reason each. The open fingers, with the vehicle's hover wander,
-    # sometimes brush the cup; moved beyond a few centimetres the honest report is knocked_over. From the
-    # pre-grasp pose the miscalibrated camera may also lose the cup: not_detected.
-    # Known defect (issue 25): the knock check compares detections, and under this miscalibrated mount a
-    # re-detection from another heading lands ~3 cm off (the mount error turns with the vehicle), so the skill
-    # sometimes reports knocked_over for a cup that never moved (1 of 3 runs here). That report still stops the
-    # grasp and asks for a new localization; it is printed, not hidden.
+    # sometimes brush the cup: pushed along the shelf, still standing, the next attempt starts from where it
+    # stands (still missed); tipped over, the honest report is knocked_over. From the pre-grasp pose the
+    # miscalibrated camera may also lose the cup: not_detected. A knock is reported only when two looks see the
+    # cup lower or lying; one partial view that reads its top low is not enough.
     moved = math.dist(before, await cup_position(c))
+    standing = (await c.judge(op="on_surface", object="red cup", surface="shelf")).ok
     code = st.outcome.code
-    if moved > 0.05:
-        assert code == OutcomeCode.KNOCKED_OVER, (moved, code, st.message, facts)
+    if not standing:  # knocked over: said so, or the miscalibrated camera lost it
+        assert code in (OutcomeCode.KNOCKED_OVER, OutcomeCode.NOT_DETECTED), (moved, code, st.message, facts)
     else:
-        # not_detected: the miscalibrated camera lost the cup from the pre-grasp pose beside it (also honest)
         assert code in (OutcomeCode.MISSED, OutcomeCode.KNOCKED_OVER, OutcomeCode.NOT_DETECTED), (
             moved, code, st.message, facts)
     if code == OutcomeCode.MISSED:
         assert facts.attempts == 3 and len(facts.reasons) == 3, facts
         assert all("missed" in r for r in facts.reasons), facts.reasons
-        assert (await c.judge(op="on_surface", object="red cup", surface="shelf")).ok
-    false_knock = " (a false knock: the cup did not move)" if code == OutcomeCode.KNOCKED_OVER and moved < 0.015 else ""
+    false_knock = " (a false knock: the cup still stands)" if code == OutcomeCode.KNOCKED_OVER and standing else ""
     print(f"true displacement of the cup: {moved * 100:.1f} cm -> {code.value}{false_knock}")
     await c.ok("land")
 
