@@ -82,9 +82,9 @@ BENCHMARKS: dict[str, Bench] = {
     "eval_parallel": Bench((), ("--episodes-per-suite", "1"), long=True, timeout_s=3600),
     "detection_recall": Bench(("--seeds", "100-119"), ("--seeds", "100-101"), timeout_s=1800),
     # a full run is 70 grasp calls on the multirotor (about 45 s each at speed factor 3), on held-out layout seeds
-    # from 100 (the grasp was developed on seeds 0-29): long
-    "grasp": Bench(("--levels", "realistic,ideal,harsh", "--seed", "100", "--calls", "14", "--level-calls",
-                    "realistic=42"), ("--levels", "realistic", "--seed", "100", "--calls", "2"),
+    # from 200 (the grasp was developed on seeds 0-29; 100-141, the earlier held-out run, were read): long
+    "grasp": Bench(("--levels", "realistic,ideal,harsh", "--seed", "200", "--calls", "14", "--level-calls",
+                    "realistic=42"), ("--levels", "realistic", "--seed", "200", "--calls", "2"),
                    long=True, timeout_s=5400),
 }
 """Every benchmark in benchmarks/ (tests/docs checks that none is missing), in running order."""
@@ -387,26 +387,29 @@ GAPS: dict[str, tuple[str, str]] = {
         "detection pass (one segmentation shared by detections and the next localization).")
        for run in ("demo", "eval")},
     "grasp.realistic_per_call": (
-        "Of the 9 failed calls in the held-out run (seeds 100-141), 5 knocked the object over on the way in or "
-        "while the pads closed (the gripper's window, 1.8 x 3 cm, is near the hover's 2-5 cm sigma), 2 lost the "
-        "object at close range (not_detected) and 2 timed out holding the window beside furniture the vehicle "
+        "Held-out run (seeds 200-241, 39 calls within reach and in view): 26 of 32 calls on the cups, cans, bottle, "
+        "boxes and fruit succeeded, 1 of 7 on the dark, thin tools (wrench, screwdriver, hammer: 2 lost at close "
+        "range, 3 ended knocked_over, 2 of them a hammer whose top read 3-7 cm low with no knock by the judge, 1 timed "
+        "out beside furniture; the colour segmenter finds these tools poorly, issue 33). Of the other 6: 3 ended "
+        "knocked_over (a bottle truly tipped 48 deg; a tissue box twice read lower from two views, the judge saw no "
+        "knock), 2 slipped on the lift (an apple, the cardboard box), 1 was blocked beside a table the vehicle "
         "touched.",
-        "Slow the last centimetres in and close on a predicted, not a measured, alignment; a wider gripper window "
-        "(longer pads); re-measure on fresh held-out seeds (these were read)."),
+        "No tipped verdict for a flat object (it has no standing height to lose) and a third view before ending a "
+        "grasp as knocked; detection of the tools (issue 33); re-measure on fresh held-out seeds (200-241 were "
+        "read)."),
     "grasp.realistic_eligible": (
-        "7 of 42 calls never saw their object from 2 m: the wrench and the screwdriver in all 6 of their calls "
-        "(dark, thin tools the colour segmenter does not find, issue 33) and one cardboard box.",
-        "Detection of the dark tools (issue 33); more calls per run (the full run is ~25 min per 42 calls)."),
+        "3 of 42 calls never saw their object from 2 m: the screwdriver twice and one cardboard box.",
+        "More calls per run (the full run is ~25 min per 42 calls)."),
     "grasp.realistic_place": (
-        "Of 8 failed places in 25: 4 reported unstable (released onto another object or rolled, a cup fell 15 cm "
-        "after leaving the pads), 2 objects fell out in transit before place began (reported blocked: the "
-        "executor saw the empty gripper), 1 success the judge refused, 1 failure the judge found at rest.",
-        "Hold force and transit speed for heavy or round objects; choose the release spot away from other objects "
-        "on the surface; re-measure on fresh held-out seeds."),
+        "Of 4 failed places in 26 (held-out seeds 200-241): 3 objects fell from the pads in transit, 1.3-1.4 m "
+        "(a tissue box, an orange, an apple; reported blocked, nothing held, or unstable, not seen on the surface), "
+        "1 cracker box came to rest upside down after the vehicle touched the table (reported unstable). No place "
+        "was claimed that the judge refused, none reported failed that it found done.",
+        "Limit a held object's swing in transit (accelerations and speed by what is held) and hold force for round "
+        "and heavy objects; re-measure on fresh held-out seeds."),
     "grasp.realistic_place_false_claims": (
-        "One place of 25 reported succeeded (two agreeing detections at rest) where the judge found the object "
-        "not at rest on the named surface; the run's rows were lost with its JSON, so which one is not known.",
-        "Re-run with --keep on fresh seeds and read the judge's verdict beside the skill's evidence."),
+        "None of 26 places in the held-out run (seeds 200-241) was claimed against the judge.",
+        "Keep the judge's verdict beside the skill's evidence in every run (--keep)."),
     "sim.hover_sigma_min": (
         "The vertical axis is the smallest: the estimator's vertical bias (sigma 3.1 cm, tau 10 s) shows partly as "
         "a mean offset over a 60 s hover, not as spread.",

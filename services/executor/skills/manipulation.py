@@ -347,8 +347,11 @@ class _Manipulation(Skill):
 
 def _tipped(est: ObjectEstimate, before: Target) -> str | None:
     """Why a re-detected object no longer stands as it stood (its top lower, or lower and longer: on its side), or
-    None."""
+    None. Never for a flat one (an extent under THIN_M: a tool, a banana): it lies as it belongs and has no
+    standing height to lose (held-out seeds 209, 237: a 3.5 cm hammer read 3-7 cm lower, the judge saw no knock)."""
     assert est.pose is not None
+    if before.size is not None and min(before.size.x, before.size.y, before.size.z) < THIN_M:
+        return None
     top = est.top_z if est.top_z is not None else est.pose.position.z + (est.size.z / 2 if est.size else 0.05)
     if top < before.top - TIP_LOWER_M:
         return f"its top is {100 * (before.top - top):.0f} cm lower (tipped over)"
