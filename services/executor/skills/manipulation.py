@@ -204,6 +204,12 @@ def body_for(ctx: SkillContext, x: float, y: float, z: float, yaw: float) -> Vec
     return Vec3(x=x - (c * gx - s * gy), y=y - (s * gx + c * gy), z=z - gz)
 
 
+def behind(ctx: SkillContext, p: Vec3, backoff: float, z: float, yaw: float) -> Vec3:
+    """Body setpoint that puts the gripper point `backoff` behind `p` along heading `yaw`, at height `z`, facing
+    along `yaw` (the views and the pre-grasp pose beside an object)."""
+    return body_for(ctx, p.x - backoff * math.cos(yaw), p.y - backoff * math.sin(yaw), z, yaw)
+
+
 # --------------------------------------------------------------------------- manipulation routines
 
 
@@ -527,12 +533,11 @@ class Grasp(_Manipulation):
         Returns (the target to aim at, the newest detection as seen from here: the reference a look from the
         same pose is compared with)."""
         s = self.settings
-        ux, uy = math.cos(yaw), math.sin(yaw)
         seen = 0
         raw = target
         for _ in range(TRACK_ITERATIONS):
             p = target.position
-            sp = body_for(ctx, p.x - backoff * ux, p.y - backoff * uy, grip_z, yaw)
+            sp = behind(ctx, p, backoff, grip_z, yaw)
             await ctx.goto(sp, yaw, s.descent_speed, low=s.manipulation_min_altitude, what=what)
             est = await self.look(ctx, query)
             if est is None:
@@ -598,17 +603,15 @@ class Grasp(_Manipulation):
         grasp (knocked_over: the policy re-localizes it); otherwise, pushed or not, the next attempt starts from
         it (its top, size and yaw those of `shape`, the view from above)."""
         s = self.settings
-        ux, uy = math.cos(yaw), math.sin(yaw)
         p = before.position
         body_clear = clear_z - s.gripper_offset_z
         st = ctx.current()
         if st.position.z < body_clear - 0.01:  # straight up first: never drag the pads back through it
             await ctx.goto(Vec3(x=st.position.x, y=st.position.y, z=body_clear), yaw, s.descent_speed,
                            low=s.manipulation_min_altitude, what="climb after the miss")
-        up = body_for(ctx, p.x - backoff * ux, p.y - backoff * uy, max(clear_z, ctx.current().position.z
-                                                                         + s.gripper_offset_z), yaw)
+        up = behind(ctx, p, backoff, max(clear_z, ctx.current().position.z + s.gripper_offset_z), yaw)
         await ctx.goto(up, yaw, s.descent_speed, low=s.manipulation_min_altitude, what=f"back beside the {label}")
-        sp = body_for(ctx, p.x - backoff * ux, p.y - backoff * uy, grip_z, yaw)
+        sp = behind(ctx, p, backoff, grip_z, yaw)
         await ctx.goto(sp, yaw, s.descent_speed, low=s.manipulation_min_altitude, what=f"view of the {label}")
         est = await self.look(ctx, query)
         if est is None:
@@ -621,9 +624,7 @@ class Grasp(_Manipulation):
             # pre-grasp view, where its standing top and size were measured, agrees (dev seeds 1, 10, 17: a cup,
             # a box, a can read 4-6 cm low from here, twice in a row; the judge saw all three standing).
             assert est.pose is not None
-            q = est.pose.position
-            view = body_for(ctx, q.x - s.pregrasp_backoff * ux, q.y - s.pregrasp_backoff * uy,
-                            shape.top + s.pregrasp_height, yaw)
+            view = behind(ctx, est.pose.position, s.pregrasp_backoff, shape.top + s.pregrasp_height, yaw)
             await ctx.goto(view, yaw, s.descent_speed, low=s.manipulation_min_altitude,
                            what=f"pre-grasp view of the {label}")
             again = await self.look(ctx, query)
@@ -652,17 +653,15 @@ class Grasp(_Manipulation):
         if st.gripper != GripperState.OPEN:
             await ctx.gripper("open")
         yaw = grasp_yaw(target.size, target.yaw, st.yaw)
-        ux, uy = math.cos(yaw), math.sin(yaw)
         pre_z = target.top + s.pregrasp_height
         p = target.position
-        pre = body_for(ctx, p.x - s.pregrasp_backoff * ux, p.y - s.pregrasp_backoff * uy, pre_z, yaw)
+        pre = behind(ctx, p, s.pregrasp_backoff, pre_z, yaw)
         await self.travel(ctx, pre, yaw, f"pre-grasp pose beside the {label}", low=s.manipulation_min_altitude)
 
         # From above and behind, the whole object in view: where it stands, how it is turned, its size and top.
         shape, _ = await self.track(ctx, query, label, target, yaw, pre_z, s.pregrasp_backoff,
                                     f"pre-grasp pose beside the {label}")
         yaw = grasp_yaw(shape.size, shape.yaw, yaw)
-        ux, uy = math.cos(yaw), math.sin(yaw)
         rec.size = size = shape.size
         height = size.z if size is not None else 0.1
         depth = grip_depth(height, s.grasp_depth_fraction)
@@ -745,8 +744,7 @@ class Grasp(_Manipulation):
 
         # Look back at the spot from beside it: the object must have left it (with the gripper). A target still
         # seen there means the fingers hold something else, or (without sensing) nothing.
-        back = body_for(ctx, p.x - s.pregrasp_backoff * ux, p.y - s.pregrasp_backoff * uy,
-                        max(lift.z + s.gripper_offset_z, pre_z), yaw)
+        back = behind(ctx, p, s.pregrasp_backoff, max(lift.z + s.gripper_offset_z, pre_z), yaw)
         await ctx.goto(back, yaw, s.descent_speed, what=f"view of the {label}'s spot")
         await self.spot_left(ctx, label, query, target, sensed)
         mem.forget_object(label)
