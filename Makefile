@@ -27,7 +27,7 @@ lint: setup
 test:
 	@bash scripts/setup.sh --browser
 	$(MAKE) --no-print-directory lint-only
-	$(VENV)/bin/pytest
+	$(VENV)/bin/pytest -n 2 --dist loadgroup
 
 # Every benchmark, then docs/performance.md from that one run (~15 min on 2 cores; BENCH_ARGS=--quick for a
 # pipeline check in ~3 min, written to runs/bench/performance.md instead).

@@ -33,6 +33,44 @@ def pytest_pycollect_makeitem(collector: pytest.Collector, name: str, obj: objec
         pytest.mark.anyio(obj)
 
 
+# The tests that run the whole stack with the simulator: each takes most of two cores for minutes and keeps the
+# stack's deadlines (a vehicle state older than half a second is stale), so two at once would make each other fail.
+STACK = (
+    "tests/evaluation/test_integration.py", "tests/evaluation/test_fork.py",
+    "tests/evaluation/test_baselines_integration.py", "tests/evaluation/test_output_modes_integration.py",
+    "tests/faults/test_faults.py", "tests/reasoner/test_demo.py", "tests/reasoner/test_rules_stack.py",
+    "tests/executor/test_grasp_closed_loop.py", "tests/executor/test_integration.py", "tests/gateway/test_fullstack.py",
+    "tests/shared/test_secure_stack.py", "tests/perception/test_sweep.py",
+)
+
+
+def _in_stack(nodeid: str) -> bool:
+    return nodeid.split("::", 1)[0] in STACK
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """The STACK files' tests carry the `stack` mark (`-m "not stack"` leaves them out)."""
+    for item in items:
+        if _in_stack(item.nodeid):
+            item.add_marker(pytest.mark.stack)
+
+
+def pytest_xdist_make_scheduler(config: pytest.Config, log: object) -> object:
+    """`make test` runs two pytest-xdist workers with `--dist loadgroup`: the STACK tests are one group, run on one
+    worker one at a time, first (the largest group goes first); every other test, mostly waiting on sockets and
+    timers, is its own unit for the other worker. The group is chosen here from the test's file because xdist's
+    own `xdist_group` mark no longer reaches its scheduler under pytest 9.2 (pytest-xdist issue 1386)."""
+    if config.getoption("dist") != "loadgroup":
+        return None
+    from xdist.scheduler import LoadScopeScheduling
+
+    class StackOnOneWorker(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return "stack" if _in_stack(nodeid) else nodeid
+
+    return StackOnOneWorker(config, log)
+
+
 @pytest.fixture
 def router() -> object:
     """One Zenoh router on a free loopback port (multicast scouting off); yields its endpoint."""

@@ -42,25 +42,6 @@ def _check_episode(rec) -> None:
         assert rec.task.destination or rec.held in rec.task.accepted
 
 
-def test_smoke_two_suites_one_episode_each(tmp_path):
-    # clutter first: its episode ends with the object held, so the next one starts from a used vehicle
-    cfg = RunConfig(out=tmp_path, suites=["clutter", "localization"], episodes=1, **FAST)
-    summary = run(cfg)
-    assert (summary.planned, summary.ran, summary.skipped) == (2, 2, 0)
-    recs = ResultsFile(tmp_path / RESULTS_FILE).load()
-    assert sorted(r.suite for r in recs) == ["clutter", "localization"]
-    for rec in recs:
-        _check_episode(rec)
-    md = (tmp_path / "report.md").read_text()
-    assert "| Localization | rules (non-VLM baseline) | 1 |" in md
-    assert "| Pick from Clutter | rules (non-VLM baseline) | 1 |" in md
-    assert "not a VLM" in md and "AERMANI-VLM (rules)" not in md
-    assert f"`{cfg.command_line()}`" in md and "| split | `dev` |" in md
-    doc = json.loads((tmp_path / "report.json").read_text())
-    assert len(doc["episodes"]) == 2 and doc["episodes"][0]["steps"]
-    assert (tmp_path / "plots" / "steps_per_episode.png").exists()
-
-
 def test_each_episode_is_scored_for_what_it_asks_on_the_real_stack(tmp_path):
     """A sequential line with its motions and a size comparison (issue 26): the runner reads the simulator's world
     and clock before and after the task, checks the motions from the recorded trajectory and records the
@@ -96,11 +77,14 @@ def test_each_episode_is_scored_for_what_it_asks_on_the_real_stack(tmp_path):
     print(up.motions_detail, box.choice, sep="\n")
 
 
-def test_parallel_vehicles_have_no_cross_talk(tmp_path):
+def test_two_suites_on_parallel_vehicles_with_no_cross_talk(tmp_path):
+    """Two suites, one episode each, on two vehicles at once; the report names the run. (One vehicle running
+    episodes one after another, from a used vehicle, is the scored test above.)"""
     cfg = RunConfig(out=tmp_path, suites=["localization", "clutter"], episodes=1, parallel=2, **FAST)
     summary = run(cfg)
-    assert summary.ran == 2
+    assert (summary.planned, summary.ran, summary.skipped) == (2, 2, 0)
     recs = ResultsFile(tmp_path / RESULTS_FILE).load()
+    assert sorted(r.suite for r in recs) == ["clutter", "localization"]
     assert {r.vehicle_id for r in recs} == {"ev1", "ev2"}
     assert len({r.task_id for r in recs}) == 2
     for rec in recs:
@@ -109,6 +93,14 @@ def test_parallel_vehicles_have_no_cross_talk(tmp_path):
         assert rec.status.vehicle_id == rec.vehicle_id
         for s in rec.steps:
             assert (s.vehicle_id, s.task_id) == (rec.vehicle_id, rec.task_id)
+    md = (tmp_path / "report.md").read_text()
+    assert "| Localization | rules (non-VLM baseline) | 1 |" in md
+    assert "| Pick from Clutter | rules (non-VLM baseline) | 1 |" in md
+    assert "not a VLM" in md and "AERMANI-VLM (rules)" not in md
+    assert f"`{cfg.command_line()}`" in md and "| split | `dev` |" in md
+    doc = json.loads((tmp_path / "report.json").read_text())
+    assert len(doc["episodes"]) == 2 and doc["episodes"][0]["steps"]
+    assert (tmp_path / "plots" / "steps_per_episode.png").exists()
 
 
 def test_interrupted_run_resumes_without_rerunning_finished_episodes(tmp_path):
