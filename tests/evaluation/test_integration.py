@@ -52,8 +52,9 @@ def test_each_episode_is_scored_for_what_it_asks_on_the_real_stack(tmp_path):
     go_up = next(t for t in suites["sequential"] if t.command.startswith("Go up a bit, then forward once"))
     larger = next(t for t in suites["clutter"] if t.command == "Of the two boxes, pick up the larger one.")
     tasks = tmp_path / "tasks.jsonl"
+    # the pick first: done, it ends with a box in the fingers, and the next episode starts from that used vehicle
     tasks.write_text("".join(t.model_copy(update={"seed": 7}).model_dump_json(exclude_defaults=False) + "\n"
-                             for t in (go_up, larger)))
+                             for t in (larger, go_up)))
     summary = run(RunConfig(out=tmp_path / "eval", tasks_file=tasks, **FAST))
     assert summary.ran == 2
     recs = {r.task.command: r for r in ResultsFile(tmp_path / "eval" / RESULTS_FILE).load()}
@@ -79,7 +80,7 @@ def test_each_episode_is_scored_for_what_it_asks_on_the_real_stack(tmp_path):
 
 def test_two_suites_on_parallel_vehicles_with_no_cross_talk(tmp_path):
     """Two suites, one episode each, on two vehicles at once; the report names the run. (One vehicle running
-    episodes one after another, from a used vehicle, is the scored test above.)"""
+    episodes one after another, the second from the vehicle the first pick left, is the scored test.)"""
     cfg = RunConfig(out=tmp_path, suites=["localization", "clutter"], episodes=1, parallel=2, **FAST)
     summary = run(cfg)
     assert (summary.planned, summary.ran, summary.skipped) == (2, 2, 0)
