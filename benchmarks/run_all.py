@@ -72,6 +72,7 @@ BENCHMARKS: dict[str, Bench] = {
     "localization_reach": Bench(("--seeds", "2"), ("--seeds", "1"), timeout_s=600),
     "depth_error": Bench(("--seeds", "100-111", "--no-in-view"),
                          ("--seeds", "100", "--levels", "realistic", "--no-in-view"), timeout_s=1200),
+    "close_timing": Bench(("--seeds", "0-59", "--leads", "0,0.4"), ("--seeds", "0-1", "--trials", "3"), timeout_s=900),
     "executor": Bench(("--trials", "10"), ("--trials", "2"), timeout_s=600),
     "step_breakdown": Bench(("--episodes", "1"), ("--no-eval",), timeout_s=1800),
     "speculation": Bench(("--runs", "2"), ("--runs", "1"), timeout_s=2400),
@@ -111,7 +112,9 @@ PRODUCED_BY = (
     "evaluation's default speed factor (benchmarks/step_breakdown.py); the speculation rows run the README's demo "
     "command in the ideal world with the colour segmenter, the model being the local stand-in server answering "
     "the rules baseline's answers after 1 s, so they measure the loop, not a model (benchmarks/speculation.py); "
-    "the bus, camera, recorder and abort rows involve no policy. No figure here is about a VLM.")
+    "the bus, camera, recorder and abort rows involve no policy, and the close-timing rows no perception (the "
+    "realistic multirotor in-process, the object taken as exactly where the estimate put it: "
+    "benchmarks/close_timing.py). No figure here is about a VLM.")
 """The simulator's camera rate (`AERMANI_SIM_FPS`, default 15 fps), used when the run does not report it."""
 
 Results = dict[str, dict[str, Any]]
@@ -363,6 +366,12 @@ FIGURES: list[Figure] = [
            const(30.0)),
     Figure("depth_error.reach", "grasp reach the first re-look supports (realistic camera, measured to 3 m)", "m",
            fig("depth_error", "realistic", "reach_m"), "executor reach", const(2.0)),
+    Figure("close.edge", "grasp close on the realistic hover: object beyond the pad's half-width when the pads reach "
+           "it, closing with the 0.4 s lead (close_lead_s; in-process, 900 closes, noise seeds 0-59)", "%",
+           pct("close_timing", "0.4", "beyond_pad_edge_share"), "the same closes without the lead",
+           pct("close_timing", "0", "beyond_pad_edge_share")),
+    Figure("close.wait", "grasp close: median wait in the window before the close, with the 0.4 s lead", "s",
+           fig("close_timing", "0.4", "wait_median_s"), "without the lead", fig("close_timing", "0", "wait_median_s")),
     Figure("soak.unsafe", "soak: unsafe endings", "tasks", fig("soak", "unsafe"), target=("==", 0.0), source="#18"),
     Figure("soak.memory", "soak: largest memory growth of one service", "MB", fig("soak", "memory_growth_max_mb"),
            target=("<", 50.0), source="#18"),

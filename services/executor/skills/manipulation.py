@@ -304,15 +304,17 @@ class _Manipulation(Skill):
         return self.settings.grasp_timeout_s
 
     async def align(self, ctx: SkillContext, x: float, y: float, z: float, yaw: float, window: tuple[float, float],
-                    what: str, speed: float | None = None) -> tuple[bool, float, Vec3]:
+                    what: str, speed: float | None = None, lead: float = 0.0) -> tuple[bool, float, Vec3]:
         """Hold the gripper point over (x, y) at height `z` until it stays inside `window` (along the pad
         width = body x, along the closing axis = body y) for `align_samples` consecutive state samples; when
         it settles off target (wind, a trim error, a wandering hover), move the setpoint by the mean measured
         offset and wait again. The first wait also covers the way there, from wherever the vehicle is, at
-        `speed` (default final_descent_speed). Returns (aligned, the last offset, the setpoint that aligned it)."""
+        `speed` (default final_descent_speed). With `lead` (seconds), the point where the present velocity carries
+        the gripper in that time must be inside the window as well: the fingers reach the object a while after the
+        close is commanded, and the hover keeps wandering meanwhile. Returns (aligned, the last offset, the setpoint
+        that aligned it)."""
         s = self.settings
         sp = body_for(ctx, x, y, z, yaw)
-        ux, uy = math.cos(yaw), math.sin(yaw)
         offset = math.inf
         recent: deque[tuple[float, float]] = deque(maxlen=25)
         speed = min(speed or s.final_descent_speed, s.max_speed)
@@ -326,12 +328,11 @@ class _Manipulation(Skill):
                 nonlocal run, offset
                 gx, gy = gripper_xy(ctx, st)
                 ex, ey = x - gx, y - gy
-                along, across = ex * ux + ey * uy, -ex * uy + ey * ux
                 offset = math.hypot(ex, ey)
                 slow = math.hypot(st.velocity.x, st.velocity.y) <= s.settle_speed
                 level = abs(st.position.z + s.gripper_offset_z - z) <= VERTICAL_WINDOW_M
                 recent.append((ex, ey))
-                ok = abs(along) <= window[0] and abs(across) <= window[1] and slow and level
+                ok = slow and level and in_window(ex, ey, st.velocity.x, st.velocity.y, yaw, window, lead)
                 run = run + 1 if ok else 0
                 return run >= s.align_samples
 
@@ -349,6 +350,16 @@ class _Manipulation(Skill):
                 break
             sp = nxt
         return False, offset, sp
+
+
+def in_window(ex: float, ey: float, vx: float, vy: float, yaw: float, window: tuple[float, float],
+              lead: float = 0.0) -> bool:
+    """Whether the offset (ex, ey) from the gripper point to the target, world frame, is inside `window` (along the
+    pad width = body x at `yaw`, along the closing axis = body y), and so is the offset the velocity (vx, vy) leaves
+    after `lead` seconds."""
+    ux, uy = math.cos(yaw), math.sin(yaw)
+    return all(abs(dx * ux + dy * uy) <= window[0] and abs(-dx * uy + dy * ux) <= window[1]
+               for dx, dy in ((ex, ey), (ex - lead * vx, ey - lead * vy)))
 
 
 def _tipped(est: ObjectEstimate, before: Target) -> str | None:
@@ -699,7 +710,8 @@ class Grasp(_Manipulation):
                 raise AttemptFailed(OutcomeCode.MISALIGNED, f"the gripper stayed {100 * off:.1f} cm from the "
                                     f"{label} above it, outside the window", target=new)
         ok, off, sp = await self.align(ctx, p.x, p.y, grip_z, yaw, window, f"aligned at the {label}",
-                                       speed=s.descent_speed if sideways else s.final_descent_speed)
+                                       speed=s.descent_speed if sideways else s.final_descent_speed,
+                                       lead=s.close_lead_s)
         rec.offset = off
         if not ok:
             new = await self.relook(ctx, query, label, seen, shape, yaw, view_z, near, clear_z)
