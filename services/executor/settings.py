@@ -189,6 +189,14 @@ class ExecutorSettings(ServiceSettings):
     chord_tolerance: float = 0.008
     """A round object held this much narrower than it measures is gripped off-centre, on a chord (the pads
     reach past its middle along their width) and slips when lifted: the gripper reopens and retries, metres."""
+    catalog_chord_tolerance: float = 0.002
+    """A round object (in perception's catalogue: a cup, a can, a bottle, a fruit) held this much narrower than its
+    catalogued diameter is held on the pads' edge, off their centre along their width by more than half of it, and
+    the gripper reopens and retries (the check above, against the width perception measured, misses what is within
+    perception's error of a centimetre). Dev grasp run at c42cc26 (realistic, seeds 0-23): the three objects that
+    fell from the pads in transit were held 0.3-1.8 cm narrower (a coke can and a soda can at 6.3 cm, a purple cup
+    at 6.2), every hold that survived within 0.1 cm of the catalogue (cups 7.9-8.0, cans 6.7, bottle 7.0-7.1) but
+    one orange at 6.9; the simulator's gap reading is exact, a real servo's a millimetre or two. Metres."""
     hold_width_tolerance: float = 0.035
     """A closed gripper whose finger gap differs from the object's measured width by more than this holds
     something else, metres."""

@@ -516,18 +516,26 @@ class Grasp(_Manipulation):
                     "it again and retry")
         return f"grasp missed {n}: {fail.reason}; gripper reopened, localize it again and retry"
 
-    def hold_problem(self, label: str, width: float, size: Vec3 | None) -> tuple[OutcomeCode, str] | None:
-        """What is wrong with a hold at finger gap `width` on an object measuring `size`, or None."""
-        if size is None:
-            return None
-        s, expected = self.settings, min(size.x, size.y)
-        if abs(width - expected) > s.hold_width_tolerance:
-            return OutcomeCode.MISSED, (f"the fingers hold something {100 * width:.1f} cm wide, the {label} "
-                                        f"measures {100 * expected:.1f} cm")
-        if round_footprint(size) and width < expected - s.chord_tolerance:
-            # Pads past the middle of a round object (along their width) pinch a chord: it slips on the lift.
-            return OutcomeCode.MISALIGNED, (f"the fingers pinched the {label} off-centre ({100 * width:.1f} cm of "
-                                            f"its {100 * expected:.1f} cm): reopened")
+    def hold_problem(self, label: str, width: float, size: Vec3 | None,
+                     catalog: Vec3 | None = None) -> tuple[OutcomeCode, str] | None:
+        """What is wrong with a hold at finger gap `width` on an object measuring `size` (and catalogued `catalog`,
+        standing: x long, y short, z tall), or None."""
+        s = self.settings
+        if size is not None:
+            expected = min(size.x, size.y)
+            if abs(width - expected) > s.hold_width_tolerance:
+                return OutcomeCode.MISSED, (f"the fingers hold something {100 * width:.1f} cm wide, the {label} "
+                                            f"measures {100 * expected:.1f} cm")
+            if round_footprint(size) and width < expected - s.chord_tolerance:
+                # Pads past the middle of a round object (along their width) pinch a chord: it slips on the lift.
+                return OutcomeCode.MISALIGNED, (f"the fingers pinched the {label} off-centre ({100 * width:.1f} cm "
+                                                f"of its {100 * expected:.1f} cm): reopened")
+        if catalog is not None and round_footprint(catalog) and min(catalog.x, catalog.y, catalog.z) >= THIN_M and \
+                width < catalog.y - s.catalog_chord_tolerance:
+            # Narrower than its known diameter, standing or lying (lying, the gap is its diameter or more): the
+            # pads' edge holds it on a chord, and it falls out in transit.
+            return OutcomeCode.MISALIGNED, (f"the fingers hold the {label} on the pads' edge ({100 * width:.1f} cm "
+                                            f"of its catalogued {100 * catalog.y:.1f} cm): reopened")
         return None
 
     async def look(self, ctx: SkillContext, query: str) -> ObjectEstimate | None:
@@ -736,7 +744,7 @@ class Grasp(_Manipulation):
                 new = await self.relook(ctx, query, label, seen, shape, yaw, view_z, near, clear_z)
                 raise AttemptFailed(OutcomeCode.MISSED, f"the fingers closed to {100 * width:.1f} cm without "
                                     f"holding the {label}", target=new)
-            wrong = self.hold_problem(label, width, size)
+            wrong = self.hold_problem(label, width, size, rec.catalog)
             if wrong is not None:
                 await ctx.gripper("open")
                 new = await self.relook(ctx, query, label, seen, shape, yaw, view_z, near, clear_z)
