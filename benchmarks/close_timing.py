@@ -11,11 +11,13 @@ point carried that long at its present velocity must be inside the window too).
 
 In-process, no rendering: the MuJoCo multirotor of the `realistic` level (a fresh noise seed per layout seed:
 estimate bias and noise, air, thrust noise), holding a position setpoint in its own estimate frame as the
-autopilot does; the object is taken to be exactly where the estimate frame put it when the close was commanded
-(a perfect last detection), so the figure is the close's own share of the error: the vehicle's motion during the
-close plus the offset the trigger accepted. Offsets of the body origin (the gripper hangs rigidly under it; its
-tilt adds ~0.4 cm, not modelled here). The same seeds and trials for every lead (paired). The vehicle's state is
-sampled at the bridge's default state rate.
+autopilot does; the object is taken to be exactly where the estimate frame put it `--blind` seconds before the
+wait for the window begins (a perfect last detection, then the blind leg to it), so the figure is the share of the
+error that the close's timing governs: the estimate's drift since the detection (a longer wait drifts further),
+the offset the trigger accepted and the vehicle's motion during the close. The hover stands in for the blind leg
+(the leg itself flies at 0.25 m/s and is not modelled). Offsets of the body origin (the gripper hangs rigidly
+under it; its tilt adds ~0.4 cm, not modelled here). The same seeds and trials for every lead (paired). The
+vehicle's state is sampled at the bridge's default state rate.
 """
 
 from __future__ import annotations
@@ -45,7 +47,7 @@ def seeds_arg(text: str) -> list[int]:
     return list(range(int(lo), int(hi or lo) + 1))
 
 
-def trials_for(seed: int, lead: float, trials: int, width: float) -> list[tuple[float, float, bool]]:
+def trials_for(seed: int, lead: float, trials: int, width: float, blind: float) -> list[tuple[float, float, bool]]:
     """(offset along the pad width when the pads reach the object, wait before the close, aligned) per trial."""
     ex_s, rate = ExecutorSettings(), BridgeSettings().state_rate_hz
     window = (ex_s.grasp_window_x, ex_s.grasp_window_y)
@@ -60,6 +62,8 @@ def trials_for(seed: int, lead: float, trials: int, width: float) -> list[tuple[
     contact_s = (FINGER_MAX_OPENING - width) / CLOSING_SPEED
     out = []
     for _ in range(trials):
+        bias0 = v.position_enu() - v.true_position_enu()  # the last detection: the object at sp in this frame
+        clock.fly(sp, yaw, blind)
         run = waited = 0
         limit = int(ex_s.align_timeout_s * rate)
         while run < ex_s.align_samples and waited < limit:
@@ -69,10 +73,8 @@ def trials_for(seed: int, lead: float, trials: int, width: float) -> list[tuple[
             vel = np.array([v.v[1], v.v[0]])  # NED -> ENU, horizontal
             slow = math.hypot(*vel) <= ex_s.settle_speed
             run = run + 1 if slow and in_window(e[0], e[1], vel[0], vel[1], yaw, window, lead) else 0
-        true0, est0 = v.true_position_enu().copy(), v.position_enu().copy()
         clock.fly(sp, yaw, contact_s)
-        # The object stands where the estimate frame put it at the close: true = sp - (est0 - true0).
-        off = (v.true_position_enu() - true0) + (est0 - sp)
+        off = v.true_position_enu() - (sp - bias0)  # the object's true position: sp in the detection's frame
         out.append((float(off[0]), waited / rate, run >= ex_s.align_samples))
         clock.fly(sp, yaw, 1.0)  # the next trial from an unrelated moment of the hover
     return out
@@ -84,17 +86,20 @@ def main() -> None:
     ap.add_argument("--trials", type=int, default=15, help="closes per seed")
     ap.add_argument("--leads", default="0,0.4", help="comma-separated leads (s); the first is the baseline")
     ap.add_argument("--width", type=float, default=0.08, help="object width across the pads (m)")
+    ap.add_argument("--blind", type=float, default=1.6,
+                    help="seconds from the last detection to the start of the wait (dev grasp runs: 1.4-3.7 s)")
     add_json_option(ap)
     a = ap.parse_args()
     leads = [float(t) for t in a.leads.split(",")]
     edge = FINGER_PAD[0]
     figures: dict[str, dict[str, float]] = {}
     print(f"pads reach a {100 * a.width:.0f} cm object {(FINGER_MAX_OPENING - a.width) / CLOSING_SPEED:.2f} s after "
-          f"the close; pad half-width {100 * edge:.1f} cm; {len(a.seeds)} seeds x {a.trials} closes per lead")
+          f"the close; pad half-width {100 * edge:.1f} cm; last detection {a.blind:.1f} s before the wait; "
+          f"{len(a.seeds)} seeds x {a.trials} closes per lead")
     for lead in leads:
         rows: list[tuple[float, float, bool]] = []
         for i, seed in enumerate(a.seeds):
-            rows += trials_for(seed, lead, a.trials, a.width)
+            rows += trials_for(seed, lead, a.trials, a.width, a.blind)
             print(f"  lead {lead:.2f} s: seed {seed} ({i + 1}/{len(a.seeds)})", file=sys.stderr, flush=True)
         off = np.abs([r[0] for r in rows])
         figures[f"{lead:g}"] = {

@@ -42,6 +42,7 @@ class Thing:
     size: tuple[float, float, float]
     attached: bool = False
     catalog: tuple[float, float, float] | None = None  # what perception's catalogue says of it standing
+    hang: float | None = None  # held: its centre this far below the gripper point (where the fingers took it)
 
     @property
     def top(self) -> float:
@@ -58,6 +59,9 @@ class ToyWorld:
     topple: set[str] = field(default_factory=set)
     """Objects that fall over when next released: they lie on their side (x and z swap: the height becomes the
     length) and rock, each of the next `ROCK_LOOKS` localizations seeing them 3 cm to the other side. Once."""
+    slip_below: dict[str, float] = field(default_factory=dict)
+    """Objects that slip out of the fingers when the gripper point, carrying them, comes below this height: they
+    fall onto what is under them there (lying, when also in `topple`). Once."""
     rocking: dict[str, int] = field(default_factory=dict)
     looks: dict[str, list[tuple[float, float]]] = field(default_factory=dict)
     """Per object, what its next localizations read off the truth, one (dx, dtop) per look, in metres: a view
@@ -79,28 +83,36 @@ class ToyWorld:
             if (not t.attached and math.hypot(g[0] - t.center[0], g[1] - t.center[1]) <= 0.07
                     and t.center[2] <= g[2] <= t.top + 0.05):
                 t.attached = True
+                t.hang = min(float(g[2] - t.center[2]), t.size[2] / 2)
                 return t
         return None
 
     def carry(self, g: np.ndarray) -> None:
-        for t in self.objects.values():
+        for t in list(self.objects.values()):
             if t.attached:
-                t.center = np.array([g[0], g[1], g[2] - t.size[2] / 2])
+                t.center = np.array([g[0], g[1], g[2] - (t.size[2] / 2 if t.hang is None else t.hang)])
+                if t.name in self.slip_below and g[2] < self.slip_below[t.name]:
+                    del self.slip_below[t.name]
+                    self._drop(t)
 
     def release(self) -> None:
         for t in self.objects.values():
             if t.attached:
-                t.attached = False
-                support = 0.0
-                for s in self.surfaces.values():
-                    if (abs(t.center[0] - s.center[0]) <= s.size[0] / 2 and abs(t.center[1] - s.center[1])
-                            <= s.size[1] / 2 and s.top <= t.center[2] - t.size[2] / 2 + 0.02):
-                        support = max(support, s.top)
-                if t.name in self.topple:
-                    self.topple.discard(t.name)
-                    t.size = (t.size[2], t.size[1], t.size[0])
-                    self.rocking[t.name] = ROCK_LOOKS
-                t.center = np.array([t.center[0], t.center[1], support + t.size[2] / 2])
+                self._drop(t)
+
+    def _drop(self, t: Thing) -> None:
+        """Out of the fingers: it comes to rest on what is under it (lying, when it is to topple)."""
+        t.attached = False
+        support = 0.0
+        for s in self.surfaces.values():
+            if (abs(t.center[0] - s.center[0]) <= s.size[0] / 2 and abs(t.center[1] - s.center[1])
+                    <= s.size[1] / 2 and s.top <= t.center[2] - t.size[2] / 2 + 0.02):
+                support = max(support, s.top)
+        if t.name in self.topple:
+            self.topple.discard(t.name)
+            t.size = (t.size[2], t.size[1], t.size[0])
+            self.rocking[t.name] = ROCK_LOOKS
+        t.center = np.array([t.center[0], t.center[1], support + t.size[2] / 2])
 
 
 class FakeAutopilot:

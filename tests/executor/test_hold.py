@@ -8,6 +8,7 @@ import pytest
 
 from services.executor.registry import build_library
 from services.executor.settings import ExecutorSettings
+from services.executor.skills.manipulation import lying_by_catalog
 from shared.messages import OutcomeCode, Vec3
 
 CAN = Vec3(x=0.066, y=0.066, z=0.12)  # perception's catalogue, standing: x long, y short, z tall
@@ -40,3 +41,20 @@ def test_hold_problem(grasp, width: float, measured: Vec3 | None, catalog: Vec3 
     assert (problem[0] if problem else None) == code, problem
     if code == OutcomeCode.MISALIGNED:
         assert "reopened" in problem[1]
+
+
+@pytest.mark.parametrize(("height", "catalog", "lying"), [
+    (0.21, Vec3(x=0.16, y=0.07, z=0.21), False),  # a cracker box standing
+    (0.19, Vec3(x=0.16, y=0.07, z=0.21), False),  # ... read 2 cm short
+    (0.16, Vec3(x=0.16, y=0.07, z=0.21), True),  # on its 7 x 21 cm side (dev seed 23)
+    (0.07, Vec3(x=0.16, y=0.07, z=0.21), True),  # flat on its wide side
+    (0.12, CAN, False),
+    (0.066, CAN, True),
+    (0.08, CUP, False),  # 11 cm standing, 8 lying: too close to tell by height (the held-height rule decides)
+    (0.24, Vec3(x=0.24, y=0.12, z=0.10), True),  # a tissue box on its end
+    (0.12, Vec3(x=0.24, y=0.12, z=0.10), False),  # on its side it is 12 cm tall, 2 cm from standing: not told
+    (0.035, HAMMER, False),  # thin: lies as it belongs
+    (0.10, None, False),
+])
+def test_lying_by_catalog(height: float, catalog: Vec3 | None, lying: bool) -> None:
+    assert lying_by_catalog(height, catalog) is lying

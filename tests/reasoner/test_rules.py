@@ -599,3 +599,17 @@ def test_the_search_covers_every_viewpoint_within_the_not_found_bound() -> None:
         assert skills[-SCAN_TURNS:] == ["yaw_left"] * SCAN_TURNS, skills  # it ended scanning the last viewpoint
         assert skills.count("obj_localization") == VIEWPOINTS + 1, skills  # a look after every earlier scan
         assert len(room.steps) <= SEARCH_STEPS and len(room.steps) + 1 <= NOT_FOUND_MAX_STEPS, len(room.steps)
+
+
+def test_a_place_the_object_slipped_out_of_before_the_release_is_not_done_and_picks_it_up_again() -> None:
+    # Dev grasp run seed 4: the tissue box left the pads on place's way down and lay upside down on the sink.
+    # Place reports `slipped` (the gripper holds nothing, and the object is in memory where it came to rest):
+    # never done on where it fell, never another place of nothing; pick it up again.
+    slipped = PastStep("place", None, "failed", "", OutcomeCode.SLIPPED, SkillFacts(target="table"))
+    policy = RulesPolicy()
+    skill, arg, _ = policy.decide(_ctx(PLACE_CMD, [*_PICKED, slipped], pose=(2.0, -0.8, 1.57),
+                                       known_objects=["red cup"]))
+    assert (skill, arg) == ("obj_localization", "red cup")  # where it rests now, then the grasp
+    # Before this, the policy took the last successful grasp for a hold and flew on to place nothing.
+    skill, _, _ = policy.decide(_ctx(PLACE_CMD, [*_PICKED, slipped], pose=(2.0, -0.8, 1.57)))
+    assert skill not in ("done", "place", "placement_localization"), skill

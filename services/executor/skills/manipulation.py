@@ -43,6 +43,7 @@ TOP_SHIFT_M = 0.04  # the last view's top moves the gripper's height by at most 
 ROUND_TOLERANCE_M = 0.015  # footprint sides closer than this: a round object, any yaw grasps it
 LIFT_M = 0.15  # the first lift after closing: enough to clear the surface, low enough to fall back softly
 TRACK_ITERATIONS = 4  # close-range re-localizations per tracked pose before going on with the newest one
+SLIP_CHECK_S = 0.3  # no finger contact for this long before the release: the object already left the pads
 VERTICAL_WINDOW_M = 0.015  # the pads are 6 cm tall: close within this of the planned gripper height
 MAX_CORRECTION_M = 0.15  # an alignment that needs more than this is not a wandering vehicle: give up
 PLACE_ALIGN_ABOVE_M = 0.05  # place aligns over the spot this far above the release height, then descends the rest
@@ -56,6 +57,7 @@ TOUCH_ABOVE_M = 0.015
 TOUCH_BAND_M = 0.25
 TIP_LOWER_M = 0.02  # a top this much lower than it stood: tipped (a cup on its side is 3 cm lower)
 TIP_M = 0.015  # an object both this much lower and this much longer than it stood lies on its side
+CATALOG_HEIGHT_GAP_M = 0.04  # a lying height this far from the standing one tells them apart (lying_by_catalog)
 REST_GAP_S = 0.5  # between the two detections that must agree for a placed object to be at rest
 REST_LOOKS = 5  # looks at most for two consecutive ones that agree (a hovering multirotor's view rocks)
 UNIDENTIFIED = "unidentified object"  # what the gripper holds when it is not the target (as the executor says)
@@ -350,6 +352,17 @@ class _Manipulation(Skill):
                 break
             sp = nxt
         return False, offset, sp
+
+
+def lying_by_catalog(height: float, catalog: Vec3 | None) -> bool:
+    """Whether a catalogued object measured `height` tall lies (or stands on an end): nearer one of its lying
+    heights (its horizontal extents) than its standing height. Only lying heights at least CATALOG_HEIGHT_GAP_M
+    from the standing one count (nearer, perception's height error cannot tell them: a cup is 11 cm standing and
+    8 cm lying), and never a thin object (it lies as it belongs)."""
+    if catalog is None or min(catalog.x, catalog.y, catalog.z) < THIN_M:
+        return False
+    lying = [h for h in (catalog.x, catalog.y) if abs(h - catalog.z) >= CATALOG_HEIGHT_GAP_M]
+    return bool(lying) and min(abs(height - h) for h in lying) < abs(height - catalog.z)
 
 
 def in_window(ex: float, ey: float, vx: float, vy: float, yaw: float, window: tuple[float, float],
@@ -908,6 +921,9 @@ class Place(_Manipulation):
         if touch.down:
             ctx.note(f"the {held} touched down with the vehicle {100 * (st.position.z - body.z):.0f} cm above "
                      "the planned release height: released there")
+        fell = await self.left_the_pads(ctx)
+        if fell:
+            ctx.note(f"the {held} left the fingers before the release, {fell}")
         await ctx.gripper("open")
         if ctx.current().gripper_width is not None:
             # Verify the release with the gripper's sensing: no pad in contact any more.
@@ -918,16 +934,38 @@ class Place(_Manipulation):
                                   rec.facts(ctx, held)) from exc
         mem.set_held(None)
         try:
-            return await self.after_release(ctx, pl, held, size, surface_z, bottom + height / 2, sp, yaw, rec)
+            result = await self.after_release(ctx, pl, held, size, surface_z, bottom + height / 2, sp, yaw, rec)
         except AuthorityLost:
             raise
         except SkillFailed as exc:
+            if fell:
+                raise SkillFailed(f"the {held} left the fingers before the release, {fell}, and then: {exc}",
+                                  OutcomeCode.SLIPPED, rec.facts(ctx)) from exc
             if exc.code == OutcomeCode.UNSTABLE:
                 raise
             # The object is out of the gripper whatever stopped the retreat or the look: say so (unstable:
             # released, not seen at rest), so that no policy goes on as if it still held it.
             raise SkillFailed(f"released the {held} over the {pl.label}, then could not verify it rests there: "
                               f"{exc}", OutcomeCode.UNSTABLE, rec.facts(ctx)) from exc
+        if fell:
+            # Seen at rest on the surface, but it fell there: how it came down is not how it was held (dev seed
+            # 4: a tissue box that left the pads 28 cm up rested upside down; a box looks the same either way up).
+            raise SkillFailed(f"the {held} left the fingers before the release, {fell}; it came to rest on the "
+                              f"{pl.label}, but fell there, so it may not stand as it was held", OutcomeCode.SLIPPED,
+                              rec.facts(ctx))
+        return result
+
+    async def left_the_pads(self, ctx: SkillContext) -> str:
+        """Before the release, with the gripper's sensing: '' while the pads still hold the object (contact within
+        SLIP_CHECK_S: it flickers while the object touches down), else what the fingers report."""
+        st = ctx.current()
+        if st.gripper_width is None or st.gripper_holding:
+            return ""
+        try:
+            await ctx.wait_for(lambda st: bool(st.gripper_holding), SLIP_CHECK_S, "the fingers' contact")
+            return ""
+        except TimeoutError:
+            return f"the fingers' contact lost (opening {100 * (ctx.current().gripper_width or 0):.1f} cm)"
 
     async def lower(self, ctx: SkillContext, release: Vec3, yaw: float, touch: TouchDown, what: str) -> VehicleState:
         """The last few centimetres, slowly, to the release height within VERTICAL_WINDOW_M (the arrival
@@ -1049,7 +1087,9 @@ class Place(_Manipulation):
         tolerance = max(self.settings.upright_tolerance, 0.25 * size.z)
 
         def short(e: ObjectEstimate) -> bool:
-            return e.size is not None and size.z - e.size.z > tolerance
+            # Shorter than when held, or (when perception knows its catalogued extent) nearer a lying height than
+            # its standing one: a cracker box (21 cm) on its 16 cm side is within the quarter (dev seed 23).
+            return e.size is not None and (size.z - e.size.z > tolerance or lying_by_catalog(e.size.z, e.catalog_size))
 
         rec.upright = not short(est)
         if not rec.upright:

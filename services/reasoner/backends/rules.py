@@ -141,8 +141,9 @@ class RulesPolicy:
             # succeeded since the last release means holding. A place refused while the executor's own facts
             # said it held nothing is newer than that and settles it.
             for s in reversed(rest):
-                if _released(s) or (s.skill == S.PLACE and s.state == "rejected" and s.facts.holding is None):
-                    break
+                if _released(s) or (s.skill == S.PLACE and (s.code == OutcomeCode.SLIPPED or (
+                        s.state == "rejected" and s.facts.holding is None))):
+                    break  # (slipped: it left the fingers on place's way down, so nothing is held)
                 if s.skill == S.GRASP and s.state == "succeeded":
                     holding = "object"
                     break
