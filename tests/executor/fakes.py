@@ -63,9 +63,10 @@ class ToyWorld:
     """Objects that slip out of the fingers when the gripper point, carrying them, comes below this height: they
     fall onto what is under them there (lying, when also in `topple`). Once."""
     rocking: dict[str, int] = field(default_factory=dict)
-    looks: dict[str, list[tuple[float, float]]] = field(default_factory=dict)
-    """Per object, what its next localizations read off the truth, one (dx, dtop) per look, in metres: a view
-    that scatters (dx back and forth), one that runs off (dx growing: rolling), a top read low (dtop < 0)."""
+    looks: dict[str, list[tuple[float, ...]]] = field(default_factory=dict)
+    """Per object, what its next localizations read off the truth, one (dx, dtop) or (dx, dtop, dz) per look, in
+    metres: a view that scatters (dx back and forth), one that runs off (dx growing: rolling), a top read low
+    (dtop < 0: the height read short), the whole view lower or higher (dz: the vehicle's estimate wandered)."""
 
     def add_object(self, name: str, x: float, y: float, support_z: float, size=(0.08, 0.08, 0.11),
                    catalog: tuple[float, float, float] | None = None) -> Thing:
@@ -252,11 +253,15 @@ class FakePerception:
                 if rock:
                     self.world.rocking[t.name] = rock - 1
                 queued = self.world.looks.get(t.name)
-                ox, otop = queued.pop(0) if queued else (0.0, 0.0)
+                ox, otop, oz = (*queued.pop(0), 0.0)[:3] if queued else (0.0, 0.0, 0.0)
+                # A top read low is a height read short (perception measures the height from the support under
+                # it); `oz` shifts the whole view (the vehicle's vertical estimate wandered since the last look).
                 return ObjectEstimate(query=req.query, found=True, label=t.name,
-                                      pose=Pose(position=Vec3(x=t.center[0] + dx + ox, y=t.center[1], z=t.center[2])),
-                                      size=Vec3(x=t.size[0], y=t.size[1], z=t.size[2]), top_z=t.top + otop,
-                                      support_z=t.center[2] - t.size[2] / 2, confidence=0.9, frame_stamp_ns=now_ns(),
+                                      pose=Pose(position=Vec3(x=t.center[0] + dx + ox, y=t.center[1],
+                                                              z=t.center[2] + oz)),
+                                      size=Vec3(x=t.size[0], y=t.size[1], z=t.size[2] + otop), top_z=t.top + otop + oz,
+                                      support_z=t.center[2] - t.size[2] / 2 + oz, confidence=0.9,
+                                      frame_stamp_ns=now_ns(),
                                       catalog_size=Vec3(x=t.catalog[0], y=t.catalog[1], z=t.catalog[2])
                                       if t.catalog else None)
         return ObjectEstimate(query=req.query, found=False, reason="not_visible", message=f"{req.query} not visible")

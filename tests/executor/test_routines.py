@@ -222,7 +222,11 @@ async def test_a_top_read_low_once_after_a_miss_is_not_a_knock_twice_is_unless_i
     # Dev grasp benchmark seed 17: after a miss, the close look read the can's top 4 cm low (its centre as high
     # as before) and the grasp ended "tipped over"; the judge saw it standing. One more look decides.
     # A flat tool has no standing height to lose: a low reading is never a knock (held-out seeds 209, 237).
-    for low_looks, knocked, flat in ((1, False, False), (2, True, False), (2, False, True)):
+    # A whole view 4 cm lower (the vehicle's vertical estimate wandered between the looks: dev seeds 7, 16, 19 read
+    # "5-7 cm lower" twice, all standing) is not a top read low: its height above the table is what it was.
+    low, drifted = (0.0, -0.03), (0.0, 0.0, -0.04)
+    for low_looks, knocked, flat, look in ((1, False, False, low), (2, True, False, low), (2, False, True, low),
+                                           (2, False, False, drifted)):
         async with rig() as r:
             r.vehicle.fingers = True
             _scene(r)
@@ -232,8 +236,8 @@ async def test_a_top_read_low_once_after_a_miss_is_not_a_knock_twice_is_unless_i
             assert (await r.run_skill("obj_localization", "red cup")).state == SkillState.SUCCEEDED
             grab = r.world.grab
 
-            def miss(g, low_looks=low_looks, grab=grab, r=r):  # the first close catches nothing; then low looks
-                r.world.looks["red cup"] = [(0.0, -0.03)] * low_looks
+            def miss(g, low_looks=low_looks, grab=grab, r=r, look=look):  # the first close catches nothing; then
+                r.world.looks["red cup"] = [look] * low_looks  # the looks as asked
                 r.world.grab = grab
                 return None
 
@@ -242,7 +246,7 @@ async def test_a_top_read_low_once_after_a_miss_is_not_a_knock_twice_is_unless_i
             facts = st.outcome.facts
             if knocked:
                 assert st.outcome.code == OutcomeCode.KNOCKED_OVER and facts.attempts == 1, (st.message, facts)
-                assert "tipped over" in st.message
+                assert "tipped over" in st.message and "3 cm shorter" in st.message, st.message
             else:
                 assert st.state == SkillState.SUCCEEDED and facts.attempts == 2, (st.message, facts)
 
