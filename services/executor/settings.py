@@ -171,9 +171,10 @@ class ExecutorSettings(ServiceSettings):
     window: the pads reach a fruit 0.67 s after the close is commanded (0.15 m/s from 18 cm open), and the hover
     keeps wandering meanwhile; an object closed on more than the pad's half-width (2.5 cm) off its centre is held
     on the pad's edge, and a fruit held there falls out in transit. In-process on the realistic multirotor
-    (benchmarks/close_timing.py, noise seeds 0-59, 900 closes per lead): 5.6 % of the closes left the object
-    beyond the edge without the lead, 4.3 % with 0.2 s, 3.1 % with 0.4 s, 2.9 % with 0.6 s (but then a fifth of
-    the waits ran past align_timeout_s into a correction). Seconds; 0 turns it off."""
+    (benchmarks/close_timing.py, noise seeds 0-59, 900 closes per lead): closing in a steady hover on an object
+    known exactly at the start of the wait, 5.6 % of the closes left it beyond the edge without the lead and 3.1 %
+    with 0.4 s; with the estimate's drift over a 1.6 s blind leg since the last detection counted (what the grasp
+    meets), 23.0 % and 20.7 %: the drift, not the close's timing, is most of the error. Seconds; 0 turns it off."""
     align_corrections: int = 4
     """Setpoint corrections (by the measured mean offset) before an alignment gives up as misaligned."""
     align_timeout_s: float = 2.0
