@@ -376,9 +376,10 @@ def in_window(ex: float, ey: float, vx: float, vy: float, yaw: float, window: tu
 
 
 def _tipped(est: ObjectEstimate, before: Target) -> str | None:
-    """Why a re-detected object no longer stands as it stood (its top lower, or lower and longer: on its side), or
-    None. Never for a flat one (an extent under THIN_M: a tool, a banana): it lies as it belongs and has no
-    standing height to lose (held-out seeds 209, 237: a 3.5 cm hammer read 3-7 cm lower, the judge saw no knock)."""
+    """Why a re-detected object no longer stands as it stood (shorter above what it stands on, or shorter and
+    longer: on its side), or None. Never for a flat one (an extent under THIN_M: a tool, a banana): it lies as it
+    belongs and has no standing height to lose (held-out seeds 209, 237: a 3.5 cm hammer read 3-7 cm lower, the
+    judge saw no knock)."""
     assert est.pose is not None
     if before.size is not None and min(before.size.x, before.size.y, before.size.z) < THIN_M:
         return None
