@@ -89,7 +89,7 @@ class ToyWorld:
         return None
 
     def carry(self, g: np.ndarray) -> None:
-        for t in list(self.objects.values()):
+        for t in self.objects.values():
             if t.attached:
                 t.center = np.array([g[0], g[1], g[2] - (t.size[2] / 2 if t.hang is None else t.hang)])
                 if t.name in self.slip_below and g[2] < self.slip_below[t.name]:

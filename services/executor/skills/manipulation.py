@@ -97,6 +97,11 @@ def _top(o: MemoryObject | ObjectEstimate) -> float:
     return pos.z + (o.size.z / 2 if o.size is not None else 0.05)
 
 
+def thin(size: Vec3) -> bool:
+    """An extent under THIN_M: a tool, a banana, which lies flat as it belongs (no standing height to lose)."""
+    return min(size.x, size.y, size.z) < THIN_M
+
+
 def rolls(size: Vec3 | None) -> bool:
     """A round footprint about as tall as it is wide (a fruit, a can on its side): released near an edge or
     from height it rolls away, so it gets a spot away from edges and a lower release."""
@@ -112,7 +117,7 @@ def upright_by_width(width: float, catalog: Vec3 | None) -> bool | None:
     (16 x 7 x 21 cm) on its 7 x 21 cm side is held at 7 cm as when it stands, and a cup at its diameter either
     way (None). Nor for a thin object (any extent under THIN_M: a tool, a banana), which belongs lying flat and
     whose shape is held at gaps its box does not predict (a banana catalogued 4.5 cm wide is held at 3.1-3.6)."""
-    if catalog is None or min(catalog.x, catalog.y, catalog.z) < THIN_M:
+    if catalog is None or thin(catalog):
         return None
     standing = abs(width - catalog.y) <= WIDTH_MATCH_M
     lying = any(abs(width - w) <= WIDTH_MATCH_M for w in (min(catalog.y, catalog.z), min(catalog.x, catalog.z)))
@@ -359,7 +364,7 @@ def lying_by_catalog(height: float, catalog: Vec3 | None) -> bool:
     heights (its horizontal extents) than its standing height. Only lying heights at least CATALOG_HEIGHT_GAP_M
     from the standing one count (nearer, perception's height error cannot tell them: a cup is 11 cm standing and
     8 cm lying), and never a thin object (it lies as it belongs)."""
-    if catalog is None or min(catalog.x, catalog.y, catalog.z) < THIN_M:
+    if catalog is None or thin(catalog):
         return False
     lying = [h for h in (catalog.x, catalog.y) if abs(h - catalog.z) >= CATALOG_HEIGHT_GAP_M]
     return bool(lying) and min(abs(height - h) for h in lying) < abs(height - catalog.z)
@@ -381,7 +386,7 @@ def _tipped(est: ObjectEstimate, before: Target) -> str | None:
     belongs and has no standing height to lose (held-out seeds 209, 237: a 3.5 cm hammer read 3-7 cm lower, the
     judge saw no knock)."""
     assert est.pose is not None
-    if before.size is not None and min(before.size.x, before.size.y, before.size.z) < THIN_M:
+    if before.size is not None and thin(before.size):
         return None
     a, b = before.size, est.size
     if a is not None and b is not None:
@@ -552,7 +557,7 @@ class Grasp(_Manipulation):
                 # Pads past the middle of a round object (along their width) pinch a chord: it slips on the lift.
                 return OutcomeCode.MISALIGNED, (f"the fingers pinched the {label} off-centre ({100 * width:.1f} cm "
                                                 f"of its {100 * expected:.1f} cm): reopened")
-        if catalog is not None and round_footprint(catalog) and min(catalog.x, catalog.y, catalog.z) >= THIN_M and \
+        if catalog is not None and round_footprint(catalog) and not thin(catalog) and \
                 width < catalog.y - s.catalog_chord_tolerance:
             # Narrower than its known diameter, standing or lying (lying, the gap is its diameter or more): the
             # pads' edge holds it on a chord, and it falls out in transit.
